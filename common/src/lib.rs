@@ -1,0 +1,14 @@
+//! The DDS-XRCE protocol core of the agent, with no I/O.
+//!
+//! * [`wire`]: encode and decode XRCE messages (header, submessages, payloads).
+//! * [`session`]: sans-IO state machines: the agent side (client registry, streams,
+//!   reliability) and a client side used by tests and the load generator.
+//! * [`ipc`]: the versioned contract between front-ends and the DDS worker.
+//!
+//! This crate owns no socket, no thread and no clock: callers pass bytes, sources and
+//! `Instant`s in, and take transmits, operations and timer deadlines out.
+#![forbid(unsafe_code)]
+
+pub mod ipc;
+pub mod session;
+pub mod wire;

@@ -1,0 +1,183 @@
+//! Identifiers and small value types shared by many payloads (Annex A).
+
+use std::fmt;
+
+/// The 4-octet secret that identifies a client (§7.8.1).
+#[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Default)]
+pub struct ClientKey(pub [u8; 4]);
+
+impl ClientKey {
+    /// CLIENTKEY_INVALID.
+    pub const INVALID: ClientKey = ClientKey([0; 4]);
+}
+
+impl fmt::Debug for ClientKey {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let [a, b, c, d] = self.0;
+        write!(f, "{a:02X}{b:02X}{c:02X}{d:02X}")
+    }
+}
+
+impl fmt::Display for ClientKey {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        fmt::Debug::fmt(self, f)
+    }
+}
+
+/// `ObjectKind` values (§7.7.5, Annex A, plus eProsima's requester/replier).
+pub mod object_kind {
+    pub const INVALID: u8 = 0x00;
+    pub const PARTICIPANT: u8 = 0x01;
+    pub const TOPIC: u8 = 0x02;
+    pub const PUBLISHER: u8 = 0x03;
+    pub const SUBSCRIBER: u8 = 0x04;
+    pub const DATAWRITER: u8 = 0x05;
+    pub const DATAREADER: u8 = 0x06;
+    pub const REQUESTER: u8 = 0x07;
+    pub const REPLIER: u8 = 0x08;
+    pub const TYPE: u8 = 0x0A;
+    pub const QOSPROFILE: u8 = 0x0B;
+    pub const APPLICATION: u8 = 0x0C;
+    pub const AGENT: u8 = 0x0D;
+    pub const CLIENT: u8 = 0x0E;
+    pub const OTHER: u8 = 0x0F;
+}
+
+/// A 2-octet object id: 12-bit prefix and the object kind in the low nibble of byte 1.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Default)]
+pub struct ObjectId(pub [u8; 2]);
+
+impl ObjectId {
+    /// OBJECTID_INVALID.
+    pub const INVALID: ObjectId = ObjectId([0x00, 0x00]);
+    /// OBJECTID_AGENT.
+    pub const AGENT: ObjectId = ObjectId([0xFF, 0xFD]);
+    /// OBJECTID_CLIENT: DELETE of this id deletes the session.
+    pub const CLIENT: ObjectId = ObjectId([0xFF, 0xFE]);
+    /// OBJECTID_SESSION.
+    pub const SESSION: ObjectId = ObjectId([0xFF, 0xFF]);
+
+    /// Builds an id from a 12-bit prefix number and a kind, the way the eProsima client does.
+    pub fn new(prefix: u16, kind: u8) -> Self {
+        let raw = (prefix << 4) | (kind as u16 & 0x0F);
+        ObjectId(raw.to_be_bytes())
+    }
+
+    /// The object kind (low nibble of byte 1).
+    pub fn kind(self) -> u8 {
+        self.0[1] & 0x0F
+    }
+
+    /// The 12-bit prefix.
+    pub fn prefix(self) -> u16 {
+        u16::from_be_bytes(self.0) >> 4
+    }
+}
+
+impl fmt::Debug for ObjectId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{:02X}{:02X}", self.0[0], self.0[1])
+    }
+}
+
+/// The 2-octet request id that replies echo. Opaque to the agent.
+#[derive(Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub struct RequestId(pub [u8; 2]);
+
+impl RequestId {
+    /// The eProsima client writes the id big endian.
+    pub fn from_u16(v: u16) -> Self {
+        RequestId(v.to_be_bytes())
+    }
+
+    /// The id as the eProsima client numbers it.
+    pub fn as_u16(self) -> u16 {
+        u16::from_be_bytes(self.0)
+    }
+}
+
+impl fmt::Debug for RequestId {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{:02X}{:02X}", self.0[0], self.0[1])
+    }
+}
+
+/// `StatusValue` (§7.7.7, Table 2).
+pub mod status {
+    pub const OK: u8 = 0x00;
+    pub const OK_MATCHED: u8 = 0x01;
+    pub const ERR_DDS_ERROR: u8 = 0x80;
+    pub const ERR_MISMATCH: u8 = 0x81;
+    pub const ERR_ALREADY_EXISTS: u8 = 0x82;
+    pub const ERR_DENIED: u8 = 0x83;
+    pub const ERR_UNKNOWN_REFERENCE: u8 = 0x84;
+    pub const ERR_INVALID_DATA: u8 = 0x85;
+    pub const ERR_INCOMPATIBLE: u8 = 0x86;
+    pub const ERR_RESOURCES: u8 = 0x87;
+
+    /// Whether a status value means success.
+    pub fn is_ok(v: u8) -> bool {
+        v == OK || v == OK_MATCHED
+    }
+}
+
+/// `ResultStatus`: a status value and a vendor-specific detail octet.
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+pub struct ResultStatus {
+    /// A value of [`status`].
+    pub status: u8,
+    /// Vendor-specific detail.
+    pub implementation_status: u8,
+}
+
+impl ResultStatus {
+    /// STATUS_OK with no detail.
+    pub const OK: ResultStatus = ResultStatus { status: status::OK, implementation_status: 0 };
+
+    /// A status with no detail.
+    pub fn new(status: u8) -> Self {
+        ResultStatus { status, implementation_status: 0 }
+    }
+}
+
+/// Stream ids with a meaning of their own (§8.3.2.2).
+pub mod stream_id {
+    /// Submessages that belong to no stream (ACKNACK, HEARTBEAT, ...).
+    pub const NONE: u8 = 0x00;
+    /// Built-in best-effort stream.
+    pub const BUILTIN_BEST_EFFORT: u8 = 0x01;
+    /// Built-in reliable stream.
+    pub const BUILTIN_RELIABLE: u8 = 0x80;
+
+    /// Whether a (non-zero) stream id denotes a reliable stream.
+    pub fn is_reliable(id: u8) -> bool {
+        id & 0x80 != 0
+    }
+}
+
+/// `DataFormat` values carried in WRITE_DATA / DATA flags and in READ_DATA (§4 of the digest).
+pub mod data_format {
+    pub const DATA: u8 = 0x00;
+    pub const SAMPLE: u8 = 0x02;
+    pub const DATA_SEQ: u8 = 0x08;
+    pub const SAMPLE_SEQ: u8 = 0x0A;
+    pub const PACKED_SAMPLES: u8 = 0x0E;
+    /// Mask of the format bits in submessage flags.
+    pub const MASK: u8 = 0x0E;
+}
+
+/// The "XRCE" cookie.
+pub const XRCE_COOKIE: [u8; 4] = *b"XRCE";
+/// The protocol version this agent speaks.
+pub const XRCE_VERSION: [u8; 2] = [0x01, 0x00];
+/// eProsima's vendor id.
+pub const VENDOR_EPROSIMA: [u8; 2] = [0x01, 0x0F];
+
+/// `Time_t`: seconds and nanoseconds.
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+pub struct Time {
+    /// Seconds.
+    pub seconds: i32,
+    /// Nanoseconds.
+    pub nanoseconds: u32,
+}

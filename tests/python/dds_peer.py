@@ -1,0 +1,195 @@
+#!/usr/bin/env python3
+"""Independent DDS peer (Eclipse Cyclone DDS, Python binding) for end-to-end tests.
+
+Subcommands:
+  read  --count N                       print READY, then one JSON line per sample
+  write --count N --interval-ms M ...   publish N HelloWorld samples
+
+Output protocol (stdout, one line each, flushed):
+  READY                  reader (read) / writer (write) exists
+  MATCHED <n>            matched-endpoint count changed to n (n >= 1 for write --wait-match)
+  {"index": i, "message": "..."}   one received sample (read)
+  SENT <i>               sample i written (write)
+On timeout: exit code 3 and a `TIMEOUT ...` line on stderr.
+Usage errors / missing CYCLONEDDS_URI: exit code 2.
+
+CYCLONEDDS_URI must be set (e.g. file:///.../cyclonedds-loopback.xml) so that
+the peer never uses a non-loopback interface by accident.
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+
+EXIT_OK = 0
+EXIT_USAGE = 2
+EXIT_TIMEOUT = 3
+
+
+def eprint(*args):
+    print(*args, file=sys.stderr, flush=True)
+
+
+def out(line):
+    print(line, flush=True)
+
+
+def parse_args(argv):
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--domain", type=int, default=0, help="DDS domain id (default 0)")
+    common.add_argument("--topic", default="HelloWorldTopic", help="topic name (default HelloWorldTopic)")
+    rel = common.add_mutually_exclusive_group()
+    rel.add_argument("--reliable", dest="reliable", action="store_true", default=True,
+                     help="RELIABLE reliability (default)")
+    rel.add_argument("--best-effort", dest="reliable", action="store_false",
+                     help="BEST_EFFORT reliability")
+    common.add_argument("--transient-local", action="store_true",
+                        help="TRANSIENT_LOCAL durability (default VOLATILE)")
+    common.add_argument("--timeout", type=float, default=30.0,
+                        help="seconds before giving up (default 30)")
+
+    p = argparse.ArgumentParser(prog="dds_peer.py", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    r = sub.add_parser("read", parents=[common], help="subscribe and print samples as JSON lines")
+    r.add_argument("--count", type=int, default=1, help="samples to receive before exiting 0 (default 1)")
+
+    w = sub.add_parser("write", parents=[common], help="publish samples")
+    w.add_argument("--count", type=int, default=1, help="samples to write (default 1)")
+    w.add_argument("--interval-ms", type=int, default=100, help="pause between samples (default 100)")
+    w.add_argument("--message", default="Hello DDS", help="message text of every sample")
+    w.add_argument("--wait-match", action="store_true",
+                   help="wait (up to --timeout) for at least one matched reader before writing")
+    w.add_argument("--linger-ms", type=int, default=1000,
+                   help="stay alive this long after the last write (default 1000)")
+    return p.parse_args(argv)
+
+
+def main(argv=None):
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+
+    uri = os.environ.get("CYCLONEDDS_URI", "").strip()
+    if not uri:
+        eprint("error: CYCLONEDDS_URI is not set; refusing to start Cyclone DDS with its default "
+               "configuration (it could use a non-loopback interface). Set e.g. "
+               "CYCLONEDDS_URI=file:///abs/path/cyclonedds-loopback.xml")
+        return EXIT_USAGE
+    if args.count < 0 or args.timeout <= 0:
+        eprint("error: --count must be >= 0 and --timeout > 0")
+        return EXIT_USAGE
+
+    # Imported only after the environment check so that a missing URI never starts DDS.
+    from cyclonedds.core import DDSStatus, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+    from cyclonedds.domain import DomainParticipant
+    from cyclonedds.idl import IdlStruct
+    from cyclonedds.idl import annotations as annotate
+    from cyclonedds.idl.types import uint32
+    from cyclonedds.pub import DataWriter
+    from cyclonedds.qos import Policy, Qos
+    from cyclonedds.sub import DataReader
+    from cyclonedds.topic import Topic
+    from cyclonedds.util import duration
+
+    @dataclass
+    @annotate.final
+    class HelloWorld(IdlStruct, typename="HelloWorld"):
+        index: uint32
+        message: str
+
+    start = time.monotonic()
+    deadline = start + args.timeout
+
+    def remaining_ns():
+        return max(0, int((deadline - time.monotonic()) * 1e9))
+
+    policies = [
+        Policy.Reliability.Reliable(max_blocking_time=duration(seconds=1))
+        if args.reliable else Policy.Reliability.BestEffort,
+        Policy.Durability.TransientLocal if args.transient_local else Policy.Durability.Volatile,
+    ]
+
+    dp = DomainParticipant(args.domain)
+    topic = Topic(dp, args.topic, HelloWorld)
+    waitset = WaitSet(dp)
+
+    if args.cmd == "read":
+        qos = Qos(*policies,
+                  Policy.History.KeepAll,
+                  # Accept both XCDR1 and XCDR2 writers.
+                  Policy.DataRepresentation(use_cdrv0_representation=True,
+                                            use_xcdrv2_representation=True))
+        reader = DataReader(dp, topic, qos=qos)
+        # The reader entity itself is a status condition triggered by the masked statuses.
+        reader.set_status_mask(DDSStatus.SubscriptionMatched)
+        cond = ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any)
+        waitset.attach(cond)
+        waitset.attach(reader)
+        out("READY")
+
+        got = 0
+        last_matched = 0
+        while got < args.count:
+            if reader.get_status_changes() & DDSStatus.SubscriptionMatched:
+                st = reader.get_subscription_matched_status()  # also resets the change flag
+                if st.current_count != last_matched:
+                    last_matched = st.current_count
+                    out(f"MATCHED {last_matched}")
+            for s in reader.take(N=64, condition=cond):
+                if not isinstance(s, HelloWorld):  # invalid sample (e.g. dispose / no writers)
+                    continue
+                out(json.dumps({"index": int(s.index), "message": s.message}))
+                got += 1
+                if got >= args.count:
+                    break
+            if got >= args.count:
+                break
+            left = remaining_ns()
+            if left == 0:
+                eprint(f"TIMEOUT got={got}")
+                return EXIT_TIMEOUT
+            waitset.wait(left)
+        return EXIT_OK
+
+    # write
+    depth = max(1, args.count)
+    qos = Qos(*policies,
+              Policy.History.KeepLast(depth),
+              # Cyclone sizes the TRANSIENT_LOCAL history kept for late joiners from the
+              # DurabilityService history (default KEEP_LAST 1), not from History.
+              Policy.DurabilityService(cleanup_delay=0, history=Policy.History.KeepLast(depth),
+                                       max_samples=-1, max_instances=-1,
+                                       max_samples_per_instance=-1),
+              Policy.DataRepresentation(use_cdrv0_representation=True))  # XCDR1 on the wire
+    writer = DataWriter(dp, topic, qos=qos)
+    writer.set_status_mask(DDSStatus.PublicationMatched)
+    waitset.attach(writer)
+    out("READY")
+
+    if args.wait_match:
+        while True:
+            st = writer.get_publication_matched_status()
+            if st.current_count >= 1:
+                out(f"MATCHED {st.current_count}")
+                break
+            left = remaining_ns()
+            if left == 0:
+                eprint("TIMEOUT no matching reader")
+                return EXIT_TIMEOUT
+            waitset.wait(left)
+
+    for i in range(args.count):
+        if i > 0 and args.interval_ms > 0:
+            time.sleep(args.interval_ms / 1000.0)
+        writer.write(HelloWorld(index=i, message=args.message))
+        out(f"SENT {i}")
+
+    if args.linger_ms > 0:
+        time.sleep(args.linger_ms / 1000.0)
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())
