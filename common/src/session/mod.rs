@@ -1,1 +1,12 @@
-//! placeholder
+//! Sans-IO session state machines.
+//!
+//! * [`agent`]: the agent side of every session of one front-end.
+//! * [`client`]: a client side, for tests, simulation and the load generator.
+//! * [`graph`]: a client's object graph and active reads, kept for replay.
+//! * [`stream`] and [`seq`]: reliable and best-effort stream state, serial numbers.
+
+pub mod agent;
+pub mod client;
+pub mod graph;
+pub mod seq;
+pub mod stream;

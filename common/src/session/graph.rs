@@ -1,0 +1,183 @@
+//! A client's object graph: the objects it created, in creation order, and its active reads.
+//!
+//! The front-end keeps one per client so that it can replay them to a new DDS worker, and it
+//! decides the creation-mode outcome (§7.8.3.1, Table 5) for objects that already exist.
+
+use std::collections::HashMap;
+
+use crate::wire::{status, ObjectId, ObjectVariant, ReadSpecification, RequestId};
+
+/// What to do with a CREATE, given what exists.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CreateDecision {
+    /// Nothing with this id exists: create it.
+    Create,
+    /// Delete the existing object (and what hangs off it), then create.
+    Replace,
+    /// Do nothing and answer with this status.
+    Reply(u8),
+}
+
+/// An object the client created.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct GraphObject {
+    /// Its id.
+    pub object_id: ObjectId,
+    /// The request that created it (echoed again on replay).
+    pub request_id: RequestId,
+    /// How it was described.
+    pub variant: ObjectVariant,
+}
+
+/// An active READ_DATA.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ActiveRead {
+    /// The READ_DATA request id, echoed by every DATA.
+    pub request_id: RequestId,
+    /// The read specification.
+    pub spec: ReadSpecification,
+}
+
+/// Objects and reads of one client.
+#[derive(Debug, Clone, Default)]
+pub struct ObjectGraph {
+    objects: Vec<GraphObject>,
+    reads: HashMap<ObjectId, ActiveRead>,
+}
+
+impl ObjectGraph {
+    /// Number of objects.
+    pub fn len(&self) -> usize {
+        self.objects.len()
+    }
+
+    /// Whether there are no objects.
+    pub fn is_empty(&self) -> bool {
+        self.objects.is_empty()
+    }
+
+    /// The object with this id.
+    pub fn get(&self, id: ObjectId) -> Option<&GraphObject> {
+        self.objects.iter().find(|o| o.object_id == id)
+    }
+
+    /// Objects in creation order.
+    pub fn objects(&self) -> impl Iterator<Item = &GraphObject> {
+        self.objects.iter()
+    }
+
+    /// Active reads.
+    pub fn reads(&self) -> impl Iterator<Item = (&ObjectId, &ActiveRead)> {
+        self.reads.iter()
+    }
+
+    /// Decides a CREATE per the creation-mode table.
+    pub fn decide_create(&self, id: ObjectId, variant: &ObjectVariant, reuse: bool, replace: bool) -> CreateDecision {
+        let Some(existing) = self.get(id) else { return CreateDecision::Create };
+        let matches = existing.variant == *variant;
+        match (reuse, replace) {
+            (false, false) => CreateDecision::Reply(status::ERR_ALREADY_EXISTS),
+            (false, true) => CreateDecision::Replace,
+            (true, _) if matches => CreateDecision::Reply(status::OK_MATCHED),
+            (true, false) => CreateDecision::Reply(status::ERR_MISMATCH),
+            (true, true) => CreateDecision::Replace,
+        }
+    }
+
+    /// Records a created object (after any replaced one was removed).
+    pub fn insert(&mut self, object: GraphObject) {
+        self.objects.retain(|o| o.object_id != object.object_id);
+        self.objects.push(object);
+    }
+
+    /// Removes an object and everything created under it; returns the removed ids,
+    /// children first.
+    pub fn remove(&mut self, id: ObjectId) -> Vec<ObjectId> {
+        let mut doomed = vec![id];
+        let mut i = 0;
+        while i < doomed.len() {
+            let parent = doomed[i];
+            for o in &self.objects {
+                if o.variant.parent() == Some(parent) && !doomed.contains(&o.object_id) {
+                    doomed.push(o.object_id);
+                }
+            }
+            i += 1;
+        }
+        // Creation order puts parents before children; reversed, children come first.
+        let mut removed: Vec<ObjectId> =
+            self.objects.iter().map(|o| o.object_id).filter(|o| doomed.contains(o)).collect();
+        removed.reverse();
+        self.objects.retain(|o| !doomed.contains(&o.object_id));
+        for d in &doomed {
+            self.reads.remove(d);
+        }
+        removed
+    }
+
+    /// Records (or replaces) the active read of a reader; `max_samples == 0` cancels it.
+    pub fn set_read(&mut self, reader: ObjectId, read: ActiveRead) {
+        if read.spec.delivery_control.is_some_and(|d| d.max_samples == 0) {
+            self.reads.remove(&reader);
+        } else {
+            self.reads.insert(reader, read);
+        }
+    }
+
+    /// Forgets a finished read.
+    pub fn end_read(&mut self, reader: ObjectId) {
+        self.reads.remove(&reader);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::wire::{object_kind as k, Representation, VariantExtra};
+
+    fn obj(prefix: u16, kind: u8, parent: Option<ObjectId>) -> GraphObject {
+        GraphObject {
+            object_id: ObjectId::new(prefix, kind),
+            request_id: RequestId::from_u16(prefix),
+            variant: ObjectVariant {
+                kind,
+                representation: Representation::Xml(format!("<x{prefix}/>")),
+                extra: parent.map(VariantExtra::Parent).unwrap_or(VariantExtra::DomainId(0)),
+            },
+        }
+    }
+
+    #[test]
+    fn creation_modes_follow_table_5() {
+        let mut g = ObjectGraph::default();
+        let p = obj(1, k::PARTICIPANT, None);
+        assert_eq!(g.decide_create(p.object_id, &p.variant, false, false), CreateDecision::Create);
+        g.insert(p.clone());
+        let mut other = p.variant.clone();
+        other.representation = Representation::Xml("<y/>".into());
+        let id = p.object_id;
+        assert_eq!(g.decide_create(id, &p.variant, false, false), CreateDecision::Reply(status::ERR_ALREADY_EXISTS));
+        assert_eq!(g.decide_create(id, &other, false, true), CreateDecision::Replace);
+        assert_eq!(g.decide_create(id, &p.variant, true, false), CreateDecision::Reply(status::OK_MATCHED));
+        assert_eq!(g.decide_create(id, &other, true, false), CreateDecision::Reply(status::ERR_MISMATCH));
+        assert_eq!(g.decide_create(id, &p.variant, true, true), CreateDecision::Reply(status::OK_MATCHED));
+        assert_eq!(g.decide_create(id, &other, true, true), CreateDecision::Replace);
+    }
+
+    #[test]
+    fn removing_a_parent_removes_its_subtree_children_first() {
+        let mut g = ObjectGraph::default();
+        let p = obj(1, k::PARTICIPANT, None);
+        let s = obj(1, k::SUBSCRIBER, Some(p.object_id));
+        let r = obj(1, k::DATAREADER, Some(s.object_id));
+        let other = obj(2, k::PARTICIPANT, None);
+        for o in [&p, &s, &r, &other] {
+            g.insert(o.clone());
+        }
+        g.set_read(r.object_id, ActiveRead { request_id: RequestId::from_u16(9), spec: ReadSpecification::default() });
+        let removed = g.remove(p.object_id);
+        assert_eq!(removed, vec![r.object_id, s.object_id, p.object_id]);
+        assert_eq!(g.len(), 1);
+        assert_eq!(g.reads().count(), 0);
+    }
+}

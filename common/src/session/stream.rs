@@ -1,0 +1,276 @@
+//! Stream state shared by the agent and client state machines (§8.4.14).
+//!
+//! Streams are per direction: an output stream belongs to the sender, an input stream to the
+//! receiver. Reliable streams keep what was sent until acknowledged, and buffer what arrived
+//! early; best-effort streams only drop what is not newer than the last delivered message.
+
+use std::collections::{HashMap, VecDeque};
+
+use super::seq;
+use crate::wire::{AcknackPayload, HeartbeatPayload};
+
+/// The sender side of a reliable stream.
+#[derive(Debug, Clone)]
+pub struct ReliableOutput {
+    stream_id: u8,
+    next: u16,
+    /// Sent and not yet acknowledged, oldest first: (sequence number, whole message).
+    in_flight: VecDeque<(u16, Vec<u8>)>,
+    window: usize,
+}
+
+impl ReliableOutput {
+    /// A stream that keeps at most `window` unacknowledged messages.
+    pub fn new(stream_id: u8, window: usize) -> Self {
+        ReliableOutput { stream_id, next: 0, in_flight: VecDeque::new(), window: window.max(1) }
+    }
+
+    /// The stream id.
+    pub fn stream_id(&self) -> u8 {
+        self.stream_id
+    }
+
+    /// Whether another message may be sent now.
+    pub fn has_room(&self) -> bool {
+        self.in_flight.len() < self.window
+    }
+
+    /// Messages sent and not yet acknowledged.
+    pub fn unacked(&self) -> usize {
+        self.in_flight.len()
+    }
+
+    /// The sequence number the next message will carry.
+    pub fn next_seq(&self) -> u16 {
+        self.next
+    }
+
+    /// Records a message sent with [`Self::next_seq`] and advances the sequence number.
+    pub fn record(&mut self, message: Vec<u8>) {
+        self.in_flight.push_back((self.next, message));
+        self.next = self.next.wrapping_add(1);
+    }
+
+    /// Applies an ACKNACK; returns the messages to send again.
+    pub fn on_acknack(&mut self, a: &AcknackPayload) -> Vec<&[u8]> {
+        // Only accept acknowledgements of what was actually sent.
+        if seq::lt(self.next, a.first_unacked_seq_num) {
+            return Vec::new();
+        }
+        while let Some((s, _)) = self.in_flight.front() {
+            if seq::lt(*s, a.first_unacked_seq_num) {
+                self.in_flight.pop_front();
+            } else {
+                break;
+            }
+        }
+        let mut out = Vec::new();
+        for (s, m) in &self.in_flight {
+            let i = s.wrapping_sub(a.first_unacked_seq_num);
+            if i < 16 && a.nack_bitmap & (1 << i) != 0 {
+                out.push(m.as_slice());
+            }
+        }
+        out
+    }
+
+    /// The HEARTBEAT to send while messages are unacknowledged.
+    pub fn heartbeat(&self) -> Option<HeartbeatPayload> {
+        let (first, _) = self.in_flight.front()?;
+        Some(HeartbeatPayload {
+            first_unacked_seq_num: *first,
+            last_unacked_seq_num: self.next.wrapping_sub(1),
+            stream_id: self.stream_id,
+        })
+    }
+
+    /// All unacknowledged messages, oldest first.
+    pub fn unacked_messages(&self) -> impl Iterator<Item = &[u8]> {
+        self.in_flight.iter().map(|(_, m)| m.as_slice())
+    }
+
+    /// Forgets everything (RESET): numbering restarts at 0.
+    pub fn reset(&mut self) {
+        self.next = 0;
+        self.in_flight.clear();
+    }
+}
+
+/// What the receiver of a reliable stream should do with an arriving message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Arrival {
+    /// It is the next expected one: process it now, then call [`ReliableInput::advance`].
+    InOrder,
+    /// It is ahead of a gap and within the window: keep it for later.
+    Early,
+    /// Already delivered (or already buffered): drop it.
+    Duplicate,
+    /// Too far ahead: drop it; the sender will resend.
+    OutOfWindow,
+}
+
+/// The receiver side of a reliable stream.
+#[derive(Debug, Clone)]
+pub struct ReliableInput {
+    expected: u16,
+    highest_announced: Option<u16>,
+    early: HashMap<u16, Vec<u8>>,
+    window: u16,
+}
+
+impl ReliableInput {
+    /// A stream buffering at most `window` (≤ 16) early messages.
+    pub fn new(window: u16) -> Self {
+        ReliableInput { expected: 0, highest_announced: None, early: HashMap::new(), window: window.clamp(1, 16) }
+    }
+
+    /// The next sequence number expected.
+    pub fn expected(&self) -> u16 {
+        self.expected
+    }
+
+    /// Classifies an arriving sequence number (and notes it as announced).
+    pub fn classify(&mut self, s: u16) -> Arrival {
+        let d = s.wrapping_sub(self.expected);
+        if d >= 0x8000 {
+            return Arrival::Duplicate;
+        }
+        self.announce(s);
+        if d == 0 {
+            Arrival::InOrder
+        } else if self.early.contains_key(&s) {
+            Arrival::Duplicate
+        } else if d < self.window {
+            Arrival::Early
+        } else {
+            Arrival::OutOfWindow
+        }
+    }
+
+    /// Keeps an early message.
+    pub fn store_early(&mut self, s: u16, message: Vec<u8>) {
+        self.early.insert(s, message);
+    }
+
+    /// Marks the expected message as delivered; returns the next buffered one, if it is there.
+    pub fn advance(&mut self) -> Option<Vec<u8>> {
+        self.expected = self.expected.wrapping_add(1);
+        self.early.remove(&self.expected)
+    }
+
+    /// Notes a sequence number the sender says it has sent.
+    pub fn announce(&mut self, s: u16) {
+        self.highest_announced = Some(match self.highest_announced {
+            Some(h) => seq::max(h, s),
+            None => s,
+        });
+    }
+
+    /// Applies a HEARTBEAT: messages before `first` are no longer available, so skip them.
+    pub fn on_heartbeat(&mut self, h: &HeartbeatPayload) {
+        if seq::lt(self.expected, h.first_unacked_seq_num) {
+            // The sender gave up on them; never wait for them.
+            self.expected = h.first_unacked_seq_num;
+            let exp = self.expected;
+            self.early.retain(|s, _| seq::le(exp, *s));
+        }
+        self.announce(h.last_unacked_seq_num);
+    }
+
+    /// Whether messages are known to be missing.
+    pub fn has_gap(&self) -> bool {
+        self.highest_announced.is_some_and(|h| seq::le(self.expected, h))
+    }
+
+    /// The ACKNACK describing this stream.
+    pub fn acknack(&self, stream_id: u8) -> AcknackPayload {
+        let mut bitmap = 0u16;
+        if let Some(h) = self.highest_announced {
+            for i in 0..16u16 {
+                let s = self.expected.wrapping_add(i);
+                if !seq::le(s, h) {
+                    break;
+                }
+                if !self.early.contains_key(&s) {
+                    bitmap |= 1 << i;
+                }
+            }
+        }
+        AcknackPayload { first_unacked_seq_num: self.expected, nack_bitmap: bitmap, stream_id }
+    }
+
+    /// Forgets everything (RESET).
+    pub fn reset(&mut self) {
+        self.expected = 0;
+        self.highest_announced = None;
+        self.early.clear();
+    }
+}
+
+/// The receiver side of a best-effort stream: newer messages only.
+#[derive(Debug, Clone, Default)]
+pub struct BestEffortInput {
+    last: Option<u16>,
+}
+
+impl BestEffortInput {
+    /// Whether a message with this sequence number is to be delivered (and records it).
+    pub fn accept(&mut self, s: u16) -> bool {
+        match self.last {
+            Some(l) if !seq::lt(l, s) => false,
+            _ => {
+                self.last = Some(s);
+                true
+            }
+        }
+    }
+
+    /// Forgets the last sequence number (RESET).
+    pub fn reset(&mut self) {
+        self.last = None;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn input_reorders_within_window_and_drops_duplicates() {
+        let mut i = ReliableInput::new(16);
+        assert_eq!(i.classify(1), Arrival::Early);
+        i.store_early(1, vec![1]);
+        assert_eq!(i.classify(1), Arrival::Duplicate);
+        assert_eq!(i.acknack(0x80).nack_bitmap, 0b01);
+        assert_eq!(i.classify(0), Arrival::InOrder);
+        assert_eq!(i.advance(), Some(vec![1]));
+        assert_eq!(i.advance(), None);
+        assert_eq!(i.expected(), 2);
+        assert_eq!(i.classify(0), Arrival::Duplicate);
+        assert_eq!(i.classify(40), Arrival::OutOfWindow);
+    }
+
+    #[test]
+    fn output_retransmits_nacked_and_drops_acked() {
+        let mut o = ReliableOutput::new(0x80, 8);
+        for k in 0..4u8 {
+            o.record(vec![k]);
+        }
+        let re = o.on_acknack(&AcknackPayload { first_unacked_seq_num: 1, nack_bitmap: 0b101, stream_id: 0x80 });
+        assert_eq!(re, vec![&[1u8][..], &[3u8][..]]);
+        assert_eq!(o.unacked(), 3);
+        assert_eq!(o.heartbeat().map(|h| (h.first_unacked_seq_num, h.last_unacked_seq_num)), Some((1, 3)));
+        // An acknowledgement of something never sent is ignored.
+        assert!(o.on_acknack(&AcknackPayload { first_unacked_seq_num: 100, nack_bitmap: 0, stream_id: 0x80 }).is_empty());
+        assert_eq!(o.unacked(), 3);
+    }
+
+    #[test]
+    fn best_effort_drops_old() {
+        let mut b = BestEffortInput::default();
+        assert!(b.accept(5));
+        assert!(!b.accept(5));
+        assert!(!b.accept(4));
+        assert!(b.accept(9));
+    }
+}
