@@ -6,8 +6,9 @@
 //! * [`ipc`]: the versioned contract between front-ends and the DDS worker.
 //!
 //! This crate owns no socket, no thread and no clock: callers pass bytes, sources and
-//! `Instant`s in, and take transmits, operations and timer deadlines out.
-#![forbid(unsafe_code)]
+//! `Instant`s in, and take transmits, operations and timer deadlines out. The one exception
+//! is [`ipc::shm`] (feature `shm`): the iceoryx2 ports both processes use for the contract.
+#![deny(unsafe_code)]
 
 pub mod ipc;
 pub mod session;

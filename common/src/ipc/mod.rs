@@ -1,1 +1,245 @@
-//! placeholder
+//! The contract between front-ends and the DDS worker (version [`IPC_VERSION`]).
+//!
+//! Every message is a fixed little-endian [`IpcHeader`] followed by `body_len` bytes. Object
+//! descriptions and read specifications travel in their XRCE encoding (little endian), so
+//! there is one codec for them. Service names live under `xrce/<instance>/`.
+//!
+//! Flow: front-ends publish operations on [`request_service`] (many publishers, one worker);
+//! the worker answers each front-end on its own [`reply_service`], and announces each new
+//! worker generation on [`announce_service`]. Every data service has an event service of the
+//! same name plus `.ev` so receivers block instead of polling.
+
+#[cfg(feature = "shm")]
+pub mod shm;
+
+use crate::wire::{ClientKey, ObjectId, RequestId};
+
+/// Version of this contract; both sides drop (and log) messages of another version.
+pub const IPC_VERSION: u16 = 1;
+/// Magic at the start of every message.
+pub const IPC_MAGIC: [u8; 4] = *b"XRIP";
+
+/// Largest message body carried (a sample plus slack); bigger samples are refused.
+pub const MAX_BODY: usize = 65_536 + 512;
+/// Buffer of each publisher→subscriber connection in messages.
+pub const CHANNEL_DEPTH: usize = 256;
+/// Operations a front-end may have sent and not seen processed; below [`CHANNEL_DEPTH`] so the
+/// worker's queue never overflows (an overflow would silently lose operations).
+pub const IN_FLIGHT_WINDOW: u64 = 192;
+
+/// What a message is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+pub enum MessageKind {
+    /// Front-end → worker: I (re)started; forget every entity you hold for me.
+    FrontendHello = 1,
+    /// Front-end → worker: create an object (body: XRCE ObjectVariant, LE).
+    Create = 2,
+    /// Front-end → worker: delete an object and its children.
+    Delete = 3,
+    /// Front-end → worker: write a sample (body: serialized sample; flag LE).
+    Write = 4,
+    /// Front-end → worker: start or replace a read (body: XRCE ReadSpecification, LE).
+    Read = 5,
+    /// Front-end → worker: a session ended; delete all its objects.
+    DeleteClient = 6,
+    /// Worker → all: a new worker generation is serving.
+    WorkerHello = 16,
+    /// Worker → front-end: the result of a Create, Delete, Write or Read (body: status, detail).
+    Status = 17,
+    /// Worker → front-end: a sample for an active read (body: serialized sample; flag LE).
+    Sample = 18,
+    /// Worker → front-end: every operation up to `op_seq` has been executed.
+    Progress = 19,
+    /// Worker → front-end: a read finished (its delivery limits were reached).
+    ReadEnded = 20,
+}
+
+impl MessageKind {
+    fn from_u8(v: u8) -> Option<Self> {
+        use MessageKind::*;
+        Some(match v {
+            1 => FrontendHello,
+            2 => Create,
+            3 => Delete,
+            4 => Write,
+            5 => Read,
+            6 => DeleteClient,
+            16 => WorkerHello,
+            17 => Status,
+            18 => Sample,
+            19 => Progress,
+            20 => ReadEnded,
+            _ => return None,
+        })
+    }
+}
+
+/// Flag: the body's sample is little endian.
+pub const FLAG_LITTLE_ENDIAN: u8 = 0x01;
+/// Flag on Create/Delete/Read: part of a replay to a new worker; answer it but the client
+/// is not waiting for the answer.
+pub const FLAG_REPLAY: u8 = 0x02;
+
+/// The fixed header of every IPC message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct IpcHeader {
+    /// What the message is.
+    pub kind: MessageKind,
+    /// [`FLAG_LITTLE_ENDIAN`], [`FLAG_REPLAY`].
+    pub flags: u8,
+    /// The front-end the message comes from or goes to.
+    pub frontend_id: u32,
+    /// The worker generation (set by the worker; 0 from front-ends).
+    pub generation: u32,
+    /// Front-end operation sequence number (requests), or the one answered (replies).
+    pub op_seq: u64,
+    /// The client concerned.
+    pub client_key: ClientKey,
+    /// The XRCE request id to echo.
+    pub request_id: RequestId,
+    /// The XRCE object concerned.
+    pub object_id: ObjectId,
+}
+
+/// Why an IPC message was rejected.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum IpcError {
+    /// Shorter than a header, or shorter than the header says.
+    #[error("truncated IPC message")]
+    Truncated,
+    /// Not an IPC message.
+    #[error("bad IPC magic")]
+    BadMagic,
+    /// Another contract version.
+    #[error("IPC version {0} not supported (this build speaks {IPC_VERSION})")]
+    Version(u16),
+    /// Unknown kind.
+    #[error("unknown IPC message kind {0}")]
+    Kind(u8),
+}
+
+impl IpcHeader {
+    /// Encoded length.
+    pub const LEN: usize = 40;
+
+    /// A header for `kind` with everything else zero.
+    pub fn new(kind: MessageKind) -> Self {
+        IpcHeader {
+            kind,
+            flags: 0,
+            frontend_id: 0,
+            generation: 0,
+            op_seq: 0,
+            client_key: ClientKey::INVALID,
+            request_id: RequestId::default(),
+            object_id: ObjectId::INVALID,
+        }
+    }
+
+    /// Writes the header for a body of `body_len` bytes into `out[..Self::LEN]`.
+    ///
+    /// `out` must be at least [`Self::LEN`] bytes long.
+    pub fn write(&self, out: &mut [u8], body_len: usize) {
+        let o = &mut out[..Self::LEN];
+        o[0..4].copy_from_slice(&IPC_MAGIC);
+        o[4..6].copy_from_slice(&IPC_VERSION.to_le_bytes());
+        o[6] = self.kind as u8;
+        o[7] = self.flags;
+        o[8..12].copy_from_slice(&self.frontend_id.to_le_bytes());
+        o[12..16].copy_from_slice(&self.generation.to_le_bytes());
+        o[16..24].copy_from_slice(&self.op_seq.to_le_bytes());
+        o[24..28].copy_from_slice(&self.client_key.0);
+        o[28..30].copy_from_slice(&self.request_id.0);
+        o[30..32].copy_from_slice(&self.object_id.0);
+        o[32..36].copy_from_slice(&(body_len as u32).to_le_bytes());
+        o[36..40].fill(0);
+    }
+
+    /// Encodes a whole message.
+    pub fn encode(&self, body: &[u8]) -> Vec<u8> {
+        let mut v = vec![0u8; Self::LEN + body.len()];
+        self.write(&mut v, body.len());
+        v[Self::LEN..].copy_from_slice(body);
+        v
+    }
+
+    /// Decodes a message into its header and body.
+    pub fn decode(buf: &[u8]) -> Result<(Self, &[u8]), IpcError> {
+        if buf.len() < Self::LEN {
+            return Err(IpcError::Truncated);
+        }
+        if buf[0..4] != IPC_MAGIC {
+            return Err(IpcError::BadMagic);
+        }
+        let version = u16::from_le_bytes([buf[4], buf[5]]);
+        if version != IPC_VERSION {
+            return Err(IpcError::Version(version));
+        }
+        let kind = MessageKind::from_u8(buf[6]).ok_or(IpcError::Kind(buf[6]))?;
+        let u32_at = |i: usize| u32::from_le_bytes([buf[i], buf[i + 1], buf[i + 2], buf[i + 3]]);
+        let mut seq = [0u8; 8];
+        seq.copy_from_slice(&buf[16..24]);
+        let body_len = u32_at(32) as usize;
+        let body = buf.get(Self::LEN..Self::LEN + body_len).ok_or(IpcError::Truncated)?;
+        let h = IpcHeader {
+            kind,
+            flags: buf[7],
+            frontend_id: u32_at(8),
+            generation: u32_at(12),
+            op_seq: u64::from_le_bytes(seq),
+            client_key: ClientKey([buf[24], buf[25], buf[26], buf[27]]),
+            request_id: RequestId([buf[28], buf[29]]),
+            object_id: ObjectId([buf[30], buf[31]]),
+        };
+        Ok((h, body))
+    }
+}
+
+/// Operations from all front-ends to the worker.
+pub fn request_service(instance: &str) -> String {
+    format!("xrce/{instance}/requests")
+}
+
+/// Replies and samples from the worker to one front-end.
+pub fn reply_service(instance: &str, frontend_id: u32) -> String {
+    format!("xrce/{instance}/replies/{frontend_id}")
+}
+
+/// Worker generation announcements.
+pub fn announce_service(instance: &str) -> String {
+    format!("xrce/{instance}/announce")
+}
+
+/// The event service paired with a data service.
+pub fn event_service(data_service: &str) -> String {
+    format!("{data_service}.ev")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn header_round_trips_and_rejects_other_versions() {
+        let h = IpcHeader {
+            kind: MessageKind::Write,
+            flags: FLAG_LITTLE_ENDIAN,
+            frontend_id: 7,
+            generation: 3,
+            op_seq: 1 << 40,
+            client_key: ClientKey([1, 2, 3, 4]),
+            request_id: RequestId([0, 9]),
+            object_id: ObjectId::new(1, 5),
+        };
+        let m = h.encode(b"body");
+        assert_eq!(IpcHeader::decode(&m), Ok((h, &b"body"[..])));
+        let mut other = m.clone();
+        other[4] = 2;
+        assert_eq!(IpcHeader::decode(&other), Err(IpcError::Version(2)));
+        assert_eq!(IpcHeader::decode(&m[..m.len() - 1]), Err(IpcError::Truncated));
+        let mut bad_kind = m;
+        bad_kind[6] = 99;
+        assert_eq!(IpcHeader::decode(&bad_kind), Err(IpcError::Kind(99)));
+    }
+}

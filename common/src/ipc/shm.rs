@@ -1,0 +1,190 @@
+//! iceoryx2 ports for the IPC contract: `[u8]` publish-subscribe paired with events.
+//!
+//! Every process opens the same services with the same settings (iceoryx2 requires it).
+//! A [`Sender`] loans a shared-memory sample, lets the caller fill it in place (one copy from
+//! wherever the bytes are) and publishes it; one [`Sender::notify`] per burst wakes the
+//! receiver. A [`Receiver`] exposes the file descriptor of its event listener for `poll(2)`.
+
+use std::os::fd::RawFd;
+
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::notifier::Notifier;
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+
+use super::{IpcHeader, CHANNEL_DEPTH, MAX_BODY};
+
+/// An iceoryx2 failure, with what was being done.
+#[derive(Debug, thiserror::Error)]
+#[error("iceoryx2: {what}: {detail}")]
+pub struct ShmError {
+    what: &'static str,
+    detail: String,
+}
+
+fn err<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> ShmError {
+    move |e| ShmError { what, detail: format!("{e:?}") }
+}
+
+/// Whether a service carries the latest message for late joiners.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ServiceKind {
+    /// Operations, replies and samples: no history.
+    Data,
+    /// Worker announcements: the last one is kept for front-ends that start later.
+    Announce,
+}
+
+/// One iceoryx2 node of an agent instance.
+#[derive(Debug)]
+pub struct IpcNode {
+    node: Node<ipc::Service>,
+}
+
+/// Checks an instance name: 1–32 characters of `[A-Za-z0-9_-]`.
+pub fn valid_instance(instance: &str) -> bool {
+    !instance.is_empty()
+        && instance.len() <= 32
+        && instance.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+}
+
+impl IpcNode {
+    /// Creates the node `name` of agent instance `instance`; all its files carry a prefix
+    /// derived from the instance, so instances never see each other.
+    pub fn new(instance: &str, name: &str) -> Result<Self, ShmError> {
+        if !valid_instance(instance) {
+            return Err(ShmError { what: "instance name", detail: format!("{instance:?} is not [A-Za-z0-9_-]{{1,32}}") });
+        }
+        set_log_level(LogLevel::Error);
+        let mut config = Config::default();
+        config.global.prefix = FileName::new(format!("xrce_{instance}_").as_bytes()).map_err(err("prefix"))?;
+        let node = NodeBuilder::new()
+            .name(&NodeName::new(name).map_err(err("node name"))?)
+            .config(&config)
+            .create::<ipc::Service>()
+            .map_err(err("create node"))?;
+        Ok(IpcNode { node })
+    }
+
+    /// Whether SIGINT or SIGTERM arrived (iceoryx2's handler records them).
+    pub fn termination_requested(&self) -> bool {
+        self.node.wait(std::time::Duration::ZERO).is_err()
+    }
+
+    fn pubsub(
+        &self,
+        service: &str,
+        kind: ServiceKind,
+    ) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, [u8], ()>, ShmError> {
+        let name = ServiceName::new(service).map_err(err("service name"))?;
+        self.node
+            .service_builder(&name)
+            .publish_subscribe::<[u8]>()
+            .max_publishers(64)
+            .max_subscribers(2)
+            .subscriber_max_buffer_size(CHANNEL_DEPTH)
+            .subscriber_max_borrowed_samples(2)
+            .history_size(if kind == ServiceKind::Announce { 1 } else { 0 })
+            .enable_safe_overflow(true)
+            .open_or_create()
+            .map_err(err("open publish-subscribe service"))
+    }
+
+    fn event(&self, service: &str) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, ShmError> {
+        let name = ServiceName::new(&super::event_service(service)).map_err(err("service name"))?;
+        self.node
+            .service_builder(&name)
+            .event()
+            .max_notifiers(64)
+            .max_listeners(4)
+            .open_or_create()
+            .map_err(err("open event service"))
+    }
+
+    /// A sender on `service`.
+    pub fn sender(&self, service: &str, kind: ServiceKind) -> Result<Sender, ShmError> {
+        let publisher = self
+            .pubsub(service, kind)?
+            .publisher_builder()
+            .initial_max_slice_len(IpcHeader::LEN + MAX_BODY)
+            .max_loaned_samples(4)
+            .create()
+            .map_err(err("create publisher"))?;
+        let notifier = self.event(service)?.notifier_builder().create().map_err(err("create notifier"))?;
+        Ok(Sender { publisher, notifier })
+    }
+
+    /// A receiver on `service`.
+    pub fn receiver(&self, service: &str, kind: ServiceKind) -> Result<Receiver, ShmError> {
+        let subscriber = self.pubsub(service, kind)?.subscriber_builder().create().map_err(err("create subscriber"))?;
+        let listener = self.event(service)?.listener_builder().create().map_err(err("create listener"))?;
+        Ok(Receiver { subscriber, listener })
+    }
+}
+
+/// Publishes IPC messages on one service.
+#[derive(Debug)]
+pub struct Sender {
+    publisher: Publisher<ipc::Service, [u8], ()>,
+    notifier: Notifier<ipc::Service>,
+}
+
+impl Sender {
+    /// Publishes `header` and a body of `body_len` bytes that `fill` writes in place.
+    pub fn send_with(&self, header: &IpcHeader, body_len: usize, fill: impl FnOnce(&mut [u8])) -> Result<(), ShmError> {
+        if body_len > MAX_BODY {
+            return Err(ShmError { what: "send", detail: format!("body of {body_len} bytes exceeds {MAX_BODY}") });
+        }
+        let mut sample = self.publisher.loan_slice(IpcHeader::LEN + body_len).map_err(err("loan"))?;
+        let buf = sample.payload_mut();
+        header.write(buf, body_len);
+        fill(&mut buf[IpcHeader::LEN..]);
+        sample.send().map_err(err("send"))?;
+        Ok(())
+    }
+
+    /// Publishes `header` and `body`.
+    pub fn send(&self, header: &IpcHeader, body: &[u8]) -> Result<(), ShmError> {
+        self.send_with(header, body.len(), |b| b.copy_from_slice(body))
+    }
+
+    /// Wakes the receiver (once per burst is enough).
+    pub fn notify(&self) -> Result<(), ShmError> {
+        self.notifier.notify().map(|_| ()).map_err(err("notify"))
+    }
+}
+
+/// Receives IPC messages of one service.
+#[derive(Debug)]
+pub struct Receiver {
+    subscriber: Subscriber<ipc::Service, [u8], ()>,
+    listener: Listener<ipc::Service>,
+}
+
+impl Receiver {
+    /// A file descriptor that becomes readable when a sender notifies.
+    pub fn raw_fd(&self) -> RawFd {
+        // SAFETY: the descriptor stays owned by the listener, which outlives every use the
+        // callers make of it (they only pass it to poll(2) while the receiver exists).
+        #[allow(unsafe_code)]
+        unsafe {
+            self.listener.file_descriptor().native_handle()
+        }
+    }
+
+    /// Consumes pending wake-ups (otherwise the descriptor stays readable).
+    pub fn clear_events(&self) {
+        let _ = self.listener.try_wait(|_| {});
+    }
+
+    /// Calls `f` with every message received so far; returns how many.
+    pub fn drain(&self, mut f: impl FnMut(&[u8])) -> Result<usize, ShmError> {
+        let mut n = 0;
+        while let Some(sample) = self.subscriber.receive().map_err(err("receive"))? {
+            f(sample.payload());
+            n += 1;
+        }
+        Ok(n)
+    }
+}
