@@ -1,1 +1,10 @@
-//! placeholder
+//! The DDS worker of the XRCE agent: it owns every DDS entity (RustDDS) on behalf of the
+//! front-ends, executes their operations, and streams samples of active reads back.
+//!
+//! It is not an XRCE endpoint: it never sees client datagrams, only the IPC contract of
+//! `xrce_common::ipc`. Samples pass through as serialized bytes ([`raw`]).
+
+pub mod dds;
+pub mod raw;
+pub mod worker;
+pub mod xml;

@@ -1,0 +1,136 @@
+//! The DDS side: one RustDDS participant per domain, shared by every XRCE participant in it,
+//! and the mapping of XML QoS onto RustDDS policies.
+
+use std::collections::HashMap;
+use std::net::IpAddr;
+
+use rustdds::policy;
+use rustdds::{DomainParticipant, DomainParticipantBuilder, QosPolicies, QosPolicyBuilder};
+
+use crate::xml::{Durability, History, QosDesc, Reliability};
+
+/// Where DDS may talk.
+#[derive(Debug, Clone, Default)]
+pub struct DdsConfig {
+    /// Restrict DDS to these local addresses (empty = every interface, like any DDS app).
+    pub interfaces: Vec<IpAddr>,
+}
+
+/// Participants by domain id.
+#[derive(Debug)]
+pub struct ParticipantPool {
+    config: DdsConfig,
+    participants: HashMap<u16, DomainParticipant>,
+}
+
+/// The domain id XRCE clients use to mean "the agent's default" (reference agent behaviour).
+pub const DOMAIN_ID_DEFAULT_MARKER: i16 = 255;
+
+/// Maps the domain id a client asked for to the DDS domain used.
+pub fn effective_domain(requested: i16) -> Result<u16, String> {
+    if requested == DOMAIN_ID_DEFAULT_MARKER {
+        for var in ["XRCE_DOMAIN_ID_OVERRIDE", "ROS_DOMAIN_ID"] {
+            if let Ok(v) = std::env::var(var) {
+                return v.trim().parse::<u16>().map_err(|_| format!("{var}={v:?} is not a domain id"));
+            }
+        }
+        return Ok(0);
+    }
+    u16::try_from(requested).ok().filter(|d| *d <= 232).ok_or_else(|| format!("domain id {requested} out of range"))
+}
+
+impl ParticipantPool {
+    /// An empty pool.
+    pub fn new(config: DdsConfig) -> Self {
+        ParticipantPool { config, participants: HashMap::new() }
+    }
+
+    /// The participant of `domain`, created on first use.
+    pub fn get(&mut self, domain: u16) -> Result<DomainParticipant, String> {
+        if let Some(p) = self.participants.get(&domain) {
+            return Ok(p.clone());
+        }
+        let mut b = DomainParticipantBuilder::new(domain);
+        if !self.config.interfaces.is_empty() {
+            b = b.with_only_networks(self.config.interfaces.clone());
+        }
+        let p = b.build().map_err(|e| format!("creating DDS participant in domain {domain}: {e:?}"))?;
+        tracing::info!(domain, "DDS participant created");
+        self.participants.insert(domain, p.clone());
+        Ok(p)
+    }
+
+    /// Number of participants.
+    pub fn len(&self) -> usize {
+        self.participants.len()
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.participants.is_empty()
+    }
+}
+
+/// Which side an endpoint is on; defaults follow the reference agent (Fast DDS): writers
+/// reliable and transient-local, readers best-effort and volatile, history keep-last 1.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum EndpointSide {
+    /// A data writer.
+    Writer,
+    /// A data reader.
+    Reader,
+}
+
+/// Builds RustDDS QoS from topic and endpoint descriptions (endpoint settings win).
+pub fn endpoint_qos(side: EndpointSide, topic: &QosDesc, endpoint: &QosDesc) -> QosPolicies {
+    let reliability = endpoint.reliability.or(topic.reliability).unwrap_or(match side {
+        EndpointSide::Writer => Reliability::Reliable,
+        EndpointSide::Reader => Reliability::BestEffort,
+    });
+    let durability = endpoint.durability.or(topic.durability).unwrap_or(match side {
+        EndpointSide::Writer => Durability::TransientLocal,
+        EndpointSide::Reader => Durability::Volatile,
+    });
+    // A deeper default than Fast DDS's keep-last 1: the worker drains readers promptly, but
+    // bursts between two drains must not be cut to one sample.
+    let history = endpoint.history.or(topic.history).unwrap_or(History::KeepLast(64));
+    let mut b = QosPolicyBuilder::new();
+    b = match reliability {
+        Reliability::Reliable => b.reliable(rustdds::Duration::from_millis(100)),
+        Reliability::BestEffort => b.best_effort(),
+    };
+    b = b.durability(match durability {
+        Durability::Volatile => policy::Durability::Volatile,
+        Durability::TransientLocal => policy::Durability::TransientLocal,
+        Durability::Transient => policy::Durability::Transient,
+        Durability::Persistent => policy::Durability::Persistent,
+    });
+    b = b.history(match history {
+        History::KeepLast(depth) => policy::History::KeepLast { depth },
+        History::KeepAll => policy::History::KeepAll,
+    });
+    b.build()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_follow_fast_dds() {
+        let w = endpoint_qos(EndpointSide::Writer, &QosDesc::default(), &QosDesc::default());
+        assert!(w.is_reliable());
+        assert_eq!(w.durability(), Some(policy::Durability::TransientLocal));
+        let r = endpoint_qos(EndpointSide::Reader, &QosDesc::default(), &QosDesc::default());
+        assert!(!r.is_reliable());
+        let explicit = QosDesc { reliability: Some(Reliability::Reliable), ..Default::default() };
+        assert!(endpoint_qos(EndpointSide::Reader, &QosDesc::default(), &explicit).is_reliable());
+    }
+
+    #[test]
+    fn domain_ids() {
+        assert_eq!(effective_domain(7), Ok(7));
+        assert!(effective_domain(-1).is_err());
+        assert!(effective_domain(300).is_err());
+    }
+}

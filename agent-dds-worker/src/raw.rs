@@ -1,0 +1,89 @@
+//! Pass-through of serialized samples through RustDDS: the client's CDR bytes go to the wire
+//! as they are, and received samples come back as bytes plus their encoding.
+
+use rustdds::bytes::Bytes;
+use rustdds::no_key::{Decode, DefaultDecoder, DeserializerAdapter, SerializerAdapter};
+use rustdds::RepresentationIdentifier;
+
+/// A serialized sample body (no encapsulation header) and its encoding.
+#[derive(Debug, Clone)]
+pub struct RawSample {
+    /// CDR_LE, CDR_BE, ...
+    pub encoding: RepresentationIdentifier,
+    /// The serialized body.
+    pub body: Bytes,
+}
+
+impl RawSample {
+    /// Whether the body is little endian.
+    pub fn little_endian(&self) -> bool {
+        // Every representation identifier ends in 1 for little endian.
+        self.encoding.to_bytes()[1] & 1 == 1
+    }
+}
+
+/// Errors never happen for pass-through; RustDDS's traits need a type anyway.
+#[derive(Debug, thiserror::Error)]
+#[error("raw sample adapter: {0}")]
+pub struct RawError(&'static str);
+
+/// Adapter writing little-endian CDR (XCDR1).
+#[derive(Debug)]
+pub struct RawLe;
+/// Adapter writing big-endian CDR (XCDR1).
+#[derive(Debug)]
+pub struct RawBe;
+
+impl SerializerAdapter<RawSample> for RawLe {
+    type Error = RawError;
+    fn output_encoding() -> RepresentationIdentifier {
+        RepresentationIdentifier::CDR_LE
+    }
+    fn to_bytes(value: &RawSample) -> Result<Bytes, RawError> {
+        Ok(value.body.clone())
+    }
+}
+
+impl SerializerAdapter<RawSample> for RawBe {
+    type Error = RawError;
+    fn output_encoding() -> RepresentationIdentifier {
+        RepresentationIdentifier::CDR_BE
+    }
+    fn to_bytes(value: &RawSample) -> Result<Bytes, RawError> {
+        Ok(value.body.clone())
+    }
+}
+
+static ACCEPTED: [RepresentationIdentifier; 4] = [
+    RepresentationIdentifier::CDR_LE,
+    RepresentationIdentifier::CDR_BE,
+    RepresentationIdentifier::XCDR2_LE,
+    RepresentationIdentifier::XCDR2_BE,
+];
+
+impl DeserializerAdapter<RawSample> for RawLe {
+    type Error = RawError;
+    type Decoded = RawSample;
+    fn supported_encodings() -> &'static [RepresentationIdentifier] {
+        &ACCEPTED
+    }
+    fn transform_decoded(decoded: RawSample) -> RawSample {
+        decoded
+    }
+}
+
+/// Copies received bytes into a [`RawSample`].
+#[derive(Debug, Clone)]
+pub struct RawDecoder;
+
+impl<'de> Decode<'de, RawSample> for RawDecoder {
+    type Error = RawError;
+    fn decode_bytes(self, input: &'de [u8], encoding: RepresentationIdentifier) -> Result<RawSample, RawError> {
+        Ok(RawSample { encoding, body: Bytes::copy_from_slice(input) })
+    }
+}
+
+impl DefaultDecoder<RawSample> for RawLe {
+    type Decoder = RawDecoder;
+    const DECODER: RawDecoder = RawDecoder;
+}

@@ -1,0 +1,576 @@
+//! The worker's event loop: executes the front-ends' operations on DDS entities and streams
+//! samples of active reads back.
+//!
+//! Entities are keyed by (front-end id, client key, object id). The worker keeps nothing a
+//! front-end cannot rebuild: after a restart it announces a new generation and the front-ends
+//! replay their clients' object graphs.
+
+use std::collections::{HashMap, HashSet};
+use std::os::fd::AsRawFd;
+use std::time::{Duration, Instant};
+
+use rustdds::mio1::{Events, Interest, Poll, Token};
+use rustdds::no_key::{DataReader, DataWriter};
+use rustdds::{DomainParticipant, Publisher, QosPolicies, Subscriber, Topic, TopicKind};
+use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
+use xrce_common::ipc::{self, IpcHeader, MessageKind, FLAG_LITTLE_ENDIAN, FLAG_REPLAY};
+use xrce_common::wire::cdr::CdrReader;
+use xrce_common::wire::{object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, Representation, VariantExtra};
+
+use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool};
+use crate::raw::{RawLe, RawSample};
+use crate::xml::{self, TopicDesc};
+
+/// Worker settings.
+#[derive(Debug, Clone)]
+pub struct WorkerConfig {
+    /// Agent instance name (prefix of every shared-memory resource).
+    pub instance: String,
+    /// DDS settings.
+    pub dds: DdsConfig,
+}
+
+type EntityKey = (u32, ClientKey, ObjectId);
+
+enum EntityKind {
+    Participant(DomainParticipant),
+    Topic(Topic, TopicDesc),
+    Publisher(Publisher),
+    Subscriber(Subscriber),
+    Writer(DataWriter<RawSample, RawLe>),
+    Reader(Box<DataReader<RawSample, RawLe>>, Token),
+}
+
+struct Entity {
+    parent: Option<ObjectId>,
+    kind: EntityKind,
+}
+
+struct ActiveRead {
+    request_id: xrce_common::wire::RequestId,
+    /// Samples still to deliver (None = unlimited).
+    remaining: Option<u32>,
+    /// When the read ends by time.
+    deadline: Option<Instant>,
+    /// No delivery control: deliver what is there, or the first sample to come, then end.
+    one_shot: bool,
+}
+
+struct FrontendPort {
+    sender: Sender,
+    processed: u64,
+    dirty: bool,
+}
+
+/// Why an operation failed: the XRCE status and a reason for the log.
+type OpError = (u8, String);
+
+/// The DDS worker.
+pub struct Worker {
+    config: WorkerConfig,
+    node: IpcNode,
+    generation: u32,
+    requests: Receiver,
+    announce: Sender,
+    ports: HashMap<u32, FrontendPort>,
+    pool: ParticipantPool,
+    entities: HashMap<EntityKey, Entity>,
+    readers: HashMap<Token, EntityKey>,
+    next_token: usize,
+    reads: HashMap<EntityKey, ActiveRead>,
+    to_pump: HashSet<EntityKey>,
+    poll: Poll,
+    /// Counters by reason of rejected or failed work.
+    pub dropped: HashMap<&'static str, u64>,
+}
+
+impl std::fmt::Debug for Worker {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Worker").field("generation", &self.generation).field("entities", &self.entities.len()).finish()
+    }
+}
+
+/// Samples taken from one reader per wake-up before others get a turn.
+const PUMP_BATCH: usize = 256;
+
+impl Worker {
+    /// Opens the IPC services, then announces a new generation.
+    pub fn new(config: WorkerConfig) -> anyhow::Result<Self> {
+        let node = IpcNode::new(&config.instance, "xrce-dds-worker")?;
+        let requests = node.receiver(&ipc::request_service(&config.instance), ServiceKind::Data)?;
+        let announce = node.sender(&ipc::announce_service(&config.instance), ServiceKind::Announce)?;
+        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
+        let generation = (nanos ^ std::process::id().rotate_left(16)) | 1;
+        let pool = ParticipantPool::new(config.dds.clone());
+        let w = Worker {
+            config,
+            node,
+            generation,
+            requests,
+            announce,
+            ports: HashMap::new(),
+            pool,
+            entities: HashMap::new(),
+            readers: HashMap::new(),
+            next_token: 1,
+            reads: HashMap::new(),
+            to_pump: HashSet::new(),
+            poll: Poll::new()?,
+            dropped: HashMap::new(),
+        };
+        let mut hello = IpcHeader::new(MessageKind::WorkerHello);
+        hello.generation = w.generation;
+        w.announce.send(&hello, &[])?;
+        w.announce.notify()?;
+        tracing::info!(generation = w.generation, instance = %w.config.instance, "worker serving");
+        Ok(w)
+    }
+
+    /// This worker's generation id.
+    pub fn generation(&self) -> u32 {
+        self.generation
+    }
+
+    fn count(&mut self, reason: &'static str) {
+        *self.dropped.entry(reason).or_default() += 1;
+    }
+
+    /// Runs until SIGINT or SIGTERM.
+    pub fn run(&mut self) -> anyhow::Result<()> {
+        let mut events = Events::with_capacity(256);
+        loop {
+            if self.node.termination_requested() {
+                tracing::info!("termination requested");
+                return Ok(());
+            }
+            let timeout = self.poll_timeout();
+            let mut fds = [
+                libc::pollfd { fd: self.requests.raw_fd(), events: libc::POLLIN, revents: 0 },
+                libc::pollfd { fd: self.poll.as_raw_fd(), events: libc::POLLIN, revents: 0 },
+            ];
+            // SAFETY: `fds` is a valid array of two pollfd for the duration of the call.
+            #[allow(unsafe_code)]
+            let rc = unsafe { libc::poll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, timeout) };
+            if rc < 0 {
+                let e = std::io::Error::last_os_error();
+                if e.kind() != std::io::ErrorKind::Interrupted {
+                    return Err(e.into());
+                }
+            }
+            self.requests.clear_events();
+            let mut batch = Vec::new();
+            self.requests.drain(|m| batch.push(m.to_vec()))?;
+            for m in &batch {
+                self.handle_request(m);
+            }
+            self.poll.poll(&mut events, Some(Duration::ZERO))?;
+            for e in events.iter() {
+                if let Some(k) = self.readers.get(&e.token()) {
+                    self.to_pump.insert(*k);
+                }
+            }
+            let pump: Vec<EntityKey> = self.to_pump.drain().collect();
+            for k in pump {
+                self.pump(k);
+            }
+            self.expire_reads();
+            self.flush()?;
+        }
+    }
+
+    fn poll_timeout(&self) -> i32 {
+        if !self.to_pump.is_empty() {
+            return 0;
+        }
+        let now = Instant::now();
+        self.reads
+            .values()
+            .filter_map(|r| r.deadline)
+            .min()
+            .map(|d| d.saturating_duration_since(now).as_millis().min(i32::MAX as u128) as i32 + 1)
+            .unwrap_or(-1)
+    }
+
+    fn port(&mut self, frontend: u32) -> Result<&mut FrontendPort, ShmError> {
+        if !self.ports.contains_key(&frontend) {
+            let sender = self.node.sender(&ipc::reply_service(&self.config.instance, frontend), ServiceKind::Data)?;
+            self.ports.insert(frontend, FrontendPort { sender, processed: 0, dirty: false });
+        }
+        Ok(self.ports.get_mut(&frontend).expect("just inserted"))
+    }
+
+    fn reply(&mut self, mut h: IpcHeader, body: &[u8]) {
+        h.generation = self.generation;
+        let r = self.port(h.frontend_id).and_then(|p| {
+            p.dirty = true;
+            p.sender.send(&h, body)
+        });
+        if let Err(e) = r {
+            tracing::warn!(frontend = h.frontend_id, error = %e, "reply lost");
+            self.count("reply_send_failed");
+        }
+    }
+
+    fn status(&mut self, req: &IpcHeader, result: Result<(), OpError>) {
+        let code = match &result {
+            Ok(()) => status::OK,
+            Err((code, why)) => {
+                tracing::warn!(client = %req.client_key, object = ?req.object_id, kind = ?req.kind, status = code, "{why}");
+                *code
+            }
+        };
+        let h = IpcHeader { kind: MessageKind::Status, ..*req };
+        self.reply(h, &[code, 0]);
+    }
+
+    fn handle_request(&mut self, bytes: &[u8]) {
+        let (h, body) = match IpcHeader::decode(bytes) {
+            Ok(v) => v,
+            Err(e) => {
+                tracing::warn!(error = %e, "dropped IPC message");
+                return self.count("bad_ipc_message");
+            }
+        };
+        let key = (h.frontend_id, h.client_key, h.object_id);
+        match h.kind {
+            MessageKind::FrontendHello => {
+                tracing::info!(frontend = h.frontend_id, "front-end (re)connected");
+                self.remove_where(|k| k.0 == h.frontend_id);
+            }
+            MessageKind::DeleteClient => self.remove_where(|k| k.0 == h.frontend_id && k.1 == h.client_key),
+            MessageKind::Create => {
+                let r = self.create(key, body);
+                if r.is_ok() {
+                    tracing::debug!(client = %h.client_key, object = ?h.object_id, replay = h.flags & FLAG_REPLAY != 0, "created");
+                }
+                self.status(&h, r);
+            }
+            MessageKind::Delete => {
+                let r = if self.entities.contains_key(&key) {
+                    self.remove_subtree(key);
+                    Ok(())
+                } else {
+                    Err((status::ERR_UNKNOWN_REFERENCE, "delete of an unknown object".into()))
+                };
+                self.status(&h, r);
+            }
+            MessageKind::Write => {
+                if let Err(e) = self.write(key, h.flags & FLAG_LITTLE_ENDIAN != 0, body) {
+                    self.status(&h, Err(e));
+                }
+            }
+            MessageKind::Read => {
+                let r = self.start_read(key, &h, body);
+                if r.is_err() {
+                    self.status(&h, r);
+                } else {
+                    self.to_pump.insert(key);
+                }
+            }
+            other => {
+                tracing::warn!(kind = ?other, "unexpected IPC message kind on the request service");
+                self.count("unexpected_ipc_kind");
+            }
+        }
+        if let Ok(p) = self.port(h.frontend_id) {
+            p.processed = p.processed.max(h.op_seq);
+            p.dirty = true;
+        }
+    }
+
+    fn flush(&mut self) -> Result<(), ShmError> {
+        let generation = self.generation;
+        for (fe, p) in self.ports.iter_mut().filter(|(_, p)| p.dirty) {
+            let mut h = IpcHeader::new(MessageKind::Progress);
+            h.frontend_id = *fe;
+            h.generation = generation;
+            h.op_seq = p.processed;
+            p.sender.send(&h, &[])?;
+            p.sender.notify()?;
+            p.dirty = false;
+        }
+        Ok(())
+    }
+
+    fn parent_entity(&self, key: EntityKey, parent: ObjectId, kind: u8) -> Result<&Entity, OpError> {
+        let e = self
+            .entities
+            .get(&(key.0, key.1, parent))
+            .ok_or((status::ERR_UNKNOWN_REFERENCE, format!("parent {parent:?} does not exist")))?;
+        if parent.kind() != kind {
+            return Err((status::ERR_UNKNOWN_REFERENCE, format!("parent {parent:?} is not of kind {kind}")));
+        }
+        Ok(e)
+    }
+
+    /// The participant entity an object hangs under.
+    fn participant_of(&self, key: EntityKey, mut id: ObjectId) -> Option<(ObjectId, DomainParticipant)> {
+        for _ in 0..8 {
+            let e = self.entities.get(&(key.0, key.1, id))?;
+            match &e.kind {
+                EntityKind::Participant(dp) => return Some((id, dp.clone())),
+                _ => id = e.parent?,
+            }
+        }
+        None
+    }
+
+    fn create(&mut self, key: EntityKey, body: &[u8]) -> Result<(), OpError> {
+        let variant = ObjectVariant::decode(&mut CdrReader::new(body, true))
+            .map_err(|e| (status::ERR_INVALID_DATA, format!("object representation: {e}")))?;
+        if variant.kind != key.2.kind() {
+            return Err((status::ERR_INVALID_DATA, "object id kind differs from the representation kind".into()));
+        }
+        if self.entities.contains_key(&key) {
+            // The front-end decides creation modes; here an existing object is replaced.
+            self.remove_subtree(key);
+        }
+        let xml = match &variant.representation {
+            Representation::Xml(x) => x.as_str(),
+            Representation::Reference(r) => {
+                return Err((status::ERR_UNKNOWN_REFERENCE, format!("reference {r:?}: no references are loaded (not supported yet)")))
+            }
+            Representation::Binary(_) => {
+                return Err((status::ERR_INVALID_DATA, "binary representations are not supported yet".into()))
+            }
+        };
+        let bad_xml = |e: xml::XmlError| (status::ERR_INVALID_DATA, e.to_string());
+        let dds_err = |what: &str, e: &dyn std::fmt::Debug| (status::ERR_DDS_ERROR, format!("{what}: {e:?}"));
+        let (parent, kind) = match (variant.kind, variant.extra) {
+            (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
+                xml::parse_participant(xml).map_err(bad_xml)?;
+                let domain = effective_domain(d).map_err(|e| (status::ERR_INVALID_DATA, e))?;
+                let dp = self.pool.get(domain).map_err(|e| (status::ERR_DDS_ERROR, e))?;
+                (None, EntityKind::Participant(dp))
+            }
+            (object_kind::TOPIC, VariantExtra::Parent(p)) => {
+                self.parent_entity(key, p, object_kind::PARTICIPANT)?;
+                let desc = xml::parse_topic(xml).map_err(bad_xml)?;
+                let (_, dp) = self.participant_of(key, p).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let topic = Self::make_topic(&dp, &desc).map_err(|e| dds_err("create topic", &e))?;
+                (Some(p), EntityKind::Topic(topic, desc))
+            }
+            (object_kind::PUBLISHER, VariantExtra::Parent(p)) => {
+                self.parent_entity(key, p, object_kind::PARTICIPANT)?;
+                let (_, dp) = self.participant_of(key, p).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let publisher = dp.create_publisher(&QosPolicies::qos_none()).map_err(|e| dds_err("create publisher", &e))?;
+                (Some(p), EntityKind::Publisher(publisher))
+            }
+            (object_kind::SUBSCRIBER, VariantExtra::Parent(p)) => {
+                self.parent_entity(key, p, object_kind::PARTICIPANT)?;
+                let (_, dp) = self.participant_of(key, p).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let subscriber = dp.create_subscriber(&QosPolicies::qos_none()).map_err(|e| dds_err("create subscriber", &e))?;
+                (Some(p), EntityKind::Subscriber(subscriber))
+            }
+            (object_kind::DATAWRITER, VariantExtra::Parent(p)) => {
+                let publisher = match &self.parent_entity(key, p, object_kind::PUBLISHER)?.kind {
+                    EntityKind::Publisher(x) => x.clone(),
+                    _ => return Err((status::ERR_UNKNOWN_REFERENCE, "parent is not a publisher".into())),
+                };
+                let desc = xml::parse_endpoint(xml, "data_writer").map_err(bad_xml)?;
+                let (topic, tdesc) = self.endpoint_topic(key, p, &desc)?;
+                let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
+                let w = publisher
+                    .create_datawriter_no_key::<RawSample, RawLe>(&topic, Some(qos))
+                    .map_err(|e| dds_err("create data writer", &e))?;
+                (Some(p), EntityKind::Writer(w))
+            }
+            (object_kind::DATAREADER, VariantExtra::Parent(p)) => {
+                let subscriber = match &self.parent_entity(key, p, object_kind::SUBSCRIBER)?.kind {
+                    EntityKind::Subscriber(x) => x.clone(),
+                    _ => return Err((status::ERR_UNKNOWN_REFERENCE, "parent is not a subscriber".into())),
+                };
+                let desc = xml::parse_endpoint(xml, "data_reader").map_err(bad_xml)?;
+                let (topic, tdesc) = self.endpoint_topic(key, p, &desc)?;
+                let qos = endpoint_qos(EndpointSide::Reader, &tdesc.qos, &desc.qos);
+                let mut r = subscriber
+                    .create_datareader_no_key::<RawSample, RawLe>(&topic, Some(qos))
+                    .map_err(|e| dds_err("create data reader", &e))?;
+                let token = Token(self.next_token);
+                self.next_token += 1;
+                self.poll.registry().register(&mut r, token, Interest::READABLE).map_err(|e| dds_err("register reader", &e))?;
+                self.readers.insert(token, key);
+                (Some(p), EntityKind::Reader(Box::new(r), token))
+            }
+            (k, _) => return Err((status::ERR_INVALID_DATA, format!("object kind {k:#04x} is not supported yet"))),
+        };
+        self.entities.insert(key, Entity { parent, kind });
+        Ok(())
+    }
+
+    fn make_topic(dp: &DomainParticipant, desc: &TopicDesc) -> Result<Topic, rustdds::dds::CreateError> {
+        if desc.keyed {
+            tracing::warn!(topic = %desc.name, "keyed topics are carried without key hashing for now");
+        }
+        dp.create_topic(desc.name.clone(), desc.type_name.clone(), &QosPolicies::qos_none(), TopicKind::NoKey)
+    }
+
+    /// The topic an endpoint names: inline, or a topic object of the same participant.
+    fn endpoint_topic(&self, key: EntityKey, parent: ObjectId, desc: &xml::EndpointDesc) -> Result<(Topic, TopicDesc), OpError> {
+        let (pid, dp) = self.participant_of(key, parent).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+        // A topic object created by the client with the same name carries its QoS.
+        let wanted = desc.topic.as_ref().map(|t| t.name.as_str()).or(desc.topic_ref.as_deref()).unwrap_or_default();
+        let existing = self.entities.iter().find_map(|(k, e)| match &e.kind {
+            EntityKind::Topic(t, d) if k.0 == key.0 && k.1 == key.1 && e.parent == Some(pid) && d.name == wanted => {
+                Some((t.clone(), d.clone()))
+            }
+            _ => None,
+        });
+        match (&desc.topic, existing) {
+            (Some(inline), Some((_, d))) if inline.type_name != d.type_name => {
+                Err((status::ERR_MISMATCH, format!("topic {wanted} exists with type {}", d.type_name)))
+            }
+            (_, Some(found)) => Ok(found),
+            (Some(inline), None) => {
+                let t = Self::make_topic(&dp, inline).map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
+                Ok((t, inline.clone()))
+            }
+            (None, None) => Err((status::ERR_UNKNOWN_REFERENCE, format!("topic {wanted} is unknown"))),
+        }
+    }
+
+    fn write(&mut self, key: EntityKey, little_endian: bool, body: &[u8]) -> Result<(), OpError> {
+        let Some(Entity { kind: EntityKind::Writer(w), .. }) = self.entities.get(&key) else {
+            return Err((status::ERR_UNKNOWN_REFERENCE, "write to an unknown data writer".into()));
+        };
+        if !little_endian {
+            return Err((status::ERR_INVALID_DATA, "big-endian samples are not supported yet".into()));
+        }
+        let sample = RawSample { encoding: rustdds::RepresentationIdentifier::CDR_LE, body: rustdds::bytes::Bytes::copy_from_slice(body) };
+        w.write(sample, None).map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
+    }
+
+    fn start_read(&mut self, key: EntityKey, h: &IpcHeader, body: &[u8]) -> Result<(), OpError> {
+        if !matches!(self.entities.get(&key), Some(Entity { kind: EntityKind::Reader(..), .. })) {
+            return Err((status::ERR_UNKNOWN_REFERENCE, "read from an unknown data reader".into()));
+        }
+        let spec = ReadSpecification::decode(&mut CdrReader::new(body, true))
+            .map_err(|e| (status::ERR_INVALID_DATA, format!("read specification: {e}")))?;
+        if spec.data_format != xrce_common::wire::data_format::DATA {
+            return Err((status::ERR_INVALID_DATA, format!("data format {:#04x} is not supported yet", spec.data_format)));
+        }
+        if spec.content_filter_expression.is_some() {
+            return Err((status::ERR_INVALID_DATA, "content filters are not supported yet".into()));
+        }
+        let read = match spec.delivery_control {
+            Some(d) if d.max_samples == 0 => {
+                self.reads.remove(&key);
+                return Ok(());
+            }
+            Some(d) => ActiveRead {
+                request_id: h.request_id,
+                remaining: (d.max_samples != u16::MAX).then_some(d.max_samples as u32),
+                deadline: (d.max_elapsed_time != 0).then(|| Instant::now() + Duration::from_secs(d.max_elapsed_time as u64)),
+                one_shot: false,
+            },
+            None => ActiveRead { request_id: h.request_id, remaining: None, deadline: None, one_shot: true },
+        };
+        self.reads.insert(key, read);
+        Ok(())
+    }
+
+    /// Takes samples of a reader with an active read and sends them to its front-end.
+    fn pump(&mut self, key: EntityKey) {
+        let Some(read) = self.reads.get(&key) else { return };
+        let request_id = read.request_id;
+        let Some(Entity { kind: EntityKind::Reader(reader, _), .. }) = self.entities.get_mut(&key) else { return };
+        let mut out = Vec::new();
+        let mut more = false;
+        let mut limit = read.remaining.unwrap_or(u32::MAX).min(PUMP_BATCH as u32);
+        let one_shot = read.one_shot;
+        let mut errors = 0u64;
+        while limit > 0 {
+            match reader.take_next_sample() {
+                Ok(Some(s)) => {
+                    out.push(s.into_value());
+                    limit -= 1;
+                    if one_shot {
+                        break;
+                    }
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    errors += 1;
+                    tracing::debug!(error = ?e, "undecodable DDS sample skipped");
+                }
+            }
+            if limit == 0 && out.len() == PUMP_BATCH {
+                more = true;
+            }
+        }
+        for _ in 0..errors {
+            self.count("dds_sample_undecodable");
+        }
+        let sent = out.len() as u32;
+        for s in out {
+            let mut h = IpcHeader::new(MessageKind::Sample);
+            h.frontend_id = key.0;
+            h.client_key = key.1;
+            h.object_id = key.2;
+            h.request_id = request_id;
+            h.flags = if s.little_endian() { FLAG_LITTLE_ENDIAN } else { 0 };
+            self.reply(h, &s.body);
+        }
+        let ended = match self.reads.get_mut(&key) {
+            Some(r) => {
+                if let Some(rem) = r.remaining.as_mut() {
+                    *rem = rem.saturating_sub(sent);
+                }
+                r.remaining == Some(0) || (r.one_shot && sent > 0)
+            }
+            None => false,
+        };
+        if ended {
+            self.end_read(key);
+        } else if more {
+            self.to_pump.insert(key);
+        }
+    }
+
+    fn end_read(&mut self, key: EntityKey) {
+        if let Some(r) = self.reads.remove(&key) {
+            let mut h = IpcHeader::new(MessageKind::ReadEnded);
+            h.frontend_id = key.0;
+            h.client_key = key.1;
+            h.object_id = key.2;
+            h.request_id = r.request_id;
+            self.reply(h, &[]);
+        }
+    }
+
+    fn expire_reads(&mut self) {
+        let now = Instant::now();
+        let expired: Vec<EntityKey> = self.reads.iter().filter(|(_, r)| r.deadline.is_some_and(|d| d <= now)).map(|(k, _)| *k).collect();
+        for k in expired {
+            self.end_read(k);
+        }
+    }
+
+    fn remove_where(&mut self, pred: impl Fn(&EntityKey) -> bool) {
+        let keys: Vec<EntityKey> = self.entities.keys().filter(|k| pred(k)).copied().collect();
+        for k in keys {
+            self.remove_subtree(k);
+        }
+    }
+
+    /// Removes an entity and its descendants, endpoints before their parents.
+    fn remove_subtree(&mut self, key: EntityKey) {
+        let children: Vec<EntityKey> = self
+            .entities
+            .iter()
+            .filter(|(k, e)| k.0 == key.0 && k.1 == key.1 && e.parent == Some(key.2))
+            .map(|(k, _)| *k)
+            .collect();
+        for c in children {
+            self.remove_subtree(c);
+        }
+        if let Some(e) = self.entities.remove(&key) {
+            if let EntityKind::Reader(mut r, token) = e.kind {
+                let _ = self.poll.registry().deregister(&mut *r);
+                self.readers.remove(&token);
+            }
+            self.reads.remove(&key);
+            self.to_pump.remove(&key);
+        }
+    }
+}
