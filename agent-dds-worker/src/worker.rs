@@ -236,6 +236,9 @@ impl Worker {
             MessageKind::FrontendHello => {
                 tracing::info!(frontend = h.frontend_id, "front-end (re)connected");
                 self.remove_where(|k| k.0 == h.frontend_id);
+                let mut hello = IpcHeader::new(MessageKind::WorkerHello);
+                hello.frontend_id = h.frontend_id;
+                self.reply(hello, &[]);
             }
             MessageKind::DeleteClient => self.remove_where(|k| k.0 == h.frontend_id && k.1 == h.client_key),
             MessageKind::Create => {

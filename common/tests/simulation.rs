@@ -98,7 +98,7 @@ fn run(seed: u64, n: u32, loss: f64, backpressure_every: u64) -> (Vec<u32>, Vec<
         // The DDS side answers every write with a DATA back to the client.
         while echoed_upto < sink.writes.len() {
             let (key, data) = sink.writes[echoed_upto].clone();
-            agent.send_data(at(now), key, stream_id::BUILTIN_RELIABLE, reader_req, &data).expect("send_data");
+            agent.send_data(at(now), key, stream_id::BUILTIN_RELIABLE, reader_req, &data, true).expect("send_data");
             echoed_upto += 1;
         }
         while let Some(t) = agent.poll_transmit() {

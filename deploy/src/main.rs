@@ -1,1 +1,91 @@
-fn main() {}
+//! `xrce-agent`: the user-facing command, a drop-in for eProsima's `MicroXRCEAgent`
+//! (`xrce-agent udp4 -p 8888`). It supervises one DDS worker and one front-end.
+
+use std::net::IpAddr;
+
+use clap::{Args, Parser, Subcommand};
+use xrce_agent::{bin_dir, supervise, verbosity_filter, ChildSpec};
+
+/// DDS-XRCE agent: lets XRCE clients (Micro XRCE-DDS, micro-ROS, PX4) join a DDS data space.
+#[derive(Debug, Parser)]
+#[command(name = "xrce-agent", version)]
+struct Cli {
+    #[command(subcommand)]
+    transport: Transport,
+}
+
+#[derive(Debug, Subcommand)]
+enum Transport {
+    /// Serve clients over UDP/IPv4.
+    Udp4(Common),
+    /// Serve clients over UDP/IPv6.
+    Udp6(Common),
+}
+
+#[derive(Debug, Args)]
+struct Common {
+    /// UDP port to listen on.
+    #[arg(short = 'p', long = "port")]
+    port: u16,
+    /// Verbosity 0 (off) … 6 (trace); 4 = info, 5 adds per-message debug logs.
+    #[arg(short = 'v', long = "verbose", default_value_t = 4, value_parser = clap::value_parser!(u8).range(0..=6))]
+    verbose: u8,
+    /// Middleware (accepted for compatibility; only `dds` exists here).
+    #[arg(short = 'm', long = "middleware", default_value = "dds", value_parser = ["dds"])]
+    middleware: String,
+    /// Address to bind (default: all interfaces).
+    #[arg(long)]
+    bind: Option<IpAddr>,
+    /// Restrict DDS to these local addresses (comma-separated); default: every interface.
+    #[arg(long = "dds-interface", env = "XRCE_DDS_INTERFACES", value_delimiter = ',')]
+    dds_interfaces: Vec<IpAddr>,
+    /// Instance name shared by the agent's processes (default: derived from transport and port).
+    #[arg(long, env = "XRCE_INSTANCE")]
+    instance: Option<String>,
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    let (common, v6) = match &cli.transport {
+        Transport::Udp4(c) => (c, false),
+        Transport::Udp6(c) => (c, true),
+    };
+    let filter = std::env::var("XRCE_LOG").unwrap_or_else(|_| verbosity_filter(common.verbose).to_string());
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_new(&filter).unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let instance = common.instance.clone().unwrap_or_else(|| format!("{}-{}", if v6 { "udp6" } else { "udp4" }, common.port));
+    if !xrce_common::ipc::shm::valid_instance(&instance) {
+        anyhow::bail!("instance name {instance:?} must be 1-32 characters of [A-Za-z0-9_-]");
+    }
+    let bind: IpAddr = common.bind.unwrap_or(if v6 { IpAddr::V6(std::net::Ipv6Addr::UNSPECIFIED) } else { IpAddr::V4(std::net::Ipv4Addr::UNSPECIFIED) });
+    let udp = std::net::SocketAddr::new(bind, common.port);
+    // Fail early and clearly if the port is taken, instead of a crash loop in the child.
+    drop(std::net::UdpSocket::bind(udp).map_err(|e| anyhow::anyhow!("cannot bind UDP {udp}: {e}"))?);
+    let dir = bin_dir();
+    let mut env = vec![("XRCE_INSTANCE".to_string(), instance.clone()), ("XRCE_LOG".to_string(), filter.clone())];
+    if !common.dds_interfaces.is_empty() {
+        let list: Vec<String> = common.dds_interfaces.iter().map(ToString::to_string).collect();
+        env.push(("XRCE_DDS_INTERFACES".into(), list.join(",")));
+    }
+    let specs = vec![
+        ChildSpec { name: "xrce-dds-worker".into(), program: dir.join("xrce-dds-worker"), args: vec![], env: env.clone() },
+        ChildSpec {
+            name: "xrce-frontend-0".into(),
+            program: dir.join("xrce-frontend"),
+            args: vec!["--frontend-id".into(), "0".into(), "--udp".into(), udp.to_string()],
+            env,
+        },
+    ];
+    tracing::info!(%udp, %instance, "xrce-agent starting");
+    let cleanup = || {
+        // Creating a node removes what dead nodes of this instance left in shared memory.
+        match xrce_common::ipc::shm::IpcNode::new(&instance, "xrce-agent") {
+            Ok(n) => drop(n),
+            Err(e) => tracing::warn!(error = %e, "shared-memory cleanup failed"),
+        }
+    };
+    supervise(specs, cleanup)?;
+    Ok(())
+}

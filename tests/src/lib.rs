@@ -1,1 +1,419 @@
-//! placeholder
+//! End-to-end test harness: real agent processes on loopback, a Rust XRCE client built on
+//! `xrce_common`'s client state machine, and Cyclone DDS (Python, pinned) as the independent
+//! DDS peer. Everything stays on 127.0.0.1: the agent's DDS is pinned with
+//! `--dds-interface 127.0.0.1`, Cyclone with `python/cyclonedds-loopback.xml`.
+
+use std::io::{BufRead, BufReader};
+use std::net::{SocketAddr, UdpSocket};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdout, Command, Stdio};
+use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::mpsc;
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
+use xrce_common::wire::{
+    object_kind, stream_id, ClientKey, DataDeliveryControl, ObjectId, ObjectVariant, ReadSpecification, Representation,
+    RequestId, VariantExtra,
+};
+
+/// The Cyclone DDS release the tests pin.
+pub const CYCLONEDDS_VERSION: &str = "11.0.1";
+
+/// The workspace root.
+pub fn workspace() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("workspace").to_path_buf()
+}
+
+/// The target directory the tests run from (…/target).
+fn target_dir() -> PathBuf {
+    if let Some(d) = std::env::var_os("CARGO_TARGET_DIR") {
+        return PathBuf::from(d);
+    }
+    workspace().join("target")
+}
+
+/// Builds the agent's binaries once per test process; returns their directory.
+pub fn binaries() -> &'static Path {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let release = std::env::var("XRCE_TEST_RELEASE").is_ok();
+        let mut cmd = Command::new(cargo);
+        cmd.current_dir(workspace()).args(["build", "--bins", "-p", "xrce-agent", "-p", "xrce-frontend", "-p", "xrce-dds-worker"]);
+        if release {
+            cmd.arg("--release");
+        }
+        let st = cmd.status().expect("run cargo build");
+        assert!(st.success(), "building the agent binaries failed");
+        target_dir().join(if release { "release" } else { "debug" })
+    })
+}
+
+/// A free UDP port on 127.0.0.1.
+pub fn free_udp_port() -> u16 {
+    UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr()).map(|a| a.port()).expect("free port")
+}
+
+/// A unique instance name for this test process.
+pub fn unique_instance(tag: &str) -> String {
+    static N: AtomicU32 = AtomicU32::new(0);
+    format!("t{}-{}-{}", std::process::id() % 100_000, tag, N.fetch_add(1, Ordering::Relaxed))
+}
+
+/// A running `xrce-agent udp4` with DDS pinned to loopback. Stopped (SIGTERM) on drop.
+#[derive(Debug)]
+pub struct AgentProcess {
+    child: Child,
+    /// The UDP port it serves.
+    pub port: u16,
+    /// Its instance name.
+    pub instance: String,
+}
+
+impl AgentProcess {
+    /// Starts an agent on a free port.
+    pub fn start(tag: &str) -> Self {
+        let port = free_udp_port();
+        let instance = unique_instance(tag);
+        let child = Command::new(binaries().join("xrce-agent"))
+            .args(["udp4", "-p", &port.to_string(), "--bind", "127.0.0.1", "--dds-interface", "127.0.0.1", "--instance", &instance])
+            .env("XRCE_LOG", std::env::var("XRCE_TEST_LOG").unwrap_or_else(|_| "info".into()))
+            .spawn()
+            .expect("start xrce-agent");
+        AgentProcess { child, port, instance }
+    }
+
+    /// The agent's address.
+    pub fn addr(&self) -> SocketAddr {
+        SocketAddr::from(([127, 0, 0, 1], self.port))
+    }
+
+    /// Pids of the agent's children with this program name.
+    pub fn child_pids(&self, program: &str) -> Vec<i32> {
+        let out = Command::new("pgrep").args(["-P", &self.child.id().to_string(), "-x", program]).output().expect("pgrep");
+        String::from_utf8_lossy(&out.stdout).lines().filter_map(|l| l.trim().parse().ok()).collect()
+    }
+
+    /// Sends SIGTERM and waits; returns whether it exited cleanly (code 0).
+    pub fn stop(mut self) -> bool {
+        self.terminate()
+    }
+
+    fn terminate(&mut self) -> bool {
+        let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(self.child.id() as i32), nix::sys::signal::Signal::SIGTERM);
+        let deadline = Instant::now() + Duration::from_secs(15);
+        loop {
+            match self.child.try_wait() {
+                Ok(Some(s)) => return s.success(),
+                Ok(None) if Instant::now() < deadline => std::thread::sleep(Duration::from_millis(20)),
+                _ => {
+                    let _ = self.child.kill();
+                    let _ = self.child.wait();
+                    return false;
+                }
+            }
+        }
+    }
+}
+
+impl Drop for AgentProcess {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            self.terminate();
+        }
+    }
+}
+
+/// SIGKILLs a process.
+pub fn sigkill(pid: i32) {
+    let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(pid), nix::sys::signal::Signal::SIGKILL);
+}
+
+/// The HelloWorld sample of the eProsima examples: `unsigned long index; string message;`
+/// in little-endian CDR.
+pub fn hello_world(index: u32, message: &str) -> Vec<u8> {
+    let mut v = index.to_le_bytes().to_vec();
+    v.extend_from_slice(&(message.len() as u32 + 1).to_le_bytes());
+    v.extend_from_slice(message.as_bytes());
+    v.push(0);
+    v
+}
+
+/// Decodes a HelloWorld sample (little-endian CDR).
+pub fn parse_hello_world(b: &[u8]) -> Option<(u32, String)> {
+    let index = u32::from_le_bytes(b.get(0..4)?.try_into().ok()?);
+    let len = u32::from_le_bytes(b.get(4..8)?.try_into().ok()?) as usize;
+    let s = b.get(8..8 + len.checked_sub(1)?)?;
+    Some((index, String::from_utf8(s.to_vec()).ok()?))
+}
+
+/// XML of the reference client's HelloWorld examples.
+pub mod xml {
+    /// Participant.
+    pub const PARTICIPANT: &str = "<dds><participant><rtps><name>default_xrce_participant</name></rtps></participant></dds>";
+    /// Topic.
+    pub const TOPIC: &str = "<dds><topic><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic></dds>";
+    /// Data writer.
+    pub const WRITER: &str = "<dds><data_writer><topic><kind>NO_KEY</kind><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic></data_writer></dds>";
+    /// Data reader (reliable, so the tests can demand every sample).
+    pub const READER: &str = "<dds><data_reader><topic><kind>NO_KEY</kind><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic><qos><reliability><kind>RELIABLE</kind></reliability></qos></data_reader></dds>";
+}
+
+/// A Rust XRCE client on a UDP socket, driving `xrce_common`'s client state machine.
+#[derive(Debug)]
+pub struct TestClient {
+    /// The protocol state.
+    pub client: Client,
+    socket: UdpSocket,
+    /// Events received and not yet consumed.
+    pub events: Vec<ClientEvent>,
+    buf: Vec<u8>,
+}
+
+impl TestClient {
+    /// A client with `key`, talking to `agent`.
+    pub fn new(agent: SocketAddr, key: [u8; 4]) -> Self {
+        let socket = UdpSocket::bind("127.0.0.1:0").expect("bind client");
+        socket.connect(agent).expect("connect");
+        socket.set_read_timeout(Some(Duration::from_millis(5))).expect("timeout");
+        TestClient { client: Client::new(ClientConfig::new(ClientKey(key))), socket, events: Vec::new(), buf: vec![0; 65_536] }
+    }
+
+    /// Runs the protocol for up to `d`, or until `done` says so.
+    pub fn run_until(&mut self, d: Duration, mut done: impl FnMut(&mut Self) -> bool) -> bool {
+        let end = Instant::now() + d;
+        loop {
+            self.step();
+            if done(self) {
+                return true;
+            }
+            if Instant::now() >= end {
+                return false;
+            }
+        }
+    }
+
+    /// One round: flush, receive what arrived (up to 5 ms), fire timers.
+    pub fn step(&mut self) {
+        while let Some(t) = self.client.poll_transmit() {
+            let _ = self.socket.send(&t);
+        }
+        if let Ok(n) = self.socket.recv(&mut self.buf) {
+            let data = self.buf[..n].to_vec();
+            self.client.handle_datagram(Instant::now(), &data);
+            // Drain anything else already queued without blocking.
+            self.socket.set_nonblocking(true).ok();
+            while let Ok(n) = self.socket.recv(&mut self.buf) {
+                let data = self.buf[..n].to_vec();
+                self.client.handle_datagram(Instant::now(), &data);
+            }
+            self.socket.set_nonblocking(false).ok();
+        }
+        self.client.handle_timeout(Instant::now());
+        while let Some(e) = self.client.poll_event() {
+            self.events.push(e);
+        }
+        while let Some(t) = self.client.poll_transmit() {
+            let _ = self.socket.send(&t);
+        }
+    }
+
+    /// Opens the session; panics if the agent does not accept it within `d`.
+    pub fn connect(&mut self, d: Duration) {
+        self.client.connect(Instant::now());
+        let ok = self.run_until(d, |c| c.client.is_connected());
+        assert!(ok, "session not established: {:?}", self.events);
+    }
+
+    /// Creates an object and waits for its STATUS; returns the status value.
+    pub fn create(&mut self, id: ObjectId, kind: u8, xml: &str, extra: VariantExtra) -> u8 {
+        let variant = ObjectVariant { kind, representation: Representation::Xml(xml.into()), extra };
+        let req = self.client.create(Instant::now(), id, variant, false, true).expect("create");
+        self.wait_status(req, Duration::from_secs(20))
+    }
+
+    /// Waits for the STATUS of `req`.
+    pub fn wait_status(&mut self, req: RequestId, d: Duration) -> u8 {
+        let mut found = None;
+        self.run_until(d, |c| {
+            if let Some(i) = c.events.iter().position(|e| matches!(e, ClientEvent::Status(s) if s.related.request_id == req)) {
+                if let ClientEvent::Status(s) = c.events.remove(i) {
+                    found = Some(s.result.status);
+                }
+                return true;
+            }
+            false
+        });
+        found.unwrap_or_else(|| panic!("no STATUS for request {req:?}"))
+    }
+
+    /// Creates participant (in `domain`), topic, publisher and writer of the HelloWorld
+    /// example; returns the writer id.
+    pub fn setup_publisher(&mut self, domain: i16) -> ObjectId {
+        let p = ObjectId::new(1, object_kind::PARTICIPANT);
+        assert_eq!(self.create(p, object_kind::PARTICIPANT, xml::PARTICIPANT, VariantExtra::DomainId(domain)), 0);
+        let t = ObjectId::new(1, object_kind::TOPIC);
+        assert_eq!(self.create(t, object_kind::TOPIC, xml::TOPIC, VariantExtra::Parent(p)), 0);
+        let pb = ObjectId::new(1, object_kind::PUBLISHER);
+        assert_eq!(self.create(pb, object_kind::PUBLISHER, "", VariantExtra::Parent(p)), 0);
+        let w = ObjectId::new(1, object_kind::DATAWRITER);
+        assert_eq!(self.create(w, object_kind::DATAWRITER, xml::WRITER, VariantExtra::Parent(pb)), 0);
+        w
+    }
+
+    /// Creates participant, topic, subscriber and reader of the HelloWorld example and
+    /// starts an unlimited READ_DATA on the reliable stream; returns the reader id.
+    pub fn setup_subscriber(&mut self, domain: i16) -> ObjectId {
+        let p = ObjectId::new(1, object_kind::PARTICIPANT);
+        assert_eq!(self.create(p, object_kind::PARTICIPANT, xml::PARTICIPANT, VariantExtra::DomainId(domain)), 0);
+        let t = ObjectId::new(1, object_kind::TOPIC);
+        assert_eq!(self.create(t, object_kind::TOPIC, xml::TOPIC, VariantExtra::Parent(p)), 0);
+        let s = ObjectId::new(1, object_kind::SUBSCRIBER);
+        assert_eq!(self.create(s, object_kind::SUBSCRIBER, "", VariantExtra::Parent(p)), 0);
+        let r = ObjectId::new(1, object_kind::DATAREADER);
+        assert_eq!(self.create(r, object_kind::DATAREADER, xml::READER, VariantExtra::Parent(s)), 0);
+        let spec = ReadSpecification {
+            preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+            data_format: 0,
+            delivery_control: Some(DataDeliveryControl { max_samples: u16::MAX, ..Default::default() }),
+            ..Default::default()
+        };
+        self.client.read(Instant::now(), r, spec).expect("read");
+        r
+    }
+
+    /// Writes on the reliable stream, waiting for window room.
+    pub fn write_reliable(&mut self, writer: ObjectId, sample: &[u8]) {
+        let ok = self.run_until(Duration::from_secs(60), |c| c.client.can_send_reliable(stream_id::BUILTIN_RELIABLE));
+        assert!(ok, "reliable window never opened");
+        self.client.write(Instant::now(), stream_id::BUILTIN_RELIABLE, writer, sample).expect("write");
+        self.step();
+    }
+
+    /// HelloWorld samples received so far (consumed from `events`).
+    pub fn take_samples(&mut self) -> Vec<(u32, String)> {
+        let mut out = Vec::new();
+        self.events.retain(|e| match e {
+            ClientEvent::Data { data, .. } => {
+                out.extend(parse_hello_world(data));
+                false
+            }
+            _ => true,
+        });
+        out
+    }
+}
+
+/// The Python virtual environment with Cyclone DDS, created once under `target/`.
+pub fn cyclone_python() -> PathBuf {
+    static PY: OnceLock<PathBuf> = OnceLock::new();
+    PY.get_or_init(|| {
+        let venv = target_dir().join("cyclonedds-venv");
+        let py = venv.join("bin/python");
+        let lock = std::fs::File::create(target_dir().join("cyclonedds-venv.lock")).expect("lock file");
+        let _guard = nix::fcntl::Flock::lock(lock, nix::fcntl::FlockArg::LockExclusive).expect("flock");
+        let ready = Command::new(&py)
+            .args(["-c", &format!("import cyclonedds, importlib.metadata as m; assert m.version('cyclonedds') == '{CYCLONEDDS_VERSION}'")])
+            .stderr(Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+        if !ready {
+            let st = Command::new("python3").args(["-m", "venv"]).arg(&venv).status().expect("python3 -m venv");
+            assert!(st.success(), "creating the venv failed");
+            let st = Command::new(venv.join("bin/pip"))
+                .args(["install", "--quiet", "--only-binary=:all:", &format!("cyclonedds=={CYCLONEDDS_VERSION}")])
+                .status()
+                .expect("pip install");
+            assert!(st.success(), "installing cyclonedds {CYCLONEDDS_VERSION} failed");
+        }
+        py
+    })
+    .clone()
+}
+
+/// A running `dds_peer.py` (Cyclone DDS) process with its stdout lines on a channel.
+#[derive(Debug)]
+pub struct DdsPeer {
+    child: Child,
+    lines: mpsc::Receiver<String>,
+}
+
+impl DdsPeer {
+    /// Starts `dds_peer.py <args>` pinned to loopback.
+    pub fn start(args: &[&str]) -> Self {
+        let xml = workspace().join("tests/python/cyclonedds-loopback.xml");
+        let mut child = Command::new(cyclone_python())
+            .arg(workspace().join("tests/python/dds_peer.py"))
+            .args(args)
+            .env("CYCLONEDDS_URI", format!("file://{}", xml.display()))
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("start dds_peer.py");
+        let stdout: ChildStdout = child.stdout.take().expect("stdout");
+        let (tx, lines) = mpsc::channel();
+        std::thread::spawn(move || {
+            for l in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if tx.send(l).is_err() {
+                    break;
+                }
+            }
+        });
+        DdsPeer { child, lines }
+    }
+
+    /// The next output line, waiting up to `d`.
+    pub fn line(&self, d: Duration) -> Option<String> {
+        self.lines.recv_timeout(d).ok()
+    }
+
+    /// Waits for a line starting with `prefix`, while `pump` keeps other parties running.
+    pub fn wait_for(&self, prefix: &str, d: Duration, mut pump: impl FnMut()) -> Option<String> {
+        let end = Instant::now() + d;
+        while Instant::now() < end {
+            pump();
+            if let Ok(l) = self.lines.recv_timeout(Duration::from_millis(2)) {
+                if l.starts_with(prefix) {
+                    return Some(l);
+                }
+            }
+        }
+        None
+    }
+
+    /// Waits for the process to end; returns its exit code.
+    pub fn wait(&mut self, d: Duration, mut pump: impl FnMut()) -> Option<i32> {
+        let end = Instant::now() + d;
+        while Instant::now() < end {
+            pump();
+            if let Ok(Some(s)) = self.child.try_wait() {
+                return s.code();
+            }
+        }
+        None
+    }
+
+    /// All lines received so far.
+    pub fn drain_lines(&self) -> Vec<String> {
+        self.lines.try_iter().collect()
+    }
+}
+
+impl Drop for DdsPeer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Parses a `{"index": i, "message": "..."}` line from the peer.
+pub fn parse_sample_line(l: &str) -> Option<(u32, String)> {
+    let i = l.find("\"index\":")? + 8;
+    let rest = l[i..].trim_start();
+    let end = rest.find(|c: char| !c.is_ascii_digit())?;
+    let index = rest[..end].parse().ok()?;
+    let m = l.find("\"message\": \"")? + 12;
+    let mend = l[m..].rfind('"')? + m;
+    Some((index, l[m..mend].to_string()))
+}

@@ -84,8 +84,8 @@ pub enum Operation<'a> {
     Create { client: ClientKey, create: &'a CreatePayload },
     /// DELETE of an object.
     Delete { client: ClientKey, request: BaseObjectRequest },
-    /// WRITE_DATA.
-    Write { client: ClientKey, data: DataPayload<'a>, little_endian: bool },
+    /// WRITE_DATA, with the stream it came on (reliable streams must not lose it).
+    Write { client: ClientKey, stream_id: u8, data: DataPayload<'a>, little_endian: bool },
     /// READ_DATA.
     Read { client: ClientKey, request: BaseObjectRequest, spec: &'a ReadSpecification },
 }
@@ -491,6 +491,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
 
     /// Processes the submessages of one accepted message.
     fn process(&mut self, now: Instant, key: ClientKey, bytes: &[u8], hlen: usize, sink: &mut impl OperationSink) {
+        let stream = bytes.get(1).copied().unwrap_or(0);
         for raw in Submessages::new(bytes, hlen) {
             let raw = match raw {
                 Ok(r) => r,
@@ -513,7 +514,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     }
                 }
                 Payload::Delete(d) => sink.operation(Operation::Delete { client: key, request: d }),
-                Payload::WriteData(d) => sink.operation(Operation::Write { client: key, data: d, little_endian: le }),
+                Payload::WriteData(d) => {
+                    sink.operation(Operation::Write { client: key, stream_id: stream, data: d, little_endian: le })
+                }
                 Payload::ReadData(r) => sink.operation(Operation::Read { client: key, request: r.base, spec: &r.spec }),
                 Payload::GetInfo(g) => {
                     if let Some(c) = self.clients.get(&key) {
@@ -607,10 +610,10 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         }
     }
 
-    fn encode_submessage(payload: &Payload<'_>) -> Result<Vec<u8>, SendError> {
+    fn encode_submessage(payload: &Payload<'_>, little_endian: bool) -> Result<Vec<u8>, SendError> {
         // Encode with a dummy 4-byte header so alignment matches a message start + 4.
         let mut b = MessageBuilder::new(MessageHeader { session_id: 0x80, stream_id: 0, sequence_nr: 0, client_key: None });
-        b.push(payload, true).map_err(|_| SendError::TooLarge)?;
+        b.push(payload, little_endian).map_err(|_| SendError::TooLarge)?;
         let mut v = b.finish();
         v.drain(..4);
         Ok(v)
@@ -633,7 +636,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
 
     fn queue_status(&mut self, key: ClientKey, request: BaseObjectRequest, result: ResultStatus) {
         let payload = Payload::Status(BaseObjectReply { related: request, result });
-        if let Ok(sub) = Self::encode_submessage(&payload) {
+        if let Ok(sub) = Self::encode_submessage(&payload, true) {
             let _ = self.queue_reliable(key, stream_id::BUILTIN_RELIABLE, sub);
         }
     }
@@ -656,12 +659,13 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         stream: u8,
         request: BaseObjectRequest,
         sample: &[u8],
+        little_endian: bool,
     ) -> Result<(), SendError> {
         let payload = Payload::Data(DataPayload { base: request, format: crate::wire::data_format::DATA, data: sample });
         let c = self.clients.get_mut(&key).ok_or(SendError::NoClient)?;
         let stream = if stream == stream_id::NONE { stream_id::BUILTIN_RELIABLE } else { stream };
         if stream_id::is_reliable(stream) {
-            let sub = Self::encode_submessage(&payload)?;
+            let sub = Self::encode_submessage(&payload, little_endian)?;
             if sub.len() + 8 > c.mtu as usize {
                 // Fragmentation of DATA is not implemented yet: count it, still send it whole
                 // (loopback and most IP paths carry it; a small-MTU client drops it).
@@ -673,7 +677,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             let seq = c.best_effort_out.entry(stream).or_insert(0);
             let mut b = MessageBuilder::new(MessageHeader::new(c.session_id, stream, *seq, c.key));
             *seq = seq.wrapping_add(1);
-            b.push(&payload, true).map_err(|_| SendError::TooLarge)?;
+            b.push(&payload, little_endian).map_err(|_| SendError::TooLarge)?;
             let addr = c.addr;
             self.push_transmit(addr, b.finish());
         }

@@ -1,0 +1,473 @@
+//! The front-end's side of the IPC contract: operations out to the DDS worker, replies and
+//! samples back, and what makes sessions survive a worker restart.
+//!
+//! * Every client's object graph and active reads are kept here ([`ObjectGraph`]).
+//! * At most [`IN_FLIGHT_WINDOW`] operations are unprocessed by the worker at once, so its
+//!   queue never overflows; the rest wait in a bounded outbox.
+//! * Writes that came on reliable streams are retained until the worker has executed them
+//!   and a settle time has passed (RustDDS sends asynchronously, so "executed" is not yet
+//!   "on the wire").
+//! * When a new worker generation is announced, the graphs are replayed in creation order,
+//!   reads re-issued and retained writes sent again, before anything new.
+//! * When the outbox or the retention is full, [`OperationSink::has_room`] says no: the agent
+//!   core then stops acknowledging reliable messages and clients send them again later.
+
+use std::collections::{HashMap, VecDeque};
+use std::time::{Duration, Instant};
+
+use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
+use xrce_common::ipc::{self, IpcHeader, MessageKind, FLAG_LITTLE_ENDIAN, FLAG_REPLAY, IN_FLIGHT_WINDOW};
+use xrce_common::session::agent::{Agent, Operation, OperationSink};
+use xrce_common::session::graph::{ActiveRead, CreateDecision, GraphObject, ObjectGraph};
+use xrce_common::wire::cdr::CdrWriter;
+use xrce_common::wire::{status, stream_id, BaseObjectRequest, ClientKey, ObjectId, RequestId, ResultStatus};
+
+/// Operations waiting for the window before new ones are refused (flow control).
+pub const OUTBOX_MAX: usize = 8192;
+/// Reliable writes kept for a possible resend before new ones are refused (flow control).
+pub const RETAIN_MAX: usize = 8192;
+/// How long an executed reliable write is kept in case the worker dies right after.
+pub const SETTLE_TIME: Duration = Duration::from_millis(250);
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Awaited {
+    /// The client waits for a STATUS.
+    Yes,
+    /// Internal or replayed: do not forward the STATUS.
+    No,
+}
+
+#[derive(Debug)]
+struct OwnedOp {
+    header: IpcHeader,
+    body: Vec<u8>,
+    retain: bool,
+    awaited: Awaited,
+}
+
+#[derive(Debug)]
+struct Retained {
+    seq: u64,
+    executed_at: Option<Instant>,
+    header: IpcHeader,
+    body: Vec<u8>,
+}
+
+/// Counters of the bridge.
+#[derive(Debug, Default, Clone)]
+pub struct BridgeStats {
+    /// Operations sent to a worker (replays included).
+    pub ops_sent: u64,
+    /// Replays performed (new worker generations seen).
+    pub replays: u64,
+    /// Reliable writes sent again after a worker restart.
+    pub writes_resent: u64,
+    /// IPC messages dropped (bad, stale generation, send failures).
+    pub ipc_dropped: u64,
+}
+
+/// The front-end's IPC state.
+#[derive(Debug)]
+pub struct Bridge {
+    frontend_id: u32,
+    node: IpcNode,
+    requests: Sender,
+    replies: Receiver,
+    announce: Receiver,
+    generation: Option<u32>,
+    next_seq: u64,
+    processed: u64,
+    outbox: VecDeque<OwnedOp>,
+    retained: VecDeque<Retained>,
+    /// Sent operations whose STATUS a client waits for: seq -> (client, request, kind).
+    pending: HashMap<u64, (ClientKey, BaseObjectRequest, MessageKind)>,
+    graphs: HashMap<ClientKey, ObjectGraph>,
+    replies_out: Vec<(ClientKey, BaseObjectRequest, ResultStatus)>,
+    dirty: bool,
+    stats: BridgeStats,
+}
+
+fn header(kind: MessageKind, frontend_id: u32, client: ClientKey, request: BaseObjectRequest) -> IpcHeader {
+    IpcHeader {
+        frontend_id,
+        client_key: client,
+        request_id: request.request_id,
+        object_id: request.object_id,
+        ..IpcHeader::new(kind)
+    }
+}
+
+impl Bridge {
+    /// Opens the services of front-end `frontend_id` in agent instance `instance`.
+    pub fn new(instance: &str, frontend_id: u32) -> Result<Self, ShmError> {
+        let node = IpcNode::new(instance, &format!("xrce-frontend-{frontend_id}"))?;
+        let replies = node.receiver(&ipc::reply_service(instance, frontend_id), ServiceKind::Data)?;
+        let announce = node.receiver(&ipc::announce_service(instance), ServiceKind::Announce)?;
+        let requests = node.sender(&ipc::request_service(instance), ServiceKind::Data)?;
+        // Announcements made before we subscribed are not delivered (iceoryx2 hands history
+        // to late subscribers only when the publisher next acts), so ask: a worker answers
+        // every FrontendHello with its WorkerHello on our reply service. Our subscribers
+        // exist already, so either this probe or the worker's own announcement reaches us.
+        let mut probe = IpcHeader::new(MessageKind::FrontendHello);
+        probe.frontend_id = frontend_id;
+        requests.send(&probe, &[])?;
+        requests.notify()?;
+        Ok(Bridge {
+            frontend_id,
+            node,
+            requests,
+            replies,
+            announce,
+            generation: None,
+            next_seq: 1,
+            processed: 0,
+            outbox: VecDeque::new(),
+            retained: VecDeque::new(),
+            pending: HashMap::new(),
+            graphs: HashMap::new(),
+            replies_out: Vec::new(),
+            dirty: false,
+            stats: BridgeStats::default(),
+        })
+    }
+
+    /// Whether SIGINT/SIGTERM arrived.
+    pub fn termination_requested(&self) -> bool {
+        self.node.termination_requested()
+    }
+
+    /// Descriptors to wait on: replies and announcements.
+    pub fn raw_fds(&self) -> [i32; 2] {
+        [self.replies.raw_fd(), self.announce.raw_fd()]
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> &BridgeStats {
+        &self.stats
+    }
+
+    /// The worker generation served, if any.
+    pub fn generation(&self) -> Option<u32> {
+        self.generation
+    }
+
+    /// Operations waiting to be sent.
+    pub fn backlog(&self) -> usize {
+        self.outbox.len()
+    }
+
+    fn in_flight(&self) -> u64 {
+        (self.next_seq - 1).saturating_sub(self.processed)
+    }
+
+    fn can_send_now(&self) -> bool {
+        self.generation.is_some() && self.in_flight() < IN_FLIGHT_WINDOW
+    }
+
+    /// Sends now if the window allows (copying `body` straight into shared memory), else
+    /// queues an owned copy.
+    fn submit(&mut self, mut h: IpcHeader, body: &[u8], retain: bool, awaited: Awaited) {
+        if self.outbox.is_empty() && self.can_send_now() {
+            h.op_seq = self.next_seq;
+            if let Err(e) = self.requests.send(&h, body) {
+                tracing::warn!(error = %e, "could not hand an operation to the worker; queued");
+                self.outbox.push_back(OwnedOp { header: h, body: body.to_vec(), retain, awaited });
+                return;
+            }
+            self.after_send(h, retain, awaited, || body.to_vec());
+        } else {
+            self.outbox.push_back(OwnedOp { header: h, body: body.to_vec(), retain, awaited });
+        }
+    }
+
+    fn after_send(&mut self, h: IpcHeader, retain: bool, awaited: Awaited, body: impl FnOnce() -> Vec<u8>) {
+        self.next_seq += 1;
+        self.stats.ops_sent += 1;
+        self.dirty = true;
+        if retain {
+            self.retained.push_back(Retained { seq: h.op_seq, executed_at: None, header: h, body: body() });
+        }
+        if awaited == Awaited::Yes {
+            self.pending.insert(h.op_seq, (h.client_key, BaseObjectRequest { request_id: h.request_id, object_id: h.object_id }, h.kind));
+        }
+    }
+
+    /// Sends queued operations while the window allows; wakes the worker once.
+    pub fn pump(&mut self) {
+        while self.can_send_now() {
+            let Some(mut op) = self.outbox.pop_front() else { break };
+            op.header.op_seq = self.next_seq;
+            if let Err(e) = self.requests.send(&op.header, &op.body) {
+                tracing::warn!(error = %e, "could not hand an operation to the worker; will retry");
+                self.outbox.push_front(op);
+                break;
+            }
+            let OwnedOp { header, body, retain, awaited } = op;
+            self.after_send(header, retain, awaited, move || body);
+        }
+        if self.dirty {
+            if let Err(e) = self.requests.notify() {
+                tracing::debug!(error = %e, "worker wake-up failed");
+            }
+            self.dirty = false;
+        }
+    }
+
+    /// Handles worker announcements and replies; applies results to the agent core.
+    pub fn poll_ipc<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(&mut self, now: Instant, agent: &mut Agent<A>) {
+        self.announce.clear_events();
+        self.replies.clear_events();
+        let mut hellos = Vec::new();
+        let _ = self.announce.drain(|m| hellos.push(m.to_vec()));
+        for m in hellos {
+            match IpcHeader::decode(&m) {
+                Ok((h, _)) if h.kind == MessageKind::WorkerHello && Some(h.generation) != self.generation => {
+                    self.new_generation(h.generation);
+                }
+                Ok(_) => {}
+                Err(e) => {
+                    self.stats.ipc_dropped += 1;
+                    tracing::warn!(error = %e, "bad announcement");
+                }
+            }
+        }
+        let mut msgs = Vec::new();
+        let _ = self.replies.drain(|m| msgs.push(m.to_vec()));
+        for m in msgs {
+            self.handle_reply(now, &m, agent);
+        }
+        self.settle(now);
+        self.apply_replies(now, agent);
+    }
+
+    fn new_generation(&mut self, generation: u32) {
+        let first = self.generation.is_none();
+        tracing::info!(generation, first, clients = self.graphs.len(), "worker generation seen; replaying sessions");
+        self.generation = Some(generation);
+        self.processed = self.next_seq - 1;
+        self.stats.replays += 1;
+        let old_outbox = std::mem::take(&mut self.outbox);
+        // Operations a client still waits for: answered by the replay, or (deletes) now.
+        let mut awaited: HashMap<(ClientKey, ObjectId), RequestId> = HashMap::new();
+        for (_, (client, req, kind)) in self.pending.drain() {
+            match kind {
+                MessageKind::Create => {
+                    awaited.insert((client, req.object_id), req.request_id);
+                }
+                MessageKind::Delete => self.replies_out.push((client, req, ResultStatus::OK)),
+                _ => {}
+            }
+        }
+        let mut writes = Vec::new();
+        for op in old_outbox {
+            match (op.header.kind, op.awaited) {
+                (MessageKind::Write, _) => writes.push(op),
+                (MessageKind::Create, Awaited::Yes) => {
+                    awaited.insert((op.header.client_key, op.header.object_id), op.header.request_id);
+                }
+                (MessageKind::Delete, Awaited::Yes) => self.replies_out.push((
+                    op.header.client_key,
+                    BaseObjectRequest { request_id: op.header.request_id, object_id: op.header.object_id },
+                    ResultStatus::OK,
+                )),
+                _ => {}
+            }
+        }
+        let mut hello = IpcHeader::new(MessageKind::FrontendHello);
+        hello.frontend_id = self.frontend_id;
+        self.outbox.push_back(OwnedOp { header: hello, body: Vec::new(), retain: false, awaited: Awaited::No });
+        for (client, graph) in &self.graphs {
+            for o in graph.objects() {
+                let mut body = Vec::new();
+                o.variant.encode(&mut CdrWriter::new(&mut body, true));
+                let req = BaseObjectRequest { request_id: o.request_id, object_id: o.object_id };
+                let waited = awaited.get(&(*client, o.object_id)) == Some(&o.request_id);
+                let mut h = header(MessageKind::Create, self.frontend_id, *client, req);
+                if !waited {
+                    h.flags |= FLAG_REPLAY;
+                }
+                self.outbox.push_back(OwnedOp { header: h, body, retain: false, awaited: if waited { Awaited::Yes } else { Awaited::No } });
+            }
+            for (reader, read) in graph.reads() {
+                let mut body = Vec::new();
+                read.spec.encode(&mut CdrWriter::new(&mut body, true));
+                let req = BaseObjectRequest { request_id: read.request_id, object_id: *reader };
+                let mut h = header(MessageKind::Read, self.frontend_id, *client, req);
+                h.flags |= FLAG_REPLAY;
+                self.outbox.push_back(OwnedOp { header: h, body, retain: false, awaited: Awaited::No });
+            }
+        }
+        for r in std::mem::take(&mut self.retained) {
+            self.stats.writes_resent += 1;
+            self.outbox.push_back(OwnedOp { header: r.header, body: r.body, retain: true, awaited: Awaited::No });
+        }
+        self.outbox.extend(writes);
+    }
+
+    fn handle_reply<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(&mut self, now: Instant, m: &[u8], agent: &mut Agent<A>) {
+        let (h, body) = match IpcHeader::decode(m) {
+            Ok(v) => v,
+            Err(e) => {
+                self.stats.ipc_dropped += 1;
+                return tracing::warn!(error = %e, "bad reply from the worker");
+            }
+        };
+        if h.kind == MessageKind::WorkerHello {
+            if Some(h.generation) != self.generation {
+                self.new_generation(h.generation);
+            }
+            return;
+        }
+        if Some(h.generation) != self.generation {
+            // From a worker generation we no longer serve (or have not seen announced yet).
+            self.stats.ipc_dropped += 1;
+            return;
+        }
+        let req = BaseObjectRequest { request_id: h.request_id, object_id: h.object_id };
+        match h.kind {
+            MessageKind::Progress => {
+                self.processed = self.processed.max(h.op_seq);
+                for r in self.retained.iter_mut() {
+                    if r.seq > h.op_seq {
+                        break;
+                    }
+                    r.executed_at.get_or_insert(now);
+                }
+            }
+            MessageKind::Status => {
+                let code = body.first().copied().unwrap_or(status::ERR_DDS_ERROR);
+                let result = ResultStatus { status: code, implementation_status: body.get(1).copied().unwrap_or(0) };
+                let waited = self.pending.remove(&h.op_seq);
+                if !status::is_ok(code) {
+                    if let Some(g) = self.graphs.get_mut(&h.client_key) {
+                        if waited.is_some_and(|w| w.2 == MessageKind::Create) {
+                            g.remove(h.object_id);
+                        } else {
+                            g.end_read(h.object_id);
+                        }
+                    }
+                }
+                if waited.is_some() || (h.flags & FLAG_REPLAY == 0 && !status::is_ok(code)) {
+                    self.replies_out.push((h.client_key, req, result));
+                } else if !status::is_ok(code) {
+                    tracing::warn!(client = %h.client_key, object = ?h.object_id, status = code, "replayed operation failed on the new worker");
+                }
+            }
+            MessageKind::Sample => {
+                let stream = self
+                    .graphs
+                    .get(&h.client_key)
+                    .and_then(|g| g.reads().find(|(r, _)| **r == h.object_id).map(|(_, a)| a.spec.preferred_stream_id))
+                    .unwrap_or(stream_id::BUILTIN_RELIABLE);
+                if let Err(e) = agent.send_data(now, h.client_key, stream, req, body, h.flags & FLAG_LITTLE_ENDIAN != 0) {
+                    tracing::debug!(client = %h.client_key, error = %e, "sample not delivered");
+                }
+            }
+            MessageKind::ReadEnded => {
+                if let Some(g) = self.graphs.get_mut(&h.client_key) {
+                    let same = g.reads().any(|(r, a)| *r == h.object_id && a.request_id == h.request_id);
+                    if same {
+                        g.end_read(h.object_id);
+                    }
+                }
+            }
+            other => {
+                self.stats.ipc_dropped += 1;
+                tracing::warn!(kind = ?other, "unexpected message on the reply service");
+            }
+        }
+    }
+
+    /// Drops retained writes that were executed long enough ago.
+    fn settle(&mut self, now: Instant) {
+        while let Some(r) = self.retained.front() {
+            match r.executed_at {
+                Some(t) if now.saturating_duration_since(t) >= SETTLE_TIME => {
+                    self.retained.pop_front();
+                }
+                _ => break,
+            }
+        }
+    }
+
+    /// When retained writes need another look.
+    pub fn poll_timeout(&self) -> Option<Instant> {
+        self.retained.front().and_then(|r| r.executed_at).map(|t| t + SETTLE_TIME)
+    }
+
+    /// Sends STATUS replies decided here (creation modes, unknown objects, replays).
+    pub fn apply_replies<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(&mut self, now: Instant, agent: &mut Agent<A>) {
+        for (client, req, result) in self.replies_out.drain(..) {
+            let _ = agent.send_status(now, client, req, result);
+        }
+    }
+}
+
+impl OperationSink for Bridge {
+    fn has_room(&self) -> bool {
+        self.outbox.len() < OUTBOX_MAX && self.retained.len() < RETAIN_MAX
+    }
+
+    fn operation(&mut self, op: Operation<'_>) {
+        let fe = self.frontend_id;
+        match op {
+            Operation::ClientCreated { client } => {
+                self.graphs.insert(client, ObjectGraph::default());
+            }
+            Operation::ClientDeleted { client } => {
+                self.graphs.remove(&client);
+                let h = header(MessageKind::DeleteClient, fe, client, BaseObjectRequest::default());
+                self.submit(h, &[], false, Awaited::No);
+            }
+            Operation::Create { client, create } => {
+                let graph = self.graphs.entry(client).or_default();
+                let id = create.base.object_id;
+                match graph.decide_create(id, &create.variant, create.reuse, create.replace) {
+                    CreateDecision::Reply(code) => self.replies_out.push((client, create.base, ResultStatus::new(code))),
+                    decision => {
+                        if decision == CreateDecision::Replace {
+                            graph.remove(id);
+                        }
+                        graph.insert(GraphObject { object_id: id, request_id: create.base.request_id, variant: create.variant.clone() });
+                        let mut body = Vec::new();
+                        create.variant.encode(&mut CdrWriter::new(&mut body, true));
+                        self.submit(header(MessageKind::Create, fe, client, create.base), &body, false, Awaited::Yes);
+                    }
+                }
+            }
+            Operation::Delete { client, request } => {
+                let known = self.graphs.get_mut(&client).is_some_and(|g| !g.remove(request.object_id).is_empty());
+                if known {
+                    self.submit(header(MessageKind::Delete, fe, client, request), &[], false, Awaited::Yes);
+                } else {
+                    self.replies_out.push((client, request, ResultStatus::new(status::ERR_UNKNOWN_REFERENCE)));
+                }
+            }
+            Operation::Write { client, stream_id: stream, data, little_endian } => {
+                if data.format != xrce_common::wire::data_format::DATA {
+                    // Other formats are not decoded yet.
+                    self.replies_out.push((client, data.base, ResultStatus::new(status::ERR_INVALID_DATA)));
+                    return;
+                }
+                let mut h = header(MessageKind::Write, fe, client, data.base);
+                if little_endian {
+                    h.flags |= FLAG_LITTLE_ENDIAN;
+                }
+                self.submit(h, data.data, stream_id::is_reliable(stream), Awaited::No);
+            }
+            Operation::Read { client, request, spec } => {
+                let known = self.graphs.get(&client).is_some_and(|g| g.get(request.object_id).is_some());
+                if !known {
+                    self.replies_out.push((client, request, ResultStatus::new(status::ERR_UNKNOWN_REFERENCE)));
+                    return;
+                }
+                if let Some(g) = self.graphs.get_mut(&client) {
+                    g.set_read(request.object_id, ActiveRead { request_id: request.request_id, spec: spec.clone() });
+                }
+                let mut body = Vec::new();
+                spec.encode(&mut CdrWriter::new(&mut body, true));
+                self.submit(header(MessageKind::Read, fe, client, request), &body, false, Awaited::No);
+            }
+        }
+    }
+}

@@ -1,0 +1,88 @@
+//! The UDP/IPv4 (or IPv6) transport: one socket, one thread, no busy polling.
+//!
+//! The loop blocks in `poll(2)` on the socket and the two IPC event descriptors, with the
+//! earliest protocol timer as timeout; after each wake-up it drains everything ready.
+
+use std::net::{SocketAddr, UdpSocket};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use xrce_common::session::agent::{Agent, AgentConfig};
+
+use crate::bridge::Bridge;
+
+/// Largest datagram accepted.
+const MAX_DATAGRAM: usize = 65_536;
+/// Datagrams handled per wake-up before IPC and timers get a turn.
+const RECV_BATCH: usize = 256;
+
+/// Runs a UDP front-end until SIGINT/SIGTERM.
+pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow::Result<()> {
+    socket.set_nonblocking(true)?;
+    let local = socket.local_addr()?;
+    tracing::info!(%local, "UDP front-end listening");
+    let mut agent: Agent<SocketAddr> = Agent::new(config);
+    let mut buf = vec![0u8; MAX_DATAGRAM];
+    let sock_fd = std::os::fd::AsRawFd::as_raw_fd(&socket);
+    let [replies_fd, announce_fd] = bridge.raw_fds();
+    let mut send_errors = 0u64;
+    // Pick up a worker that announced itself before we started.
+    bridge.poll_ipc(Instant::now(), &mut agent);
+    bridge.pump();
+    loop {
+        if bridge.termination_requested() {
+            tracing::info!("termination requested");
+            return Ok(());
+        }
+        let now = Instant::now();
+        let deadline = [agent.poll_timeout(), bridge.poll_timeout()].into_iter().flatten().min();
+        let timeout = match deadline {
+            Some(d) => d.saturating_duration_since(now).as_millis().min(60_000) as i32 + 1,
+            None => -1,
+        };
+        let mut fds = [
+            libc::pollfd { fd: sock_fd, events: libc::POLLIN, revents: 0 },
+            libc::pollfd { fd: replies_fd, events: libc::POLLIN, revents: 0 },
+            libc::pollfd { fd: announce_fd, events: libc::POLLIN, revents: 0 },
+        ];
+        // SAFETY: `fds` is a valid array of pollfd for the duration of the call.
+        #[allow(unsafe_code)]
+        let rc = unsafe { libc::poll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, timeout) };
+        if rc < 0 {
+            let e = std::io::Error::last_os_error();
+            if e.kind() != std::io::ErrorKind::Interrupted {
+                return Err(e.into());
+            }
+            continue;
+        }
+        let now = Instant::now();
+        if let Ok(d) = SystemTime::now().duration_since(UNIX_EPOCH) {
+            agent.set_wall_clock(now, d);
+        }
+        for _ in 0..RECV_BATCH {
+            match socket.recv_from(&mut buf) {
+                Ok((n, src)) => {
+                    agent.handle_datagram(now, src, &buf[..n], &mut bridge);
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) => {
+                    // ICMP errors from earlier sends surface here on Linux; keep serving.
+                    tracing::debug!(error = %e, "recv_from");
+                    break;
+                }
+            }
+        }
+        bridge.apply_replies(now, &mut agent);
+        bridge.poll_ipc(now, &mut agent);
+        bridge.pump();
+        agent.handle_timeout(now);
+        while let Some(t) = agent.poll_transmit() {
+            if let Err(e) = socket.send_to(&t.data, t.destination) {
+                send_errors += 1;
+                if send_errors.is_power_of_two() {
+                    tracing::warn!(error = %e, to = %t.destination, send_errors, "send_to failed");
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,183 @@
+//! The supervisor of an XRCE agent instance: starts the DDS worker and the front-ends,
+//! restarts a child that dies (with back-off), forwards SIGINT/SIGTERM for a clean stop and
+//! removes shared-memory leftovers of children that died hard.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command};
+use std::time::{Duration, Instant};
+
+use nix::sys::signal::{kill, SigSet, Signal};
+use nix::unistd::Pid;
+
+/// One child process the supervisor keeps alive.
+#[derive(Debug, Clone)]
+pub struct ChildSpec {
+    /// Name for logs.
+    pub name: String,
+    /// Program path.
+    pub program: PathBuf,
+    /// Arguments.
+    pub args: Vec<String>,
+    /// Extra environment.
+    pub env: Vec<(String, String)>,
+}
+
+#[derive(Debug)]
+struct Supervised {
+    spec: ChildSpec,
+    child: Option<Child>,
+    started: Instant,
+    backoff: Duration,
+    restart_at: Option<Instant>,
+    restarts: u64,
+}
+
+/// Back-off after the first crash; doubles up to [`MAX_BACKOFF`].
+pub const MIN_BACKOFF: Duration = Duration::from_millis(50);
+/// Longest wait before a restart.
+pub const MAX_BACKOFF: Duration = Duration::from_secs(5);
+/// A child that ran this long is healthy again: its back-off resets.
+pub const STABLE_AFTER: Duration = Duration::from_secs(10);
+/// How long children get to stop after SIGTERM before SIGKILL.
+pub const STOP_GRACE: Duration = Duration::from_secs(5);
+
+fn spawn(spec: &ChildSpec) -> std::io::Result<Child> {
+    use std::os::unix::process::CommandExt;
+    let mut cmd = Command::new(&spec.program);
+    cmd.args(&spec.args);
+    for (k, v) in &spec.env {
+        cmd.env(k, v);
+    }
+    // SAFETY: only async-signal-safe calls (sigprocmask, prctl) between fork and exec.
+    #[allow(unsafe_code)]
+    unsafe {
+        cmd.pre_exec(|| {
+            let set = SigSet::all();
+            let _ = set.thread_unblock();
+            // Children die with the supervisor, even if it is SIGKILLed.
+            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+            Ok(())
+        });
+    }
+    cmd.spawn()
+}
+
+/// Where the child programs live: `XRCE_BIN_DIR`, else next to this executable.
+pub fn bin_dir() -> PathBuf {
+    if let Some(d) = std::env::var_os("XRCE_BIN_DIR") {
+        return PathBuf::from(d);
+    }
+    std::env::current_exe().ok().and_then(|p| p.parent().map(Path::to_path_buf)).unwrap_or_else(|| PathBuf::from("."))
+}
+
+/// Waits for a signal of `set` for at most `timeout`.
+fn wait_signal(set: &SigSet, timeout: Duration) -> Option<Signal> {
+    let ts = libc::timespec { tv_sec: timeout.as_secs() as libc::time_t, tv_nsec: timeout.subsec_nanos() as libc::c_long };
+    // SAFETY: `set` is a valid sigset and `ts` a valid timespec for the duration of the call.
+    #[allow(unsafe_code)]
+    let rc = unsafe { libc::sigtimedwait(set.as_ref(), std::ptr::null_mut(), &ts) };
+    if rc > 0 {
+        Signal::try_from(rc).ok()
+    } else {
+        None
+    }
+}
+
+/// Runs the children until SIGINT or SIGTERM; returns the signal that stopped it.
+pub fn supervise(specs: Vec<ChildSpec>, cleanup: impl Fn()) -> anyhow::Result<Signal> {
+    let mut set = SigSet::empty();
+    set.add(Signal::SIGINT);
+    set.add(Signal::SIGTERM);
+    set.add(Signal::SIGCHLD);
+    set.thread_block()?;
+    cleanup();
+    let mut children: Vec<Supervised> = Vec::new();
+    for spec in specs {
+        let child = spawn(&spec).map_err(|e| anyhow::anyhow!("starting {} ({}): {e}", spec.name, spec.program.display()))?;
+        tracing::info!(name = %spec.name, pid = child.id(), "started");
+        children.push(Supervised { spec, child: Some(child), started: Instant::now(), backoff: MIN_BACKOFF, restart_at: None, restarts: 0 });
+    }
+    loop {
+        let now = Instant::now();
+        let next = children.iter().filter_map(|c| c.restart_at).min();
+        let timeout = next.map_or(Duration::from_secs(1), |t| t.saturating_duration_since(now).max(Duration::from_millis(1)));
+        match wait_signal(&set, timeout) {
+            Some(s @ (Signal::SIGINT | Signal::SIGTERM)) => {
+                tracing::info!(signal = ?s, "stopping");
+                stop_all(&mut children);
+                cleanup();
+                return Ok(s);
+            }
+            _ => {}
+        }
+        let now = Instant::now();
+        for c in &mut children {
+            if let Some(child) = c.child.as_mut() {
+                if let Ok(Some(status)) = child.try_wait() {
+                    if now.duration_since(c.started) >= STABLE_AFTER {
+                        c.backoff = MIN_BACKOFF;
+                    }
+                    tracing::warn!(name = %c.spec.name, %status, restart_in = ?c.backoff, "child exited; restarting");
+                    c.child = None;
+                    c.restart_at = Some(now + c.backoff);
+                    c.backoff = (c.backoff * 2).min(MAX_BACKOFF);
+                }
+            }
+            if c.child.is_none() && c.restart_at.is_some_and(|t| t <= now) {
+                c.restart_at = None;
+                match spawn(&c.spec) {
+                    Ok(child) => {
+                        c.restarts += 1;
+                        tracing::info!(name = %c.spec.name, pid = child.id(), restarts = c.restarts, "restarted");
+                        c.child = Some(child);
+                        c.started = now;
+                    }
+                    Err(e) => {
+                        tracing::error!(name = %c.spec.name, error = %e, "restart failed");
+                        c.restart_at = Some(now + c.backoff);
+                        c.backoff = (c.backoff * 2).min(MAX_BACKOFF);
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn stop_all(children: &mut [Supervised]) {
+    for c in children.iter() {
+        if let Some(child) = &c.child {
+            let _ = kill(Pid::from_raw(child.id() as i32), Signal::SIGTERM);
+        }
+    }
+    let deadline = Instant::now() + STOP_GRACE;
+    for c in children.iter_mut() {
+        if let Some(child) = c.child.as_mut() {
+            loop {
+                match child.try_wait() {
+                    Ok(Some(_)) | Err(_) => break,
+                    Ok(None) if Instant::now() >= deadline => {
+                        tracing::warn!(name = %c.spec.name, "did not stop in time; killing");
+                        let _ = child.kill();
+                        let _ = child.wait();
+                        break;
+                    }
+                    Ok(None) => std::thread::sleep(Duration::from_millis(10)),
+                }
+            }
+        }
+        c.child = None;
+    }
+}
+
+/// Maps the reference agent's `-v` levels (0 off … 6 trace) to a log filter.
+pub fn verbosity_filter(v: u8) -> &'static str {
+    // RustDDS is chatty at info; its warnings show from level 5 on.
+    match v {
+        0 => "off",
+        1 | 2 => "error,rustdds=off",
+        3 => "warn,rustdds=error",
+        4 => "info,rustdds=error",
+        5 => "debug,rustdds=warn",
+        _ => "trace",
+    }
+}
