@@ -16,11 +16,24 @@ pub struct DdsConfig {
     pub interfaces: Vec<IpAddr>,
 }
 
-/// Participants by domain id.
+/// Which participant of a domain an entity lives on.
+///
+/// Writers and readers live on different RustDDS participants: pinned to loopback, a RustDDS
+/// participant cannot deliver from its own writer to its own reader (its proxies of itself
+/// get no locators), so two XRCE clients in one domain would not hear each other.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Role {
+    /// Publishers and data writers.
+    Publish,
+    /// Subscribers and data readers.
+    Subscribe,
+}
+
+/// Participants by domain id and role.
 #[derive(Debug)]
 pub struct ParticipantPool {
     config: DdsConfig,
-    participants: HashMap<u16, DomainParticipant>,
+    participants: HashMap<(u16, Role), DomainParticipant>,
 }
 
 /// The domain id XRCE clients use to mean "the agent's default" (reference agent behaviour).
@@ -45,9 +58,9 @@ impl ParticipantPool {
         ParticipantPool { config, participants: HashMap::new() }
     }
 
-    /// The participant of `domain`, created on first use.
-    pub fn get(&mut self, domain: u16) -> Result<DomainParticipant, String> {
-        if let Some(p) = self.participants.get(&domain) {
+    /// The participant of `domain` for `role`, created on first use.
+    pub fn get(&mut self, domain: u16, role: Role) -> Result<DomainParticipant, String> {
+        if let Some(p) = self.participants.get(&(domain, role)) {
             return Ok(p.clone());
         }
         let mut b = DomainParticipantBuilder::new(domain);
@@ -55,8 +68,8 @@ impl ParticipantPool {
             b = b.with_only_networks(self.config.interfaces.clone());
         }
         let p = b.build().map_err(|e| format!("creating DDS participant in domain {domain}: {e:?}"))?;
-        tracing::info!(domain, "DDS participant created");
-        self.participants.insert(domain, p.clone());
+        tracing::info!(domain, ?role, "DDS participant created");
+        self.participants.insert((domain, role), p.clone());
         Ok(p)
     }
 

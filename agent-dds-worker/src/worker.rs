@@ -17,7 +17,7 @@ use xrce_common::ipc::{self, IpcHeader, MessageKind, FLAG_LITTLE_ENDIAN, FLAG_RE
 use xrce_common::wire::cdr::CdrReader;
 use xrce_common::wire::{object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, Representation, VariantExtra};
 
-use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool};
+use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
 use crate::raw::{RawLe, RawSample};
 use crate::xml::{self, TopicDesc};
 
@@ -33,10 +33,12 @@ pub struct WorkerConfig {
 type EntityKey = (u32, ClientKey, ObjectId);
 
 enum EntityKind {
-    Participant(DomainParticipant),
-    Topic(Topic, TopicDesc),
-    Publisher(Publisher),
-    Subscriber(Subscriber),
+    /// A logical XRCE participant in a DDS domain.
+    Participant(u16),
+    /// A topic description; RustDDS topics are made per DDS participant when endpoints are.
+    Topic(TopicDesc),
+    Publisher(Publisher, DomainParticipant),
+    Subscriber(Subscriber, DomainParticipant),
     Writer(DataWriter<RawSample, RawLe>),
     Reader(Box<DataReader<RawSample, RawLe>>, Token),
 }
@@ -306,12 +308,12 @@ impl Worker {
         Ok(e)
     }
 
-    /// The participant entity an object hangs under.
-    fn participant_of(&self, key: EntityKey, mut id: ObjectId) -> Option<(ObjectId, DomainParticipant)> {
+    /// The participant entity an object hangs under, and its domain.
+    fn participant_of(&self, key: EntityKey, mut id: ObjectId) -> Option<(ObjectId, u16)> {
         for _ in 0..8 {
             let e = self.entities.get(&(key.0, key.1, id))?;
             match &e.kind {
-                EntityKind::Participant(dp) => return Some((id, dp.clone())),
+                EntityKind::Participant(domain) => return Some((id, *domain)),
                 _ => id = e.parent?,
             }
         }
@@ -343,35 +345,34 @@ impl Worker {
             (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
                 xml::parse_participant(xml).map_err(bad_xml)?;
                 let domain = effective_domain(d).map_err(|e| (status::ERR_INVALID_DATA, e))?;
-                let dp = self.pool.get(domain).map_err(|e| (status::ERR_DDS_ERROR, e))?;
-                (None, EntityKind::Participant(dp))
+                (None, EntityKind::Participant(domain))
             }
             (object_kind::TOPIC, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
                 let desc = xml::parse_topic(xml).map_err(bad_xml)?;
-                let (_, dp) = self.participant_of(key, p).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
-                let topic = Self::make_topic(&dp, &desc).map_err(|e| dds_err("create topic", &e))?;
-                (Some(p), EntityKind::Topic(topic, desc))
+                (Some(p), EntityKind::Topic(desc))
             }
             (object_kind::PUBLISHER, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                let (_, dp) = self.participant_of(key, p).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let (_, domain) = self.participant_of(key, p).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let dp = self.pool.get(domain, Role::Publish).map_err(|e| (status::ERR_DDS_ERROR, e))?;
                 let publisher = dp.create_publisher(&QosPolicies::qos_none()).map_err(|e| dds_err("create publisher", &e))?;
-                (Some(p), EntityKind::Publisher(publisher))
+                (Some(p), EntityKind::Publisher(publisher, dp))
             }
             (object_kind::SUBSCRIBER, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                let (_, dp) = self.participant_of(key, p).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let (_, domain) = self.participant_of(key, p).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let dp = self.pool.get(domain, Role::Subscribe).map_err(|e| (status::ERR_DDS_ERROR, e))?;
                 let subscriber = dp.create_subscriber(&QosPolicies::qos_none()).map_err(|e| dds_err("create subscriber", &e))?;
-                (Some(p), EntityKind::Subscriber(subscriber))
+                (Some(p), EntityKind::Subscriber(subscriber, dp))
             }
             (object_kind::DATAWRITER, VariantExtra::Parent(p)) => {
-                let publisher = match &self.parent_entity(key, p, object_kind::PUBLISHER)?.kind {
-                    EntityKind::Publisher(x) => x.clone(),
+                let (publisher, dp) = match &self.parent_entity(key, p, object_kind::PUBLISHER)?.kind {
+                    EntityKind::Publisher(x, dp) => (x.clone(), dp.clone()),
                     _ => return Err((status::ERR_UNKNOWN_REFERENCE, "parent is not a publisher".into())),
                 };
                 let desc = xml::parse_endpoint(xml, "data_writer").map_err(bad_xml)?;
-                let (topic, tdesc) = self.endpoint_topic(key, p, &desc)?;
+                let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
                 let w = publisher
                     .create_datawriter_no_key::<RawSample, RawLe>(&topic, Some(qos))
@@ -379,12 +380,12 @@ impl Worker {
                 (Some(p), EntityKind::Writer(w))
             }
             (object_kind::DATAREADER, VariantExtra::Parent(p)) => {
-                let subscriber = match &self.parent_entity(key, p, object_kind::SUBSCRIBER)?.kind {
-                    EntityKind::Subscriber(x) => x.clone(),
+                let (subscriber, dp) = match &self.parent_entity(key, p, object_kind::SUBSCRIBER)?.kind {
+                    EntityKind::Subscriber(x, dp) => (x.clone(), dp.clone()),
                     _ => return Err((status::ERR_UNKNOWN_REFERENCE, "parent is not a subscriber".into())),
                 };
                 let desc = xml::parse_endpoint(xml, "data_reader").map_err(bad_xml)?;
-                let (topic, tdesc) = self.endpoint_topic(key, p, &desc)?;
+                let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Reader, &tdesc.qos, &desc.qos);
                 let mut r = subscriber
                     .create_datareader_no_key::<RawSample, RawLe>(&topic, Some(qos))
@@ -408,28 +409,32 @@ impl Worker {
         dp.create_topic(desc.name.clone(), desc.type_name.clone(), &QosPolicies::qos_none(), TopicKind::NoKey)
     }
 
-    /// The topic an endpoint names: inline, or a topic object of the same participant.
-    fn endpoint_topic(&self, key: EntityKey, parent: ObjectId, desc: &xml::EndpointDesc) -> Result<(Topic, TopicDesc), OpError> {
-        let (pid, dp) = self.participant_of(key, parent).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+    /// The topic an endpoint names (inline, or a topic object of the same participant),
+    /// made on the DDS participant `dp` the endpoint lives on.
+    fn endpoint_topic(
+        &self,
+        key: EntityKey,
+        parent: ObjectId,
+        dp: &DomainParticipant,
+        desc: &xml::EndpointDesc,
+    ) -> Result<(Topic, TopicDesc), OpError> {
+        let (pid, _) = self.participant_of(key, parent).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
         // A topic object created by the client with the same name carries its QoS.
         let wanted = desc.topic.as_ref().map(|t| t.name.as_str()).or(desc.topic_ref.as_deref()).unwrap_or_default();
         let existing = self.entities.iter().find_map(|(k, e)| match &e.kind {
-            EntityKind::Topic(t, d) if k.0 == key.0 && k.1 == key.1 && e.parent == Some(pid) && d.name == wanted => {
-                Some((t.clone(), d.clone()))
-            }
+            EntityKind::Topic(d) if k.0 == key.0 && k.1 == key.1 && e.parent == Some(pid) && d.name == wanted => Some(d.clone()),
             _ => None,
         });
-        match (&desc.topic, existing) {
-            (Some(inline), Some((_, d))) if inline.type_name != d.type_name => {
-                Err((status::ERR_MISMATCH, format!("topic {wanted} exists with type {}", d.type_name)))
+        let tdesc = match (&desc.topic, existing) {
+            (Some(inline), Some(d)) if inline.type_name != d.type_name => {
+                return Err((status::ERR_MISMATCH, format!("topic {wanted} exists with type {}", d.type_name)))
             }
-            (_, Some(found)) => Ok(found),
-            (Some(inline), None) => {
-                let t = Self::make_topic(&dp, inline).map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
-                Ok((t, inline.clone()))
-            }
-            (None, None) => Err((status::ERR_UNKNOWN_REFERENCE, format!("topic {wanted} is unknown"))),
-        }
+            (_, Some(found)) => found,
+            (Some(inline), None) => inline.clone(),
+            (None, None) => return Err((status::ERR_UNKNOWN_REFERENCE, format!("topic {wanted} is unknown"))),
+        };
+        let t = Self::make_topic(dp, &tdesc).map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
+        Ok((t, tdesc))
     }
 
     fn write(&mut self, key: EntityKey, little_endian: bool, body: &[u8]) -> Result<(), OpError> {
