@@ -39,7 +39,7 @@ enum EntityKind {
     Topic(TopicDesc),
     Publisher(Publisher, DomainParticipant),
     Subscriber(Subscriber, DomainParticipant),
-    Writer(DataWriter<RawSample, RawLe>),
+    Writer(DataWriter<RawSample, RawLe>, Rematch),
     Reader(Box<DataReader<RawSample, RawLe>>, Token),
 }
 
@@ -47,6 +47,27 @@ struct Entity {
     parent: Option<ObjectId>,
     kind: EntityKind,
 }
+
+/// A writer re-created by a replay holds its writes until it has matched readers again:
+/// volatile readers only get samples written after they matched a writer, and the replayed
+/// writer is a new DDS writer. Without this, samples resent after a worker restart would
+/// reach nobody.
+#[derive(Default)]
+struct Rematch {
+    /// Until when writes are held at most (None = not holding).
+    until: Option<Instant>,
+    /// When the writer first matched a reader again.
+    matched_at: Option<Instant>,
+    /// Held writes: (front-end operation sequence number, sample).
+    held: std::collections::VecDeque<(u64, RawSample)>,
+}
+
+/// Longest hold of a replayed writer's samples when no reader matches.
+const REMATCH_MAX: Duration = Duration::from_secs(3);
+/// Margin after the writer's match so the reader has matched the writer too.
+const REMATCH_MARGIN: Duration = Duration::from_millis(200);
+/// Most samples one replayed writer holds (the front-end's in-flight window is smaller).
+const REMATCH_HELD_MAX: usize = 4096;
 
 struct ActiveRead {
     request_id: xrce_common::wire::RequestId,
@@ -176,6 +197,7 @@ impl Worker {
                 self.pump(k);
             }
             self.expire_reads();
+            self.release_rematched();
             self.flush()?;
         }
     }
@@ -183,6 +205,10 @@ impl Worker {
     fn poll_timeout(&self) -> i32 {
         if !self.to_pump.is_empty() {
             return 0;
+        }
+        let holding = self.entities.values().any(|e| matches!(&e.kind, EntityKind::Writer(_, r) if r.until.is_some()));
+        if holding {
+            return 20;
         }
         let now = Instant::now();
         self.reads
@@ -244,7 +270,7 @@ impl Worker {
             }
             MessageKind::DeleteClient => self.remove_where(|k| k.0 == h.frontend_id && k.1 == h.client_key),
             MessageKind::Create => {
-                let r = self.create(key, body);
+                let r = self.create(key, body, h.flags & FLAG_REPLAY != 0);
                 if r.is_ok() {
                     tracing::debug!(client = %h.client_key, object = ?h.object_id, replay = h.flags & FLAG_REPLAY != 0, "created");
                 }
@@ -260,7 +286,7 @@ impl Worker {
                 self.status(&h, r);
             }
             MessageKind::Write => {
-                if let Err(e) = self.write(key, h.flags & FLAG_LITTLE_ENDIAN != 0, body) {
+                if let Err(e) = self.write(key, h.op_seq, h.flags & FLAG_LITTLE_ENDIAN != 0, body) {
                     self.status(&h, Err(e));
                 }
             }
@@ -285,11 +311,17 @@ impl Worker {
 
     fn flush(&mut self) -> Result<(), ShmError> {
         let generation = self.generation;
-        for (fe, p) in self.ports.iter_mut().filter(|(_, p)| p.dirty) {
+        let held = self.oldest_held();
+        for (fe, p) in self.ports.iter_mut() {
+            // Held writes are not executed yet: progress stops just before the oldest.
+            let done = held.get(fe).map_or(p.processed, |oldest| p.processed.min(oldest.saturating_sub(1)));
+            if !p.dirty && held.get(fe).is_none() {
+                continue;
+            }
             let mut h = IpcHeader::new(MessageKind::Progress);
             h.frontend_id = *fe;
             h.generation = generation;
-            h.op_seq = p.processed;
+            h.op_seq = done;
             p.sender.send(&h, &[])?;
             p.sender.notify()?;
             p.dirty = false;
@@ -320,7 +352,7 @@ impl Worker {
         None
     }
 
-    fn create(&mut self, key: EntityKey, body: &[u8]) -> Result<(), OpError> {
+    fn create(&mut self, key: EntityKey, body: &[u8], replay: bool) -> Result<(), OpError> {
         let variant = ObjectVariant::decode(&mut CdrReader::new(body, true))
             .map_err(|e| (status::ERR_INVALID_DATA, format!("object representation: {e}")))?;
         if variant.kind != key.2.kind() {
@@ -377,7 +409,8 @@ impl Worker {
                 let w = publisher
                     .create_datawriter_no_key::<RawSample, RawLe>(&topic, Some(qos))
                     .map_err(|e| dds_err("create data writer", &e))?;
-                (Some(p), EntityKind::Writer(w))
+                let rematch = Rematch { until: replay.then(|| Instant::now() + REMATCH_MAX), ..Default::default() };
+                (Some(p), EntityKind::Writer(w, rematch))
             }
             (object_kind::DATAREADER, VariantExtra::Parent(p)) => {
                 let (subscriber, dp) = match &self.parent_entity(key, p, object_kind::SUBSCRIBER)?.kind {
@@ -437,15 +470,67 @@ impl Worker {
         Ok((t, tdesc))
     }
 
-    fn write(&mut self, key: EntityKey, little_endian: bool, body: &[u8]) -> Result<(), OpError> {
-        let Some(Entity { kind: EntityKind::Writer(w), .. }) = self.entities.get(&key) else {
+    fn write(&mut self, key: EntityKey, seq: u64, little_endian: bool, body: &[u8]) -> Result<(), OpError> {
+        let Some(Entity { kind: EntityKind::Writer(w, rematch), .. }) = self.entities.get_mut(&key) else {
             return Err((status::ERR_UNKNOWN_REFERENCE, "write to an unknown data writer".into()));
         };
         if !little_endian {
             return Err((status::ERR_INVALID_DATA, "big-endian samples are not supported yet".into()));
         }
         let sample = RawSample { encoding: rustdds::RepresentationIdentifier::CDR_LE, body: rustdds::bytes::Bytes::copy_from_slice(body) };
+        if rematch.until.is_some() {
+            if rematch.held.len() >= REMATCH_HELD_MAX {
+                return Err((status::ERR_RESOURCES, "replayed writer holds too many samples".into()));
+            }
+            rematch.held.push_back((seq, sample));
+            return Ok(());
+        }
         w.write(sample, None).map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
+    }
+
+    /// Releases the samples of replayed writers that matched again (or waited long enough).
+    fn release_rematched(&mut self) {
+        use rustdds::StatusEvented;
+        let now = Instant::now();
+        let mut failures = 0u64;
+        for e in self.entities.values_mut() {
+            let EntityKind::Writer(w, rematch) = &mut e.kind else { continue };
+            let Some(until) = rematch.until else { continue };
+            while let Some(st) = w.try_recv_status() {
+                if let rustdds::dds::statusevents::DataWriterStatus::PublicationMatched { current, .. } = st {
+                    if current.count() > 0 && rematch.matched_at.is_none() {
+                        rematch.matched_at = Some(now);
+                    }
+                }
+            }
+            let ready = rematch.matched_at.is_some_and(|t| now >= t + REMATCH_MARGIN) || now >= until;
+            if ready {
+                tracing::info!(held = rematch.held.len(), matched = rematch.matched_at.is_some(), "replayed writer resumes");
+                rematch.until = None;
+                for (_, sample) in rematch.held.drain(..) {
+                    if w.write(sample, None).is_err() {
+                        failures += 1;
+                    }
+                }
+            }
+        }
+        for _ in 0..failures {
+            self.count("dds_write_failed");
+        }
+    }
+
+    /// The oldest operation held by a replayed writer, per front-end.
+    fn oldest_held(&self) -> HashMap<u32, u64> {
+        let mut m: HashMap<u32, u64> = HashMap::new();
+        for (k, e) in &self.entities {
+            if let EntityKind::Writer(_, r) = &e.kind {
+                if let Some((seq, _)) = r.held.front() {
+                    let v = m.entry(k.0).or_insert(*seq);
+                    *v = (*v).min(*seq);
+                }
+            }
+        }
+        m
     }
 
     fn start_read(&mut self, key: EntityKey, h: &IpcHeader, body: &[u8]) -> Result<(), OpError> {

@@ -84,13 +84,16 @@ fn wait_signal(set: &SigSet, timeout: Duration) -> Option<Signal> {
 }
 
 /// Runs the children until SIGINT or SIGTERM; returns the signal that stopped it.
-pub fn supervise(specs: Vec<ChildSpec>, cleanup: impl Fn()) -> anyhow::Result<Signal> {
+///
+/// `cleanup(final)` runs before the children start (`false`) and after they all stopped
+/// (`true`).
+pub fn supervise(specs: Vec<ChildSpec>, cleanup: impl Fn(bool)) -> anyhow::Result<Signal> {
     let mut set = SigSet::empty();
     set.add(Signal::SIGINT);
     set.add(Signal::SIGTERM);
     set.add(Signal::SIGCHLD);
     set.thread_block()?;
-    cleanup();
+    cleanup(false);
     let mut children: Vec<Supervised> = Vec::new();
     for spec in specs {
         let child = spawn(&spec).map_err(|e| anyhow::anyhow!("starting {} ({}): {e}", spec.name, spec.program.display()))?;
@@ -105,7 +108,7 @@ pub fn supervise(specs: Vec<ChildSpec>, cleanup: impl Fn()) -> anyhow::Result<Si
             Some(s @ (Signal::SIGINT | Signal::SIGTERM)) => {
                 tracing::info!(signal = ?s, "stopping");
                 stop_all(&mut children);
-                cleanup();
+                cleanup(true);
                 return Ok(s);
             }
             _ => {}

@@ -79,11 +79,14 @@ fn main() -> anyhow::Result<()> {
         },
     ];
     tracing::info!(%udp, %instance, "xrce-agent starting");
-    let cleanup = || {
+    let cleanup = |last: bool| {
         // Creating a node removes what dead nodes of this instance left in shared memory.
         match xrce_common::ipc::shm::IpcNode::new(&instance, "xrce-agent") {
             Ok(n) => drop(n),
             Err(e) => tracing::warn!(error = %e, "shared-memory cleanup failed"),
+        }
+        if last {
+            xrce_common::ipc::shm::remove_instance_leftovers(&instance);
         }
     };
     supervise(specs, cleanup)?;

@@ -96,9 +96,13 @@ impl AgentProcess {
         String::from_utf8_lossy(&out.stdout).lines().filter_map(|l| l.trim().parse().ok()).collect()
     }
 
-    /// Sends SIGTERM and waits; returns whether it exited cleanly (code 0).
+    /// Sends SIGTERM and waits; returns whether it exited cleanly (code 0) and left no
+    /// shared-memory files behind.
     pub fn stop(mut self) -> bool {
-        self.terminate()
+        let clean = self.terminate();
+        let left = xrce_common::ipc::shm::instance_files(&self.instance);
+        assert!(left.is_empty(), "stale shared-memory files after stop: {left:?}");
+        clean
     }
 
     fn terminate(&mut self) -> bool {

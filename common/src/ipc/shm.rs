@@ -123,6 +123,29 @@ impl IpcNode {
     }
 }
 
+/// Removes what an instance leaves in `/dev/shm` after its last node is gone (iceoryx2
+/// keeps a 16-byte `global_mgmt` object per prefix). Call only when no process of the
+/// instance runs any more. Returns how many files were removed.
+pub fn remove_instance_leftovers(instance: &str) -> usize {
+    if !valid_instance(instance) {
+        return 0;
+    }
+    let prefix = format!("xrce_{instance}_");
+    let Ok(dir) = std::fs::read_dir("/dev/shm") else { return 0 };
+    dir.flatten()
+        .filter(|e| e.file_name().to_str().is_some_and(|n| n.starts_with(&prefix) && n.ends_with(".global_mgmt")))
+        .filter(|e| std::fs::remove_file(e.path()).is_ok())
+        .count()
+}
+
+/// Files of an instance still present in `/dev/shm` (for tests and diagnostics).
+pub fn instance_files(instance: &str) -> Vec<String> {
+    let prefix = format!("xrce_{instance}_");
+    std::fs::read_dir("/dev/shm")
+        .map(|d| d.flatten().filter_map(|e| e.file_name().into_string().ok()).filter(|n| n.starts_with(&prefix)).collect())
+        .unwrap_or_default()
+}
+
 /// Publishes IPC messages on one service.
 #[derive(Debug)]
 pub struct Sender {
