@@ -44,18 +44,27 @@ pub fn effective_domain(requested: i16) -> Result<u16, String> {
     if requested == DOMAIN_ID_DEFAULT_MARKER {
         for var in ["XRCE_DOMAIN_ID_OVERRIDE", "ROS_DOMAIN_ID"] {
             if let Ok(v) = std::env::var(var) {
-                return v.trim().parse::<u16>().map_err(|_| format!("{var}={v:?} is not a domain id"));
+                return v
+                    .trim()
+                    .parse::<u16>()
+                    .map_err(|_| format!("{var}={v:?} is not a domain id"));
             }
         }
         return Ok(0);
     }
-    u16::try_from(requested).ok().filter(|d| *d <= 232).ok_or_else(|| format!("domain id {requested} out of range"))
+    u16::try_from(requested)
+        .ok()
+        .filter(|d| *d <= 232)
+        .ok_or_else(|| format!("domain id {requested} out of range"))
 }
 
 impl ParticipantPool {
     /// An empty pool.
     pub fn new(config: DdsConfig) -> Self {
-        ParticipantPool { config, participants: HashMap::new() }
+        ParticipantPool {
+            config,
+            participants: HashMap::new(),
+        }
     }
 
     /// The participant of `domain` for `role`, created on first use.
@@ -67,7 +76,9 @@ impl ParticipantPool {
         if !self.config.interfaces.is_empty() {
             b = b.with_only_networks(self.config.interfaces.clone());
         }
-        let p = b.build().map_err(|e| format!("creating DDS participant in domain {domain}: {e:?}"))?;
+        let p = b
+            .build()
+            .map_err(|e| format!("creating DDS participant in domain {domain}: {e:?}"))?;
         tracing::info!(domain, ?role, "DDS participant created");
         self.participants.insert((domain, role), p.clone());
         Ok(p)
@@ -96,17 +107,26 @@ pub enum EndpointSide {
 
 /// Builds RustDDS QoS from topic and endpoint descriptions (endpoint settings win).
 pub fn endpoint_qos(side: EndpointSide, topic: &QosDesc, endpoint: &QosDesc) -> QosPolicies {
-    let reliability = endpoint.reliability.or(topic.reliability).unwrap_or(match side {
-        EndpointSide::Writer => Reliability::Reliable,
-        EndpointSide::Reader => Reliability::BestEffort,
-    });
-    let durability = endpoint.durability.or(topic.durability).unwrap_or(match side {
-        EndpointSide::Writer => Durability::TransientLocal,
-        EndpointSide::Reader => Durability::Volatile,
-    });
+    let reliability = endpoint
+        .reliability
+        .or(topic.reliability)
+        .unwrap_or(match side {
+            EndpointSide::Writer => Reliability::Reliable,
+            EndpointSide::Reader => Reliability::BestEffort,
+        });
+    let durability = endpoint
+        .durability
+        .or(topic.durability)
+        .unwrap_or(match side {
+            EndpointSide::Writer => Durability::TransientLocal,
+            EndpointSide::Reader => Durability::Volatile,
+        });
     // A deeper default than Fast DDS's keep-last 1: the worker drains readers promptly, but
     // bursts between two drains must not be cut to one sample.
-    let history = endpoint.history.or(topic.history).unwrap_or(History::KeepLast(64));
+    let history = endpoint
+        .history
+        .or(topic.history)
+        .unwrap_or(History::KeepLast(64));
     let mut b = QosPolicyBuilder::new();
     b = match reliability {
         Reliability::Reliable => b.reliable(rustdds::Duration::from_millis(100)),
@@ -131,12 +151,23 @@ mod tests {
 
     #[test]
     fn defaults_follow_fast_dds() {
-        let w = endpoint_qos(EndpointSide::Writer, &QosDesc::default(), &QosDesc::default());
+        let w = endpoint_qos(
+            EndpointSide::Writer,
+            &QosDesc::default(),
+            &QosDesc::default(),
+        );
         assert!(w.is_reliable());
         assert_eq!(w.durability(), Some(policy::Durability::TransientLocal));
-        let r = endpoint_qos(EndpointSide::Reader, &QosDesc::default(), &QosDesc::default());
+        let r = endpoint_qos(
+            EndpointSide::Reader,
+            &QosDesc::default(),
+            &QosDesc::default(),
+        );
         assert!(!r.is_reliable());
-        let explicit = QosDesc { reliability: Some(Reliability::Reliable), ..Default::default() };
+        let explicit = QosDesc {
+            reliability: Some(Reliability::Reliable),
+            ..Default::default()
+        };
         assert!(endpoint_qos(EndpointSide::Reader, &QosDesc::default(), &explicit).is_reliable());
     }
 

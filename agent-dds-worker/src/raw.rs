@@ -78,8 +78,15 @@ pub struct RawDecoder;
 
 impl<'de> Decode<'de, RawSample> for RawDecoder {
     type Error = RawError;
-    fn decode_bytes(self, input: &'de [u8], encoding: RepresentationIdentifier) -> Result<RawSample, RawError> {
-        Ok(RawSample { encoding, body: Bytes::copy_from_slice(input) })
+    fn decode_bytes(
+        self,
+        input: &'de [u8],
+        encoding: RepresentationIdentifier,
+    ) -> Result<RawSample, RawError> {
+        Ok(RawSample {
+            encoding,
+            body: Bytes::copy_from_slice(input),
+        })
     }
 }
 

@@ -15,7 +15,10 @@ use rustdds::{DomainParticipant, Publisher, QosPolicies, Subscriber, Topic, Topi
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
 use xrce_common::ipc::{self, IpcHeader, MessageKind, FLAG_LITTLE_ENDIAN, FLAG_REPLAY};
 use xrce_common::wire::cdr::CdrReader;
-use xrce_common::wire::{object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, Representation, VariantExtra};
+use xrce_common::wire::{
+    object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, Representation,
+    VariantExtra,
+};
 
 use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
 use crate::raw::{RawLe, RawSample};
@@ -39,7 +42,7 @@ enum EntityKind {
     Topic(TopicDesc),
     Publisher(Publisher, DomainParticipant),
     Subscriber(Subscriber, DomainParticipant),
-    Writer(DataWriter<RawSample, RawLe>, Rematch),
+    Writer(Box<DataWriter<RawSample, RawLe>>, Rematch),
     Reader(Box<DataReader<RawSample, RawLe>>, Token),
 }
 
@@ -109,7 +112,10 @@ pub struct Worker {
 
 impl std::fmt::Debug for Worker {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Worker").field("generation", &self.generation).field("entities", &self.entities.len()).finish()
+        f.debug_struct("Worker")
+            .field("generation", &self.generation)
+            .field("entities", &self.entities.len())
+            .finish()
     }
 }
 
@@ -121,8 +127,14 @@ impl Worker {
     pub fn new(config: WorkerConfig) -> anyhow::Result<Self> {
         let node = IpcNode::new(&config.instance, "xrce-dds-worker")?;
         let requests = node.receiver(&ipc::request_service(&config.instance), ServiceKind::Data)?;
-        let announce = node.sender(&ipc::announce_service(&config.instance), ServiceKind::Announce)?;
-        let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.subsec_nanos()).unwrap_or(0);
+        let announce = node.sender(
+            &ipc::announce_service(&config.instance),
+            ServiceKind::Announce,
+        )?;
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.subsec_nanos())
+            .unwrap_or(0);
         let generation = (nanos ^ std::process::id().rotate_left(16)) | 1;
         let pool = ParticipantPool::new(config.dds.clone());
         let w = Worker {
@@ -168,8 +180,16 @@ impl Worker {
             }
             let timeout = self.poll_timeout();
             let mut fds = [
-                libc::pollfd { fd: self.requests.raw_fd(), events: libc::POLLIN, revents: 0 },
-                libc::pollfd { fd: self.poll.as_raw_fd(), events: libc::POLLIN, revents: 0 },
+                libc::pollfd {
+                    fd: self.requests.raw_fd(),
+                    events: libc::POLLIN,
+                    revents: 0,
+                },
+                libc::pollfd {
+                    fd: self.poll.as_raw_fd(),
+                    events: libc::POLLIN,
+                    revents: 0,
+                },
             ];
             // SAFETY: `fds` is a valid array of two pollfd for the duration of the call.
             #[allow(unsafe_code)]
@@ -206,7 +226,10 @@ impl Worker {
         if !self.to_pump.is_empty() {
             return 0;
         }
-        let holding = self.entities.values().any(|e| matches!(&e.kind, EntityKind::Writer(_, r) if r.until.is_some()));
+        let holding = self
+            .entities
+            .values()
+            .any(|e| matches!(&e.kind, EntityKind::Writer(_, r) if r.until.is_some()));
         if holding {
             return 20;
         }
@@ -215,14 +238,29 @@ impl Worker {
             .values()
             .filter_map(|r| r.deadline)
             .min()
-            .map(|d| d.saturating_duration_since(now).as_millis().min(i32::MAX as u128) as i32 + 1)
+            .map(|d| {
+                d.saturating_duration_since(now)
+                    .as_millis()
+                    .min(i32::MAX as u128) as i32
+                    + 1
+            })
             .unwrap_or(-1)
     }
 
     fn port(&mut self, frontend: u32) -> Result<&mut FrontendPort, ShmError> {
         if !self.ports.contains_key(&frontend) {
-            let sender = self.node.sender(&ipc::reply_service(&self.config.instance, frontend), ServiceKind::Data)?;
-            self.ports.insert(frontend, FrontendPort { sender, processed: 0, dirty: false });
+            let sender = self.node.sender(
+                &ipc::reply_service(&self.config.instance, frontend),
+                ServiceKind::Data,
+            )?;
+            self.ports.insert(
+                frontend,
+                FrontendPort {
+                    sender,
+                    processed: 0,
+                    dirty: false,
+                },
+            );
         }
         Ok(self.ports.get_mut(&frontend).expect("just inserted"))
     }
@@ -247,7 +285,10 @@ impl Worker {
                 *code
             }
         };
-        let h = IpcHeader { kind: MessageKind::Status, ..*req };
+        let h = IpcHeader {
+            kind: MessageKind::Status,
+            ..*req
+        };
         self.reply(h, &[code, 0]);
     }
 
@@ -268,7 +309,9 @@ impl Worker {
                 hello.frontend_id = h.frontend_id;
                 self.reply(hello, &[]);
             }
-            MessageKind::DeleteClient => self.remove_where(|k| k.0 == h.frontend_id && k.1 == h.client_key),
+            MessageKind::DeleteClient => {
+                self.remove_where(|k| k.0 == h.frontend_id && k.1 == h.client_key)
+            }
             MessageKind::Create => {
                 let r = self.create(key, body, h.flags & FLAG_REPLAY != 0);
                 if r.is_ok() {
@@ -281,7 +324,10 @@ impl Worker {
                     self.remove_subtree(key);
                     Ok(())
                 } else {
-                    Err((status::ERR_UNKNOWN_REFERENCE, "delete of an unknown object".into()))
+                    Err((
+                        status::ERR_UNKNOWN_REFERENCE,
+                        "delete of an unknown object".into(),
+                    ))
                 };
                 self.status(&h, r);
             }
@@ -314,8 +360,10 @@ impl Worker {
         let held = self.oldest_held();
         for (fe, p) in self.ports.iter_mut() {
             // Held writes are not executed yet: progress stops just before the oldest.
-            let done = held.get(fe).map_or(p.processed, |oldest| p.processed.min(oldest.saturating_sub(1)));
-            if !p.dirty && held.get(fe).is_none() {
+            let done = held.get(fe).map_or(p.processed, |oldest| {
+                p.processed.min(oldest.saturating_sub(1))
+            });
+            if !p.dirty && !held.contains_key(fe) {
                 continue;
             }
             let mut h = IpcHeader::new(MessageKind::Progress);
@@ -329,13 +377,21 @@ impl Worker {
         Ok(())
     }
 
-    fn parent_entity(&self, key: EntityKey, parent: ObjectId, kind: u8) -> Result<&Entity, OpError> {
-        let e = self
-            .entities
-            .get(&(key.0, key.1, parent))
-            .ok_or((status::ERR_UNKNOWN_REFERENCE, format!("parent {parent:?} does not exist")))?;
+    fn parent_entity(
+        &self,
+        key: EntityKey,
+        parent: ObjectId,
+        kind: u8,
+    ) -> Result<&Entity, OpError> {
+        let e = self.entities.get(&(key.0, key.1, parent)).ok_or((
+            status::ERR_UNKNOWN_REFERENCE,
+            format!("parent {parent:?} does not exist"),
+        ))?;
         if parent.kind() != kind {
-            return Err((status::ERR_UNKNOWN_REFERENCE, format!("parent {parent:?} is not of kind {kind}")));
+            return Err((
+                status::ERR_UNKNOWN_REFERENCE,
+                format!("parent {parent:?} is not of kind {kind}"),
+            ));
         }
         Ok(e)
     }
@@ -353,10 +409,17 @@ impl Worker {
     }
 
     fn create(&mut self, key: EntityKey, body: &[u8], replay: bool) -> Result<(), OpError> {
-        let variant = ObjectVariant::decode(&mut CdrReader::new(body, true))
-            .map_err(|e| (status::ERR_INVALID_DATA, format!("object representation: {e}")))?;
+        let variant = ObjectVariant::decode(&mut CdrReader::new(body, true)).map_err(|e| {
+            (
+                status::ERR_INVALID_DATA,
+                format!("object representation: {e}"),
+            )
+        })?;
         if variant.kind != key.2.kind() {
-            return Err((status::ERR_INVALID_DATA, "object id kind differs from the representation kind".into()));
+            return Err((
+                status::ERR_INVALID_DATA,
+                "object id kind differs from the representation kind".into(),
+            ));
         }
         if self.entities.contains_key(&key) {
             // The front-end decides creation modes; here an existing object is replaced.
@@ -365,14 +428,21 @@ impl Worker {
         let xml = match &variant.representation {
             Representation::Xml(x) => x.as_str(),
             Representation::Reference(r) => {
-                return Err((status::ERR_UNKNOWN_REFERENCE, format!("reference {r:?}: no references are loaded (not supported yet)")))
+                return Err((
+                    status::ERR_UNKNOWN_REFERENCE,
+                    format!("reference {r:?}: no references are loaded (not supported yet)"),
+                ))
             }
             Representation::Binary(_) => {
-                return Err((status::ERR_INVALID_DATA, "binary representations are not supported yet".into()))
+                return Err((
+                    status::ERR_INVALID_DATA,
+                    "binary representations are not supported yet".into(),
+                ))
             }
         };
         let bad_xml = |e: xml::XmlError| (status::ERR_INVALID_DATA, e.to_string());
-        let dds_err = |what: &str, e: &dyn std::fmt::Debug| (status::ERR_DDS_ERROR, format!("{what}: {e:?}"));
+        let dds_err =
+            |what: &str, e: &dyn std::fmt::Debug| (status::ERR_DDS_ERROR, format!("{what}: {e:?}"));
         let (parent, kind) = match (variant.kind, variant.extra) {
             (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
                 xml::parse_participant(xml).map_err(bad_xml)?;
@@ -386,37 +456,66 @@ impl Worker {
             }
             (object_kind::PUBLISHER, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                let (_, domain) = self.participant_of(key, p).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
-                let dp = self.pool.get(domain, Role::Publish).map_err(|e| (status::ERR_DDS_ERROR, e))?;
-                let publisher = dp.create_publisher(&QosPolicies::qos_none()).map_err(|e| dds_err("create publisher", &e))?;
+                let (_, domain) = self
+                    .participant_of(key, p)
+                    .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let dp = self
+                    .pool
+                    .get(domain, Role::Publish)
+                    .map_err(|e| (status::ERR_DDS_ERROR, e))?;
+                let publisher = dp
+                    .create_publisher(&QosPolicies::qos_none())
+                    .map_err(|e| dds_err("create publisher", &e))?;
                 (Some(p), EntityKind::Publisher(publisher, dp))
             }
             (object_kind::SUBSCRIBER, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                let (_, domain) = self.participant_of(key, p).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
-                let dp = self.pool.get(domain, Role::Subscribe).map_err(|e| (status::ERR_DDS_ERROR, e))?;
-                let subscriber = dp.create_subscriber(&QosPolicies::qos_none()).map_err(|e| dds_err("create subscriber", &e))?;
+                let (_, domain) = self
+                    .participant_of(key, p)
+                    .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let dp = self
+                    .pool
+                    .get(domain, Role::Subscribe)
+                    .map_err(|e| (status::ERR_DDS_ERROR, e))?;
+                let subscriber = dp
+                    .create_subscriber(&QosPolicies::qos_none())
+                    .map_err(|e| dds_err("create subscriber", &e))?;
                 (Some(p), EntityKind::Subscriber(subscriber, dp))
             }
             (object_kind::DATAWRITER, VariantExtra::Parent(p)) => {
-                let (publisher, dp) = match &self.parent_entity(key, p, object_kind::PUBLISHER)?.kind {
-                    EntityKind::Publisher(x, dp) => (x.clone(), dp.clone()),
-                    _ => return Err((status::ERR_UNKNOWN_REFERENCE, "parent is not a publisher".into())),
-                };
+                let (publisher, dp) =
+                    match &self.parent_entity(key, p, object_kind::PUBLISHER)?.kind {
+                        EntityKind::Publisher(x, dp) => (x.clone(), dp.clone()),
+                        _ => {
+                            return Err((
+                                status::ERR_UNKNOWN_REFERENCE,
+                                "parent is not a publisher".into(),
+                            ))
+                        }
+                    };
                 let desc = xml::parse_endpoint(xml, "data_writer").map_err(bad_xml)?;
                 let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
                 let w = publisher
                     .create_datawriter_no_key::<RawSample, RawLe>(&topic, Some(qos))
                     .map_err(|e| dds_err("create data writer", &e))?;
-                let rematch = Rematch { until: replay.then(|| Instant::now() + REMATCH_MAX), ..Default::default() };
-                (Some(p), EntityKind::Writer(w, rematch))
+                let rematch = Rematch {
+                    until: replay.then(|| Instant::now() + REMATCH_MAX),
+                    ..Default::default()
+                };
+                (Some(p), EntityKind::Writer(Box::new(w), rematch))
             }
             (object_kind::DATAREADER, VariantExtra::Parent(p)) => {
-                let (subscriber, dp) = match &self.parent_entity(key, p, object_kind::SUBSCRIBER)?.kind {
-                    EntityKind::Subscriber(x, dp) => (x.clone(), dp.clone()),
-                    _ => return Err((status::ERR_UNKNOWN_REFERENCE, "parent is not a subscriber".into())),
-                };
+                let (subscriber, dp) =
+                    match &self.parent_entity(key, p, object_kind::SUBSCRIBER)?.kind {
+                        EntityKind::Subscriber(x, dp) => (x.clone(), dp.clone()),
+                        _ => {
+                            return Err((
+                                status::ERR_UNKNOWN_REFERENCE,
+                                "parent is not a subscriber".into(),
+                            ))
+                        }
+                    };
                 let desc = xml::parse_endpoint(xml, "data_reader").map_err(bad_xml)?;
                 let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Reader, &tdesc.qos, &desc.qos);
@@ -425,21 +524,37 @@ impl Worker {
                     .map_err(|e| dds_err("create data reader", &e))?;
                 let token = Token(self.next_token);
                 self.next_token += 1;
-                self.poll.registry().register(&mut r, token, Interest::READABLE).map_err(|e| dds_err("register reader", &e))?;
+                self.poll
+                    .registry()
+                    .register(&mut r, token, Interest::READABLE)
+                    .map_err(|e| dds_err("register reader", &e))?;
                 self.readers.insert(token, key);
                 (Some(p), EntityKind::Reader(Box::new(r), token))
             }
-            (k, _) => return Err((status::ERR_INVALID_DATA, format!("object kind {k:#04x} is not supported yet"))),
+            (k, _) => {
+                return Err((
+                    status::ERR_INVALID_DATA,
+                    format!("object kind {k:#04x} is not supported yet"),
+                ))
+            }
         };
         self.entities.insert(key, Entity { parent, kind });
         Ok(())
     }
 
-    fn make_topic(dp: &DomainParticipant, desc: &TopicDesc) -> Result<Topic, rustdds::dds::CreateError> {
+    fn make_topic(
+        dp: &DomainParticipant,
+        desc: &TopicDesc,
+    ) -> Result<Topic, rustdds::dds::CreateError> {
         if desc.keyed {
             tracing::warn!(topic = %desc.name, "keyed topics are carried without key hashing for now");
         }
-        dp.create_topic(desc.name.clone(), desc.type_name.clone(), &QosPolicies::qos_none(), TopicKind::NoKey)
+        dp.create_topic(
+            desc.name.clone(),
+            desc.type_name.clone(),
+            &QosPolicies::qos_none(),
+            TopicKind::NoKey,
+        )
     }
 
     /// The topic an endpoint names (inline, or a topic object of the same participant),
@@ -451,41 +566,84 @@ impl Worker {
         dp: &DomainParticipant,
         desc: &xml::EndpointDesc,
     ) -> Result<(Topic, TopicDesc), OpError> {
-        let (pid, _) = self.participant_of(key, parent).ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+        let (pid, _) = self
+            .participant_of(key, parent)
+            .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
         // A topic object created by the client with the same name carries its QoS.
-        let wanted = desc.topic.as_ref().map(|t| t.name.as_str()).or(desc.topic_ref.as_deref()).unwrap_or_default();
+        let wanted = desc
+            .topic
+            .as_ref()
+            .map(|t| t.name.as_str())
+            .or(desc.topic_ref.as_deref())
+            .unwrap_or_default();
         let existing = self.entities.iter().find_map(|(k, e)| match &e.kind {
-            EntityKind::Topic(d) if k.0 == key.0 && k.1 == key.1 && e.parent == Some(pid) && d.name == wanted => Some(d.clone()),
+            EntityKind::Topic(d)
+                if k.0 == key.0 && k.1 == key.1 && e.parent == Some(pid) && d.name == wanted =>
+            {
+                Some(d.clone())
+            }
             _ => None,
         });
         let tdesc = match (&desc.topic, existing) {
             (Some(inline), Some(d)) if inline.type_name != d.type_name => {
-                return Err((status::ERR_MISMATCH, format!("topic {wanted} exists with type {}", d.type_name)))
+                return Err((
+                    status::ERR_MISMATCH,
+                    format!("topic {wanted} exists with type {}", d.type_name),
+                ))
             }
             (_, Some(found)) => found,
             (Some(inline), None) => inline.clone(),
-            (None, None) => return Err((status::ERR_UNKNOWN_REFERENCE, format!("topic {wanted} is unknown"))),
+            (None, None) => {
+                return Err((
+                    status::ERR_UNKNOWN_REFERENCE,
+                    format!("topic {wanted} is unknown"),
+                ))
+            }
         };
-        let t = Self::make_topic(dp, &tdesc).map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
+        let t = Self::make_topic(dp, &tdesc)
+            .map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
         Ok((t, tdesc))
     }
 
-    fn write(&mut self, key: EntityKey, seq: u64, little_endian: bool, body: &[u8]) -> Result<(), OpError> {
-        let Some(Entity { kind: EntityKind::Writer(w, rematch), .. }) = self.entities.get_mut(&key) else {
-            return Err((status::ERR_UNKNOWN_REFERENCE, "write to an unknown data writer".into()));
+    fn write(
+        &mut self,
+        key: EntityKey,
+        seq: u64,
+        little_endian: bool,
+        body: &[u8],
+    ) -> Result<(), OpError> {
+        let Some(Entity {
+            kind: EntityKind::Writer(w, rematch),
+            ..
+        }) = self.entities.get_mut(&key)
+        else {
+            return Err((
+                status::ERR_UNKNOWN_REFERENCE,
+                "write to an unknown data writer".into(),
+            ));
         };
         if !little_endian {
-            return Err((status::ERR_INVALID_DATA, "big-endian samples are not supported yet".into()));
+            return Err((
+                status::ERR_INVALID_DATA,
+                "big-endian samples are not supported yet".into(),
+            ));
         }
-        let sample = RawSample { encoding: rustdds::RepresentationIdentifier::CDR_LE, body: rustdds::bytes::Bytes::copy_from_slice(body) };
+        let sample = RawSample {
+            encoding: rustdds::RepresentationIdentifier::CDR_LE,
+            body: rustdds::bytes::Bytes::copy_from_slice(body),
+        };
         if rematch.until.is_some() {
             if rematch.held.len() >= REMATCH_HELD_MAX {
-                return Err((status::ERR_RESOURCES, "replayed writer holds too many samples".into()));
+                return Err((
+                    status::ERR_RESOURCES,
+                    "replayed writer holds too many samples".into(),
+                ));
             }
             rematch.held.push_back((seq, sample));
             return Ok(());
         }
-        w.write(sample, None).map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
+        w.write(sample, None)
+            .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
     }
 
     /// Releases the samples of replayed writers that matched again (or waited long enough).
@@ -494,18 +652,31 @@ impl Worker {
         let now = Instant::now();
         let mut failures = 0u64;
         for e in self.entities.values_mut() {
-            let EntityKind::Writer(w, rematch) = &mut e.kind else { continue };
+            let EntityKind::Writer(w, rematch) = &mut e.kind else {
+                continue;
+            };
             let Some(until) = rematch.until else { continue };
             while let Some(st) = w.try_recv_status() {
-                if let rustdds::dds::statusevents::DataWriterStatus::PublicationMatched { current, .. } = st {
+                if let rustdds::dds::statusevents::DataWriterStatus::PublicationMatched {
+                    current,
+                    ..
+                } = st
+                {
                     if current.count() > 0 && rematch.matched_at.is_none() {
                         rematch.matched_at = Some(now);
                     }
                 }
             }
-            let ready = rematch.matched_at.is_some_and(|t| now >= t + REMATCH_MARGIN) || now >= until;
+            let ready = rematch
+                .matched_at
+                .is_some_and(|t| now >= t + REMATCH_MARGIN)
+                || now >= until;
             if ready {
-                tracing::info!(held = rematch.held.len(), matched = rematch.matched_at.is_some(), "replayed writer resumes");
+                tracing::info!(
+                    held = rematch.held.len(),
+                    matched = rematch.matched_at.is_some(),
+                    "replayed writer resumes"
+                );
                 rematch.until = None;
                 for (_, sample) in rematch.held.drain(..) {
                     if w.write(sample, None).is_err() {
@@ -534,16 +705,31 @@ impl Worker {
     }
 
     fn start_read(&mut self, key: EntityKey, h: &IpcHeader, body: &[u8]) -> Result<(), OpError> {
-        if !matches!(self.entities.get(&key), Some(Entity { kind: EntityKind::Reader(..), .. })) {
-            return Err((status::ERR_UNKNOWN_REFERENCE, "read from an unknown data reader".into()));
+        if !matches!(
+            self.entities.get(&key),
+            Some(Entity {
+                kind: EntityKind::Reader(..),
+                ..
+            })
+        ) {
+            return Err((
+                status::ERR_UNKNOWN_REFERENCE,
+                "read from an unknown data reader".into(),
+            ));
         }
         let spec = ReadSpecification::decode(&mut CdrReader::new(body, true))
             .map_err(|e| (status::ERR_INVALID_DATA, format!("read specification: {e}")))?;
         if spec.data_format != xrce_common::wire::data_format::DATA {
-            return Err((status::ERR_INVALID_DATA, format!("data format {:#04x} is not supported yet", spec.data_format)));
+            return Err((
+                status::ERR_INVALID_DATA,
+                format!("data format {:#04x} is not supported yet", spec.data_format),
+            ));
         }
         if spec.content_filter_expression.is_some() {
-            return Err((status::ERR_INVALID_DATA, "content filters are not supported yet".into()));
+            return Err((
+                status::ERR_INVALID_DATA,
+                "content filters are not supported yet".into(),
+            ));
         }
         let read = match spec.delivery_control {
             Some(d) if d.max_samples == 0 => {
@@ -553,10 +739,16 @@ impl Worker {
             Some(d) => ActiveRead {
                 request_id: h.request_id,
                 remaining: (d.max_samples != u16::MAX).then_some(d.max_samples as u32),
-                deadline: (d.max_elapsed_time != 0).then(|| Instant::now() + Duration::from_secs(d.max_elapsed_time as u64)),
+                deadline: (d.max_elapsed_time != 0)
+                    .then(|| Instant::now() + Duration::from_secs(d.max_elapsed_time as u64)),
                 one_shot: false,
             },
-            None => ActiveRead { request_id: h.request_id, remaining: None, deadline: None, one_shot: true },
+            None => ActiveRead {
+                request_id: h.request_id,
+                remaining: None,
+                deadline: None,
+                one_shot: true,
+            },
         };
         self.reads.insert(key, read);
         Ok(())
@@ -564,9 +756,17 @@ impl Worker {
 
     /// Takes samples of a reader with an active read and sends them to its front-end.
     fn pump(&mut self, key: EntityKey) {
-        let Some(read) = self.reads.get(&key) else { return };
+        let Some(read) = self.reads.get(&key) else {
+            return;
+        };
         let request_id = read.request_id;
-        let Some(Entity { kind: EntityKind::Reader(reader, _), .. }) = self.entities.get_mut(&key) else { return };
+        let Some(Entity {
+            kind: EntityKind::Reader(reader, _),
+            ..
+        }) = self.entities.get_mut(&key)
+        else {
+            return;
+        };
         let mut out = Vec::new();
         let mut more = false;
         let mut limit = read.remaining.unwrap_or(u32::MAX).min(PUMP_BATCH as u32);
@@ -601,7 +801,11 @@ impl Worker {
             h.client_key = key.1;
             h.object_id = key.2;
             h.request_id = request_id;
-            h.flags = if s.little_endian() { FLAG_LITTLE_ENDIAN } else { 0 };
+            h.flags = if s.little_endian() {
+                FLAG_LITTLE_ENDIAN
+            } else {
+                0
+            };
             self.reply(h, &s.body);
         }
         let ended = match self.reads.get_mut(&key) {
@@ -633,7 +837,12 @@ impl Worker {
 
     fn expire_reads(&mut self) {
         let now = Instant::now();
-        let expired: Vec<EntityKey> = self.reads.iter().filter(|(_, r)| r.deadline.is_some_and(|d| d <= now)).map(|(k, _)| *k).collect();
+        let expired: Vec<EntityKey> = self
+            .reads
+            .iter()
+            .filter(|(_, r)| r.deadline.is_some_and(|d| d <= now))
+            .map(|(k, _)| *k)
+            .collect();
         for k in expired {
             self.end_read(k);
         }

@@ -93,15 +93,21 @@ fn parse(xml: &str) -> Result<Document<'_>, XmlError> {
 
 /// Finds the element `name` at the root or under a `<dds>` wrapper (or a profiles library).
 fn find<'a>(doc: &'a Document<'a>, name: &str) -> Option<Node<'a, 'a>> {
-    doc.root().descendants().find(|n| n.is_element() && n.tag_name().name() == name)
+    doc.root()
+        .descendants()
+        .find(|n| n.is_element() && n.tag_name().name() == name)
 }
 
 fn child<'a>(n: Node<'a, 'a>, name: &str) -> Option<Node<'a, 'a>> {
-    n.children().find(|c| c.is_element() && c.tag_name().name() == name)
+    n.children()
+        .find(|c| c.is_element() && c.tag_name().name() == name)
 }
 
 fn text<'a>(n: Node<'a, 'a>, name: &str) -> Option<String> {
-    child(n, name).and_then(|c| c.text()).map(|t| t.trim().to_string()).filter(|t| !t.is_empty())
+    child(n, name)
+        .and_then(|c| c.text())
+        .map(|t| t.trim().to_string())
+        .filter(|t| !t.is_empty())
 }
 
 fn upper_kind(n: Node<'_, '_>) -> Option<String> {
@@ -117,7 +123,12 @@ fn parse_qos(n: Node<'_, '_>) -> Result<QosDesc, XmlError> {
             q.reliability = Some(match k.trim_end_matches("_RELIABILITY_QOS") {
                 "RELIABLE" => Reliability::Reliable,
                 "BEST_EFFORT" => Reliability::BestEffort,
-                _ => return Err(XmlError::Invalid { what: "reliability kind", value: k }),
+                _ => {
+                    return Err(XmlError::Invalid {
+                        what: "reliability kind",
+                        value: k,
+                    })
+                }
             });
         }
         if let Some(k) = child(h, "durability").and_then(upper_kind) {
@@ -126,21 +137,37 @@ fn parse_qos(n: Node<'_, '_>) -> Result<QosDesc, XmlError> {
                 "TRANSIENT_LOCAL" => Durability::TransientLocal,
                 "TRANSIENT" => Durability::Transient,
                 "PERSISTENT" => Durability::Persistent,
-                _ => return Err(XmlError::Invalid { what: "durability kind", value: k }),
+                _ => {
+                    return Err(XmlError::Invalid {
+                        what: "durability kind",
+                        value: k,
+                    })
+                }
             });
         }
         if let Some(hist) = child(h, "historyQos").or_else(|| child(h, "history")) {
             let kind = upper_kind(hist).unwrap_or_else(|| "KEEP_LAST".into());
             q.history = Some(match kind.trim_end_matches("_HISTORY_QOS") {
                 "KEEP_LAST" => {
-                    let depth = match text(hist, "depth") {
-                        Some(d) => d.parse::<i32>().ok().filter(|d| *d > 0).ok_or(XmlError::Invalid { what: "history depth", value: d })?,
-                        None => 1,
-                    };
+                    let depth =
+                        match text(hist, "depth") {
+                            Some(d) => d.parse::<i32>().ok().filter(|d| *d > 0).ok_or(
+                                XmlError::Invalid {
+                                    what: "history depth",
+                                    value: d,
+                                },
+                            )?,
+                            None => 1,
+                        };
                     History::KeepLast(depth)
                 }
                 "KEEP_ALL" => History::KeepAll,
-                _ => return Err(XmlError::Invalid { what: "history kind", value: kind }),
+                _ => {
+                    return Err(XmlError::Invalid {
+                        what: "history kind",
+                        value: kind,
+                    })
+                }
             });
         }
     }
@@ -148,23 +175,39 @@ fn parse_qos(n: Node<'_, '_>) -> Result<QosDesc, XmlError> {
 }
 
 fn parse_topic_node(t: Node<'_, '_>) -> Result<TopicDesc, XmlError> {
-    let name = text(t, "name").or_else(|| t.attribute("name").map(str::to_string)).ok_or(XmlError::Missing("topic <name>"))?;
+    let name = text(t, "name")
+        .or_else(|| t.attribute("name").map(str::to_string))
+        .ok_or(XmlError::Missing("topic <name>"))?;
     let type_name = text(t, "dataType")
         .or_else(|| t.attribute("register_type_ref").map(str::to_string))
         .ok_or(XmlError::Missing("topic <dataType>"))?;
     let keyed = match upper_kind(t).as_deref() {
         None | Some("NO_KEY") => false,
         Some("WITH_KEY") => true,
-        Some(k) => return Err(XmlError::Invalid { what: "topic kind", value: k.into() }),
+        Some(k) => {
+            return Err(XmlError::Invalid {
+                what: "topic kind",
+                value: k.into(),
+            })
+        }
     };
-    Ok(TopicDesc { name, type_name, keyed, qos: parse_qos(t)? })
+    Ok(TopicDesc {
+        name,
+        type_name,
+        keyed,
+        qos: parse_qos(t)?,
+    })
 }
 
 /// Parses a participant representation; returns its RTPS name if given.
 pub fn parse_participant(xml: &str) -> Result<Option<String>, XmlError> {
     let doc = parse(xml)?;
-    let p = find(&doc, "participant").or_else(|| find(&doc, "domain_participant")).ok_or(XmlError::Missing("<participant>"))?;
-    Ok(child(p, "rtps").and_then(|r| text(r, "name")).or_else(|| p.attribute("name").map(str::to_string)))
+    let p = find(&doc, "participant")
+        .or_else(|| find(&doc, "domain_participant"))
+        .ok_or(XmlError::Missing("<participant>"))?;
+    Ok(child(p, "rtps")
+        .and_then(|r| text(r, "name"))
+        .or_else(|| p.attribute("name").map(str::to_string)))
 }
 
 /// Parses a topic representation.
@@ -184,13 +227,20 @@ pub fn parse_endpoint(xml: &str, element: &'static str) -> Result<EndpointDesc, 
         return Err(XmlError::Missing("<topic> or topic_ref"));
     }
     let mut qos = parse_qos(e)?;
-    if let Some(q) = e.children().find(|c| c.is_element() && c.tag_name().name().ends_with("_qos")) {
+    if let Some(q) = e
+        .children()
+        .find(|c| c.is_element() && c.tag_name().name().ends_with("_qos"))
+    {
         let inner = parse_qos(q)?;
         qos.reliability = inner.reliability.or(qos.reliability);
         qos.durability = inner.durability.or(qos.durability);
         qos.history = inner.history.or(qos.history);
     }
-    Ok(EndpointDesc { topic, topic_ref, qos })
+    Ok(EndpointDesc {
+        topic,
+        topic_ref,
+        qos,
+    })
 }
 
 #[cfg(test)]
@@ -203,8 +253,14 @@ mod tests {
             parse_participant("<dds><participant><rtps><name>default_xrce_participant</name></rtps></participant></dds>"),
             Ok(Some("default_xrce_participant".into()))
         );
-        let t = parse_topic("<dds><topic><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic></dds>").expect("topic");
-        assert_eq!((t.name.as_str(), t.type_name.as_str(), t.keyed), ("HelloWorldTopic", "HelloWorld", false));
+        let t = parse_topic(
+            "<dds><topic><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic></dds>",
+        )
+        .expect("topic");
+        assert_eq!(
+            (t.name.as_str(), t.type_name.as_str(), t.keyed),
+            ("HelloWorldTopic", "HelloWorld", false)
+        );
         let w = parse_endpoint(
             "<dds><data_writer><topic><kind>NO_KEY</kind><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic></data_writer></dds>",
             "data_writer",
@@ -243,8 +299,14 @@ mod tests {
 
     #[test]
     fn errors_say_what_is_wrong() {
-        assert!(matches!(parse_topic("<dds><topic>"), Err(XmlError::Malformed(_))));
-        assert_eq!(parse_topic("<dds><topic><name>x</name></topic></dds>"), Err(XmlError::Missing("topic <dataType>")));
+        assert!(matches!(
+            parse_topic("<dds><topic>"),
+            Err(XmlError::Malformed(_))
+        ));
+        assert_eq!(
+            parse_topic("<dds><topic><name>x</name></topic></dds>"),
+            Err(XmlError::Missing("topic <dataType>"))
+        );
         assert!(matches!(
             parse_endpoint("<data_writer topic_ref=\"x\"><qos><reliability><kind>SOMETIMES</kind></reliability></qos></data_writer>", "data_writer"),
             Err(XmlError::Invalid { .. })

@@ -16,11 +16,15 @@ use std::collections::{HashMap, VecDeque};
 use std::time::{Duration, Instant};
 
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
-use xrce_common::ipc::{self, IpcHeader, MessageKind, FLAG_LITTLE_ENDIAN, FLAG_REPLAY, IN_FLIGHT_WINDOW};
+use xrce_common::ipc::{
+    self, IpcHeader, MessageKind, FLAG_LITTLE_ENDIAN, FLAG_REPLAY, IN_FLIGHT_WINDOW,
+};
 use xrce_common::session::agent::{Agent, Operation, OperationSink};
 use xrce_common::session::graph::{ActiveRead, CreateDecision, GraphObject, ObjectGraph};
 use xrce_common::wire::cdr::CdrWriter;
-use xrce_common::wire::{status, stream_id, BaseObjectRequest, ClientKey, ObjectId, RequestId, ResultStatus};
+use xrce_common::wire::{
+    status, stream_id, BaseObjectRequest, ClientKey, ObjectId, RequestId, ResultStatus,
+};
 
 /// Operations waiting for the window before new ones are refused (flow control).
 pub const OUTBOX_MAX: usize = 8192;
@@ -87,7 +91,12 @@ pub struct Bridge {
     stats: BridgeStats,
 }
 
-fn header(kind: MessageKind, frontend_id: u32, client: ClientKey, request: BaseObjectRequest) -> IpcHeader {
+fn header(
+    kind: MessageKind,
+    frontend_id: u32,
+    client: ClientKey,
+    request: BaseObjectRequest,
+) -> IpcHeader {
     IpcHeader {
         frontend_id,
         client_key: client,
@@ -101,7 +110,10 @@ impl Bridge {
     /// Opens the services of front-end `frontend_id` in agent instance `instance`.
     pub fn new(instance: &str, frontend_id: u32) -> Result<Self, ShmError> {
         let node = IpcNode::new(instance, &format!("xrce-frontend-{frontend_id}"))?;
-        let replies = node.receiver(&ipc::reply_service(instance, frontend_id), ServiceKind::Data)?;
+        let replies = node.receiver(
+            &ipc::reply_service(instance, frontend_id),
+            ServiceKind::Data,
+        )?;
         let announce = node.receiver(&ipc::announce_service(instance), ServiceKind::Announce)?;
         let requests = node.sender(&ipc::request_service(instance), ServiceKind::Data)?;
         // Announcements made before we subscribed are not delivered (iceoryx2 hands history
@@ -171,38 +183,76 @@ impl Bridge {
             h.op_seq = self.next_seq;
             if let Err(e) = self.requests.send(&h, body) {
                 tracing::warn!(error = %e, "could not hand an operation to the worker; queued");
-                self.outbox.push_back(OwnedOp { header: h, body: body.to_vec(), retain, awaited });
+                self.outbox.push_back(OwnedOp {
+                    header: h,
+                    body: body.to_vec(),
+                    retain,
+                    awaited,
+                });
                 return;
             }
             self.after_send(h, retain, awaited, || body.to_vec());
         } else {
-            self.outbox.push_back(OwnedOp { header: h, body: body.to_vec(), retain, awaited });
+            self.outbox.push_back(OwnedOp {
+                header: h,
+                body: body.to_vec(),
+                retain,
+                awaited,
+            });
         }
     }
 
-    fn after_send(&mut self, h: IpcHeader, retain: bool, awaited: Awaited, body: impl FnOnce() -> Vec<u8>) {
+    fn after_send(
+        &mut self,
+        h: IpcHeader,
+        retain: bool,
+        awaited: Awaited,
+        body: impl FnOnce() -> Vec<u8>,
+    ) {
         self.next_seq += 1;
         self.stats.ops_sent += 1;
         self.dirty = true;
         if retain {
-            self.retained.push_back(Retained { seq: h.op_seq, executed_at: None, header: h, body: body() });
+            self.retained.push_back(Retained {
+                seq: h.op_seq,
+                executed_at: None,
+                header: h,
+                body: body(),
+            });
         }
         if awaited == Awaited::Yes {
-            self.pending.insert(h.op_seq, (h.client_key, BaseObjectRequest { request_id: h.request_id, object_id: h.object_id }, h.kind));
+            self.pending.insert(
+                h.op_seq,
+                (
+                    h.client_key,
+                    BaseObjectRequest {
+                        request_id: h.request_id,
+                        object_id: h.object_id,
+                    },
+                    h.kind,
+                ),
+            );
         }
     }
 
     /// Sends queued operations while the window allows; wakes the worker once.
     pub fn pump(&mut self) {
         while self.can_send_now() {
-            let Some(mut op) = self.outbox.pop_front() else { break };
+            let Some(mut op) = self.outbox.pop_front() else {
+                break;
+            };
             op.header.op_seq = self.next_seq;
             if let Err(e) = self.requests.send(&op.header, &op.body) {
                 tracing::warn!(error = %e, "could not hand an operation to the worker; will retry");
                 self.outbox.push_front(op);
                 break;
             }
-            let OwnedOp { header, body, retain, awaited } = op;
+            let OwnedOp {
+                header,
+                body,
+                retain,
+                awaited,
+            } = op;
             self.after_send(header, retain, awaited, move || body);
         }
         if self.dirty {
@@ -214,14 +264,21 @@ impl Bridge {
     }
 
     /// Handles worker announcements and replies; applies results to the agent core.
-    pub fn poll_ipc<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(&mut self, now: Instant, agent: &mut Agent<A>) {
+    pub fn poll_ipc<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
+        &mut self,
+        now: Instant,
+        agent: &mut Agent<A>,
+    ) {
         self.announce.clear_events();
         self.replies.clear_events();
         let mut hellos = Vec::new();
         let _ = self.announce.drain(|m| hellos.push(m.to_vec()));
         for m in hellos {
             match IpcHeader::decode(&m) {
-                Ok((h, _)) if h.kind == MessageKind::WorkerHello && Some(h.generation) != self.generation => {
+                Ok((h, _))
+                    if h.kind == MessageKind::WorkerHello
+                        && Some(h.generation) != self.generation =>
+                {
                     self.new_generation(h.generation);
                 }
                 Ok(_) => {}
@@ -242,7 +299,12 @@ impl Bridge {
 
     fn new_generation(&mut self, generation: u32) {
         let first = self.generation.is_none();
-        tracing::info!(generation, first, clients = self.graphs.len(), "worker generation seen; replaying sessions");
+        tracing::info!(
+            generation,
+            first,
+            clients = self.graphs.len(),
+            "worker generation seen; replaying sessions"
+        );
         self.generation = Some(generation);
         self.processed = self.next_seq - 1;
         self.stats.replays += 1;
@@ -263,11 +325,17 @@ impl Bridge {
             match (op.header.kind, op.awaited) {
                 (MessageKind::Write, _) => writes.push(op),
                 (MessageKind::Create, Awaited::Yes) => {
-                    awaited.insert((op.header.client_key, op.header.object_id), op.header.request_id);
+                    awaited.insert(
+                        (op.header.client_key, op.header.object_id),
+                        op.header.request_id,
+                    );
                 }
                 (MessageKind::Delete, Awaited::Yes) => self.replies_out.push((
                     op.header.client_key,
-                    BaseObjectRequest { request_id: op.header.request_id, object_id: op.header.object_id },
+                    BaseObjectRequest {
+                        request_id: op.header.request_id,
+                        object_id: op.header.object_id,
+                    },
                     ResultStatus::OK,
                 )),
                 _ => {}
@@ -275,36 +343,67 @@ impl Bridge {
         }
         let mut hello = IpcHeader::new(MessageKind::FrontendHello);
         hello.frontend_id = self.frontend_id;
-        self.outbox.push_back(OwnedOp { header: hello, body: Vec::new(), retain: false, awaited: Awaited::No });
+        self.outbox.push_back(OwnedOp {
+            header: hello,
+            body: Vec::new(),
+            retain: false,
+            awaited: Awaited::No,
+        });
         for (client, graph) in &self.graphs {
             for o in graph.objects() {
                 let mut body = Vec::new();
                 o.variant.encode(&mut CdrWriter::new(&mut body, true));
-                let req = BaseObjectRequest { request_id: o.request_id, object_id: o.object_id };
+                let req = BaseObjectRequest {
+                    request_id: o.request_id,
+                    object_id: o.object_id,
+                };
                 let waited = awaited.get(&(*client, o.object_id)) == Some(&o.request_id);
                 let mut h = header(MessageKind::Create, self.frontend_id, *client, req);
                 if !waited {
                     h.flags |= FLAG_REPLAY;
                 }
-                self.outbox.push_back(OwnedOp { header: h, body, retain: false, awaited: if waited { Awaited::Yes } else { Awaited::No } });
+                self.outbox.push_back(OwnedOp {
+                    header: h,
+                    body,
+                    retain: false,
+                    awaited: if waited { Awaited::Yes } else { Awaited::No },
+                });
             }
             for (reader, read) in graph.reads() {
                 let mut body = Vec::new();
                 read.spec.encode(&mut CdrWriter::new(&mut body, true));
-                let req = BaseObjectRequest { request_id: read.request_id, object_id: *reader };
+                let req = BaseObjectRequest {
+                    request_id: read.request_id,
+                    object_id: *reader,
+                };
                 let mut h = header(MessageKind::Read, self.frontend_id, *client, req);
                 h.flags |= FLAG_REPLAY;
-                self.outbox.push_back(OwnedOp { header: h, body, retain: false, awaited: Awaited::No });
+                self.outbox.push_back(OwnedOp {
+                    header: h,
+                    body,
+                    retain: false,
+                    awaited: Awaited::No,
+                });
             }
         }
         for r in std::mem::take(&mut self.retained) {
             self.stats.writes_resent += 1;
-            self.outbox.push_back(OwnedOp { header: r.header, body: r.body, retain: true, awaited: Awaited::No });
+            self.outbox.push_back(OwnedOp {
+                header: r.header,
+                body: r.body,
+                retain: true,
+                awaited: Awaited::No,
+            });
         }
         self.outbox.extend(writes);
     }
 
-    fn handle_reply<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(&mut self, now: Instant, m: &[u8], agent: &mut Agent<A>) {
+    fn handle_reply<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
+        &mut self,
+        now: Instant,
+        m: &[u8],
+        agent: &mut Agent<A>,
+    ) {
         let (h, body) = match IpcHeader::decode(m) {
             Ok(v) => v,
             Err(e) => {
@@ -323,7 +422,10 @@ impl Bridge {
             self.stats.ipc_dropped += 1;
             return;
         }
-        let req = BaseObjectRequest { request_id: h.request_id, object_id: h.object_id };
+        let req = BaseObjectRequest {
+            request_id: h.request_id,
+            object_id: h.object_id,
+        };
         match h.kind {
             MessageKind::Progress => {
                 self.processed = self.processed.max(h.op_seq);
@@ -336,7 +438,10 @@ impl Bridge {
             }
             MessageKind::Status => {
                 let code = body.first().copied().unwrap_or(status::ERR_DDS_ERROR);
-                let result = ResultStatus { status: code, implementation_status: body.get(1).copied().unwrap_or(0) };
+                let result = ResultStatus {
+                    status: code,
+                    implementation_status: body.get(1).copied().unwrap_or(0),
+                };
                 let waited = self.pending.remove(&h.op_seq);
                 if !status::is_ok(code) {
                     if let Some(g) = self.graphs.get_mut(&h.client_key) {
@@ -357,15 +462,28 @@ impl Bridge {
                 let stream = self
                     .graphs
                     .get(&h.client_key)
-                    .and_then(|g| g.reads().find(|(r, _)| **r == h.object_id).map(|(_, a)| a.spec.preferred_stream_id))
+                    .and_then(|g| {
+                        g.reads()
+                            .find(|(r, _)| **r == h.object_id)
+                            .map(|(_, a)| a.spec.preferred_stream_id)
+                    })
                     .unwrap_or(stream_id::BUILTIN_RELIABLE);
-                if let Err(e) = agent.send_data(now, h.client_key, stream, req, body, h.flags & FLAG_LITTLE_ENDIAN != 0) {
+                if let Err(e) = agent.send_data(
+                    now,
+                    h.client_key,
+                    stream,
+                    req,
+                    body,
+                    h.flags & FLAG_LITTLE_ENDIAN != 0,
+                ) {
                     tracing::debug!(client = %h.client_key, error = %e, "sample not delivered");
                 }
             }
             MessageKind::ReadEnded => {
                 if let Some(g) = self.graphs.get_mut(&h.client_key) {
-                    let same = g.reads().any(|(r, a)| *r == h.object_id && a.request_id == h.request_id);
+                    let same = g
+                        .reads()
+                        .any(|(r, a)| *r == h.object_id && a.request_id == h.request_id);
                     if same {
                         g.end_read(h.object_id);
                     }
@@ -392,11 +510,18 @@ impl Bridge {
 
     /// When retained writes need another look.
     pub fn poll_timeout(&self) -> Option<Instant> {
-        self.retained.front().and_then(|r| r.executed_at).map(|t| t + SETTLE_TIME)
+        self.retained
+            .front()
+            .and_then(|r| r.executed_at)
+            .map(|t| t + SETTLE_TIME)
     }
 
     /// Sends STATUS replies decided here (creation modes, unknown objects, replays).
-    pub fn apply_replies<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(&mut self, now: Instant, agent: &mut Agent<A>) {
+    pub fn apply_replies<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
+        &mut self,
+        now: Instant,
+        agent: &mut Agent<A>,
+    ) {
         for (client, req, result) in self.replies_out.drain(..) {
             let _ = agent.send_status(now, client, req, result);
         }
@@ -416,37 +541,75 @@ impl OperationSink for Bridge {
             }
             Operation::ClientDeleted { client } => {
                 self.graphs.remove(&client);
-                let h = header(MessageKind::DeleteClient, fe, client, BaseObjectRequest::default());
+                let h = header(
+                    MessageKind::DeleteClient,
+                    fe,
+                    client,
+                    BaseObjectRequest::default(),
+                );
                 self.submit(h, &[], false, Awaited::No);
             }
             Operation::Create { client, create } => {
                 let graph = self.graphs.entry(client).or_default();
                 let id = create.base.object_id;
                 match graph.decide_create(id, &create.variant, create.reuse, create.replace) {
-                    CreateDecision::Reply(code) => self.replies_out.push((client, create.base, ResultStatus::new(code))),
+                    CreateDecision::Reply(code) => {
+                        self.replies_out
+                            .push((client, create.base, ResultStatus::new(code)))
+                    }
                     decision => {
                         if decision == CreateDecision::Replace {
                             graph.remove(id);
                         }
-                        graph.insert(GraphObject { object_id: id, request_id: create.base.request_id, variant: create.variant.clone() });
+                        graph.insert(GraphObject {
+                            object_id: id,
+                            request_id: create.base.request_id,
+                            variant: create.variant.clone(),
+                        });
                         let mut body = Vec::new();
                         create.variant.encode(&mut CdrWriter::new(&mut body, true));
-                        self.submit(header(MessageKind::Create, fe, client, create.base), &body, false, Awaited::Yes);
+                        self.submit(
+                            header(MessageKind::Create, fe, client, create.base),
+                            &body,
+                            false,
+                            Awaited::Yes,
+                        );
                     }
                 }
             }
             Operation::Delete { client, request } => {
-                let known = self.graphs.get_mut(&client).is_some_and(|g| !g.remove(request.object_id).is_empty());
+                let known = self
+                    .graphs
+                    .get_mut(&client)
+                    .is_some_and(|g| !g.remove(request.object_id).is_empty());
                 if known {
-                    self.submit(header(MessageKind::Delete, fe, client, request), &[], false, Awaited::Yes);
+                    self.submit(
+                        header(MessageKind::Delete, fe, client, request),
+                        &[],
+                        false,
+                        Awaited::Yes,
+                    );
                 } else {
-                    self.replies_out.push((client, request, ResultStatus::new(status::ERR_UNKNOWN_REFERENCE)));
+                    self.replies_out.push((
+                        client,
+                        request,
+                        ResultStatus::new(status::ERR_UNKNOWN_REFERENCE),
+                    ));
                 }
             }
-            Operation::Write { client, stream_id: stream, data, little_endian } => {
+            Operation::Write {
+                client,
+                stream_id: stream,
+                data,
+                little_endian,
+            } => {
                 if data.format != xrce_common::wire::data_format::DATA {
                     // Other formats are not decoded yet.
-                    self.replies_out.push((client, data.base, ResultStatus::new(status::ERR_INVALID_DATA)));
+                    self.replies_out.push((
+                        client,
+                        data.base,
+                        ResultStatus::new(status::ERR_INVALID_DATA),
+                    ));
                     return;
                 }
                 let mut h = header(MessageKind::Write, fe, client, data.base);
@@ -455,18 +618,40 @@ impl OperationSink for Bridge {
                 }
                 self.submit(h, data.data, stream_id::is_reliable(stream), Awaited::No);
             }
-            Operation::Read { client, request, spec } => {
-                let known = self.graphs.get(&client).is_some_and(|g| g.get(request.object_id).is_some());
+            Operation::Read {
+                client,
+                request,
+                spec,
+            } => {
+                let known = self
+                    .graphs
+                    .get(&client)
+                    .is_some_and(|g| g.get(request.object_id).is_some());
                 if !known {
-                    self.replies_out.push((client, request, ResultStatus::new(status::ERR_UNKNOWN_REFERENCE)));
+                    self.replies_out.push((
+                        client,
+                        request,
+                        ResultStatus::new(status::ERR_UNKNOWN_REFERENCE),
+                    ));
                     return;
                 }
                 if let Some(g) = self.graphs.get_mut(&client) {
-                    g.set_read(request.object_id, ActiveRead { request_id: request.request_id, spec: spec.clone() });
+                    g.set_read(
+                        request.object_id,
+                        ActiveRead {
+                            request_id: request.request_id,
+                            spec: spec.clone(),
+                        },
+                    );
                 }
                 let mut body = Vec::new();
                 spec.encode(&mut CdrWriter::new(&mut body, true));
-                self.submit(header(MessageKind::Read, fe, client, request), &body, false, Awaited::No);
+                self.submit(
+                    header(MessageKind::Read, fe, client, request),
+                    &body,
+                    false,
+                    Awaited::No,
+                );
             }
         }
     }

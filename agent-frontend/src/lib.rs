@@ -3,4 +3,5 @@
 //! worker over iceoryx2 ([`bridge`]). It never touches DDS.
 
 pub mod bridge;
+pub mod cli;
 pub mod udp;

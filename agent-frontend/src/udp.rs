@@ -34,15 +34,30 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
             return Ok(());
         }
         let now = Instant::now();
-        let deadline = [agent.poll_timeout(), bridge.poll_timeout()].into_iter().flatten().min();
+        let deadline = [agent.poll_timeout(), bridge.poll_timeout()]
+            .into_iter()
+            .flatten()
+            .min();
         let timeout = match deadline {
             Some(d) => d.saturating_duration_since(now).as_millis().min(60_000) as i32 + 1,
             None => -1,
         };
         let mut fds = [
-            libc::pollfd { fd: sock_fd, events: libc::POLLIN, revents: 0 },
-            libc::pollfd { fd: replies_fd, events: libc::POLLIN, revents: 0 },
-            libc::pollfd { fd: announce_fd, events: libc::POLLIN, revents: 0 },
+            libc::pollfd {
+                fd: sock_fd,
+                events: libc::POLLIN,
+                revents: 0,
+            },
+            libc::pollfd {
+                fd: replies_fd,
+                events: libc::POLLIN,
+                revents: 0,
+            },
+            libc::pollfd {
+                fd: announce_fd,
+                events: libc::POLLIN,
+                revents: 0,
+            },
         ];
         // SAFETY: `fds` is a valid array of pollfd for the duration of the call.
         #[allow(unsafe_code)]

@@ -5,7 +5,10 @@ use xrce_common::wire::*;
 
 fn unhex(s: &str) -> Vec<u8> {
     let s: String = s.split_whitespace().collect();
-    (0..s.len()).step_by(2).map(|i| u8::from_str_radix(&s[i..i + 2], 16).expect("hex")).collect()
+    (0..s.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(&s[i..i + 2], 16).expect("hex"))
+        .collect()
 }
 
 fn round_trip(hex: &str) -> Message<'static> {
@@ -23,9 +26,14 @@ fn only(m: &Message<'static>) -> Payload<'static> {
 #[test]
 fn b1_create_client() {
     let m = round_trip("80 00 00 00 00 01 0E 00 58 52 43 45 01 00 0F 0F 22 33 44 55 DD 00");
-    let Payload::CreateClient(c) = only(&m) else { panic!() };
+    let Payload::CreateClient(c) = only(&m) else {
+        panic!()
+    };
     assert_eq!(c.client_key, ClientKey([0x22, 0x33, 0x44, 0x55]));
-    assert_eq!((c.session_id, c.vendor_id, c.mtu, c.properties), (0xDD, [0x0F, 0x0F], None, None));
+    assert_eq!(
+        (c.session_id, c.vendor_id, c.mtu, c.properties),
+        (0xDD, [0x0F, 0x0F], None, None)
+    );
     assert_eq!(m.header.client_key, None);
 }
 
@@ -35,12 +43,24 @@ fn b2_1_create_participant_by_reference() {
         "81 80 07 00 01 07 28 00 AA 01 DD D1 01 01 00 00 19 00 00 00 4D 79 4C 69 62 72 61 72 79 3A 3A 4D
          79 50 61 72 74 69 63 69 70 61 6E 74 00 00 00 00",
     );
-    assert_eq!((m.header.session_id, m.header.stream_id, m.header.sequence_nr), (0x81, 0x80, 7));
-    let Payload::Create(c) = only(&m) else { panic!() };
+    assert_eq!(
+        (
+            m.header.session_id,
+            m.header.stream_id,
+            m.header.sequence_nr
+        ),
+        (0x81, 0x80, 7)
+    );
+    let Payload::Create(c) = only(&m) else {
+        panic!()
+    };
     assert!(c.reuse && c.replace);
     assert_eq!(c.base.request_id, RequestId([0xAA, 0x01]));
     assert_eq!(c.base.object_id.kind(), object_kind::PARTICIPANT);
-    assert_eq!(c.variant.representation, Representation::Reference("MyLibrary::MyParticipant".into()));
+    assert_eq!(
+        c.variant.representation,
+        Representation::Reference("MyLibrary::MyParticipant".into())
+    );
     assert_eq!(c.variant.extra, VariantExtra::DomainId(0));
 }
 
@@ -55,10 +75,14 @@ fn b2_5_create_datawriter_xml() {
          65 61 64 6C 69 6E 65 3E 3C 2F 64 61 74 61 5F 77 72 69 74 65 72 5F 71 6F 73 3E 3C 2F 64 61 74 61
          5F 77 72 69 74 65 72 3E 00 BB B3",
     );
-    let Payload::Create(c) = only(&m) else { panic!() };
+    let Payload::Create(c) = only(&m) else {
+        panic!()
+    };
     assert_eq!(c.variant.kind, object_kind::DATAWRITER);
     assert_eq!(c.variant.parent(), Some(ObjectId([0xBB, 0xB3])));
-    let Representation::Xml(x) = &c.variant.representation else { panic!() };
+    let Representation::Xml(x) = &c.variant.representation else {
+        panic!()
+    };
     assert_eq!(x.len(), 180);
     assert!(x.starts_with("<data_writer name=\"MyWriter\""));
 }
@@ -66,39 +90,63 @@ fn b2_5_create_datawriter_xml() {
 #[test]
 fn b3_1_write_data_format_data() {
     let m = round_trip("DD 80 01 00 07 01 06 00 AA 01 44 05 19 00");
-    let Payload::WriteData(d) = only(&m) else { panic!() };
-    assert_eq!((d.format, d.data, d.base.object_id), (data_format::DATA, &[0x19u8, 0x00][..], ObjectId([0x44, 0x05])));
+    let Payload::WriteData(d) = only(&m) else {
+        panic!()
+    };
+    assert_eq!(
+        (d.format, d.data, d.base.object_id),
+        (
+            data_format::DATA,
+            &[0x19u8, 0x00][..],
+            ObjectId([0x44, 0x05])
+        )
+    );
 }
 
 #[test]
 fn b3_2_to_b3_4_write_data_other_formats_keep_their_bytes() {
     let m = round_trip("DD 80 01 00 07 09 10 00 AA 01 44 05 04 00 00 00 14 00 11 00 1A 00 28 00");
-    let Payload::WriteData(d) = only(&m) else { panic!() };
+    let Payload::WriteData(d) = only(&m) else {
+        panic!()
+    };
     assert_eq!(d.format, data_format::DATA_SEQ);
     assert_eq!(d.data.len(), 12);
     let m = round_trip("DD 80 01 00 07 03 0E 00 AA 01 44 05 00 02 00 00 E8 03 00 00 19 00");
-    let Payload::WriteData(d) = only(&m) else { panic!() };
+    let Payload::WriteData(d) = only(&m) else {
+        panic!()
+    };
     assert_eq!(d.format, data_format::SAMPLE);
     let m = round_trip("DD 80 01 00 07 03 0C 00 AA 01 44 05 02 00 11 22 33 64 19 00");
-    let Payload::WriteData(d) = only(&m) else { panic!() };
+    let Payload::WriteData(d) = only(&m) else {
+        panic!()
+    };
     assert_eq!(d.data[0], 0x02, "disposed state");
 }
 
 #[test]
 fn b4_1_read_data_single() {
     let m = round_trip("DD 80 01 00 08 01 08 00 AA 01 44 06 00 00 00 00");
-    let Payload::ReadData(r) = only(&m) else { panic!() };
+    let Payload::ReadData(r) = only(&m) else {
+        panic!()
+    };
     assert_eq!(r.spec, ReadSpecification::default());
 }
 
 #[test]
 fn b4_2_read_data_with_filter_and_delivery_control_both_forms() {
-    let expect = DataDeliveryControl { max_samples: 100, max_elapsed_time: 30, max_bytes_per_second: 1024, min_pace_period: 1000 };
+    let expect = DataDeliveryControl {
+        max_samples: 100,
+        max_elapsed_time: 30,
+        max_bytes_per_second: 1024,
+        min_pace_period: 1000,
+    };
     let strict = round_trip(
         "DD 80 01 00 08 01 20 00 AA 01 44 06 00 08 01 00 06 00 00 00 78 3E 31 30 30 00 01 00 08 00 00 00
          64 00 1E 00 00 04 E8 03",
     );
-    let Payload::ReadData(r) = only(&strict) else { panic!() };
+    let Payload::ReadData(r) = only(&strict) else {
+        panic!()
+    };
     assert_eq!(r.spec.content_filter_expression.as_deref(), Some("x>100"));
     assert_eq!(r.spec.delivery_control, Some(expect));
     assert!(r.spec.delivery_control_dheader);
@@ -106,7 +154,9 @@ fn b4_2_read_data_with_filter_and_delivery_control_both_forms() {
         "DD 80 01 00 08 01 1C 00 AA 01 44 06 00 08 01 00 06 00 00 00 78 3E 31 30 30 00 01 00 64 00 1E 00
          00 04 E8 03",
     );
-    let Payload::ReadData(r) = only(&plain) else { panic!() };
+    let Payload::ReadData(r) = only(&plain) else {
+        panic!()
+    };
     assert_eq!(r.spec.data_format, data_format::DATA_SEQ);
     assert_eq!(r.spec.delivery_control, Some(expect));
     assert!(!r.spec.delivery_control_dheader);
@@ -123,9 +173,23 @@ fn b5_1_data_big_endian() {
 #[test]
 fn acknack_heartbeat_and_derived_vectors() {
     let m = round_trip("DD 00 00 00 0A 01 05 00 64 00 40 09 80");
-    assert_eq!(only(&m), Payload::Acknack(AcknackPayload { first_unacked_seq_num: 100, nack_bitmap: 0x4009, stream_id: 0x80 }));
+    assert_eq!(
+        only(&m),
+        Payload::Acknack(AcknackPayload {
+            first_unacked_seq_num: 100,
+            nack_bitmap: 0x4009,
+            stream_id: 0x80
+        })
+    );
     let m = round_trip("DD 00 00 00 0B 01 05 00 05 00 09 00 80");
-    assert_eq!(only(&m), Payload::Heartbeat(HeartbeatPayload { first_unacked_seq_num: 5, last_unacked_seq_num: 9, stream_id: 0x80 }));
+    assert_eq!(
+        only(&m),
+        Payload::Heartbeat(HeartbeatPayload {
+            first_unacked_seq_num: 5,
+            last_unacked_seq_num: 9,
+            stream_id: 0x80
+        })
+    );
     let m = round_trip("81 80 00 00 05 01 06 00 AA 01 DD D5 00 00");
     assert!(matches!(only(&m), Payload::Status(s) if s.result == ResultStatus::OK));
     let m = round_trip("DD 00 00 00 04 01 09 00 58 52 43 45 01 00 01 0F 00");
@@ -133,9 +197,17 @@ fn acknack_heartbeat_and_derived_vectors() {
     let m = round_trip("DD 00 00 00 04 01 0B 00 00 00 58 52 43 45 01 00 01 0F 00");
     assert!(matches!(only(&m), Payload::StatusAgent(s) if s.result == Some(ResultStatus::OK)));
     let m = round_trip("80 00 00 00 02 01 08 00 AA 02 FF FD 03 00 00 00");
-    assert!(matches!(only(&m), Payload::GetInfo(g) if g.info_mask == 3 && g.base.object_id == ObjectId::AGENT));
+    assert!(
+        matches!(only(&m), Payload::GetInfo(g) if g.info_mask == 3 && g.base.object_id == ObjectId::AGENT)
+    );
     let m = round_trip("DD 00 00 00 0E 01 08 00 8C AA 88 5A 00 65 CD 1D");
-    assert_eq!(only(&m), Payload::Timestamp(Time { seconds: 1518905996, nanoseconds: 500000000 }));
+    assert_eq!(
+        only(&m),
+        Payload::Timestamp(Time {
+            seconds: 1518905996,
+            nanoseconds: 500000000
+        })
+    );
     let m = round_trip("DD 00 00 00 0C 01 00 00");
     assert_eq!(only(&m), Payload::Reset);
     let m = round_trip("DD 80 02 00 03 01 04 00 AA 05 FF FE");
@@ -145,12 +217,21 @@ fn acknack_heartbeat_and_derived_vectors() {
 #[test]
 fn header_with_client_key() {
     let m = round_trip("01 80 00 00 AA BB CC DD 0C 01 00 00");
-    assert_eq!(m.header.client_key, Some(ClientKey([0xAA, 0xBB, 0xCC, 0xDD])));
+    assert_eq!(
+        m.header.client_key,
+        Some(ClientKey([0xAA, 0xBB, 0xCC, 0xDD]))
+    );
 }
 
 #[test]
 fn malformed_inputs_are_errors_not_panics() {
-    for bad in ["", "81", "01 80 00 00 AA", "81 80 00 00 01 01 FF 00 00", "81 80 00 00 01 01 08 00 AA 01 DD D1 01 09 00 00"] {
+    for bad in [
+        "",
+        "81",
+        "01 80 00 00 AA",
+        "81 80 00 00 01 01 FF 00 00",
+        "81 80 00 00 01 01 08 00 AA 01 DD D1 01 09 00 00",
+    ] {
         assert!(Message::decode(&unhex(bad)).is_err(), "{bad}");
     }
 }

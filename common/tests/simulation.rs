@@ -61,7 +61,8 @@ impl Link {
         for _ in 0..copies {
             let at = now_us + 1 + self.rng.next() % self.max_delay_us;
             self.counter += 1;
-            self.in_flight.insert((at, self.counter), (to_agent, bytes.clone()));
+            self.in_flight
+                .insert((at, self.counter), (to_agent, bytes.clone()));
         }
     }
 }
@@ -76,20 +77,53 @@ fn sample(i: u32) -> Vec<u8> {
 fn run(seed: u64, n: u32, loss: f64, backpressure_every: u64) -> (Vec<u32>, Vec<u32>) {
     let t0 = Instant::now();
     let at = |us: u64| t0 + Duration::from_micros(us);
-    let mut link = Link { rng: Rng(seed | 1), loss, dup: 0.1, max_delay_us: 3_000, in_flight: BTreeMap::new(), counter: 0 };
-    let mut agent: Agent<Addr> = Agent::new(AgentConfig { heartbeat_period: Duration::from_millis(20), ..AgentConfig::default() });
-    let mut client = Client::new(ClientConfig { heartbeat_period: Duration::from_millis(20), ..ClientConfig::new(ClientKey([1, 2, 3, 4])) });
-    let mut sink = EchoSink { room: true, ..Default::default() };
+    let mut link = Link {
+        rng: Rng(seed | 1),
+        loss,
+        dup: 0.1,
+        max_delay_us: 3_000,
+        in_flight: BTreeMap::new(),
+        counter: 0,
+    };
+    let mut agent: Agent<Addr> = Agent::new(AgentConfig {
+        heartbeat_period: Duration::from_millis(20),
+        ..AgentConfig::default()
+    });
+    let mut client = Client::new(ClientConfig {
+        heartbeat_period: Duration::from_millis(20),
+        ..ClientConfig::new(ClientKey([1, 2, 3, 4]))
+    });
+    let mut sink = EchoSink {
+        room: true,
+        ..Default::default()
+    };
     let writer = ObjectId::new(1, 5);
-    let reader_req = BaseObjectRequest { request_id: RequestId::from_u16(7), object_id: ObjectId::new(1, 6) };
+    let reader_req = BaseObjectRequest {
+        request_id: RequestId::from_u16(7),
+        object_id: ObjectId::new(1, 6),
+    };
     let (mut now, mut written, mut echoed_upto, mut received) = (0u64, 0u32, 0usize, Vec::new());
     client.connect(at(0));
     let limit_us = 3_600_000_000u64;
     while (received.len() as u32) < n {
-        assert!(now < limit_us, "seed {seed}: stalled with {} of {n} received", received.len());
+        assert!(
+            now < limit_us,
+            "seed {seed}: stalled with {} of {n} received",
+            received.len()
+        );
         // The client writes as fast as its window allows.
-        while client.is_connected() && written < n && client.can_send_reliable(stream_id::BUILTIN_RELIABLE) {
-            client.write(at(now), stream_id::BUILTIN_RELIABLE, writer, &sample(written)).expect("room");
+        while client.is_connected()
+            && written < n
+            && client.can_send_reliable(stream_id::BUILTIN_RELIABLE)
+        {
+            client
+                .write(
+                    at(now),
+                    stream_id::BUILTIN_RELIABLE,
+                    writer,
+                    &sample(written),
+                )
+                .expect("room");
             written += 1;
         }
         while let Some(t) = client.poll_transmit() {
@@ -98,7 +132,16 @@ fn run(seed: u64, n: u32, loss: f64, backpressure_every: u64) -> (Vec<u32>, Vec<
         // The DDS side answers every write with a DATA back to the client.
         while echoed_upto < sink.writes.len() {
             let (key, data) = sink.writes[echoed_upto].clone();
-            agent.send_data(at(now), key, stream_id::BUILTIN_RELIABLE, reader_req, &data, true).expect("send_data");
+            agent
+                .send_data(
+                    at(now),
+                    key,
+                    stream_id::BUILTIN_RELIABLE,
+                    reader_req,
+                    &data,
+                    true,
+                )
+                .expect("send_data");
             echoed_upto += 1;
         }
         while let Some(t) = agent.poll_transmit() {
@@ -136,7 +179,11 @@ fn run(seed: u64, n: u32, loss: f64, backpressure_every: u64) -> (Vec<u32>, Vec<
         client.handle_timeout(at(now));
         agent.handle_timeout(at(now));
     }
-    let taken = sink.writes.iter().map(|(_, d)| u32::from_le_bytes([d[0], d[1], d[2], d[3]])).collect();
+    let taken = sink
+        .writes
+        .iter()
+        .map(|(_, d)| u32::from_le_bytes([d[0], d[1], d[2], d[3]]))
+        .collect();
     (taken, received)
 }
 

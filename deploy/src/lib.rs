@@ -2,7 +2,7 @@
 //! restarts a child that dies (with back-off), forwards SIGINT/SIGTERM for a clean stop and
 //! removes shared-memory leftovers of children that died hard.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
@@ -62,17 +62,12 @@ fn spawn(spec: &ChildSpec) -> std::io::Result<Child> {
     cmd.spawn()
 }
 
-/// Where the child programs live: `XRCE_BIN_DIR`, else next to this executable.
-pub fn bin_dir() -> PathBuf {
-    if let Some(d) = std::env::var_os("XRCE_BIN_DIR") {
-        return PathBuf::from(d);
-    }
-    std::env::current_exe().ok().and_then(|p| p.parent().map(Path::to_path_buf)).unwrap_or_else(|| PathBuf::from("."))
-}
-
 /// Waits for a signal of `set` for at most `timeout`.
 fn wait_signal(set: &SigSet, timeout: Duration) -> Option<Signal> {
-    let ts = libc::timespec { tv_sec: timeout.as_secs() as libc::time_t, tv_nsec: timeout.subsec_nanos() as libc::c_long };
+    let ts = libc::timespec {
+        tv_sec: timeout.as_secs() as libc::time_t,
+        tv_nsec: timeout.subsec_nanos() as libc::c_long,
+    };
     // SAFETY: `set` is a valid sigset and `ts` a valid timespec for the duration of the call.
     #[allow(unsafe_code)]
     let rc = unsafe { libc::sigtimedwait(set.as_ref(), std::ptr::null_mut(), &ts) };
@@ -96,22 +91,31 @@ pub fn supervise(specs: Vec<ChildSpec>, cleanup: impl Fn(bool)) -> anyhow::Resul
     cleanup(false);
     let mut children: Vec<Supervised> = Vec::new();
     for spec in specs {
-        let child = spawn(&spec).map_err(|e| anyhow::anyhow!("starting {} ({}): {e}", spec.name, spec.program.display()))?;
+        let child = spawn(&spec).map_err(|e| {
+            anyhow::anyhow!("starting {} ({}): {e}", spec.name, spec.program.display())
+        })?;
         tracing::info!(name = %spec.name, pid = child.id(), "started");
-        children.push(Supervised { spec, child: Some(child), started: Instant::now(), backoff: MIN_BACKOFF, restart_at: None, restarts: 0 });
+        children.push(Supervised {
+            spec,
+            child: Some(child),
+            started: Instant::now(),
+            backoff: MIN_BACKOFF,
+            restart_at: None,
+            restarts: 0,
+        });
     }
     loop {
         let now = Instant::now();
         let next = children.iter().filter_map(|c| c.restart_at).min();
-        let timeout = next.map_or(Duration::from_secs(1), |t| t.saturating_duration_since(now).max(Duration::from_millis(1)));
-        match wait_signal(&set, timeout) {
-            Some(s @ (Signal::SIGINT | Signal::SIGTERM)) => {
-                tracing::info!(signal = ?s, "stopping");
-                stop_all(&mut children);
-                cleanup(true);
-                return Ok(s);
-            }
-            _ => {}
+        let timeout = next.map_or(Duration::from_secs(1), |t| {
+            t.saturating_duration_since(now)
+                .max(Duration::from_millis(1))
+        });
+        if let Some(s @ (Signal::SIGINT | Signal::SIGTERM)) = wait_signal(&set, timeout) {
+            tracing::info!(signal = ?s, "stopping");
+            stop_all(&mut children);
+            cleanup(true);
+            return Ok(s);
         }
         let now = Instant::now();
         for c in &mut children {

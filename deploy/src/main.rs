@@ -1,10 +1,12 @@
 //! `xrce-agent`: the user-facing command, a drop-in for eProsima's `MicroXRCEAgent`
-//! (`xrce-agent udp4 -p 8888`). It supervises one DDS worker and one front-end.
+//! (`xrce-agent udp4 -p 8888`). It supervises one DDS worker and one front-end, which are
+//! this same executable started with the hidden `dds-worker` and `frontend` subcommands, so
+//! one binary is all a user needs.
 
 use std::net::IpAddr;
 
 use clap::{Args, Parser, Subcommand};
-use xrce_agent::{bin_dir, supervise, verbosity_filter, ChildSpec};
+use xrce_agent::{supervise, verbosity_filter, ChildSpec};
 
 /// DDS-XRCE agent: lets XRCE clients (Micro XRCE-DDS, micro-ROS, PX4) join a DDS data space.
 #[derive(Debug, Parser)]
@@ -20,6 +22,12 @@ enum Transport {
     Udp4(Common),
     /// Serve clients over UDP/IPv6.
     Udp6(Common),
+    /// Internal: run the DDS worker (started by the supervisor).
+    #[command(hide = true)]
+    DdsWorker(xrce_dds_worker::cli::WorkerArgs),
+    /// Internal: run a front-end (started by the supervisor).
+    #[command(hide = true)]
+    Frontend(xrce_frontend::cli::FrontendArgs),
 }
 
 #[derive(Debug, Args)]
@@ -37,7 +45,11 @@ struct Common {
     #[arg(long)]
     bind: Option<IpAddr>,
     /// Restrict DDS to these local addresses (comma-separated); default: every interface.
-    #[arg(long = "dds-interface", env = "XRCE_DDS_INTERFACES", value_delimiter = ',')]
+    #[arg(
+        long = "dds-interface",
+        env = "XRCE_DDS_INTERFACES",
+        value_delimiter = ','
+    )]
     dds_interfaces: Vec<IpAddr>,
     /// Instance name shared by the agent's processes (default: derived from transport and port).
     #[arg(long, env = "XRCE_INSTANCE")]
@@ -46,35 +58,68 @@ struct Common {
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
-    let (common, v6) = match &cli.transport {
-        Transport::Udp4(c) => (c, false),
-        Transport::Udp6(c) => (c, true),
+    let (common, v6) = match cli.transport {
+        Transport::Udp4(ref c) => (c, false),
+        Transport::Udp6(ref c) => (c, true),
+        Transport::DdsWorker(args) => return xrce_dds_worker::cli::run(args),
+        Transport::Frontend(args) => return xrce_frontend::cli::run(args),
     };
-    let filter = std::env::var("XRCE_LOG").unwrap_or_else(|_| verbosity_filter(common.verbose).to_string());
+    let filter =
+        std::env::var("XRCE_LOG").unwrap_or_else(|_| verbosity_filter(common.verbose).to_string());
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_new(&filter).unwrap_or_else(|_| "info".into()))
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_new(&filter).unwrap_or_else(|_| "info".into()),
+        )
         .with_writer(std::io::stderr)
         .init();
-    let instance = common.instance.clone().unwrap_or_else(|| format!("{}-{}", if v6 { "udp6" } else { "udp4" }, common.port));
+    let instance = common
+        .instance
+        .clone()
+        .unwrap_or_else(|| format!("{}-{}", if v6 { "udp6" } else { "udp4" }, common.port));
     if !xrce_common::ipc::shm::valid_instance(&instance) {
         anyhow::bail!("instance name {instance:?} must be 1-32 characters of [A-Za-z0-9_-]");
     }
-    let bind: IpAddr = common.bind.unwrap_or(if v6 { IpAddr::V6(std::net::Ipv6Addr::UNSPECIFIED) } else { IpAddr::V4(std::net::Ipv4Addr::UNSPECIFIED) });
+    let bind: IpAddr = common.bind.unwrap_or(if v6 {
+        IpAddr::V6(std::net::Ipv6Addr::UNSPECIFIED)
+    } else {
+        IpAddr::V4(std::net::Ipv4Addr::UNSPECIFIED)
+    });
     let udp = std::net::SocketAddr::new(bind, common.port);
     // Fail early and clearly if the port is taken, instead of a crash loop in the child.
-    drop(std::net::UdpSocket::bind(udp).map_err(|e| anyhow::anyhow!("cannot bind UDP {udp}: {e}"))?);
-    let dir = bin_dir();
-    let mut env = vec![("XRCE_INSTANCE".to_string(), instance.clone()), ("XRCE_LOG".to_string(), filter.clone())];
+    drop(
+        std::net::UdpSocket::bind(udp)
+            .map_err(|e| anyhow::anyhow!("cannot bind UDP {udp}: {e}"))?,
+    );
+    let exe = std::env::current_exe().map_err(|e| anyhow::anyhow!("locating this executable: {e}"))?;
+    let mut env = vec![
+        ("XRCE_INSTANCE".to_string(), instance.clone()),
+        ("XRCE_LOG".to_string(), filter.clone()),
+    ];
     if !common.dds_interfaces.is_empty() {
-        let list: Vec<String> = common.dds_interfaces.iter().map(ToString::to_string).collect();
+        let list: Vec<String> = common
+            .dds_interfaces
+            .iter()
+            .map(ToString::to_string)
+            .collect();
         env.push(("XRCE_DDS_INTERFACES".into(), list.join(",")));
     }
     let specs = vec![
-        ChildSpec { name: "xrce-dds-worker".into(), program: dir.join("xrce-dds-worker"), args: vec![], env: env.clone() },
+        ChildSpec {
+            name: "xrce-dds-worker".into(),
+            program: exe.clone(),
+            args: vec!["dds-worker".into()],
+            env: env.clone(),
+        },
         ChildSpec {
             name: "xrce-frontend-0".into(),
-            program: dir.join("xrce-frontend"),
-            args: vec!["--frontend-id".into(), "0".into(), "--udp".into(), udp.to_string()],
+            program: exe,
+            args: vec![
+                "frontend".into(),
+                "--frontend-id".into(),
+                "0".into(),
+                "--udp".into(),
+                udp.to_string(),
+            ],
             env,
         },
     ];

@@ -14,8 +14,8 @@ use std::time::{Duration, Instant};
 
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
 use xrce_common::wire::{
-    object_kind, stream_id, ClientKey, DataDeliveryControl, ObjectId, ObjectVariant, ReadSpecification, Representation,
-    RequestId, VariantExtra,
+    object_kind, stream_id, ClientKey, DataDeliveryControl, ObjectId, ObjectVariant,
+    ReadSpecification, Representation, RequestId, VariantExtra,
 };
 
 /// The Cyclone DDS release the tests pin.
@@ -23,7 +23,10 @@ pub const CYCLONEDDS_VERSION: &str = "11.0.1";
 
 /// The workspace root.
 pub fn workspace() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("workspace").to_path_buf()
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("workspace")
+        .to_path_buf()
 }
 
 /// The target directory the tests run from (…/target).
@@ -41,7 +44,16 @@ pub fn binaries() -> &'static Path {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let release = std::env::var("XRCE_TEST_RELEASE").is_ok();
         let mut cmd = Command::new(cargo);
-        cmd.current_dir(workspace()).args(["build", "--bins", "-p", "xrce-agent", "-p", "xrce-frontend", "-p", "xrce-dds-worker"]);
+        cmd.current_dir(workspace()).args([
+            "build",
+            "--bins",
+            "-p",
+            "xrce-agent",
+            "-p",
+            "xrce-frontend",
+            "-p",
+            "xrce-dds-worker",
+        ]);
         if release {
             cmd.arg("--release");
         }
@@ -53,13 +65,21 @@ pub fn binaries() -> &'static Path {
 
 /// A free UDP port on 127.0.0.1.
 pub fn free_udp_port() -> u16 {
-    UdpSocket::bind("127.0.0.1:0").and_then(|s| s.local_addr()).map(|a| a.port()).expect("free port")
+    UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .map(|a| a.port())
+        .expect("free port")
 }
 
 /// A unique instance name for this test process.
 pub fn unique_instance(tag: &str) -> String {
     static N: AtomicU32 = AtomicU32::new(0);
-    format!("t{}-{}-{}", std::process::id() % 100_000, tag, N.fetch_add(1, Ordering::Relaxed))
+    format!(
+        "t{}-{}-{}",
+        std::process::id() % 100_000,
+        tag,
+        N.fetch_add(1, Ordering::Relaxed)
+    )
 }
 
 /// A running `xrce-agent udp4` with DDS pinned to loopback. Stopped (SIGTERM) on drop.
@@ -78,11 +98,28 @@ impl AgentProcess {
         let port = free_udp_port();
         let instance = unique_instance(tag);
         let child = Command::new(binaries().join("xrce-agent"))
-            .args(["udp4", "-p", &port.to_string(), "--bind", "127.0.0.1", "--dds-interface", "127.0.0.1", "--instance", &instance])
-            .env("XRCE_LOG", std::env::var("XRCE_TEST_LOG").unwrap_or_else(|_| "info".into()))
+            .args([
+                "udp4",
+                "-p",
+                &port.to_string(),
+                "--bind",
+                "127.0.0.1",
+                "--dds-interface",
+                "127.0.0.1",
+                "--instance",
+                &instance,
+            ])
+            .env(
+                "XRCE_LOG",
+                std::env::var("XRCE_TEST_LOG").unwrap_or_else(|_| "info".into()),
+            )
             .spawn()
             .expect("start xrce-agent");
-        AgentProcess { child, port, instance }
+        AgentProcess {
+            child,
+            port,
+            instance,
+        }
     }
 
     /// The agent's address.
@@ -90,10 +127,24 @@ impl AgentProcess {
         SocketAddr::from(([127, 0, 0, 1], self.port))
     }
 
-    /// Pids of the agent's children with this program name.
-    pub fn child_pids(&self, program: &str) -> Vec<i32> {
-        let out = Command::new("pgrep").args(["-P", &self.child.id().to_string(), "-x", program]).output().expect("pgrep");
-        String::from_utf8_lossy(&out.stdout).lines().filter_map(|l| l.trim().parse().ok()).collect()
+    /// Pids of the agent's children started with this subcommand (`dds-worker`, `frontend`).
+    pub fn child_pids(&self, subcommand: &str) -> Vec<i32> {
+        let parent = self.child.id().to_string();
+        let mut out = Vec::new();
+        for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
+            let Ok(pid) = e.file_name().to_string_lossy().parse::<i32>() else { continue };
+            let stat = std::fs::read_to_string(e.path().join("stat")).unwrap_or_default();
+            // Fields after the command name: state, ppid, ...
+            let ppid = stat.rsplit_once(')').and_then(|(_, rest)| rest.split_whitespace().nth(1).map(str::to_string));
+            if ppid.as_deref() != Some(parent.as_str()) {
+                continue;
+            }
+            let cmdline = std::fs::read(e.path().join("cmdline")).unwrap_or_default();
+            if cmdline.split(|b| *b == 0).nth(1) == Some(subcommand.as_bytes()) {
+                out.push(pid);
+            }
+        }
+        out
     }
 
     /// Sends SIGTERM and waits; returns whether it exited cleanly (code 0) and left no
@@ -101,17 +152,25 @@ impl AgentProcess {
     pub fn stop(mut self) -> bool {
         let clean = self.terminate();
         let left = xrce_common::ipc::shm::instance_files(&self.instance);
-        assert!(left.is_empty(), "stale shared-memory files after stop: {left:?}");
+        assert!(
+            left.is_empty(),
+            "stale shared-memory files after stop: {left:?}"
+        );
         clean
     }
 
     fn terminate(&mut self) -> bool {
-        let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(self.child.id() as i32), nix::sys::signal::Signal::SIGTERM);
+        let _ = nix::sys::signal::kill(
+            nix::unistd::Pid::from_raw(self.child.id() as i32),
+            nix::sys::signal::Signal::SIGTERM,
+        );
         let deadline = Instant::now() + Duration::from_secs(15);
         loop {
             match self.child.try_wait() {
                 Ok(Some(s)) => return s.success(),
-                Ok(None) if Instant::now() < deadline => std::thread::sleep(Duration::from_millis(20)),
+                Ok(None) if Instant::now() < deadline => {
+                    std::thread::sleep(Duration::from_millis(20))
+                }
                 _ => {
                     let _ = self.child.kill();
                     let _ = self.child.wait();
@@ -132,7 +191,10 @@ impl Drop for AgentProcess {
 
 /// SIGKILLs a process.
 pub fn sigkill(pid: i32) {
-    let _ = nix::sys::signal::kill(nix::unistd::Pid::from_raw(pid), nix::sys::signal::Signal::SIGKILL);
+    let _ = nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(pid),
+        nix::sys::signal::Signal::SIGKILL,
+    );
 }
 
 /// The HelloWorld sample of the eProsima examples: `unsigned long index; string message;`
@@ -156,9 +218,11 @@ pub fn parse_hello_world(b: &[u8]) -> Option<(u32, String)> {
 /// XML of the reference client's HelloWorld examples.
 pub mod xml {
     /// Participant.
-    pub const PARTICIPANT: &str = "<dds><participant><rtps><name>default_xrce_participant</name></rtps></participant></dds>";
+    pub const PARTICIPANT: &str =
+        "<dds><participant><rtps><name>default_xrce_participant</name></rtps></participant></dds>";
     /// Topic.
-    pub const TOPIC: &str = "<dds><topic><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic></dds>";
+    pub const TOPIC: &str =
+        "<dds><topic><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic></dds>";
     /// Data writer.
     pub const WRITER: &str = "<dds><data_writer><topic><kind>NO_KEY</kind><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic></data_writer></dds>";
     /// Data reader (reliable, so the tests can demand every sample).
@@ -181,8 +245,15 @@ impl TestClient {
     pub fn new(agent: SocketAddr, key: [u8; 4]) -> Self {
         let socket = UdpSocket::bind("127.0.0.1:0").expect("bind client");
         socket.connect(agent).expect("connect");
-        socket.set_read_timeout(Some(Duration::from_millis(5))).expect("timeout");
-        TestClient { client: Client::new(ClientConfig::new(ClientKey(key))), socket, events: Vec::new(), buf: vec![0; 65_536] }
+        socket
+            .set_read_timeout(Some(Duration::from_millis(5)))
+            .expect("timeout");
+        TestClient {
+            client: Client::new(ClientConfig::new(ClientKey(key))),
+            socket,
+            events: Vec::new(),
+            buf: vec![0; 65_536],
+        }
     }
 
     /// Runs the protocol for up to `d`, or until `done` says so.
@@ -233,8 +304,15 @@ impl TestClient {
 
     /// Creates an object and waits for its STATUS; returns the status value.
     pub fn create(&mut self, id: ObjectId, kind: u8, xml: &str, extra: VariantExtra) -> u8 {
-        let variant = ObjectVariant { kind, representation: Representation::Xml(xml.into()), extra };
-        let req = self.client.create(Instant::now(), id, variant, false, true).expect("create");
+        let variant = ObjectVariant {
+            kind,
+            representation: Representation::Xml(xml.into()),
+            extra,
+        };
+        let req = self
+            .client
+            .create(Instant::now(), id, variant, false, true)
+            .expect("create");
         self.wait_status(req, Duration::from_secs(20))
     }
 
@@ -242,7 +320,11 @@ impl TestClient {
     pub fn wait_status(&mut self, req: RequestId, d: Duration) -> u8 {
         let mut found = None;
         self.run_until(d, |c| {
-            if let Some(i) = c.events.iter().position(|e| matches!(e, ClientEvent::Status(s) if s.related.request_id == req)) {
+            if let Some(i) = c
+                .events
+                .iter()
+                .position(|e| matches!(e, ClientEvent::Status(s) if s.related.request_id == req))
+            {
                 if let ClientEvent::Status(s) = c.events.remove(i) {
                     found = Some(s.result.status);
                 }
@@ -257,13 +339,35 @@ impl TestClient {
     /// example; returns the writer id.
     pub fn setup_publisher(&mut self, domain: i16) -> ObjectId {
         let p = ObjectId::new(1, object_kind::PARTICIPANT);
-        assert_eq!(self.create(p, object_kind::PARTICIPANT, xml::PARTICIPANT, VariantExtra::DomainId(domain)), 0);
+        assert_eq!(
+            self.create(
+                p,
+                object_kind::PARTICIPANT,
+                xml::PARTICIPANT,
+                VariantExtra::DomainId(domain)
+            ),
+            0
+        );
         let t = ObjectId::new(1, object_kind::TOPIC);
-        assert_eq!(self.create(t, object_kind::TOPIC, xml::TOPIC, VariantExtra::Parent(p)), 0);
+        assert_eq!(
+            self.create(t, object_kind::TOPIC, xml::TOPIC, VariantExtra::Parent(p)),
+            0
+        );
         let pb = ObjectId::new(1, object_kind::PUBLISHER);
-        assert_eq!(self.create(pb, object_kind::PUBLISHER, "", VariantExtra::Parent(p)), 0);
+        assert_eq!(
+            self.create(pb, object_kind::PUBLISHER, "", VariantExtra::Parent(p)),
+            0
+        );
         let w = ObjectId::new(1, object_kind::DATAWRITER);
-        assert_eq!(self.create(w, object_kind::DATAWRITER, xml::WRITER, VariantExtra::Parent(pb)), 0);
+        assert_eq!(
+            self.create(
+                w,
+                object_kind::DATAWRITER,
+                xml::WRITER,
+                VariantExtra::Parent(pb)
+            ),
+            0
+        );
         w
     }
 
@@ -271,17 +375,42 @@ impl TestClient {
     /// starts an unlimited READ_DATA on the reliable stream; returns the reader id.
     pub fn setup_subscriber(&mut self, domain: i16) -> ObjectId {
         let p = ObjectId::new(1, object_kind::PARTICIPANT);
-        assert_eq!(self.create(p, object_kind::PARTICIPANT, xml::PARTICIPANT, VariantExtra::DomainId(domain)), 0);
+        assert_eq!(
+            self.create(
+                p,
+                object_kind::PARTICIPANT,
+                xml::PARTICIPANT,
+                VariantExtra::DomainId(domain)
+            ),
+            0
+        );
         let t = ObjectId::new(1, object_kind::TOPIC);
-        assert_eq!(self.create(t, object_kind::TOPIC, xml::TOPIC, VariantExtra::Parent(p)), 0);
+        assert_eq!(
+            self.create(t, object_kind::TOPIC, xml::TOPIC, VariantExtra::Parent(p)),
+            0
+        );
         let s = ObjectId::new(1, object_kind::SUBSCRIBER);
-        assert_eq!(self.create(s, object_kind::SUBSCRIBER, "", VariantExtra::Parent(p)), 0);
+        assert_eq!(
+            self.create(s, object_kind::SUBSCRIBER, "", VariantExtra::Parent(p)),
+            0
+        );
         let r = ObjectId::new(1, object_kind::DATAREADER);
-        assert_eq!(self.create(r, object_kind::DATAREADER, xml::READER, VariantExtra::Parent(s)), 0);
+        assert_eq!(
+            self.create(
+                r,
+                object_kind::DATAREADER,
+                xml::READER,
+                VariantExtra::Parent(s)
+            ),
+            0
+        );
         let spec = ReadSpecification {
             preferred_stream_id: stream_id::BUILTIN_RELIABLE,
             data_format: 0,
-            delivery_control: Some(DataDeliveryControl { max_samples: u16::MAX, ..Default::default() }),
+            delivery_control: Some(DataDeliveryControl {
+                max_samples: u16::MAX,
+                ..Default::default()
+            }),
             ..Default::default()
         };
         self.client.read(Instant::now(), r, spec).expect("read");
@@ -290,9 +419,13 @@ impl TestClient {
 
     /// Writes on the reliable stream, waiting for window room.
     pub fn write_reliable(&mut self, writer: ObjectId, sample: &[u8]) {
-        let ok = self.run_until(Duration::from_secs(60), |c| c.client.can_send_reliable(stream_id::BUILTIN_RELIABLE));
+        let ok = self.run_until(Duration::from_secs(60), |c| {
+            c.client.can_send_reliable(stream_id::BUILTIN_RELIABLE)
+        });
         assert!(ok, "reliable window never opened");
-        self.client.write(Instant::now(), stream_id::BUILTIN_RELIABLE, writer, sample).expect("write");
+        self.client
+            .write(Instant::now(), stream_id::BUILTIN_RELIABLE, writer, sample)
+            .expect("write");
         self.step();
     }
 

@@ -12,11 +12,25 @@ const SECOND: Duration = Duration::from_secs(1);
 #[test]
 fn client_publishes_cyclone_reads_every_sample() {
     let agent = AgentProcess::start("pub");
-    let reader = DdsPeer::start(&["read", "--domain", "11", "--count", "50", "--reliable", "--timeout", "60"]);
+    let reader = DdsPeer::start(&[
+        "read",
+        "--domain",
+        "11",
+        "--count",
+        "50",
+        "--reliable",
+        "--timeout",
+        "60",
+    ]);
     let mut c = TestClient::new(agent.addr(), [0xAA, 0xAA, 0xBB, 0x01]);
     c.connect(10 * SECOND);
     let w = c.setup_publisher(11);
-    assert!(reader.wait_for("MATCHED 1", 30 * SECOND, || c.step()).is_some(), "Cyclone never matched the agent's writer");
+    assert!(
+        reader
+            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+            .is_some(),
+        "Cyclone never matched the agent's writer"
+    );
     for i in 0..50 {
         c.write_reliable(w, &hello_world(i, "Hello DDS world!"));
     }
@@ -31,7 +45,11 @@ fn client_publishes_cyclone_reads_every_sample() {
             }
         }
     }
-    assert_eq!(got, (0..50).collect::<BTreeSet<u32>>(), "Cyclone did not receive every sample");
+    assert_eq!(
+        got,
+        (0..50).collect::<BTreeSet<u32>>(),
+        "Cyclone did not receive every sample"
+    );
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
@@ -42,8 +60,21 @@ fn cyclone_publishes_client_reads() {
     c.connect(10 * SECOND);
     c.setup_subscriber(12);
     let mut writer = DdsPeer::start(&[
-        "write", "--domain", "12", "--count", "20", "--interval-ms", "10", "--message", "from cyclone", "--wait-match",
-        "--reliable", "--timeout", "60", "--linger-ms", "3000",
+        "write",
+        "--domain",
+        "12",
+        "--count",
+        "20",
+        "--interval-ms",
+        "10",
+        "--message",
+        "from cyclone",
+        "--wait-match",
+        "--reliable",
+        "--timeout",
+        "60",
+        "--linger-ms",
+        "3000",
     ]);
     let mut got = BTreeSet::new();
     let ok = c.run_until(60 * SECOND, |c| {

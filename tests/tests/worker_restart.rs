@@ -17,16 +17,34 @@ fn worker_sigkill_mid_stream_loses_no_reliable_sample() {
     const KILL_AT: u32 = 100;
     let agent = AgentProcess::start("kill");
     // The reader counts duplicates too, so let it run past N; the test ends it.
-    let reader = DdsPeer::start(&["read", "--domain", "14", "--count", &(10 * N).to_string(), "--reliable", "--timeout", "120"]);
+    let reader = DdsPeer::start(&[
+        "read",
+        "--domain",
+        "14",
+        "--count",
+        &(10 * N).to_string(),
+        "--reliable",
+        "--timeout",
+        "120",
+    ]);
     let mut c = TestClient::new(agent.addr(), [0xAB, 0xCD, 0xEF, 0x04]);
     c.connect(10 * SECOND);
     let w = c.setup_publisher(14);
-    assert!(reader.wait_for("MATCHED 1", 30 * SECOND, || c.step()).is_some(), "Cyclone never matched");
-    let old_workers = agent.child_pids("xrce-dds-worker");
-    assert_eq!(old_workers.len(), 1, "expected one worker, got {old_workers:?}");
+    assert!(
+        reader
+            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+            .is_some(),
+        "Cyclone never matched"
+    );
+    let old_workers = agent.child_pids("dds-worker");
+    assert_eq!(
+        old_workers.len(),
+        1,
+        "expected one worker, got {old_workers:?}"
+    );
 
     let mut got: BTreeMap<u32, u32> = BTreeMap::new();
-    let mut collect = |reader: &DdsPeer, got: &mut BTreeMap<u32, u32>| {
+    let collect = |reader: &DdsPeer, got: &mut BTreeMap<u32, u32>| {
         while let Some(l) = reader.line(Duration::ZERO) {
             if let Some((i, _)) = parse_sample_line(&l) {
                 *got.entry(i).or_default() += 1;
@@ -51,13 +69,31 @@ fn worker_sigkill_mid_stream_loses_no_reliable_sample() {
     let killed_at = killed_at.expect("killed");
     let missing: Vec<u32> = (0..N).filter(|i| !got.contains_key(i)).collect();
     let duplicates: u32 = got.values().map(|n| n - 1).sum();
-    eprintln!("worker restart: {} of {N} delivered, {duplicates} duplicates, {:?} since the kill", got.len(), killed_at.elapsed());
-    assert!(done && missing.is_empty(), "samples lost across the worker restart: {missing:?}");
+    eprintln!(
+        "worker restart: {} of {N} delivered, {duplicates} duplicates, {:?} since the kill",
+        got.len(),
+        killed_at.elapsed()
+    );
+    assert!(
+        done && missing.is_empty(),
+        "samples lost across the worker restart: {missing:?}"
+    );
 
-    let new_workers = agent.child_pids("xrce-dds-worker");
-    assert_eq!(new_workers.len(), 1, "the supervisor should run exactly one new worker: {new_workers:?}");
+    let new_workers = agent.child_pids("dds-worker");
+    assert_eq!(
+        new_workers.len(),
+        1,
+        "the supervisor should run exactly one new worker: {new_workers:?}"
+    );
     assert_ne!(new_workers, old_workers, "the worker was not restarted");
-    let session_events = c.events.iter().filter(|e| matches!(e, ClientEvent::SessionStatus(_))).count();
-    assert_eq!(session_events, 1, "the client had to re-create its session (only the first STATUS_AGENT is expected)");
+    let session_events = c
+        .events
+        .iter()
+        .filter(|e| matches!(e, ClientEvent::SessionStatus(_)))
+        .count();
+    assert_eq!(
+        session_events, 1,
+        "the client had to re-create its session (only the first STATUS_AGENT is expected)"
+    );
     assert!(agent.stop(), "agent did not stop cleanly after the restart");
 }

@@ -181,7 +181,9 @@ impl IpcHeader {
         let mut seq = [0u8; 8];
         seq.copy_from_slice(&buf[16..24]);
         let body_len = u32_at(32) as usize;
-        let body = buf.get(Self::LEN..Self::LEN + body_len).ok_or(IpcError::Truncated)?;
+        let body = buf
+            .get(Self::LEN..Self::LEN + body_len)
+            .ok_or(IpcError::Truncated)?;
         let h = IpcHeader {
             kind,
             flags: buf[7],
@@ -237,7 +239,10 @@ mod tests {
         let mut other = m.clone();
         other[4] = 2;
         assert_eq!(IpcHeader::decode(&other), Err(IpcError::Version(2)));
-        assert_eq!(IpcHeader::decode(&m[..m.len() - 1]), Err(IpcError::Truncated));
+        assert_eq!(
+            IpcHeader::decode(&m[..m.len() - 1]),
+            Err(IpcError::Truncated)
+        );
         let mut bad_kind = m;
         bad_kind[6] = 99;
         assert_eq!(IpcHeader::decode(&bad_kind), Err(IpcError::Kind(99)));

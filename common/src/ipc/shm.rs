@@ -24,7 +24,10 @@ pub struct ShmError {
 }
 
 fn err<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> ShmError {
-    move |e| ShmError { what, detail: format!("{e:?}") }
+    move |e| ShmError {
+        what,
+        detail: format!("{e:?}"),
+    }
 }
 
 /// Whether a service carries the latest message for late joiners.
@@ -46,7 +49,9 @@ pub struct IpcNode {
 pub fn valid_instance(instance: &str) -> bool {
     !instance.is_empty()
         && instance.len() <= 32
-        && instance.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+        && instance
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
 }
 
 impl IpcNode {
@@ -54,11 +59,15 @@ impl IpcNode {
     /// derived from the instance, so instances never see each other.
     pub fn new(instance: &str, name: &str) -> Result<Self, ShmError> {
         if !valid_instance(instance) {
-            return Err(ShmError { what: "instance name", detail: format!("{instance:?} is not [A-Za-z0-9_-]{{1,32}}") });
+            return Err(ShmError {
+                what: "instance name",
+                detail: format!("{instance:?} is not [A-Za-z0-9_-]{{1,32}}"),
+            });
         }
         set_log_level(LogLevel::Error);
         let mut config = Config::default();
-        config.global.prefix = FileName::new(format!("xrce_{instance}_").as_bytes()).map_err(err("prefix"))?;
+        config.global.prefix =
+            FileName::new(format!("xrce_{instance}_").as_bytes()).map_err(err("prefix"))?;
         let node = NodeBuilder::new()
             .name(&NodeName::new(name).map_err(err("node name"))?)
             .config(&config)
@@ -76,7 +85,10 @@ impl IpcNode {
         &self,
         service: &str,
         kind: ServiceKind,
-    ) -> Result<iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, [u8], ()>, ShmError> {
+    ) -> Result<
+        iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, [u8], ()>,
+        ShmError,
+    > {
         let name = ServiceName::new(service).map_err(err("service name"))?;
         self.node
             .service_builder(&name)
@@ -91,7 +103,10 @@ impl IpcNode {
             .map_err(err("open publish-subscribe service"))
     }
 
-    fn event(&self, service: &str) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, ShmError> {
+    fn event(
+        &self,
+        service: &str,
+    ) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, ShmError> {
         let name = ServiceName::new(&super::event_service(service)).map_err(err("service name"))?;
         self.node
             .service_builder(&name)
@@ -111,15 +126,33 @@ impl IpcNode {
             .max_loaned_samples(4)
             .create()
             .map_err(err("create publisher"))?;
-        let notifier = self.event(service)?.notifier_builder().create().map_err(err("create notifier"))?;
-        Ok(Sender { publisher, notifier })
+        let notifier = self
+            .event(service)?
+            .notifier_builder()
+            .create()
+            .map_err(err("create notifier"))?;
+        Ok(Sender {
+            publisher,
+            notifier,
+        })
     }
 
     /// A receiver on `service`.
     pub fn receiver(&self, service: &str, kind: ServiceKind) -> Result<Receiver, ShmError> {
-        let subscriber = self.pubsub(service, kind)?.subscriber_builder().create().map_err(err("create subscriber"))?;
-        let listener = self.event(service)?.listener_builder().create().map_err(err("create listener"))?;
-        Ok(Receiver { subscriber, listener })
+        let subscriber = self
+            .pubsub(service, kind)?
+            .subscriber_builder()
+            .create()
+            .map_err(err("create subscriber"))?;
+        let listener = self
+            .event(service)?
+            .listener_builder()
+            .create()
+            .map_err(err("create listener"))?;
+        Ok(Receiver {
+            subscriber,
+            listener,
+        })
     }
 }
 
@@ -131,9 +164,15 @@ pub fn remove_instance_leftovers(instance: &str) -> usize {
         return 0;
     }
     let prefix = format!("xrce_{instance}_");
-    let Ok(dir) = std::fs::read_dir("/dev/shm") else { return 0 };
+    let Ok(dir) = std::fs::read_dir("/dev/shm") else {
+        return 0;
+    };
     dir.flatten()
-        .filter(|e| e.file_name().to_str().is_some_and(|n| n.starts_with(&prefix) && n.ends_with(".global_mgmt")))
+        .filter(|e| {
+            e.file_name()
+                .to_str()
+                .is_some_and(|n| n.starts_with(&prefix) && n.ends_with(".global_mgmt"))
+        })
         .filter(|e| std::fs::remove_file(e.path()).is_ok())
         .count()
 }
@@ -142,7 +181,12 @@ pub fn remove_instance_leftovers(instance: &str) -> usize {
 pub fn instance_files(instance: &str) -> Vec<String> {
     let prefix = format!("xrce_{instance}_");
     std::fs::read_dir("/dev/shm")
-        .map(|d| d.flatten().filter_map(|e| e.file_name().into_string().ok()).filter(|n| n.starts_with(&prefix)).collect())
+        .map(|d| {
+            d.flatten()
+                .filter_map(|e| e.file_name().into_string().ok())
+                .filter(|n| n.starts_with(&prefix))
+                .collect()
+        })
         .unwrap_or_default()
 }
 
@@ -155,11 +199,22 @@ pub struct Sender {
 
 impl Sender {
     /// Publishes `header` and a body of `body_len` bytes that `fill` writes in place.
-    pub fn send_with(&self, header: &IpcHeader, body_len: usize, fill: impl FnOnce(&mut [u8])) -> Result<(), ShmError> {
+    pub fn send_with(
+        &self,
+        header: &IpcHeader,
+        body_len: usize,
+        fill: impl FnOnce(&mut [u8]),
+    ) -> Result<(), ShmError> {
         if body_len > MAX_BODY {
-            return Err(ShmError { what: "send", detail: format!("body of {body_len} bytes exceeds {MAX_BODY}") });
+            return Err(ShmError {
+                what: "send",
+                detail: format!("body of {body_len} bytes exceeds {MAX_BODY}"),
+            });
         }
-        let mut sample = self.publisher.loan_slice(IpcHeader::LEN + body_len).map_err(err("loan"))?;
+        let mut sample = self
+            .publisher
+            .loan_slice(IpcHeader::LEN + body_len)
+            .map_err(err("loan"))?;
         let buf = sample.payload_mut();
         header.write(buf, body_len);
         fill(&mut buf[IpcHeader::LEN..]);

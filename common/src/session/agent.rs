@@ -16,10 +16,11 @@ use std::time::{Duration, Instant};
 
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
 use crate::wire::{
-    hex, object_kind, status, stream_id, submessage_id, AcknackPayload, BaseObjectReply, BaseObjectRequest,
-    ClientKey, CreateClientPayload, CreatePayload, DataPayload, DecodeError, InfoPayload, MessageBuilder,
-    MessageHeader, ObjectId, Payload, ReadSpecification, RequestId, ResultStatus, StatusAgentPayload,
-    Submessages, Time, TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
+    hex, object_kind, status, stream_id, submessage_id, AcknackPayload, BaseObjectReply,
+    BaseObjectRequest, ClientKey, CreateClientPayload, CreatePayload, DataPayload, DecodeError,
+    InfoPayload, MessageBuilder, MessageHeader, ObjectId, Payload, ReadSpecification, RequestId,
+    ResultStatus, StatusAgentPayload, Submessages, Time, TimestampReplyPayload, VENDOR_EPROSIMA,
+    XRCE_COOKIE, XRCE_VERSION,
 };
 
 /// Tunables of the agent core.
@@ -81,13 +82,28 @@ pub enum Operation<'a> {
     /// A session ended (deleted by the client, or replaced): drop all its objects.
     ClientDeleted { client: ClientKey },
     /// CREATE.
-    Create { client: ClientKey, create: &'a CreatePayload },
+    Create {
+        client: ClientKey,
+        create: &'a CreatePayload,
+    },
     /// DELETE of an object.
-    Delete { client: ClientKey, request: BaseObjectRequest },
+    Delete {
+        client: ClientKey,
+        request: BaseObjectRequest,
+    },
     /// WRITE_DATA, with the stream it came on (reliable streams must not lose it).
-    Write { client: ClientKey, stream_id: u8, data: DataPayload<'a>, little_endian: bool },
+    Write {
+        client: ClientKey,
+        stream_id: u8,
+        data: DataPayload<'a>,
+        little_endian: bool,
+    },
     /// READ_DATA.
-    Read { client: ClientKey, request: BaseObjectRequest, spec: &'a ReadSpecification },
+    Read {
+        client: ClientKey,
+        request: BaseObjectRequest,
+        spec: &'a ReadSpecification,
+    },
 }
 
 /// Receives operations from the agent core.
@@ -245,7 +261,13 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     }
 
     /// Handles one datagram from `src`.
-    pub fn handle_datagram(&mut self, now: Instant, src: A, bytes: &[u8], sink: &mut impl OperationSink) {
+    pub fn handle_datagram(
+        &mut self,
+        now: Instant,
+        src: A,
+        bytes: &[u8],
+        sink: &mut impl OperationSink,
+    ) {
         self.stats.datagrams_in += 1;
         let (header, hlen) = match MessageHeader::decode(bytes) {
             Ok(h) => h,
@@ -261,7 +283,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 None => return self.drop_input("no_client", bytes),
             },
         };
-        let Some(client) = self.clients.get_mut(&key) else { return self.drop_input("no_client", bytes) };
+        let Some(client) = self.clients.get_mut(&key) else {
+            return self.drop_input("no_client", bytes);
+        };
         if client.session_id != header.session_id {
             return self.drop_input("wrong_session", bytes);
         }
@@ -279,7 +303,11 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         if stream == stream_id::NONE {
             self.process(now, key, bytes, hlen, sink);
         } else if !stream_id::is_reliable(stream) {
-            let accepted = client.best_effort_in.entry(stream).or_default().accept(header.sequence_nr);
+            let accepted = client
+                .best_effort_in
+                .entry(stream)
+                .or_default()
+                .accept(header.sequence_nr);
             if accepted {
                 self.process(now, key, bytes, hlen, sink);
             } else {
@@ -303,12 +331,17 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     ) {
         let window = self.config.input_window;
         let max_streams = self.config.max_input_streams;
-        let Some(client) = self.clients.get_mut(&key) else { return };
+        let Some(client) = self.clients.get_mut(&key) else {
+            return;
+        };
         let stream = header.stream_id;
         if !client.reliable_in.contains_key(&stream) && client.reliable_in.len() >= max_streams {
             return self.drop_input("too_many_streams", bytes);
         }
-        let input = client.reliable_in.entry(stream).or_insert_with(|| ReliableInput::new(window));
+        let input = client
+            .reliable_in
+            .entry(stream)
+            .or_insert_with(|| ReliableInput::new(window));
         match input.classify(header.sequence_nr) {
             Arrival::Duplicate => self.count_drop("duplicate"),
             Arrival::OutOfWindow => self.drop_input("out_of_window", bytes),
@@ -327,9 +360,21 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     }
 
     /// After an in-order message: advance, and process buffered messages that are now next.
-    fn deliver_early(&mut self, now: Instant, key: ClientKey, stream: u8, sink: &mut impl OperationSink) {
+    fn deliver_early(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        stream: u8,
+        sink: &mut impl OperationSink,
+    ) {
         loop {
-            let Some(input) = self.clients.get_mut(&key).and_then(|c| c.reliable_in.get_mut(&stream)) else { return };
+            let Some(input) = self
+                .clients
+                .get_mut(&key)
+                .and_then(|c| c.reliable_in.get_mut(&stream))
+            else {
+                return;
+            };
             let Some(next) = input.advance() else { return };
             if !sink.has_room() {
                 let s = input.expected();
@@ -337,7 +382,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 // Undo nothing: `expected` now points at the stored message, which waits.
                 return;
             }
-            let Ok((_, hlen)) = MessageHeader::decode(&next) else { return };
+            let Ok((_, hlen)) = MessageHeader::decode(&next) else {
+                return;
+            };
             self.process(now, key, &next, hlen, sink);
             // `process` may have deleted the client.
             if !self.clients.contains_key(&key) {
@@ -347,8 +394,12 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     }
 
     fn send_acknack(&mut self, key: ClientKey, stream: u8) {
-        let Some(client) = self.clients.get(&key) else { return };
-        let Some(input) = client.reliable_in.get(&stream) else { return };
+        let Some(client) = self.clients.get(&key) else {
+            return;
+        };
+        let Some(input) = client.reliable_in.get(&stream) else {
+            return;
+        };
         let ack = input.acknack(stream);
         let mut b = MessageBuilder::new(client.header(stream_id::NONE, 0));
         let _ = b.push(&Payload::Acknack(ack), true);
@@ -378,22 +429,36 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         }
     }
 
-    fn create_client(&mut self, now: Instant, src: A, c: &CreateClientPayload, sink: &mut impl OperationSink) {
+    fn create_client(
+        &mut self,
+        now: Instant,
+        src: A,
+        c: &CreateClientPayload,
+        sink: &mut impl OperationSink,
+    ) {
         let reply_header = MessageHeader::new(c.session_id, stream_id::NONE, 0, c.client_key);
         let result = if c.cookie != XRCE_COOKIE {
             status::ERR_INVALID_DATA
         } else if c.version[0] != XRCE_VERSION[0] {
             status::ERR_INCOMPATIBLE
-        } else if c.session_id == 0x00 || c.session_id == 0x80 || c.client_key == ClientKey::INVALID {
+        } else if c.session_id == 0x00 || c.session_id == 0x80 || c.client_key == ClientKey::INVALID
+        {
             status::ERR_INVALID_DATA
-        } else if !self.clients.contains_key(&c.client_key) && self.clients.len() >= self.config.max_clients {
+        } else if !self.clients.contains_key(&c.client_key)
+            && self.clients.len() >= self.config.max_clients
+        {
             status::ERR_RESOURCES
         } else {
             status::OK
         };
         if result == status::OK {
             // Another client at the same source address is gone (it was restarted with a new key).
-            if let Some(other) = self.by_addr.get(&src).copied().filter(|k| *k != c.client_key) {
+            if let Some(other) = self
+                .by_addr
+                .get(&src)
+                .copied()
+                .filter(|k| *k != c.client_key)
+            {
                 self.remove_client(other, sink);
             }
             let mtu = c.mtu.unwrap_or(self.config.default_mtu).max(64);
@@ -404,9 +469,14 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     // CREATE_CLIENT that arrives just after the client began using its streams
                     // is a network duplicate or a stale retry, not a restart: keep the streams.
                     let stale = existing.streams_used
-                        && now.saturating_duration_since(existing.established_at) < self.config.duplicate_create_guard;
+                        && now.saturating_duration_since(existing.established_at)
+                            < self.config.duplicate_create_guard;
                     if stale {
-                        *self.stats.dropped.entry("duplicate_create_client").or_default() += 1;
+                        *self
+                            .stats
+                            .dropped
+                            .entry("duplicate_create_client")
+                            .or_default() += 1;
                     } else {
                         existing.reset_streams();
                         existing.established_at = now;
@@ -442,7 +512,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                         },
                     );
                     self.by_addr.insert(src, c.client_key);
-                    sink.operation(Operation::ClientCreated { client: c.client_key });
+                    sink.operation(Operation::ClientCreated {
+                        client: c.client_key,
+                    });
                     tracing::info!(client = %c.client_key, session = c.session_id, mtu, "session created");
                 }
             }
@@ -461,21 +533,53 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         self.push_transmit(src, b.finish());
     }
 
-    fn reply_info(&mut self, dst: A, header: MessageHeader, request: BaseObjectRequest, in_session: bool) {
+    fn reply_info(
+        &mut self,
+        dst: A,
+        header: MessageHeader,
+        request: BaseObjectRequest,
+        in_session: bool,
+    ) {
         // ObjectInfo in the eProsima layout: config (AGENT_Representation), then activity
         // (AGENT_ActivityInfo: availability 1, no locators).
         let mut info = vec![0x01, object_kind::AGENT];
         info.extend_from_slice(&XRCE_COOKIE);
         info.extend_from_slice(&XRCE_VERSION);
         info.extend_from_slice(&self.config.vendor_id);
-        info.extend_from_slice(&[0x00, 0x01, object_kind::AGENT, 0x00, 0x01, 0x00, 0x00, 0x00, 0, 0, 0, 0]);
+        info.extend_from_slice(&[
+            0x00,
+            0x01,
+            object_kind::AGENT,
+            0x00,
+            0x01,
+            0x00,
+            0x00,
+            0x00,
+            0,
+            0,
+            0,
+            0,
+        ]);
         let reply = BaseObjectReply {
             related: request,
-            result: ResultStatus { status: status::OK, implementation_status: in_session as u8 },
+            result: ResultStatus {
+                status: status::OK,
+                implementation_status: in_session as u8,
+            },
         };
-        let h = MessageHeader { stream_id: stream_id::NONE, sequence_nr: 0, ..header };
+        let h = MessageHeader {
+            stream_id: stream_id::NONE,
+            sequence_nr: 0,
+            ..header
+        };
         let mut b = MessageBuilder::new(h);
-        let _ = b.push(&Payload::Info(InfoPayload { reply, object_info: &info }), true);
+        let _ = b.push(
+            &Payload::Info(InfoPayload {
+                reply,
+                object_info: &info,
+            }),
+            true,
+        );
         self.push_transmit(dst, b.finish());
     }
 
@@ -490,7 +594,14 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     }
 
     /// Processes the submessages of one accepted message.
-    fn process(&mut self, now: Instant, key: ClientKey, bytes: &[u8], hlen: usize, sink: &mut impl OperationSink) {
+    fn process(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        bytes: &[u8],
+        hlen: usize,
+        sink: &mut impl OperationSink,
+    ) {
         let stream = bytes.get(1).copied().unwrap_or(0);
         for raw in Submessages::new(bytes, hlen) {
             let raw = match raw {
@@ -506,18 +617,31 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             };
             let le = raw.little_endian();
             match payload {
-                Payload::Create(c) => sink.operation(Operation::Create { client: key, create: &c }),
+                Payload::Create(c) => sink.operation(Operation::Create {
+                    client: key,
+                    create: &c,
+                }),
                 Payload::Delete(d) if d.object_id == ObjectId::CLIENT => {
                     self.queue_status(key, d, ResultStatus::OK);
                     if let Some(c) = self.clients.get_mut(&key) {
                         c.delete_requested = true;
                     }
                 }
-                Payload::Delete(d) => sink.operation(Operation::Delete { client: key, request: d }),
-                Payload::WriteData(d) => {
-                    sink.operation(Operation::Write { client: key, stream_id: stream, data: d, little_endian: le })
-                }
-                Payload::ReadData(r) => sink.operation(Operation::Read { client: key, request: r.base, spec: &r.spec }),
+                Payload::Delete(d) => sink.operation(Operation::Delete {
+                    client: key,
+                    request: d,
+                }),
+                Payload::WriteData(d) => sink.operation(Operation::Write {
+                    client: key,
+                    stream_id: stream,
+                    data: d,
+                    little_endian: le,
+                }),
+                Payload::ReadData(r) => sink.operation(Operation::Read {
+                    client: key,
+                    request: r.base,
+                    spec: &r.spec,
+                }),
                 Payload::GetInfo(g) => {
                     if let Some(c) = self.clients.get(&key) {
                         let (addr, h) = (c.addr, c.header(stream_id::NONE, 0));
@@ -526,7 +650,11 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 }
                 Payload::Acknack(a) => self.on_acknack(key, &a),
                 Payload::Heartbeat(h) => {
-                    if let Some(input) = self.clients.get_mut(&key).and_then(|c| c.reliable_in.get_mut(&h.stream_id)) {
+                    if let Some(input) = self
+                        .clients
+                        .get_mut(&key)
+                        .and_then(|c| c.reliable_in.get_mut(&h.stream_id))
+                    {
                         input.on_heartbeat(&h);
                     }
                     // Messages the sender gave up on may have unblocked buffered ones.
@@ -540,35 +668,68 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     }
                 }
                 Payload::Timestamp(t) => self.reply_timestamp(now, key, t),
-                Payload::Fragment { .. } => self.drop_submessage(DecodeError::InvalidValue("fragment"), raw.id, raw.payload),
-                _ => self.drop_submessage(DecodeError::InvalidValue("submessage for an agent"), raw.id, raw.payload),
+                Payload::Fragment { .. } => {
+                    self.drop_submessage(DecodeError::InvalidValue("fragment"), raw.id, raw.payload)
+                }
+                _ => self.drop_submessage(
+                    DecodeError::InvalidValue("submessage for an agent"),
+                    raw.id,
+                    raw.payload,
+                ),
             }
         }
     }
 
     fn drop_submessage(&mut self, e: DecodeError, id: u8, payload: &[u8]) {
-        let reason = if id == submessage_id::FRAGMENT { "fragment_unsupported" } else { e.reason() };
+        let reason = if id == submessage_id::FRAGMENT {
+            "fragment_unsupported"
+        } else {
+            e.reason()
+        };
         *self.stats.dropped.entry(reason).or_default() += 1;
         tracing::debug!(reason, id, error = %e, "dropped submessage");
         tracing::trace!(bytes = %hex(payload), "dropped submessage payload");
     }
 
     fn reply_timestamp(&mut self, now: Instant, key: ClientKey, originate: Time) {
-        let Some((base, unix)) = self.wall_clock else { return self.count_drop("no_wall_clock") };
+        let Some((base, unix)) = self.wall_clock else {
+            return self.count_drop("no_wall_clock");
+        };
         let t = unix + now.saturating_duration_since(base);
-        let t = Time { seconds: t.as_secs() as i32, nanoseconds: t.subsec_nanos() };
-        let Some(c) = self.clients.get(&key) else { return };
+        let t = Time {
+            seconds: t.as_secs() as i32,
+            nanoseconds: t.subsec_nanos(),
+        };
+        let Some(c) = self.clients.get(&key) else {
+            return;
+        };
         let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
-        let _ = b.push(&Payload::TimestampReply(TimestampReplyPayload { transmit: t, receive: t, originate }), true);
+        let _ = b.push(
+            &Payload::TimestampReply(TimestampReplyPayload {
+                transmit: t,
+                receive: t,
+                originate,
+            }),
+            true,
+        );
         let addr = c.addr;
         self.push_transmit(addr, b.finish());
     }
 
     fn on_acknack(&mut self, key: ClientKey, a: &AcknackPayload) {
-        let Some(c) = self.clients.get_mut(&key) else { return };
+        let Some(c) = self.clients.get_mut(&key) else {
+            return;
+        };
         let addr = c.addr;
-        let Some(out) = c.reliable_out.get_mut(&a.stream_id) else { return };
-        let resend: Vec<Vec<u8>> = out.reliable.on_acknack(a).into_iter().map(|m| m.to_vec()).collect();
+        let Some(out) = c.reliable_out.get_mut(&a.stream_id) else {
+            return;
+        };
+        let resend: Vec<Vec<u8>> = out
+            .reliable
+            .on_acknack(a)
+            .into_iter()
+            .map(|m| m.to_vec())
+            .collect();
         for m in resend {
             self.stats.retransmissions += 1;
             self.push_transmit(addr, m);
@@ -586,13 +747,18 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     /// Moves queued reliable submessages into free window slots and sends them.
     fn flush_client(&mut self, now: Instant, key: ClientKey) {
         let period = self.config.heartbeat_period;
-        let Some(c) = self.clients.get_mut(&key) else { return };
+        let Some(c) = self.clients.get_mut(&key) else {
+            return;
+        };
         let mut out = Vec::new();
         for (sid, s) in c.reliable_out.iter_mut() {
             while s.reliable.has_room() {
-                let Some(sub) = s.queue.pop_front() else { break };
+                let Some(sub) = s.queue.pop_front() else {
+                    break;
+                };
                 let mut msg = Vec::with_capacity(8 + sub.len());
-                MessageHeader::new(c.session_id, *sid, s.reliable.next_seq(), c.key).encode(&mut msg);
+                MessageHeader::new(c.session_id, *sid, s.reliable.next_seq(), c.key)
+                    .encode(&mut msg);
                 msg.extend_from_slice(&sub);
                 s.reliable.record(msg.clone());
                 out.push(msg);
@@ -612,20 +778,31 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
 
     fn encode_submessage(payload: &Payload<'_>, little_endian: bool) -> Result<Vec<u8>, SendError> {
         // Encode with a dummy 4-byte header so alignment matches a message start + 4.
-        let mut b = MessageBuilder::new(MessageHeader { session_id: 0x80, stream_id: 0, sequence_nr: 0, client_key: None });
-        b.push(payload, little_endian).map_err(|_| SendError::TooLarge)?;
+        let mut b = MessageBuilder::new(MessageHeader {
+            session_id: 0x80,
+            stream_id: 0,
+            sequence_nr: 0,
+            client_key: None,
+        });
+        b.push(payload, little_endian)
+            .map_err(|_| SendError::TooLarge)?;
         let mut v = b.finish();
         v.drain(..4);
         Ok(v)
     }
 
-    fn queue_reliable(&mut self, key: ClientKey, stream: u8, sub: Vec<u8>) -> Result<(), SendError> {
+    fn queue_reliable(
+        &mut self,
+        key: ClientKey,
+        stream: u8,
+        sub: Vec<u8>,
+    ) -> Result<(), SendError> {
         let (window, max_queue) = (self.config.output_window, self.config.max_output_queue);
         let c = self.clients.get_mut(&key).ok_or(SendError::NoClient)?;
-        let s = c
-            .reliable_out
-            .entry(stream)
-            .or_insert_with(|| OutStream { reliable: ReliableOutput::new(stream, window), queue: VecDeque::new() });
+        let s = c.reliable_out.entry(stream).or_insert_with(|| OutStream {
+            reliable: ReliableOutput::new(stream, window),
+            queue: VecDeque::new(),
+        });
         if s.queue.len() >= max_queue {
             self.count_drop("output_queue_full");
             return Err(SendError::QueueFull);
@@ -635,14 +812,23 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     }
 
     fn queue_status(&mut self, key: ClientKey, request: BaseObjectRequest, result: ResultStatus) {
-        let payload = Payload::Status(BaseObjectReply { related: request, result });
+        let payload = Payload::Status(BaseObjectReply {
+            related: request,
+            result,
+        });
         if let Ok(sub) = Self::encode_submessage(&payload, true) {
             let _ = self.queue_reliable(key, stream_id::BUILTIN_RELIABLE, sub);
         }
     }
 
     /// Queues a STATUS reply (on the built-in reliable stream, as the reference agent does).
-    pub fn send_status(&mut self, now: Instant, key: ClientKey, request: BaseObjectRequest, result: ResultStatus) -> Result<(), SendError> {
+    pub fn send_status(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        request: BaseObjectRequest,
+        result: ResultStatus,
+    ) -> Result<(), SendError> {
         if !self.clients.contains_key(&key) {
             return Err(SendError::NoClient);
         }
@@ -661,9 +847,17 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         sample: &[u8],
         little_endian: bool,
     ) -> Result<(), SendError> {
-        let payload = Payload::Data(DataPayload { base: request, format: crate::wire::data_format::DATA, data: sample });
+        let payload = Payload::Data(DataPayload {
+            base: request,
+            format: crate::wire::data_format::DATA,
+            data: sample,
+        });
         let c = self.clients.get_mut(&key).ok_or(SendError::NoClient)?;
-        let stream = if stream == stream_id::NONE { stream_id::BUILTIN_RELIABLE } else { stream };
+        let stream = if stream == stream_id::NONE {
+            stream_id::BUILTIN_RELIABLE
+        } else {
+            stream
+        };
         if stream_id::is_reliable(stream) {
             let sub = Self::encode_submessage(&payload, little_endian)?;
             if sub.len() + 8 > c.mtu as usize {
@@ -677,7 +871,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             let seq = c.best_effort_out.entry(stream).or_insert(0);
             let mut b = MessageBuilder::new(MessageHeader::new(c.session_id, stream, *seq, c.key));
             *seq = seq.wrapping_add(1);
-            b.push(&payload, little_endian).map_err(|_| SendError::TooLarge)?;
+            b.push(&payload, little_endian)
+                .map_err(|_| SendError::TooLarge)?;
             let addr = c.addr;
             self.push_transmit(addr, b.finish());
         }
@@ -730,5 +925,8 @@ impl OperationSink for NullSink {
 
 /// Request ids the agent core uses for its own replies.
 pub fn request(request_id: RequestId, object_id: ObjectId) -> BaseObjectRequest {
-    BaseObjectRequest { request_id, object_id }
+    BaseObjectRequest {
+        request_id,
+        object_id,
+    }
 }

@@ -10,10 +10,10 @@ use std::time::{Duration, Instant};
 
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
 use crate::wire::{
-    stream_id, BaseObjectReply, BaseObjectRequest, ClientKey, CreateClientPayload, CreatePayload, DataPayload,
-    GetInfoPayload, MessageBuilder, MessageHeader, ObjectId, ObjectVariant, Payload, ReadDataPayload,
-    ReadSpecification, RequestId, ResultStatus, Submessages, TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE,
-    XRCE_VERSION,
+    stream_id, BaseObjectReply, BaseObjectRequest, ClientKey, CreateClientPayload, CreatePayload,
+    DataPayload, GetInfoPayload, MessageBuilder, MessageHeader, ObjectId, ObjectVariant, Payload,
+    ReadDataPayload, ReadSpecification, RequestId, ResultStatus, Submessages,
+    TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
 };
 
 /// Tunables of the client.
@@ -55,7 +55,11 @@ pub enum ClientEvent {
     /// A STATUS reply.
     Status(BaseObjectReply),
     /// A DATA reply (FORMAT_DATA payload bytes).
-    Data { request: BaseObjectRequest, stream_id: u8, data: Vec<u8> },
+    Data {
+        request: BaseObjectRequest,
+        stream_id: u8,
+        data: Vec<u8>,
+    },
     /// An INFO reply.
     Info(BaseObjectReply),
     /// A TIMESTAMP_REPLY.
@@ -134,7 +138,12 @@ impl Client {
             properties: None,
             mtu: Some(self.config.mtu),
         });
-        let mut b = MessageBuilder::new(MessageHeader::new(self.config.session_id & 0x80, 0, 0, self.config.key));
+        let mut b = MessageBuilder::new(MessageHeader::new(
+            self.config.session_id & 0x80,
+            0,
+            0,
+            self.config.key,
+        ));
         let _ = b.push(&p, true);
         b.finish()
     }
@@ -154,8 +163,18 @@ impl Client {
     /// Sends a GET_INFO to the agent (a ping); works without a session.
     pub fn ping(&mut self) -> RequestId {
         let request_id = self.next_request_id();
-        let p = Payload::GetInfo(GetInfoPayload { base: BaseObjectRequest { request_id, object_id: ObjectId::AGENT }, info_mask: 3 });
-        let session = if self.connected { self.config.session_id } else { self.config.session_id & 0x80 };
+        let p = Payload::GetInfo(GetInfoPayload {
+            base: BaseObjectRequest {
+                request_id,
+                object_id: ObjectId::AGENT,
+            },
+            info_mask: 3,
+        });
+        let session = if self.connected {
+            self.config.session_id
+        } else {
+            self.config.session_id & 0x80
+        };
         let mut b = MessageBuilder::new(MessageHeader::new(session, 0, 0, self.config.key));
         let _ = b.push(&p, true);
         self.transmits.push_back(b.finish());
@@ -179,17 +198,30 @@ impl Client {
     }
 
     /// Sends a payload on a stream (reliable or best-effort).
-    pub fn send(&mut self, now: Instant, stream: u8, payload: &Payload<'_>) -> Result<(), ClientError> {
+    pub fn send(
+        &mut self,
+        now: Instant,
+        stream: u8,
+        payload: &Payload<'_>,
+    ) -> Result<(), ClientError> {
         if !self.connected {
             return Err(ClientError::NotConnected);
         }
         if stream_id::is_reliable(stream) {
             let window = self.config.output_window;
-            let out = self.reliable_out.entry(stream).or_insert_with(|| ReliableOutput::new(stream, window));
+            let out = self
+                .reliable_out
+                .entry(stream)
+                .or_insert_with(|| ReliableOutput::new(stream, window));
             if !out.has_room() {
                 return Err(ClientError::WindowFull);
             }
-            let mut b = MessageBuilder::new(MessageHeader::new(self.config.session_id, stream, out.next_seq(), self.config.key));
+            let mut b = MessageBuilder::new(MessageHeader::new(
+                self.config.session_id,
+                stream,
+                out.next_seq(),
+                self.config.key,
+            ));
             b.push(payload, true).map_err(|_| ClientError::TooLarge)?;
             let msg = b.finish();
             out.record(msg.clone());
@@ -199,7 +231,12 @@ impl Client {
             }
         } else {
             let seq = self.best_effort_out.entry(stream).or_insert(0);
-            let mut b = MessageBuilder::new(MessageHeader::new(self.config.session_id, stream, *seq, self.config.key));
+            let mut b = MessageBuilder::new(MessageHeader::new(
+                self.config.session_id,
+                stream,
+                *seq,
+                self.config.key,
+            ));
             *seq = seq.wrapping_add(1);
             b.push(payload, true).map_err(|_| ClientError::TooLarge)?;
             self.transmits.push_back(b.finish());
@@ -208,9 +245,24 @@ impl Client {
     }
 
     /// CREATE on the built-in reliable stream.
-    pub fn create(&mut self, now: Instant, object_id: ObjectId, variant: ObjectVariant, reuse: bool, replace: bool) -> Result<RequestId, ClientError> {
+    pub fn create(
+        &mut self,
+        now: Instant,
+        object_id: ObjectId,
+        variant: ObjectVariant,
+        reuse: bool,
+        replace: bool,
+    ) -> Result<RequestId, ClientError> {
         let request_id = self.next_request_id();
-        let p = Payload::Create(CreatePayload { base: BaseObjectRequest { request_id, object_id }, variant, reuse, replace });
+        let p = Payload::Create(CreatePayload {
+            base: BaseObjectRequest {
+                request_id,
+                object_id,
+            },
+            variant,
+            reuse,
+            replace,
+        });
         self.send(now, stream_id::BUILTIN_RELIABLE, &p)?;
         Ok(request_id)
     }
@@ -218,22 +270,53 @@ impl Client {
     /// DELETE on the built-in reliable stream (`ObjectId::CLIENT` ends the session).
     pub fn delete(&mut self, now: Instant, object_id: ObjectId) -> Result<RequestId, ClientError> {
         let request_id = self.next_request_id();
-        self.send(now, stream_id::BUILTIN_RELIABLE, &Payload::Delete(BaseObjectRequest { request_id, object_id }))?;
+        self.send(
+            now,
+            stream_id::BUILTIN_RELIABLE,
+            &Payload::Delete(BaseObjectRequest {
+                request_id,
+                object_id,
+            }),
+        )?;
         Ok(request_id)
     }
 
     /// WRITE_DATA in FORMAT_DATA on `stream`.
-    pub fn write(&mut self, now: Instant, stream: u8, writer: ObjectId, sample: &[u8]) -> Result<RequestId, ClientError> {
+    pub fn write(
+        &mut self,
+        now: Instant,
+        stream: u8,
+        writer: ObjectId,
+        sample: &[u8],
+    ) -> Result<RequestId, ClientError> {
         let request_id = self.next_request_id();
-        let p = Payload::WriteData(DataPayload { base: BaseObjectRequest { request_id, object_id: writer }, format: 0, data: sample });
+        let p = Payload::WriteData(DataPayload {
+            base: BaseObjectRequest {
+                request_id,
+                object_id: writer,
+            },
+            format: 0,
+            data: sample,
+        });
         self.send(now, stream, &p)?;
         Ok(request_id)
     }
 
     /// READ_DATA on the built-in reliable stream.
-    pub fn read(&mut self, now: Instant, reader: ObjectId, spec: ReadSpecification) -> Result<RequestId, ClientError> {
+    pub fn read(
+        &mut self,
+        now: Instant,
+        reader: ObjectId,
+        spec: ReadSpecification,
+    ) -> Result<RequestId, ClientError> {
         let request_id = self.next_request_id();
-        let p = Payload::ReadData(ReadDataPayload { base: BaseObjectRequest { request_id, object_id: reader }, spec });
+        let p = Payload::ReadData(ReadDataPayload {
+            base: BaseObjectRequest {
+                request_id,
+                object_id: reader,
+            },
+            spec,
+        });
         self.send(now, stream_id::BUILTIN_RELIABLE, &p)?;
         Ok(request_id)
     }
@@ -291,20 +374,32 @@ impl Client {
 
     /// Handles a datagram from the agent. Malformed input is ignored.
     pub fn handle_datagram(&mut self, now: Instant, bytes: &[u8]) {
-        let Ok((header, hlen)) = MessageHeader::decode(bytes) else { return };
+        let Ok((header, hlen)) = MessageHeader::decode(bytes) else {
+            return;
+        };
         let stream = header.stream_id;
         if stream == stream_id::NONE {
             self.process(now, stream, bytes, hlen);
         } else if !stream_id::is_reliable(stream) {
-            if self.best_effort_in.entry(stream).or_default().accept(header.sequence_nr) {
+            if self
+                .best_effort_in
+                .entry(stream)
+                .or_default()
+                .accept(header.sequence_nr)
+            {
                 self.process(now, stream, bytes, hlen);
             }
         } else {
-            let input = self.reliable_in.entry(stream).or_insert_with(|| ReliableInput::new(16));
+            let input = self
+                .reliable_in
+                .entry(stream)
+                .or_insert_with(|| ReliableInput::new(16));
             match input.classify(header.sequence_nr) {
                 Arrival::InOrder => {
                     self.process(now, stream, bytes, hlen);
-                    while let Some(next) = self.reliable_in.get_mut(&stream).and_then(|i| i.advance()) {
+                    while let Some(next) =
+                        self.reliable_in.get_mut(&stream).and_then(|i| i.advance())
+                    {
                         if let Ok((_, h)) = MessageHeader::decode(&next) {
                             self.process(now, stream, &next, h);
                         }
@@ -319,7 +414,9 @@ impl Client {
 
     fn process(&mut self, now: Instant, stream: u8, bytes: &[u8], hlen: usize) {
         for raw in Submessages::new(bytes, hlen) {
-            let Ok(payload) = raw.and_then(|r| r.decode()) else { return };
+            let Ok(payload) = raw.and_then(|r| r.decode()) else {
+                return;
+            };
             match payload {
                 Payload::StatusAgent(s) => {
                     let result = s.result.unwrap_or(ResultStatus::OK);
@@ -331,12 +428,15 @@ impl Client {
                 }
                 Payload::Status(s) => self.events.push_back(ClientEvent::Status(s)),
                 Payload::Info(i) => self.events.push_back(ClientEvent::Info(i.reply)),
-                Payload::Data(d) => {
-                    self.events.push_back(ClientEvent::Data { request: d.base, stream_id: stream, data: d.data.to_vec() })
-                }
+                Payload::Data(d) => self.events.push_back(ClientEvent::Data {
+                    request: d.base,
+                    stream_id: stream,
+                    data: d.data.to_vec(),
+                }),
                 Payload::Acknack(a) => {
                     if let Some(out) = self.reliable_out.get_mut(&a.stream_id) {
-                        let resend: Vec<Vec<u8>> = out.on_acknack(&a).into_iter().map(<[u8]>::to_vec).collect();
+                        let resend: Vec<Vec<u8>> =
+                            out.on_acknack(&a).into_iter().map(<[u8]>::to_vec).collect();
                         self.transmits.extend(resend);
                     }
                     if self.reliable_out.values().all(|s| s.unacked() == 0) {
@@ -346,7 +446,10 @@ impl Client {
                     }
                 }
                 Payload::Heartbeat(h) => {
-                    let input = self.reliable_in.entry(h.stream_id).or_insert_with(|| ReliableInput::new(16));
+                    let input = self
+                        .reliable_in
+                        .entry(h.stream_id)
+                        .or_insert_with(|| ReliableInput::new(16));
                     input.on_heartbeat(&h);
                     self.send_acknack(h.stream_id);
                 }

@@ -72,8 +72,16 @@ impl ObjectGraph {
     }
 
     /// Decides a CREATE per the creation-mode table.
-    pub fn decide_create(&self, id: ObjectId, variant: &ObjectVariant, reuse: bool, replace: bool) -> CreateDecision {
-        let Some(existing) = self.get(id) else { return CreateDecision::Create };
+    pub fn decide_create(
+        &self,
+        id: ObjectId,
+        variant: &ObjectVariant,
+        reuse: bool,
+        replace: bool,
+    ) -> CreateDecision {
+        let Some(existing) = self.get(id) else {
+            return CreateDecision::Create;
+        };
         let matches = existing.variant == *variant;
         match (reuse, replace) {
             (false, false) => CreateDecision::Reply(status::ERR_ALREADY_EXISTS),
@@ -105,8 +113,12 @@ impl ObjectGraph {
             i += 1;
         }
         // Creation order puts parents before children; reversed, children come first.
-        let mut removed: Vec<ObjectId> =
-            self.objects.iter().map(|o| o.object_id).filter(|o| doomed.contains(o)).collect();
+        let mut removed: Vec<ObjectId> = self
+            .objects
+            .iter()
+            .map(|o| o.object_id)
+            .filter(|o| doomed.contains(o))
+            .collect();
         removed.reverse();
         self.objects.retain(|o| !doomed.contains(&o.object_id));
         for d in &doomed {
@@ -117,7 +129,11 @@ impl ObjectGraph {
 
     /// Records (or replaces) the active read of a reader; `max_samples == 0` cancels it.
     pub fn set_read(&mut self, reader: ObjectId, read: ActiveRead) {
-        if read.spec.delivery_control.is_some_and(|d| d.max_samples == 0) {
+        if read
+            .spec
+            .delivery_control
+            .is_some_and(|d| d.max_samples == 0)
+        {
             self.reads.remove(&reader);
         } else {
             self.reads.insert(reader, read);
@@ -142,7 +158,9 @@ mod tests {
             variant: ObjectVariant {
                 kind,
                 representation: Representation::Xml(format!("<x{prefix}/>")),
-                extra: parent.map(VariantExtra::Parent).unwrap_or(VariantExtra::DomainId(0)),
+                extra: parent
+                    .map(VariantExtra::Parent)
+                    .unwrap_or(VariantExtra::DomainId(0)),
             },
         }
     }
@@ -151,17 +169,38 @@ mod tests {
     fn creation_modes_follow_table_5() {
         let mut g = ObjectGraph::default();
         let p = obj(1, k::PARTICIPANT, None);
-        assert_eq!(g.decide_create(p.object_id, &p.variant, false, false), CreateDecision::Create);
+        assert_eq!(
+            g.decide_create(p.object_id, &p.variant, false, false),
+            CreateDecision::Create
+        );
         g.insert(p.clone());
         let mut other = p.variant.clone();
         other.representation = Representation::Xml("<y/>".into());
         let id = p.object_id;
-        assert_eq!(g.decide_create(id, &p.variant, false, false), CreateDecision::Reply(status::ERR_ALREADY_EXISTS));
-        assert_eq!(g.decide_create(id, &other, false, true), CreateDecision::Replace);
-        assert_eq!(g.decide_create(id, &p.variant, true, false), CreateDecision::Reply(status::OK_MATCHED));
-        assert_eq!(g.decide_create(id, &other, true, false), CreateDecision::Reply(status::ERR_MISMATCH));
-        assert_eq!(g.decide_create(id, &p.variant, true, true), CreateDecision::Reply(status::OK_MATCHED));
-        assert_eq!(g.decide_create(id, &other, true, true), CreateDecision::Replace);
+        assert_eq!(
+            g.decide_create(id, &p.variant, false, false),
+            CreateDecision::Reply(status::ERR_ALREADY_EXISTS)
+        );
+        assert_eq!(
+            g.decide_create(id, &other, false, true),
+            CreateDecision::Replace
+        );
+        assert_eq!(
+            g.decide_create(id, &p.variant, true, false),
+            CreateDecision::Reply(status::OK_MATCHED)
+        );
+        assert_eq!(
+            g.decide_create(id, &other, true, false),
+            CreateDecision::Reply(status::ERR_MISMATCH)
+        );
+        assert_eq!(
+            g.decide_create(id, &p.variant, true, true),
+            CreateDecision::Reply(status::OK_MATCHED)
+        );
+        assert_eq!(
+            g.decide_create(id, &other, true, true),
+            CreateDecision::Replace
+        );
     }
 
     #[test]
@@ -174,7 +213,13 @@ mod tests {
         for o in [&p, &s, &r, &other] {
             g.insert(o.clone());
         }
-        g.set_read(r.object_id, ActiveRead { request_id: RequestId::from_u16(9), spec: ReadSpecification::default() });
+        g.set_read(
+            r.object_id,
+            ActiveRead {
+                request_id: RequestId::from_u16(9),
+                spec: ReadSpecification::default(),
+            },
+        );
         let removed = g.remove(p.object_id);
         assert_eq!(removed, vec![r.object_id, s.object_id, p.object_id]);
         assert_eq!(g.len(), 1);

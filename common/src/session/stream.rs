@@ -22,7 +22,12 @@ pub struct ReliableOutput {
 impl ReliableOutput {
     /// A stream that keeps at most `window` unacknowledged messages.
     pub fn new(stream_id: u8, window: usize) -> Self {
-        ReliableOutput { stream_id, next: 0, in_flight: VecDeque::new(), window: window.max(1) }
+        ReliableOutput {
+            stream_id,
+            next: 0,
+            in_flight: VecDeque::new(),
+            window: window.max(1),
+        }
     }
 
     /// The stream id.
@@ -121,7 +126,12 @@ pub struct ReliableInput {
 impl ReliableInput {
     /// A stream buffering at most `window` (≤ 16) early messages.
     pub fn new(window: u16) -> Self {
-        ReliableInput { expected: 0, highest_announced: None, early: HashMap::new(), window: window.clamp(1, 16) }
+        ReliableInput {
+            expected: 0,
+            highest_announced: None,
+            early: HashMap::new(),
+            window: window.clamp(1, 16),
+        }
     }
 
     /// The next sequence number expected.
@@ -179,7 +189,8 @@ impl ReliableInput {
 
     /// Whether messages are known to be missing.
     pub fn has_gap(&self) -> bool {
-        self.highest_announced.is_some_and(|h| seq::le(self.expected, h))
+        self.highest_announced
+            .is_some_and(|h| seq::le(self.expected, h))
     }
 
     /// The ACKNACK describing this stream.
@@ -196,7 +207,11 @@ impl ReliableInput {
                 }
             }
         }
-        AcknackPayload { first_unacked_seq_num: self.expected, nack_bitmap: bitmap, stream_id }
+        AcknackPayload {
+            first_unacked_seq_num: self.expected,
+            nack_bitmap: bitmap,
+            stream_id,
+        }
     }
 
     /// Forgets everything (RESET).
@@ -256,12 +271,26 @@ mod tests {
         for k in 0..4u8 {
             o.record(vec![k]);
         }
-        let re = o.on_acknack(&AcknackPayload { first_unacked_seq_num: 1, nack_bitmap: 0b101, stream_id: 0x80 });
+        let re = o.on_acknack(&AcknackPayload {
+            first_unacked_seq_num: 1,
+            nack_bitmap: 0b101,
+            stream_id: 0x80,
+        });
         assert_eq!(re, vec![&[1u8][..], &[3u8][..]]);
         assert_eq!(o.unacked(), 3);
-        assert_eq!(o.heartbeat().map(|h| (h.first_unacked_seq_num, h.last_unacked_seq_num)), Some((1, 3)));
+        assert_eq!(
+            o.heartbeat()
+                .map(|h| (h.first_unacked_seq_num, h.last_unacked_seq_num)),
+            Some((1, 3))
+        );
         // An acknowledgement of something never sent is ignored.
-        assert!(o.on_acknack(&AcknackPayload { first_unacked_seq_num: 100, nack_bitmap: 0, stream_id: 0x80 }).is_empty());
+        assert!(o
+            .on_acknack(&AcknackPayload {
+                first_unacked_seq_num: 100,
+                nack_bitmap: 0,
+                stream_id: 0x80
+            })
+            .is_empty());
         assert_eq!(o.unacked(), 3);
     }
 

@@ -18,7 +18,11 @@ pub struct CdrReader<'a> {
 impl<'a> CdrReader<'a> {
     /// A reader over `buf` whose multi-byte values are little endian when `little_endian`.
     pub fn new(buf: &'a [u8], little_endian: bool) -> Self {
-        Self { buf, pos: 0, little_endian }
+        Self {
+            buf,
+            pos: 0,
+            little_endian,
+        }
     }
 
     /// Bytes not read yet.
@@ -79,7 +83,11 @@ impl<'a> CdrReader<'a> {
     pub fn u16(&mut self) -> Result<u16, DecodeError> {
         self.align(2)?;
         let b = self.array::<2>()?;
-        Ok(if self.little_endian { u16::from_le_bytes(b) } else { u16::from_be_bytes(b) })
+        Ok(if self.little_endian {
+            u16::from_le_bytes(b)
+        } else {
+            u16::from_be_bytes(b)
+        })
     }
 
     /// Reads an aligned short.
@@ -91,7 +99,11 @@ impl<'a> CdrReader<'a> {
     pub fn u32(&mut self) -> Result<u32, DecodeError> {
         self.align(4)?;
         let b = self.array::<4>()?;
-        Ok(if self.little_endian { u32::from_le_bytes(b) } else { u32::from_be_bytes(b) })
+        Ok(if self.little_endian {
+            u32::from_le_bytes(b)
+        } else {
+            u32::from_be_bytes(b)
+        })
     }
 
     /// Reads an aligned long.
@@ -139,7 +151,11 @@ impl<'a> CdrWriter<'a> {
     /// A writer appending to `buf`; alignment is measured from the current end of `buf`.
     pub fn new(buf: &'a mut Vec<u8>, little_endian: bool) -> Self {
         let origin = buf.len();
-        Self { buf, origin, little_endian }
+        Self {
+            buf,
+            origin,
+            little_endian,
+        }
     }
 
     /// Bytes written so far.
@@ -176,7 +192,11 @@ impl<'a> CdrWriter<'a> {
     /// Appends an aligned unsigned short.
     pub fn u16(&mut self, v: u16) {
         self.align(2);
-        let b = if self.little_endian { v.to_le_bytes() } else { v.to_be_bytes() };
+        let b = if self.little_endian {
+            v.to_le_bytes()
+        } else {
+            v.to_be_bytes()
+        };
         self.bytes(&b);
     }
 
@@ -188,7 +208,11 @@ impl<'a> CdrWriter<'a> {
     /// Appends an aligned unsigned long.
     pub fn u32(&mut self, v: u32) {
         self.align(4);
-        let b = if self.little_endian { v.to_le_bytes() } else { v.to_be_bytes() };
+        let b = if self.little_endian {
+            v.to_le_bytes()
+        } else {
+            v.to_be_bytes()
+        };
         self.bytes(&b);
     }
 

@@ -33,7 +33,12 @@ impl MessageHeader {
     /// Builds a header; the key is kept only when the session id calls for it.
     pub fn new(session_id: u8, stream_id: u8, sequence_nr: u16, key: ClientKey) -> Self {
         let client_key = Self::session_has_key(session_id).then_some(key);
-        MessageHeader { session_id, stream_id, sequence_nr, client_key }
+        MessageHeader {
+            session_id,
+            stream_id,
+            sequence_nr,
+            client_key,
+        }
     }
 
     /// Decodes a header, returning it and its length.
@@ -49,9 +54,25 @@ impl MessageHeader {
                 return Err(DecodeError::Truncated);
             }
             let key = ClientKey([buf[4], buf[5], buf[6], buf[7]]);
-            Ok((MessageHeader { session_id, stream_id, sequence_nr, client_key: Some(key) }, 8))
+            Ok((
+                MessageHeader {
+                    session_id,
+                    stream_id,
+                    sequence_nr,
+                    client_key: Some(key),
+                },
+                8,
+            ))
         } else {
-            Ok((MessageHeader { session_id, stream_id, sequence_nr, client_key: None }, 4))
+            Ok((
+                MessageHeader {
+                    session_id,
+                    stream_id,
+                    sequence_nr,
+                    client_key: None,
+                },
+                4,
+            ))
         }
     }
 

@@ -89,7 +89,11 @@ pub struct Submessages<'a> {
 impl<'a> Submessages<'a> {
     /// Iterates over `msg[start..]`, where `start` is the header length.
     pub fn new(msg: &'a [u8], start: usize) -> Self {
-        Submessages { msg, pos: start, failed: false }
+        Submessages {
+            msg,
+            pos: start,
+            failed: false,
+        }
     }
 
     /// Bytes left after the last submessage returned so far.
@@ -117,7 +121,12 @@ impl<'a> Iterator for Submessages<'a> {
             return Some(Err(DecodeError::BadSubmessageLength));
         }
         self.pos = start + len;
-        Some(Ok(RawSubmessage { id: h[0], flags: h[1], payload: &self.msg[start..start + len], offset: aligned }))
+        Some(Ok(RawSubmessage {
+            id: h[0],
+            flags: h[1],
+            payload: &self.msg[start..start + len],
+            offset: aligned,
+        }))
     }
 }
 
@@ -133,7 +142,10 @@ pub struct Submessage<'a> {
 impl<'a> Submessage<'a> {
     /// A little-endian submessage.
     pub fn le(payload: Payload<'a>) -> Self {
-        Submessage { little_endian: true, payload }
+        Submessage {
+            little_endian: true,
+            payload,
+        }
     }
 }
 
@@ -153,9 +165,15 @@ impl<'a> Message<'a> {
         let mut submessages = Vec::new();
         for raw in Submessages::new(bytes, hlen) {
             let raw = raw?;
-            submessages.push(Submessage { little_endian: raw.little_endian(), payload: raw.decode()? });
+            submessages.push(Submessage {
+                little_endian: raw.little_endian(),
+                payload: raw.decode()?,
+            });
         }
-        Ok(Message { header, submessages })
+        Ok(Message {
+            header,
+            submessages,
+        })
     }
 
     /// Encodes the message.
@@ -196,7 +214,12 @@ impl MessageBuilder {
     pub fn push(&mut self, payload: &Payload<'_>, little_endian: bool) -> Result<(), EncodeError> {
         let aligned = self.buf.len().div_ceil(4) * 4;
         self.buf.resize(aligned, 0);
-        let flags = payload.extra_flags() | if little_endian { flags::LITTLE_ENDIAN } else { 0 };
+        let flags = payload.extra_flags()
+            | if little_endian {
+                flags::LITTLE_ENDIAN
+            } else {
+                0
+            };
         self.buf.extend_from_slice(&[payload.id(), flags, 0, 0]);
         let start = self.buf.len();
         payload.encode(&mut self.buf, little_endian);

@@ -59,7 +59,10 @@ pub struct BaseObjectRequest {
 
 impl BaseObjectRequest {
     fn decode(r: &mut CdrReader<'_>) -> Result<Self, DecodeError> {
-        Ok(BaseObjectRequest { request_id: RequestId(r.array()?), object_id: ObjectId(r.array()?) })
+        Ok(BaseObjectRequest {
+            request_id: RequestId(r.array()?),
+            object_id: ObjectId(r.array()?),
+        })
     }
 
     fn encode(&self, w: &mut CdrWriter<'_>) {
@@ -80,7 +83,10 @@ pub struct BaseObjectReply {
 impl BaseObjectReply {
     fn decode(r: &mut CdrReader<'_>) -> Result<Self, DecodeError> {
         let related = BaseObjectRequest::decode(r)?;
-        let result = ResultStatus { status: r.u8()?, implementation_status: r.u8()? };
+        let result = ResultStatus {
+            status: r.u8()?,
+            implementation_status: r.u8()?,
+        };
         Ok(BaseObjectReply { related, result })
     }
 
@@ -148,8 +154,20 @@ impl CreateClientPayload {
         let session_id = r.u8()?;
         let properties = decode_properties(r)?;
         // Lenient: the MTU is an eProsima extension; anything shorter is ignored.
-        let mtu = if r.remaining() >= 2 + (r.position() % 2) { Some(r.u16()?) } else { None };
-        Ok(CreateClientPayload { cookie, version, vendor_id, client_key, session_id, properties, mtu })
+        let mtu = if r.remaining() >= 2 + (r.position() % 2) {
+            Some(r.u16()?)
+        } else {
+            None
+        };
+        Ok(CreateClientPayload {
+            cookie,
+            version,
+            vendor_id,
+            client_key,
+            session_id,
+            properties,
+            mtu,
+        })
     }
 
     fn encode(&self, w: &mut CdrWriter<'_>) {
@@ -187,7 +205,10 @@ impl StatusAgentPayload {
         let result = if peek == XRCE_COOKIE {
             None
         } else {
-            Some(ResultStatus { status: r.u8()?, implementation_status: r.u8()? })
+            Some(ResultStatus {
+                status: r.u8()?,
+                implementation_status: r.u8()?,
+            })
         };
         Ok(StatusAgentPayload {
             result,
@@ -256,8 +277,12 @@ impl ObjectVariant {
         let kind = r.u8()?;
         let format = r.u8()?;
         let representation = match format {
-            representation_format::BY_REFERENCE => Representation::Reference(r.string(MAX_REFERENCE_LEN)?),
-            representation_format::AS_XML_STRING => Representation::Xml(r.string(MAX_REPRESENTATION_LEN)?),
+            representation_format::BY_REFERENCE => {
+                Representation::Reference(r.string(MAX_REFERENCE_LEN)?)
+            }
+            representation_format::AS_XML_STRING => {
+                Representation::Xml(r.string(MAX_REPRESENTATION_LEN)?)
+            }
             representation_format::IN_BINARY => {
                 Representation::Binary(r.octet_seq(MAX_REPRESENTATION_LEN)?.to_vec())
             }
@@ -272,10 +297,16 @@ impl ObjectVariant {
             | object_kind::DATAREADER
             | object_kind::REQUESTER
             | object_kind::REPLIER => VariantExtra::Parent(ObjectId(r.array()?)),
-            object_kind::TYPE | object_kind::QOSPROFILE | object_kind::APPLICATION => VariantExtra::None,
+            object_kind::TYPE | object_kind::QOSPROFILE | object_kind::APPLICATION => {
+                VariantExtra::None
+            }
             _ => return Err(DecodeError::InvalidValue("object kind")),
         };
-        Ok(ObjectVariant { kind, representation, extra })
+        Ok(ObjectVariant {
+            kind,
+            representation,
+            extra,
+        })
     }
 
     /// Appends the encoded variant.
@@ -357,7 +388,11 @@ impl ReadSpecification {
     pub fn decode(r: &mut CdrReader<'_>) -> Result<Self, DecodeError> {
         let preferred_stream_id = r.u8()?;
         let data_format = r.u8()?;
-        let content_filter_expression = if r.bool()? { Some(r.string(MAX_STRING_LEN)?) } else { None };
+        let content_filter_expression = if r.bool()? {
+            Some(r.string(MAX_STRING_LEN)?)
+        } else {
+            None
+        };
         let mut dheader = false;
         let delivery_control = if r.bool()? {
             // eProsima writes the four shorts directly; the spec-literal form adds a DHEADER.
@@ -498,15 +533,25 @@ pub enum Payload<'a> {
     Heartbeat(HeartbeatPayload),
     Reset,
     /// A slice of a larger serialized submessage; `last` is the Last Fragment flag.
-    Fragment { last: bool, data: &'a [u8] },
+    Fragment {
+        last: bool,
+        data: &'a [u8],
+    },
     Timestamp(Time),
     TimestampReply(TimestampReplyPayload),
     /// A submessage id this codec does not know; skipped by its length.
-    Unknown { id: u8, flags: u8, data: &'a [u8] },
+    Unknown {
+        id: u8,
+        flags: u8,
+        data: &'a [u8],
+    },
 }
 
 fn decode_time(r: &mut CdrReader<'_>) -> Result<Time, DecodeError> {
-    Ok(Time { seconds: r.i32()?, nanoseconds: r.u32()? })
+    Ok(Time {
+        seconds: r.i32()?,
+        nanoseconds: r.u32()?,
+    })
 }
 
 fn encode_time(w: &mut CdrWriter<'_>, t: Time) {
@@ -528,14 +573,24 @@ impl<'a> Payload<'a> {
                 reuse: flags_byte & flags::REUSE != 0,
                 replace: flags_byte & flags::REPLACE != 0,
             }),
-            s::GET_INFO => Payload::GetInfo(GetInfoPayload { base: BaseObjectRequest::decode(r)?, info_mask: r.u32()? }),
+            s::GET_INFO => Payload::GetInfo(GetInfoPayload {
+                base: BaseObjectRequest::decode(r)?,
+                info_mask: r.u32()?,
+            }),
             s::DELETE => Payload::Delete(BaseObjectRequest::decode(r)?),
             s::STATUS_AGENT => Payload::StatusAgent(StatusAgentPayload::decode(r)?),
             s::STATUS => Payload::Status(BaseObjectReply::decode(r)?),
-            s::INFO => Payload::Info(InfoPayload { reply: BaseObjectReply::decode(r)?, object_info: r.rest() }),
+            s::INFO => Payload::Info(InfoPayload {
+                reply: BaseObjectReply::decode(r)?,
+                object_info: r.rest(),
+            }),
             s::WRITE_DATA | s::DATA => {
                 let base = BaseObjectRequest::decode(r)?;
-                let d = DataPayload { base, format: flags_byte & super::data_format::MASK, data: r.rest() };
+                let d = DataPayload {
+                    base,
+                    format: flags_byte & super::data_format::MASK,
+                    data: r.rest(),
+                };
                 if id == s::WRITE_DATA {
                     Payload::WriteData(d)
                 } else {
@@ -557,14 +612,21 @@ impl<'a> Payload<'a> {
                 stream_id: r.u8()?,
             }),
             s::RESET => Payload::Reset,
-            s::FRAGMENT => Payload::Fragment { last: flags_byte & flags::LAST_FRAGMENT != 0, data: r.rest() },
+            s::FRAGMENT => Payload::Fragment {
+                last: flags_byte & flags::LAST_FRAGMENT != 0,
+                data: r.rest(),
+            },
             s::TIMESTAMP => Payload::Timestamp(decode_time(r)?),
             s::TIMESTAMP_REPLY => Payload::TimestampReply(TimestampReplyPayload {
                 transmit: decode_time(r)?,
                 receive: decode_time(r)?,
                 originate: decode_time(r)?,
             }),
-            _ => Payload::Unknown { id, flags: flags_byte, data: r.rest() },
+            _ => Payload::Unknown {
+                id,
+                flags: flags_byte,
+                data: r.rest(),
+            },
         };
         Ok(p)
     }
@@ -596,7 +658,10 @@ impl<'a> Payload<'a> {
     /// The flag bits other than endianness.
     pub fn extra_flags(&self) -> u8 {
         match self {
-            Payload::Create(c) => (if c.reuse { flags::REUSE } else { 0 }) | (if c.replace { flags::REPLACE } else { 0 }),
+            Payload::Create(c) => {
+                (if c.reuse { flags::REUSE } else { 0 })
+                    | (if c.replace { flags::REPLACE } else { 0 })
+            }
             Payload::WriteData(d) | Payload::Data(d) => d.format & super::data_format::MASK,
             Payload::Fragment { last: true, .. } => flags::LAST_FRAGMENT,
             Payload::Unknown { flags, .. } => flags & !flags::LITTLE_ENDIAN,

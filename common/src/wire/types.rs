@@ -132,11 +132,17 @@ pub struct ResultStatus {
 
 impl ResultStatus {
     /// STATUS_OK with no detail.
-    pub const OK: ResultStatus = ResultStatus { status: status::OK, implementation_status: 0 };
+    pub const OK: ResultStatus = ResultStatus {
+        status: status::OK,
+        implementation_status: 0,
+    };
 
     /// A status with no detail.
     pub fn new(status: u8) -> Self {
-        ResultStatus { status, implementation_status: 0 }
+        ResultStatus {
+            status,
+            implementation_status: 0,
+        }
     }
 }
 
