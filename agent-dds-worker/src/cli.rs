@@ -12,7 +12,11 @@ pub struct WorkerArgs {
     #[arg(long, env = "XRCE_INSTANCE", default_value = "default")]
     pub instance: String,
     /// Restrict DDS to these local addresses (comma-separated or repeated); default: all.
-    #[arg(long = "dds-interface", env = "XRCE_DDS_INTERFACES", value_delimiter = ',')]
+    #[arg(
+        long = "dds-interface",
+        env = "XRCE_DDS_INTERFACES",
+        value_delimiter = ','
+    )]
     pub dds_interfaces: Vec<IpAddr>,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_dds_worker=debug`.
     #[arg(long, env = "XRCE_LOG", default_value = "info,rustdds=error")]
@@ -22,9 +26,16 @@ pub struct WorkerArgs {
 /// Runs a worker until SIGINT/SIGTERM.
 pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_new(&args.log).unwrap_or_else(|_| "info".into()))
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_new(&args.log).unwrap_or_else(|_| "info".into()),
+        )
         .with_writer(std::io::stderr)
         .init();
-    let mut worker = Worker::new(WorkerConfig { instance: args.instance, dds: DdsConfig { interfaces: args.dds_interfaces } })?;
+    let mut worker = Worker::new(WorkerConfig {
+        instance: args.instance,
+        dds: DdsConfig {
+            interfaces: args.dds_interfaces,
+        },
+    })?;
     worker.run()
 }

@@ -26,10 +26,13 @@ pub struct FrontendArgs {
 /// Runs a front-end until SIGINT/SIGTERM.
 pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
     tracing_subscriber::fmt()
-        .with_env_filter(tracing_subscriber::EnvFilter::try_new(&args.log).unwrap_or_else(|_| "info".into()))
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_new(&args.log).unwrap_or_else(|_| "info".into()),
+        )
         .with_writer(std::io::stderr)
         .init();
-    let socket = UdpSocket::bind(args.udp).map_err(|e| anyhow::anyhow!("binding UDP {}: {e}", args.udp))?;
+    let socket =
+        UdpSocket::bind(args.udp).map_err(|e| anyhow::anyhow!("binding UDP {}: {e}", args.udp))?;
     let bridge = Bridge::new(&args.instance, args.frontend_id)?;
     crate::udp::run(socket, bridge, AgentConfig::default())
 }

@@ -90,7 +90,8 @@ fn main() -> anyhow::Result<()> {
         std::net::UdpSocket::bind(udp)
             .map_err(|e| anyhow::anyhow!("cannot bind UDP {udp}: {e}"))?,
     );
-    let exe = std::env::current_exe().map_err(|e| anyhow::anyhow!("locating this executable: {e}"))?;
+    let exe =
+        std::env::current_exe().map_err(|e| anyhow::anyhow!("locating this executable: {e}"))?;
     let mut env = vec![
         ("XRCE_INSTANCE".to_string(), instance.clone()),
         ("XRCE_LOG".to_string(), filter.clone()),

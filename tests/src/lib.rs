@@ -115,11 +115,32 @@ impl AgentProcess {
             )
             .spawn()
             .expect("start xrce-agent");
-        AgentProcess {
+        let agent = AgentProcess {
             child,
             port,
             instance,
+        };
+        assert!(
+            agent.ping(Duration::from_secs(20)),
+            "the agent did not answer a ping"
+        );
+        agent
+    }
+
+    /// Pings the agent (GET_INFO without a session) until it answers INFO, up to `d`.
+    pub fn ping(&self, d: Duration) -> bool {
+        let mut c = TestClient::new(self.addr(), *b"PING");
+        let end = Instant::now() + d;
+        while Instant::now() < end {
+            c.client.ping();
+            let answered = c.run_until(Duration::from_millis(100), |c| {
+                c.events.iter().any(|e| matches!(e, ClientEvent::Info(_)))
+            });
+            if answered {
+                return true;
+            }
         }
+        false
     }
 
     /// The agent's address.
@@ -132,10 +153,14 @@ impl AgentProcess {
         let parent = self.child.id().to_string();
         let mut out = Vec::new();
         for e in std::fs::read_dir("/proc").into_iter().flatten().flatten() {
-            let Ok(pid) = e.file_name().to_string_lossy().parse::<i32>() else { continue };
+            let Ok(pid) = e.file_name().to_string_lossy().parse::<i32>() else {
+                continue;
+            };
             let stat = std::fs::read_to_string(e.path().join("stat")).unwrap_or_default();
             // Fields after the command name: state, ppid, ...
-            let ppid = stat.rsplit_once(')').and_then(|(_, rest)| rest.split_whitespace().nth(1).map(str::to_string));
+            let ppid = stat
+                .rsplit_once(')')
+                .and_then(|(_, rest)| rest.split_whitespace().nth(1).map(str::to_string));
             if ppid.as_deref() != Some(parent.as_str()) {
                 continue;
             }

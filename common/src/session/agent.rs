@@ -257,6 +257,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
 
     fn push_transmit(&mut self, destination: A, data: Vec<u8>) {
         self.stats.datagrams_out += 1;
+        tracing::trace!(?destination, len = data.len(), bytes = %hex(&data), "datagram out");
+        tracing::trace!(?destination, len = data.len(), bytes = %hex(&data), "datagram out");
         self.transmits.push_back(Transmit { destination, data });
     }
 
@@ -269,6 +271,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         sink: &mut impl OperationSink,
     ) {
         self.stats.datagrams_in += 1;
+        tracing::trace!(?src, len = bytes.len(), bytes = %hex(bytes), "datagram in");
         let (header, hlen) = match MessageHeader::decode(bytes) {
             Ok(h) => h,
             Err(e) => return self.drop_input(e.reason(), bytes),
@@ -622,7 +625,22 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     create: &c,
                 }),
                 Payload::Delete(d) if d.object_id == ObjectId::CLIENT => {
-                    self.queue_status(key, d, ResultStatus::OK);
+                    if stream == stream_id::NONE {
+                        // Answered the way it came, as the reference agent does: the
+                        // session's streams end with it.
+                        if let Some(c) = self.clients.get(&key) {
+                            let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
+                            let reply = BaseObjectReply {
+                                related: d,
+                                result: ResultStatus::OK,
+                            };
+                            let _ = b.push(&Payload::Status(reply), true);
+                            let addr = c.addr;
+                            self.push_transmit(addr, b.finish());
+                        }
+                    } else {
+                        self.queue_status(key, d, ResultStatus::OK);
+                    }
                     if let Some(c) = self.clients.get_mut(&key) {
                         c.delete_requested = true;
                     }
