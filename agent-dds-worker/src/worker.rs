@@ -96,7 +96,8 @@ pub struct Worker {
     config: WorkerConfig,
     node: IpcNode,
     generation: u32,
-    requests: Receiver,
+    /// Taken by [`Worker::run`] so requests can be handled straight from shared memory.
+    requests: Option<Receiver>,
     announce: Sender,
     ports: HashMap<u32, FrontendPort>,
     pool: ParticipantPool,
@@ -141,7 +142,7 @@ impl Worker {
             config,
             node,
             generation,
-            requests,
+            requests: Some(requests),
             announce,
             ports: HashMap::new(),
             pool,
@@ -172,6 +173,10 @@ impl Worker {
 
     /// Runs until SIGINT or SIGTERM.
     pub fn run(&mut self) -> anyhow::Result<()> {
+        let requests = self
+            .requests
+            .take()
+            .ok_or_else(|| anyhow::anyhow!("the worker runs only once"))?;
         let mut events = Events::with_capacity(256);
         loop {
             if self.node.termination_requested() {
@@ -181,7 +186,7 @@ impl Worker {
             let timeout = self.poll_timeout();
             let mut fds = [
                 libc::pollfd {
-                    fd: self.requests.raw_fd(),
+                    fd: requests.raw_fd(),
                     events: libc::POLLIN,
                     revents: 0,
                 },
@@ -200,12 +205,8 @@ impl Worker {
                     return Err(e.into());
                 }
             }
-            self.requests.clear_events();
-            let mut batch = Vec::new();
-            self.requests.drain(|m| batch.push(m.to_vec()))?;
-            for m in &batch {
-                self.handle_request(m);
-            }
+            requests.clear_events();
+            requests.drain(|m| self.handle_request(m))?;
             self.poll.poll(&mut events, Some(Duration::ZERO))?;
             for e in events.iter() {
                 if let Some(k) = self.readers.get(&e.token()) {

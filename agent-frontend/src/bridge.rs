@@ -76,7 +76,8 @@ pub struct Bridge {
     frontend_id: u32,
     node: IpcNode,
     requests: Sender,
-    replies: Receiver,
+    /// Taken while replies are handled straight from shared memory.
+    replies: Option<Receiver>,
     announce: Receiver,
     generation: Option<u32>,
     next_seq: u64,
@@ -128,7 +129,7 @@ impl Bridge {
             frontend_id,
             node,
             requests,
-            replies,
+            replies: Some(replies),
             announce,
             generation: None,
             next_seq: 1,
@@ -150,7 +151,10 @@ impl Bridge {
 
     /// Descriptors to wait on: replies and announcements.
     pub fn raw_fds(&self) -> [i32; 2] {
-        [self.replies.raw_fd(), self.announce.raw_fd()]
+        [
+            self.replies.as_ref().map_or(-1, Receiver::raw_fd),
+            self.announce.raw_fd(),
+        ]
     }
 
     /// Counters.
@@ -270,7 +274,6 @@ impl Bridge {
         agent: &mut Agent<A>,
     ) {
         self.announce.clear_events();
-        self.replies.clear_events();
         let mut hellos = Vec::new();
         let _ = self.announce.drain(|m| hellos.push(m.to_vec()));
         for m in hellos {
@@ -288,10 +291,12 @@ impl Bridge {
                 }
             }
         }
-        let mut msgs = Vec::new();
-        let _ = self.replies.drain(|m| msgs.push(m.to_vec()));
-        for m in msgs {
-            self.handle_reply(now, &m, agent);
+        if let Some(replies) = self.replies.take() {
+            replies.clear_events();
+            if let Err(e) = replies.drain(|m| self.handle_reply(now, m, agent)) {
+                tracing::warn!(error = %e, "receiving from the worker failed");
+            }
+            self.replies = Some(replies);
         }
         self.settle(now);
         self.apply_replies(now, agent);
