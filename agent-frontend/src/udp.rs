@@ -25,6 +25,7 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
     let sock_fd = std::os::fd::AsRawFd::as_raw_fd(&socket);
     let [replies_fd, announce_fd] = bridge.raw_fds();
     let mut send_errors = 0u64;
+    let mut report = StatsReport::new(Instant::now());
     // Pick up a worker that announced itself before we started.
     bridge.poll_ipc(Instant::now(), &mut agent);
     bridge.pump();
@@ -34,7 +35,7 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
             return Ok(());
         }
         let now = Instant::now();
-        let deadline = [agent.poll_timeout(), bridge.poll_timeout()]
+        let deadline = [agent.poll_timeout(), bridge.poll_timeout(), report.due(&agent)]
             .into_iter()
             .flatten()
             .min();
@@ -91,6 +92,7 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
         bridge.poll_ipc(now, &mut agent);
         bridge.pump();
         agent.handle_timeout(now);
+        report.maybe_log(now, &agent, &bridge);
         while let Some(t) = agent.poll_transmit() {
             if let Err(e) = socket.send_to(&t.data, t.destination) {
                 send_errors += 1;
@@ -99,5 +101,52 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
                 }
             }
         }
+    }
+}
+
+/// Logs the drop counters at info when they changed, at most every [`STATS_PERIOD`], so that
+/// counted drops are visible without debug logging (and an idle agent stays silent).
+#[derive(Debug)]
+struct StatsReport {
+    last: Instant,
+    last_dropped: u64,
+}
+
+/// How often changed drop counters are reported.
+const STATS_PERIOD: std::time::Duration = std::time::Duration::from_secs(10);
+
+impl StatsReport {
+    fn new(now: Instant) -> Self {
+        StatsReport { last: now, last_dropped: 0 }
+    }
+
+    fn total(agent: &Agent<SocketAddr>) -> u64 {
+        agent.stats().dropped.values().sum()
+    }
+
+    /// A deadline only while there is something new to report.
+    fn due(&self, agent: &Agent<SocketAddr>) -> Option<Instant> {
+        (Self::total(agent) != self.last_dropped).then_some(self.last + STATS_PERIOD)
+    }
+
+    fn maybe_log(&mut self, now: Instant, agent: &Agent<SocketAddr>, bridge: &Bridge) {
+        let total = Self::total(agent);
+        if total == self.last_dropped || now < self.last + STATS_PERIOD {
+            return;
+        }
+        let s = agent.stats();
+        let mut reasons: Vec<_> = s.dropped.iter().collect();
+        reasons.sort();
+        tracing::info!(
+            sessions = agent.client_count(),
+            datagrams_in = s.datagrams_in,
+            datagrams_out = s.datagrams_out,
+            retransmissions = s.retransmissions,
+            dropped = ?reasons,
+            replays = bridge.stats().replays,
+            "front-end counters"
+        );
+        self.last = now;
+        self.last_dropped = total;
     }
 }
