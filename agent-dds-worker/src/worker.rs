@@ -86,7 +86,18 @@ struct FrontendPort {
     sender: Sender,
     processed: u64,
     dirty: bool,
+    /// Replies the front-end's full queue refused, oldest first (sent before anything new).
+    backlog: std::collections::VecDeque<Vec<u8>>,
+    /// Readers not drained while the front-end is congested; pumped once it has room.
+    deferred: HashSet<EntityKey>,
+    /// When the front-end last took a message (a dead one takes none: back off).
+    last_delivery: Instant,
 }
+
+/// Most replies held for one congested front-end; beyond, the oldest are dropped (counted).
+/// Samples stop being taken from DDS readers while a front-end is congested, so this only
+/// fills if a front-end stops reading altogether.
+const BACKLOG_MAX: usize = 4096;
 
 /// Why an operation failed: the XRCE status and a reason for the log.
 type OpError = (u8, String);
@@ -234,6 +245,19 @@ impl Worker {
         if holding {
             return 20;
         }
+        let waiting = self
+            .ports
+            .values()
+            .filter(|p| !p.backlog.is_empty() || p.dirty);
+        if let Some(newest) = waiting.map(|p| p.last_delivery).max() {
+            // A congested front-end does not signal when it drained: try again shortly, and
+            // rarely once it has taken nothing for a while (it may be gone).
+            return if newest.elapsed() < Duration::from_secs(1) {
+                1
+            } else {
+                100
+            };
+        }
         let now = Instant::now();
         self.reads
             .values()
@@ -252,7 +276,7 @@ impl Worker {
         if !self.ports.contains_key(&frontend) {
             let sender = self.node.sender(
                 &ipc::reply_service(&self.config.instance, frontend),
-                ServiceKind::Data,
+                ServiceKind::Reply,
             )?;
             self.ports.insert(
                 frontend,
@@ -260,21 +284,43 @@ impl Worker {
                     sender,
                     processed: 0,
                     dirty: false,
+                    backlog: Default::default(),
+                    deferred: HashSet::new(),
+                    last_delivery: Instant::now(),
                 },
             );
         }
         Ok(self.ports.get_mut(&frontend).expect("just inserted"))
     }
 
+    /// Sends a reply to its front-end, or queues it behind earlier refused ones.
     fn reply(&mut self, mut h: IpcHeader, body: &[u8]) {
         h.generation = self.generation;
-        let r = self.port(h.frontend_id).and_then(|p| {
-            p.dirty = true;
-            p.sender.send(&h, body)
-        });
-        if let Err(e) = r {
-            tracing::warn!(frontend = h.frontend_id, error = %e, "reply lost");
-            self.count("reply_send_failed");
+        let port = match self.port(h.frontend_id) {
+            Ok(p) => p,
+            Err(e) => {
+                tracing::warn!(frontend = h.frontend_id, error = %e, "reply lost");
+                return self.count("reply_send_failed");
+            }
+        };
+        port.dirty = true;
+        if port.backlog.is_empty() {
+            match port.sender.send(&h, body) {
+                Ok(true) => {
+                    port.last_delivery = Instant::now();
+                    return;
+                }
+                Ok(false) => {}
+                Err(e) => tracing::debug!(error = %e, "reply send failed; queued"),
+            }
+        }
+        let overflow = port.backlog.len() >= BACKLOG_MAX;
+        if overflow {
+            port.backlog.pop_front();
+        }
+        port.backlog.push_back(h.encode(body));
+        if overflow {
+            self.count("reply_backlog_overflow");
         }
     }
 
@@ -356,24 +402,40 @@ impl Worker {
         }
     }
 
+    /// Sends refused replies again, then progress; wakes every front-end that got something.
     fn flush(&mut self) -> Result<(), ShmError> {
         let generation = self.generation;
         let held = self.oldest_held();
         for (fe, p) in self.ports.iter_mut() {
+            let mut sent = false;
+            while let Some(m) = p.backlog.front() {
+                if !p.sender.send_encoded(m)? {
+                    break;
+                }
+                p.backlog.pop_front();
+                sent = true;
+            }
+            if p.backlog.is_empty() {
+                self.to_pump.extend(p.deferred.drain());
+            }
             // Held writes are not executed yet: progress stops just before the oldest.
             let done = held.get(fe).map_or(p.processed, |oldest| {
                 p.processed.min(oldest.saturating_sub(1))
             });
-            if !p.dirty && !held.contains_key(fe) {
-                continue;
+            if (p.dirty || held.contains_key(fe)) && p.backlog.is_empty() {
+                let mut h = IpcHeader::new(MessageKind::Progress);
+                h.frontend_id = *fe;
+                h.generation = generation;
+                h.op_seq = done;
+                if p.sender.send(&h, &[])? {
+                    p.dirty = false;
+                    sent = true;
+                }
             }
-            let mut h = IpcHeader::new(MessageKind::Progress);
-            h.frontend_id = *fe;
-            h.generation = generation;
-            h.op_seq = done;
-            p.sender.send(&h, &[])?;
-            p.sender.notify()?;
-            p.dirty = false;
+            if sent {
+                p.last_delivery = Instant::now();
+                p.sender.notify()?;
+            }
         }
         Ok(())
     }
@@ -760,6 +822,11 @@ impl Worker {
         let Some(read) = self.reads.get(&key) else {
             return;
         };
+        if let Some(p) = self.ports.get_mut(&key.0).filter(|p| !p.backlog.is_empty()) {
+            // The front-end is congested: leave the samples in the DDS reader for now.
+            p.deferred.insert(key);
+            return;
+        }
         let request_id = read.request_id;
         let Some(Entity {
             kind: EntityKind::Reader(reader, _),

@@ -113,7 +113,7 @@ impl Bridge {
         let node = IpcNode::new(instance, &format!("xrce-frontend-{frontend_id}"))?;
         let replies = node.receiver(
             &ipc::reply_service(instance, frontend_id),
-            ServiceKind::Data,
+            ServiceKind::Reply,
         )?;
         let announce = node.receiver(&ipc::announce_service(instance), ServiceKind::Announce)?;
         let requests = node.sender(&ipc::request_service(instance), ServiceKind::Data)?;

@@ -35,10 +35,14 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
             return Ok(());
         }
         let now = Instant::now();
-        let deadline = [agent.poll_timeout(), bridge.poll_timeout(), report.due(&agent)]
-            .into_iter()
-            .flatten()
-            .min();
+        let deadline = [
+            agent.poll_timeout(),
+            bridge.poll_timeout(),
+            report.due(&agent),
+        ]
+        .into_iter()
+        .flatten()
+        .min();
         let timeout = match deadline {
             Some(d) => d.saturating_duration_since(now).as_millis().min(60_000) as i32 + 1,
             None => -1,
@@ -117,7 +121,10 @@ const STATS_PERIOD: std::time::Duration = std::time::Duration::from_secs(10);
 
 impl StatsReport {
     fn new(now: Instant) -> Self {
-        StatsReport { last: now, last_dropped: 0 }
+        StatsReport {
+            last: now,
+            last_dropped: 0,
+        }
     }
 
     fn total(agent: &Agent<SocketAddr>) -> u64 {

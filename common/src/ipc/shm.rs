@@ -7,6 +7,7 @@
 
 use std::os::fd::RawFd;
 
+use iceoryx2::port::backpressure_strategy::BackpressureStrategy;
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::notifier::Notifier;
 use iceoryx2::port::publisher::Publisher;
@@ -30,11 +31,15 @@ fn err<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> ShmError {
     }
 }
 
-/// Whether a service carries the latest message for late joiners.
+/// How a service behaves when a receiver's queue is full, and for late joiners.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ServiceKind {
-    /// Operations, replies and samples: no history.
+    /// Operations to the worker: senders keep below the queue depth themselves
+    /// ([`super::IN_FLIGHT_WINDOW`]), so overflow cannot happen; no history.
     Data,
+    /// Replies and samples to a front-end: a full queue refuses the message (never
+    /// overwrites), and [`Sender::send`] reports it, so the worker can hold it back.
+    Reply,
     /// Worker announcements: the last one is kept for front-ends that start later.
     Announce,
 }
@@ -98,7 +103,7 @@ impl IpcNode {
             .subscriber_max_buffer_size(CHANNEL_DEPTH)
             .subscriber_max_borrowed_samples(2)
             .history_size(if kind == ServiceKind::Announce { 1 } else { 0 })
-            .enable_safe_overflow(true)
+            .enable_safe_overflow(kind != ServiceKind::Reply)
             .open_or_create()
             .map_err(err("open publish-subscribe service"))
     }
@@ -124,6 +129,7 @@ impl IpcNode {
             .publisher_builder()
             .initial_max_slice_len(IpcHeader::LEN + MAX_BODY)
             .max_loaned_samples(4)
+            .backpressure_strategy(BackpressureStrategy::DiscardData)
             .create()
             .map_err(err("create publisher"))?;
         let notifier = self
@@ -199,12 +205,13 @@ pub struct Sender {
 
 impl Sender {
     /// Publishes `header` and a body of `body_len` bytes that `fill` writes in place.
+    /// Returns whether a receiver took it (false: no receiver, or its queue is full).
     pub fn send_with(
         &self,
         header: &IpcHeader,
         body_len: usize,
         fill: impl FnOnce(&mut [u8]),
-    ) -> Result<(), ShmError> {
+    ) -> Result<bool, ShmError> {
         if body_len > MAX_BODY {
             return Err(ShmError {
                 what: "send",
@@ -218,13 +225,25 @@ impl Sender {
         let buf = sample.payload_mut();
         header.write(buf, body_len);
         fill(&mut buf[IpcHeader::LEN..]);
-        sample.send().map_err(err("send"))?;
-        Ok(())
+        let receivers = sample.send().map_err(err("send"))?;
+        Ok(receivers > 0)
     }
 
-    /// Publishes `header` and `body`.
-    pub fn send(&self, header: &IpcHeader, body: &[u8]) -> Result<(), ShmError> {
+    /// Publishes `header` and `body`; returns whether a receiver took it.
+    pub fn send(&self, header: &IpcHeader, body: &[u8]) -> Result<bool, ShmError> {
         self.send_with(header, body.len(), |b| b.copy_from_slice(body))
+    }
+
+    /// Publishes a message encoded already (header and body); returns whether a receiver
+    /// took it.
+    pub fn send_encoded(&self, message: &[u8]) -> Result<bool, ShmError> {
+        let mut sample = self
+            .publisher
+            .loan_slice(message.len())
+            .map_err(err("loan"))?;
+        sample.payload_mut().copy_from_slice(message);
+        let receivers = sample.send().map_err(err("send"))?;
+        Ok(receivers > 0)
     }
 
     /// Wakes the receiver (once per burst is enough).

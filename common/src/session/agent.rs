@@ -258,7 +258,6 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     fn push_transmit(&mut self, destination: A, data: Vec<u8>) {
         self.stats.datagrams_out += 1;
         tracing::trace!(?destination, len = data.len(), bytes = %hex(&data), "datagram out");
-        tracing::trace!(?destination, len = data.len(), bytes = %hex(&data), "datagram out");
         self.transmits.push_back(Transmit { destination, data });
     }
 
