@@ -51,10 +51,10 @@ struct Entity {
     kind: EntityKind,
 }
 
-/// A writer re-created by a replay holds its writes until it has matched readers again:
-/// volatile readers only get samples written after they matched a writer, and the replayed
-/// writer is a new DDS writer. Without this, samples resent after a worker restart would
-/// reach nobody.
+/// A new writer holds its writes until it has matched readers: volatile readers only get
+/// samples written after they matched a writer, and DDS discovery takes 0.1–0.4 s here.
+/// Without this, a client's first samples (the reference agent delivers them inside one Fast
+/// DDS process) and the samples resent after a worker restart would reach nobody.
 #[derive(Default)]
 struct Rematch {
     /// Until when writes are held at most (None = not holding).
@@ -67,9 +67,11 @@ struct Rematch {
 
 /// Longest hold of a replayed writer's samples when no reader matches.
 const REMATCH_MAX: Duration = Duration::from_secs(3);
+/// Longest hold of a new writer's first samples when no reader matches (there may be none).
+const NEW_WRITER_HOLD_MAX: Duration = Duration::from_secs(1);
 /// Margin after the writer's match so the reader has matched the writer too.
 const REMATCH_MARGIN: Duration = Duration::from_millis(200);
-/// Most samples one replayed writer holds (the front-end's in-flight window is smaller).
+/// Most samples one holding writer keeps; beyond, writes fail with STATUS_ERR_RESOURCES.
 const REMATCH_HELD_MAX: usize = 4096;
 
 struct ActiveRead {
@@ -418,16 +420,17 @@ impl Worker {
             if p.backlog.is_empty() {
                 self.to_pump.extend(p.deferred.drain());
             }
-            // Held writes are not executed yet: progress stops just before the oldest.
-            let done = held.get(fe).map_or(p.processed, |oldest| {
+            // Held writes left the queue but are not executed yet: execution stops just
+            // before the oldest.
+            let executed = held.get(fe).map_or(p.processed, |oldest| {
                 p.processed.min(oldest.saturating_sub(1))
             });
             if (p.dirty || held.contains_key(fe)) && p.backlog.is_empty() {
                 let mut h = IpcHeader::new(MessageKind::Progress);
                 h.frontend_id = *fe;
                 h.generation = generation;
-                h.op_seq = done;
-                if p.sender.send(&h, &[])? {
+                h.op_seq = p.processed;
+                if p.sender.send(&h, &executed.to_le_bytes())? {
                     p.dirty = false;
                     sent = true;
                 }
@@ -563,7 +566,14 @@ impl Worker {
                     .create_datawriter_no_key::<RawSample, RawLe>(&topic, Some(qos))
                     .map_err(|e| dds_err("create data writer", &e))?;
                 let rematch = Rematch {
-                    until: replay.then(|| Instant::now() + REMATCH_MAX),
+                    until: Some(
+                        Instant::now()
+                            + if replay {
+                                REMATCH_MAX
+                            } else {
+                                NEW_WRITER_HOLD_MAX
+                            },
+                    ),
                     ..Default::default()
                 };
                 (Some(p), EntityKind::Writer(Box::new(w), rematch))
@@ -696,14 +706,19 @@ impl Worker {
             body: rustdds::bytes::Bytes::copy_from_slice(body),
         };
         if rematch.until.is_some() {
-            if rematch.held.len() >= REMATCH_HELD_MAX {
-                return Err((
-                    status::ERR_RESOURCES,
-                    "replayed writer holds too many samples".into(),
-                ));
+            if rematch.held.len() < REMATCH_HELD_MAX {
+                rematch.held.push_back((seq, sample));
+                return Ok(());
             }
-            rematch.held.push_back((seq, sample));
-            return Ok(());
+            // Bounded: a writer that would hold more stops waiting for its readers.
+            tracing::warn!(
+                held = rematch.held.len(),
+                "writer stops waiting for readers: too many samples held"
+            );
+            rematch.until = None;
+            for (_, s) in rematch.held.drain(..) {
+                let _ = w.write(s, None);
+            }
         }
         w.write(sample, None)
             .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
@@ -738,7 +753,7 @@ impl Worker {
                 tracing::info!(
                     held = rematch.held.len(),
                     matched = rematch.matched_at.is_some(),
-                    "replayed writer resumes"
+                    "holding writer resumes"
                 );
                 rematch.until = None;
                 for (_, sample) in rematch.held.drain(..) {

@@ -434,8 +434,13 @@ impl Bridge {
         match h.kind {
             MessageKind::Progress => {
                 self.processed = self.processed.max(h.op_seq);
+                let executed = body
+                    .get(..8)
+                    .and_then(|b| b.try_into().ok())
+                    .map_or(h.op_seq, u64::from_le_bytes)
+                    .min(h.op_seq);
                 for r in self.retained.iter_mut() {
-                    if r.seq > h.op_seq {
+                    if r.seq > executed {
                         break;
                     }
                     r.executed_at.get_or_insert(now);

@@ -98,21 +98,11 @@ fn replay(name: &str) {
     };
     let (sub, publ) = (sock(sub_port), sock(pub_port));
     let (mut sub_rx, mut pub_rx) = (Vec::new(), Vec::new());
-    let mut first_write_seen = false;
+    // The client's first sample follows its writer's creation within milliseconds, as in the
+    // capture: the reference agent delivers it inside one Fast DDS process, ours holds it
+    // until the new DDS writer has matched the subscriber's reader, so it is not lost either.
     for l in lines.iter().filter(|l| l.to_agent) {
-        let (s, rx) = if l.port == sub_port {
-            (&sub, &mut sub_rx)
-        } else {
-            (&publ, &mut pub_rx)
-        };
-        let is_write = l.bytes.get(8) == Some(&0x07);
-        if is_write && !first_write_seen {
-            // The reference agent delivers inside one Fast DDS process at once; ours goes
-            // through DDS discovery between its two participants, and the subscriber's reader
-            // is volatile: let the writer match before the first sample.
-            first_write_seen = true;
-            recv_all(s, rx, Duration::from_millis(1500));
-        }
+        let s = if l.port == sub_port { &sub } else { &publ };
         s.send(&l.bytes).expect("send");
         // Creations need the worker's answer before the client's next step.
         let wait = if l.bytes.get(8) == Some(&0x01) {

@@ -49,7 +49,9 @@ pub enum MessageKind {
     Status = 17,
     /// Worker → front-end: a sample for an active read (body: serialized sample; flag LE).
     Sample = 18,
-    /// Worker → front-end: every operation up to `op_seq` has been executed.
+    /// Worker → front-end: every operation up to `op_seq` has left the queue; the body (u64
+    /// LE) says up to which one they have all been executed (writes held by a writer that
+    /// waits for its readers are taken but not executed yet).
     Progress = 19,
     /// Worker → front-end: a read finished (its delivery limits were reached).
     ReadEnded = 20,
