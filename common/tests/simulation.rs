@@ -67,14 +67,25 @@ impl Link {
     }
 }
 
-fn sample(i: u32) -> Vec<u8> {
+fn sample(i: u32, size: usize) -> Vec<u8> {
     let mut v = i.to_le_bytes().to_vec();
-    v.extend_from_slice(&[0xAB; 8]);
+    v.extend((0..size.saturating_sub(4)).map(|k| (k as u32 ^ i) as u8));
     v
 }
 
 /// Runs one scenario; returns (samples the agent took, samples echoed back to the client).
 fn run(seed: u64, n: u32, loss: f64, backpressure_every: u64) -> (Vec<u32>, Vec<u32>) {
+    run_sized(seed, n, loss, backpressure_every, 12)
+}
+
+/// Runs one scenario with samples of `size` bytes; checks every sample's bytes on both sides.
+fn run_sized(
+    seed: u64,
+    n: u32,
+    loss: f64,
+    backpressure_every: u64,
+    size: usize,
+) -> (Vec<u32>, Vec<u32>) {
     let t0 = Instant::now();
     let at = |us: u64| t0 + Duration::from_micros(us);
     let mut link = Link {
@@ -121,7 +132,7 @@ fn run(seed: u64, n: u32, loss: f64, backpressure_every: u64) -> (Vec<u32>, Vec<
                     at(now),
                     stream_id::BUILTIN_RELIABLE,
                     writer,
-                    &sample(written),
+                    &sample(written, size),
                 )
                 .expect("room");
             written += 1;
@@ -149,7 +160,13 @@ fn run(seed: u64, n: u32, loss: f64, backpressure_every: u64) -> (Vec<u32>, Vec<
         }
         while let Some(e) = client.poll_event() {
             if let ClientEvent::Data { data, .. } = e {
-                received.push(u32::from_le_bytes([data[0], data[1], data[2], data[3]]));
+                let i = u32::from_le_bytes([data[0], data[1], data[2], data[3]]);
+                assert_eq!(
+                    data,
+                    sample(i, size),
+                    "seed {seed}: sample {i} corrupted on the way to the client"
+                );
+                received.push(i);
             }
         }
         // Next event: a delivery or a timer.
@@ -178,6 +195,14 @@ fn run(seed: u64, n: u32, loss: f64, backpressure_every: u64) -> (Vec<u32>, Vec<
         }
         client.handle_timeout(at(now));
         agent.handle_timeout(at(now));
+    }
+    for (_, d) in &sink.writes {
+        let i = u32::from_le_bytes([d[0], d[1], d[2], d[3]]);
+        assert_eq!(
+            *d,
+            sample(i, size),
+            "seed {seed}: sample {i} corrupted on the way to the agent"
+        );
     }
     let taken = sink
         .writes
@@ -218,4 +243,14 @@ fn sequence_numbers_wrap_around() {
     let (taken, received) = run(42, 70_000, 0.05, 0);
     assert_exactly_once_in_order(&taken, 70_000, "agent side", 42);
     assert_exactly_once_in_order(&received, 70_000, "client side", 42);
+}
+
+#[test]
+fn samples_larger_than_the_mtu_are_fragmented_both_ways() {
+    // 3,000-byte samples with a 512-byte MTU: 7 FRAGMENTs each, over a link losing 20%.
+    for seed in 1..=8u64 {
+        let (taken, received) = run_sized(seed * 31, 60, 0.2, 0, 3000);
+        assert_exactly_once_in_order(&taken, 60, "agent side", seed);
+        assert_exactly_once_in_order(&received, 60, "client side", seed);
+    }
 }

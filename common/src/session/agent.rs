@@ -14,13 +14,14 @@ use std::fmt::Debug;
 use std::hash::Hash;
 use std::time::{Duration, Instant};
 
+use super::fragment::{fragments, Reassembly};
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
 use crate::wire::{
     hex, object_kind, status, stream_id, submessage_id, AcknackPayload, BaseObjectReply,
     BaseObjectRequest, ClientKey, CreateClientPayload, CreatePayload, DataPayload, DecodeError,
-    InfoPayload, MessageBuilder, MessageHeader, ObjectId, Payload, ReadSpecification, RequestId,
-    ResultStatus, StatusAgentPayload, Submessages, Time, TimestampReplyPayload, VENDOR_EPROSIMA,
-    XRCE_COOKIE, XRCE_VERSION,
+    InfoPayload, MessageBuilder, MessageHeader, ObjectId, Payload, RawSubmessage,
+    ReadSpecification, RequestId, ResultStatus, StatusAgentPayload, Submessages, Time,
+    TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
 };
 
 /// Tunables of the agent core.
@@ -38,6 +39,8 @@ pub struct AgentConfig {
     pub max_input_streams: usize,
     /// Period of HEARTBEATs while output is unacknowledged.
     pub heartbeat_period: Duration,
+    /// Largest message reassembled from FRAGMENTs, per stream.
+    pub max_reassembly: usize,
     /// MTU assumed for clients that announce none.
     pub default_mtu: u16,
     /// Vendor id announced in STATUS_AGENT and INFO.
@@ -57,6 +60,7 @@ impl Default for AgentConfig {
             max_input_streams: 16,
             heartbeat_period: Duration::from_millis(100),
             default_mtu: 512,
+            max_reassembly: 1 << 20,
             // The reference client accepts any vendor; announce eProsima's so clients that
             // tune behaviour by vendor treat us like the agent they were tested against.
             vendor_id: VENDOR_EPROSIMA,
@@ -152,6 +156,7 @@ struct ProxyClient<A> {
     best_effort_in: HashMap<u8, BestEffortInput>,
     reliable_out: HashMap<u8, OutStream>,
     best_effort_out: HashMap<u8, u16>,
+    reassembly: HashMap<u8, Reassembly>,
     heartbeat_due: Option<Instant>,
     delete_requested: bool,
     /// When the session was created or its streams last reset by a CREATE_CLIENT.
@@ -170,6 +175,7 @@ impl<A> ProxyClient<A> {
         self.best_effort_in.clear();
         self.reliable_out.clear();
         self.best_effort_out.clear();
+        self.reassembly.clear();
         self.heartbeat_due = None;
         self.streams_used = false;
     }
@@ -507,6 +513,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                             best_effort_in: HashMap::new(),
                             reliable_out: HashMap::new(),
                             best_effort_out: HashMap::new(),
+                            reassembly: HashMap::new(),
                             heartbeat_due: None,
                             delete_requested: false,
                             established_at: now,
@@ -610,90 +617,143 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 Ok(r) => r,
                 Err(e) => return self.drop_input(e.reason(), bytes),
             };
-            let payload = match raw.decode() {
-                Ok(p) => p,
-                Err(e) => {
-                    self.drop_submessage(e, raw.id, raw.payload);
-                    continue;
-                }
-            };
-            let le = raw.little_endian();
-            match payload {
-                Payload::Create(c) => sink.operation(Operation::Create {
-                    client: key,
-                    create: &c,
-                }),
-                Payload::Delete(d) if d.object_id == ObjectId::CLIENT => {
-                    if stream == stream_id::NONE {
-                        // Answered the way it came, as the reference agent does: the
-                        // session's streams end with it.
-                        if let Some(c) = self.clients.get(&key) {
-                            let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
-                            let reply = BaseObjectReply {
-                                related: d,
-                                result: ResultStatus::OK,
-                            };
-                            let _ = b.push(&Payload::Status(reply), true);
-                            let addr = c.addr;
-                            self.push_transmit(addr, b.finish());
-                        }
-                    } else {
-                        self.queue_status(key, d, ResultStatus::OK);
-                    }
-                    if let Some(c) = self.clients.get_mut(&key) {
-                        c.delete_requested = true;
-                    }
-                }
-                Payload::Delete(d) => sink.operation(Operation::Delete {
-                    client: key,
-                    request: d,
-                }),
-                Payload::WriteData(d) => sink.operation(Operation::Write {
-                    client: key,
-                    stream_id: stream,
-                    data: d,
-                    little_endian: le,
-                }),
-                Payload::ReadData(r) => sink.operation(Operation::Read {
-                    client: key,
-                    request: r.base,
-                    spec: &r.spec,
-                }),
-                Payload::GetInfo(g) => {
+            self.dispatch(now, key, stream, raw, false, sink);
+        }
+    }
+
+    /// Acts on one submessage of an accepted message (or of a reassembled one).
+    fn dispatch(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        stream: u8,
+        raw: RawSubmessage<'_>,
+        reassembled: bool,
+        sink: &mut impl OperationSink,
+    ) {
+        let payload = match raw.decode() {
+            Ok(p) => p,
+            Err(e) => return self.drop_submessage(e, raw.id, raw.payload),
+        };
+        let le = raw.little_endian();
+        match payload {
+            Payload::Create(c) => sink.operation(Operation::Create {
+                client: key,
+                create: &c,
+            }),
+            Payload::Delete(d) if d.object_id == ObjectId::CLIENT => {
+                if stream == stream_id::NONE {
+                    // Answered the way it came, as the reference agent does: the
+                    // session's streams end with it.
                     if let Some(c) = self.clients.get(&key) {
-                        let (addr, h) = (c.addr, c.header(stream_id::NONE, 0));
-                        self.reply_info(addr, h, g.base, true);
+                        let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
+                        let reply = BaseObjectReply {
+                            related: d,
+                            result: ResultStatus::OK,
+                        };
+                        let _ = b.push(&Payload::Status(reply), true);
+                        let addr = c.addr;
+                        self.push_transmit(addr, b.finish());
                     }
+                } else {
+                    self.queue_status(key, d, ResultStatus::OK);
                 }
-                Payload::Acknack(a) => self.on_acknack(key, &a),
-                Payload::Heartbeat(h) => {
-                    if let Some(input) = self
-                        .clients
-                        .get_mut(&key)
-                        .and_then(|c| c.reliable_in.get_mut(&h.stream_id))
-                    {
-                        input.on_heartbeat(&h);
-                    }
-                    // Messages the sender gave up on may have unblocked buffered ones.
-                    if stream_id::is_reliable(h.stream_id) {
-                        self.send_acknack(key, h.stream_id);
-                    }
+                if let Some(c) = self.clients.get_mut(&key) {
+                    c.delete_requested = true;
                 }
-                Payload::Reset => {
-                    if let Some(c) = self.clients.get_mut(&key) {
-                        c.reset_streams();
-                    }
-                }
-                Payload::Timestamp(t) => self.reply_timestamp(now, key, t),
-                Payload::Fragment { .. } => {
-                    self.drop_submessage(DecodeError::InvalidValue("fragment"), raw.id, raw.payload)
-                }
-                _ => self.drop_submessage(
-                    DecodeError::InvalidValue("submessage for an agent"),
-                    raw.id,
-                    raw.payload,
-                ),
             }
+            Payload::Delete(d) => sink.operation(Operation::Delete {
+                client: key,
+                request: d,
+            }),
+            Payload::WriteData(d) => sink.operation(Operation::Write {
+                client: key,
+                stream_id: stream,
+                data: d,
+                little_endian: le,
+            }),
+            Payload::ReadData(r) => sink.operation(Operation::Read {
+                client: key,
+                request: r.base,
+                spec: &r.spec,
+            }),
+            Payload::GetInfo(g) => {
+                if let Some(c) = self.clients.get(&key) {
+                    let (addr, h) = (c.addr, c.header(stream_id::NONE, 0));
+                    self.reply_info(addr, h, g.base, true);
+                }
+            }
+            Payload::Acknack(a) => self.on_acknack(key, &a),
+            Payload::Heartbeat(h) => {
+                if let Some(input) = self
+                    .clients
+                    .get_mut(&key)
+                    .and_then(|c| c.reliable_in.get_mut(&h.stream_id))
+                {
+                    input.on_heartbeat(&h);
+                }
+                // Messages the sender gave up on may have unblocked buffered ones.
+                if stream_id::is_reliable(h.stream_id) {
+                    self.send_acknack(key, h.stream_id);
+                }
+            }
+            Payload::Reset => {
+                if let Some(c) = self.clients.get_mut(&key) {
+                    c.reset_streams();
+                }
+            }
+            Payload::Timestamp(t) => self.reply_timestamp(now, key, t),
+            Payload::Fragment { last, data } => {
+                self.on_fragment(now, key, stream, last, data, reassembled, sink)
+            }
+            _ => self.drop_submessage(
+                DecodeError::InvalidValue("submessage for an agent"),
+                raw.id,
+                raw.payload,
+            ),
+        }
+    }
+
+    /// Collects a FRAGMENT; the last one's reassembled submessages are processed as if they
+    /// had arrived in the message of the last fragment.
+    #[allow(clippy::too_many_arguments)]
+    fn on_fragment(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        stream: u8,
+        last: bool,
+        data: &[u8],
+        reassembled: bool,
+        sink: &mut impl OperationSink,
+    ) {
+        if reassembled || !stream_id::is_reliable(stream) {
+            return self.drop_submessage(
+                DecodeError::InvalidValue("fragment outside a reliable stream"),
+                submessage_id::FRAGMENT,
+                data,
+            );
+        }
+        let max = self.config.max_reassembly;
+        let Some(c) = self.clients.get_mut(&key) else {
+            return;
+        };
+        match c
+            .reassembly
+            .entry(stream)
+            .or_default()
+            .push(data, last, max)
+        {
+            Ok(None) => {}
+            Ok(Some(whole)) => {
+                for raw in Submessages::new(&whole, 0) {
+                    match raw {
+                        Ok(raw) => self.dispatch(now, key, stream, raw, true, sink),
+                        Err(e) => return self.drop_input(e.reason(), &whole),
+                    }
+                }
+            }
+            Err(_) => self.count_drop("reassembly_too_large"),
         }
     }
 
@@ -794,25 +854,15 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     }
 
     fn encode_submessage(payload: &Payload<'_>, little_endian: bool) -> Result<Vec<u8>, SendError> {
-        // Encode with a dummy 4-byte header so alignment matches a message start + 4.
-        let mut b = MessageBuilder::new(MessageHeader {
-            session_id: 0x80,
-            stream_id: 0,
-            sequence_nr: 0,
-            client_key: None,
-        });
-        b.push(payload, little_endian)
-            .map_err(|_| SendError::TooLarge)?;
-        let mut v = b.finish();
-        v.drain(..4);
-        Ok(v)
+        crate::wire::encode_submessage(payload, little_endian).map_err(|_| SendError::TooLarge)
     }
 
+    /// Queues submessages (each one message) on a reliable output stream: all or none.
     fn queue_reliable(
         &mut self,
         key: ClientKey,
         stream: u8,
-        sub: Vec<u8>,
+        subs: Vec<Vec<u8>>,
     ) -> Result<(), SendError> {
         let (window, max_queue) = (self.config.output_window, self.config.max_output_queue);
         let c = self.clients.get_mut(&key).ok_or(SendError::NoClient)?;
@@ -820,11 +870,11 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             reliable: ReliableOutput::new(stream, window),
             queue: VecDeque::new(),
         });
-        if s.queue.len() >= max_queue {
+        if s.queue.len() + subs.len() > max_queue {
             self.count_drop("output_queue_full");
             return Err(SendError::QueueFull);
         }
-        s.queue.push_back(sub);
+        s.queue.extend(subs);
         Ok(())
     }
 
@@ -834,7 +884,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             result,
         });
         if let Ok(sub) = Self::encode_submessage(&payload, true) {
-            let _ = self.queue_reliable(key, stream_id::BUILTIN_RELIABLE, sub);
+            let _ = self.queue_reliable(key, stream_id::BUILTIN_RELIABLE, vec![sub]);
         }
     }
 
@@ -877,12 +927,15 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         };
         if stream_id::is_reliable(stream) {
             let sub = Self::encode_submessage(&payload, little_endian)?;
-            if sub.len() + 8 > c.mtu as usize {
-                // Fragmentation of DATA is not implemented yet: count it, still send it whole
-                // (loopback and most IP paths carry it; a small-MTU client drops it).
-                self.count_drop("data_exceeds_mtu_unfragmented");
-            }
-            self.queue_reliable(key, stream, sub)?;
+            let header_len = MessageHeader::encoded_len(c.session_id);
+            let fits = header_len + sub.len() <= c.mtu as usize;
+            let parts = if fits {
+                vec![sub]
+            } else {
+                // FRAGMENTs filling the client's MTU, as the reference agent sends them.
+                fragments(&sub, c.mtu as usize - header_len - 4)
+            };
+            self.queue_reliable(key, stream, parts)?;
             self.flush_client(now, key);
         } else {
             let seq = c.best_effort_out.entry(stream).or_insert(0);

@@ -8,12 +8,13 @@
 use std::collections::{HashMap, VecDeque};
 use std::time::{Duration, Instant};
 
+use super::fragment::{fragments, Reassembly};
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
 use crate::wire::{
-    stream_id, BaseObjectReply, BaseObjectRequest, ClientKey, CreateClientPayload, CreatePayload,
-    DataPayload, GetInfoPayload, MessageBuilder, MessageHeader, ObjectId, ObjectVariant, Payload,
-    ReadDataPayload, ReadSpecification, RequestId, ResultStatus, Submessages,
-    TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
+    encode_submessage, stream_id, BaseObjectReply, BaseObjectRequest, ClientKey,
+    CreateClientPayload, CreatePayload, DataPayload, GetInfoPayload, MessageBuilder, MessageHeader,
+    ObjectId, ObjectVariant, Payload, ReadDataPayload, ReadSpecification, RequestId, ResultStatus,
+    Submessages, TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
 };
 
 /// Tunables of the client.
@@ -90,6 +91,9 @@ pub struct Client {
     reliable_out: HashMap<u8, ReliableOutput>,
     best_effort_out: HashMap<u8, u16>,
     reliable_in: HashMap<u8, ReliableInput>,
+    /// Submessages waiting for room in a reliable output window.
+    pending: HashMap<u8, VecDeque<Vec<u8>>>,
+    reassembly: HashMap<u8, Reassembly>,
     best_effort_in: HashMap<u8, BestEffortInput>,
     heartbeat_due: Option<Instant>,
     transmits: VecDeque<Vec<u8>>,
@@ -107,6 +111,8 @@ impl Client {
             reliable_out: HashMap::new(),
             best_effort_out: HashMap::new(),
             reliable_in: HashMap::new(),
+            pending: HashMap::new(),
+            reassembly: HashMap::new(),
             best_effort_in: HashMap::new(),
             heartbeat_due: None,
             transmits: VecDeque::new(),
@@ -154,6 +160,8 @@ impl Client {
         self.reliable_out.clear();
         self.best_effort_out.clear();
         self.reliable_in.clear();
+        self.pending.clear();
+        self.reassembly.clear();
         self.best_effort_in.clear();
         self.heartbeat_due = None;
         self.transmits.push_back(self.create_client_message());
@@ -190,6 +198,7 @@ impl Client {
     /// Whether a reliable stream can take another message now.
     pub fn can_send_reliable(&self, stream: u8) -> bool {
         self.reliable_out.get(&stream).is_none_or(|s| s.has_room())
+            && self.pending.get(&stream).is_none_or(VecDeque::is_empty)
     }
 
     /// Messages not yet acknowledged on a reliable output stream.
@@ -208,27 +217,19 @@ impl Client {
             return Err(ClientError::NotConnected);
         }
         if stream_id::is_reliable(stream) {
-            let window = self.config.output_window;
-            let out = self
-                .reliable_out
-                .entry(stream)
-                .or_insert_with(|| ReliableOutput::new(stream, window));
-            if !out.has_room() {
+            if !self.can_send_reliable(stream) {
                 return Err(ClientError::WindowFull);
             }
-            let mut b = MessageBuilder::new(MessageHeader::new(
-                self.config.session_id,
-                stream,
-                out.next_seq(),
-                self.config.key,
-            ));
-            b.push(payload, true).map_err(|_| ClientError::TooLarge)?;
-            let msg = b.finish();
-            out.record(msg.clone());
-            self.transmits.push_back(msg);
-            if self.heartbeat_due.is_none() {
-                self.heartbeat_due = Some(now + self.config.heartbeat_period);
-            }
+            let sub = encode_submessage(payload, true).map_err(|_| ClientError::TooLarge)?;
+            let header_len = MessageHeader::encoded_len(self.config.session_id);
+            let mtu = self.config.mtu as usize;
+            let parts = if header_len + sub.len() <= mtu {
+                vec![sub]
+            } else {
+                fragments(&sub, mtu.saturating_sub(header_len + 4))
+            };
+            self.pending.entry(stream).or_default().extend(parts);
+            self.flush_reliable(now, stream);
         } else {
             let seq = self.best_effort_out.entry(stream).or_insert(0);
             let mut b = MessageBuilder::new(MessageHeader::new(
@@ -242,6 +243,37 @@ impl Client {
             self.transmits.push_back(b.finish());
         }
         Ok(())
+    }
+
+    /// Sends queued submessages of a reliable stream while its window has room.
+    fn flush_reliable(&mut self, now: Instant, stream: u8) {
+        let window = self.config.output_window;
+        let out = self
+            .reliable_out
+            .entry(stream)
+            .or_insert_with(|| ReliableOutput::new(stream, window));
+        let Some(queue) = self.pending.get_mut(&stream) else {
+            return;
+        };
+        let mut sent = false;
+        while out.has_room() {
+            let Some(sub) = queue.pop_front() else { break };
+            let mut msg = Vec::with_capacity(8 + sub.len());
+            MessageHeader::new(
+                self.config.session_id,
+                stream,
+                out.next_seq(),
+                self.config.key,
+            )
+            .encode(&mut msg);
+            msg.extend_from_slice(&sub);
+            out.record(msg.clone());
+            self.transmits.push_back(msg);
+            sent = true;
+        }
+        if sent && self.heartbeat_due.is_none() {
+            self.heartbeat_due = Some(now + self.config.heartbeat_period);
+        }
     }
 
     /// CREATE on the built-in reliable stream.
@@ -417,45 +449,66 @@ impl Client {
             let Ok(payload) = raw.and_then(|r| r.decode()) else {
                 return;
             };
-            match payload {
-                Payload::StatusAgent(s) => {
-                    let result = s.result.unwrap_or(ResultStatus::OK);
-                    if self.connect_due.is_some() {
-                        self.connect_due = None;
-                        self.connected = crate::wire::status::is_ok(result.status);
-                        self.events.push_back(ClientEvent::SessionStatus(result));
+            if let Payload::Fragment { last, data } = payload {
+                let whole = self
+                    .reassembly
+                    .entry(stream)
+                    .or_default()
+                    .push(data, last, 1 << 20);
+                if let Ok(Some(whole)) = whole {
+                    for raw in Submessages::new(&whole, 0) {
+                        match raw.and_then(|r| r.decode()) {
+                            Ok(Payload::Fragment { .. }) | Err(_) => break,
+                            Ok(p) => self.on_payload(now, stream, p),
+                        }
                     }
                 }
-                Payload::Status(s) => self.events.push_back(ClientEvent::Status(s)),
-                Payload::Info(i) => self.events.push_back(ClientEvent::Info(i.reply)),
-                Payload::Data(d) => self.events.push_back(ClientEvent::Data {
-                    request: d.base,
-                    stream_id: stream,
-                    data: d.data.to_vec(),
-                }),
-                Payload::Acknack(a) => {
-                    if let Some(out) = self.reliable_out.get_mut(&a.stream_id) {
-                        let resend: Vec<Vec<u8>> =
-                            out.on_acknack(&a).into_iter().map(<[u8]>::to_vec).collect();
-                        self.transmits.extend(resend);
-                    }
-                    if self.reliable_out.values().all(|s| s.unacked() == 0) {
-                        self.heartbeat_due = None;
-                    } else if self.heartbeat_due.is_none() {
-                        self.heartbeat_due = Some(now + self.config.heartbeat_period);
-                    }
-                }
-                Payload::Heartbeat(h) => {
-                    let input = self
-                        .reliable_in
-                        .entry(h.stream_id)
-                        .or_insert_with(|| ReliableInput::new(16));
-                    input.on_heartbeat(&h);
-                    self.send_acknack(h.stream_id);
-                }
-                Payload::TimestampReply(t) => self.events.push_back(ClientEvent::TimestampReply(t)),
-                _ => {}
+                continue;
             }
+            self.on_payload(now, stream, payload);
+        }
+    }
+
+    fn on_payload(&mut self, now: Instant, stream: u8, payload: Payload<'_>) {
+        match payload {
+            Payload::StatusAgent(s) => {
+                let result = s.result.unwrap_or(ResultStatus::OK);
+                if self.connect_due.is_some() {
+                    self.connect_due = None;
+                    self.connected = crate::wire::status::is_ok(result.status);
+                    self.events.push_back(ClientEvent::SessionStatus(result));
+                }
+            }
+            Payload::Status(s) => self.events.push_back(ClientEvent::Status(s)),
+            Payload::Info(i) => self.events.push_back(ClientEvent::Info(i.reply)),
+            Payload::Data(d) => self.events.push_back(ClientEvent::Data {
+                request: d.base,
+                stream_id: stream,
+                data: d.data.to_vec(),
+            }),
+            Payload::Acknack(a) => {
+                if let Some(out) = self.reliable_out.get_mut(&a.stream_id) {
+                    let resend: Vec<Vec<u8>> =
+                        out.on_acknack(&a).into_iter().map(<[u8]>::to_vec).collect();
+                    self.transmits.extend(resend);
+                }
+                self.flush_reliable(now, a.stream_id);
+                if self.reliable_out.values().all(|s| s.unacked() == 0) {
+                    self.heartbeat_due = None;
+                } else if self.heartbeat_due.is_none() {
+                    self.heartbeat_due = Some(now + self.config.heartbeat_period);
+                }
+            }
+            Payload::Heartbeat(h) => {
+                let input = self
+                    .reliable_in
+                    .entry(h.stream_id)
+                    .or_insert_with(|| ReliableInput::new(16));
+                input.on_heartbeat(&h);
+                self.send_acknack(h.stream_id);
+            }
+            Payload::TimestampReply(t) => self.events.push_back(ClientEvent::TimestampReply(t)),
+            _ => {}
         }
     }
 }

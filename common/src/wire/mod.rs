@@ -238,6 +238,24 @@ impl MessageBuilder {
     }
 }
 
+/// Encodes one submessage (header and payload) on its own, laid out as it would be at any
+/// 4-byte-aligned offset of a message; used to queue, fragment or batch submessages.
+pub fn encode_submessage(
+    payload: &Payload<'_>,
+    little_endian: bool,
+) -> Result<Vec<u8>, EncodeError> {
+    let mut b = MessageBuilder::new(MessageHeader {
+        session_id: 0x80,
+        stream_id: 0,
+        sequence_nr: 0,
+        client_key: None,
+    });
+    b.push(payload, little_endian)?;
+    let mut v = b.finish();
+    v.drain(..4);
+    Ok(v)
+}
+
 /// Formats bytes as lowercase hex (for logs at trace level).
 pub fn hex(bytes: &[u8]) -> String {
     use std::fmt::Write;
