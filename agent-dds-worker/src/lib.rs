@@ -4,6 +4,7 @@
 //! It is not an XRCE endpoint: it never sees client datagrams, only the IPC contract of
 //! `xrce_common::ipc`. Samples pass through as serialized bytes ([`raw`]).
 
+pub mod binary;
 pub mod cli;
 pub mod dds;
 pub mod raw;

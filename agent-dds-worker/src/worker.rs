@@ -20,6 +20,7 @@ use xrce_common::wire::{
     VariantExtra,
 };
 
+use crate::binary;
 use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
 use crate::raw::{RawLe, RawSample};
 use crate::xml::{self, TopicDesc};
@@ -491,37 +492,23 @@ impl Worker {
             // The front-end decides creation modes; here an existing object is replaced.
             self.remove_subtree(key);
         }
-        let xml = match &variant.representation {
-            Representation::Xml(x) => x.as_str(),
-            Representation::Reference(r) => {
-                return Err((
-                    status::ERR_UNKNOWN_REFERENCE,
-                    format!("reference {r:?}: no references are loaded (not supported yet)"),
-                ))
-            }
-            Representation::Binary(_) => {
-                return Err((
-                    status::ERR_INVALID_DATA,
-                    "binary representations are not supported yet".into(),
-                ))
-            }
-        };
-        let bad_xml = |e: xml::XmlError| (status::ERR_INVALID_DATA, e.to_string());
+        let repr = &variant.representation;
         let dds_err =
             |what: &str, e: &dyn std::fmt::Debug| (status::ERR_DDS_ERROR, format!("{what}: {e:?}"));
         let (parent, kind) = match (variant.kind, variant.extra) {
             (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
-                xml::parse_participant(xml).map_err(bad_xml)?;
+                check_plain(repr, variant.kind)?;
                 let domain = effective_domain(d).map_err(|e| (status::ERR_INVALID_DATA, e))?;
                 (None, EntityKind::Participant(domain))
             }
             (object_kind::TOPIC, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                let desc = xml::parse_topic(xml).map_err(bad_xml)?;
+                let desc = describe_topic(repr)?;
                 (Some(p), EntityKind::Topic(desc))
             }
             (object_kind::PUBLISHER, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
+                check_plain(repr, variant.kind)?;
                 let (_, domain) = self
                     .participant_of(key, p)
                     .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
@@ -536,6 +523,7 @@ impl Worker {
             }
             (object_kind::SUBSCRIBER, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
+                check_plain(repr, variant.kind)?;
                 let (_, domain) = self
                     .participant_of(key, p)
                     .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
@@ -559,7 +547,7 @@ impl Worker {
                             ))
                         }
                     };
-                let desc = xml::parse_endpoint(xml, "data_writer").map_err(bad_xml)?;
+                let desc = describe_endpoint(repr, true)?;
                 let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
                 let w = publisher
@@ -589,7 +577,7 @@ impl Worker {
                             ))
                         }
                     };
-                let desc = xml::parse_endpoint(xml, "data_reader").map_err(bad_xml)?;
+                let desc = describe_endpoint(repr, false)?;
                 let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Reader, &tdesc.qos, &desc.qos);
                 let mut r = subscriber
@@ -643,6 +631,23 @@ impl Worker {
             .participant_of(key, parent)
             .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
         // A topic object created by the client with the same name carries its QoS.
+        if let Some(id) = desc.topic_id {
+            let d = match self.entities.get(&(key.0, key.1, id)) {
+                Some(Entity {
+                    kind: EntityKind::Topic(d),
+                    ..
+                }) => d.clone(),
+                _ => {
+                    return Err((
+                        status::ERR_UNKNOWN_REFERENCE,
+                        format!("topic {id:?} does not exist"),
+                    ))
+                }
+            };
+            let t = Self::make_topic(dp, &d)
+                .map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
+            return Ok((t, d));
+        }
         let wanted = desc
             .topic
             .as_ref()
@@ -957,5 +962,63 @@ impl Worker {
             self.reads.remove(&key);
             self.to_pump.remove(&key);
         }
+    }
+}
+
+fn invalid_xml(e: xml::XmlError) -> OpError {
+    (status::ERR_INVALID_DATA, e.to_string())
+}
+
+fn invalid_binary(e: xrce_common::wire::DecodeError) -> OpError {
+    (
+        status::ERR_INVALID_DATA,
+        format!("binary representation: {e}"),
+    )
+}
+
+fn unknown_reference(r: &str) -> OpError {
+    (
+        status::ERR_UNKNOWN_REFERENCE,
+        format!("reference {r:?}: no references are loaded (not supported yet)"),
+    )
+}
+
+/// Checks the representation of a participant, publisher or subscriber (whose settings the
+/// worker takes from elsewhere: publishers and subscribers from their endpoints, and the
+/// reference client sends them an empty string).
+fn check_plain(repr: &Representation, kind: u8) -> Result<(), OpError> {
+    match (repr, kind) {
+        (Representation::Xml(x), object_kind::PARTICIPANT) => {
+            xml::parse_participant(x).map(drop).map_err(invalid_xml)
+        }
+        (Representation::Xml(_), _) => Ok(()),
+        (Representation::Binary(b), object_kind::PARTICIPANT) => {
+            binary::parse_participant(b).map_err(invalid_binary)
+        }
+        (Representation::Binary(b), _) => {
+            binary::parse_publisher_or_subscriber(b).map_err(invalid_binary)
+        }
+        (Representation::Reference(r), _) => Err(unknown_reference(r)),
+    }
+}
+
+/// Reads a topic representation.
+fn describe_topic(repr: &Representation) -> Result<TopicDesc, OpError> {
+    match repr {
+        Representation::Xml(x) => xml::parse_topic(x).map_err(invalid_xml),
+        Representation::Binary(b) => binary::parse_topic(b).map_err(invalid_binary),
+        Representation::Reference(r) => Err(unknown_reference(r)),
+    }
+}
+
+/// Reads a data writer or data reader representation.
+fn describe_endpoint(repr: &Representation, writer: bool) -> Result<xml::EndpointDesc, OpError> {
+    match repr {
+        Representation::Xml(x) => {
+            xml::parse_endpoint(x, if writer { "data_writer" } else { "data_reader" })
+                .map_err(invalid_xml)
+        }
+        Representation::Binary(b) => binary::parse_endpoint(b, writer).map_err(invalid_binary),
+        Representation::Reference(r) => Err(unknown_reference(r)),
     }
 }

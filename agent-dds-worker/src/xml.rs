@@ -83,6 +83,8 @@ pub struct EndpointDesc {
     pub topic: Option<TopicDesc>,
     /// The topic's name, when referenced (`topic_ref`) instead.
     pub topic_ref: Option<String>,
+    /// The client's topic object, when named by id (binary representations).
+    pub topic_id: Option<xrce_common::wire::ObjectId>,
     /// Endpoint QoS.
     pub qos: QosDesc,
 }
@@ -239,6 +241,7 @@ pub fn parse_endpoint(xml: &str, element: &'static str) -> Result<EndpointDesc, 
     Ok(EndpointDesc {
         topic,
         topic_ref,
+        topic_id: None,
         qos,
     })
 }

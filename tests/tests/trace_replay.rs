@@ -40,16 +40,6 @@ fn trace(name: &str) -> Vec<Line> {
         .collect()
 }
 
-fn recv_all(s: &UdpSocket, out: &mut Vec<Vec<u8>>, wait: Duration) {
-    let end = Instant::now() + wait;
-    let mut buf = [0u8; 2048];
-    while Instant::now() < end {
-        if let Ok(n) = s.recv(&mut buf) {
-            out.push(buf[..n].to_vec());
-        }
-    }
-}
-
 /// Replies on streams (STATUS and DATA) in stream and sequence order, deduplicated.
 fn reliable_replies(all: &[Vec<u8>]) -> Vec<Vec<u8>> {
     let mut v: Vec<Vec<u8>> = all
@@ -72,6 +62,12 @@ fn best_effort_helloworld_gets_the_reference_agents_replies() {
     replay("besteffort-xml-helloworld.txt");
 }
 
+/// Binary representations (what micro-ROS sends); the client then reads its own samples.
+#[test]
+fn binary_creation_gets_the_reference_agents_replies() {
+    replay("binary-creation.txt");
+}
+
 /// 50,000-byte samples: the client's FRAGMENTs are reassembled, and the DATA to the
 /// subscriber is fragmented to its MTU exactly as the reference agent does it.
 #[test]
@@ -85,27 +81,48 @@ static DOMAIN_0: std::sync::Mutex<()> = std::sync::Mutex::new(());
 fn replay(name: &str) {
     let _domain = DOMAIN_0.lock().unwrap_or_else(|p| p.into_inner());
     let lines = trace(name);
-    let sub_port = lines[0].port;
-    let pub_port = lines
-        .iter()
-        .find(|l| l.port != sub_port)
-        .expect("publisher")
-        .port;
     let agent = AgentProcess::start(&name[..8]);
-    let sock = |_: u16| {
-        let s = UdpSocket::bind("127.0.0.1:0").expect("bind");
-        s.connect(agent.addr()).expect("connect");
-        s.set_read_timeout(Some(Duration::from_millis(2)))
-            .expect("timeout");
-        s
+    // One socket per client of the capture, in order of appearance.
+    let mut ports: Vec<u16> = Vec::new();
+    for l in &lines {
+        if !ports.contains(&l.port) {
+            ports.push(l.port);
+        }
+    }
+    let clients: Vec<(u16, UdpSocket)> = ports
+        .iter()
+        .map(|p| {
+            let s = UdpSocket::bind("127.0.0.1:0").expect("bind");
+            s.connect(agent.addr()).expect("connect");
+            s.set_read_timeout(Some(Duration::from_millis(1)))
+                .expect("timeout");
+            (*p, s)
+        })
+        .collect();
+    let mut rx: Vec<Vec<Vec<u8>>> = vec![Vec::new(); clients.len()];
+    let receive = |rx: &mut Vec<Vec<Vec<u8>>>, wait: Duration| {
+        let end = std::time::Instant::now() + wait;
+        loop {
+            let mut buf = [0u8; 2048];
+            for (i, (_, s)) in clients.iter().enumerate() {
+                // Read timeout 1 ms: drain what is there, then move on.
+                while let Ok(n) = s.recv(&mut buf) {
+                    rx[i].push(buf[..n].to_vec());
+                }
+            }
+            if std::time::Instant::now() >= end {
+                break;
+            }
+        }
     };
-    let (sub, publ) = (sock(sub_port), sock(pub_port));
-    let (mut sub_rx, mut pub_rx) = (Vec::new(), Vec::new());
     // The client's first sample follows its writer's creation within milliseconds, as in the
     // capture: the reference agent delivers it inside one Fast DDS process, ours holds it
     // until the new DDS writer has matched the subscriber's reader, so it is not lost either.
     for l in lines.iter().filter(|l| l.to_agent) {
-        let s = if l.port == sub_port { &sub } else { &publ };
+        let (_, s) = clients
+            .iter()
+            .find(|(p, _)| *p == l.port)
+            .expect("client socket");
         s.send(&l.bytes).expect("send");
         // Creations need the worker's answer before the client's next step.
         let wait = if l.bytes.get(8) == Some(&0x01) {
@@ -116,41 +133,15 @@ fn replay(name: &str) {
         } else {
             60
         };
-        recv_all(&sub, &mut sub_rx, Duration::from_millis(wait / 2));
-        recv_all(&publ, &mut pub_rx, Duration::from_millis(wait / 2));
-        let _ = l.t;
+        receive(&mut rx, Duration::from_millis(wait));
     }
-    recv_all(&sub, &mut sub_rx, Duration::from_millis(500));
+    receive(&mut rx, Duration::from_millis(500));
 
-    let reference = |port: u16| -> Vec<Vec<u8>> {
-        reliable_replies(
-            &lines
-                .iter()
-                .filter(|l| !l.to_agent && l.port == port)
-                .map(|l| l.bytes.clone())
-                .collect::<Vec<_>>(),
-        )
-    };
     // STATUS_AGENT: byte for byte.
-    let status_agent = |rx: &[Vec<u8>]| rx.iter().find(|d| d.get(4) == Some(&0x04)).cloned();
     let ref_sa = lines
         .iter()
         .find(|l| !l.to_agent && l.bytes.get(4) == Some(&0x04))
         .map(|l| l.bytes.clone());
-    assert_eq!(status_agent(&sub_rx), ref_sa, "STATUS_AGENT differs");
-    assert_eq!(
-        status_agent(&pub_rx),
-        ref_sa,
-        "STATUS_AGENT differs (publisher)"
-    );
-    // STATUS for every creation, then DATA for every sample: byte for byte, same sequence numbers.
-    let ours_pub = reliable_replies(&pub_rx);
-    assert_eq!(
-        ours_pub,
-        reference(pub_port),
-        "publisher's reliable replies differ:\nours {:?}",
-        ours_pub.iter().map(|d| hex(d)).collect::<Vec<_>>()
-    );
     // DATA: RustDDS pads serialized samples to a multiple of 4 and does not pass the padding
     // count on, so our DATA may carry up to 3 extra zero bytes; everything else is identical.
     let unpad = |d: &Vec<u8>, reference: &Vec<u8>| -> Vec<u8> {
@@ -164,28 +155,41 @@ fn replay(name: &str) {
             d.clone()
         }
     };
-    let ours_sub = reliable_replies(&sub_rx);
-    let ref_sub = reference(sub_port);
-    assert_eq!(
-        ours_sub.len(),
-        ref_sub.len(),
-        "subscriber: {} replies, reference {}",
-        ours_sub.len(),
-        ref_sub.len()
-    );
-    for (o, r) in ours_sub.iter().zip(&ref_sub) {
-        assert_eq!(
-            hex(&unpad(o, r)),
-            hex(r),
-            "subscriber's STATUS/DATA differs from the reference agent's"
+    for (i, (port, _)) in clients.iter().enumerate() {
+        let status_agent = rx[i].iter().find(|d| d.get(4) == Some(&0x04)).cloned();
+        assert_eq!(status_agent, ref_sa, "client {port}: STATUS_AGENT differs");
+        // STATUS for every creation, then DATA for every sample: byte for byte, with the
+        // same stream sequence numbers.
+        let ours = reliable_replies(&rx[i]);
+        let reference = reliable_replies(
+            &lines
+                .iter()
+                .filter(|l| !l.to_agent && l.port == *port)
+                .map(|l| l.bytes.clone())
+                .collect::<Vec<_>>(),
         );
-    }
-    // Every reply decodes with our codec too.
-    for d in sub_rx.iter().chain(&pub_rx) {
-        let m = Message::decode(d).expect("decode reply");
-        assert!(!m
-            .submessages
-            .iter()
-            .any(|s| matches!(s.payload, Payload::Unknown { .. })));
+        assert_eq!(
+            ours.len(),
+            reference.len(),
+            "client {port}: {} replies, reference {}:\nours {:?}",
+            ours.len(),
+            reference.len(),
+            ours.iter().map(|d| hex(d)).collect::<Vec<_>>()
+        );
+        for (o, r) in ours.iter().zip(&reference) {
+            assert_eq!(
+                hex(&unpad(o, r)),
+                hex(r),
+                "client {port}: a STATUS/DATA differs from the reference agent's"
+            );
+        }
+        // Every reply decodes with our codec too.
+        for d in &rx[i] {
+            let m = Message::decode(d).expect("decode reply");
+            assert!(!m
+                .submessages
+                .iter()
+                .any(|s| matches!(s.payload, Payload::Unknown { .. })));
+        }
     }
 }
