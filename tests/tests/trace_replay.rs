@@ -9,7 +9,6 @@ use xrce_common::wire::{hex, Message, Payload};
 use xrce_tests::{workspace, AgentProcess};
 
 struct Line {
-    t: f64,
     to_agent: bool,
     port: u16,
     bytes: Vec<u8>,
@@ -31,7 +30,6 @@ fn trace(name: &str) -> Vec<Line> {
         .map(|l| {
             let f: Vec<&str> = l.split_whitespace().collect();
             Line {
-                t: f[0].parse().expect("time"),
                 to_agent: f[1] == "C>A",
                 port: f[2].parse().expect("port"),
                 bytes: unhex(f[3]),
@@ -101,7 +99,7 @@ fn replay(name: &str) {
         .collect();
     let mut rx: Vec<Vec<Vec<u8>>> = vec![Vec::new(); clients.len()];
     let receive = |rx: &mut Vec<Vec<Vec<u8>>>, wait: Duration| {
-        let end = std::time::Instant::now() + wait;
+        let end = Instant::now() + wait;
         loop {
             let mut buf = [0u8; 2048];
             for (i, (_, s)) in clients.iter().enumerate() {
@@ -110,7 +108,7 @@ fn replay(name: &str) {
                     rx[i].push(buf[..n].to_vec());
                 }
             }
-            if std::time::Instant::now() >= end {
+            if Instant::now() >= end {
                 break;
             }
         }
