@@ -100,3 +100,31 @@ fn rejected_inputs_are_counted_by_reason() {
     assert_eq!(agent.stats().dropped("truncated"), 1);
     assert_eq!(agent.stats().dropped("no_client"), 1);
 }
+
+#[test]
+fn early_messages_are_bounded_per_client() {
+    use xrce_common::wire::{ClientKey, MessageBuilder, MessageHeader, Payload};
+    let mut agent: Agent<u8> = Agent::new(AgentConfig {
+        max_early_bytes: 4096,
+        ..AgentConfig::default()
+    });
+    let now = Instant::now();
+    // A session (0x81, no key in headers), then out-of-order reliable messages of 1 KiB.
+    let cc = captured()[0].clone();
+    agent.handle_datagram(now, 1, &cc, &mut NullSink);
+    for seq in 1..10u16 {
+        let mut b = MessageBuilder::new(MessageHeader::new(0x81, 0x80, seq, ClientKey::INVALID));
+        b.push(
+            &Payload::Unknown {
+                id: 0x7F,
+                flags: 1,
+                data: &[0u8; 1024],
+            },
+            true,
+        )
+        .expect("fits");
+        agent.handle_datagram(now, 1, &b.finish(), &mut NullSink);
+    }
+    // Three fit in 4 KiB; the rest were refused (and will be sent again by the client).
+    assert_eq!(agent.stats().dropped("early_buffer_full"), 6);
+}

@@ -35,6 +35,11 @@ pub struct AgentConfig {
     pub output_window: usize,
     /// Messages queued behind a full output window before new ones are dropped (counted).
     pub max_output_queue: usize,
+    /// Bytes queued behind a full output window, per stream, before new ones are dropped.
+    pub max_output_queue_bytes: usize,
+    /// Bytes of early (out-of-order) reliable messages kept per client; beyond, they are
+    /// dropped unacknowledged and the client sends them again.
+    pub max_early_bytes: usize,
     /// Reliable input streams a client may use (others are dropped, counted).
     pub max_input_streams: usize,
     /// Period of HEARTBEATs while output is unacknowledged.
@@ -57,7 +62,9 @@ impl Default for AgentConfig {
             input_window: 16,
             output_window: 16,
             max_output_queue: 4096,
-            max_input_streams: 16,
+            max_output_queue_bytes: 4 << 20,
+            max_early_bytes: 256 << 10,
+            max_input_streams: 8,
             heartbeat_period: Duration::from_millis(100),
             default_mtu: 512,
             max_reassembly: 1 << 20,
@@ -140,6 +147,8 @@ impl AgentStats {
 
 #[derive(Debug)]
 struct OutStream {
+    /// Bytes in `queue`.
+    queued_bytes: usize,
     reliable: ReliableOutput,
     /// Encoded submessages waiting for window room.
     queue: VecDeque<Vec<u8>>,
@@ -353,7 +362,18 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         match input.classify(header.sequence_nr) {
             Arrival::Duplicate => self.count_drop("duplicate"),
             Arrival::OutOfWindow => self.drop_input("out_of_window", bytes),
-            Arrival::Early => input.store_early(header.sequence_nr, bytes.to_vec()),
+            Arrival::Early => {
+                let held: usize = client
+                    .reliable_in
+                    .values()
+                    .map(ReliableInput::early_bytes)
+                    .sum();
+                if held + bytes.len() > self.config.max_early_bytes {
+                    self.count_drop("early_buffer_full");
+                } else if let Some(input) = client.reliable_in.get_mut(&stream) {
+                    input.store_early(header.sequence_nr, bytes.to_vec());
+                }
+            }
             Arrival::InOrder => {
                 if sink.has_room() {
                     self.process(now, key, bytes, hlen, sink);
@@ -833,6 +853,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 let Some(sub) = s.queue.pop_front() else {
                     break;
                 };
+                s.queued_bytes -= sub.len();
                 let mut msg = Vec::with_capacity(8 + sub.len());
                 MessageHeader::new(c.session_id, *sid, s.reliable.next_seq(), c.key)
                     .encode(&mut msg);
@@ -865,15 +886,19 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         subs: Vec<Vec<u8>>,
     ) -> Result<(), SendError> {
         let (window, max_queue) = (self.config.output_window, self.config.max_output_queue);
+        let max_bytes = self.config.max_output_queue_bytes;
         let c = self.clients.get_mut(&key).ok_or(SendError::NoClient)?;
         let s = c.reliable_out.entry(stream).or_insert_with(|| OutStream {
+            queued_bytes: 0,
             reliable: ReliableOutput::new(stream, window),
             queue: VecDeque::new(),
         });
-        if s.queue.len() + subs.len() > max_queue {
+        let bytes: usize = subs.iter().map(Vec::len).sum();
+        if s.queue.len() + subs.len() > max_queue || s.queued_bytes + bytes > max_bytes {
             self.count_drop("output_queue_full");
             return Err(SendError::QueueFull);
         }
+        s.queued_bytes += bytes;
         s.queue.extend(subs);
         Ok(())
     }

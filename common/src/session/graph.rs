@@ -38,6 +38,10 @@ pub struct ActiveRead {
     pub spec: ReadSpecification,
 }
 
+/// Most objects one client may create; more get STATUS_ERR_RESOURCES (every object is a DDS
+/// entity in the worker).
+pub const MAX_OBJECTS: usize = 1024;
+
 /// Objects and reads of one client.
 #[derive(Debug, Clone, Default)]
 pub struct ObjectGraph {
@@ -80,6 +84,9 @@ impl ObjectGraph {
         replace: bool,
     ) -> CreateDecision {
         let Some(existing) = self.get(id) else {
+            if self.objects.len() >= MAX_OBJECTS {
+                return CreateDecision::Reply(status::ERR_RESOURCES);
+            }
             return CreateDecision::Create;
         };
         let matches = existing.variant == *variant;
@@ -199,6 +206,25 @@ mod tests {
         );
         assert_eq!(
             g.decide_create(id, &other, true, true),
+            CreateDecision::Replace
+        );
+    }
+
+    #[test]
+    fn objects_per_client_are_bounded() {
+        let mut g = ObjectGraph::default();
+        for i in 0..MAX_OBJECTS as u16 {
+            g.insert(obj(i, k::PARTICIPANT, None));
+        }
+        let one_more = obj(MAX_OBJECTS as u16, k::PARTICIPANT, None);
+        assert_eq!(
+            g.decide_create(one_more.object_id, &one_more.variant, false, false),
+            CreateDecision::Reply(status::ERR_RESOURCES)
+        );
+        // Replacing an existing object is still allowed.
+        let first = obj(0, k::PARTICIPANT, None);
+        assert_eq!(
+            g.decide_create(first.object_id, &first.variant, false, true),
             CreateDecision::Replace
         );
     }

@@ -157,6 +157,11 @@ impl ReliableInput {
         }
     }
 
+    /// Bytes of early messages kept.
+    pub fn early_bytes(&self) -> usize {
+        self.early.values().map(Vec::len).sum()
+    }
+
     /// Keeps an early message.
     pub fn store_early(&mut self, s: u16, message: Vec<u8>) {
         self.early.insert(s, message);
