@@ -233,7 +233,7 @@ impl Worker {
             }
             self.expire_reads();
             self.release_rematched();
-            self.flush()?;
+            self.flush();
         }
     }
 
@@ -299,6 +299,10 @@ impl Worker {
     /// Sends a reply to its front-end, or queues it behind earlier refused ones.
     fn reply(&mut self, mut h: IpcHeader, body: &[u8]) {
         h.generation = self.generation;
+        if body.len() > ipc::MAX_BODY {
+            tracing::warn!(frontend = h.frontend_id, client = %h.client_key, len = body.len(), "sample too large for the front-end link; dropped");
+            return self.count("sample_too_large");
+        }
         let port = match self.port(h.frontend_id) {
             Ok(p) => p,
             Err(e) => {
@@ -406,14 +410,21 @@ impl Worker {
     }
 
     /// Sends refused replies again, then progress; wakes every front-end that got something.
-    fn flush(&mut self) -> Result<(), ShmError> {
+    /// Failures are logged and retried on the next pass; they never stop the worker.
+    fn flush(&mut self) {
         let generation = self.generation;
         let held = self.oldest_held();
         for (fe, p) in self.ports.iter_mut() {
             let mut sent = false;
             while let Some(m) = p.backlog.front() {
-                if !p.sender.send_encoded(m)? {
-                    break;
+                match p.sender.send_encoded(m) {
+                    Ok(true) => {}
+                    Ok(false) => break,
+                    Err(e) => {
+                        // Not deliverable at all (it cannot happen for messages within
+                        // MAX_BODY): drop it rather than block the front-end for ever.
+                        tracing::warn!(frontend = fe, error = %e, "reply dropped");
+                    }
                 }
                 p.backlog.pop_front();
                 sent = true;
@@ -431,17 +442,18 @@ impl Worker {
                 h.frontend_id = *fe;
                 h.generation = generation;
                 h.op_seq = p.processed;
-                if p.sender.send(&h, &executed.to_le_bytes())? {
+                if let Ok(true) = p.sender.send(&h, &executed.to_le_bytes()) {
                     p.dirty = false;
                     sent = true;
                 }
             }
             if sent {
                 p.last_delivery = Instant::now();
-                p.sender.notify()?;
+                if let Err(e) = p.sender.notify() {
+                    tracing::debug!(frontend = fe, error = %e, "front-end wake-up failed");
+                }
             }
         }
-        Ok(())
     }
 
     fn parent_entity(
@@ -871,7 +883,9 @@ impl Worker {
                 }
                 Ok(None) => break,
                 Err(e) => {
+                    // Counted against the batch, so a flood of them cannot starve the loop.
                     errors += 1;
+                    limit -= 1;
                     tracing::debug!(error = ?e, "undecodable DDS sample skipped");
                 }
             }

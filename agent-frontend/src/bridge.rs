@@ -28,6 +28,8 @@ use xrce_common::wire::{
 
 /// Operations waiting for the window before new ones are refused (flow control).
 pub const OUTBOX_MAX: usize = 8192;
+/// Absolute bound of the outbox (`has_room` keeps it below [`OUTBOX_MAX`] between messages).
+pub const OUTBOX_HARD_MAX: usize = 4 * OUTBOX_MAX;
 /// Reliable writes kept for a possible resend before new ones are refused (flow control).
 pub const RETAIN_MAX: usize = 8192;
 /// How long an executed reliable write is kept in case the worker dies right after.
@@ -68,6 +70,9 @@ pub struct BridgeStats {
     pub writes_resent: u64,
     /// IPC messages dropped (bad, stale generation, send failures).
     pub ipc_dropped: u64,
+    /// Operations dropped because the outbox was full (best-effort writes, or beyond the
+    /// hard bound).
+    pub ops_dropped: u64,
 }
 
 /// The front-end's IPC state.
@@ -183,6 +188,17 @@ impl Bridge {
     /// Sends now if the window allows (copying `body` straight into shared memory), else
     /// queues an owned copy.
     fn submit(&mut self, mut h: IpcHeader, body: &[u8], retain: bool, awaited: Awaited) {
+        if self.outbox.len() >= OUTBOX_HARD_MAX {
+            // Only one message packed with operations gets here past `has_room`.
+            self.stats.ops_dropped += 1;
+            if self.stats.ops_dropped.is_power_of_two() {
+                tracing::warn!(
+                    dropped = self.stats.ops_dropped,
+                    "operation dropped: outbox full"
+                );
+            }
+            return;
+        }
         if self.outbox.is_empty() && self.can_send_now() {
             h.op_seq = self.next_seq;
             if let Err(e) = self.requests.send(&h, body) {
@@ -626,7 +642,13 @@ impl OperationSink for Bridge {
                 if little_endian {
                     h.flags |= FLAG_LITTLE_ENDIAN;
                 }
-                self.submit(h, data.data, stream_id::is_reliable(stream), Awaited::No);
+                let reliable = stream_id::is_reliable(stream);
+                if !reliable && !self.has_room() {
+                    // Best-effort data is not held back by flow control: drop it, counted.
+                    self.stats.ops_dropped += 1;
+                    return;
+                }
+                self.submit(h, data.data, reliable, Awaited::No);
             }
             Operation::Read {
                 client,

@@ -151,6 +151,7 @@ impl StatsReport {
             retransmissions = s.retransmissions,
             dropped = ?reasons,
             replays = bridge.stats().replays,
+            ops_dropped = bridge.stats().ops_dropped,
             "front-end counters"
         );
         self.last = now;

@@ -183,9 +183,8 @@ impl IpcHeader {
         let mut seq = [0u8; 8];
         seq.copy_from_slice(&buf[16..24]);
         let body_len = u32_at(32) as usize;
-        let body = buf
-            .get(Self::LEN..Self::LEN + body_len)
-            .ok_or(IpcError::Truncated)?;
+        let end = Self::LEN.checked_add(body_len).ok_or(IpcError::Truncated)?;
+        let body = buf.get(Self::LEN..end).ok_or(IpcError::Truncated)?;
         let h = IpcHeader {
             kind,
             flags: buf[7],

@@ -24,6 +24,9 @@ use crate::wire::{
     TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
 };
 
+/// Largest datagram any transport carries (UDP over IPv4); client MTUs are capped to it.
+pub const MAX_DATAGRAM: u16 = 65_507;
+
 /// Tunables of the agent core.
 #[derive(Debug, Clone)]
 pub struct AgentConfig {
@@ -214,6 +217,18 @@ pub struct Agent<A> {
     next_timeout: Option<Instant>,
     wall_clock: Option<(Instant, Duration)>,
     stats: AgentStats,
+    /// Replies already made for the datagram being handled.
+    replied: Vec<Reply>,
+}
+
+/// Replies the agent makes at most once per datagram, so that one datagram packed with
+/// requests cannot make it send thousands (amplification).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Reply {
+    Info,
+    Timestamp,
+    Acknack(u8),
+    Retransmit(u8),
 }
 
 impl<A: Copy + Eq + Hash + Debug> Agent<A> {
@@ -227,6 +242,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             next_timeout: None,
             wall_clock: None,
             stats: AgentStats::default(),
+            replied: Vec::new(),
         }
     }
 
@@ -276,6 +292,15 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         self.transmits.push_back(Transmit { destination, data });
     }
 
+    /// Whether this reply was not made yet for the current datagram (and records it).
+    fn once(&mut self, r: Reply) -> bool {
+        if self.replied.contains(&r) {
+            return false;
+        }
+        self.replied.push(r);
+        true
+    }
+
     /// Handles one datagram from `src`.
     pub fn handle_datagram(
         &mut self,
@@ -285,6 +310,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         sink: &mut impl OperationSink,
     ) {
         self.stats.datagrams_in += 1;
+        self.replied.clear();
         tracing::trace!(?src, len = bytes.len(), bytes = %hex(bytes), "datagram in");
         let (header, hlen) = match MessageHeader::decode(bytes) {
             Ok(h) => h,
@@ -376,8 +402,15 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             }
             Arrival::InOrder => {
                 if sink.has_room() {
+                    if let Some(input) = self
+                        .clients
+                        .get_mut(&key)
+                        .and_then(|c| c.reliable_in.get_mut(&stream))
+                    {
+                        input.advance();
+                    }
                     self.process(now, key, bytes, hlen, sink);
-                    self.deliver_early(now, key, stream, sink);
+                    self.deliver_ready(now, key, stream, sink);
                 } else {
                     // Flow control: not acknowledged, so the client will send it again.
                     self.count_drop("backpressure");
@@ -387,8 +420,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         self.send_acknack(key, stream);
     }
 
-    /// After an in-order message: advance, and process buffered messages that are now next.
-    fn deliver_early(
+    /// Delivers messages that arrived early and are now next, while the sink has room. One
+    /// that finds no room is dropped unacknowledged: the next ACKNACK asks for it again.
+    fn deliver_ready(
         &mut self,
         now: Instant,
         key: ClientKey,
@@ -403,21 +437,17 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             else {
                 return;
             };
-            let Some(next) = input.advance() else { return };
-            if !sink.has_room() {
-                let s = input.expected();
-                input.store_early(s, next);
-                // Undo nothing: `expected` now points at the stored message, which waits.
-                return;
-            }
-            let Ok((_, hlen)) = MessageHeader::decode(&next) else {
+            let Some(next) = input.take_ready() else {
                 return;
             };
-            self.process(now, key, &next, hlen, sink);
-            // `process` may have deleted the client.
-            if !self.clients.contains_key(&key) {
-                return;
+            if !sink.has_room() {
+                return self.count_drop("backpressure");
             }
+            input.advance();
+            let Ok((_, hlen)) = MessageHeader::decode(&next) else {
+                continue;
+            };
+            self.process(now, key, &next, hlen, sink);
         }
     }
 
@@ -451,7 +481,10 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             };
             match payload {
                 Payload::CreateClient(c) => self.create_client(now, src, &c, sink),
-                Payload::GetInfo(g) => self.reply_info(src, header, g.base, false),
+                Payload::GetInfo(g) if self.once(Reply::Info) => {
+                    self.reply_info(src, header, g.base, false)
+                }
+                Payload::GetInfo(_) => self.count_drop("repeated_request"),
                 _ => self.drop_input("no_session", bytes),
             }
         }
@@ -489,7 +522,11 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             {
                 self.remove_client(other, sink);
             }
-            let mtu = c.mtu.unwrap_or(self.config.default_mtu).max(64);
+            // At least 64 (so fragments carry data), at most what one UDP datagram carries.
+            let mtu = c
+                .mtu
+                .unwrap_or(self.config.default_mtu)
+                .clamp(64, MAX_DATAGRAM);
             match self.clients.get_mut(&c.client_key) {
                 Some(existing) if existing.session_id == c.session_id => {
                     // The same session again: a restarted client starts its streams at 0, so
@@ -697,13 +734,19 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 request: r.base,
                 spec: &r.spec,
             }),
+            Payload::GetInfo(_) if !self.once(Reply::Info) => self.count_drop("repeated_request"),
             Payload::GetInfo(g) => {
                 if let Some(c) = self.clients.get(&key) {
                     let (addr, h) = (c.addr, c.header(stream_id::NONE, 0));
                     self.reply_info(addr, h, g.base, true);
                 }
             }
-            Payload::Acknack(a) => self.on_acknack(key, &a),
+            Payload::Acknack(a) => {
+                // One ACKNACK per stream per datagram: more would only multiply resends.
+                if self.once(Reply::Retransmit(a.stream_id)) {
+                    self.on_acknack(key, &a);
+                }
+            }
             Payload::Heartbeat(h) => {
                 if let Some(input) = self
                     .clients
@@ -713,7 +756,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     input.on_heartbeat(&h);
                 }
                 // Messages the sender gave up on may have unblocked buffered ones.
-                if stream_id::is_reliable(h.stream_id) {
+                if stream_id::is_reliable(h.stream_id) && self.once(Reply::Acknack(h.stream_id)) {
+                    self.deliver_ready(now, key, h.stream_id, sink);
                     self.send_acknack(key, h.stream_id);
                 }
             }
@@ -722,7 +766,10 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     c.reset_streams();
                 }
             }
-            Payload::Timestamp(t) => self.reply_timestamp(now, key, t),
+            Payload::Timestamp(t) if self.once(Reply::Timestamp) => {
+                self.reply_timestamp(now, key, t)
+            }
+            Payload::Timestamp(_) => self.count_drop("repeated_request"),
             Payload::Fragment { last, data } => {
                 self.on_fragment(now, key, stream, last, data, reassembled, sink)
             }

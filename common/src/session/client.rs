@@ -396,6 +396,22 @@ impl Client {
         }
     }
 
+    /// Processes messages that arrived early and are now next.
+    fn deliver_ready(&mut self, now: Instant, stream: u8) {
+        while let Some(next) = self
+            .reliable_in
+            .get_mut(&stream)
+            .and_then(ReliableInput::take_ready)
+        {
+            if let Some(i) = self.reliable_in.get_mut(&stream) {
+                i.advance();
+            }
+            if let Ok((_, h)) = MessageHeader::decode(&next) {
+                self.process(now, stream, &next, h);
+            }
+        }
+    }
+
     fn send_acknack(&mut self, stream: u8) {
         if let Some(input) = self.reliable_in.get(&stream) {
             let mut b = MessageBuilder::new(self.header(stream_id::NONE, 0));
@@ -428,14 +444,9 @@ impl Client {
                 .or_insert_with(|| ReliableInput::new(16));
             match input.classify(header.sequence_nr) {
                 Arrival::InOrder => {
+                    input.advance();
                     self.process(now, stream, bytes, hlen);
-                    while let Some(next) =
-                        self.reliable_in.get_mut(&stream).and_then(|i| i.advance())
-                    {
-                        if let Ok((_, h)) = MessageHeader::decode(&next) {
-                            self.process(now, stream, &next, h);
-                        }
-                    }
+                    self.deliver_ready(now, stream);
                 }
                 Arrival::Early => input.store_early(header.sequence_nr, bytes.to_vec()),
                 Arrival::Duplicate | Arrival::OutOfWindow => {}
@@ -505,6 +516,7 @@ impl Client {
                     .entry(h.stream_id)
                     .or_insert_with(|| ReliableInput::new(16));
                 input.on_heartbeat(&h);
+                self.deliver_ready(now, h.stream_id);
                 self.send_acknack(h.stream_id);
             }
             Payload::TimestampReply(t) => self.events.push_back(ClientEvent::TimestampReply(t)),

@@ -147,6 +147,8 @@ impl ReliableInput {
         }
         self.announce(s);
         if d == 0 {
+            // A copy kept earlier (before a HEARTBEAT moved `expected` onto it) is stale now.
+            self.early.remove(&s);
             Arrival::InOrder
         } else if self.early.contains_key(&s) {
             Arrival::Duplicate
@@ -167,9 +169,15 @@ impl ReliableInput {
         self.early.insert(s, message);
     }
 
-    /// Marks the expected message as delivered; returns the next buffered one, if it is there.
-    pub fn advance(&mut self) -> Option<Vec<u8>> {
+    /// Marks the expected message as delivered.
+    pub fn advance(&mut self) {
         self.expected = self.expected.wrapping_add(1);
+    }
+
+    /// Takes the expected message if it arrived early; deliver it, then [`Self::advance`].
+    /// A receiver that cannot deliver it now takes it anyway and drops it: the next ACKNACK
+    /// then reports it missing, so the sender resends it.
+    pub fn take_ready(&mut self) -> Option<Vec<u8>> {
         self.early.remove(&self.expected)
     }
 
@@ -263,11 +271,41 @@ mod tests {
         assert_eq!(i.classify(1), Arrival::Duplicate);
         assert_eq!(i.acknack(0x80).nack_bitmap, 0b01);
         assert_eq!(i.classify(0), Arrival::InOrder);
-        assert_eq!(i.advance(), Some(vec![1]));
-        assert_eq!(i.advance(), None);
+        i.advance();
+        assert_eq!(i.take_ready(), Some(vec![1]));
+        i.advance();
+        assert_eq!(i.take_ready(), None);
         assert_eq!(i.expected(), 2);
         assert_eq!(i.classify(0), Arrival::Duplicate);
         assert_eq!(i.classify(40), Arrival::OutOfWindow);
+    }
+
+    #[test]
+    fn heartbeat_skipping_onto_a_buffered_message_does_not_stall() {
+        let mut i = ReliableInput::new(16);
+        assert_eq!(i.classify(5), Arrival::Early);
+        i.store_early(5, vec![5]);
+        i.on_heartbeat(&HeartbeatPayload {
+            first_unacked_seq_num: 5,
+            last_unacked_seq_num: 5,
+            stream_id: 0x80,
+        });
+        assert_eq!(i.take_ready(), Some(vec![5]));
+        i.advance();
+        assert_eq!(i.expected(), 6);
+    }
+
+    #[test]
+    fn a_dropped_ready_message_is_reported_missing() {
+        let mut i = ReliableInput::new(16);
+        i.classify(1);
+        i.store_early(1, vec![1]);
+        assert_eq!(i.classify(0), Arrival::InOrder);
+        i.advance();
+        // No room to deliver 1: it is taken and dropped; the ACKNACK must ask for it again.
+        assert!(i.take_ready().is_some());
+        let a = i.acknack(0x80);
+        assert_eq!((a.first_unacked_seq_num, a.nack_bitmap & 1), (1, 1));
     }
 
     #[test]
