@@ -359,6 +359,11 @@ impl Worker {
             MessageKind::FrontendHello => {
                 tracing::info!(frontend = h.frontend_id, "front-end (re)connected");
                 self.remove_where(|k| k.0 == h.frontend_id);
+                // Replies held for a previous incarnation of this front-end mean nothing now.
+                if let Some(p) = self.ports.get_mut(&h.frontend_id) {
+                    p.backlog.clear();
+                    p.deferred.clear();
+                }
                 let mut hello = IpcHeader::new(MessageKind::WorkerHello);
                 hello.frontend_id = h.frontend_id;
                 self.reply(hello, &[]);
