@@ -3,6 +3,8 @@
 //! removes shared-memory leftovers of children that died hard.
 
 use std::path::PathBuf;
+
+pub mod readiness;
 use std::process::{Child, Command};
 use std::time::{Duration, Instant};
 
@@ -81,8 +83,12 @@ fn wait_signal(set: &SigSet, timeout: Duration) -> Option<Signal> {
 /// Runs the children until SIGINT or SIGTERM; returns the signal that stopped it.
 ///
 /// `cleanup(final)` runs before the children start (`false`) and after they all stopped
-/// (`true`).
-pub fn supervise(specs: Vec<ChildSpec>, cleanup: impl Fn(bool)) -> anyhow::Result<Signal> {
+/// (`true`); `on_started` runs once they are started, with the stop signals blocked.
+pub fn supervise(
+    specs: Vec<ChildSpec>,
+    cleanup: impl Fn(bool),
+    on_started: impl FnOnce(),
+) -> anyhow::Result<Signal> {
     let mut set = SigSet::empty();
     set.add(Signal::SIGINT);
     set.add(Signal::SIGTERM);
@@ -104,6 +110,8 @@ pub fn supervise(specs: Vec<ChildSpec>, cleanup: impl Fn(bool)) -> anyhow::Resul
             restarts: 0,
         });
     }
+    // Runs with SIGINT/SIGTERM blocked, so threads it starts leave them to this loop.
+    on_started();
     loop {
         let now = Instant::now();
         let next = children.iter().filter_map(|c| c.restart_at).min();

@@ -135,6 +135,21 @@ fn main() -> anyhow::Result<()> {
             xrce_common::ipc::shm::remove_instance_leftovers(&instance);
         }
     };
-    supervise(specs, cleanup)?;
+    // Report readiness once the front-end answers an XRCE ping (to systemd too, if present).
+    let probe = xrce_agent::readiness::probe_address(udp);
+    let report_ready = move || {
+        std::thread::spawn(move || {
+            if xrce_agent::readiness::wait_until_serving(probe, std::time::Duration::from_secs(30))
+            {
+                tracing::info!(%probe, "agent ready");
+                if let Err(e) = xrce_agent::readiness::notify_systemd("READY=1") {
+                    tracing::warn!(error = %e, "sd_notify failed");
+                }
+            } else {
+                tracing::warn!(%probe, "the front-end did not answer a ping within 30 s");
+            }
+        });
+    };
+    supervise(specs, cleanup, report_ready)?;
     Ok(())
 }
