@@ -72,10 +72,13 @@ fn main() -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    // By default every agent is its own instance (two agents on one port, bound to different
+    // addresses or in different network namespaces, must not share their IPC).
+    let stem = format!("{}-{}-", if v6 { "udp6" } else { "udp4" }, common.port);
     let instance = common
         .instance
         .clone()
-        .unwrap_or_else(|| format!("{}-{}", if v6 { "udp6" } else { "udp4" }, common.port));
+        .unwrap_or_else(|| format!("{stem}{}", std::process::id()));
     if !xrce_common::ipc::shm::valid_instance(&instance) {
         anyhow::bail!("instance name {instance:?} must be 1-32 characters of [A-Za-z0-9_-]");
     }
@@ -125,7 +128,18 @@ fn main() -> anyhow::Result<()> {
         },
     ];
     tracing::info!(%udp, %instance, "xrce-agent starting");
+    let explicit_instance = common.instance.is_some();
     let cleanup = |last: bool| {
+        if !last && !explicit_instance {
+            // Leftovers of earlier agents on this port that died without cleaning up.
+            for dead in xrce_common::ipc::shm::dead_instances(&stem) {
+                if let Ok(n) = xrce_common::ipc::shm::IpcNode::new(&dead, "xrce-agent") {
+                    drop(n);
+                }
+                xrce_common::ipc::shm::remove_instance_leftovers(&dead);
+                tracing::info!(instance = %dead, "removed shared memory of a dead agent");
+            }
+        }
         // Creating a node removes what dead nodes of this instance left in shared memory.
         match xrce_common::ipc::shm::IpcNode::new(&instance, "xrce-agent") {
             Ok(n) => drop(n),

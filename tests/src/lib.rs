@@ -90,6 +90,7 @@ pub struct AgentProcess {
     pub port: u16,
     /// Its instance name.
     pub instance: String,
+    ip: std::net::IpAddr,
 }
 
 impl AgentProcess {
@@ -97,28 +98,38 @@ impl AgentProcess {
     pub fn start(tag: &str) -> Self {
         let port = free_udp_port();
         let instance = unique_instance(tag);
+        Self::start_on(([127, 0, 0, 1], port).into(), Some(instance))
+    }
+
+    /// Starts an agent bound to `addr`; without `instance` it picks its default name
+    /// (`udp4-<port>-<pid>`).
+    pub fn start_on(addr: SocketAddr, instance: Option<String>) -> Self {
+        let port = addr.port();
+        let mut args = vec![
+            "udp4".to_string(),
+            "-p".into(),
+            port.to_string(),
+            "--bind".into(),
+            addr.ip().to_string(),
+        ];
+        args.extend(["--dds-interface".to_string(), "127.0.0.1".into()]);
+        if let Some(i) = &instance {
+            args.extend(["--instance".to_string(), i.clone()]);
+        }
         let child = Command::new(binaries().join("xrce-agent"))
-            .args([
-                "udp4",
-                "-p",
-                &port.to_string(),
-                "--bind",
-                "127.0.0.1",
-                "--dds-interface",
-                "127.0.0.1",
-                "--instance",
-                &instance,
-            ])
+            .args(&args)
             .env(
                 "XRCE_LOG",
                 std::env::var("XRCE_TEST_LOG").unwrap_or_else(|_| "info".into()),
             )
             .spawn()
             .expect("start xrce-agent");
+        let instance = instance.unwrap_or_else(|| format!("udp4-{port}-{}", child.id()));
         let agent = AgentProcess {
             child,
             port,
             instance,
+            ip: addr.ip(),
         };
         assert!(
             agent.ping(Duration::from_secs(20)),
@@ -143,9 +154,14 @@ impl AgentProcess {
         false
     }
 
+    /// The supervisor's process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
     /// The agent's address.
     pub fn addr(&self) -> SocketAddr {
-        SocketAddr::from(([127, 0, 0, 1], self.port))
+        SocketAddr::new(self.ip, self.port)
     }
 
     /// Pids of the agent's children started with this subcommand (`dds-worker`, `frontend`).

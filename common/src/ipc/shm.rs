@@ -183,6 +183,32 @@ pub fn remove_instance_leftovers(instance: &str) -> usize {
         .count()
 }
 
+/// Instances named `<stem><pid>` with files in `/dev/shm` whose process no longer exists
+/// (agents that died without cleaning up).
+pub fn dead_instances(stem: &str) -> Vec<String> {
+    let prefix = format!("xrce_{stem}");
+    let mut out: Vec<String> = Vec::new();
+    let Ok(dir) = std::fs::read_dir("/dev/shm") else {
+        return out;
+    };
+    for e in dir.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(rest) = name.strip_prefix(&prefix) else {
+            continue;
+        };
+        let pid: String = rest.chars().take_while(char::is_ascii_digit).collect();
+        if pid.is_empty() || !rest[pid.len()..].starts_with('_') {
+            continue;
+        }
+        let alive = std::path::Path::new("/proc").join(&pid).exists();
+        let instance = format!("{stem}{pid}");
+        if !alive && valid_instance(&instance) && !out.contains(&instance) {
+            out.push(instance);
+        }
+    }
+    out
+}
+
 /// Files of an instance still present in `/dev/shm` (for tests and diagnostics).
 pub fn instance_files(instance: &str) -> Vec<String> {
     let prefix = format!("xrce_{instance}_");
