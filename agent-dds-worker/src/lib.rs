@@ -8,5 +8,6 @@ pub mod binary;
 pub mod cli;
 pub mod dds;
 pub mod raw;
+pub mod representation;
 pub mod worker;
 pub mod xml;

@@ -16,13 +16,12 @@ use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
 use xrce_common::ipc::{self, IpcHeader, MessageKind, FLAG_LITTLE_ENDIAN, FLAG_REPLAY};
 use xrce_common::wire::cdr::CdrReader;
 use xrce_common::wire::{
-    object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, Representation,
-    VariantExtra,
+    object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, VariantExtra,
 };
 
-use crate::binary;
 use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
 use crate::raw::{RawLe, RawSample};
+use crate::representation::{check_plain, describe_endpoint, describe_topic};
 use crate::xml::{self, TopicDesc};
 
 /// Worker settings.
@@ -102,8 +101,7 @@ struct FrontendPort {
 /// fills if a front-end stops reading altogether.
 const BACKLOG_MAX: usize = 4096;
 
-/// Why an operation failed: the XRCE status and a reason for the log.
-type OpError = (u8, String);
+use crate::representation::OpError;
 
 /// The DDS worker.
 pub struct Worker {
@@ -981,63 +979,5 @@ impl Worker {
             self.reads.remove(&key);
             self.to_pump.remove(&key);
         }
-    }
-}
-
-fn invalid_xml(e: xml::XmlError) -> OpError {
-    (status::ERR_INVALID_DATA, e.to_string())
-}
-
-fn invalid_binary(e: xrce_common::wire::DecodeError) -> OpError {
-    (
-        status::ERR_INVALID_DATA,
-        format!("binary representation: {e}"),
-    )
-}
-
-fn unknown_reference(r: &str) -> OpError {
-    (
-        status::ERR_UNKNOWN_REFERENCE,
-        format!("reference {r:?}: no references are loaded (not supported yet)"),
-    )
-}
-
-/// Checks the representation of a participant, publisher or subscriber (whose settings the
-/// worker takes from elsewhere: publishers and subscribers from their endpoints, and the
-/// reference client sends them an empty string).
-fn check_plain(repr: &Representation, kind: u8) -> Result<(), OpError> {
-    match (repr, kind) {
-        (Representation::Xml(x), object_kind::PARTICIPANT) => {
-            xml::parse_participant(x).map(drop).map_err(invalid_xml)
-        }
-        (Representation::Xml(_), _) => Ok(()),
-        (Representation::Binary(b), object_kind::PARTICIPANT) => {
-            binary::parse_participant(b).map_err(invalid_binary)
-        }
-        (Representation::Binary(b), _) => {
-            binary::parse_publisher_or_subscriber(b).map_err(invalid_binary)
-        }
-        (Representation::Reference(r), _) => Err(unknown_reference(r)),
-    }
-}
-
-/// Reads a topic representation.
-fn describe_topic(repr: &Representation) -> Result<TopicDesc, OpError> {
-    match repr {
-        Representation::Xml(x) => xml::parse_topic(x).map_err(invalid_xml),
-        Representation::Binary(b) => binary::parse_topic(b).map_err(invalid_binary),
-        Representation::Reference(r) => Err(unknown_reference(r)),
-    }
-}
-
-/// Reads a data writer or data reader representation.
-fn describe_endpoint(repr: &Representation, writer: bool) -> Result<xml::EndpointDesc, OpError> {
-    match repr {
-        Representation::Xml(x) => {
-            xml::parse_endpoint(x, if writer { "data_writer" } else { "data_reader" })
-                .map_err(invalid_xml)
-        }
-        Representation::Binary(b) => binary::parse_endpoint(b, writer).map_err(invalid_binary),
-        Representation::Reference(r) => Err(unknown_reference(r)),
     }
 }
