@@ -18,6 +18,9 @@ pub struct WorkerArgs {
         value_delimiter = ','
     )]
     pub dds_interfaces: Vec<IpAddr>,
+    /// References file: Fast DDS XML profiles that clients may create by reference.
+    #[arg(short = 'r', long = "refs", env = "XRCE_REFS")]
+    pub refs: Option<std::path::PathBuf>,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_dds_worker=debug`.
     #[arg(long, env = "XRCE_LOG", default_value = "info,rustdds=error")]
     pub log: String,
@@ -31,11 +34,20 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    let references = match &args.refs {
+        Some(path) => {
+            let refs = crate::references::References::load(path)?;
+            tracing::info!(path = %path.display(), profiles = refs.len(), "references loaded");
+            refs
+        }
+        None => Default::default(),
+    };
     let mut worker = Worker::new(WorkerConfig {
         instance: args.instance,
         dds: DdsConfig {
             interfaces: args.dds_interfaces,
         },
+        references,
     })?;
     worker.run()
 }

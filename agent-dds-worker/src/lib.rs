@@ -8,6 +8,7 @@ pub mod binary;
 pub mod cli;
 pub mod dds;
 pub mod raw;
+pub mod references;
 pub mod representation;
 pub mod worker;
 pub mod xml;

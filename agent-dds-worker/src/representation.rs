@@ -1,10 +1,10 @@
-//! Reading the representation of a CREATE, XML or binary, into the descriptions the worker
-//! maps to DDS. Creation by reference is not supported yet and answered as an unknown
-//! reference.
+//! Reading the representation of a CREATE (XML, binary, or a reference to a profile of the
+//! references file) into the descriptions the worker maps to DDS.
 
 use xrce_common::wire::{object_kind, status, Representation};
 
 use crate::binary;
+use crate::references::References;
 use crate::xml::{self, TopicDesc};
 
 /// Why an operation failed: the XRCE status and a reason for the log.
@@ -21,38 +21,56 @@ fn invalid_binary(e: xrce_common::wire::DecodeError) -> OpError {
     )
 }
 
-fn unknown_reference(r: &str) -> OpError {
-    (
-        status::ERR_UNKNOWN_REFERENCE,
-        format!("reference {r:?}: no references are loaded (not supported yet)"),
-    )
+/// The XML a representation stands for: its own, or the referenced profile's.
+fn as_xml<'a>(
+    repr: &'a Representation,
+    refs: &'a References,
+    element: &str,
+) -> Result<Option<&'a str>, OpError> {
+    match repr {
+        Representation::Xml(x) => Ok(Some(x)),
+        Representation::Reference(r) => refs
+            .resolve(r, element)
+            .map(Some)
+            .map_err(|why| (status::ERR_UNKNOWN_REFERENCE, why)),
+        Representation::Binary(_) => Ok(None),
+    }
 }
 
 /// Checks the representation of a participant, publisher or subscriber (whose settings the
 /// worker takes from elsewhere: publishers and subscribers from their endpoints, and the
 /// reference client sends them an empty string).
-pub fn check_plain(repr: &Representation, kind: u8) -> Result<(), OpError> {
-    match (repr, kind) {
-        (Representation::Xml(x), object_kind::PARTICIPANT) => {
-            xml::parse_participant(x).map(drop).map_err(invalid_xml)
-        }
-        (Representation::Xml(_), _) => Ok(()),
-        (Representation::Binary(b), object_kind::PARTICIPANT) => {
+pub fn check_plain(repr: &Representation, kind: u8, refs: &References) -> Result<(), OpError> {
+    let participant = kind == object_kind::PARTICIPANT;
+    let element = if participant {
+        "participant"
+    } else if kind == object_kind::PUBLISHER {
+        "publisher"
+    } else {
+        "subscriber"
+    };
+    match (as_xml(repr, refs, element)?, repr) {
+        (Some(x), _) if participant => xml::parse_participant(x).map(drop).map_err(invalid_xml),
+        (Some(_), _) => Ok(()),
+        (None, Representation::Binary(b)) if participant => {
             binary::parse_participant(b).map_err(invalid_binary)
         }
-        (Representation::Binary(b), _) => {
+        (None, Representation::Binary(b)) => {
             binary::parse_publisher_or_subscriber(b).map_err(invalid_binary)
         }
-        (Representation::Reference(r), _) => Err(unknown_reference(r)),
+        (None, _) => Ok(()),
     }
 }
 
 /// Reads a topic representation.
-pub fn describe_topic(repr: &Representation) -> Result<TopicDesc, OpError> {
-    match repr {
-        Representation::Xml(x) => xml::parse_topic(x).map_err(invalid_xml),
-        Representation::Binary(b) => binary::parse_topic(b).map_err(invalid_binary),
-        Representation::Reference(r) => Err(unknown_reference(r)),
+pub fn describe_topic(repr: &Representation, refs: &References) -> Result<TopicDesc, OpError> {
+    match (as_xml(repr, refs, "topic")?, repr) {
+        (Some(x), _) => xml::parse_topic(x).map_err(invalid_xml),
+        (None, Representation::Binary(b)) => binary::parse_topic(b).map_err(invalid_binary),
+        (None, _) => Err((
+            status::ERR_INVALID_DATA,
+            "empty topic representation".into(),
+        )),
     }
 }
 
@@ -60,13 +78,17 @@ pub fn describe_topic(repr: &Representation) -> Result<TopicDesc, OpError> {
 pub fn describe_endpoint(
     repr: &Representation,
     writer: bool,
+    refs: &References,
 ) -> Result<xml::EndpointDesc, OpError> {
-    match repr {
-        Representation::Xml(x) => {
-            xml::parse_endpoint(x, if writer { "data_writer" } else { "data_reader" })
-                .map_err(invalid_xml)
+    let element = if writer { "data_writer" } else { "data_reader" };
+    match (as_xml(repr, refs, element)?, repr) {
+        (Some(x), _) => xml::parse_endpoint(x, element).map_err(invalid_xml),
+        (None, Representation::Binary(b)) => {
+            binary::parse_endpoint(b, writer).map_err(invalid_binary)
         }
-        Representation::Binary(b) => binary::parse_endpoint(b, writer).map_err(invalid_binary),
-        Representation::Reference(r) => Err(unknown_reference(r)),
+        (None, _) => Err((
+            status::ERR_INVALID_DATA,
+            "empty endpoint representation".into(),
+        )),
     }
 }

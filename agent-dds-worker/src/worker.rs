@@ -31,6 +31,8 @@ pub struct WorkerConfig {
     pub instance: String,
     /// DDS settings.
     pub dds: DdsConfig,
+    /// Profiles clients may create by reference (`-r`).
+    pub references: crate::references::References,
 }
 
 type EntityKey = (u32, ClientKey, ObjectId);
@@ -512,18 +514,18 @@ impl Worker {
             |what: &str, e: &dyn std::fmt::Debug| (status::ERR_DDS_ERROR, format!("{what}: {e:?}"));
         let (parent, kind) = match (variant.kind, variant.extra) {
             (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
-                check_plain(repr, variant.kind)?;
+                check_plain(repr, variant.kind, &self.config.references)?;
                 let domain = effective_domain(d).map_err(|e| (status::ERR_INVALID_DATA, e))?;
                 (None, EntityKind::Participant(domain))
             }
             (object_kind::TOPIC, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                let desc = describe_topic(repr)?;
+                let desc = describe_topic(repr, &self.config.references)?;
                 (Some(p), EntityKind::Topic(desc))
             }
             (object_kind::PUBLISHER, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                check_plain(repr, variant.kind)?;
+                check_plain(repr, variant.kind, &self.config.references)?;
                 let (_, domain) = self
                     .participant_of(key, p)
                     .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
@@ -538,7 +540,7 @@ impl Worker {
             }
             (object_kind::SUBSCRIBER, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                check_plain(repr, variant.kind)?;
+                check_plain(repr, variant.kind, &self.config.references)?;
                 let (_, domain) = self
                     .participant_of(key, p)
                     .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
@@ -562,7 +564,7 @@ impl Worker {
                             ))
                         }
                     };
-                let desc = describe_endpoint(repr, true)?;
+                let desc = describe_endpoint(repr, true, &self.config.references)?;
                 let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
                 let w = publisher
@@ -592,7 +594,7 @@ impl Worker {
                             ))
                         }
                     };
-                let desc = describe_endpoint(repr, false)?;
+                let desc = describe_endpoint(repr, false, &self.config.references)?;
                 let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Reader, &tdesc.qos, &desc.qos);
                 let mut r = subscriber

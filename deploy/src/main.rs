@@ -41,6 +41,9 @@ struct Common {
     /// Middleware (accepted for compatibility; only `dds` exists here).
     #[arg(short = 'm', long = "middleware", default_value = "dds", value_parser = ["dds"])]
     middleware: String,
+    /// References file: Fast DDS XML profiles that clients may create by reference.
+    #[arg(short = 'r', long = "refs")]
+    refs: Option<std::path::PathBuf>,
     /// Address to bind (default: all interfaces).
     #[arg(long)]
     bind: Option<IpAddr>,
@@ -99,6 +102,13 @@ fn main() -> anyhow::Result<()> {
         ("XRCE_INSTANCE".to_string(), instance.clone()),
         ("XRCE_LOG".to_string(), filter.clone()),
     ];
+    if let Some(path) = &common.refs {
+        // Refuse a bad file here, with a clear message, rather than in a worker crash loop.
+        let refs = xrce_dds_worker::references::References::load(path)?;
+        let absolute = std::fs::canonicalize(path).unwrap_or_else(|_| path.clone());
+        tracing::info!(path = %absolute.display(), profiles = refs.len(), "references file");
+        env.push(("XRCE_REFS".into(), absolute.display().to_string()));
+    }
     if !common.dds_interfaces.is_empty() {
         let list: Vec<String> = common
             .dds_interfaces

@@ -104,6 +104,11 @@ impl AgentProcess {
     /// Starts an agent bound to `addr`; without `instance` it picks its default name
     /// (`udp4-<port>-<pid>`).
     pub fn start_on(addr: SocketAddr, instance: Option<String>) -> Self {
+        Self::start_with(addr, instance, &[])
+    }
+
+    /// Starts an agent bound to `addr` with extra command-line arguments.
+    pub fn start_with(addr: SocketAddr, instance: Option<String>, extra: &[&str]) -> Self {
         let port = addr.port();
         let mut args = vec![
             "udp4".to_string(),
@@ -116,6 +121,7 @@ impl AgentProcess {
         if let Some(i) = &instance {
             args.extend(["--instance".to_string(), i.clone()]);
         }
+        args.extend(extra.iter().map(|a| a.to_string()));
         let child = Command::new(binaries().join("xrce-agent"))
             .args(&args)
             .env(
@@ -345,9 +351,20 @@ impl TestClient {
 
     /// Creates an object and waits for its STATUS; returns the status value.
     pub fn create(&mut self, id: ObjectId, kind: u8, xml: &str, extra: VariantExtra) -> u8 {
+        self.create_as(id, kind, Representation::Xml(xml.into()), extra)
+    }
+
+    /// Creates an object from any representation and waits for its STATUS.
+    pub fn create_as(
+        &mut self,
+        id: ObjectId,
+        kind: u8,
+        representation: Representation,
+        extra: VariantExtra,
+    ) -> u8 {
         let variant = ObjectVariant {
             kind,
-            representation: Representation::Xml(xml.into()),
+            representation,
             extra,
         };
         let req = self
