@@ -275,25 +275,26 @@ impl Worker {
             .unwrap_or(-1)
     }
 
+    /// The reply port of a front-end, opened on first use.
     fn port(&mut self, frontend: u32) -> Result<&mut FrontendPort, ShmError> {
-        if !self.ports.contains_key(&frontend) {
-            let sender = self.node.sender(
-                &ipc::reply_service(&self.config.instance, frontend),
-                ServiceKind::Reply,
-            )?;
-            self.ports.insert(
-                frontend,
-                FrontendPort {
+        use std::collections::hash_map::Entry;
+        match self.ports.entry(frontend) {
+            Entry::Occupied(e) => Ok(e.into_mut()),
+            Entry::Vacant(v) => {
+                let sender = self.node.sender(
+                    &ipc::reply_service(&self.config.instance, frontend),
+                    ServiceKind::Reply,
+                )?;
+                Ok(v.insert(FrontendPort {
                     sender,
                     processed: 0,
                     dirty: false,
                     backlog: Default::default(),
                     deferred: HashSet::new(),
                     last_delivery: Instant::now(),
-                },
-            );
+                }))
+            }
         }
-        Ok(self.ports.get_mut(&frontend).expect("just inserted"))
     }
 
     /// Sends a reply to its front-end, or queues it behind earlier refused ones.

@@ -20,8 +20,8 @@ use crate::wire::{
     hex, object_kind, status, stream_id, submessage_id, AcknackPayload, BaseObjectReply,
     BaseObjectRequest, ClientKey, CreateClientPayload, CreatePayload, DataPayload, DecodeError,
     InfoPayload, MessageBuilder, MessageHeader, ObjectId, Payload, RawSubmessage,
-    ReadSpecification, RequestId, ResultStatus, StatusAgentPayload, Submessages, Time,
-    TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
+    ReadSpecification, ResultStatus, StatusAgentPayload, Submessages, Time, TimestampReplyPayload,
+    VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
 };
 
 /// Largest datagram any transport carries (UDP over IPv4); client MTUs are capped to it.
@@ -1063,12 +1063,4 @@ impl OperationSink for NullSink {
         true
     }
     fn operation(&mut self, _: Operation<'_>) {}
-}
-
-/// Request ids the agent core uses for its own replies.
-pub fn request(request_id: RequestId, object_id: ObjectId) -> BaseObjectRequest {
-    BaseObjectRequest {
-        request_id,
-        object_id,
-    }
 }
