@@ -12,12 +12,26 @@ use crate::bridge::Bridge;
 
 /// Largest datagram accepted.
 const MAX_DATAGRAM: usize = 65_536;
+/// Socket buffer size requested for each direction.
+const SOCKET_BUFFER: usize = 4 << 20;
 /// Datagrams handled per wake-up before IPC and timers get a turn.
 const RECV_BATCH: usize = 256;
 
 /// Runs a UDP front-end until SIGINT/SIGTERM.
 pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow::Result<()> {
     socket.set_nonblocking(true)?;
+    // Bursts (hundreds of clients starting at once) overflow the default buffer; a lost
+    // datagram costs a retransmission round, so ask for room (the kernel may cap it).
+    let sock = socket2::SockRef::from(&socket);
+    for (what, result) in [
+        ("receive", sock.set_recv_buffer_size(SOCKET_BUFFER)),
+        ("send", sock.set_send_buffer_size(SOCKET_BUFFER)),
+    ] {
+        if let Err(e) = result {
+            tracing::warn!(error = %e, "could not enlarge the socket {what} buffer");
+        }
+    }
+    tracing::debug!(recv = ?sock.recv_buffer_size(), send = ?sock.send_buffer_size(), "socket buffers");
     let local = socket.local_addr()?;
     tracing::info!(%local, "UDP front-end listening");
     let mut agent: Agent<SocketAddr> = Agent::new(config);

@@ -128,3 +128,31 @@ fn early_messages_are_bounded_per_client() {
     // Three fit in 4 KiB; the rest were refused (and will be sent again by the client).
     assert_eq!(agent.stats().dropped("early_buffer_full"), 6);
 }
+
+#[test]
+fn heartbeat_on_a_stream_never_heard_asks_for_everything() {
+    use xrce_common::wire::{ClientKey, HeartbeatPayload, MessageBuilder, MessageHeader};
+    // Every message the client sent on stream 0x80 was lost; its HEARTBEAT must still get an
+    // ACKNACK that asks for them, or the client waits for ever.
+    let mut agent: Agent<u8> = Agent::new(AgentConfig::default());
+    let now = Instant::now();
+    agent.handle_datagram(now, 1, &captured()[0], &mut NullSink);
+    while agent.poll_transmit().is_some() {}
+    let mut b = MessageBuilder::new(MessageHeader::new(0x81, 0, 0, ClientKey::INVALID));
+    let hb = HeartbeatPayload {
+        first_unacked_seq_num: 0,
+        last_unacked_seq_num: 3,
+        stream_id: 0x80,
+    };
+    b.push(&Payload::Heartbeat(hb), true).expect("fits");
+    agent.handle_datagram(now, 1, &b.finish(), &mut NullSink);
+    let t = agent.poll_transmit().expect("an ACKNACK");
+    let m = Message::decode(&t.data).expect("decode");
+    match &m.submessages[0].payload {
+        Payload::Acknack(a) => assert_eq!(
+            (a.first_unacked_seq_num, a.nack_bitmap, a.stream_id),
+            (0, 0b1111, 0x80)
+        ),
+        p => panic!("expected ACKNACK, got {p:?}"),
+    }
+}

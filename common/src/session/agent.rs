@@ -747,20 +747,28 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     self.on_acknack(key, &a);
                 }
             }
-            Payload::Heartbeat(h) => {
-                if let Some(input) = self
-                    .clients
-                    .get_mut(&key)
-                    .and_then(|c| c.reliable_in.get_mut(&h.stream_id))
-                {
-                    input.on_heartbeat(&h);
+            Payload::Heartbeat(h) if stream_id::is_reliable(h.stream_id) => {
+                // The stream may be new to us: if every message the client sent on it was
+                // lost, this HEARTBEAT is the first we hear of it, and the ACKNACK must ask
+                // for everything, or the client would wait for ever.
+                let (window, max_streams) =
+                    (self.config.input_window, self.config.max_input_streams);
+                if let Some(c) = self.clients.get_mut(&key) {
+                    if c.reliable_in.contains_key(&h.stream_id) || c.reliable_in.len() < max_streams
+                    {
+                        c.reliable_in
+                            .entry(h.stream_id)
+                            .or_insert_with(|| ReliableInput::new(window))
+                            .on_heartbeat(&h);
+                    }
                 }
                 // Messages the sender gave up on may have unblocked buffered ones.
-                if stream_id::is_reliable(h.stream_id) && self.once(Reply::Acknack(h.stream_id)) {
+                if self.once(Reply::Acknack(h.stream_id)) {
                     self.deliver_ready(now, key, h.stream_id, sink);
                     self.send_acknack(key, h.stream_id);
                 }
             }
+            Payload::Heartbeat(_) => self.count_drop("heartbeat_for_best_effort_stream"),
             Payload::Reset => {
                 if let Some(c) = self.clients.get_mut(&key) {
                     c.reset_streams();
