@@ -198,27 +198,10 @@ impl Worker {
                 return Ok(());
             }
             let timeout = self.poll_timeout();
-            let mut fds = [
-                libc::pollfd {
-                    fd: requests.raw_fd(),
-                    events: libc::POLLIN,
-                    revents: 0,
-                },
-                libc::pollfd {
-                    fd: self.poll.as_raw_fd(),
-                    events: libc::POLLIN,
-                    revents: 0,
-                },
-            ];
-            // SAFETY: `fds` is a valid array of two pollfd for the duration of the call.
-            #[allow(unsafe_code)]
-            let rc = unsafe { libc::poll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, timeout) };
-            if rc < 0 {
-                let e = std::io::Error::last_os_error();
-                if e.kind() != std::io::ErrorKind::Interrupted {
-                    return Err(e.into());
-                }
-            }
+            xrce_common::ipc::shm::wait_readable(
+                &[requests.raw_fd(), self.poll.as_raw_fd()],
+                timeout,
+            )?;
             requests.clear_events();
             requests.drain(|m| self.handle_request(m))?;
             self.poll.poll(&mut events, Some(Duration::ZERO))?;

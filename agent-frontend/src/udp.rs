@@ -61,33 +61,7 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
             Some(d) => d.saturating_duration_since(now).as_millis().min(60_000) as i32 + 1,
             None => -1,
         };
-        let mut fds = [
-            libc::pollfd {
-                fd: sock_fd,
-                events: libc::POLLIN,
-                revents: 0,
-            },
-            libc::pollfd {
-                fd: replies_fd,
-                events: libc::POLLIN,
-                revents: 0,
-            },
-            libc::pollfd {
-                fd: announce_fd,
-                events: libc::POLLIN,
-                revents: 0,
-            },
-        ];
-        // SAFETY: `fds` is a valid array of pollfd for the duration of the call.
-        #[allow(unsafe_code)]
-        let rc = unsafe { libc::poll(fds.as_mut_ptr(), fds.len() as libc::nfds_t, timeout) };
-        if rc < 0 {
-            let e = std::io::Error::last_os_error();
-            if e.kind() != std::io::ErrorKind::Interrupted {
-                return Err(e.into());
-            }
-            continue;
-        }
+        xrce_common::ipc::shm::wait_readable(&[sock_fd, replies_fd, announce_fd], timeout)?;
         let now = Instant::now();
         if let Ok(d) = SystemTime::now().duration_since(UNIX_EPOCH) {
             agent.set_wall_clock(now, d);

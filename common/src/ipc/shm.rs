@@ -162,6 +162,37 @@ impl IpcNode {
     }
 }
 
+/// Blocks until one of `fds` is readable, `timeout_ms` passes (-1: no timeout) or a signal
+/// arrives (then it returns `Ok` too, so the caller can check for termination). The event
+/// loops of the front-end and the worker wait here on their sockets and IPC listeners.
+pub fn wait_readable(fds: &[RawFd], timeout_ms: i32) -> std::io::Result<()> {
+    let mut pollfds: Vec<libc::pollfd> = fds
+        .iter()
+        .map(|&fd| libc::pollfd {
+            fd,
+            events: libc::POLLIN,
+            revents: 0,
+        })
+        .collect();
+    // SAFETY: `pollfds` is a valid, exclusively borrowed array of `pollfds.len()` pollfd for
+    // the duration of the call.
+    #[allow(unsafe_code)]
+    let rc = unsafe {
+        libc::poll(
+            pollfds.as_mut_ptr(),
+            pollfds.len() as libc::nfds_t,
+            timeout_ms,
+        )
+    };
+    if rc < 0 {
+        let e = std::io::Error::last_os_error();
+        if e.kind() != std::io::ErrorKind::Interrupted {
+            return Err(e);
+        }
+    }
+    Ok(())
+}
+
 /// Removes what an instance leaves in `/dev/shm` after its last node is gone (iceoryx2
 /// keeps a 16-byte `global_mgmt` object per prefix). Call only when no process of the
 /// instance runs any more. Returns how many files were removed.
