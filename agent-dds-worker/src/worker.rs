@@ -507,35 +507,36 @@ impl Worker {
                 let desc = describe_topic(repr, &self.config.references)?;
                 (Some(p), EntityKind::Topic(desc))
             }
-            (object_kind::PUBLISHER, VariantExtra::Parent(p)) => {
+            (
+                kind @ (object_kind::PUBLISHER | object_kind::SUBSCRIBER),
+                VariantExtra::Parent(p),
+            ) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                check_plain(repr, variant.kind, &self.config.references)?;
+                check_plain(repr, kind, &self.config.references)?;
                 let (_, domain) = self
                     .participant_of(key, p)
                     .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let role = if kind == object_kind::PUBLISHER {
+                    Role::Publish
+                } else {
+                    Role::Subscribe
+                };
                 let dp = self
                     .pool
-                    .get(domain, Role::Publish)
+                    .get(domain, role)
                     .map_err(|e| (status::ERR_DDS_ERROR, e))?;
-                let publisher = dp
-                    .create_publisher(&QosPolicies::qos_none())
-                    .map_err(|e| dds_err("create publisher", &e))?;
-                (Some(p), EntityKind::Publisher(publisher, dp))
-            }
-            (object_kind::SUBSCRIBER, VariantExtra::Parent(p)) => {
-                self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                check_plain(repr, variant.kind, &self.config.references)?;
-                let (_, domain) = self
-                    .participant_of(key, p)
-                    .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
-                let dp = self
-                    .pool
-                    .get(domain, Role::Subscribe)
-                    .map_err(|e| (status::ERR_DDS_ERROR, e))?;
-                let subscriber = dp
-                    .create_subscriber(&QosPolicies::qos_none())
-                    .map_err(|e| dds_err("create subscriber", &e))?;
-                (Some(p), EntityKind::Subscriber(subscriber, dp))
+                let entity = if role == Role::Publish {
+                    let publisher = dp
+                        .create_publisher(&QosPolicies::qos_none())
+                        .map_err(|e| dds_err("create publisher", &e))?;
+                    EntityKind::Publisher(publisher, dp)
+                } else {
+                    let subscriber = dp
+                        .create_subscriber(&QosPolicies::qos_none())
+                        .map_err(|e| dds_err("create subscriber", &e))?;
+                    EntityKind::Subscriber(subscriber, dp)
+                };
+                (Some(p), entity)
             }
             (object_kind::DATAWRITER, VariantExtra::Parent(p)) => {
                 let (publisher, dp) =
