@@ -393,74 +393,56 @@ impl TestClient {
         found.unwrap_or_else(|| panic!("no STATUS for request {req:?}"))
     }
 
-    /// Creates participant (in `domain`), topic, publisher and writer of the HelloWorld
-    /// example; returns the writer id.
-    pub fn setup_publisher(&mut self, domain: i16) -> ObjectId {
+    /// Creates the HelloWorld chain participant (in `domain`) → topic → `group` (publisher
+    /// or subscriber) → `endpoint` (writer or reader), asserting every STATUS is OK; returns
+    /// the endpoint id.
+    fn setup_chain(
+        &mut self,
+        domain: i16,
+        group: u8,
+        endpoint: u8,
+        endpoint_xml: &str,
+    ) -> ObjectId {
         let p = ObjectId::new(1, object_kind::PARTICIPANT);
-        assert_eq!(
-            self.create(
+        let t = ObjectId::new(1, object_kind::TOPIC);
+        let g = ObjectId::new(1, group);
+        let e = ObjectId::new(1, endpoint);
+        let steps = [
+            (
                 p,
                 object_kind::PARTICIPANT,
                 xml::PARTICIPANT,
-                VariantExtra::DomainId(domain)
+                VariantExtra::DomainId(domain),
             ),
-            0
-        );
-        let t = ObjectId::new(1, object_kind::TOPIC);
-        assert_eq!(
-            self.create(t, object_kind::TOPIC, xml::TOPIC, VariantExtra::Parent(p)),
-            0
-        );
-        let pb = ObjectId::new(1, object_kind::PUBLISHER);
-        assert_eq!(
-            self.create(pb, object_kind::PUBLISHER, "", VariantExtra::Parent(p)),
-            0
-        );
-        let w = ObjectId::new(1, object_kind::DATAWRITER);
-        assert_eq!(
-            self.create(
-                w,
-                object_kind::DATAWRITER,
-                xml::WRITER,
-                VariantExtra::Parent(pb)
-            ),
-            0
-        );
-        w
+            (t, object_kind::TOPIC, xml::TOPIC, VariantExtra::Parent(p)),
+            (g, group, "", VariantExtra::Parent(p)),
+            (e, endpoint, endpoint_xml, VariantExtra::Parent(g)),
+        ];
+        for (id, kind, xml, extra) in steps {
+            assert_eq!(self.create(id, kind, xml, extra), 0, "creating {id:?}");
+        }
+        e
+    }
+
+    /// Creates participant (in `domain`), topic, publisher and writer of the HelloWorld
+    /// example; returns the writer id.
+    pub fn setup_publisher(&mut self, domain: i16) -> ObjectId {
+        self.setup_chain(
+            domain,
+            object_kind::PUBLISHER,
+            object_kind::DATAWRITER,
+            xml::WRITER,
+        )
     }
 
     /// Creates participant, topic, subscriber and reader of the HelloWorld example and
     /// starts an unlimited READ_DATA on the reliable stream; returns the reader id.
     pub fn setup_subscriber(&mut self, domain: i16) -> ObjectId {
-        let p = ObjectId::new(1, object_kind::PARTICIPANT);
-        assert_eq!(
-            self.create(
-                p,
-                object_kind::PARTICIPANT,
-                xml::PARTICIPANT,
-                VariantExtra::DomainId(domain)
-            ),
-            0
-        );
-        let t = ObjectId::new(1, object_kind::TOPIC);
-        assert_eq!(
-            self.create(t, object_kind::TOPIC, xml::TOPIC, VariantExtra::Parent(p)),
-            0
-        );
-        let s = ObjectId::new(1, object_kind::SUBSCRIBER);
-        assert_eq!(
-            self.create(s, object_kind::SUBSCRIBER, "", VariantExtra::Parent(p)),
-            0
-        );
-        let r = ObjectId::new(1, object_kind::DATAREADER);
-        assert_eq!(
-            self.create(
-                r,
-                object_kind::DATAREADER,
-                xml::READER,
-                VariantExtra::Parent(s)
-            ),
-            0
+        let r = self.setup_chain(
+            domain,
+            object_kind::SUBSCRIBER,
+            object_kind::DATAREADER,
+            xml::READER,
         );
         let spec = ReadSpecification {
             preferred_stream_id: stream_id::BUILTIN_RELIABLE,
