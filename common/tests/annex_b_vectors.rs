@@ -235,3 +235,96 @@ fn malformed_inputs_are_errors_not_panics() {
         assert!(Message::decode(&unhex(bad)).is_err(), "{bad}");
     }
 }
+
+/// Decodes the samples of a WRITE_DATA/DATA vector with a fixed-size type, checks them, and
+/// re-encodes them to the same bytes.
+fn samples_round_trip(hex: &str, type_size: usize) -> Vec<(Option<sample::SampleInfo>, Vec<u8>)> {
+    let m = round_trip(hex);
+    let (Payload::WriteData(d) | Payload::Data(d)) = only(&m) else {
+        panic!("not a data submessage")
+    };
+    let le = m.submessages[0].little_endian;
+    let sizer = move |b: &[u8], _: usize| (b.len() >= type_size).then_some(type_size);
+    let samples = sample::decode_samples(d.format, d.data, le, Dialect::Spec, Some(&sizer))
+        .expect("samples decode");
+    let mut again = Vec::new();
+    sample::encode_samples(d.format, &samples, le, Dialect::Spec, &mut again).expect("encode");
+    assert_eq!(again, d.data, "samples re-encode differently");
+    samples.iter().map(|s| (s.info, s.data.to_vec())).collect()
+}
+
+#[test]
+fn b3_and_b5_sample_representations_decode_to_their_values() {
+    use sample::{sample_state, SampleInfo, SampleInfoDetail};
+    let alive = |detail| Some(SampleInfo { state: 0, detail });
+    // B.3.2: four Temperature values.
+    let s = samples_round_trip(
+        "DD 80 01 00 07 09 10 00 AA 01 44 05 04 00 00 00 14 00 11 00 1A 00 28 00",
+        2,
+    );
+    let values: Vec<i16> = s
+        .iter()
+        .map(|(_, d)| i16::from_le_bytes([d[0], d[1]]))
+        .collect();
+    assert_eq!(values, [20, 17, 26, 40]);
+    // B.3.3: timestamped sample.
+    let s = samples_round_trip(
+        "DD 80 01 00 07 03 0E 00 AA 01 44 05 00 02 00 00 E8 03 00 00 19 00",
+        2,
+    );
+    assert_eq!(
+        s,
+        [(
+            alive(SampleInfoDetail::SessionTimeOffset(1000)),
+            vec![0x19, 0]
+        )]
+    );
+    // B.3.4: disposed instance, empty detail.
+    let s = samples_round_trip(
+        "DD 80 01 00 07 03 0C 00 AA 01 44 05 02 00 11 22 33 64 19 00",
+        6,
+    );
+    assert_eq!(
+        s[0].0.map(|i| i.state),
+        Some(sample_state::INSTANCE_DISPOSED)
+    );
+    assert_eq!(s[0].1, [0x11, 0x22, 0x33, 0x64, 0x19, 0x00]);
+    // B.5.2: two big-endian FooType samples.
+    let s = samples_round_trip(
+        "DD 01 01 00 09 08 10 00 AA 02 44 06 00 00 00 02 00 00 00 01 00 00 00 01",
+        4,
+    );
+    assert_eq!(s.len(), 2);
+    // B.5.3: one sample with sequence number and time.
+    let both = |sequence_number, session_time_offset| {
+        alive(SampleInfoDetail::Both {
+            sequence_number,
+            session_time_offset,
+        })
+    };
+    let s = samples_round_trip(
+        "DD 01 01 00 09 02 14 00 AA 02 44 06 00 03 00 00 00 00 00 01 00 00 03 E8 00 00 00 01",
+        4,
+    );
+    assert_eq!(s, [(both(1, 1000), vec![0, 0, 0, 1])]);
+    // B.5.4: two samples with infos.
+    let s = samples_round_trip(
+        "DD 01 01 00 09 0A 28 00 AA 02 44 06 00 00 00 02 00 03 00 00 00 00 00 01 00 00 03 E8 00 00 00 01
+         00 03 00 00 00 00 00 02 00 00 04 4C 00 00 00 01",
+        4,
+    );
+    assert_eq!(
+        s.iter().map(|x| x.0).collect::<Vec<_>>(),
+        [both(1, 1000), both(2, 1100)]
+    );
+    // B.5.5: packed: base (1, 1000 ms), deltas (0, 0) and (1, 1 decisecond).
+    let s = samples_round_trip(
+        "DD 80 01 00 09 0E 24 00 AA 03 44 06 00 03 00 00 00 00 00 01 00 00 03 E8 00 00 00 02 00 00 00 00
+         00 00 00 01 00 01 00 01 00 00 00 01",
+        4,
+    );
+    assert_eq!(
+        s.iter().map(|x| x.0).collect::<Vec<_>>(),
+        [both(1, 1000), both(2, 1100)]
+    );
+}

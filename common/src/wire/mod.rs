@@ -7,6 +7,7 @@
 pub mod cdr;
 pub mod header;
 pub mod payload;
+pub mod sample;
 pub mod types;
 
 pub use header::MessageHeader;

@@ -187,3 +187,40 @@ pub struct Time {
     /// Nanoseconds.
     pub nanoseconds: u32,
 }
+
+/// Which reading of the protocol a peer speaks where the spec and eProsima's implementation
+/// differ (spec-digest §14). Chosen per session from the CREATE_CLIENT vendor id.
+#[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
+pub enum Dialect {
+    /// The OMG text as corrected: octet SampleInfoDetail discriminator, ObjectInfo with
+    /// activity first, a STATUS for every WRITE_DATA.
+    Spec,
+    /// eProsima Micro XRCE-DDS: u32 SampleInfoDetail discriminator with shifted cases,
+    /// ObjectInfo with config first, no STATUS after WRITE_DATA.
+    #[default]
+    Eprosima,
+}
+
+impl Dialect {
+    /// The dialect a client with this vendor id speaks.
+    pub fn for_vendor(vendor_id: [u8; 2]) -> Self {
+        if vendor_id == VENDOR_EPROSIMA {
+            Dialect::Eprosima
+        } else {
+            Dialect::Spec
+        }
+    }
+}
+
+impl std::str::FromStr for Dialect {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "spec" => Ok(Dialect::Spec),
+            "eprosima" => Ok(Dialect::Eprosima),
+            other => Err(format!(
+                "unknown dialect {other:?} (expected spec or eprosima)"
+            )),
+        }
+    }
+}
