@@ -7,6 +7,7 @@
 pub mod binary;
 pub mod cli;
 pub mod dds;
+pub mod fuzzing;
 pub mod raw;
 pub mod references;
 pub mod representation;

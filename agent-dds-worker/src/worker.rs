@@ -13,8 +13,13 @@ use rustdds::mio1::{Events, Interest, Poll, Token};
 use rustdds::no_key::{DataReader, DataWriter};
 use rustdds::{DomainParticipant, Publisher, QosPolicies, Subscriber, Topic, TopicKind};
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
-use xrce_common::ipc::{self, IpcHeader, MessageKind, FLAG_LITTLE_ENDIAN, FLAG_REPLAY};
+use xrce_common::ipc::{
+    self, IpcHeader, MessageKind, FLAG_DIALECT_SPEC, FLAG_LITTLE_ENDIAN, FLAG_REPLAY,
+    FLAG_STATUS_REQUESTED,
+};
 use xrce_common::wire::cdr::CdrReader;
+use xrce_common::wire::sample::{decode_samples, sample_state};
+use xrce_common::wire::Dialect;
 use xrce_common::wire::{
     object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, VariantExtra,
 };
@@ -375,8 +380,9 @@ impl Worker {
                 self.status(&h, r);
             }
             MessageKind::Write => {
-                if let Err(e) = self.write(key, h.op_seq, h.flags & FLAG_LITTLE_ENDIAN != 0, body) {
-                    self.status(&h, Err(e));
+                let r = self.write(key, &h, body);
+                if r.is_err() || h.flags & FLAG_STATUS_REQUESTED != 0 {
+                    self.status(&h, r);
                 }
             }
             MessageKind::Read => {
@@ -685,7 +691,37 @@ impl Worker {
         Ok((t, tdesc))
     }
 
-    fn write(
+    /// Publishes the samples of one WRITE_DATA (one, or several in the sequence formats).
+    fn write(&mut self, key: EntityKey, h: &IpcHeader, body: &[u8]) -> Result<(), OpError> {
+        let little_endian = h.flags & FLAG_LITTLE_ENDIAN != 0;
+        let dialect = if h.flags & FLAG_DIALECT_SPEC != 0 {
+            Dialect::Spec
+        } else {
+            Dialect::Eprosima
+        };
+        // Without a type description the end of a sample is the end of the submessage, so
+        // a sequence can be split only when it holds one sample.
+        let samples = decode_samples(h.data_format, body, little_endian, dialect, None)
+            .map_err(|e| (status::ERR_INVALID_DATA, format!("WRITE_DATA: {e}")))?;
+        if samples.iter().any(|s| {
+            s.info.is_some_and(|i| {
+                i.state & (sample_state::INSTANCE_DISPOSED | sample_state::INSTANCE_UNREGISTERED)
+                    != 0
+            })
+        }) {
+            return Err((
+                status::ERR_INCOMPATIBLE,
+                "dispose and unregister need a keyed topic, which this worker does not support yet"
+                    .into(),
+            ));
+        }
+        for s in samples {
+            self.write_one(key, h.op_seq, little_endian, s.data)?;
+        }
+        Ok(())
+    }
+
+    fn write_one(
         &mut self,
         key: EntityKey,
         seq: u64,

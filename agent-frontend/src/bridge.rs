@@ -17,14 +17,20 @@ use std::time::{Duration, Instant};
 
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
 use xrce_common::ipc::{
-    self, IpcHeader, MessageKind, FLAG_LITTLE_ENDIAN, FLAG_REPLAY, IN_FLIGHT_WINDOW,
+    self, IpcHeader, MessageKind, FLAG_DIALECT_SPEC, FLAG_DISPOSED, FLAG_LITTLE_ENDIAN,
+    FLAG_REPLAY, FLAG_STATUS_REQUESTED, FLAG_UNREGISTERED, IN_FLIGHT_WINDOW,
 };
-use xrce_common::session::agent::{Agent, Operation, OperationSink};
+use xrce_common::session::agent::{Agent, DataReply, Operation, OperationSink};
 use xrce_common::session::graph::{ActiveRead, CreateDecision, GraphObject, ObjectGraph};
 use xrce_common::wire::cdr::CdrWriter;
+use xrce_common::wire::sample::{is_defined_format, sample_state};
 use xrce_common::wire::{
-    status, stream_id, BaseObjectRequest, ClientKey, ObjectId, RequestId, ResultStatus,
+    data_format, status, stream_id, BaseObjectRequest, ClientKey, Dialect, ObjectId, ObjectVariant,
+    RequestId, ResultStatus,
 };
+
+/// GET_INFO mask bit asking for the object's configuration.
+const INFO_CONFIGURATION: u32 = 0x01;
 
 /// Operations waiting for the window before new ones are refused (flow control).
 pub const OUTBOX_MAX: usize = 8192;
@@ -93,6 +99,13 @@ pub struct Bridge {
     pending: HashMap<u64, (ClientKey, BaseObjectRequest, MessageKind)>,
     graphs: HashMap<ClientKey, ObjectGraph>,
     replies_out: Vec<(ClientKey, BaseObjectRequest, ResultStatus)>,
+    /// INFO replies decided here (GET_INFO about a client's objects).
+    infos_out: Vec<(
+        ClientKey,
+        BaseObjectRequest,
+        ResultStatus,
+        Option<ObjectVariant>,
+    )>,
     dirty: bool,
     stats: BridgeStats,
 }
@@ -144,6 +157,7 @@ impl Bridge {
             pending: HashMap::new(),
             graphs: HashMap::new(),
             replies_out: Vec::new(),
+            infos_out: Vec::new(),
             dirty: false,
             stats: BridgeStats::default(),
         })
@@ -332,12 +346,17 @@ impl Bridge {
         let old_outbox = std::mem::take(&mut self.outbox);
         // Operations a client still waits for: answered by the replay, or (deletes) now.
         let mut awaited: HashMap<(ClientKey, ObjectId), RequestId> = HashMap::new();
-        for (_, (client, req, kind)) in self.pending.drain() {
+        // Writes of spec-dialect clients waiting for their STATUS.
+        let mut awaited_writes: HashMap<u64, (ClientKey, BaseObjectRequest)> = HashMap::new();
+        for (seq, (client, req, kind)) in self.pending.drain() {
             match kind {
                 MessageKind::Create => {
                     awaited.insert((client, req.object_id), req.request_id);
                 }
                 MessageKind::Delete => self.replies_out.push((client, req, ResultStatus::OK)),
+                MessageKind::Write => {
+                    awaited_writes.insert(seq, (client, req));
+                }
                 _ => {}
             }
         }
@@ -409,12 +428,18 @@ impl Bridge {
         }
         for r in std::mem::take(&mut self.retained) {
             self.stats.writes_resent += 1;
+            let waited = awaited_writes.remove(&r.seq).is_some();
             self.outbox.push_back(OwnedOp {
                 header: r.header,
                 body: r.body,
                 retain: true,
-                awaited: Awaited::No,
+                awaited: if waited { Awaited::Yes } else { Awaited::No },
             });
+        }
+        // Best-effort writes the dead worker may not have published: say so.
+        for (client, req) in awaited_writes.into_values() {
+            self.replies_out
+                .push((client, req, ResultStatus::new(status::ERR_DDS_ERROR)));
         }
         self.outbox.extend(writes);
     }
@@ -485,23 +510,32 @@ impl Bridge {
                 }
             }
             MessageKind::Sample => {
-                let stream = self
+                // The read's stream and format; a sample that overtook the end of its read
+                // goes out plain on the built-in reliable stream.
+                let (stream, format, sequence_number) = self
                     .graphs
-                    .get(&h.client_key)
-                    .and_then(|g| {
-                        g.reads()
-                            .find(|(r, _)| **r == h.object_id)
-                            .map(|(_, a)| a.spec.preferred_stream_id)
-                    })
-                    .unwrap_or(stream_id::BUILTIN_RELIABLE);
-                if let Err(e) = agent.send_data(
-                    now,
-                    h.client_key,
-                    stream,
-                    req,
-                    body,
-                    h.flags & FLAG_LITTLE_ENDIAN != 0,
-                ) {
+                    .get_mut(&h.client_key)
+                    .and_then(|g| g.read_mut(h.object_id))
+                    .map_or((stream_id::BUILTIN_RELIABLE, data_format::DATA, 0), |a| {
+                        a.delivered = a.delivered.wrapping_add(1);
+                        (a.spec.preferred_stream_id, a.spec.data_format, a.delivered)
+                    });
+                let mut state = 0;
+                if h.flags & FLAG_DISPOSED != 0 {
+                    state |= sample_state::INSTANCE_DISPOSED;
+                }
+                if h.flags & FLAG_UNREGISTERED != 0 {
+                    state |= sample_state::INSTANCE_UNREGISTERED;
+                }
+                let reply = DataReply {
+                    request: req,
+                    format,
+                    sample: body,
+                    little_endian: h.flags & FLAG_LITTLE_ENDIAN != 0,
+                    state,
+                    sequence_number,
+                };
+                if let Err(e) = agent.send_data(now, h.client_key, stream, reply) {
                     tracing::debug!(client = %h.client_key, error = %e, "sample not delivered");
                 }
             }
@@ -550,6 +584,9 @@ impl Bridge {
     ) {
         for (client, req, result) in self.replies_out.drain(..) {
             let _ = agent.send_status(now, client, req, result);
+        }
+        for (client, req, result, config) in self.infos_out.drain(..) {
+            let _ = agent.send_info(now, client, req, result, config.as_ref());
         }
     }
 }
@@ -628,9 +665,10 @@ impl OperationSink for Bridge {
                 stream_id: stream,
                 data,
                 little_endian,
+                dialect,
             } => {
-                if data.format != xrce_common::wire::data_format::DATA {
-                    // Other formats are not decoded yet.
+                if !is_defined_format(data.format) {
+                    tracing::debug!(%client, format = data.format, "WRITE_DATA with an undefined DataFormat");
                     self.replies_out.push((
                         client,
                         data.base,
@@ -638,17 +676,46 @@ impl OperationSink for Bridge {
                     ));
                     return;
                 }
+                // The worker splits the samples (it knows the types) and, for spec-dialect
+                // clients, answers every write with a STATUS.
                 let mut h = header(MessageKind::Write, fe, client, data.base);
+                h.data_format = data.format;
                 if little_endian {
                     h.flags |= FLAG_LITTLE_ENDIAN;
                 }
+                let awaited = if dialect == Dialect::Spec {
+                    h.flags |= FLAG_DIALECT_SPEC | FLAG_STATUS_REQUESTED;
+                    Awaited::Yes
+                } else {
+                    Awaited::No
+                };
                 let reliable = stream_id::is_reliable(stream);
                 if !reliable && !self.has_room() {
                     // Best-effort data is not held back by flow control: drop it, counted.
                     self.stats.ops_dropped += 1;
                     return;
                 }
-                self.submit(h, data.data, reliable, Awaited::No);
+                self.submit(h, data.data, reliable, awaited);
+            }
+            Operation::GetInfo {
+                client,
+                request,
+                info_mask,
+            } => {
+                let object = self
+                    .graphs
+                    .get(&client)
+                    .and_then(|g| g.get(request.object_id));
+                let result = if object.is_some() {
+                    status::OK
+                } else {
+                    status::ERR_UNKNOWN_REFERENCE
+                };
+                let config = object
+                    .filter(|_| info_mask & INFO_CONFIGURATION != 0)
+                    .map(|o| o.variant.clone());
+                self.infos_out
+                    .push((client, request, ResultStatus::new(result), config));
             }
             Operation::Read {
                 client,
@@ -673,6 +740,7 @@ impl OperationSink for Bridge {
                         ActiveRead {
                             request_id: request.request_id,
                             spec: spec.clone(),
+                            delivered: 0,
                         },
                     );
                 }

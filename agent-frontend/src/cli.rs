@@ -2,7 +2,10 @@
 
 use std::net::{SocketAddr, UdpSocket};
 
+use std::time::Duration;
+
 use xrce_common::session::agent::AgentConfig;
+use xrce_common::wire::Dialect;
 
 use crate::bridge::Bridge;
 
@@ -21,6 +24,30 @@ pub struct FrontendArgs {
     /// Log filter (tracing syntax), e.g. `info` or `xrce_common=debug`.
     #[arg(long, env = "XRCE_LOG", default_value = "info")]
     pub log: String,
+    /// Protocol dialect for every session (`spec` or `eprosima`); by default chosen per session
+    /// from the client's vendor id.
+    #[arg(long, env = "XRCE_DIALECT")]
+    pub dialect: Option<Dialect>,
+    /// Seconds of silence after which a client's session and its DDS entities are deleted
+    /// (probed with GET_INFO from a quarter of it on); 0 keeps silent sessions for ever.
+    /// Clients built with hard liveliness use their own timeout.
+    #[arg(long, env = "XRCE_CLIENT_DEAD_TIME", default_value_t = 0.0)]
+    pub client_dead_time: f64,
+}
+
+impl FrontendArgs {
+    /// The session-core settings these arguments ask for.
+    pub fn agent_config(&self) -> anyhow::Result<AgentConfig> {
+        let dead = self.client_dead_time;
+        if !(dead.is_finite() && dead >= 0.0) {
+            anyhow::bail!("--client-dead-time must be a number of seconds ≥ 0, got {dead}");
+        }
+        Ok(AgentConfig {
+            dialect: self.dialect,
+            client_dead_time: (dead > 0.0).then(|| Duration::from_secs_f64(dead.max(0.1))),
+            ..AgentConfig::default()
+        })
+    }
 }
 
 /// Runs a front-end until SIGINT/SIGTERM.
@@ -31,8 +58,9 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    let config = args.agent_config()?;
     let socket =
         UdpSocket::bind(args.udp).map_err(|e| anyhow::anyhow!("binding UDP {}: {e}", args.udp))?;
     let bridge = Bridge::new(&args.instance, args.frontend_id)?;
-    crate::udp::run(socket, bridge, AgentConfig::default())
+    crate::udp::run(socket, bridge, config)
 }

@@ -83,7 +83,7 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
         bridge.apply_replies(now, &mut agent);
         bridge.poll_ipc(now, &mut agent);
         bridge.pump();
-        agent.handle_timeout(now);
+        agent.handle_timeout(now, &mut bridge);
         report.maybe_log(now, &agent, &bridge);
         while let Some(t) = agent.poll_transmit() {
             if let Err(e) = socket.send_to(&t.data, t.destination) {

@@ -4,12 +4,14 @@
 //! * [`session`]: sans-IO state machines: the agent side (client registry, streams,
 //!   reliability) and a client side used by tests and the load generator.
 //! * [`ipc`]: the versioned contract between front-ends and the DDS worker.
+//! * [`fuzzing`]: invariant-checking entry points for the fuzz targets and their corpus tests.
 //!
 //! This crate owns no socket, no thread and no clock: callers pass bytes, sources and
 //! `Instant`s in, and take transmits, operations and timer deadlines out. The one exception
 //! is [`ipc::shm`] (feature `shm`): the iceoryx2 ports both processes use for the contract.
 #![deny(unsafe_code)]
 
+pub mod fuzzing;
 pub mod ipc;
 pub mod session;
 pub mod wire;

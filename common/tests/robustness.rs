@@ -59,7 +59,7 @@ proptest! {
         let t0 = Instant::now();
         for (i, (src, d)) in datagrams.iter().enumerate() {
             agent.handle_datagram(t0 + Duration::from_millis(i as u64), *src, d, &mut NullSink);
-            agent.handle_timeout(t0 + Duration::from_millis(i as u64 * 50));
+            agent.handle_timeout(t0 + Duration::from_millis(i as u64 * 50), &mut NullSink);
         }
         assert_ping_answered(&mut agent, t0 + Duration::from_secs(1));
     }
@@ -81,7 +81,7 @@ proptest! {
         }
         let _ = Message::decode(&d);
         agent.handle_datagram(t0, 1, &d, &mut NullSink);
-        agent.handle_timeout(t0 + Duration::from_secs(1));
+        agent.handle_timeout(t0 + Duration::from_secs(1), &mut NullSink);
         assert_ping_answered(&mut agent, t0 + Duration::from_secs(2));
     }
 }

@@ -5,9 +5,11 @@
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
-use xrce_common::session::agent::{Agent, AgentConfig, Operation, OperationSink};
+use xrce_common::session::agent::{Agent, AgentConfig, DataReply, Operation, OperationSink};
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
-use xrce_common::wire::{stream_id, BaseObjectRequest, ClientKey, ObjectId, RequestId};
+use xrce_common::wire::{
+    data_format, stream_id, BaseObjectRequest, ClientKey, ObjectId, RequestId,
+};
 
 /// xorshift64*: a tiny deterministic generator, enough for a simulated link.
 struct Rng(u64);
@@ -148,9 +150,14 @@ fn run_sized(
                     at(now),
                     key,
                     stream_id::BUILTIN_RELIABLE,
-                    reader_req,
-                    &data,
-                    true,
+                    DataReply {
+                        request: reader_req,
+                        format: data_format::DATA,
+                        sample: &data,
+                        little_endian: true,
+                        state: 0,
+                        sequence_number: 0,
+                    },
                 )
                 .expect("send_data");
             echoed_upto += 1;
@@ -194,7 +201,7 @@ fn run_sized(
             }
         }
         client.handle_timeout(at(now));
-        agent.handle_timeout(at(now));
+        agent.handle_timeout(at(now), &mut sink);
     }
     for (_, d) in &sink.writes {
         let i = u32::from_le_bytes([d[0], d[1], d[2], d[3]]);

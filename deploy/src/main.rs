@@ -57,6 +57,18 @@ struct Common {
     /// Instance name shared by the agent's processes (default: derived from transport and port).
     #[arg(long, env = "XRCE_INSTANCE")]
     instance: Option<String>,
+    /// Protocol dialect for every session: `spec` or `eprosima` (default: per session, from
+    /// the client's vendor id).
+    #[arg(long, env = "XRCE_DIALECT")]
+    dialect: Option<xrce_common::wire::Dialect>,
+    /// Seconds of silence after which a client's session and entities are deleted; silent
+    /// clients are probed with GET_INFO first. 0 (default) keeps them, like MicroXRCEAgent.
+    #[arg(
+        long = "client-dead-time",
+        env = "XRCE_CLIENT_DEAD_TIME",
+        default_value_t = 0.0
+    )]
+    client_dead_time: f64,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -109,6 +121,24 @@ fn main() -> anyhow::Result<()> {
         tracing::info!(path = %absolute.display(), profiles = refs.len(), "references file");
         env.push(("XRCE_REFS".into(), absolute.display().to_string()));
     }
+    if let Some(d) = common.dialect {
+        env.push((
+            "XRCE_DIALECT".into(),
+            if d == xrce_common::wire::Dialect::Spec {
+                "spec"
+            } else {
+                "eprosima"
+            }
+            .into(),
+        ));
+    }
+    if !(common.client_dead_time.is_finite() && common.client_dead_time >= 0.0) {
+        anyhow::bail!("--client-dead-time must be a number of seconds ≥ 0");
+    }
+    env.push((
+        "XRCE_CLIENT_DEAD_TIME".into(),
+        common.client_dead_time.to_string(),
+    ));
     if !common.dds_interfaces.is_empty() {
         let list: Vec<String> = common
             .dds_interfaces

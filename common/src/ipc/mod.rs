@@ -15,7 +15,7 @@ pub mod shm;
 use crate::wire::{ClientKey, ObjectId, RequestId};
 
 /// Version of this contract; both sides drop (and log) messages of another version.
-pub const IPC_VERSION: u16 = 1;
+pub const IPC_VERSION: u16 = 2;
 /// Magic at the start of every message.
 pub const IPC_MAGIC: [u8; 4] = *b"XRIP";
 
@@ -82,6 +82,14 @@ pub const FLAG_LITTLE_ENDIAN: u8 = 0x01;
 /// Flag on Create/Delete/Read: part of a replay to a new worker; answer it but the client
 /// is not waiting for the answer.
 pub const FLAG_REPLAY: u8 = 0x02;
+/// Flag on Write: the client expects a STATUS for it (spec dialect), success included.
+pub const FLAG_STATUS_REQUESTED: u8 = 0x04;
+/// Flag on Write: SampleInfos in the body are in the spec dialect (else eProsima's).
+pub const FLAG_DIALECT_SPEC: u8 = 0x08;
+/// Flag on Write and Sample: the sample disposes its instance.
+pub const FLAG_DISPOSED: u8 = 0x10;
+/// Flag on Write and Sample: the sample unregisters its instance.
+pub const FLAG_UNREGISTERED: u8 = 0x20;
 
 /// The fixed header of every IPC message.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -102,6 +110,9 @@ pub struct IpcHeader {
     pub request_id: RequestId,
     /// The XRCE object concerned.
     pub object_id: ObjectId,
+    /// Write: the XRCE DataFormat of the body (the bytes after the WRITE_DATA's
+    /// BaseObjectRequest); 0 = FORMAT_DATA, a bare sample.
+    pub data_format: u8,
 }
 
 /// Why an IPC message was rejected.
@@ -136,6 +147,7 @@ impl IpcHeader {
             client_key: ClientKey::INVALID,
             request_id: RequestId::default(),
             object_id: ObjectId::INVALID,
+            data_format: 0,
         }
     }
 
@@ -155,7 +167,8 @@ impl IpcHeader {
         o[28..30].copy_from_slice(&self.request_id.0);
         o[30..32].copy_from_slice(&self.object_id.0);
         o[32..36].copy_from_slice(&(body_len as u32).to_le_bytes());
-        o[36..40].fill(0);
+        o[36] = self.data_format;
+        o[37..40].fill(0);
     }
 
     /// Encodes a whole message.
@@ -194,6 +207,7 @@ impl IpcHeader {
             client_key: ClientKey([buf[24], buf[25], buf[26], buf[27]]),
             request_id: RequestId([buf[28], buf[29]]),
             object_id: ObjectId([buf[30], buf[31]]),
+            data_format: buf[36],
         };
         Ok((h, body))
     }
@@ -234,12 +248,13 @@ mod tests {
             client_key: ClientKey([1, 2, 3, 4]),
             request_id: RequestId([0, 9]),
             object_id: ObjectId::new(1, 5),
+            data_format: 0x0A,
         };
         let m = h.encode(b"body");
         assert_eq!(IpcHeader::decode(&m), Ok((h, &b"body"[..])));
         let mut other = m.clone();
-        other[4] = 2;
-        assert_eq!(IpcHeader::decode(&other), Err(IpcError::Version(2)));
+        other[4] = 1;
+        assert_eq!(IpcHeader::decode(&other), Err(IpcError::Version(1)));
         assert_eq!(
             IpcHeader::decode(&m[..m.len() - 1]),
             Err(IpcError::Truncated)

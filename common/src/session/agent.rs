@@ -16,12 +16,14 @@ use std::time::{Duration, Instant};
 
 use super::fragment::{fragments, Reassembly};
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
+use crate::wire::cdr::CdrWriter;
+use crate::wire::sample::{encode_samples, SampleInfo, SampleInfoDetail, SampleRef};
 use crate::wire::{
-    hex, object_kind, status, stream_id, submessage_id, AcknackPayload, BaseObjectReply,
-    BaseObjectRequest, ClientKey, CreateClientPayload, CreatePayload, DataPayload, DecodeError,
-    InfoPayload, MessageBuilder, MessageHeader, ObjectId, Payload, RawSubmessage,
-    ReadSpecification, ResultStatus, StatusAgentPayload, Submessages, Time, TimestampReplyPayload,
-    VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
+    data_format, hex, object_kind, status, stream_id, submessage_id, AcknackPayload,
+    BaseObjectReply, BaseObjectRequest, ClientKey, CreateClientPayload, CreatePayload, DataPayload,
+    DecodeError, Dialect, InfoPayload, MessageBuilder, MessageHeader, ObjectId, ObjectVariant,
+    Payload, RawSubmessage, ReadSpecification, ResultStatus, StatusAgentPayload, Submessages, Time,
+    TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
 };
 
 /// Largest datagram any transport carries (UDP over IPv4); client MTUs are capped to it.
@@ -56,6 +58,13 @@ pub struct AgentConfig {
     /// A CREATE_CLIENT repeating the current session this soon after it was established,
     /// once the client has used its streams, is a duplicate and does not reset the streams.
     pub duplicate_create_guard: Duration,
+    /// Dialect for every session; `None` chooses per session from the CREATE_CLIENT vendor id.
+    /// Forcing [`Dialect::Spec`] also drops the ResultStatus from STATUS_AGENT.
+    pub dialect: Option<Dialect>,
+    /// Silence after which a client that did not ask for hard liveliness is declared dead and
+    /// its session deleted; `None` keeps silent sessions (the reference agent's behaviour).
+    /// Silent clients are probed with GET_INFO from a quarter of this on.
+    pub client_dead_time: Option<Duration>,
 }
 
 impl Default for AgentConfig {
@@ -75,6 +84,8 @@ impl Default for AgentConfig {
             // tune behaviour by vendor treat us like the agent they were tested against.
             vendor_id: VENDOR_EPROSIMA,
             duplicate_create_guard: Duration::from_millis(500),
+            dialect: None,
+            client_dead_time: None,
         }
     }
 }
@@ -105,12 +116,20 @@ pub enum Operation<'a> {
         client: ClientKey,
         request: BaseObjectRequest,
     },
-    /// WRITE_DATA, with the stream it came on (reliable streams must not lose it).
+    /// WRITE_DATA, with the stream it came on (reliable streams must not lose it) and the
+    /// dialect its SampleInfos are in.
     Write {
         client: ClientKey,
         stream_id: u8,
         data: DataPayload<'a>,
         little_endian: bool,
+        dialect: Dialect,
+    },
+    /// GET_INFO about an object of the client (not the agent itself, which the core answers).
+    GetInfo {
+        client: ClientKey,
+        request: BaseObjectRequest,
+        info_mask: u32,
     },
     /// READ_DATA.
     Read {
@@ -175,6 +194,11 @@ struct ProxyClient<A> {
     established_at: Instant,
     /// Whether the client sent anything on a stream since then.
     streams_used: bool,
+    dialect: Dialect,
+    /// Silence after which the client is dead (hard liveliness or the configured dead time).
+    dead_time: Option<Duration>,
+    /// When the last GET_INFO liveliness probe went out.
+    last_probe: Option<Instant>,
 }
 
 impl<A> ProxyClient<A> {
@@ -191,6 +215,32 @@ impl<A> ProxyClient<A> {
         self.heartbeat_due = None;
         self.streams_used = false;
     }
+
+    /// When the liveliness check of this client has something to do next.
+    fn liveliness_due(&self) -> Option<Instant> {
+        let dead = self.dead_time?;
+        let probe_every = probe_period(dead);
+        let first_probe = self.last_heard + probe_every;
+        let next_probe = self
+            .last_probe
+            .filter(|p| *p >= self.last_heard)
+            .map_or(first_probe, |p| (p + probe_every).max(first_probe));
+        Some(next_probe.min(self.last_heard + dead))
+    }
+}
+
+/// How often a silent client is probed: four times within its dead time, at most every 10 s.
+fn probe_period(dead_time: Duration) -> Duration {
+    (dead_time / 4).clamp(Duration::from_millis(25), Duration::from_secs(10))
+}
+
+/// The hard-liveliness timeout a client asks for in CREATE_CLIENT (property `uxr_hl`, six
+/// decimal digits of milliseconds).
+fn hard_liveliness(c: &CreateClientPayload) -> Option<Duration> {
+    let props = c.properties.as_ref()?;
+    let (_, v) = props.iter().find(|(k, _)| k == "uxr_hl")?;
+    let ms: u64 = v.trim().parse().ok()?;
+    (ms > 0).then(|| Duration::from_millis(ms.max(100)))
 }
 
 /// Why a reply could not be queued.
@@ -205,6 +255,26 @@ pub enum SendError {
     /// The reply does not fit one submessage.
     #[error("reply too large")]
     TooLarge,
+    /// The read asked for an undefined DataFormat.
+    #[error("undefined data format")]
+    BadFormat,
+}
+
+/// A sample for [`Agent::send_data`].
+#[derive(Debug, Clone, Copy)]
+pub struct DataReply<'a> {
+    /// The READ_DATA answered.
+    pub request: BaseObjectRequest,
+    /// The DataFormat the read asked for.
+    pub format: u8,
+    /// The serialized sample.
+    pub sample: &'a [u8],
+    /// Whether `sample` is little endian.
+    pub little_endian: bool,
+    /// [`crate::wire::sample::sample_state`] bits (0 = alive), for the formats with SampleInfo.
+    pub state: u8,
+    /// Sequence number of the sample within its read, for the formats with SampleInfo.
+    pub sequence_number: u32,
 }
 
 /// The agent-side protocol state of every session of one front-end.
@@ -482,7 +552,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             match payload {
                 Payload::CreateClient(c) => self.create_client(now, src, &c, sink),
                 Payload::GetInfo(g) if self.once(Reply::Info) => {
-                    self.reply_info(src, header, g.base, false)
+                    let dialect = self.config.dialect.unwrap_or_default();
+                    self.reply_info(src, header, g.base, false, dialect)
                 }
                 Payload::GetInfo(_) => self.count_drop("repeated_request"),
                 _ => self.drop_input("no_session", bytes),
@@ -527,6 +598,11 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 .mtu
                 .unwrap_or(self.config.default_mtu)
                 .clamp(64, MAX_DATAGRAM);
+            let dialect = self
+                .config
+                .dialect
+                .unwrap_or(Dialect::for_vendor(c.vendor_id));
+            let dead_time = hard_liveliness(c).or(self.config.client_dead_time);
             match self.clients.get_mut(&c.client_key) {
                 Some(existing) if existing.session_id == c.session_id => {
                     // The same session again: a restarted client starts its streams at 0, so
@@ -548,6 +624,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     }
                     existing.mtu = mtu;
                     existing.last_heard = now;
+                    existing.dialect = dialect;
+                    existing.dead_time = dead_time;
                     let old = existing.addr;
                     existing.addr = src;
                     self.by_addr.remove(&old);
@@ -575,20 +653,32 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                             delete_requested: false,
                             established_at: now,
                             streams_used: false,
+                            dialect,
+                            dead_time,
+                            last_probe: None,
                         },
                     );
                     self.by_addr.insert(src, c.client_key);
                     sink.operation(Operation::ClientCreated {
                         client: c.client_key,
                     });
-                    tracing::info!(client = %c.client_key, session = c.session_id, mtu, "session created");
+                    tracing::info!(client = %c.client_key, session = c.session_id, mtu, ?dialect, ?dead_time, "session created");
                 }
+            }
+            if let Some(due) = self
+                .clients
+                .get(&c.client_key)
+                .and_then(ProxyClient::liveliness_due)
+            {
+                self.next_timeout = Some(self.next_timeout.map_or(due, |t| t.min(due)));
             }
         } else {
             tracing::info!(client = %c.client_key, status = result, "CREATE_CLIENT refused");
         }
+        // Without a ResultStatus a refusal cannot be reported: only a forced spec dialect drops it.
+        let forced_spec = self.config.dialect == Some(Dialect::Spec);
         let payload = Payload::StatusAgent(StatusAgentPayload {
-            result: Some(ResultStatus::new(result)),
+            result: (!forced_spec).then(|| ResultStatus::new(result)),
             cookie: XRCE_COOKIE,
             version: XRCE_VERSION,
             vendor_id: self.config.vendor_id,
@@ -605,27 +695,36 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         header: MessageHeader,
         request: BaseObjectRequest,
         in_session: bool,
+        dialect: Dialect,
     ) {
-        // ObjectInfo in the eProsima layout: config (AGENT_Representation), then activity
-        // (AGENT_ActivityInfo: availability 1, no locators).
-        let mut info = vec![0x01, object_kind::AGENT];
-        info.extend_from_slice(&XRCE_COOKIE);
-        info.extend_from_slice(&XRCE_VERSION);
-        info.extend_from_slice(&self.config.vendor_id);
-        info.extend_from_slice(&[
-            0x00,
-            0x01,
-            object_kind::AGENT,
-            0x00,
-            0x01,
-            0x00,
-            0x00,
-            0x00,
-            0,
-            0,
-            0,
-            0,
-        ]);
+        // ObjectInfo: config (AGENT_Representation: cookie, version, vendor, no properties)
+        // and activity (AGENT_ActivityInfo: availability 1, no locators), in the dialect's
+        // member order.
+        let mut config = vec![0x01, object_kind::AGENT];
+        config.extend_from_slice(&XRCE_COOKIE);
+        config.extend_from_slice(&XRCE_VERSION);
+        config.extend_from_slice(&self.config.vendor_id);
+        config.push(0x00);
+        // ObjectInfo starts at payload offset 6 (after the 6-byte BaseObjectReply); the
+        // padding below aligns the activity's members relative to the payload start.
+        let info = match dialect {
+            Dialect::Eprosima => {
+                // config? (offsets 6..=16), activity? 17, kind 18, pad, availability 20..22,
+                // pad, locator count 24..28; no DHEADER.
+                let mut v = config;
+                v.extend_from_slice(&[0x01, object_kind::AGENT, 0x00, 0x01, 0x00, 0x00, 0x00]);
+                v.extend_from_slice(&[0, 0, 0, 0]);
+                v
+            }
+            Dialect::Spec => {
+                // activity? 6, kind 7, DHEADER 8..12 (= 8 bytes follow), availability 12..14,
+                // pad, locator count 16..20; then config? from 20.
+                let mut v = vec![0x01, object_kind::AGENT, 8, 0, 0, 0, 0x01, 0x00, 0, 0];
+                v.extend_from_slice(&[0, 0, 0, 0]);
+                v.extend_from_slice(&config);
+                v
+            }
+        };
         let reply = BaseObjectReply {
             related: request,
             result: ResultStatus {
@@ -647,6 +746,17 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             true,
         );
         self.push_transmit(dst, b.finish());
+    }
+
+    fn client_dialect(&self, key: ClientKey) -> Dialect {
+        self.clients
+            .get(&key)
+            .map_or(Dialect::default(), |c| c.dialect)
+    }
+
+    /// The dialect a client's session speaks.
+    pub fn dialect(&self, key: ClientKey) -> Option<Dialect> {
+        self.clients.get(&key).map(|c| c.dialect)
     }
 
     fn remove_client(&mut self, key: ClientKey, sink: &mut impl OperationSink) {
@@ -723,24 +833,37 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 client: key,
                 request: d,
             }),
-            Payload::WriteData(d) => sink.operation(Operation::Write {
-                client: key,
-                stream_id: stream,
-                data: d,
-                little_endian: le,
-            }),
+            Payload::WriteData(d) => {
+                let dialect = self.client_dialect(key);
+                sink.operation(Operation::Write {
+                    client: key,
+                    stream_id: stream,
+                    data: d,
+                    little_endian: le,
+                    dialect,
+                })
+            }
             Payload::ReadData(r) => sink.operation(Operation::Read {
                 client: key,
                 request: r.base,
                 spec: &r.spec,
             }),
             Payload::GetInfo(_) if !self.once(Reply::Info) => self.count_drop("repeated_request"),
-            Payload::GetInfo(g) => {
+            Payload::GetInfo(g)
+                if g.base.object_id == ObjectId::AGENT || g.base.object_id == ObjectId::CLIENT =>
+            {
                 if let Some(c) = self.clients.get(&key) {
-                    let (addr, h) = (c.addr, c.header(stream_id::NONE, 0));
-                    self.reply_info(addr, h, g.base, true);
+                    let (addr, h, d) = (c.addr, c.header(stream_id::NONE, 0), c.dialect);
+                    self.reply_info(addr, h, g.base, true, d);
                 }
             }
+            Payload::GetInfo(g) => sink.operation(Operation::GetInfo {
+                client: key,
+                request: g.base,
+                info_mask: g.info_mask,
+            }),
+            // A client's answer to a liveliness probe: hearing it was the point.
+            Payload::Info(_) => {}
             Payload::Acknack(a) => {
                 // One ACKNACK per stream per datagram: more would only multiply resends.
                 if self.once(Reply::Retransmit(a.stream_id)) {
@@ -984,22 +1107,83 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         Ok(())
     }
 
-    /// Queues a DATA (FORMAT_DATA) reply for a read request on `stream` (0 = built-in reliable).
+    /// Queues an INFO reply about one of the client's objects on the built-in reliable
+    /// stream: `config` is the object's description when the client asked for it.
+    pub fn send_info(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        request: BaseObjectRequest,
+        result: ResultStatus,
+        config: Option<&ObjectVariant>,
+    ) -> Result<(), SendError> {
+        let dialect = self.dialect(key).ok_or(SendError::NoClient)?;
+        let reply = BaseObjectReply {
+            related: request,
+            result,
+        };
+        // Encoded whole so that the variant is aligned relative to the payload start.
+        let mut buf = Vec::new();
+        {
+            let w = &mut CdrWriter::new(&mut buf, true);
+            reply.encode(w);
+            if dialect == Dialect::Spec {
+                w.bool(false); // no activity
+            }
+            w.bool(config.is_some());
+            if let Some(v) = config {
+                v.encode(w);
+            }
+            if dialect == Dialect::Eprosima {
+                w.bool(false);
+            }
+        }
+        let payload = Payload::Info(InfoPayload {
+            reply,
+            object_info: buf.get(BaseObjectReply::LEN..).unwrap_or_default(),
+        });
+        let sub = Self::encode_submessage(&payload, true)?;
+        self.queue_reliable(key, stream_id::BUILTIN_RELIABLE, vec![sub])?;
+        self.flush_client(now, key);
+        Ok(())
+    }
+
+    /// Queues a DATA reply for a read request on `stream` (0 = built-in reliable), in the
+    /// DataFormat the read asked for.
     pub fn send_data(
         &mut self,
         now: Instant,
         key: ClientKey,
         stream: u8,
-        request: BaseObjectRequest,
-        sample: &[u8],
-        little_endian: bool,
+        reply: DataReply<'_>,
     ) -> Result<(), SendError> {
-        let payload = Payload::Data(DataPayload {
-            base: request,
-            format: crate::wire::data_format::DATA,
-            data: sample,
-        });
         let c = self.clients.get_mut(&key).ok_or(SendError::NoClient)?;
+        let little_endian = reply.little_endian;
+        let mut wrapped = Vec::new();
+        let data = if reply.format == data_format::DATA {
+            reply.sample
+        } else {
+            let offset = now.saturating_duration_since(c.established_at).as_millis();
+            let info = SampleInfo {
+                state: reply.state,
+                detail: SampleInfoDetail::Both {
+                    sequence_number: reply.sequence_number,
+                    session_time_offset: u32::try_from(offset).unwrap_or(u32::MAX),
+                },
+            };
+            let one = [SampleRef {
+                info: Some(info),
+                data: reply.sample,
+            }];
+            encode_samples(reply.format, &one, little_endian, c.dialect, &mut wrapped)
+                .map_err(|_| SendError::BadFormat)?;
+            &wrapped
+        };
+        let payload = Payload::Data(DataPayload {
+            base: reply.request,
+            format: reply.format,
+            data,
+        });
         let stream = if stream == stream_id::NONE {
             stream_id::BUILTIN_RELIABLE
         } else {
@@ -1029,15 +1213,42 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         Ok(())
     }
 
-    /// Sends due HEARTBEATs.
-    pub fn handle_timeout(&mut self, now: Instant) {
+    /// Sends due HEARTBEATs and liveliness probes, and deletes the sessions of clients that
+    /// stayed silent past their dead time (their objects go with them through `sink`).
+    pub fn handle_timeout(&mut self, now: Instant, sink: &mut impl OperationSink) {
         if self.next_timeout.is_none_or(|t| t > now) {
             return;
         }
         let period = self.config.heartbeat_period;
         let mut next: Option<Instant> = None;
         let mut out = Vec::new();
+        let mut dead = Vec::new();
+        let mut merge = |d: Instant| next = Some(next.map_or(d, |t: Instant| t.min(d)));
         for c in self.clients.values_mut() {
+            if let Some(dead_time) = c.dead_time {
+                let silence = now.saturating_duration_since(c.last_heard);
+                if silence >= dead_time {
+                    dead.push((c.key, silence));
+                    continue;
+                }
+                if c.liveliness_due().is_some_and(|d| d <= now) {
+                    // GET_INFO about the agent, as a ping: a live client answers with INFO.
+                    let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
+                    let probe = crate::wire::GetInfoPayload {
+                        base: BaseObjectRequest {
+                            request_id: crate::wire::RequestId::from_u16(0),
+                            object_id: ObjectId::AGENT,
+                        },
+                        info_mask: 0x02,
+                    };
+                    let _ = b.push(&Payload::GetInfo(probe), true);
+                    out.push((c.addr, b.finish()));
+                    c.last_probe = Some(now);
+                }
+                if let Some(d) = c.liveliness_due() {
+                    merge(d);
+                }
+            }
             let Some(due) = c.heartbeat_due else { continue };
             if due <= now {
                 let mut any = false;
@@ -1052,12 +1263,17 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 c.heartbeat_due = any.then_some(now + period);
             }
             if let Some(d) = c.heartbeat_due {
-                next = Some(next.map_or(d, |t| t.min(d)));
+                merge(d);
             }
         }
         self.next_timeout = next;
         for (a, m) in out {
             self.push_transmit(a, m);
+        }
+        for (key, silence) in dead {
+            tracing::warn!(client = %key, silent_ms = silence.as_millis() as u64, "client silent past its dead time; deleting its session");
+            self.count_drop("client_dead");
+            self.remove_client(key, sink);
         }
     }
 }

@@ -12,9 +12,9 @@ use super::fragment::{fragments, Reassembly};
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
 use crate::wire::{
     encode_submessage, stream_id, BaseObjectReply, BaseObjectRequest, ClientKey,
-    CreateClientPayload, CreatePayload, DataPayload, GetInfoPayload, MessageBuilder, MessageHeader,
-    ObjectId, ObjectVariant, Payload, ReadDataPayload, ReadSpecification, RequestId, ResultStatus,
-    Submessages, TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
+    CreateClientPayload, CreatePayload, DataPayload, GetInfoPayload, InfoPayload, MessageBuilder,
+    MessageHeader, ObjectId, ObjectVariant, Payload, ReadDataPayload, ReadSpecification, RequestId,
+    ResultStatus, Submessages, TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
 };
 
 /// Tunables of the client.
@@ -32,6 +32,8 @@ pub struct ClientConfig {
     pub heartbeat_period: Duration,
     /// CREATE_CLIENT retry period.
     pub connect_retry: Duration,
+    /// Ask the agent for hard liveliness with this timeout (eProsima property `uxr_hl`).
+    pub hard_liveliness: Option<Duration>,
 }
 
 impl ClientConfig {
@@ -44,6 +46,7 @@ impl ClientConfig {
             output_window: 16,
             heartbeat_period: Duration::from_millis(50),
             connect_retry: Duration::from_millis(250),
+            hard_liveliness: None,
         }
     }
 }
@@ -141,7 +144,10 @@ impl Client {
             vendor_id: VENDOR_EPROSIMA,
             client_key: self.config.key,
             session_id: self.config.session_id,
-            properties: None,
+            properties: self.config.hard_liveliness.map(|t| {
+                let ms = t.as_millis().min(999_999);
+                vec![("uxr_hl".to_string(), format!("{ms:06}"))]
+            }),
             mtu: Some(self.config.mtu),
         });
         let mut b = MessageBuilder::new(MessageHeader::new(
@@ -492,6 +498,22 @@ impl Client {
             }
             Payload::Status(s) => self.events.push_back(ClientEvent::Status(s)),
             Payload::Info(i) => self.events.push_back(ClientEvent::Info(i.reply)),
+            Payload::GetInfo(g) => {
+                // The agent checks that we are alive: answer at once, as eProsima's client does.
+                let reply = BaseObjectReply {
+                    related: g.base,
+                    result: ResultStatus::OK,
+                };
+                let mut b = MessageBuilder::new(self.header(stream_id::NONE, 0));
+                let _ = b.push(
+                    &Payload::Info(InfoPayload {
+                        reply,
+                        object_info: &[0, 0],
+                    }),
+                    true,
+                );
+                self.transmits.push_back(b.finish());
+            }
             Payload::Data(d) => self.events.push_back(ClientEvent::Data {
                 request: d.base,
                 stream_id: stream,

@@ -36,6 +36,8 @@ pub struct ActiveRead {
     pub request_id: RequestId,
     /// The read specification.
     pub spec: ReadSpecification,
+    /// Samples delivered so far (numbers the SampleInfos of the formats that carry one).
+    pub delivered: u32,
 }
 
 /// Most objects one client may create; more get STATUS_ERR_RESOURCES (every object is a DDS
@@ -147,6 +149,11 @@ impl ObjectGraph {
         }
     }
 
+    /// The active read of a reader.
+    pub fn read_mut(&mut self, reader: ObjectId) -> Option<&mut ActiveRead> {
+        self.reads.get_mut(&reader)
+    }
+
     /// Forgets a finished read.
     pub fn end_read(&mut self, reader: ObjectId) {
         self.reads.remove(&reader);
@@ -244,6 +251,7 @@ mod tests {
             ActiveRead {
                 request_id: RequestId::from_u16(9),
                 spec: ReadSpecification::default(),
+                delivered: 0,
             },
         );
         let removed = g.remove(p.object_id);

@@ -81,6 +81,9 @@ pub struct BaseObjectReply {
 }
 
 impl BaseObjectReply {
+    /// Encoded length.
+    pub const LEN: usize = 6;
+
     fn decode(r: &mut CdrReader<'_>) -> Result<Self, DecodeError> {
         let related = BaseObjectRequest::decode(r)?;
         let result = ResultStatus {
@@ -90,7 +93,8 @@ impl BaseObjectReply {
         Ok(BaseObjectReply { related, result })
     }
 
-    fn encode(&self, w: &mut CdrWriter<'_>) {
+    /// Appends the reply.
+    pub fn encode(&self, w: &mut CdrWriter<'_>) {
         self.related.encode(w);
         w.u8(self.result.status);
         w.u8(self.result.implementation_status);

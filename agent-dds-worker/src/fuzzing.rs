@@ -1,0 +1,33 @@
+//! Entry point shared by the representation fuzz target (`fuzz/`) and its corpus replay test:
+//! arbitrary bytes as an XML string, a binary body and a references file, through every
+//! parser the worker applies to client input. Nothing may panic; errors are the normal result.
+
+use xrce_common::wire::{object_kind, Representation};
+
+use crate::references::References;
+use crate::representation::{check_plain, describe_endpoint, describe_topic};
+
+/// Feeds `data` to every representation parser.
+pub fn representations(data: &[u8]) {
+    let refs = References::parse(&String::from_utf8_lossy(data), "fuzz").unwrap_or_default();
+    let mut reprs = vec![Representation::Binary(data.to_vec())];
+    if let Ok(s) = std::str::from_utf8(data) {
+        reprs.push(Representation::Xml(s.to_string()));
+        reprs.push(Representation::Reference(s.to_string()));
+    }
+    for repr in &reprs {
+        for kind in [
+            object_kind::PARTICIPANT,
+            object_kind::TOPIC,
+            object_kind::PUBLISHER,
+            object_kind::SUBSCRIBER,
+            object_kind::DATAWRITER,
+            object_kind::DATAREADER,
+        ] {
+            let _ = check_plain(repr, kind, &refs);
+        }
+        let _ = describe_topic(repr, &refs);
+        let _ = describe_endpoint(repr, true, &refs);
+        let _ = describe_endpoint(repr, false, &refs);
+    }
+}

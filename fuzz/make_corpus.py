@@ -1,0 +1,57 @@
+#!/usr/bin/env python3
+"""Builds the seed corpora of the fuzz targets from the captured wire traces and the Annex B
+vectors. Run from the repository root: python3 fuzz/make_corpus.py"""
+import hashlib, pathlib, re, struct
+
+root = pathlib.Path(__file__).resolve().parent.parent
+traces = sorted((root / "common/tests/data/wire-traces").glob("*.txt"))
+out = root / "fuzz/corpus"
+annex_b = [
+    "80 00 00 00 00 01 0E 00 58 52 43 45 01 00 0F 0F 22 33 44 55 DD 00",
+    "DD 80 01 00 07 09 10 00 AA 01 44 05 04 00 00 00 14 00 11 00 1A 00 28 00",
+    "DD 80 01 00 07 03 0E 00 AA 01 44 05 00 02 00 00 E8 03 00 00 19 00",
+    "DD 80 01 00 07 03 0C 00 AA 01 44 05 02 00 11 22 33 64 19 00",
+    "DD 01 01 00 09 02 14 00 AA 02 44 06 00 03 00 00 00 00 00 01 00 00 03 E8 00 00 00 01",
+    "DD 01 01 00 09 0A 28 00 AA 02 44 06 00 00 00 02 00 03 00 00 00 00 00 01 00 00 03 E8 00 00 00 01"
+    " 00 03 00 00 00 00 00 02 00 00 04 4C 00 00 00 01",
+    "DD 80 01 00 09 0E 24 00 AA 03 44 06 00 03 00 00 00 00 00 01 00 00 03 E8 00 00 00 02 00 00 00 00"
+    " 00 00 00 01 00 01 00 01 00 00 00 01",
+    "DD 80 01 00 08 01 20 00 AA 01 44 06 00 08 01 00 06 00 00 00 78 3E 31 30 30 00 01 00 08 00 00 00"
+    " 64 00 1E 00 00 04 E8 03",
+]
+
+
+def write(kind, data):
+    d = out / kind
+    d.mkdir(parents=True, exist_ok=True)
+    (d / hashlib.sha1(data).hexdigest()[:16]).write_bytes(data)
+
+
+per_client = {}
+for t in traces:
+    for line in t.read_text().splitlines():
+        parts = line.split()
+        if len(parts) != 4 or parts[1] not in ("C>A", "A>C"):
+            continue
+        data = bytes.fromhex(parts[3])
+        write("decode", data)
+        for xml in re.findall(rb"<dds>.*?</dds>", data, re.S):
+            write("representations", xml)
+        if parts[1] == "C>A":
+            per_client.setdefault((t.stem, parts[2]), []).append(data)
+for v in annex_b:
+    write("decode", bytes.fromhex(v.replace(" ", "")))
+for (stem, port), datagrams in per_client.items():
+    blob = b""
+    for i, d in enumerate(datagrams):
+        piece = struct.pack("<HB", len(d), 0) + d
+        if len(blob) + len(piece) > 16384:
+            write("agent_session", blob)
+            blob = b""
+        blob += piece
+    if blob:
+        write("agent_session", blob)
+for f in sorted((root / "tests/data").glob("*.refs")):
+    write("representations", f.read_bytes())
+for kind in ("decode", "agent_session", "representations"):
+    print(kind, len(list((out / kind).iterdir())))
