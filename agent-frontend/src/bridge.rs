@@ -36,8 +36,12 @@ const INFO_CONFIGURATION: u32 = 0x01;
 pub const OUTBOX_MAX: usize = 8192;
 /// Absolute bound of the outbox (`has_room` keeps it below [`OUTBOX_MAX`] between messages).
 pub const OUTBOX_HARD_MAX: usize = 4 * OUTBOX_MAX;
+/// Bytes of queued operations before new ones are refused (flow control; samples reach 1 MiB).
+pub const OUTBOX_MAX_BYTES: usize = 64 << 20;
 /// Reliable writes kept for a possible resend before new ones are refused (flow control).
 pub const RETAIN_MAX: usize = 8192;
+/// Bytes of retained writes before new ones are refused (flow control).
+pub const RETAIN_MAX_BYTES: usize = 64 << 20;
 /// How long an executed reliable write is kept in case the worker dies right after.
 pub const SETTLE_TIME: Duration = Duration::from_millis(250);
 
@@ -63,6 +67,85 @@ struct Retained {
     executed_at: Option<Instant>,
     header: IpcHeader,
     body: Vec<u8>,
+}
+
+/// What an entry of a [`ByteQueue`] weighs.
+trait Weighed {
+    fn weight(&self) -> usize;
+}
+
+impl Weighed for OwnedOp {
+    fn weight(&self) -> usize {
+        IpcHeader::LEN + self.body.len()
+    }
+}
+
+impl Weighed for Retained {
+    fn weight(&self) -> usize {
+        IpcHeader::LEN + self.body.len()
+    }
+}
+
+/// A FIFO that knows how many bytes it holds (so memory is bounded by bytes, not entries).
+#[derive(Debug)]
+struct ByteQueue<T> {
+    items: VecDeque<T>,
+    bytes: usize,
+}
+
+impl<T> Default for ByteQueue<T> {
+    fn default() -> Self {
+        ByteQueue {
+            items: VecDeque::new(),
+            bytes: 0,
+        }
+    }
+}
+
+impl<T: Weighed> ByteQueue<T> {
+    fn push_back(&mut self, t: T) {
+        self.bytes += t.weight();
+        self.items.push_back(t);
+    }
+
+    fn push_front(&mut self, t: T) {
+        self.bytes += t.weight();
+        self.items.push_front(t);
+    }
+
+    fn pop_front(&mut self) -> Option<T> {
+        let t = self.items.pop_front()?;
+        self.bytes -= t.weight();
+        Some(t)
+    }
+
+    fn front(&self) -> Option<&T> {
+        self.items.front()
+    }
+
+    /// Entries in order; callers must not change their weight.
+    fn iter_mut(&mut self) -> impl Iterator<Item = &mut T> {
+        self.items.iter_mut()
+    }
+
+    fn len(&self) -> usize {
+        self.items.len()
+    }
+
+    fn is_empty(&self) -> bool {
+        self.items.is_empty()
+    }
+
+    fn take(&mut self) -> VecDeque<T> {
+        self.bytes = 0;
+        std::mem::take(&mut self.items)
+    }
+
+    fn extend(&mut self, items: impl IntoIterator<Item = T>) {
+        for t in items {
+            self.push_back(t);
+        }
+    }
 }
 
 /// Counters of the bridge.
@@ -93,8 +176,8 @@ pub struct Bridge {
     generation: Option<u32>,
     next_seq: u64,
     processed: u64,
-    outbox: VecDeque<OwnedOp>,
-    retained: VecDeque<Retained>,
+    outbox: ByteQueue<OwnedOp>,
+    retained: ByteQueue<Retained>,
     /// Sent operations whose STATUS a client waits for: seq -> (client, request, kind).
     pending: HashMap<u64, (ClientKey, BaseObjectRequest, MessageKind)>,
     graphs: HashMap<ClientKey, ObjectGraph>,
@@ -152,8 +235,8 @@ impl Bridge {
             generation: None,
             next_seq: 1,
             processed: 0,
-            outbox: VecDeque::new(),
-            retained: VecDeque::new(),
+            outbox: ByteQueue::default(),
+            retained: ByteQueue::default(),
             pending: HashMap::new(),
             graphs: HashMap::new(),
             replies_out: Vec::new(),
@@ -202,7 +285,7 @@ impl Bridge {
     /// Sends now if the window allows (copying `body` straight into shared memory), else
     /// queues an owned copy.
     fn submit(&mut self, mut h: IpcHeader, body: &[u8], retain: bool, awaited: Awaited) {
-        if self.outbox.len() >= OUTBOX_HARD_MAX {
+        if self.outbox.len() >= OUTBOX_HARD_MAX || self.outbox.bytes >= 4 * OUTBOX_MAX_BYTES {
             // Only one message packed with operations gets here past `has_room`.
             self.stats.ops_dropped += 1;
             if self.stats.ops_dropped.is_power_of_two() {
@@ -343,7 +426,7 @@ impl Bridge {
         self.generation = Some(generation);
         self.processed = self.next_seq - 1;
         self.stats.replays += 1;
-        let old_outbox = std::mem::take(&mut self.outbox);
+        let old_outbox = self.outbox.take();
         // Operations a client still waits for: answered by the replay, or (deletes) now.
         let mut awaited: HashMap<(ClientKey, ObjectId), RequestId> = HashMap::new();
         // Writes of spec-dialect clients waiting for their STATUS.
@@ -426,7 +509,7 @@ impl Bridge {
                 });
             }
         }
-        for r in std::mem::take(&mut self.retained) {
+        for r in self.retained.take() {
             self.stats.writes_resent += 1;
             let waited = awaited_writes.remove(&r.seq).is_some();
             self.outbox.push_back(OwnedOp {
@@ -593,7 +676,10 @@ impl Bridge {
 
 impl OperationSink for Bridge {
     fn has_room(&self) -> bool {
-        self.outbox.len() < OUTBOX_MAX && self.retained.len() < RETAIN_MAX
+        self.outbox.len() < OUTBOX_MAX
+            && self.outbox.bytes < OUTBOX_MAX_BYTES
+            && self.retained.len() < RETAIN_MAX
+            && self.retained.bytes < RETAIN_MAX_BYTES
     }
 
     fn operation(&mut self, op: Operation<'_>) {

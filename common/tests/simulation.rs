@@ -261,3 +261,14 @@ fn samples_larger_than_the_mtu_are_fragmented_both_ways() {
         assert_exactly_once_in_order(&received, 60, "client side", seed);
     }
 }
+
+#[test]
+fn samples_beyond_64_kib_cross_in_fragments_both_ways() {
+    // 200,000-byte samples: the WRITE_DATA and DATA carry submessageLength 0 (eProsima's
+    // convention for payloads a 16-bit length cannot describe) and ~400 FRAGMENTs each.
+    for seed in 1..=2u64 {
+        let (taken, received) = run_sized(seed * 17, 3, 0.1, 0, 200_000);
+        assert_exactly_once_in_order(&taken, 3, "agent side", seed);
+        assert_exactly_once_in_order(&received, 3, "client side", seed);
+    }
+}

@@ -61,6 +61,8 @@ def parse_args(argv):
     w.add_argument("--count", type=int, default=1, help="samples to write (default 1)")
     w.add_argument("--interval-ms", type=int, default=100, help="pause between samples (default 100)")
     w.add_argument("--message", default="Hello DDS", help="message text of every sample")
+    w.add_argument("--message-repeat", type=int, default=1,
+                   help="repeat the message text this many times (large samples)")
     w.add_argument("--wait-match", action="store_true",
                    help="wait (up to --timeout) for at least one matched reader before writing")
     w.add_argument("--linger-ms", type=int, default=1000,
@@ -183,7 +185,7 @@ def main(argv=None):
     for i in range(args.count):
         if i > 0 and args.interval_ms > 0:
             time.sleep(args.interval_ms / 1000.0)
-        writer.write(HelloWorld(index=i, message=args.message))
+        writer.write(HelloWorld(index=i, message=args.message * args.message_repeat))
         out(f"SENT {i}")
 
     if args.linger_ms > 0:

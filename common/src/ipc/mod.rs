@@ -19,8 +19,11 @@ pub const IPC_VERSION: u16 = 2;
 /// Magic at the start of every message.
 pub const IPC_MAGIC: [u8; 4] = *b"XRIP";
 
-/// Largest message body carried (a sample plus slack); bigger samples are refused.
-pub const MAX_BODY: usize = 65_536 + 512;
+/// Largest message body carried (a sample of up to 1 MiB, the largest message the session
+/// core reassembles, plus slack); bigger samples are refused.
+pub const MAX_BODY: usize = (1 << 20) + 512;
+/// Body size the shared-memory segments are first laid out for; larger bodies grow them.
+pub const INITIAL_BODY: usize = 65_536 + 512;
 /// Buffer of each publisher→subscriber connection in messages.
 pub const CHANNEL_DEPTH: usize = 256;
 /// Operations a front-end may have sent and not seen processed; below [`CHANNEL_DEPTH`] so the

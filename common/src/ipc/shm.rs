@@ -14,7 +14,7 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 
-use super::{IpcHeader, CHANNEL_DEPTH, MAX_BODY};
+use super::{IpcHeader, CHANNEL_DEPTH, INITIAL_BODY, MAX_BODY};
 
 /// An iceoryx2 failure, with what was being done.
 #[derive(Debug, thiserror::Error)]
@@ -127,7 +127,10 @@ impl IpcNode {
         let publisher = self
             .pubsub(service, kind)?
             .publisher_builder()
-            .initial_max_slice_len(IpcHeader::LEN + MAX_BODY)
+            // Sized for ordinary samples; a bigger one (up to MAX_BODY) makes the publisher
+            // map a larger segment, which receivers follow.
+            .initial_max_slice_len(IpcHeader::LEN + INITIAL_BODY)
+            .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .max_loaned_samples(4)
             .backpressure_strategy(BackpressureStrategy::DiscardData)
             .create()
@@ -340,5 +343,37 @@ impl Receiver {
             n += 1;
         }
         Ok(n)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ipc::MessageKind;
+
+    #[test]
+    fn bodies_beyond_the_initial_segment_size_get_through() {
+        let instance = format!("shmtest-{}", std::process::id());
+        {
+            let node = IpcNode::new(&instance, "test").expect("node");
+            let rx = node.receiver("big", ServiceKind::Reply).expect("receiver");
+            let tx = node.sender("big", ServiceKind::Reply).expect("sender");
+            let sizes = [10, INITIAL_BODY + 1, 300_000, MAX_BODY, 20];
+            for (i, n) in sizes.iter().enumerate() {
+                let body: Vec<u8> = (0..*n).map(|k| (k * 7 + i) as u8).collect();
+                let h = IpcHeader::new(MessageKind::Sample);
+                assert!(tx.send(&h, &body).expect("send"), "{n} bytes");
+                let mut got = Vec::new();
+                rx.drain(|m| got.push(m.to_vec())).expect("drain");
+                assert_eq!(got.len(), 1);
+                let (_, b) = IpcHeader::decode(&got[0]).expect("decodes");
+                assert_eq!(b, &body[..], "{n} bytes");
+            }
+            let too_big = vec![0u8; MAX_BODY + 1];
+            assert!(tx
+                .send(&IpcHeader::new(MessageKind::Sample), &too_big)
+                .is_err());
+        }
+        remove_instance_leftovers(&instance);
     }
 }

@@ -944,7 +944,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         {
             Ok(None) => {}
             Ok(Some(whole)) => {
-                for raw in Submessages::new(&whole, 0) {
+                for raw in Submessages::reassembled(&whole) {
                     match raw {
                         Ok(raw) => self.dispatch(now, key, stream, raw, true, sink),
                         Err(e) => return self.drop_input(e.reason(), &whole),
@@ -1190,7 +1190,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             stream
         };
         if stream_id::is_reliable(stream) {
-            let sub = Self::encode_submessage(&payload, little_endian)?;
+            let sub = crate::wire::encode_large_submessage(&payload, little_endian)
+                .map_err(|_| SendError::TooLarge)?;
             let header_len = MessageHeader::encoded_len(c.session_id);
             let fits = header_len + sub.len() <= c.mtu as usize;
             let parts = if fits {

@@ -11,10 +11,10 @@ use std::time::{Duration, Instant};
 use super::fragment::{fragments, Reassembly};
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
 use crate::wire::{
-    encode_submessage, stream_id, BaseObjectReply, BaseObjectRequest, ClientKey,
-    CreateClientPayload, CreatePayload, DataPayload, GetInfoPayload, InfoPayload, MessageBuilder,
-    MessageHeader, ObjectId, ObjectVariant, Payload, ReadDataPayload, ReadSpecification, RequestId,
-    ResultStatus, Submessages, TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
+    stream_id, BaseObjectReply, BaseObjectRequest, ClientKey, CreateClientPayload, CreatePayload,
+    DataPayload, GetInfoPayload, InfoPayload, MessageBuilder, MessageHeader, ObjectId,
+    ObjectVariant, Payload, ReadDataPayload, ReadSpecification, RequestId, ResultStatus,
+    Submessages, TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
 };
 
 /// Tunables of the client.
@@ -226,7 +226,8 @@ impl Client {
             if !self.can_send_reliable(stream) {
                 return Err(ClientError::WindowFull);
             }
-            let sub = encode_submessage(payload, true).map_err(|_| ClientError::TooLarge)?;
+            let sub = crate::wire::encode_large_submessage(payload, true)
+                .map_err(|_| ClientError::TooLarge)?;
             let header_len = MessageHeader::encoded_len(self.config.session_id);
             let mtu = self.config.mtu as usize;
             let parts = if header_len + sub.len() <= mtu {
@@ -473,7 +474,7 @@ impl Client {
                     .or_default()
                     .push(data, last, 1 << 20);
                 if let Ok(Some(whole)) = whole {
-                    for raw in Submessages::new(&whole, 0) {
+                    for raw in Submessages::reassembled(&whole) {
                         match raw.and_then(|r| r.decode()) {
                             Ok(Payload::Fragment { .. }) | Err(_) => break,
                             Ok(p) => self.on_payload(now, stream, p),

@@ -85,6 +85,7 @@ pub struct Submessages<'a> {
     msg: &'a [u8],
     pos: usize,
     failed: bool,
+    reassembled: bool,
 }
 
 impl<'a> Submessages<'a> {
@@ -94,6 +95,18 @@ impl<'a> Submessages<'a> {
             msg,
             pos: start,
             failed: false,
+            reassembled: false,
+        }
+    }
+
+    /// Iterates over a buffer reassembled from FRAGMENTs. There a WRITE_DATA or DATA whose
+    /// `submessageLength` is 0 runs to the end of the buffer: eProsima's convention
+    /// (`UCLIENT_TWEAK_XRCE_WRITE_LIMIT`, on by default) for samples beyond 64 KiB, which a
+    /// 16-bit length cannot describe.
+    pub fn reassembled(buf: &'a [u8]) -> Self {
+        Submessages {
+            reassembled: true,
+            ..Submessages::new(buf, 0)
         }
     }
 
@@ -115,8 +128,14 @@ impl<'a> Iterator for Submessages<'a> {
             return None;
         }
         let h = &self.msg[aligned..aligned + 4];
-        let len = u16::from_le_bytes([h[2], h[3]]) as usize;
         let start = aligned + 4;
+        let mut len = u16::from_le_bytes([h[2], h[3]]) as usize;
+        if len == 0
+            && self.reassembled
+            && (h[0] == submessage_id::WRITE_DATA || h[0] == submessage_id::DATA)
+        {
+            len = self.msg.len() - start;
+        }
         if start + len > self.msg.len() {
             self.failed = true;
             return Some(Err(DecodeError::BadSubmessageLength));
@@ -255,6 +274,31 @@ pub fn encode_submessage(
     let mut v = b.finish();
     v.drain(..4);
     Ok(v)
+}
+
+/// Encodes one submessage like [`encode_submessage`], except that a WRITE_DATA or DATA
+/// payload beyond 65,535 bytes gets `submessageLength` 0 (see [`Submessages::reassembled`]);
+/// such a submessage must be sent in FRAGMENTs.
+pub fn encode_large_submessage(
+    payload: &Payload<'_>,
+    little_endian: bool,
+) -> Result<Vec<u8>, EncodeError> {
+    match encode_submessage(payload, little_endian) {
+        Err(EncodeError::PayloadTooLong(_))
+            if matches!(payload, Payload::WriteData(_) | Payload::Data(_)) =>
+        {
+            let flags = payload.extra_flags()
+                | if little_endian {
+                    flags::LITTLE_ENDIAN
+                } else {
+                    0
+                };
+            let mut v = vec![payload.id(), flags, 0, 0];
+            payload.encode(&mut v, little_endian);
+            Ok(v)
+        }
+        other => other,
+    }
 }
 
 /// Formats bytes as lowercase hex (for logs at trace level).
