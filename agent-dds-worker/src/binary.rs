@@ -1,62 +1,35 @@
-//! Reading binary representations (`OBJK_*_Binary`) in the layout the eProsima client sends
+//! Entity descriptions from binary representations (`OBJK_*_Binary`, decoded by
+//! `xrce_common::wire::binary`) in the layout the eProsima client sends
 //! (what micro-ROS and PX4 use): no DHEADERs, `@optional` members as a presence octet, data
 //! writers and readers naming their topic by ObjectId, QoS as a 16-bit flag word plus
 //! optional depth, deadline, lifespan and user data.
 //!
 //! Alignment is measured from the start of the body, which the client serializes on its own.
 
-use xrce_common::wire::cdr::CdrReader;
-use xrce_common::wire::{DecodeError, ObjectId};
+use xrce_common::wire::binary::{
+    qos_flags, EndpointBinary, GroupBinary, ParticipantBinary, TopicBinary,
+};
+use xrce_common::wire::DecodeError;
 
 use crate::xml::{Durability, EndpointDesc, History, QosDesc, Reliability, TopicDesc};
 
-/// Longest name accepted in a binary representation.
-const MAX_NAME: usize = 256;
-/// Longest user data, partition list or filter accepted.
-const MAX_BLOB: usize = 4096;
-
-/// `EndpointQosFlags` bits (eProsima: bit 1 is keep-last, not keep-all as in Annex A).
-mod qos_flags {
-    pub const RELIABLE: u16 = 0x0001;
-    pub const HISTORY_KEEP_LAST: u16 = 0x0002;
-    pub const DURABILITY_TRANSIENT_LOCAL: u16 = 0x0008;
-    pub const DURABILITY_TRANSIENT: u16 = 0x0010;
-    pub const DURABILITY_PERSISTENT: u16 = 0x0020;
-}
-
-fn optional<'a, T>(
-    r: &mut CdrReader<'a>,
-    f: impl FnOnce(&mut CdrReader<'a>) -> Result<T, DecodeError>,
-) -> Result<Option<T>, DecodeError> {
-    if r.bool()? {
-        f(r).map(Some)
-    } else {
-        Ok(None)
-    }
-}
-
 /// Reads a participant body (optional domain and QoS profile references, not used yet).
 pub fn parse_participant(body: &[u8]) -> Result<(), DecodeError> {
-    let r = &mut CdrReader::new(body, true);
-    optional(r, |r| r.string(MAX_NAME))?;
-    optional(r, |r| r.string(MAX_NAME))?;
-    Ok(())
+    ParticipantBinary::decode(body).map(drop)
 }
 
 /// Reads a topic body: name, optional type reference, optional type name.
 pub fn parse_topic(body: &[u8]) -> Result<TopicDesc, DecodeError> {
-    let r = &mut CdrReader::new(body, true);
-    let name = r.string(MAX_NAME)?;
-    let type_reference = optional(r, |r| r.string(MAX_NAME))?;
-    let type_name = optional(r, |r| r.string(MAX_NAME))?;
-    let type_name = type_name
-        .or(type_reference)
+    let t = TopicBinary::decode(body)?;
+    let type_name = t
+        .type_name
+        .or(t.type_reference)
         .ok_or(DecodeError::InvalidValue("topic without a type"))?;
-    if name.is_empty() || type_name.is_empty() {
+    if t.topic_name.is_empty() || type_name.is_empty() {
         return Err(DecodeError::InvalidValue("empty topic or type name"));
     }
     Ok(TopicDesc {
-        name,
+        name: t.topic_name,
         type_name,
         keyed: false,
         qos: QosDesc::default(),
@@ -65,56 +38,21 @@ pub fn parse_topic(body: &[u8]) -> Result<TopicDesc, DecodeError> {
 
 /// Reads a publisher or subscriber body (optional name and partitions/group data).
 pub fn parse_publisher_or_subscriber(body: &[u8]) -> Result<(), DecodeError> {
-    if body.is_empty() {
-        return Ok(());
-    }
-    let r = &mut CdrReader::new(body, true);
-    optional(r, |r| r.string(MAX_NAME))?;
-    optional(r, |r| {
-        optional(r, |r| {
-            let n = r.u32()? as usize;
-            if n > 64 {
-                return Err(DecodeError::TooLong("partitions"));
-            }
-            (0..n).try_for_each(|_| r.string(MAX_NAME).map(drop))
-        })?;
-        optional(r, |r| r.octet_seq(MAX_BLOB).map(drop))
-    })?;
-    Ok(())
+    GroupBinary::decode(body).map(drop)
 }
 
 /// Reads a data writer or data reader body.
 pub fn parse_endpoint(body: &[u8], writer: bool) -> Result<EndpointDesc, DecodeError> {
-    let r = &mut CdrReader::new(body, true);
-    let topic_id = ObjectId(r.array()?);
-    let qos = optional(r, |r| {
-        let flags = r.u16()?;
-        let depth = optional(r, |r| r.u16())?;
-        let _deadline_ms = optional(r, |r| r.u32())?;
-        let _lifespan_ms = optional(r, |r| r.u32())?;
-        let _user_data = optional(r, |r| r.octet_seq(MAX_BLOB).map(drop))?;
-        if writer {
-            let _ownership_strength = optional(r, read_u64)?;
-        } else {
-            let _time_based_filter_ms = optional(r, read_u64)?;
-            let _content_filter = optional(r, |r| r.string(MAX_BLOB))?;
-        }
-        Ok(qos_from_flags(flags, depth))
-    })?;
+    let e = EndpointBinary::decode(body, writer)?;
     Ok(EndpointDesc {
         topic: None,
         topic_ref: None,
-        topic_id: Some(topic_id),
-        qos: qos.unwrap_or_default(),
+        topic_id: Some(e.topic_id),
+        qos: e
+            .qos
+            .map(|q| qos_from_flags(q.base.flags, q.base.history_depth))
+            .unwrap_or_default(),
     })
-}
-
-/// eProsima serializes these as 8-byte integers aligned to 8.
-fn read_u64(r: &mut CdrReader<'_>) -> Result<u64, DecodeError> {
-    r.align(8)?;
-    let lo = r.u32()? as u64;
-    let hi = r.u32()? as u64;
-    Ok(lo | hi << 32)
 }
 
 fn qos_from_flags(flags: u16, depth: Option<u16>) -> QosDesc {
@@ -150,6 +88,7 @@ fn qos_from_flags(flags: u16, depth: Option<u16>) -> QosDesc {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use xrce_common::wire::ObjectId;
 
     fn unhex(s: &str) -> Vec<u8> {
         let s: String = s.split_whitespace().collect();

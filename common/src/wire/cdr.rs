@@ -16,6 +16,11 @@ pub struct CdrReader<'a> {
 }
 
 impl<'a> CdrReader<'a> {
+    /// Whether multi-byte values are read little endian.
+    pub fn is_little_endian(&self) -> bool {
+        self.little_endian
+    }
+
     /// A reader over `buf` whose multi-byte values are little endian when `little_endian`.
     pub fn new(buf: &'a [u8], little_endian: bool) -> Self {
         Self {
@@ -148,6 +153,11 @@ pub struct CdrWriter<'a> {
 }
 
 impl<'a> CdrWriter<'a> {
+    /// Whether multi-byte values are written little endian.
+    pub fn is_little_endian(&self) -> bool {
+        self.little_endian
+    }
+
     /// A writer appending to `buf`; alignment is measured from the current end of `buf`.
     pub fn new(buf: &'a mut Vec<u8>, little_endian: bool) -> Self {
         let origin = buf.len();

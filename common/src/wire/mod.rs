@@ -4,6 +4,7 @@
 //! sequences are bounded by [`payload`]'s limits). Encoding emits exactly the layout the
 //! decoder reads, so decoded captures re-encode to the same bytes.
 
+pub mod binary;
 pub mod cdr;
 pub mod header;
 pub mod payload;

@@ -628,7 +628,7 @@ impl<'a> Payload<'a> {
             }),
             _ => Payload::Unknown {
                 id,
-                flags: flags_byte,
+                flags: flags_byte & !flags::LITTLE_ENDIAN,
                 data: r.rest(),
             },
         };
