@@ -448,3 +448,53 @@ fn the_client_state_machine_asks_for_hard_liveliness_in_the_eprosima_format() {
             || matches!(client.poll_event(), Some(ClientEvent::SessionStatus(_)))
     );
 }
+
+#[test]
+fn a_create_client_longer_than_its_declared_length_is_read_whole() {
+    // eProsima's client declares 16 bytes for CREATE_CLIENT even when it appends the
+    // hard-liveliness property and then its MTU (seen with UCLIENT_HARD_LIVELINESS_CHECK).
+    let props = Some(vec![("uxr_hl".to_string(), "002000".to_string())]);
+    let mut bytes = create_client(VENDOR_EPROSIMA, props);
+    let declared = u16::from_le_bytes([bytes[10], bytes[11]]);
+    assert!(declared > 16);
+    bytes[10..12].copy_from_slice(&16u16.to_le_bytes());
+    let t0 = Instant::now();
+    let mut agent = Agent::new(AgentConfig::default());
+    let mut rec = Recorder::default();
+    agent.handle_datagram(t0, ADDR, &bytes, &mut rec);
+    assert_eq!(rec.0, [Op::Created(KEY)]);
+    assert!(
+        agent.poll_timeout().is_some(),
+        "hard liveliness armed from the property"
+    );
+    let out = drain(&mut agent);
+    assert!(matches!(payloads(&out)[0], Payload::StatusAgent(_)));
+}
+
+#[test]
+fn eprosimas_bare_answer_to_a_probe_is_recognised_not_dropped() {
+    let props = Some(vec![("uxr_hl".to_string(), "000400".to_string())]);
+    let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, props);
+    agent.handle_timeout(t0 + Duration::from_millis(150), &mut rec);
+    let out = drain(&mut agent);
+    let Some(Payload::GetInfo(probe)) = payloads(&out).into_iter().next() else {
+        panic!("no probe")
+    };
+    // What eProsima's client sends back: the message header, then the INFO payload with no
+    // submessage header (request id echoed, object id and result zero, both optionals absent).
+    let mut reply = Vec::new();
+    MessageHeader::new(0x01, 0, 0, KEY).encode(&mut reply);
+    reply.extend_from_slice(&probe.base.request_id.0);
+    reply.extend_from_slice(&[0, 0, 0, 0, 0, 0]);
+    agent.handle_datagram(t0 + Duration::from_millis(300), ADDR, &reply, &mut rec);
+    assert!(
+        agent.stats().dropped.is_empty(),
+        "{:?}",
+        agent.stats().dropped
+    );
+    agent.handle_timeout(t0 + Duration::from_millis(650), &mut rec);
+    assert!(
+        agent.has_client(KEY),
+        "the answer counted as a sign of life"
+    );
+}

@@ -229,6 +229,17 @@ impl<A> ProxyClient<A> {
     }
 }
 
+/// Request id of the agent's liveliness probes (GET_INFO). Its first octet is no submessage id,
+/// so that eProsima's answer, which lacks a submessage header (its `read_submessage_get_info`
+/// serializes the INFO payload straight after the message header), is recognisable.
+const LIVELINESS_PROBE_ID: crate::wire::RequestId = crate::wire::RequestId([0x7F, 0xA1]);
+
+/// Whether the bytes after a message header are eProsima's answer to a liveliness probe: a
+/// bare INFO payload (BaseObjectReply echoing the probe's request id, two absent optionals).
+fn is_bare_probe_reply(after_header: &[u8]) -> bool {
+    after_header.len() == 8 && after_header[..2] == LIVELINESS_PROBE_ID.0
+}
+
 /// How often a silent client is probed: four times within its dead time, at most every 10 s.
 fn probe_period(dead_time: Duration) -> Duration {
     (dead_time / 4).clamp(Duration::from_millis(25), Duration::from_secs(10))
@@ -413,7 +424,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         if stream != stream_id::NONE {
             client.streams_used = true;
         }
-        if stream == stream_id::NONE {
+        if stream == stream_id::NONE && is_bare_probe_reply(&bytes[hlen..]) {
+            // A live client answered a liveliness probe (hearing it was the point).
+        } else if stream == stream_id::NONE {
             self.process(now, key, bytes, hlen, sink);
         } else if !stream_id::is_reliable(stream) {
             let accepted = client
@@ -545,8 +558,26 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         sink: &mut impl OperationSink,
     ) {
         for raw in Submessages::new(bytes, hlen) {
-            let payload = match raw.and_then(|r| r.decode()) {
+            let raw = match raw {
+                Ok(r) => r,
+                Err(e) => return self.drop_input(e.reason(), bytes),
+            };
+            let payload = match raw.decode() {
                 Ok(p) => p,
+                // eProsima's client always declares 16 bytes for CREATE_CLIENT, also when it
+                // appends properties (hard liveliness, shared memory) and then the MTU after
+                // them: read the CREATE_CLIENT from the rest of the datagram instead.
+                Err(DecodeError::Truncated) if raw.id == submessage_id::CREATE_CLIENT => {
+                    let rest = bytes.get(raw.offset + 4..).unwrap_or_default();
+                    match Payload::decode(raw.id, raw.flags, rest) {
+                        Ok(Payload::CreateClient(c)) => {
+                            tracing::trace!("CREATE_CLIENT longer than its declared length");
+                            return self.create_client(now, src, &c, sink);
+                        }
+                        Ok(_) => return,
+                        Err(e) => return self.drop_input(e.reason(), bytes),
+                    }
+                }
                 Err(e) => return self.drop_input(e.reason(), bytes),
             };
             match payload {
@@ -1237,7 +1268,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
                     let probe = crate::wire::GetInfoPayload {
                         base: BaseObjectRequest {
-                            request_id: crate::wire::RequestId::from_u16(0),
+                            request_id: LIVELINESS_PROBE_ID,
                             object_id: ObjectId::AGENT,
                         },
                         info_mask: 0x02,
