@@ -7,11 +7,13 @@
 //! Alignment is measured from the start of the body, which the client serializes on its own.
 
 use xrce_common::wire::binary::{
-    qos_flags, EndpointBinary, GroupBinary, ParticipantBinary, TopicBinary,
+    qos_flags, EndpointBinary, EndpointBinaryQos, GroupBinary, ParticipantBinary, TopicBinary,
 };
 use xrce_common::wire::DecodeError;
 
-use crate::xml::{Durability, EndpointDesc, History, QosDesc, Reliability, TopicDesc};
+use crate::xml::{
+    Durability, EndpointDesc, History, OwnershipKind, Period, QosDesc, Reliability, TopicDesc,
+};
 
 /// Reads a participant body (optional domain and QoS profile references, not used yet).
 pub fn parse_participant(body: &[u8]) -> Result<(), DecodeError> {
@@ -36,9 +38,12 @@ pub fn parse_topic(body: &[u8]) -> Result<TopicDesc, DecodeError> {
     })
 }
 
-/// Reads a publisher or subscriber body (optional name and partitions/group data).
-pub fn parse_publisher_or_subscriber(body: &[u8]) -> Result<(), DecodeError> {
-    GroupBinary::decode(body).map(drop)
+/// Reads a publisher or subscriber body; returns whether it names partitions.
+pub fn parse_publisher_or_subscriber(body: &[u8]) -> Result<bool, DecodeError> {
+    let g = GroupBinary::decode(body)?;
+    Ok(g.qos
+        .and_then(|q| q.partitions)
+        .is_some_and(|p| p.iter().any(|n| !n.is_empty())))
 }
 
 /// Reads a data writer or data reader body.
@@ -48,11 +53,26 @@ pub fn parse_endpoint(body: &[u8], writer: bool) -> Result<EndpointDesc, DecodeE
         topic: None,
         topic_ref: None,
         topic_id: Some(e.topic_id),
-        qos: e
-            .qos
-            .map(|q| qos_from_flags(q.base.flags, q.base.history_depth))
-            .unwrap_or_default(),
+        qos: e.qos.map(|q| endpoint_qos(&q)).unwrap_or_default(),
     })
+}
+
+/// Every policy a binary endpoint QoS carries.
+fn endpoint_qos(q: &EndpointBinaryQos) -> QosDesc {
+    let ms = |v: u64| Period::Finite(std::time::Duration::from_millis(v));
+    let mut d = qos_from_flags(q.base.flags, q.base.history_depth);
+    d.deadline = q.base.deadline_msec.map(|v| ms(v.into()));
+    d.lifespan = q.base.lifespan_msec.map(|v| ms(v.into()));
+    d.ownership = Some(if q.base.flags & qos_flags::OWNERSHIP_EXCLUSIVE != 0 {
+        OwnershipKind::Exclusive
+    } else {
+        OwnershipKind::Shared
+    });
+    d.ownership_strength = q
+        .ownership_strength
+        .map(|v| i32::try_from(v).unwrap_or(i32::MAX));
+    d.time_based_filter = q.timebasedfilter_msec.map(ms);
+    d
 }
 
 fn qos_from_flags(flags: u16, depth: Option<u16>) -> QosDesc {
@@ -82,6 +102,7 @@ fn qos_from_flags(flags: u16, depth: Option<u16>) -> QosDesc {
         }),
         durability: Some(durability),
         history,
+        ..QosDesc::default()
     }
 }
 
@@ -130,6 +151,47 @@ mod tests {
         assert_eq!(
             (t.name.as_str(), t.type_name.as_str()),
             ("Square", "MyTypes::ShapeType")
+        );
+    }
+
+    #[test]
+    fn binary_qos_members_map_to_policies() {
+        use xrce_common::wire::binary::{EndpointBinary, EndpointQosBinary};
+        let body = EndpointBinary {
+            topic_id: ObjectId([0, 0x12]),
+            qos: Some(EndpointBinaryQos {
+                base: EndpointQosBinary {
+                    flags: qos_flags::RELIABLE | qos_flags::OWNERSHIP_EXCLUSIVE,
+                    history_depth: None,
+                    deadline_msec: Some(250),
+                    lifespan_msec: Some(10_000),
+                    user_data: None,
+                },
+                ownership_strength: Some(3),
+                ..EndpointBinaryQos::default()
+            }),
+        }
+        .encode(true);
+        let q = parse_endpoint(&body, true).expect("writer").qos;
+        let ms = |v| Some(Period::Finite(std::time::Duration::from_millis(v)));
+        assert_eq!(q.deadline, ms(250));
+        assert_eq!(q.lifespan, ms(10_000));
+        assert_eq!(q.ownership, Some(OwnershipKind::Exclusive));
+        assert_eq!(q.ownership_strength, Some(3));
+        let reader = EndpointBinary {
+            topic_id: ObjectId([0, 0x12]),
+            qos: Some(EndpointBinaryQos {
+                timebasedfilter_msec: Some(40),
+                ..EndpointBinaryQos::default()
+            }),
+        }
+        .encode(false);
+        assert_eq!(
+            parse_endpoint(&reader, false)
+                .expect("reader")
+                .qos
+                .time_based_filter,
+            ms(40)
         );
     }
 

@@ -7,7 +7,10 @@ use std::net::IpAddr;
 use rustdds::policy;
 use rustdds::{DomainParticipant, DomainParticipantBuilder, QosPolicies, QosPolicyBuilder};
 
-use crate::xml::{Durability, History, QosDesc, Reliability};
+use crate::xml::{
+    AccessScope, DestinationOrderKind, Durability, History, LivelinessKind, OwnershipKind, Period,
+    QosDesc, Reliability,
+};
 
 /// Where DDS may talk.
 #[derive(Debug, Clone, Default)]
@@ -107,6 +110,7 @@ pub enum EndpointSide {
 
 /// Builds RustDDS QoS from topic and endpoint descriptions (endpoint settings win).
 pub fn endpoint_qos(side: EndpointSide, topic: &QosDesc, endpoint: &QosDesc) -> QosPolicies {
+    let merged = topic.overridden_by(*endpoint);
     let reliability = endpoint
         .reliability
         .or(topic.reliability)
@@ -142,12 +146,156 @@ pub fn endpoint_qos(side: EndpointSide, topic: &QosDesc, endpoint: &QosDesc) -> 
         History::KeepLast(depth) => policy::History::KeepLast { depth },
         History::KeepAll => policy::History::KeepAll,
     });
+    let d = |p: Period| match p {
+        Period::Infinite => rustdds::Duration::INFINITE,
+        Period::Finite(d) => rustdds::Duration::from_std(d),
+    };
+    if let Some(p) = merged.deadline {
+        b = b.deadline(policy::Deadline(d(p)));
+    }
+    if let Some(p) = merged.lifespan {
+        b = b.lifespan(policy::Lifespan { duration: d(p) });
+    }
+    if let Some(p) = merged.latency_budget {
+        b = b.latency_budget(policy::LatencyBudget { duration: d(p) });
+    }
+    if let Some(p) = merged.time_based_filter {
+        b = b.time_based_filter(policy::TimeBasedFilter {
+            minimum_separation: d(p),
+        });
+    }
+    if let Some((kind, lease)) = merged.liveliness {
+        let lease_duration = d(lease);
+        b = b.liveliness(match kind {
+            LivelinessKind::Automatic => policy::Liveliness::Automatic { lease_duration },
+            LivelinessKind::ManualByParticipant => {
+                policy::Liveliness::ManualByParticipant { lease_duration }
+            }
+            LivelinessKind::ManualByTopic => policy::Liveliness::ManualByTopic { lease_duration },
+        });
+    }
+    match merged.ownership {
+        Some(OwnershipKind::Exclusive) => {
+            b = b.ownership(policy::Ownership::Exclusive {
+                strength: merged.ownership_strength.unwrap_or(0),
+            });
+        }
+        Some(OwnershipKind::Shared) => b = b.ownership(policy::Ownership::Shared),
+        None => {}
+    }
+    if let Some(o) = merged.destination_order {
+        b = b.destination_order(match o {
+            DestinationOrderKind::ByReception => policy::DestinationOrder::ByReceptionTimestamp,
+            DestinationOrderKind::BySource => policy::DestinationOrder::BySourceTimeStamp,
+        });
+    }
+    if let Some(r) = merged.resource_limits {
+        b = b.resource_limits(policy::ResourceLimits {
+            max_samples: r.max_samples,
+            max_instances: r.max_instances,
+            max_samples_per_instance: r.max_samples_per_instance,
+        });
+    }
+    if let Some(p) = merged.presentation {
+        b = b.presentation(policy::Presentation {
+            access_scope: match p.access_scope {
+                AccessScope::Instance => policy::PresentationAccessScope::Instance,
+                AccessScope::Topic => policy::PresentationAccessScope::Topic,
+                AccessScope::Group => policy::PresentationAccessScope::Group,
+            },
+            coherent_access: p.coherent_access,
+            ordered_access: p.ordered_access,
+        });
+    }
     b.build()
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_described_policy_reaches_rustdds_and_the_endpoint_overrides_the_topic() {
+        use crate::xml::{
+            AccessScope, DestinationOrderKind, LivelinessKind, OwnershipKind, Period,
+            PresentationDesc, ResourceLimitsDesc,
+        };
+        let ms = |v| Period::Finite(std::time::Duration::from_millis(v));
+        let topic = QosDesc {
+            deadline: Some(ms(100)),
+            resource_limits: Some(ResourceLimitsDesc {
+                max_samples: 50,
+                max_instances: -1,
+                max_samples_per_instance: -1,
+            }),
+            ..QosDesc::default()
+        };
+        let endpoint = QosDesc {
+            deadline: Some(ms(20)),
+            lifespan: Some(Period::Infinite),
+            latency_budget: Some(ms(1)),
+            time_based_filter: Some(ms(5)),
+            liveliness: Some((LivelinessKind::ManualByParticipant, ms(2000))),
+            ownership: Some(OwnershipKind::Exclusive),
+            ownership_strength: Some(9),
+            destination_order: Some(DestinationOrderKind::BySource),
+            presentation: Some(PresentationDesc {
+                access_scope: AccessScope::Topic,
+                coherent_access: false,
+                ordered_access: true,
+            }),
+            ..QosDesc::default()
+        };
+        let q = endpoint_qos(EndpointSide::Reader, &topic, &endpoint);
+        let d = rustdds::Duration::from_millis;
+        assert_eq!(q.deadline(), Some(policy::Deadline(d(20))));
+        assert_eq!(
+            q.lifespan(),
+            Some(policy::Lifespan {
+                duration: rustdds::Duration::INFINITE
+            })
+        );
+        assert_eq!(
+            q.latency_budget(),
+            Some(policy::LatencyBudget { duration: d(1) })
+        );
+        assert_eq!(
+            q.time_based_filter(),
+            Some(policy::TimeBasedFilter {
+                minimum_separation: d(5)
+            })
+        );
+        assert_eq!(
+            q.liveliness(),
+            Some(policy::Liveliness::ManualByParticipant {
+                lease_duration: d(2000)
+            })
+        );
+        assert_eq!(
+            q.ownership(),
+            Some(policy::Ownership::Exclusive { strength: 9 })
+        );
+        assert_eq!(
+            q.destination_order(),
+            Some(policy::DestinationOrder::BySourceTimeStamp)
+        );
+        assert_eq!(
+            q.resource_limits(),
+            Some(policy::ResourceLimits {
+                max_samples: 50,
+                max_instances: -1,
+                max_samples_per_instance: -1
+            })
+        );
+        assert_eq!(
+            q.presentation(),
+            Some(policy::Presentation {
+                access_scope: policy::PresentationAccessScope::Topic,
+                coherent_access: false,
+                ordered_access: true
+            })
+        );
+    }
 
     #[test]
     fn defaults_follow_fast_dds() {

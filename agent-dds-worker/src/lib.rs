@@ -3,6 +3,34 @@
 //!
 //! It is not an XRCE endpoint: it never sees client datagrams, only the IPC contract of
 //! `xrce_common::ipc`. Samples pass through as serialized bytes ([`raw`]).
+//!
+//! # QoS mapping
+//!
+//! Settings on the data writer or reader override those given with its topic; what neither
+//! gives keeps the default in the last column (Fast DDS's, as the reference agent).
+//!
+//! | Policy | XML (Fast DDS / DDS-XML element) | Binary (`OBJK_*_Binary`) | RustDDS | Default |
+//! |---|---|---|---|---|
+//! | Reliability | `reliability/kind` | flags bit 0 | `Reliability` (max blocking 100 ms) | writer reliable, reader best-effort |
+//! | Durability | `durability/kind` | flags bits 3–5 | `Durability` (all four kinds) | writer transient-local, reader volatile |
+//! | History | `historyQos` / `history`: `kind`, `depth` | flags bit 1 + `history_depth` | `History` | keep-last 64 |
+//! | Deadline | `deadline/period` | `deadline_msec` | `Deadline` | infinite |
+//! | Lifespan | `lifespan/duration` | `lifespan_msec` | `Lifespan` | infinite |
+//! | Liveliness | `liveliness`: `kind`, `lease_duration` | — | `Liveliness` | automatic, infinite |
+//! | Ownership | `ownership/kind` | flags bit 2 (exclusive) | `Ownership` | shared |
+//! | Ownership strength | `ownershipStrength` / `ownership_strength` `/value` | `ownership_strength` | in `Ownership::Exclusive` | 0 |
+//! | Destination order | `destinationOrder` / `destination_order` `/kind` | — | `DestinationOrder` | by reception |
+//! | Resource limits | `resourceLimitsQos` / `resource_limits` (≤ 0 = unlimited) | — | `ResourceLimits` | unlimited |
+//! | Time-based filter | `timeBasedFilter` / `time_based_filter` `/minimum_separation` | `timebasedfilter_msec` | `TimeBasedFilter` | 0 |
+//! | Latency budget | `latencyBudget` / `latency_budget` `/duration` | — | `LatencyBudget` | 0 |
+//! | Presentation | `presentation`: `access_scope`, `coherent_access`, `ordered_access` | — | `Presentation` | instance, false, false |
+//! | Partition | `partition/names/name` (publisher, subscriber, endpoint) | publisher/subscriber `partitions` | **none**: the CREATE is refused with `STATUS_ERR_INCOMPATIBLE` and a log line | — |
+//! | User / group / topic data | ignored | `user_data`, `group_data` ignored | not set | — |
+//! | Content filter | not yet (issue 5) | `contentbased_filter` ignored | — | — |
+//!
+//! Durations accept `<sec>` and `<nanosec>`, `DURATION_INFINITY` (and its `DURATION_INFINITE_*`
+//! spellings), and values beyond 2³¹ s as infinite; a malformed value refuses the CREATE
+//! with `STATUS_ERR_INVALID_DATA` naming the element.
 
 pub mod binary;
 pub mod cli;

@@ -51,14 +51,29 @@ pub fn check_plain(repr: &Representation, kind: u8, refs: &References) -> Result
     };
     match (as_xml(repr, refs, element)?, repr) {
         (Some(x), _) if participant => xml::parse_participant(x).map(drop).map_err(invalid_xml),
-        (Some(_), _) => Ok(()),
+        // The reference client sends publishers and subscribers an empty string; anything
+        // that parses is checked for partitions, the one group policy that matters here.
+        (Some(x), _) => no_partitions(xml::group_has_partitions(x, element).unwrap_or(false)),
         (None, Representation::Binary(b)) if participant => {
             binary::parse_participant(b).map_err(invalid_binary)
         }
         (None, Representation::Binary(b)) => {
-            binary::parse_publisher_or_subscriber(b).map_err(invalid_binary)
+            no_partitions(binary::parse_publisher_or_subscriber(b).map_err(invalid_binary)?)
         }
         (None, _) => Ok(()),
+    }
+}
+
+/// Partitions cannot be honoured (RustDDS has none): refuse, rather than let the entity's
+/// data reach readers outside the partitions the client asked for.
+fn no_partitions(has_partitions: bool) -> Result<(), OpError> {
+    if has_partitions {
+        Err((
+            status::ERR_INCOMPATIBLE,
+            "the PARTITION QoS is not supported (RustDDS has no partitions)".into(),
+        ))
+    } else {
+        Ok(())
     }
 }
 
@@ -81,7 +96,7 @@ pub fn describe_endpoint(
     refs: &References,
 ) -> Result<xml::EndpointDesc, OpError> {
     let element = if writer { "data_writer" } else { "data_reader" };
-    match (as_xml(repr, refs, element)?, repr) {
+    let desc = match (as_xml(repr, refs, element)?, repr) {
         (Some(x), _) => xml::parse_endpoint(x, element).map_err(invalid_xml),
         (None, Representation::Binary(b)) => {
             binary::parse_endpoint(b, writer).map_err(invalid_binary)
@@ -90,5 +105,7 @@ pub fn describe_endpoint(
             status::ERR_INVALID_DATA,
             "empty endpoint representation".into(),
         )),
-    }
+    }?;
+    no_partitions(desc.qos.partitions)?;
+    Ok(desc)
 }

@@ -840,10 +840,11 @@ impl Worker {
         }
         let spec = ReadSpecification::decode(&mut CdrReader::new(body, true))
             .map_err(|e| (status::ERR_INVALID_DATA, format!("read specification: {e}")))?;
-        if spec.data_format != xrce_common::wire::data_format::DATA {
+        // The front-end puts each sample in the requested format.
+        if !xrce_common::wire::sample::is_defined_format(spec.data_format) {
             return Err((
                 status::ERR_INVALID_DATA,
-                format!("data format {:#04x} is not supported yet", spec.data_format),
+                format!("undefined data format {:#04x}", spec.data_format),
             ));
         }
         if spec.content_filter_expression.is_some() {

@@ -52,7 +52,79 @@ pub enum History {
     KeepAll,
 }
 
-/// QoS settings found in a representation (absent = the entity's default).
+/// A QoS duration: finite, or `DURATION_INFINITY`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Period {
+    /// A finite duration.
+    Finite(std::time::Duration),
+    /// Infinite.
+    Infinite,
+}
+
+/// Liveliness kinds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LivelinessKind {
+    /// AUTOMATIC.
+    Automatic,
+    /// MANUAL_BY_PARTICIPANT.
+    ManualByParticipant,
+    /// MANUAL_BY_TOPIC.
+    ManualByTopic,
+}
+
+/// Ownership kinds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum OwnershipKind {
+    /// SHARED.
+    Shared,
+    /// EXCLUSIVE.
+    Exclusive,
+}
+
+/// Destination order kinds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DestinationOrderKind {
+    /// BY_RECEPTION_TIMESTAMP.
+    ByReception,
+    /// BY_SOURCE_TIMESTAMP.
+    BySource,
+}
+
+/// Presentation access scopes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AccessScope {
+    /// INSTANCE.
+    Instance,
+    /// TOPIC.
+    Topic,
+    /// GROUP.
+    Group,
+}
+
+/// Presentation QoS.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PresentationDesc {
+    /// Access scope.
+    pub access_scope: AccessScope,
+    /// Coherent access.
+    pub coherent_access: bool,
+    /// Ordered access.
+    pub ordered_access: bool,
+}
+
+/// Resource limits; -1 is unlimited.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ResourceLimitsDesc {
+    /// Samples in the cache.
+    pub max_samples: i32,
+    /// Instances in the cache.
+    pub max_instances: i32,
+    /// Samples per instance.
+    pub max_samples_per_instance: i32,
+}
+
+/// QoS settings found in a representation (absent = the entity's default). See the crate
+/// documentation for how each maps to RustDDS.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct QosDesc {
     /// `<reliability><kind>`.
@@ -61,6 +133,50 @@ pub struct QosDesc {
     pub durability: Option<Durability>,
     /// `<historyQos>` / `<history>`.
     pub history: Option<History>,
+    /// `<deadline><period>`.
+    pub deadline: Option<Period>,
+    /// `<lifespan><duration>`.
+    pub lifespan: Option<Period>,
+    /// `<latencyBudget><duration>`.
+    pub latency_budget: Option<Period>,
+    /// `<timeBasedFilter><minimum_separation>`.
+    pub time_based_filter: Option<Period>,
+    /// `<liveliness>`: kind and lease duration.
+    pub liveliness: Option<(LivelinessKind, Period)>,
+    /// `<ownership><kind>`.
+    pub ownership: Option<OwnershipKind>,
+    /// `<ownershipStrength><value>`.
+    pub ownership_strength: Option<i32>,
+    /// `<destinationOrder><kind>`.
+    pub destination_order: Option<DestinationOrderKind>,
+    /// `<resourceLimitsQos>`.
+    pub resource_limits: Option<ResourceLimitsDesc>,
+    /// `<presentation>`.
+    pub presentation: Option<PresentationDesc>,
+    /// Whether `<partition>` names were given (RustDDS has no partitions).
+    pub partitions: bool,
+}
+
+impl QosDesc {
+    /// These settings, with every one that `over` sets replaced by its value.
+    pub fn overridden_by(self, over: QosDesc) -> QosDesc {
+        QosDesc {
+            reliability: over.reliability.or(self.reliability),
+            durability: over.durability.or(self.durability),
+            history: over.history.or(self.history),
+            deadline: over.deadline.or(self.deadline),
+            lifespan: over.lifespan.or(self.lifespan),
+            latency_budget: over.latency_budget.or(self.latency_budget),
+            time_based_filter: over.time_based_filter.or(self.time_based_filter),
+            liveliness: over.liveliness.or(self.liveliness),
+            ownership: over.ownership.or(self.ownership),
+            ownership_strength: over.ownership_strength.or(self.ownership_strength),
+            destination_order: over.destination_order.or(self.destination_order),
+            resource_limits: over.resource_limits.or(self.resource_limits),
+            presentation: over.presentation.or(self.presentation),
+            partitions: over.partitions || self.partitions,
+        }
+    }
 }
 
 /// A topic as described in XML.
@@ -114,6 +230,176 @@ fn text<'a>(n: Node<'a, 'a>, name: &str) -> Option<String> {
 
 fn upper_kind(n: Node<'_, '_>) -> Option<String> {
     text(n, "kind").map(|k| k.to_ascii_uppercase())
+}
+
+/// The first child with any of these names (Fast DDS camelCase or DDS-XML snake_case).
+fn child_any<'a>(n: Node<'a, 'a>, names: &[&str]) -> Option<Node<'a, 'a>> {
+    names.iter().find_map(|name| child(n, name))
+}
+
+fn invalid(what: &'static str, value: impl Into<String>) -> XmlError {
+    XmlError::Invalid {
+        what,
+        value: value.into(),
+    }
+}
+
+/// A duration element: `<sec>` and `<nanosec>` (either may be `DURATION_INFINITY` or its
+/// variants), or a bare number of seconds.
+fn parse_period(n: Node<'_, '_>, what: &'static str) -> Result<Period, XmlError> {
+    let infinite = |t: &str| t.to_ascii_uppercase().starts_with("DURATION_INFINIT");
+    let sec = text(n, "sec").or_else(|| {
+        n.text()
+            .map(|t| t.trim().to_string())
+            .filter(|t| !t.is_empty())
+    });
+    let nanosec = text(n, "nanosec");
+    if sec.as_deref().is_some_and(infinite) || nanosec.as_deref().is_some_and(infinite) {
+        return Ok(Period::Infinite);
+    }
+    let secs: u64 = match sec {
+        Some(s) => s.parse().map_err(|_| invalid(what, s))?,
+        None => 0,
+    };
+    let nanos: u32 = match nanosec {
+        Some(s) => s
+            .parse()
+            .ok()
+            .filter(|n| *n < 1_000_000_000)
+            .ok_or_else(|| invalid(what, s))?,
+        None => 0,
+    };
+    // Durations beyond i32 seconds (about 68 years) are infinite for DDS.
+    if secs >= i32::MAX as u64 {
+        return Ok(Period::Infinite);
+    }
+    Ok(Period::Finite(std::time::Duration::new(secs, nanos)))
+}
+
+fn parse_bool(n: Node<'_, '_>, name: &str, what: &'static str) -> Result<bool, XmlError> {
+    match text(n, name).map(|t| t.to_ascii_lowercase()) {
+        None => Ok(false),
+        Some(t) if t == "true" || t == "1" => Ok(true),
+        Some(t) if t == "false" || t == "0" => Ok(false),
+        Some(t) => Err(invalid(what, t)),
+    }
+}
+
+fn parse_count(n: Node<'_, '_>, name: &str, what: &'static str) -> Result<i32, XmlError> {
+    match text(n, name) {
+        None => Ok(-1),
+        // Fast DDS and DDS both treat zero or negative limits as unlimited.
+        Some(t) => t
+            .parse::<i64>()
+            .map(|v| {
+                if v <= 0 {
+                    -1
+                } else {
+                    v.min(i32::MAX as i64) as i32
+                }
+            })
+            .map_err(|_| invalid(what, t)),
+    }
+}
+
+/// The QoS policies beyond reliability, durability and history.
+fn parse_more_qos(h: Node<'_, '_>, q: &mut QosDesc) -> Result<(), XmlError> {
+    if let Some(p) = child(h, "deadline").and_then(|d| child(d, "period")) {
+        q.deadline = Some(parse_period(p, "deadline period")?);
+    }
+    if let Some(p) = child(h, "lifespan").and_then(|d| child(d, "duration")) {
+        q.lifespan = Some(parse_period(p, "lifespan duration")?);
+    }
+    if let Some(p) =
+        child_any(h, &["latencyBudget", "latency_budget"]).and_then(|d| child(d, "duration"))
+    {
+        q.latency_budget = Some(parse_period(p, "latency budget duration")?);
+    }
+    if let Some(p) = child_any(h, &["timeBasedFilter", "time_based_filter"])
+        .and_then(|d| child(d, "minimum_separation"))
+    {
+        q.time_based_filter = Some(parse_period(p, "time-based filter")?);
+    }
+    if let Some(l) = child(h, "liveliness") {
+        let kind = match upper_kind(l)
+            .as_deref()
+            .map(|k| k.trim_end_matches("_LIVELINESS_QOS"))
+        {
+            None | Some("AUTOMATIC") => LivelinessKind::Automatic,
+            Some("MANUAL_BY_PARTICIPANT") => LivelinessKind::ManualByParticipant,
+            Some("MANUAL_BY_TOPIC") => LivelinessKind::ManualByTopic,
+            Some(k) => return Err(invalid("liveliness kind", k)),
+        };
+        let lease = match child(l, "lease_duration") {
+            Some(d) => parse_period(d, "liveliness lease duration")?,
+            None => Period::Infinite,
+        };
+        q.liveliness = Some((kind, lease));
+    }
+    if let Some(k) = child(h, "ownership").and_then(upper_kind) {
+        q.ownership = Some(match k.trim_end_matches("_OWNERSHIP_QOS") {
+            "SHARED" => OwnershipKind::Shared,
+            "EXCLUSIVE" => OwnershipKind::Exclusive,
+            _ => return Err(invalid("ownership kind", k)),
+        });
+    }
+    if let Some(v) =
+        child_any(h, &["ownershipStrength", "ownership_strength"]).and_then(|s| text(s, "value"))
+    {
+        q.ownership_strength = Some(v.parse().map_err(|_| invalid("ownership strength", v))?);
+    }
+    if let Some(k) = child_any(h, &["destinationOrder", "destination_order"]).and_then(upper_kind) {
+        q.destination_order = Some(match k.trim_end_matches("_DESTINATIONORDER_QOS") {
+            "BY_RECEPTION_TIMESTAMP" => DestinationOrderKind::ByReception,
+            "BY_SOURCE_TIMESTAMP" => DestinationOrderKind::BySource,
+            _ => return Err(invalid("destination order kind", k)),
+        });
+    }
+    if let Some(r) = child_any(h, &["resourceLimitsQos", "resource_limits"]) {
+        q.resource_limits = Some(ResourceLimitsDesc {
+            max_samples: parse_count(r, "max_samples", "max_samples")?,
+            max_instances: parse_count(r, "max_instances", "max_instances")?,
+            max_samples_per_instance: parse_count(
+                r,
+                "max_samples_per_instance",
+                "max_samples_per_instance",
+            )?,
+        });
+    }
+    if let Some(p) = child(h, "presentation") {
+        let scope = text(p, "access_scope").map(|s| s.to_ascii_uppercase());
+        let access_scope = match scope
+            .as_deref()
+            .map(|s| s.trim_end_matches("_PRESENTATION_QOS"))
+        {
+            None | Some("INSTANCE") => AccessScope::Instance,
+            Some("TOPIC") => AccessScope::Topic,
+            Some("GROUP") => AccessScope::Group,
+            Some(s) => return Err(invalid("presentation access scope", s)),
+        };
+        q.presentation = Some(PresentationDesc {
+            access_scope,
+            coherent_access: parse_bool(p, "coherent_access", "coherent_access")?,
+            ordered_access: parse_bool(p, "ordered_access", "ordered_access")?,
+        });
+    }
+    if let Some(p) = child(h, "partition") {
+        let names = child(p, "names").unwrap_or(p);
+        q.partitions = names
+            .children()
+            .filter(|c| c.is_element() && c.tag_name().name() == "name")
+            .any(|c| c.text().is_some_and(|t| !t.trim().is_empty()));
+    }
+    Ok(())
+}
+
+/// Whether a publisher or subscriber representation names partitions.
+pub fn group_has_partitions(xml: &str, element: &str) -> Result<bool, XmlError> {
+    let doc = parse(xml)?;
+    let Some(g) = find(&doc, element) else {
+        return Ok(false);
+    };
+    Ok(parse_qos(g)?.partitions)
 }
 
 fn parse_qos(n: Node<'_, '_>) -> Result<QosDesc, XmlError> {
@@ -172,6 +458,7 @@ fn parse_qos(n: Node<'_, '_>) -> Result<QosDesc, XmlError> {
                 }
             });
         }
+        parse_more_qos(h, &mut q)?;
     }
     Ok(q)
 }
@@ -233,10 +520,7 @@ pub fn parse_endpoint(xml: &str, element: &'static str) -> Result<EndpointDesc, 
         .children()
         .find(|c| c.is_element() && c.tag_name().name().ends_with("_qos"))
     {
-        let inner = parse_qos(q)?;
-        qos.reliability = inner.reliability.or(qos.reliability);
-        qos.durability = inner.durability.or(qos.durability);
-        qos.history = inner.history.or(qos.history);
+        qos = qos.overridden_by(parse_qos(q)?);
     }
     Ok(EndpointDesc {
         topic,
@@ -288,6 +572,95 @@ mod tests {
         let t = r.topic.expect("topic");
         assert!(t.keyed);
         assert_eq!(t.qos.history, Some(History::KeepLast(20)));
+    }
+
+    #[test]
+    fn every_qos_policy_in_fast_dds_and_dds_xml_spelling() {
+        let w = parse_endpoint(
+            "<dds><data_writer><topic><name>T</name><dataType>Y</dataType>\
+             <resourceLimitsQos><max_samples>100</max_samples><max_instances>0</max_instances>\
+             <max_samples_per_instance>10</max_samples_per_instance></resourceLimitsQos></topic>\
+             <qos><deadline><period><sec>1</sec><nanosec>500000000</nanosec></period></deadline>\
+             <lifespan><duration><sec>DURATION_INFINITY</sec></duration></lifespan>\
+             <latencyBudget><duration><sec>0</sec><nanosec>1000</nanosec></duration></latencyBudget>\
+             <liveliness><kind>MANUAL_BY_TOPIC_LIVELINESS_QOS</kind><lease_duration><sec>3</sec></lease_duration></liveliness>\
+             <ownership><kind>EXCLUSIVE</kind></ownership><ownershipStrength><value>7</value></ownershipStrength>\
+             <destinationOrder><kind>BY_SOURCE_TIMESTAMP</kind></destinationOrder>\
+             <presentation><access_scope>GROUP</access_scope><coherent_access>true</coherent_access></presentation>\
+             </qos></data_writer></dds>",
+            "data_writer",
+        )
+        .expect("writer");
+        let q = w.qos;
+        let secs = |s: f64| Some(Period::Finite(std::time::Duration::from_secs_f64(s)));
+        assert_eq!(q.deadline, secs(1.5));
+        assert_eq!(q.lifespan, Some(Period::Infinite));
+        assert_eq!(q.latency_budget, secs(0.000001));
+        assert_eq!(
+            q.liveliness,
+            Some((
+                LivelinessKind::ManualByTopic,
+                Period::Finite(std::time::Duration::from_secs(3))
+            ))
+        );
+        assert_eq!(q.ownership, Some(OwnershipKind::Exclusive));
+        assert_eq!(q.ownership_strength, Some(7));
+        assert_eq!(q.destination_order, Some(DestinationOrderKind::BySource));
+        assert_eq!(
+            q.presentation,
+            Some(PresentationDesc {
+                access_scope: AccessScope::Group,
+                coherent_access: true,
+                ordered_access: false
+            })
+        );
+        assert!(!q.partitions);
+        let t = w.topic.expect("topic");
+        assert_eq!(
+            t.qos.resource_limits,
+            Some(ResourceLimitsDesc {
+                max_samples: 100,
+                max_instances: -1,
+                max_samples_per_instance: 10
+            })
+        );
+        // The DDS-XML (spec) spelling.
+        let r = parse_endpoint(
+            "<data_reader topic_ref=\"T\"><data_reader_qos><time_based_filter><minimum_separation>\
+             <sec>2</sec></minimum_separation></time_based_filter><destination_order>\
+             <kind>BY_RECEPTION_TIMESTAMP_DESTINATIONORDER_QOS</kind></destination_order>\
+             </data_reader_qos></data_reader>",
+            "data_reader",
+        )
+        .expect("reader");
+        assert_eq!(r.qos.time_based_filter, secs(2.0));
+        assert_eq!(
+            r.qos.destination_order,
+            Some(DestinationOrderKind::ByReception)
+        );
+        // Bad values are refused with what is wrong.
+        assert!(matches!(
+            parse_endpoint(
+                "<data_writer topic_ref=\"T\"><qos><deadline><period><sec>soon</sec></period></deadline></qos></data_writer>",
+                "data_writer"
+            ),
+            Err(XmlError::Invalid { what: "deadline period", .. })
+        ));
+    }
+
+    #[test]
+    fn partitions_are_detected() {
+        assert_eq!(
+            group_has_partitions(
+                "<dds><publisher><qos><partition><names><name>A</name></names></partition></qos></publisher></dds>",
+                "publisher"
+            ),
+            Ok(true)
+        );
+        assert_eq!(
+            group_has_partitions("<dds><publisher/></dds>", "publisher"),
+            Ok(false)
+        );
     }
 
     #[test]

@@ -438,12 +438,6 @@ impl TestClient {
     /// Creates participant, topic, subscriber and reader of the HelloWorld example and
     /// starts an unlimited READ_DATA on the reliable stream; returns the reader id.
     pub fn setup_subscriber(&mut self, domain: i16) -> ObjectId {
-        let r = self.setup_chain(
-            domain,
-            object_kind::SUBSCRIBER,
-            object_kind::DATAREADER,
-            xml::READER,
-        );
         let spec = ReadSpecification {
             preferred_stream_id: stream_id::BUILTIN_RELIABLE,
             data_format: 0,
@@ -453,8 +447,51 @@ impl TestClient {
             }),
             ..Default::default()
         };
+        self.setup_subscriber_with(domain, spec)
+    }
+
+    /// Participant, topic, subscriber and HelloWorld reader in `domain`, then READ_DATA with
+    /// `spec`.
+    pub fn setup_subscriber_with(&mut self, domain: i16, spec: ReadSpecification) -> ObjectId {
+        let r = self.setup_chain(
+            domain,
+            object_kind::SUBSCRIBER,
+            object_kind::DATAREADER,
+            xml::READER,
+        );
         self.client.read(Instant::now(), r, spec).expect("read");
         r
+    }
+
+    /// WRITE_DATA in `format` on the reliable stream (`data` follows the BaseObjectRequest).
+    pub fn write_reliable_format(&mut self, writer: ObjectId, format: u8, data: &[u8]) {
+        let ok = self.run_until(Duration::from_secs(60), |c| {
+            c.client.can_send_reliable(stream_id::BUILTIN_RELIABLE)
+        });
+        assert!(ok, "reliable window never opened");
+        self.client
+            .write_format(
+                Instant::now(),
+                stream_id::BUILTIN_RELIABLE,
+                writer,
+                format,
+                data,
+            )
+            .expect("write");
+        self.step();
+    }
+
+    /// Every DATA received so far as (format, bytes after the BaseObjectRequest).
+    pub fn take_data(&mut self) -> Vec<(u8, Vec<u8>)> {
+        let mut out = Vec::new();
+        self.events.retain(|e| match e {
+            ClientEvent::Data { format, data, .. } => {
+                out.push((*format, data.clone()));
+                false
+            }
+            _ => true,
+        });
+        out
     }
 
     /// Writes on the reliable stream, waiting for window room.

@@ -58,9 +58,11 @@ pub enum ClientEvent {
     SessionStatus(ResultStatus),
     /// A STATUS reply.
     Status(BaseObjectReply),
-    /// A DATA reply (FORMAT_DATA payload bytes).
+    /// A DATA reply (the bytes after the BaseObjectRequest, in `format`).
     Data {
         request: BaseObjectRequest,
+        /// The DataFormat (FORMAT_DATA: `data` is the sample itself).
+        format: u8,
         stream_id: u8,
         data: Vec<u8>,
     },
@@ -328,14 +330,26 @@ impl Client {
         writer: ObjectId,
         sample: &[u8],
     ) -> Result<RequestId, ClientError> {
+        self.write_format(now, stream, writer, crate::wire::data_format::DATA, sample)
+    }
+
+    /// WRITE_DATA in any DataFormat: `data` is what follows the BaseObjectRequest.
+    pub fn write_format(
+        &mut self,
+        now: Instant,
+        stream: u8,
+        writer: ObjectId,
+        format: u8,
+        data: &[u8],
+    ) -> Result<RequestId, ClientError> {
         let request_id = self.next_request_id();
         let p = Payload::WriteData(DataPayload {
             base: BaseObjectRequest {
                 request_id,
                 object_id: writer,
             },
-            format: 0,
-            data: sample,
+            format,
+            data,
         });
         self.send(now, stream, &p)?;
         Ok(request_id)
@@ -517,6 +531,7 @@ impl Client {
             }
             Payload::Data(d) => self.events.push_back(ClientEvent::Data {
                 request: d.base,
+                format: d.format,
                 stream_id: stream,
                 data: d.data.to_vec(),
             }),

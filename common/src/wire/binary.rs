@@ -20,7 +20,7 @@ pub const MAX_PARTITIONS: usize = 64;
 pub mod qos_flags {
     pub const RELIABLE: u16 = 0x0001;
     pub const HISTORY_KEEP_LAST: u16 = 0x0002;
-    pub const ORDERED: u16 = 0x0004;
+    pub const OWNERSHIP_EXCLUSIVE: u16 = 0x0004;
     pub const DURABILITY_TRANSIENT_LOCAL: u16 = 0x0008;
     pub const DURABILITY_TRANSIENT: u16 = 0x0010;
     pub const DURABILITY_PERSISTENT: u16 = 0x0020;

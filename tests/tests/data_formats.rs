@@ -1,0 +1,132 @@
+//! DataFormats end to end with Cyclone DDS: a READ_DATA asking for SAMPLE_SEQ gets each
+//! Cyclone sample wrapped with a SampleInfo (numbered per read), and WRITE_DATA in
+//! FORMAT_SAMPLE is unwrapped and published.
+
+use std::collections::BTreeSet;
+use std::time::Duration;
+
+use xrce_common::wire::cdr::CdrWriter;
+use xrce_common::wire::sample::{decode_samples, SampleInfo, SampleInfoDetail};
+use xrce_common::wire::{data_format, stream_id, DataDeliveryControl, Dialect, ReadSpecification};
+use xrce_tests::{
+    hello_world, parse_hello_world, parse_sample_line, AgentProcess, DdsPeer, TestClient,
+};
+
+const SECOND: Duration = Duration::from_secs(1);
+
+#[test]
+fn a_read_asking_for_sample_seq_gets_numbered_sample_infos() {
+    let agent = AgentProcess::start("fmtsub");
+    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4D, 0x00, 0x01]);
+    c.connect(10 * SECOND);
+    c.setup_subscriber_with(
+        20,
+        ReadSpecification {
+            preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+            data_format: data_format::SAMPLE_SEQ,
+            delivery_control: Some(DataDeliveryControl {
+                max_samples: u16::MAX,
+                ..Default::default()
+            }),
+            ..Default::default()
+        },
+    );
+    let mut writer = DdsPeer::start(&[
+        "write",
+        "--domain",
+        "20",
+        "--count",
+        "5",
+        "--interval-ms",
+        "20",
+        "--message",
+        "wrapped",
+        "--wait-match",
+        "--reliable",
+        "--timeout",
+        "60",
+        "--linger-ms",
+        "3000",
+    ]);
+    let mut got = Vec::new();
+    let ok = c.run_until(60 * SECOND, |c| {
+        got.extend(c.take_data());
+        got.len() >= 5
+    });
+    assert!(ok, "client got {} of 5 DATA", got.len());
+    let mut seqs = BTreeSet::new();
+    let mut indexes = BTreeSet::new();
+    for (format, bytes) in &got {
+        assert_eq!(*format, data_format::SAMPLE_SEQ);
+        let samples = decode_samples(*format, bytes, true, Dialect::Eprosima, None)
+            .expect("a SampleSeq the eProsima dialect reads");
+        assert_eq!(samples.len(), 1);
+        let info = samples[0].info.expect("SampleInfo");
+        assert_eq!(info.state, 0, "alive");
+        let SampleInfoDetail::Both {
+            sequence_number, ..
+        } = info.detail
+        else {
+            panic!("detail {:?}", info.detail)
+        };
+        seqs.insert(sequence_number);
+        let (i, m) = parse_hello_world(samples[0].data).expect("HelloWorld");
+        assert_eq!(m, "wrapped");
+        indexes.insert(i);
+    }
+    assert_eq!(
+        seqs,
+        (1..=5).collect(),
+        "one SampleInfo number per sample of the read"
+    );
+    assert_eq!(indexes, (0..5).collect());
+    assert_eq!(writer.wait(30 * SECOND, || c.step()), Some(0));
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn write_data_in_format_sample_is_published() {
+    let agent = AgentProcess::start("fmtpub");
+    let reader = DdsPeer::start(&[
+        "read",
+        "--domain",
+        "21",
+        "--count",
+        "5",
+        "--reliable",
+        "--timeout",
+        "60",
+    ]);
+    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4D, 0x00, 0x02]);
+    c.connect(10 * SECOND);
+    let w = c.setup_publisher(21);
+    assert!(
+        reader
+            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+            .is_some(),
+        "Cyclone never matched the agent's writer"
+    );
+    for i in 0..5u32 {
+        let mut body = Vec::new();
+        SampleInfo {
+            state: 0,
+            detail: SampleInfoDetail::SequenceNumber(i),
+        }
+        .encode(&mut CdrWriter::new(&mut body, true), Dialect::Eprosima);
+        body.extend_from_slice(&hello_world(i, "sampled"));
+        c.write_reliable_format(w, data_format::SAMPLE, &body);
+    }
+    let mut got = BTreeSet::new();
+    let end = std::time::Instant::now() + 30 * SECOND;
+    while got.len() < 5 && std::time::Instant::now() < end {
+        c.step();
+        while let Some(l) = reader.line(Duration::from_millis(1)) {
+            if let Some((i, m)) = parse_sample_line(&l) {
+                assert_eq!(m, "sampled");
+                got.insert(i);
+            }
+        }
+    }
+    assert_eq!(got, (0..5).collect::<BTreeSet<u32>>());
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
