@@ -94,3 +94,45 @@ impl DefaultDecoder<RawSample> for RawLe {
     type Decoder = RawDecoder;
     const DECODER: RawDecoder = RawDecoder;
 }
+
+/// A data writer publishing raw samples in the byte order of the client that created it.
+pub enum RawWriter {
+    /// CDR_LE.
+    Le(rustdds::no_key::DataWriter<RawSample, RawLe>),
+    /// CDR_BE.
+    Be(rustdds::no_key::DataWriter<RawSample, RawBe>),
+}
+
+impl std::fmt::Debug for RawWriter {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(if self.little_endian() {
+            "RawWriter(CDR_LE)"
+        } else {
+            "RawWriter(CDR_BE)"
+        })
+    }
+}
+
+impl RawWriter {
+    /// Whether it publishes little-endian samples.
+    pub fn little_endian(&self) -> bool {
+        matches!(self, RawWriter::Le(_))
+    }
+
+    /// Publishes a sample (already in the writer's byte order).
+    pub fn write(&self, sample: RawSample) -> Result<(), String> {
+        match self {
+            RawWriter::Le(w) => w.write(sample, None).map_err(|e| e.to_string()),
+            RawWriter::Be(w) => w.write(sample, None).map_err(|e| e.to_string()),
+        }
+    }
+
+    /// The next status event, if any.
+    pub fn try_recv_status(&self) -> Option<rustdds::dds::statusevents::DataWriterStatus> {
+        use rustdds::StatusEvented;
+        match self {
+            RawWriter::Le(w) => w.try_recv_status(),
+            RawWriter::Be(w) => w.try_recv_status(),
+        }
+    }
+}

@@ -10,7 +10,7 @@ use std::os::fd::AsRawFd;
 use std::time::{Duration, Instant};
 
 use rustdds::mio1::{Events, Interest, Poll, Token};
-use rustdds::no_key::{DataReader, DataWriter};
+use rustdds::no_key::DataReader;
 use rustdds::{DomainParticipant, Publisher, QosPolicies, Subscriber, Topic, TopicKind};
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
 use xrce_common::ipc::{
@@ -25,7 +25,7 @@ use xrce_common::wire::{
 };
 
 use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
-use crate::raw::{RawLe, RawSample};
+use crate::raw::{RawBe, RawLe, RawSample, RawWriter};
 use crate::representation::{check_plain, describe_endpoint, describe_topic};
 use crate::xml::{self, TopicDesc};
 
@@ -49,7 +49,7 @@ enum EntityKind {
     Topic(TopicDesc),
     Publisher(Publisher, DomainParticipant),
     Subscriber(Subscriber, DomainParticipant),
-    Writer(Box<DataWriter<RawSample, RawLe>>, Rematch),
+    Writer(Box<RawWriter>, Rematch),
     Reader(Box<DataReader<RawSample, RawLe>>, Token),
 }
 
@@ -361,7 +361,12 @@ impl Worker {
                 self.remove_where(|k| k.0 == h.frontend_id && k.1 == h.client_key)
             }
             MessageKind::Create => {
-                let r = self.create(key, body, h.flags & FLAG_REPLAY != 0);
+                let r = self.create(
+                    key,
+                    body,
+                    h.flags & FLAG_REPLAY != 0,
+                    h.flags & FLAG_LITTLE_ENDIAN != 0,
+                );
                 if r.is_ok() {
                     tracing::debug!(client = %h.client_key, object = ?h.object_id, replay = h.flags & FLAG_REPLAY != 0, "created");
                 }
@@ -482,7 +487,13 @@ impl Worker {
         None
     }
 
-    fn create(&mut self, key: EntityKey, body: &[u8], replay: bool) -> Result<(), OpError> {
+    fn create(
+        &mut self,
+        key: EntityKey,
+        body: &[u8],
+        replay: bool,
+        little_endian: bool,
+    ) -> Result<(), OpError> {
         let variant = ObjectVariant::decode(&mut CdrReader::new(body, true)).map_err(|e| {
             (
                 status::ERR_INVALID_DATA,
@@ -558,9 +569,17 @@ impl Worker {
                 let desc = describe_endpoint(repr, true, &self.config.references)?;
                 let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
-                let w = publisher
-                    .create_datawriter_no_key::<RawSample, RawLe>(&topic, Some(qos))
-                    .map_err(|e| dds_err("create data writer", &e))?;
+                // A client writes in its native byte order, the one of its CREATE.
+                let w = if little_endian {
+                    publisher
+                        .create_datawriter_no_key::<RawSample, RawLe>(&topic, Some(qos))
+                        .map(RawWriter::Le)
+                } else {
+                    publisher
+                        .create_datawriter_no_key::<RawSample, RawBe>(&topic, Some(qos))
+                        .map(RawWriter::Be)
+                }
+                .map_err(|e| dds_err("create data writer", &e))?;
                 let rematch = Rematch {
                     until: Some(
                         Instant::now()
@@ -738,14 +757,23 @@ impl Worker {
                 "write to an unknown data writer".into(),
             ));
         };
-        if !little_endian {
+        if little_endian != w.little_endian() {
+            // Without the type the bytes cannot be swapped.
             return Err((
                 status::ERR_INVALID_DATA,
-                "big-endian samples are not supported yet".into(),
+                format!(
+                    "a {}-endian sample for a data writer created {}-endian",
+                    if little_endian { "little" } else { "big" },
+                    if w.little_endian() { "little" } else { "big" },
+                ),
             ));
         }
         let sample = RawSample {
-            encoding: rustdds::RepresentationIdentifier::CDR_LE,
+            encoding: if little_endian {
+                rustdds::RepresentationIdentifier::CDR_LE
+            } else {
+                rustdds::RepresentationIdentifier::CDR_BE
+            },
             body: rustdds::bytes::Bytes::copy_from_slice(body),
         };
         if rematch.until.is_some() {
@@ -760,16 +788,15 @@ impl Worker {
             );
             rematch.until = None;
             for (_, s) in rematch.held.drain(..) {
-                let _ = w.write(s, None);
+                let _ = w.write(s);
             }
         }
-        w.write(sample, None)
+        w.write(sample)
             .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
     }
 
     /// Releases the samples of replayed writers that matched again (or waited long enough).
     fn release_rematched(&mut self) {
-        use rustdds::StatusEvented;
         let now = Instant::now();
         let mut failures = 0u64;
         for e in self.entities.values_mut() {
@@ -800,7 +827,7 @@ impl Worker {
                 );
                 rematch.until = None;
                 for (_, sample) in rematch.held.drain(..) {
-                    if w.write(sample, None).is_err() {
+                    if w.write(sample).is_err() {
                         failures += 1;
                     }
                 }

@@ -485,6 +485,9 @@ impl Bridge {
                 if !waited {
                     h.flags |= FLAG_REPLAY;
                 }
+                if o.little_endian {
+                    h.flags |= FLAG_LITTLE_ENDIAN;
+                }
                 self.outbox.push_back(OwnedOp {
                     header: h,
                     body,
@@ -698,7 +701,11 @@ impl OperationSink for Bridge {
                 );
                 self.submit(h, &[], false, Awaited::No);
             }
-            Operation::Create { client, create } => {
+            Operation::Create {
+                client,
+                create,
+                little_endian,
+            } => {
                 let graph = self.graphs.entry(client).or_default();
                 let id = create.base.object_id;
                 match graph.decide_create(id, &create.variant, create.reuse, create.replace) {
@@ -714,15 +721,15 @@ impl OperationSink for Bridge {
                             object_id: id,
                             request_id: create.base.request_id,
                             variant: create.variant.clone(),
+                            little_endian,
                         });
                         let mut body = Vec::new();
                         create.variant.encode(&mut CdrWriter::new(&mut body, true));
-                        self.submit(
-                            header(MessageKind::Create, fe, client, create.base),
-                            &body,
-                            false,
-                            Awaited::Yes,
-                        );
+                        let mut h = header(MessageKind::Create, fe, client, create.base);
+                        if little_endian {
+                            h.flags |= FLAG_LITTLE_ENDIAN;
+                        }
+                        self.submit(h, &body, false, Awaited::Yes);
                     }
                 }
             }

@@ -254,6 +254,15 @@ pub fn hello_world(index: u32, message: &str) -> Vec<u8> {
     v
 }
 
+/// The HelloWorld sample in big-endian CDR (what a big-endian microcontroller writes).
+pub fn hello_world_be(index: u32, message: &str) -> Vec<u8> {
+    let mut v = index.to_be_bytes().to_vec();
+    v.extend_from_slice(&(message.len() as u32 + 1).to_be_bytes());
+    v.extend_from_slice(message.as_bytes());
+    v.push(0);
+    v
+}
+
 /// Decodes a HelloWorld sample (little-endian CDR).
 pub fn parse_hello_world(b: &[u8]) -> Option<(u32, String)> {
     let index = u32::from_le_bytes(b.get(0..4)?.try_into().ok()?);
@@ -290,13 +299,18 @@ pub struct TestClient {
 impl TestClient {
     /// A client with `key`, talking to `agent`.
     pub fn new(agent: SocketAddr, key: [u8; 4]) -> Self {
+        Self::with_config(agent, ClientConfig::new(ClientKey(key)))
+    }
+
+    /// A client with its own settings (byte order, liveliness, ...), talking to `agent`.
+    pub fn with_config(agent: SocketAddr, config: ClientConfig) -> Self {
         let socket = UdpSocket::bind("127.0.0.1:0").expect("bind client");
         socket.connect(agent).expect("connect");
         socket
             .set_read_timeout(Some(Duration::from_millis(5)))
             .expect("timeout");
         TestClient {
-            client: Client::new(ClientConfig::new(ClientKey(key))),
+            client: Client::new(config),
             socket,
             events: Vec::new(),
             buf: vec![0; 65_536],

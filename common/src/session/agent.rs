@@ -106,10 +106,11 @@ pub enum Operation<'a> {
     ClientCreated { client: ClientKey },
     /// A session ended (deleted by the client, or replaced): drop all its objects.
     ClientDeleted { client: ClientKey },
-    /// CREATE.
+    /// CREATE, with the byte order the client used (its data writers publish in it).
     Create {
         client: ClientKey,
         create: &'a CreatePayload,
+        little_endian: bool,
     },
     /// DELETE of an object.
     Delete {
@@ -838,6 +839,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             Payload::Create(c) => sink.operation(Operation::Create {
                 client: key,
                 create: &c,
+                little_endian: le,
             }),
             Payload::Delete(d) if d.object_id == ObjectId::CLIENT => {
                 if stream == stream_id::NONE {

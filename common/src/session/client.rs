@@ -34,6 +34,9 @@ pub struct ClientConfig {
     pub connect_retry: Duration,
     /// Ask the agent for hard liveliness with this timeout (eProsima property `uxr_hl`).
     pub hard_liveliness: Option<Duration>,
+    /// Byte order of the submessages the client sends on its streams (a big-endian
+    /// microcontroller sends big-endian CREATE and WRITE_DATA).
+    pub little_endian: bool,
 }
 
 impl ClientConfig {
@@ -47,6 +50,7 @@ impl ClientConfig {
             heartbeat_period: Duration::from_millis(50),
             connect_retry: Duration::from_millis(250),
             hard_liveliness: None,
+            little_endian: true,
         }
     }
 }
@@ -228,7 +232,7 @@ impl Client {
             if !self.can_send_reliable(stream) {
                 return Err(ClientError::WindowFull);
             }
-            let sub = crate::wire::encode_large_submessage(payload, true)
+            let sub = crate::wire::encode_large_submessage(payload, self.config.little_endian)
                 .map_err(|_| ClientError::TooLarge)?;
             let header_len = MessageHeader::encoded_len(self.config.session_id);
             let mtu = self.config.mtu as usize;
@@ -248,7 +252,8 @@ impl Client {
                 self.config.key,
             ));
             *seq = seq.wrapping_add(1);
-            b.push(payload, true).map_err(|_| ClientError::TooLarge)?;
+            b.push(payload, self.config.little_endian)
+                .map_err(|_| ClientError::TooLarge)?;
             self.transmits.push_back(b.finish());
         }
         Ok(())

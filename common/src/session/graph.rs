@@ -27,6 +27,8 @@ pub struct GraphObject {
     pub request_id: RequestId,
     /// How it was described.
     pub variant: ObjectVariant,
+    /// The byte order of the CREATE (a client's native one).
+    pub little_endian: bool,
 }
 
 /// An active READ_DATA.
@@ -176,6 +178,7 @@ mod tests {
                     .map(VariantExtra::Parent)
                     .unwrap_or(VariantExtra::DomainId(0)),
             },
+            little_endian: true,
         }
     }
 
