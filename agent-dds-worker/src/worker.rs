@@ -89,6 +89,8 @@ struct ActiveRead {
     deadline: Option<Instant>,
     /// No delivery control: deliver what is there, or the first sample to come, then end.
     one_shot: bool,
+    /// The front-end asked to hold samples back (its client is not keeping up).
+    paused: bool,
 }
 
 struct FrontendPort {
@@ -388,6 +390,15 @@ impl Worker {
                 let r = self.write(key, &h, body);
                 if r.is_err() || h.flags & FLAG_STATUS_REQUESTED != 0 {
                     self.status(&h, r);
+                }
+            }
+            MessageKind::PauseRead | MessageKind::ResumeRead => {
+                let pause = h.kind == MessageKind::PauseRead;
+                if let Some(r) = self.reads.get_mut(&key) {
+                    r.paused = pause;
+                    if !pause {
+                        self.to_pump.insert(key);
+                    }
                 }
             }
             MessageKind::Read => {
@@ -880,23 +891,27 @@ impl Worker {
                 "content filters are not supported yet".into(),
             ));
         }
+        let paused = self.reads.get(&key).is_some_and(|r| r.paused);
         let read = match spec.delivery_control {
             Some(d) if d.max_samples == 0 => {
                 self.reads.remove(&key);
                 return Ok(());
             }
+            // A new read replaces the old one but not the front-end's flow control.
             Some(d) => ActiveRead {
                 request_id: h.request_id,
                 remaining: (d.max_samples != u16::MAX).then_some(d.max_samples as u32),
                 deadline: (d.max_elapsed_time != 0)
                     .then(|| Instant::now() + Duration::from_secs(d.max_elapsed_time as u64)),
                 one_shot: false,
+                paused,
             },
             None => ActiveRead {
                 request_id: h.request_id,
                 remaining: None,
                 deadline: None,
                 one_shot: true,
+                paused,
             },
         };
         self.reads.insert(key, read);
@@ -905,7 +920,7 @@ impl Worker {
 
     /// Takes samples of a reader with an active read and sends them to its front-end.
     fn pump(&mut self, key: EntityKey) {
-        let Some(read) = self.reads.get(&key) else {
+        let Some(read) = self.reads.get(&key).filter(|r| !r.paused) else {
             return;
         };
         if let Some(p) = self.ports.get_mut(&key.0).filter(|p| !p.backlog.is_empty()) {

@@ -42,6 +42,12 @@ pub const OUTBOX_MAX_BYTES: usize = 64 << 20;
 pub const RETAIN_MAX: usize = 8192;
 /// Bytes of retained writes before new ones are refused (flow control).
 pub const RETAIN_MAX_BYTES: usize = 64 << 20;
+/// A read is paused when its client's reliable stream has this many messages (or bytes)
+/// waiting for window room: its samples then wait in the DDS reader, not in agent memory.
+pub const PAUSE_READ_AT: (usize, usize) = (1024, 1 << 20);
+/// A paused read resumes when the backlog is down to this.
+pub const RESUME_READ_AT: (usize, usize) = (256, 256 << 10);
+
 /// How long an executed reliable write is kept in case the worker dies right after.
 pub const SETTLE_TIME: Duration = Duration::from_millis(250);
 
@@ -162,6 +168,10 @@ pub struct BridgeStats {
     /// Operations dropped because the outbox was full (best-effort writes, or beyond the
     /// hard bound).
     pub ops_dropped: u64,
+    /// Samples the agent core could not queue for their client (output queue full).
+    pub samples_dropped: u64,
+    /// Times a read was paused because its client did not keep up.
+    pub reads_paused: u64,
 }
 
 /// The front-end's IPC state.
@@ -182,6 +192,8 @@ pub struct Bridge {
     pending: HashMap<u64, (ClientKey, BaseObjectRequest, MessageKind)>,
     graphs: HashMap<ClientKey, ObjectGraph>,
     replies_out: Vec<(ClientKey, BaseObjectRequest, ResultStatus)>,
+    /// Reads paused because their client does not keep up: (client, reader) -> stream.
+    paused: HashMap<(ClientKey, ObjectId), u8>,
     /// INFO replies decided here (GET_INFO about a client's objects).
     infos_out: Vec<(
         ClientKey,
@@ -241,6 +253,7 @@ impl Bridge {
             graphs: HashMap::new(),
             replies_out: Vec::new(),
             infos_out: Vec::new(),
+            paused: HashMap::new(),
             dirty: false,
             stats: BridgeStats::default(),
         })
@@ -426,6 +439,8 @@ impl Bridge {
         self.generation = Some(generation);
         self.processed = self.next_seq - 1;
         self.stats.replays += 1;
+        // The new worker starts every read unpaused.
+        self.paused.clear();
         let old_outbox = self.outbox.take();
         // Operations a client still waits for: answered by the replay, or (deletes) now.
         let mut awaited: HashMap<(ClientKey, ObjectId), RequestId> = HashMap::new();
@@ -622,7 +637,19 @@ impl Bridge {
                     sequence_number,
                 };
                 if let Err(e) = agent.send_data(now, h.client_key, stream, reply) {
+                    self.stats.samples_dropped += 1;
                     tracing::debug!(client = %h.client_key, error = %e, "sample not delivered");
+                }
+                let congested = agent
+                    .output_backlog(h.client_key, stream)
+                    .is_some_and(|(m, b)| m >= PAUSE_READ_AT.0 || b >= PAUSE_READ_AT.1);
+                let key = (h.client_key, h.object_id);
+                if congested && !self.paused.contains_key(&key) {
+                    self.paused.insert(key, stream);
+                    self.stats.reads_paused += 1;
+                    tracing::debug!(client = %h.client_key, reader = ?h.object_id, "read paused: the client is not keeping up");
+                    let pause = header(MessageKind::PauseRead, self.frontend_id, h.client_key, req);
+                    self.submit(pause, &[], false, Awaited::No);
                 }
             }
             MessageKind::ReadEnded => {
@@ -639,6 +666,36 @@ impl Bridge {
                 self.stats.ipc_dropped += 1;
                 tracing::warn!(kind = ?other, "unexpected message on the reply service");
             }
+        }
+    }
+
+    /// Resumes paused reads whose clients caught up (or are gone). Cheap when none is paused.
+    pub fn resume_reads<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
+        &mut self,
+        agent: &Agent<A>,
+    ) {
+        if self.paused.is_empty() {
+            return;
+        }
+        let ready: Vec<(ClientKey, ObjectId)> = self
+            .paused
+            .iter()
+            .filter(|((client, _), stream)| {
+                agent
+                    .output_backlog(*client, **stream)
+                    .is_none_or(|(m, b)| m <= RESUME_READ_AT.0 && b <= RESUME_READ_AT.1)
+            })
+            .map(|(k, _)| *k)
+            .collect();
+        for (client, reader) in ready {
+            self.paused.remove(&(client, reader));
+            tracing::debug!(%client, ?reader, "read resumed");
+            let req = BaseObjectRequest {
+                request_id: RequestId::default(),
+                object_id: reader,
+            };
+            let h = header(MessageKind::ResumeRead, self.frontend_id, client, req);
+            self.submit(h, &[], false, Awaited::No);
         }
     }
 

@@ -82,6 +82,7 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
         }
         bridge.apply_replies(now, &mut agent);
         bridge.poll_ipc(now, &mut agent);
+        bridge.resume_reads(&agent);
         bridge.pump();
         agent.handle_timeout(now, &mut bridge);
         report.maybe_log(now, &agent, &bridge);
@@ -140,6 +141,8 @@ impl StatsReport {
             dropped = ?reasons,
             replays = bridge.stats().replays,
             ops_dropped = bridge.stats().ops_dropped,
+            samples_dropped = bridge.stats().samples_dropped,
+            reads_paused = bridge.stats().reads_paused,
             "front-end counters"
         );
         self.last = now;

@@ -1,16 +1,21 @@
 //! `xrce-loadgen`: a load generator. N publishing XRCE clients and one subscribing client
-//! (common's client state machine, one UDP socket and session each) talk through a running
-//! agent; it reports session set-up time, the samples/s delivered client → agent → DDS →
-//! agent → client, losses, and latency percentiles.
+//! (common's client state machine, one UDP socket and session each) talk through an agent;
+//! it reports session set-up time, the samples/s delivered client → agent → DDS → agent →
+//! client, losses, latency percentiles (HdrHistogram), and the agent's CPU time and peak RSS
+//! summed over its process group (from /proc).
 //!
-//! Usage: `xrce-loadgen --port 8888 [--publishers 1] [--samples 20000] [--rate 0] [--payload 40]
-//! [--domain 42] [--best-effort]` against an agent started separately, e.g.
-//! `xrce-agent udp4 -p 8888 --dds-interface 127.0.0.1`. `--rate 0` sends as fast as the
-//! reliable windows allow.
+//! By default it starts our agent (`xrce-agent` next to this binary) on `--port`;
+//! `--agent-cmd 'CMD {port}'` starts any other agent with a shell, and `--no-agent` uses one
+//! already running. `--json FILE` writes the results for machines.
+//!
+//! Example: `xrce-loadgen --publishers 100 --samples 50000 --best-effort --json run.json`.
 
 use std::collections::HashSet;
 use std::net::UdpSocket;
+use std::process::{Child, Command};
 use std::time::{Duration, Instant};
+
+use clap::Parser;
 
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
 use xrce_common::wire::{
@@ -85,15 +90,6 @@ impl Peer {
     }
 }
 
-fn arg(args: &[String], name: &str, default: u64) -> u64 {
-    args.iter()
-        .position(|a| a == name)
-        .and_then(|i| args.get(i + 1))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
-
-/// Pumps every peer until `done` holds or `limit` passes.
 fn pump_until(
     peers: &mut [Peer],
     limit: Duration,
@@ -125,23 +121,264 @@ fn pump_until(
     Ok(false)
 }
 
+/// Command line.
+#[derive(Debug, Parser)]
+#[command(name = "xrce-loadgen", about = "Load generator for XRCE agents")]
+struct Args {
+    /// UDP port of the agent.
+    #[arg(long, default_value_t = 8888)]
+    port: u16,
+    /// Publishing clients (each its own session and socket); one more client subscribes.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=60_000))]
+    publishers: u32,
+    /// Samples to send in the measured phase.
+    #[arg(long, default_value_t = 20_000)]
+    samples: u32,
+    /// Samples per second in total (0 = as fast as the windows allow).
+    #[arg(long, default_value_t = 0.0)]
+    rate: f64,
+    /// Sample size in bytes (at least 12: sequence number and send time).
+    #[arg(long, default_value_t = 40)]
+    payload: usize,
+    /// DDS domain of the clients' participants.
+    #[arg(long, default_value_t = 42)]
+    domain: i16,
+    /// Best-effort streams (default: reliable).
+    #[arg(long)]
+    best_effort: bool,
+    /// History depth of the DDS writers and reader (0 = KEEP_ALL).
+    #[arg(long, default_value_t = 1000)]
+    history: u32,
+    /// Longest measured phase in seconds.
+    #[arg(long, default_value_t = 60)]
+    duration: u64,
+    /// Command starting the agent under test, `{port}` replaced (run with `sh -c`).
+    #[arg(long)]
+    agent_cmd: Option<String>,
+    /// Use an agent that is already running on `--port`.
+    #[arg(long, conflicts_with = "agent_cmd")]
+    no_agent: bool,
+    /// Write the results as JSON to this file.
+    #[arg(long)]
+    json: Option<std::path::PathBuf>,
+}
+
+/// The agent under test, started by the generator and stopped when dropped.
+struct AgentUnderTest {
+    child: Child,
+}
+
+impl AgentUnderTest {
+    fn start(cmd: &str, port: u16) -> Result<Self, String> {
+        let line = cmd.replace("{port}", &port.to_string());
+        eprintln!("starting agent: {line}");
+        let child = Command::new("sh")
+            .arg("-c")
+            .arg(format!("exec {line}"))
+            .spawn()
+            .map_err(|e| format!("starting {line:?}: {e}"))?;
+        Ok(AgentUnderTest { child })
+    }
+
+    /// CPU seconds and summed peak RSS (KiB) of the agent and every descendant.
+    fn usage(&self) -> Option<ProcUsage> {
+        proc_usage(self.child.id())
+    }
+}
+
+impl Drop for AgentUnderTest {
+    fn drop(&mut self) {
+        let pid = self.child.id() as i32;
+        // SIGINT first (agents clean up), then give them 5 s.
+        let _ = Command::new("kill")
+            .args(["-INT", &pid.to_string()])
+            .status();
+        let end = Instant::now() + Duration::from_secs(5);
+        while Instant::now() < end {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Resource use of a process tree.
+#[derive(Debug, Clone, Copy, Default, serde::Serialize)]
+struct ProcUsage {
+    /// User plus system CPU seconds.
+    cpu_seconds: f64,
+    /// Sum of the processes' peak resident set sizes, KiB.
+    peak_rss_kib: u64,
+    /// Processes counted.
+    processes: usize,
+}
+
+/// Reads /proc for `root` and its descendants.
+fn proc_usage(root: u32) -> Option<ProcUsage> {
+    let ticks = 100.0; // USER_HZ on Linux
+    let mut parents: Vec<(u32, u32)> = Vec::new();
+    for e in std::fs::read_dir("/proc").ok()?.flatten() {
+        let Some(pid) = e.file_name().to_str().and_then(|s| s.parse::<u32>().ok()) else {
+            continue;
+        };
+        let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+            continue;
+        };
+        let after = stat.rsplit_once(')').map(|(_, r)| r).unwrap_or("");
+        let ppid = after.split_whitespace().nth(1).and_then(|v| v.parse().ok());
+        if let Some(ppid) = ppid {
+            parents.push((pid, ppid));
+        }
+    }
+    let mut tree = vec![root];
+    let mut i = 0;
+    while i < tree.len() {
+        let p = tree[i];
+        tree.extend(parents.iter().filter(|(_, pp)| *pp == p).map(|(c, _)| *c));
+        i += 1;
+    }
+    let mut u = ProcUsage::default();
+    for pid in &tree {
+        let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+            continue;
+        };
+        let after = stat.rsplit_once(')').map(|(_, r)| r).unwrap_or("");
+        let f: Vec<&str> = after.split_whitespace().collect();
+        // Fields after the command: state(0) ppid(1) ... utime(11) stime(12).
+        let t = |k: usize| f.get(k).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+        u.cpu_seconds += (t(11) + t(12)) / ticks;
+        if let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) {
+            u.peak_rss_kib += status
+                .lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.split_whitespace().next())
+                .and_then(|v| v.parse::<u64>().ok())
+                .unwrap_or(0);
+        }
+        u.processes += 1;
+    }
+    Some(u)
+}
+
+/// Waits until something answers an XRCE ping on `port`.
+fn wait_for_agent(port: u16, limit: Duration) -> bool {
+    let Ok(socket) = UdpSocket::bind("127.0.0.1:0") else {
+        return false;
+    };
+    if socket.connect(("127.0.0.1", port)).is_err()
+        || socket
+            .set_read_timeout(Some(Duration::from_millis(100)))
+            .is_err()
+    {
+        return false;
+    }
+    // GET_INFO without a session, as eProsima's ping sends it.
+    let ping = [
+        0x80, 0x00, 0x00, 0x00, 0x02, 0x01, 0x08, 0x00, 0x00, 0x01, 0xFF, 0xFD, 0x02, 0x00, 0x00,
+        0x00,
+    ];
+    let end = Instant::now() + limit;
+    let mut buf = [0u8; 512];
+    while Instant::now() < end {
+        let _ = socket.send(&ping);
+        if let Ok(n) = socket.recv(&mut buf) {
+            if n > 4 && buf[4] == 0x06 {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+/// What one run measured (also written as JSON).
+#[derive(Debug, serde::Serialize)]
+struct Report {
+    publishers: u32,
+    subscribers: u32,
+    payload_bytes: usize,
+    reliable: bool,
+    rate_requested: f64,
+    sessions_ms: f64,
+    setup_ms: f64,
+    matched_ms: f64,
+    unmatched_writers: usize,
+    sent: u32,
+    received: u64,
+    lost: u64,
+    duplicates: u64,
+    seconds: f64,
+    samples_per_second: f64,
+    bytes_per_second: f64,
+    latency_us: Percentiles,
+    agent: Option<AgentUse>,
+}
+
+#[derive(Debug, serde::Serialize)]
+struct Percentiles {
+    p50: f64,
+    p90: f64,
+    p99: f64,
+    p999: f64,
+    max: f64,
+}
+
+#[derive(Debug, serde::Serialize)]
+struct AgentUse {
+    /// CPU seconds of the agent's processes during the measured phase.
+    cpu_seconds: f64,
+    /// CPU microseconds per delivered sample.
+    cpu_us_per_sample: f64,
+    /// Summed peak RSS of the agent's processes at the end, KiB.
+    peak_rss_kib: u64,
+    processes: usize,
+}
+
 fn main() -> Result<(), String> {
-    let args: Vec<String> = std::env::args().collect();
-    let port = arg(&args, "--port", 8888) as u16;
-    let publishers = arg(&args, "--publishers", 1).clamp(1, 60_000) as usize;
-    let samples = arg(&args, "--samples", 20_000) as u32;
-    let payload = arg(&args, "--payload", 40).max(12) as usize;
-    let domain = arg(&args, "--domain", 42) as i16;
-    let rate = arg(&args, "--rate", 0) as f64;
-    let stream = if args.iter().any(|a| a == "--best-effort") {
+    let a = Args::parse();
+    let (port, publishers, samples, payload, domain, rate) = (
+        a.port,
+        a.publishers as usize,
+        a.samples,
+        a.payload.max(12),
+        a.domain,
+        a.rate,
+    );
+    let stream = if a.best_effort {
         stream_id::BUILTIN_BEST_EFFORT
     } else {
         stream_id::BUILTIN_RELIABLE
     };
+    let agent = if a.no_agent {
+        None
+    } else {
+        let cmd = match &a.agent_cmd {
+            Some(c) => c.clone(),
+            None => {
+                let exe = std::env::current_exe().map_err(|e| e.to_string())?;
+                let ours = exe.with_file_name("xrce-agent");
+                format!(
+                    "{} udp4 -p {{port}} --bind 127.0.0.1 --dds-interface 127.0.0.1 -v 3",
+                    ours.display()
+                )
+            }
+        };
+        Some(AgentUnderTest::start(&cmd, port)?)
+    };
+    if !wait_for_agent(port, Duration::from_secs(30)) {
+        return Err(format!("no agent answers a ping on UDP port {port}"));
+    }
     let topic = "<dds><topic><name>LoadTopic</name><dataType>Load</dataType></topic></dds>";
+    let history = if a.history == 0 {
+        "<kind>KEEP_ALL</kind>".to_string()
+    } else {
+        format!("<kind>KEEP_LAST</kind><depth>{}</depth>", a.history)
+    };
     let endpoint = |e: &str| {
         format!(
-            "<dds><{e}><topic><kind>NO_KEY</kind><name>LoadTopic</name><dataType>Load</dataType></topic><qos><reliability><kind>RELIABLE</kind></reliability><durability><kind>VOLATILE</kind></durability><historyQos><kind>KEEP_LAST</kind><depth>1000</depth></historyQos></qos></{e}></dds>"
+            "<dds><{e}><topic><kind>NO_KEY</kind><name>LoadTopic</name><dataType>Load</dataType></topic><qos><reliability><kind>RELIABLE</kind></reliability><durability><kind>VOLATILE</kind></durability><historyQos>{history}</historyQos></qos></{e}></dds>"
         )
     };
     // Peer 0 subscribes, the others publish.
@@ -270,12 +507,20 @@ fn main() -> Result<(), String> {
 
     // The run: publishers take turns; the subscriber records each sample once.
     let (mut sent, mut next_pub) = (0u32, 1usize);
-    let mut latencies = Vec::with_capacity(samples as usize);
+    let mut latencies = hdrhistogram::Histogram::<u64>::new_with_bounds(1, 60_000_000_000, 3)
+        .map_err(|e| e.to_string())?;
+    let (mut received, mut duplicates) = (0u64, 0u64);
     let mut seen = vec![false; samples as usize];
+    let usage_before = agent.as_ref().and_then(AgentUnderTest::usage);
     let t0 = Instant::now();
     let mut last_report = t0;
-    let deadline = t0 + Duration::from_secs(60);
-    while (latencies.len() as u32) < samples && Instant::now() < deadline {
+    let deadline = t0 + Duration::from_secs(a.duration);
+    let mut last_rx = t0;
+    while (received as u32) < samples && Instant::now() < deadline {
+        // Everything sent and nothing more for 2 s: the rest is lost.
+        if sent == samples && last_rx.elapsed() > Duration::from_secs(2) {
+            break;
+        }
         let allowed = if rate > 0.0 {
             ((t0.elapsed().as_secs_f64() * rate) as u32).min(samples)
         } else {
@@ -308,43 +553,106 @@ fn main() -> Result<(), String> {
         let now_ns = base.elapsed().as_nanos() as u64;
         for e in events.drain(..) {
             if let ClientEvent::Data { data, .. } = e {
+                if data.len() < 12 {
+                    continue;
+                }
                 let seq = u32::from_le_bytes([data[0], data[1], data[2], data[3]]) as usize;
                 if seq < seen.len() && !seen[seq] {
                     seen[seq] = true;
+                    received += 1;
+                    last_rx = Instant::now();
                     let mut ts = [0u8; 8];
                     ts.copy_from_slice(&data[4..12]);
-                    latencies.push(now_ns.saturating_sub(u64::from_le_bytes(ts)));
+                    let ns = now_ns.saturating_sub(u64::from_le_bytes(ts)).max(1);
+                    let _ = latencies.record(ns.min(60_000_000_000));
+                } else if seq < seen.len() {
+                    duplicates += 1;
                 }
             }
         }
         if last_report.elapsed() > Duration::from_secs(1) {
             last_report = Instant::now();
-            eprintln!("progress: sent {sent}, received {}", latencies.len());
+            eprintln!("progress: sent {sent}, received {received}");
         }
     }
-    let elapsed = t0.elapsed();
-    latencies.sort_unstable();
-    let pct = |p: f64| {
-        latencies
-            .get(((latencies.len() as f64 * p) as usize).min(latencies.len().saturating_sub(1)))
-            .map_or(0.0, |n| *n as f64 / 1000.0)
+    // Throughput over the time until the last sample arrived.
+    let elapsed = last_rx
+        .saturating_duration_since(t0)
+        .max(Duration::from_millis(1));
+    let usage_after = agent.as_ref().and_then(AgentUnderTest::usage);
+    let pct = |q: f64| latencies.value_at_quantile(q) as f64 / 1000.0;
+    let report = Report {
+        publishers: publishers as u32,
+        subscribers: 1,
+        payload_bytes: payload,
+        reliable: stream == stream_id::BUILTIN_RELIABLE,
+        rate_requested: rate,
+        sessions_ms: sessions_at.as_secs_f64() * 1e3,
+        setup_ms: setup.as_secs_f64() * 1e3,
+        matched_ms: matched.as_secs_f64() * 1e3,
+        unmatched_writers: unmatched,
+        sent,
+        received,
+        lost: u64::from(sent).saturating_sub(received),
+        duplicates,
+        seconds: elapsed.as_secs_f64(),
+        samples_per_second: received as f64 / elapsed.as_secs_f64(),
+        bytes_per_second: (received as f64 * payload as f64) / elapsed.as_secs_f64(),
+        latency_us: Percentiles {
+            p50: pct(0.5),
+            p90: pct(0.9),
+            p99: pct(0.99),
+            p999: pct(0.999),
+            max: latencies.max() as f64 / 1000.0,
+        },
+        agent: match (usage_before, usage_after) {
+            (Some(b), Some(e)) => Some(AgentUse {
+                cpu_seconds: e.cpu_seconds - b.cpu_seconds,
+                cpu_us_per_sample: (e.cpu_seconds - b.cpu_seconds) * 1e6 / (received.max(1) as f64),
+                peak_rss_kib: e.peak_rss_kib,
+                processes: e.processes,
+            }),
+            _ => None,
+        },
     };
     println!(
-        "{} publishers + 1 subscriber: set-up {:.0} ms, all writers matched at {:.0} ms ({unmatched} never); {} of {} samples of {} B in {:.2} s = {:.0} samples/s, {} lost; latency us p50 {:.0} p90 {:.0} p99 {:.0} p99.9 {:.0} max {:.0}",
-        publishers,
-        setup.as_secs_f64() * 1e3,
-        matched.as_secs_f64() * 1e3,
-        latencies.len(),
-        sent,
+        "{} publishers + 1 subscriber, {} B {}: set-up {:.0} ms (sessions {:.0} ms), writers matched at {:.0} ms ({} never)",
+        report.publishers,
         payload,
-        elapsed.as_secs_f64(),
-        latencies.len() as f64 / elapsed.as_secs_f64(),
-        sent as usize - latencies.len(),
-        pct(0.5),
-        pct(0.9),
-        pct(0.99),
-        pct(0.999),
-        pct(1.0)
+        if report.reliable { "reliable" } else { "best-effort" },
+        report.setup_ms,
+        report.sessions_ms,
+        report.matched_ms,
+        report.unmatched_writers
     );
+    println!(
+        "  {} of {} samples in {:.2} s = {:.0} samples/s ({:.1} MB/s), {} lost, {} duplicates",
+        received,
+        sent,
+        report.seconds,
+        report.samples_per_second,
+        report.bytes_per_second / 1e6,
+        report.lost,
+        duplicates
+    );
+    let l = &report.latency_us;
+    println!(
+        "  latency us: p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}",
+        l.p50, l.p90, l.p99, l.p999, l.max
+    );
+    if let Some(u) = &report.agent {
+        println!(
+            "  agent ({} processes): {:.2} CPU s = {:.1} us/sample, peak RSS {:.1} MiB",
+            u.processes,
+            u.cpu_seconds,
+            u.cpu_us_per_sample,
+            u.peak_rss_kib as f64 / 1024.0
+        );
+    }
+    if let Some(path) = &a.json {
+        let text = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
+        std::fs::write(path, text).map_err(|e| format!("writing {}: {e}", path.display()))?;
+    }
+    drop(agent);
     Ok(())
 }

@@ -46,6 +46,11 @@ pub enum MessageKind {
     Read = 5,
     /// Front-end → worker: a session ended; delete all its objects.
     DeleteClient = 6,
+    /// Front-end → worker: the client is not keeping up with this read; leave its samples
+    /// in the DDS reader (whose history QoS applies) until ResumeRead.
+    PauseRead = 7,
+    /// Front-end → worker: deliver the read's samples again.
+    ResumeRead = 8,
     /// Worker → all: a new worker generation is serving.
     WorkerHello = 16,
     /// Worker → front-end: the result of a Create, Delete, Write or Read (body: status, detail).
@@ -70,6 +75,8 @@ impl MessageKind {
             4 => Write,
             5 => Read,
             6 => DeleteClient,
+            7 => PauseRead,
+            8 => ResumeRead,
             16 => WorkerHello,
             17 => Status,
             18 => Sample,

@@ -786,6 +786,25 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             .map_or(Dialect::default(), |c| c.dialect)
     }
 
+    /// Messages and bytes waiting for window room on a client's reliable output stream
+    /// (0 = the built-in one); `None` for best-effort streams and unknown clients.
+    pub fn output_backlog(&self, key: ClientKey, stream: u8) -> Option<(usize, usize)> {
+        let stream = if stream == stream_id::NONE {
+            stream_id::BUILTIN_RELIABLE
+        } else {
+            stream
+        };
+        if !stream_id::is_reliable(stream) {
+            return None;
+        }
+        let c = self.clients.get(&key)?;
+        Some(
+            c.reliable_out
+                .get(&stream)
+                .map_or((0, 0), |s| (s.queue.len(), s.queued_bytes)),
+        )
+    }
+
     /// The dialect a client's session speaks.
     pub fn dialect(&self, key: ClientKey) -> Option<Dialect> {
         self.clients.get(&key).map(|c| c.dialect)
