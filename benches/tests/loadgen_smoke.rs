@@ -1,0 +1,61 @@
+//! CI smoke run of the load generator (a test, not a benchmark: no timing thresholds):
+//! 50 publishing clients through our agent for a few seconds; every session is established,
+//! every writer matched, and every reliable sample delivered.
+
+use std::process::Command;
+
+#[test]
+fn fifty_clients_deliver_every_reliable_sample() {
+    let json = std::env::temp_dir().join(format!("loadgen-smoke-{}.json", std::process::id()));
+    // A port of its own, derived from the pid (the generator starts the agent on it).
+    let port = 20_000 + (std::process::id() % 20_000) as u16;
+    // The generator starts the `xrce-agent` next to it; build it if this run did not.
+    let loadgen = std::path::Path::new(env!("CARGO_BIN_EXE_xrce-loadgen"));
+    if !loadgen.with_file_name("xrce-agent").exists() {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let ok = Command::new(cargo)
+            .args(["build", "-p", "xrce-agent", "--bin", "xrce-agent"])
+            .status()
+            .is_ok_and(|s| s.success());
+        assert!(ok, "building xrce-agent failed");
+    }
+    let out = Command::new(env!("CARGO_BIN_EXE_xrce-loadgen"))
+        .args([
+            "--port",
+            &port.to_string(),
+            "--publishers",
+            "50",
+            "--samples",
+            "3000",
+            "--rate",
+            "1000",
+            "--domain",
+            "23",
+            "--duration",
+            "60",
+            "--json",
+        ])
+        .arg(&json)
+        .output()
+        .expect("run xrce-loadgen");
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "xrce-loadgen failed: {stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = std::fs::read_to_string(&json).expect("JSON report written");
+    let _ = std::fs::remove_file(&json);
+    let v: serde_json::Value = serde_json::from_str(&text).expect("valid JSON");
+    assert_eq!(v["publishers"], 50);
+    assert_eq!(v["unmatched_writers"], 0, "{stdout}");
+    assert_eq!(v["sent"], 3000, "{stdout}");
+    assert_eq!(v["received"], 3000, "{stdout}");
+    assert_eq!(v["lost"], 0, "{stdout}");
+    assert_eq!(v["duplicates"], 0, "{stdout}");
+    assert!(v["latency_us"]["p50"].as_f64().is_some_and(|p| p > 0.0));
+    assert!(
+        v["agent"]["processes"].as_u64().is_some_and(|n| n >= 3),
+        "{stdout}"
+    );
+}
