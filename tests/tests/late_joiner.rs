@@ -1,0 +1,51 @@
+//! Transient-local late joiner: samples a client published before any reader existed reach a
+//! Cyclone DDS reader that joins later with TRANSIENT_LOCAL durability (the agent's writers
+//! are transient-local by default, as Fast DDS's).
+
+use std::collections::BTreeSet;
+use std::time::Duration;
+
+use xrce_tests::{hello_world, parse_sample_line, AgentProcess, DdsPeer, TestClient};
+
+const SECOND: Duration = Duration::from_secs(1);
+
+#[test]
+fn a_late_transient_local_reader_gets_the_history() {
+    let agent = AgentProcess::start("late");
+    let mut c = TestClient::new(agent.addr(), [0x1A, 0x7E, 0x00, 0x01]);
+    c.connect(10 * SECOND);
+    let w = c.setup_publisher(24);
+    for i in 0..8 {
+        c.write_reliable(w, &hello_world(i, "before you came"));
+    }
+    // Let the writer take them (it holds new writers' samples until matched, at most 1 s).
+    c.run_until(2 * SECOND, |_| false);
+    let reader = DdsPeer::start(&[
+        "read",
+        "--domain",
+        "24",
+        "--count",
+        "8",
+        "--reliable",
+        "--transient-local",
+        "--timeout",
+        "60",
+    ]);
+    let mut got = BTreeSet::new();
+    let end = std::time::Instant::now() + 45 * SECOND;
+    while got.len() < 8 && std::time::Instant::now() < end {
+        c.step();
+        while let Some(l) = reader.line(Duration::from_millis(1)) {
+            if let Some((i, m)) = parse_sample_line(&l) {
+                assert_eq!(m, "before you came");
+                got.insert(i);
+            }
+        }
+    }
+    assert_eq!(
+        got,
+        (0..8).collect::<BTreeSet<u32>>(),
+        "the late reader missed history"
+    );
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
