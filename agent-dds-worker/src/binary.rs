@@ -16,13 +16,13 @@ use crate::xml::{
 };
 
 /// Reads a participant body (optional domain and QoS profile references, not used yet).
-pub fn parse_participant(body: &[u8]) -> Result<(), DecodeError> {
-    ParticipantBinary::decode(body).map(drop)
+pub fn parse_participant(body: &[u8], le: bool) -> Result<(), DecodeError> {
+    ParticipantBinary::decode(body, le).map(drop)
 }
 
 /// Reads a topic body: name, optional type reference, optional type name.
-pub fn parse_topic(body: &[u8]) -> Result<TopicDesc, DecodeError> {
-    let t = TopicBinary::decode(body)?;
+pub fn parse_topic(body: &[u8], le: bool) -> Result<TopicDesc, DecodeError> {
+    let t = TopicBinary::decode(body, le)?;
     let type_name = t
         .type_name
         .or(t.type_reference)
@@ -39,16 +39,16 @@ pub fn parse_topic(body: &[u8]) -> Result<TopicDesc, DecodeError> {
 }
 
 /// Reads a publisher or subscriber body; returns whether it names partitions.
-pub fn parse_publisher_or_subscriber(body: &[u8]) -> Result<bool, DecodeError> {
-    let g = GroupBinary::decode(body)?;
+pub fn parse_publisher_or_subscriber(body: &[u8], le: bool) -> Result<bool, DecodeError> {
+    let g = GroupBinary::decode(body, le)?;
     Ok(g.qos
         .and_then(|q| q.partitions)
         .is_some_and(|p| p.iter().any(|n| !n.is_empty())))
 }
 
 /// Reads a data writer or data reader body.
-pub fn parse_endpoint(body: &[u8], writer: bool) -> Result<EndpointDesc, DecodeError> {
-    let e = EndpointBinary::decode(body, writer)?;
+pub fn parse_endpoint(body: &[u8], writer: bool, le: bool) -> Result<EndpointDesc, DecodeError> {
+    let e = EndpointBinary::decode(body, writer, le)?;
     Ok(EndpointDesc {
         topic: None,
         topic_ref: None,
@@ -122,31 +122,37 @@ mod tests {
     /// Bodies from `binary-creation.txt` (the real eProsima client).
     #[test]
     fn captured_bodies() {
-        parse_participant(&unhex("00 00")).expect("participant");
-        let t = parse_topic(&unhex(
-            "0d000000 4578616d706c65546f70696300 00 01 00 0c000000 4578616d706c655479706500",
-        ))
+        parse_participant(&unhex("00 00"), true).expect("participant");
+        let t = parse_topic(
+            &unhex(
+                "0d000000 4578616d706c65546f70696300 00 01 00 0c000000 4578616d706c655479706500",
+            ),
+            true,
+        )
         .expect("topic");
         assert_eq!(
             (t.name.as_str(), t.type_name.as_str()),
             ("ExampleTopic", "ExampleType")
         );
-        parse_publisher_or_subscriber(&unhex("00 00")).expect("publisher");
-        let w = parse_endpoint(&unhex("0012 01 00 0b00 00 00 00 00 00"), true).expect("writer");
+        parse_publisher_or_subscriber(&unhex("00 00"), true).expect("publisher");
+        let w =
+            parse_endpoint(&unhex("0012 01 00 0b00 00 00 00 00 00"), true, true).expect("writer");
         assert_eq!(w.topic_id, Some(ObjectId([0x00, 0x12])));
         assert_eq!(w.qos.reliability, Some(Reliability::Reliable));
         assert_eq!(w.qos.durability, Some(Durability::TransientLocal));
         assert_eq!(w.qos.history, None);
-        let r = parse_endpoint(&unhex("0012 01 00 0b00 00 00 00 00 00 00"), false).expect("reader");
+        let r = parse_endpoint(&unhex("0012 01 00 0b00 00 00 00 00 00 00"), false, true)
+            .expect("reader");
         assert_eq!(r.topic_id, Some(ObjectId([0x00, 0x12])));
     }
 
     #[test]
     fn spec_vector_topic_body() {
         // Spec digest §11, §7.7.3.1.3 OBJK_Topic_Binary (type_reference form).
-        let t = parse_topic(&unhex(
-            "07000000 5371756172650001 13000000 4d7954797065733a3a5368617065547970650000",
-        ))
+        let t = parse_topic(
+            &unhex("07000000 5371756172650001 13000000 4d7954797065733a3a5368617065547970650000"),
+            true,
+        )
         .expect("topic");
         assert_eq!(
             (t.name.as_str(), t.type_name.as_str()),
@@ -171,8 +177,8 @@ mod tests {
                 ..EndpointBinaryQos::default()
             }),
         }
-        .encode(true);
-        let q = parse_endpoint(&body, true).expect("writer").qos;
+        .encode(true, true);
+        let q = parse_endpoint(&body, true, true).expect("writer").qos;
         let ms = |v| Some(Period::Finite(std::time::Duration::from_millis(v)));
         assert_eq!(q.deadline, ms(250));
         assert_eq!(q.lifespan, ms(10_000));
@@ -185,9 +191,9 @@ mod tests {
                 ..EndpointBinaryQos::default()
             }),
         }
-        .encode(false);
+        .encode(false, true);
         assert_eq!(
-            parse_endpoint(&reader, false)
+            parse_endpoint(&reader, false, true)
                 .expect("reader")
                 .qos
                 .time_based_filter,
@@ -206,8 +212,8 @@ mod tests {
 
     #[test]
     fn truncated_bodies_are_errors() {
-        assert!(parse_topic(&[0x05, 0, 0, 0, b'a']).is_err());
-        assert!(parse_endpoint(&[0x00], true).is_err());
-        assert!(parse_endpoint(&unhex("0012 01 00 0b00 01"), true).is_err());
+        assert!(parse_topic(&[0x05, 0, 0, 0, b'a'], true).is_err());
+        assert!(parse_endpoint(&[0x00], true, true).is_err());
+        assert!(parse_endpoint(&unhex("0012 01 00 0b00 01"), true, true).is_err());
     }
 }

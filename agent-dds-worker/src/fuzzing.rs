@@ -15,7 +15,7 @@ pub fn representations(data: &[u8]) {
         reprs.push(Representation::Xml(s.to_string()));
         reprs.push(Representation::Reference(s.to_string()));
     }
-    for repr in &reprs {
+    for (repr, le) in reprs.iter().flat_map(|r| [(r, true), (r, false)]) {
         for kind in [
             object_kind::PARTICIPANT,
             object_kind::TOPIC,
@@ -24,10 +24,10 @@ pub fn representations(data: &[u8]) {
             object_kind::DATAWRITER,
             object_kind::DATAREADER,
         ] {
-            let _ = check_plain(repr, kind, &refs);
+            let _ = check_plain(repr, kind, &refs, le);
         }
-        let _ = describe_topic(repr, &refs);
-        let _ = describe_endpoint(repr, true, &refs);
-        let _ = describe_endpoint(repr, false, &refs);
+        let _ = describe_topic(repr, &refs, le);
+        let _ = describe_endpoint(repr, true, &refs, le);
+        let _ = describe_endpoint(repr, false, &refs, le);
     }
 }

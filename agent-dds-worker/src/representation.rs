@@ -40,7 +40,12 @@ fn as_xml<'a>(
 /// Checks the representation of a participant, publisher or subscriber (whose settings the
 /// worker takes from elsewhere: publishers and subscribers from their endpoints, and the
 /// reference client sends them an empty string).
-pub fn check_plain(repr: &Representation, kind: u8, refs: &References) -> Result<(), OpError> {
+pub fn check_plain(
+    repr: &Representation,
+    kind: u8,
+    refs: &References,
+    little_endian: bool,
+) -> Result<(), OpError> {
     let participant = kind == object_kind::PARTICIPANT;
     let element = if participant {
         "participant"
@@ -55,11 +60,11 @@ pub fn check_plain(repr: &Representation, kind: u8, refs: &References) -> Result
         // that parses is checked for partitions, the one group policy that matters here.
         (Some(x), _) => no_partitions(xml::group_has_partitions(x, element).unwrap_or(false)),
         (None, Representation::Binary(b)) if participant => {
-            binary::parse_participant(b).map_err(invalid_binary)
+            binary::parse_participant(b, little_endian).map_err(invalid_binary)
         }
-        (None, Representation::Binary(b)) => {
-            no_partitions(binary::parse_publisher_or_subscriber(b).map_err(invalid_binary)?)
-        }
+        (None, Representation::Binary(b)) => no_partitions(
+            binary::parse_publisher_or_subscriber(b, little_endian).map_err(invalid_binary)?,
+        ),
         (None, _) => Ok(()),
     }
 }
@@ -78,10 +83,16 @@ fn no_partitions(has_partitions: bool) -> Result<(), OpError> {
 }
 
 /// Reads a topic representation.
-pub fn describe_topic(repr: &Representation, refs: &References) -> Result<TopicDesc, OpError> {
+pub fn describe_topic(
+    repr: &Representation,
+    refs: &References,
+    little_endian: bool,
+) -> Result<TopicDesc, OpError> {
     match (as_xml(repr, refs, "topic")?, repr) {
         (Some(x), _) => xml::parse_topic(x).map_err(invalid_xml),
-        (None, Representation::Binary(b)) => binary::parse_topic(b).map_err(invalid_binary),
+        (None, Representation::Binary(b)) => {
+            binary::parse_topic(b, little_endian).map_err(invalid_binary)
+        }
         (None, _) => Err((
             status::ERR_INVALID_DATA,
             "empty topic representation".into(),
@@ -94,12 +105,13 @@ pub fn describe_endpoint(
     repr: &Representation,
     writer: bool,
     refs: &References,
+    little_endian: bool,
 ) -> Result<xml::EndpointDesc, OpError> {
     let element = if writer { "data_writer" } else { "data_reader" };
     let desc = match (as_xml(repr, refs, element)?, repr) {
         (Some(x), _) => xml::parse_endpoint(x, element).map_err(invalid_xml),
         (None, Representation::Binary(b)) => {
-            binary::parse_endpoint(b, writer).map_err(invalid_binary)
+            binary::parse_endpoint(b, writer, little_endian).map_err(invalid_binary)
         }
         (None, _) => Err((
             status::ERR_INVALID_DATA,

@@ -526,13 +526,13 @@ impl Worker {
             |what: &str, e: &dyn std::fmt::Debug| (status::ERR_DDS_ERROR, format!("{what}: {e:?}"));
         let (parent, kind) = match (variant.kind, variant.extra) {
             (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
-                check_plain(repr, variant.kind, &self.config.references)?;
+                check_plain(repr, variant.kind, &self.config.references, little_endian)?;
                 let domain = effective_domain(d).map_err(|e| (status::ERR_INVALID_DATA, e))?;
                 (None, EntityKind::Participant(domain))
             }
             (object_kind::TOPIC, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                let desc = describe_topic(repr, &self.config.references)?;
+                let desc = describe_topic(repr, &self.config.references, little_endian)?;
                 (Some(p), EntityKind::Topic(desc))
             }
             (
@@ -540,7 +540,7 @@ impl Worker {
                 VariantExtra::Parent(p),
             ) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                check_plain(repr, kind, &self.config.references)?;
+                check_plain(repr, kind, &self.config.references, little_endian)?;
                 let (_, domain) = self
                     .participant_of(key, p)
                     .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
@@ -577,7 +577,7 @@ impl Worker {
                             ))
                         }
                     };
-                let desc = describe_endpoint(repr, true, &self.config.references)?;
+                let desc = describe_endpoint(repr, true, &self.config.references, little_endian)?;
                 let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
                 // A client writes in its native byte order, the one of its CREATE.
@@ -615,7 +615,7 @@ impl Worker {
                             ))
                         }
                     };
-                let desc = describe_endpoint(repr, false, &self.config.references)?;
+                let desc = describe_endpoint(repr, false, &self.config.references, little_endian)?;
                 let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Reader, &tdesc.qos, &desc.qos);
                 let mut r = subscriber

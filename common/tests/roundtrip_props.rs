@@ -312,17 +312,18 @@ proptest! {
             proptest::option::of(bytes(16)),
         ))),
         (endpoint, writer) in endpoint_binary(),
+        le in any::<bool>(),
     ) {
         let p = ParticipantBinary { domain_reference: participant.0, qos_profile_reference: participant.1 };
-        prop_assert_eq!(ParticipantBinary::decode(&p.encode()), Ok(p));
+        prop_assert_eq!(ParticipantBinary::decode(&p.encode(le), le), Ok(p));
         let t = TopicBinary { topic_name: topic.0, type_reference: topic.1, type_name: topic.2 };
-        prop_assert_eq!(TopicBinary::decode(&t.encode()), Ok(t));
+        prop_assert_eq!(TopicBinary::decode(&t.encode(le), le), Ok(t));
         let g = GroupBinary {
             name: group.0,
             qos: group.1.map(|(partitions, group_data)| GroupQosBinary { partitions, group_data }),
         };
-        prop_assert_eq!(GroupBinary::decode(&g.encode()), Ok(g));
-        prop_assert_eq!(EndpointBinary::decode(&endpoint.encode(writer), writer), Ok(endpoint));
+        prop_assert_eq!(GroupBinary::decode(&g.encode(le), le), Ok(g));
+        prop_assert_eq!(EndpointBinary::decode(&endpoint.encode(writer, le), writer, le), Ok(endpoint));
     }
 }
 
@@ -338,17 +339,17 @@ fn captured_binary_bodies_decode_to_their_values() {
     };
     let topic =
         unhex("0d000000 4578616d706c65546f70696300 00 01 00 0c000000 4578616d706c655479706500");
-    let t = TopicBinary::decode(&topic).expect("topic");
+    let t = TopicBinary::decode(&topic, true).expect("topic");
     assert_eq!(t.topic_name, "ExampleTopic");
     assert_eq!(t.type_name.as_deref(), Some("ExampleType"));
-    assert_eq!(t.encode(), topic, "re-encodes byte for byte");
+    assert_eq!(t.encode(true), topic, "re-encodes byte for byte");
     let writer = unhex("0012 01 00 0b00 00 00 00 00 00");
-    let w = EndpointBinary::decode(&writer, true).expect("writer");
+    let w = EndpointBinary::decode(&writer, true, true).expect("writer");
     assert_eq!(w.topic_id, ObjectId([0x00, 0x12]));
     let q = w.qos.clone().expect("qos");
     assert_eq!(
         q.base.flags,
         qos_flags::RELIABLE | qos_flags::HISTORY_KEEP_LAST | qos_flags::DURABILITY_TRANSIENT_LOCAL
     );
-    assert_eq!(w.encode(true), writer);
+    assert_eq!(w.encode(true, true), writer);
 }

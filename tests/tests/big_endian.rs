@@ -57,3 +57,102 @@ fn a_big_endian_client_publishes_values_cyclone_reads_correctly() {
     assert_eq!(got, indexes.into_iter().collect::<BTreeSet<u32>>());
     assert!(agent.stop(), "agent did not stop cleanly");
 }
+
+#[test]
+fn a_big_endian_client_creates_its_entities_in_binary() {
+    use xrce_common::wire::binary::{
+        qos_flags, EndpointBinary, EndpointBinaryQos, EndpointQosBinary, GroupBinary,
+        ParticipantBinary, TopicBinary,
+    };
+    use xrce_common::wire::{object_kind as k, ObjectId, Representation, VariantExtra};
+    let agent = AgentProcess::start("bigendbin");
+    let reader = DdsPeer::start(&[
+        "read",
+        "--domain",
+        "25",
+        "--count",
+        "3",
+        "--reliable",
+        "--timeout",
+        "60",
+    ]);
+    let mut c = TestClient::with_config(
+        agent.addr(),
+        ClientConfig {
+            little_endian: false,
+            ..ClientConfig::new(ClientKey([0xBE, 0xBE, 0x00, 0x02]))
+        },
+    );
+    c.connect(10 * SECOND);
+    let (p, t) = (ObjectId::new(1, k::PARTICIPANT), ObjectId::new(1, k::TOPIC));
+    let (g, w) = (
+        ObjectId::new(1, k::PUBLISHER),
+        ObjectId::new(1, k::DATAWRITER),
+    );
+    let topic = TopicBinary {
+        topic_name: "HelloWorldTopic".into(),
+        type_reference: None,
+        type_name: Some("HelloWorld".into()),
+    };
+    let writer = EndpointBinary {
+        topic_id: t,
+        qos: Some(EndpointBinaryQos {
+            base: EndpointQosBinary {
+                flags: qos_flags::RELIABLE | qos_flags::DURABILITY_TRANSIENT_LOCAL,
+                history_depth: Some(0x0102),
+                ..EndpointQosBinary::default()
+            },
+            ownership_strength: Some(0),
+            ..EndpointBinaryQos::default()
+        }),
+    };
+    let steps = [
+        (
+            p,
+            k::PARTICIPANT,
+            ParticipantBinary::default().encode(false),
+            VariantExtra::DomainId(25),
+        ),
+        (t, k::TOPIC, topic.encode(false), VariantExtra::Parent(p)),
+        (
+            g,
+            k::PUBLISHER,
+            GroupBinary::default().encode(false),
+            VariantExtra::Parent(p),
+        ),
+        (
+            w,
+            k::DATAWRITER,
+            writer.encode(true, false),
+            VariantExtra::Parent(g),
+        ),
+    ];
+    for (id, kind, body, extra) in steps {
+        assert_eq!(
+            c.create_as(id, kind, Representation::Binary(body), extra),
+            0,
+            "creating {id:?} from a big-endian binary body"
+        );
+    }
+    assert!(
+        reader
+            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+            .is_some(),
+        "Cyclone never matched the agent's writer"
+    );
+    for i in [7u32, 0x0100, 0x010000] {
+        c.write_reliable(w, &hello_world_be(i, "binary big end"));
+    }
+    let mut got = BTreeSet::new();
+    let end = std::time::Instant::now() + 30 * SECOND;
+    while got.len() < 3 && std::time::Instant::now() < end {
+        c.step();
+        while let Some(l) = reader.line(Duration::from_millis(1)) {
+            if let Some((i, _)) = parse_sample_line(&l) {
+                got.insert(i);
+            }
+        }
+    }
+    assert_eq!(got, [7u32, 0x0100, 0x010000].into_iter().collect());
+    assert!(agent.stop(), "agent did not stop cleanly");
+}

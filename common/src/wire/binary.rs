@@ -147,9 +147,9 @@ fn read_name(r: &mut CdrReader<'_>) -> Result<String, DecodeError> {
 }
 
 impl ParticipantBinary {
-    /// Decodes a body.
-    pub fn decode(body: &[u8]) -> Result<Self, DecodeError> {
-        let r = &mut CdrReader::new(body, true);
+    /// Decodes a body in the client's byte order.
+    pub fn decode(body: &[u8], little_endian: bool) -> Result<Self, DecodeError> {
+        let r = &mut CdrReader::new(body, little_endian);
         Ok(ParticipantBinary {
             domain_reference: optional(r, read_name)?,
             qos_profile_reference: optional(r, read_name)?,
@@ -157,9 +157,9 @@ impl ParticipantBinary {
     }
 
     /// Encodes a body.
-    pub fn encode(&self) -> Vec<u8> {
+    pub fn encode(&self, little_endian: bool) -> Vec<u8> {
         let mut out = Vec::new();
-        let w = &mut CdrWriter::new(&mut out, true);
+        let w = &mut CdrWriter::new(&mut out, little_endian);
         put_optional(w, &self.domain_reference, |w, s| w.string(s));
         put_optional(w, &self.qos_profile_reference, |w, s| w.string(s));
         out
@@ -167,9 +167,9 @@ impl ParticipantBinary {
 }
 
 impl TopicBinary {
-    /// Decodes a body.
-    pub fn decode(body: &[u8]) -> Result<Self, DecodeError> {
-        let r = &mut CdrReader::new(body, true);
+    /// Decodes a body in the client's byte order.
+    pub fn decode(body: &[u8], little_endian: bool) -> Result<Self, DecodeError> {
+        let r = &mut CdrReader::new(body, little_endian);
         Ok(TopicBinary {
             topic_name: read_name(r)?,
             type_reference: optional(r, read_name)?,
@@ -178,9 +178,9 @@ impl TopicBinary {
     }
 
     /// Encodes a body.
-    pub fn encode(&self) -> Vec<u8> {
+    pub fn encode(&self, little_endian: bool) -> Vec<u8> {
         let mut out = Vec::new();
-        let w = &mut CdrWriter::new(&mut out, true);
+        let w = &mut CdrWriter::new(&mut out, little_endian);
         w.string(&self.topic_name);
         put_optional(w, &self.type_reference, |w, s| w.string(s));
         put_optional(w, &self.type_name, |w, s| w.string(s));
@@ -189,12 +189,13 @@ impl TopicBinary {
 }
 
 impl GroupBinary {
-    /// Decodes a body (an empty body is a group with nothing set, as some clients send).
-    pub fn decode(body: &[u8]) -> Result<Self, DecodeError> {
+    /// Decodes a body in the client's byte order (an empty body is a group with nothing
+    /// set, as some clients send).
+    pub fn decode(body: &[u8], little_endian: bool) -> Result<Self, DecodeError> {
         if body.is_empty() {
             return Ok(GroupBinary::default());
         }
-        let r = &mut CdrReader::new(body, true);
+        let r = &mut CdrReader::new(body, little_endian);
         let name = optional(r, read_name)?;
         let qos = optional(r, |r| {
             let partitions = optional(r, |r| {
@@ -214,9 +215,9 @@ impl GroupBinary {
     }
 
     /// Encodes a body.
-    pub fn encode(&self) -> Vec<u8> {
+    pub fn encode(&self, little_endian: bool) -> Vec<u8> {
         let mut out = Vec::new();
-        let w = &mut CdrWriter::new(&mut out, true);
+        let w = &mut CdrWriter::new(&mut out, little_endian);
         put_optional(w, &self.name, |w, s| w.string(s));
         put_optional(w, &self.qos, |w, q| {
             put_optional(w, &q.partitions, |w, p| {
@@ -232,9 +233,9 @@ impl GroupBinary {
 }
 
 impl EndpointBinary {
-    /// Decodes a data writer (`writer`) or data reader body.
-    pub fn decode(body: &[u8], writer: bool) -> Result<Self, DecodeError> {
-        let r = &mut CdrReader::new(body, true);
+    /// Decodes a data writer (`writer`) or data reader body in the client's byte order.
+    pub fn decode(body: &[u8], writer: bool, little_endian: bool) -> Result<Self, DecodeError> {
+        let r = &mut CdrReader::new(body, little_endian);
         let topic_id = ObjectId(r.array()?);
         let qos = optional(r, |r| {
             let base = EndpointQosBinary {
@@ -260,9 +261,9 @@ impl EndpointBinary {
     }
 
     /// Encodes a data writer (`writer`) or data reader body.
-    pub fn encode(&self, writer: bool) -> Vec<u8> {
+    pub fn encode(&self, writer: bool, little_endian: bool) -> Vec<u8> {
         let mut out = Vec::new();
-        let w = &mut CdrWriter::new(&mut out, true);
+        let w = &mut CdrWriter::new(&mut out, little_endian);
         w.bytes(&self.topic_id.0);
         put_optional(w, &self.qos, |w, q| {
             w.u16(q.base.flags);
