@@ -91,6 +91,64 @@ struct ActiveRead {
     one_shot: bool,
     /// The front-end asked to hold samples back (its client is not keeping up).
     paused: bool,
+    /// DataDeliveryControl pacing; samples wait in the DDS reader meanwhile.
+    pacing: Pacing,
+}
+
+/// DataDeliveryControl's `min_pace_period` and `max_bytes_per_second`.
+#[derive(Debug, Default)]
+struct Pacing {
+    /// At least this long between two samples (one DATA each).
+    min_pace: Option<Duration>,
+    /// At most this many sample bytes per one-second window.
+    bytes_per_second: Option<u64>,
+    /// No delivery before this.
+    next_at: Option<Instant>,
+    window_start: Option<Instant>,
+    window_bytes: u64,
+}
+
+impl Pacing {
+    fn new(d: &xrce_common::wire::DataDeliveryControl) -> Self {
+        Pacing {
+            min_pace: (d.min_pace_period > 0)
+                .then(|| Duration::from_millis(u64::from(d.min_pace_period))),
+            bytes_per_second: (d.max_bytes_per_second > 0)
+                .then_some(u64::from(d.max_bytes_per_second)),
+            ..Pacing::default()
+        }
+    }
+
+    fn limited(&self) -> bool {
+        self.min_pace.is_some() || self.bytes_per_second.is_some()
+    }
+
+    /// Whether a sample may go now; if not, `next_at` says when to try again.
+    fn may_send(&mut self, now: Instant) -> bool {
+        if self.next_at.is_some_and(|t| now < t) {
+            return false;
+        }
+        self.next_at = None;
+        if let Some(limit) = self.bytes_per_second {
+            let start = *self.window_start.get_or_insert(now);
+            if now >= start + Duration::from_secs(1) {
+                self.window_start = Some(now);
+                self.window_bytes = 0;
+            } else if self.window_bytes >= limit {
+                self.next_at = Some(start + Duration::from_secs(1));
+                return false;
+            }
+        }
+        true
+    }
+
+    /// Accounts a delivered sample of `len` bytes.
+    fn sent(&mut self, now: Instant, len: usize) {
+        self.window_bytes += len as u64;
+        if let Some(p) = self.min_pace {
+            self.next_at = Some(now + p);
+        }
+    }
 }
 
 struct FrontendPort {
@@ -254,7 +312,8 @@ impl Worker {
         let now = Instant::now();
         self.reads
             .values()
-            .filter_map(|r| r.deadline)
+            .flat_map(|r| [r.deadline, r.pacing.next_at])
+            .flatten()
             .min()
             .map(|d| {
                 d.saturating_duration_since(now)
@@ -905,6 +964,7 @@ impl Worker {
                     .then(|| Instant::now() + Duration::from_secs(d.max_elapsed_time as u64)),
                 one_shot: false,
                 paused,
+                pacing: Pacing::new(&d),
             },
             None => ActiveRead {
                 request_id: h.request_id,
@@ -912,6 +972,7 @@ impl Worker {
                 deadline: None,
                 one_shot: true,
                 paused,
+                pacing: Pacing::default(),
             },
         };
         self.reads.insert(key, read);
@@ -920,7 +981,7 @@ impl Worker {
 
     /// Takes samples of a reader with an active read and sends them to its front-end.
     fn pump(&mut self, key: EntityKey) {
-        let Some(read) = self.reads.get(&key).filter(|r| !r.paused) else {
+        let Some(read) = self.reads.get_mut(&key).filter(|r| !r.paused) else {
             return;
         };
         if let Some(p) = self.ports.get_mut(&key.0).filter(|p| !p.backlog.is_empty()) {
@@ -941,10 +1002,17 @@ impl Worker {
         let mut limit = read.remaining.unwrap_or(u32::MAX).min(PUMP_BATCH as u32);
         let one_shot = read.one_shot;
         let mut errors = 0u64;
+        let now = Instant::now();
         while limit > 0 {
+            if read.pacing.limited() && !read.pacing.may_send(now) {
+                // Paced: the rest waits in the DDS reader until `next_at`.
+                break;
+            }
             match reader.take_next_sample() {
                 Ok(Some(s)) => {
-                    out.push(s.into_value());
+                    let s = s.into_value();
+                    read.pacing.sent(now, s.body.len());
+                    out.push(s);
                     limit -= 1;
                     if one_shot {
                         break;
@@ -1008,6 +1076,13 @@ impl Worker {
 
     fn expire_reads(&mut self) {
         let now = Instant::now();
+        // Paced reads whose wait is over take their next samples.
+        for (k, r) in self.reads.iter_mut() {
+            if r.pacing.next_at.is_some_and(|t| t <= now) {
+                r.pacing.next_at = None;
+                self.to_pump.insert(*k);
+            }
+        }
         let expired: Vec<EntityKey> = self
             .reads
             .iter()
