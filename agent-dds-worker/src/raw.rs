@@ -127,6 +127,34 @@ impl RawWriter {
         }
     }
 
+    /// Publishes a sample, optionally as the reply to `related`; returns its identity.
+    pub fn write_identified(
+        &self,
+        sample: RawSample,
+        related: Option<rustdds::SampleIdentity>,
+    ) -> Result<rustdds::SampleIdentity, String> {
+        let opts = rustdds::WriteOptionsBuilder::new()
+            .related_sample_identity_opt(related)
+            .build();
+        match self {
+            RawWriter::Le(w) => w
+                .write_with_options(sample, opts)
+                .map_err(|e| e.to_string()),
+            RawWriter::Be(w) => w
+                .write_with_options(sample, opts)
+                .map_err(|e| e.to_string()),
+        }
+    }
+
+    /// The writer's GUID (requests are matched to replies by it).
+    pub fn guid(&self) -> rustdds::GUID {
+        use rustdds::RTPSEntity;
+        match self {
+            RawWriter::Le(w) => w.guid(),
+            RawWriter::Be(w) => w.guid(),
+        }
+    }
+
     /// The next status event, if any.
     pub fn try_recv_status(&self) -> Option<rustdds::dds::statusevents::DataWriterStatus> {
         use rustdds::StatusEvented;
@@ -134,5 +162,57 @@ impl RawWriter {
             RawWriter::Le(w) => w.try_recv_status(),
             RawWriter::Be(w) => w.try_recv_status(),
         }
+    }
+}
+
+/// A `SampleIdentity` as eProsima's client carries it in front of request and reply data:
+/// the writer GUID's 16 octets, then the sequence number as `int32 high`, `uint32 low` in the
+/// given byte order (24 bytes).
+pub fn encode_sample_identity(id: &rustdds::SampleIdentity, little_endian: bool) -> [u8; 24] {
+    let mut out = [0u8; 24];
+    out[..16].copy_from_slice(&id.writer_guid.to_bytes());
+    let (high, low) = (id.sequence_number.high(), id.sequence_number.low());
+    let (h, l) = if little_endian {
+        (high.to_le_bytes(), low.to_le_bytes())
+    } else {
+        (high.to_be_bytes(), low.to_be_bytes())
+    };
+    out[16..20].copy_from_slice(&h);
+    out[20..24].copy_from_slice(&l);
+    out
+}
+
+/// Reads the 24-byte identity [`encode_sample_identity`] writes; `None` if too short.
+pub fn decode_sample_identity(b: &[u8], little_endian: bool) -> Option<rustdds::SampleIdentity> {
+    let guid: [u8; 16] = b.get(..16)?.try_into().ok()?;
+    let h: [u8; 4] = b.get(16..20)?.try_into().ok()?;
+    let l: [u8; 4] = b.get(20..24)?.try_into().ok()?;
+    let (high, low) = if little_endian {
+        (i32::from_le_bytes(h), u32::from_le_bytes(l))
+    } else {
+        (i32::from_be_bytes(h), u32::from_be_bytes(l))
+    };
+    Some(rustdds::SampleIdentity {
+        writer_guid: rustdds::GUID::from_bytes(guid),
+        sequence_number: rustdds::SequenceNumber::from_high_low(high, low),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sample_identities_round_trip_in_both_byte_orders() {
+        let id = rustdds::SampleIdentity {
+            writer_guid: rustdds::GUID::from_bytes([7; 16]),
+            sequence_number: rustdds::SequenceNumber::from_high_low(1, 0x0102_0304),
+        };
+        for le in [true, false] {
+            let b = encode_sample_identity(&id, le);
+            assert_eq!(decode_sample_identity(&b, le), Some(id));
+        }
+        assert_eq!(&encode_sample_identity(&id, true)[20..], &[4, 3, 2, 1]);
+        assert_eq!(decode_sample_identity(&[0; 23], true), None);
     }
 }

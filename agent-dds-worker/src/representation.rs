@@ -121,3 +121,32 @@ pub fn describe_endpoint(
     no_partitions(desc.qos.partitions)?;
     Ok(desc)
 }
+
+/// Reads a requester or replier representation.
+pub fn describe_service(
+    repr: &Representation,
+    requester: bool,
+    refs: &References,
+    little_endian: bool,
+) -> Result<xml::ServiceDesc, OpError> {
+    let element = if requester { "requester" } else { "replier" };
+    match (as_xml(repr, refs, element)?, repr) {
+        (Some(x), _) => xml::parse_service(x, element).map_err(invalid_xml),
+        (None, Representation::Binary(b)) => {
+            let s = xrce_common::wire::binary::ServiceBinary::decode(b, little_endian)
+                .map_err(invalid_binary)?;
+            xml::ServiceDesc::new(
+                s.service_name,
+                s.request_type,
+                s.reply_type,
+                s.request_topic_name,
+                s.reply_topic_name,
+            )
+            .map_err(invalid_xml)
+        }
+        (None, _) => Err((
+            status::ERR_INVALID_DATA,
+            format!("empty {element} representation"),
+        )),
+    }
+}

@@ -26,7 +26,7 @@ use xrce_common::wire::{
 
 use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
 use crate::raw::{RawBe, RawLe, RawSample, RawWriter};
-use crate::representation::{check_plain, describe_endpoint, describe_topic};
+use crate::representation::{check_plain, describe_endpoint, describe_service, describe_topic};
 use crate::xml::{self, TopicDesc};
 
 /// Worker settings.
@@ -51,6 +51,25 @@ enum EntityKind {
     Subscriber(Subscriber, DomainParticipant),
     Writer(Box<RawWriter>, Rematch),
     Reader(Box<DataReader<RawSample, RawLe>>, Token),
+    /// A requester (publishes requests, reads the replies to them) or a replier (reads
+    /// requests, publishes replies).
+    Service(Box<ServiceEndpoint>),
+}
+
+/// Most requests a requester keeps waiting for their reply (the oldest are forgotten).
+const PENDING_REQUESTS_MAX: usize = 4096;
+
+/// The DDS side of an XRCE requester or replier.
+struct ServiceEndpoint {
+    requester: bool,
+    writer: RawWriter,
+    reader: DataReader<RawSample, RawLe>,
+    token: Token,
+    /// Requester: the sequence number of each published request -> its XRCE request id.
+    pending: HashMap<i64, xrce_common::wire::RequestId>,
+    pending_order: std::collections::VecDeque<i64>,
+    _publisher: Publisher,
+    _subscriber: Subscriber,
 }
 
 struct Entity {
@@ -689,6 +708,25 @@ impl Worker {
                 self.readers.insert(token, key);
                 (Some(p), EntityKind::Reader(Box::new(r), token))
             }
+            (kind @ (object_kind::REQUESTER | object_kind::REPLIER), VariantExtra::Parent(p)) => {
+                self.parent_entity(key, p, object_kind::PARTICIPANT)?;
+                let requester = kind == object_kind::REQUESTER;
+                let desc =
+                    describe_service(repr, requester, &self.config.references, little_endian)?;
+                let (_, domain) = self
+                    .participant_of(key, p)
+                    .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let endpoint = self.create_service(&desc, domain, requester, little_endian)?;
+                self.readers.insert(endpoint.token, key);
+                tracing::info!(
+                    service = %desc.service_name,
+                    request_topic = %desc.request_topic,
+                    reply_topic = %desc.reply_topic,
+                    requester,
+                    "service endpoint created"
+                );
+                (Some(p), EntityKind::Service(Box::new(endpoint)))
+            }
             (k, _) => {
                 return Err((
                     status::ERR_INVALID_DATA,
@@ -713,6 +751,104 @@ impl Worker {
             &QosPolicies::qos_none(),
             TopicKind::NoKey,
         )
+    }
+
+    /// The writer and reader of a requester or replier, on the DDS participants of `domain`.
+    /// Both are reliable and volatile (as RPC over DDS); the writer publishes in the
+    /// client's byte order.
+    fn create_service(
+        &mut self,
+        desc: &crate::xml::ServiceDesc,
+        domain: u16,
+        requester: bool,
+        little_endian: bool,
+    ) -> Result<ServiceEndpoint, OpError> {
+        let dds_err =
+            |what: &str, e: &dyn std::fmt::Debug| (status::ERR_DDS_ERROR, format!("{what}: {e:?}"));
+        let pub_dp = self
+            .pool
+            .get(domain, Role::Publish)
+            .map_err(|e| (status::ERR_DDS_ERROR, e))?;
+        let sub_dp = self
+            .pool
+            .get(domain, Role::Subscribe)
+            .map_err(|e| (status::ERR_DDS_ERROR, e))?;
+        let (out_topic, out_type, in_topic, in_type) = if requester {
+            (
+                &desc.request_topic,
+                &desc.request_type,
+                &desc.reply_topic,
+                &desc.reply_type,
+            )
+        } else {
+            (
+                &desc.reply_topic,
+                &desc.reply_type,
+                &desc.request_topic,
+                &desc.request_type,
+            )
+        };
+        let qos_desc = crate::xml::QosDesc {
+            reliability: Some(crate::xml::Reliability::Reliable),
+            durability: Some(crate::xml::Durability::Volatile),
+            ..Default::default()
+        };
+        let make = |dp: &DomainParticipant, name: &str, type_name: &str| {
+            dp.create_topic(
+                name.to_string(),
+                type_name.to_string(),
+                &QosPolicies::qos_none(),
+                TopicKind::NoKey,
+            )
+            .map_err(|e| dds_err("create topic", &e))
+        };
+        let publisher = pub_dp
+            .create_publisher(&QosPolicies::qos_none())
+            .map_err(|e| dds_err("create publisher", &e))?;
+        let subscriber = sub_dp
+            .create_subscriber(&QosPolicies::qos_none())
+            .map_err(|e| dds_err("create subscriber", &e))?;
+        let wt = make(&pub_dp, out_topic, out_type)?;
+        let rt = make(&sub_dp, in_topic, in_type)?;
+        let wq = endpoint_qos(
+            EndpointSide::Writer,
+            &qos_desc,
+            &crate::xml::QosDesc::default(),
+        );
+        let rq = endpoint_qos(
+            EndpointSide::Reader,
+            &qos_desc,
+            &crate::xml::QosDesc::default(),
+        );
+        let writer = if little_endian {
+            publisher
+                .create_datawriter_no_key::<RawSample, RawLe>(&wt, Some(wq))
+                .map(RawWriter::Le)
+        } else {
+            publisher
+                .create_datawriter_no_key::<RawSample, RawBe>(&wt, Some(wq))
+                .map(RawWriter::Be)
+        }
+        .map_err(|e| dds_err("create data writer", &e))?;
+        let mut reader = subscriber
+            .create_datareader_no_key::<RawSample, RawLe>(&rt, Some(rq))
+            .map_err(|e| dds_err("create data reader", &e))?;
+        let token = Token(self.next_token);
+        self.next_token += 1;
+        self.poll
+            .registry()
+            .register(&mut reader, token, Interest::READABLE)
+            .map_err(|e| dds_err("register reader", &e))?;
+        Ok(ServiceEndpoint {
+            requester,
+            writer,
+            reader,
+            token,
+            pending: HashMap::new(),
+            pending_order: std::collections::VecDeque::new(),
+            _publisher: publisher,
+            _subscriber: subscriber,
+        })
     }
 
     /// The topic an endpoint names (inline, or a topic object of the same participant),
@@ -803,6 +939,16 @@ impl Worker {
                 "dispose and unregister need a keyed topic, which this worker does not support yet"
                     .into(),
             ));
+        }
+        if let Some(Entity {
+            kind: EntityKind::Service(svc),
+            ..
+        }) = self.entities.get_mut(&key)
+        {
+            for s in samples {
+                service_write(svc, h.request_id, little_endian, s.data)?;
+            }
+            return Ok(());
         }
         for s in samples {
             self.write_one(key, h.op_seq, little_endian, s.data)?;
@@ -926,13 +1072,13 @@ impl Worker {
         if !matches!(
             self.entities.get(&key),
             Some(Entity {
-                kind: EntityKind::Reader(..),
+                kind: EntityKind::Reader(..) | EntityKind::Service(..),
                 ..
             })
         ) {
             return Err((
                 status::ERR_UNKNOWN_REFERENCE,
-                "read from an unknown data reader".into(),
+                "read from an unknown data reader, requester or replier".into(),
             ));
         }
         let spec = ReadSpecification::decode(&mut CdrReader::new(body, true))
@@ -990,12 +1136,22 @@ impl Worker {
             return;
         }
         let request_id = read.request_id;
-        let Some(Entity {
-            kind: EntityKind::Reader(reader, _),
-            ..
-        }) = self.entities.get_mut(&key)
-        else {
-            return;
+        let (reader, mut service) = match self.entities.get_mut(&key) {
+            Some(Entity {
+                kind: EntityKind::Reader(reader, _),
+                ..
+            }) => (&mut **reader, None),
+            Some(Entity {
+                kind: EntityKind::Service(s),
+                ..
+            }) => {
+                let s = &mut **s;
+                (
+                    &mut s.reader,
+                    Some((s.requester, &s.writer, &mut s.pending)),
+                )
+            }
+            _ => return,
         };
         let mut out = Vec::new();
         let mut more = false;
@@ -1010,7 +1166,15 @@ impl Worker {
             }
             match reader.take_next_sample() {
                 Ok(Some(s)) => {
-                    let s = s.into_value();
+                    let info = s.sample_info().clone();
+                    let mut s = s.into_value();
+                    if let Some((requester, writer, pending)) = service.as_mut() {
+                        match service_sample(*requester, writer, pending, &info, key.2, s) {
+                            Some(wrapped) => s = wrapped,
+                            // A reply to another requester.
+                            None => continue,
+                        }
+                    }
                     read.pacing.sent(now, s.body.len());
                     out.push(s);
                     limit -= 1;
@@ -1113,12 +1277,105 @@ impl Worker {
             self.remove_subtree(c);
         }
         if let Some(e) = self.entities.remove(&key) {
-            if let EntityKind::Reader(mut r, token) = e.kind {
-                let _ = self.poll.registry().deregister(&mut *r);
-                self.readers.remove(&token);
+            match e.kind {
+                EntityKind::Reader(mut r, token) => {
+                    let _ = self.poll.registry().deregister(&mut *r);
+                    self.readers.remove(&token);
+                }
+                EntityKind::Service(mut s) => {
+                    let _ = self.poll.registry().deregister(&mut s.reader);
+                    self.readers.remove(&s.token);
+                }
+                _ => {}
             }
             self.reads.remove(&key);
             self.to_pump.remove(&key);
         }
+    }
+}
+
+/// What a requester or replier client gets for a DDS sample: a replier the request's
+/// SampleIdentity in front of it (24 bytes, the sample's byte order); a requester the
+/// BaseObjectRequest of its own request in front of the reply, and only replies to its own
+/// requests (`None` for the others), as eProsima's agent does.
+fn service_sample(
+    requester: bool,
+    writer: &RawWriter,
+    pending: &mut HashMap<i64, xrce_common::wire::RequestId>,
+    info: &rustdds::SampleInfo,
+    object: ObjectId,
+    s: RawSample,
+) -> Option<RawSample> {
+    let le = s.little_endian();
+    let mut body = Vec::with_capacity(24 + s.body.len());
+    if requester {
+        let related = info.related_sample_identity()?;
+        if related.writer_guid != writer.guid() {
+            return None;
+        }
+        let request_id = pending.remove(&i64::from(related.sequence_number))?;
+        body.extend_from_slice(&request_id.0);
+        body.extend_from_slice(&object.0);
+    } else {
+        body.extend_from_slice(&crate::raw::encode_sample_identity(
+            &info.sample_identity(),
+            le,
+        ));
+    }
+    body.extend_from_slice(&s.body);
+    Some(RawSample {
+        encoding: s.encoding,
+        body: rustdds::bytes::Bytes::from(body),
+    })
+}
+
+/// A WRITE_DATA to a requester (a request: remembered with its XRCE request id, so the reply
+/// finds its way back) or to a replier (a reply: the request's SampleIdentity first).
+fn service_write(
+    svc: &mut ServiceEndpoint,
+    request_id: xrce_common::wire::RequestId,
+    little_endian: bool,
+    data: &[u8],
+) -> Result<(), OpError> {
+    if little_endian != svc.writer.little_endian() {
+        return Err((
+            status::ERR_INVALID_DATA,
+            "a sample in another byte order than the client's CREATE".into(),
+        ));
+    }
+    let encoding = if little_endian {
+        rustdds::RepresentationIdentifier::CDR_LE
+    } else {
+        rustdds::RepresentationIdentifier::CDR_BE
+    };
+    let dds = |e: String| (status::ERR_DDS_ERROR, format!("DDS write: {e}"));
+    if svc.requester {
+        let sample = RawSample {
+            encoding,
+            body: rustdds::bytes::Bytes::copy_from_slice(data),
+        };
+        let id = svc.writer.write_identified(sample, None).map_err(dds)?;
+        let seq = i64::from(id.sequence_number);
+        svc.pending.insert(seq, request_id);
+        svc.pending_order.push_back(seq);
+        while svc.pending_order.len() > PENDING_REQUESTS_MAX {
+            if let Some(old) = svc.pending_order.pop_front() {
+                svc.pending.remove(&old);
+            }
+        }
+        Ok(())
+    } else {
+        let related = crate::raw::decode_sample_identity(data, little_endian).ok_or((
+            status::ERR_INVALID_DATA,
+            "a reply without the request's SampleIdentity".to_string(),
+        ))?;
+        let sample = RawSample {
+            encoding,
+            body: rustdds::bytes::Bytes::copy_from_slice(data.get(24..).unwrap_or_default()),
+        };
+        svc.writer
+            .write_identified(sample, Some(related))
+            .map(drop)
+            .map_err(dds)
     }
 }

@@ -209,6 +209,49 @@ fn parse(xml: &str) -> Result<Document<'_>, XmlError> {
     Document::parse(xml).map_err(|e| XmlError::Malformed(e.to_string()))
 }
 
+/// Inserts the whitespace missing between attributes (`a="x"b="y"`), which Fast DDS's XML
+/// parser accepts and eProsima's own examples send (C string literals concatenated without a
+/// space). `None` if nothing needed fixing.
+fn separate_attributes(xml: &str) -> Option<String> {
+    let mut out = String::with_capacity(xml.len() + 8);
+    let (mut in_tag, mut quote, mut fixed) = (false, None::<char>, false);
+    let mut chars = xml.chars().peekable();
+    while let Some(c) = chars.next() {
+        out.push(c);
+        match (in_tag, quote, c) {
+            (false, _, '<') => in_tag = true,
+            (true, None, '>') => in_tag = false,
+            (true, None, '"' | '\'') => quote = Some(c),
+            (true, Some(q), c) if c == q => {
+                quote = None;
+                if chars.peek().is_some_and(|n| n.is_alphabetic() || *n == '_') {
+                    out.push(' ');
+                    fixed = true;
+                }
+            }
+            _ => {}
+        }
+    }
+    fixed.then_some(out)
+}
+
+/// Parses `xml`, forgiving attributes run together; the document may borrow `fixed`.
+fn parse_lenient<'a>(
+    xml: &'a str,
+    fixed: &'a mut Option<String>,
+) -> Result<Document<'a>, XmlError> {
+    match Document::parse(xml) {
+        Ok(d) => Ok(d),
+        Err(e) => {
+            *fixed = separate_attributes(xml);
+            match fixed.as_deref() {
+                Some(f) => parse(f),
+                None => Err(XmlError::Malformed(e.to_string())),
+            }
+        }
+    }
+}
+
 /// Finds the element `name` at the root or under a `<dds>` wrapper (or a profiles library).
 fn find<'a>(doc: &'a Document<'a>, name: &str) -> Option<Node<'a, 'a>> {
     doc.root()
@@ -395,7 +438,8 @@ fn parse_more_qos(h: Node<'_, '_>, q: &mut QosDesc) -> Result<(), XmlError> {
 
 /// Whether a publisher or subscriber representation names partitions.
 pub fn group_has_partitions(xml: &str, element: &str) -> Result<bool, XmlError> {
-    let doc = parse(xml)?;
+    let mut fixed = None;
+    let doc = parse_lenient(xml, &mut fixed)?;
     let Some(g) = find(&doc, element) else {
         return Ok(false);
     };
@@ -488,9 +532,72 @@ fn parse_topic_node(t: Node<'_, '_>) -> Result<TopicDesc, XmlError> {
     })
 }
 
+/// A requester or replier: the service and its two topics.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ServiceDesc {
+    /// Service name.
+    pub service_name: String,
+    /// Request type name.
+    pub request_type: String,
+    /// Reply type name.
+    pub reply_type: String,
+    /// Request topic name.
+    pub request_topic: String,
+    /// Reply topic name.
+    pub reply_topic: String,
+}
+
+impl ServiceDesc {
+    /// A service description; missing topic names follow Fast DDS's defaults
+    /// (`<service>_Request`, `<service>_Reply`).
+    pub fn new(
+        service_name: String,
+        request_type: String,
+        reply_type: String,
+        request_topic: Option<String>,
+        reply_topic: Option<String>,
+    ) -> Result<Self, XmlError> {
+        if service_name.is_empty() || request_type.is_empty() || reply_type.is_empty() {
+            return Err(XmlError::Missing(
+                "service_name, request_type and reply_type",
+            ));
+        }
+        Ok(ServiceDesc {
+            request_topic: request_topic.unwrap_or_else(|| format!("{service_name}_Request")),
+            reply_topic: reply_topic.unwrap_or_else(|| format!("{service_name}_Reply")),
+            service_name,
+            request_type,
+            reply_type,
+        })
+    }
+}
+
+/// Parses a `requester` or `replier` representation: attributes `service_name`,
+/// `request_type`, `reply_type`, and optional `request_topic_name` / `reply_topic_name`
+/// (attributes or child elements, as micro-ROS sends them).
+pub fn parse_service(xml: &str, element: &'static str) -> Result<ServiceDesc, XmlError> {
+    let mut fixed = None;
+    let doc = parse_lenient(xml, &mut fixed)?;
+    let e = find(&doc, element).ok_or(XmlError::Missing(element))?;
+    let get = |name: &str| {
+        e.attribute(name)
+            .map(|v| v.trim().to_string())
+            .filter(|v| !v.is_empty())
+            .or_else(|| text(e, name))
+    };
+    ServiceDesc::new(
+        get("service_name").ok_or(XmlError::Missing("service_name"))?,
+        get("request_type").ok_or(XmlError::Missing("request_type"))?,
+        get("reply_type").ok_or(XmlError::Missing("reply_type"))?,
+        get("request_topic_name"),
+        get("reply_topic_name"),
+    )
+}
+
 /// Parses a participant representation; returns its RTPS name if given.
 pub fn parse_participant(xml: &str) -> Result<Option<String>, XmlError> {
-    let doc = parse(xml)?;
+    let mut fixed = None;
+    let doc = parse_lenient(xml, &mut fixed)?;
     let p = find(&doc, "participant")
         .or_else(|| find(&doc, "domain_participant"))
         .ok_or(XmlError::Missing("<participant>"))?;
@@ -501,14 +608,16 @@ pub fn parse_participant(xml: &str) -> Result<Option<String>, XmlError> {
 
 /// Parses a topic representation.
 pub fn parse_topic(xml: &str) -> Result<TopicDesc, XmlError> {
-    let doc = parse(xml)?;
+    let mut fixed = None;
+    let doc = parse_lenient(xml, &mut fixed)?;
     let t = find(&doc, "topic").ok_or(XmlError::Missing("<topic>"))?;
     parse_topic_node(t)
 }
 
 /// Parses a `data_writer` or `data_reader` representation.
 pub fn parse_endpoint(xml: &str, element: &'static str) -> Result<EndpointDesc, XmlError> {
-    let doc = parse(xml)?;
+    let mut fixed = None;
+    let doc = parse_lenient(xml, &mut fixed)?;
     let e = find(&doc, element).ok_or(XmlError::Missing(element))?;
     let topic = child(e, "topic").map(parse_topic_node).transpose()?;
     let topic_ref = e.attribute("topic_ref").map(str::to_string);
@@ -645,6 +754,32 @@ mod tests {
                 "data_writer"
             ),
             Err(XmlError::Invalid { what: "deadline period", .. })
+        ));
+    }
+
+    #[test]
+    fn attributes_run_together_are_accepted_as_fast_dds_does() {
+        // eProsima's RequestAdder example, C literals concatenated without a space.
+        let s = parse_service(
+            "<dds><requester profile_name=\"my_requester\"service_name=\"service_name\"request_type=\"request_type\"reply_type=\"reply_type\"></requester></dds>",
+            "requester",
+        )
+        .expect("requester");
+        assert_eq!(s.service_name, "service_name");
+        assert_eq!(s.request_topic, "service_name_Request");
+        assert_eq!(s.reply_topic, "service_name_Reply");
+        // micro-ROS: topic names as child elements.
+        let s = parse_service(
+            "<dds><replier profile_name=\"0_8\" service_name=\"/add_two_ints\" request_type=\"example_interfaces::srv::dds_::AddTwoInts_Request_\" reply_type=\"example_interfaces::srv::dds_::AddTwoInts_Response_\"><request_topic_name>rq/add_two_intsRequest</request_topic_name><reply_topic_name>rr/add_two_intsReply</reply_topic_name></replier></dds>",
+            "replier",
+        )
+        .expect("replier");
+        assert_eq!(s.request_topic, "rq/add_two_intsRequest");
+        assert_eq!(s.reply_topic, "rr/add_two_intsReply");
+        assert_eq!(separate_attributes("<a b=\"x\"/>"), None);
+        assert!(matches!(
+            parse_topic("<dds><topic"),
+            Err(XmlError::Malformed(_))
         ));
     }
 

@@ -477,6 +477,36 @@ impl TestClient {
         r
     }
 
+    /// WRITE_DATA (FORMAT_DATA) on the reliable stream; returns its request id.
+    pub fn write_reliable_id(&mut self, writer: ObjectId, sample: &[u8]) -> RequestId {
+        let ok = self.run_until(Duration::from_secs(60), |c| {
+            c.client.can_send_reliable(stream_id::BUILTIN_RELIABLE)
+        });
+        assert!(ok, "reliable window never opened");
+        let id = self
+            .client
+            .write(Instant::now(), stream_id::BUILTIN_RELIABLE, writer, sample)
+            .expect("write");
+        self.step();
+        id
+    }
+
+    /// READ_DATA on the reliable stream with unlimited delivery (data readers, requesters,
+    /// repliers).
+    pub fn read_unlimited(&mut self, object: ObjectId) {
+        let spec = ReadSpecification {
+            preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+            delivery_control: Some(DataDeliveryControl {
+                max_samples: u16::MAX,
+                ..Default::default()
+            }),
+            ..Default::default()
+        };
+        self.client
+            .read(Instant::now(), object, spec)
+            .expect("read");
+    }
+
     /// WRITE_DATA in `format` on the reliable stream (`data` follows the BaseObjectRequest).
     pub fn write_reliable_format(&mut self, writer: ObjectId, format: u8, data: &[u8]) {
         let ok = self.run_until(Duration::from_secs(60), |c| {

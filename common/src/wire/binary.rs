@@ -281,3 +281,44 @@ impl EndpointBinary {
         out
     }
 }
+
+/// `OBJK_Requester_Binary` / `OBJK_Replier_Binary` (eProsima, ObjectKind 0x07 / 0x08).
+#[derive(Clone, PartialEq, Eq, Debug, Default)]
+pub struct ServiceBinary {
+    /// The service.
+    pub service_name: String,
+    /// Request type name.
+    pub request_type: String,
+    /// Reply type name.
+    pub reply_type: String,
+    /// Request topic name (default: derived from the service name).
+    pub request_topic_name: Option<String>,
+    /// Reply topic name (default: derived from the service name).
+    pub reply_topic_name: Option<String>,
+}
+
+impl ServiceBinary {
+    /// Decodes a body in the client's byte order.
+    pub fn decode(body: &[u8], little_endian: bool) -> Result<Self, DecodeError> {
+        let r = &mut CdrReader::new(body, little_endian);
+        Ok(ServiceBinary {
+            service_name: read_name(r)?,
+            request_type: read_name(r)?,
+            reply_type: read_name(r)?,
+            request_topic_name: optional(r, read_name)?,
+            reply_topic_name: optional(r, read_name)?,
+        })
+    }
+
+    /// Encodes a body.
+    pub fn encode(&self, little_endian: bool) -> Vec<u8> {
+        let mut out = Vec::new();
+        let w = &mut CdrWriter::new(&mut out, little_endian);
+        w.string(&self.service_name);
+        w.string(&self.request_type);
+        w.string(&self.reply_type);
+        put_optional(w, &self.request_topic_name, |w, s| w.string(s));
+        put_optional(w, &self.reply_topic_name, |w, s| w.string(s));
+        out
+    }
+}

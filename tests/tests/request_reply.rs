@@ -1,0 +1,124 @@
+//! Request/reply through the agent: an XRCE requester and an XRCE replier (two sessions) on a
+//! service whose requests and replies cross DDS on `rq/…Request` / `rr/…Reply`, the reply
+//! finding its request by the DDS sample identity, as with eProsima's agent: the replier gets
+//! the request's SampleIdentity in front of it and sends it back in front of the reply; the
+//! requester gets the BaseObjectRequest of its own WRITE_DATA in front of the reply.
+
+use std::collections::HashMap as BTreeMap;
+use std::time::{Duration, Instant};
+
+use xrce_common::wire::{object_kind as k, ObjectId, RequestId, VariantExtra};
+use xrce_tests::{xml, AgentProcess, TestClient};
+
+const SECOND: Duration = Duration::from_secs(1);
+
+const SERVICE: &str = "<dds><{e} profile_name=\"adder\" service_name=\"/add\" \
+    request_type=\"AddRequest\" reply_type=\"AddReply\">\
+    <request_topic_name>rq/addRequest</request_topic_name>\
+    <reply_topic_name>rr/addReply</reply_topic_name></{e}></dds>";
+
+fn endpoint(c: &mut TestClient, kind: u8, element: &str) -> ObjectId {
+    let p = ObjectId::new(1, k::PARTICIPANT);
+    let e = ObjectId::new(1, kind);
+    assert_eq!(
+        c.create(
+            p,
+            k::PARTICIPANT,
+            xml::PARTICIPANT,
+            VariantExtra::DomainId(28)
+        ),
+        0
+    );
+    let x = SERVICE.replace("{e}", element);
+    assert_eq!(
+        c.create(e, kind, &x, VariantExtra::Parent(p)),
+        0,
+        "creating the {element}"
+    );
+    c.read_unlimited(e);
+    e
+}
+
+fn request(a: u32, b: u32) -> Vec<u8> {
+    [a.to_le_bytes(), b.to_le_bytes()].concat()
+}
+
+/// The replier's side: answers every request received so far with the sum.
+fn serve(replier: &mut TestClient, id: ObjectId) -> usize {
+    replier.step();
+    let mut n = 0;
+    for (_, d) in replier.take_data() {
+        assert!(d.len() >= 24 + 8, "request without SampleIdentity: {d:?}");
+        let (identity, body) = d.split_at(24);
+        let a = u32::from_le_bytes(body[0..4].try_into().expect("a"));
+        let b = u32::from_le_bytes(body[4..8].try_into().expect("b"));
+        let mut reply = identity.to_vec();
+        reply.extend_from_slice(&(a + b).to_le_bytes());
+        replier.write_reliable(id, &reply);
+        n += 1;
+    }
+    n
+}
+
+#[test]
+fn replies_reach_the_requester_matched_to_their_requests() {
+    let agent = AgentProcess::start("rpc");
+    let mut replier = TestClient::new(agent.addr(), [0x2E, 0x91, 0x00, 0x01]);
+    replier.connect(10 * SECOND);
+    let rep = endpoint(&mut replier, k::REPLIER, "replier");
+    let mut requester = TestClient::new(agent.addr(), [0x2E, 0x90, 0x00, 0x02]);
+    requester.connect(10 * SECOND);
+    let req = endpoint(&mut requester, k::REQUESTER, "requester");
+
+    // Requests are volatile: probe until the first reply shows both sides matched.
+    let mut sent: BTreeMap<RequestId, u32> = BTreeMap::new();
+    let mut answered: BTreeMap<RequestId, u32> = BTreeMap::new();
+    let end = Instant::now() + 30 * SECOND;
+    while answered.is_empty() && Instant::now() < end {
+        let id = requester.write_reliable_id(req, &request(100, 1));
+        sent.insert(id, 101);
+        let until = Instant::now() + Duration::from_millis(200);
+        while Instant::now() < until {
+            serve(&mut replier, rep);
+            requester.step();
+            collect(&mut requester, req, &mut answered);
+        }
+    }
+    assert!(!answered.is_empty(), "no reply within 30 s");
+    // Now ten requests with distinct operands; each reply must carry its request's id.
+    let mut expected = BTreeMap::new();
+    for i in 0..10u32 {
+        let id = requester.write_reliable_id(req, &request(i, i * 10));
+        expected.insert(id, i * 11);
+    }
+    let end = Instant::now() + 30 * SECOND;
+    while expected.keys().any(|id| !answered.contains_key(id)) && Instant::now() < end {
+        serve(&mut replier, rep);
+        requester.step();
+        collect(&mut requester, req, &mut answered);
+    }
+    for (id, sum) in &expected {
+        assert_eq!(answered.get(id), Some(sum), "reply to request {id:?}");
+    }
+    for (id, v) in &answered {
+        assert!(
+            expected.get(id).or(sent.get(id)) == Some(v),
+            "reply {v} for request {id:?} that asked something else"
+        );
+    }
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+/// The requester's side: (request id, sum) of every reply received so far.
+fn collect(requester: &mut TestClient, req: ObjectId, answered: &mut BTreeMap<RequestId, u32>) {
+    for (_, d) in requester.take_data() {
+        assert!(d.len() >= 8, "reply too short: {d:?}");
+        assert_eq!(
+            ObjectId([d[2], d[3]]),
+            req,
+            "the BaseObjectRequest names the requester"
+        );
+        let sum = u32::from_le_bytes(d[4..8].try_into().expect("sum"));
+        answered.insert(RequestId([d[0], d[1]]), sum);
+    }
+}
