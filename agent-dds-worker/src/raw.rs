@@ -114,6 +114,24 @@ impl std::fmt::Debug for RawWriter {
 }
 
 impl RawWriter {
+    /// A writer on `topic` publishing in the given byte order (a client's native one).
+    pub fn create(
+        publisher: &rustdds::Publisher,
+        topic: &rustdds::Topic,
+        qos: rustdds::QosPolicies,
+        little_endian: bool,
+    ) -> rustdds::dds::CreateResult<Self> {
+        if little_endian {
+            publisher
+                .create_datawriter_no_key::<RawSample, RawLe>(topic, Some(qos))
+                .map(RawWriter::Le)
+        } else {
+            publisher
+                .create_datawriter_no_key::<RawSample, RawBe>(topic, Some(qos))
+                .map(RawWriter::Be)
+        }
+    }
+
     /// Whether it publishes little-endian samples.
     pub fn little_endian(&self) -> bool {
         matches!(self, RawWriter::Le(_))

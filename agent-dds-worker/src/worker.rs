@@ -25,7 +25,7 @@ use xrce_common::wire::{
 };
 
 use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
-use crate::raw::{RawBe, RawLe, RawSample, RawWriter};
+use crate::raw::{RawLe, RawSample, RawWriter};
 use crate::representation::{check_plain, describe_endpoint, describe_service, describe_topic};
 use crate::xml::{self, TopicDesc};
 
@@ -659,16 +659,8 @@ impl Worker {
                 let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
                 // A client writes in its native byte order, the one of its CREATE.
-                let w = if little_endian {
-                    publisher
-                        .create_datawriter_no_key::<RawSample, RawLe>(&topic, Some(qos))
-                        .map(RawWriter::Le)
-                } else {
-                    publisher
-                        .create_datawriter_no_key::<RawSample, RawBe>(&topic, Some(qos))
-                        .map(RawWriter::Be)
-                }
-                .map_err(|e| dds_err("create data writer", &e))?;
+                let w = RawWriter::create(&publisher, &topic, qos, little_endian)
+                    .map_err(|e| dds_err("create data writer", &e))?;
                 let rematch = Rematch {
                     until: Some(
                         Instant::now()
@@ -820,16 +812,8 @@ impl Worker {
             &qos_desc,
             &crate::xml::QosDesc::default(),
         );
-        let writer = if little_endian {
-            publisher
-                .create_datawriter_no_key::<RawSample, RawLe>(&wt, Some(wq))
-                .map(RawWriter::Le)
-        } else {
-            publisher
-                .create_datawriter_no_key::<RawSample, RawBe>(&wt, Some(wq))
-                .map(RawWriter::Be)
-        }
-        .map_err(|e| dds_err("create data writer", &e))?;
+        let writer = RawWriter::create(&publisher, &wt, wq, little_endian)
+            .map_err(|e| dds_err("create data writer", &e))?;
         let mut reader = subscriber
             .create_datareader_no_key::<RawSample, RawLe>(&rt, Some(rq))
             .map_err(|e| dds_err("create data reader", &e))?;
