@@ -204,6 +204,9 @@ pub struct Worker {
     next_token: usize,
     reads: HashMap<EntityKey, ActiveRead>,
     to_pump: HashSet<EntityKey>,
+    /// Writers holding their samples until matched (kept apart so that the loop never scans
+    /// every entity: with thousands of clients that scan dominated the worker's CPU).
+    holding: HashSet<EntityKey>,
     poll: Poll,
     /// Counters by reason of rejected or failed work.
     pub dropped: HashMap<&'static str, u64>,
@@ -249,6 +252,7 @@ impl Worker {
             next_token: 1,
             reads: HashMap::new(),
             to_pump: HashSet::new(),
+            holding: HashSet::new(),
             poll: Poll::new()?,
             dropped: HashMap::new(),
         };
@@ -308,11 +312,7 @@ impl Worker {
         if !self.to_pump.is_empty() {
             return 0;
         }
-        let holding = self
-            .entities
-            .values()
-            .any(|e| matches!(&e.kind, EntityKind::Writer(_, r) if r.until.is_some()));
-        if holding {
+        if !self.holding.is_empty() {
             return 20;
         }
         let waiting = self
@@ -726,6 +726,9 @@ impl Worker {
                 ))
             }
         };
+        if matches!(&kind, EntityKind::Writer(_, r) if r.until.is_some()) {
+            self.holding.insert(key);
+        }
         self.entities.insert(key, Entity { parent, kind });
         Ok(())
     }
@@ -999,11 +1002,20 @@ impl Worker {
     fn release_rematched(&mut self) {
         let now = Instant::now();
         let mut failures = 0u64;
-        for e in self.entities.values_mut() {
-            let EntityKind::Writer(w, rematch) = &mut e.kind else {
+        let mut done = Vec::new();
+        for key in &self.holding {
+            let Some(Entity {
+                kind: EntityKind::Writer(w, rematch),
+                ..
+            }) = self.entities.get_mut(key)
+            else {
+                done.push(*key);
                 continue;
             };
-            let Some(until) = rematch.until else { continue };
+            let Some(until) = rematch.until else {
+                done.push(*key);
+                continue;
+            };
             while let Some(st) = w.try_recv_status() {
                 if let rustdds::dds::statusevents::DataWriterStatus::PublicationMatched {
                     current,
@@ -1026,12 +1038,16 @@ impl Worker {
                     "holding writer resumes"
                 );
                 rematch.until = None;
+                done.push(*key);
                 for (_, sample) in rematch.held.drain(..) {
                     if w.write(sample).is_err() {
                         failures += 1;
                     }
                 }
             }
+        }
+        for k in done {
+            self.holding.remove(&k);
         }
         for _ in 0..failures {
             self.count("dds_write_failed");
@@ -1041,7 +1057,11 @@ impl Worker {
     /// The oldest operation held by a replayed writer, per front-end.
     fn oldest_held(&self) -> HashMap<u32, u64> {
         let mut m: HashMap<u32, u64> = HashMap::new();
-        for (k, e) in &self.entities {
+        for (k, e) in self
+            .holding
+            .iter()
+            .filter_map(|k| Some((k, self.entities.get(k)?)))
+        {
             if let EntityKind::Writer(_, r) = &e.kind {
                 if let Some((seq, _)) = r.held.front() {
                     let v = m.entry(k.0).or_insert(*seq);
@@ -1260,6 +1280,7 @@ impl Worker {
         for c in children {
             self.remove_subtree(c);
         }
+        self.holding.remove(&key);
         if let Some(e) = self.entities.remove(&key) {
             match e.kind {
                 EntityKind::Reader(mut r, token) => {

@@ -42,13 +42,22 @@ impl Peer {
         })
     }
 
-    /// Sends what is due, receives what arrived, and collects events.
-    fn pump(&mut self, buf: &mut [u8], events: &mut Vec<ClientEvent>) -> Result<(), String> {
-        let now = Instant::now();
-        while let Ok(n) = self.socket.recv(buf) {
-            self.client.handle_datagram(now, &buf[..n]);
+    /// Sends what is due, receives what arrived (if `readable`), and collects events.
+    fn pump(
+        &mut self,
+        now: Instant,
+        readable: bool,
+        buf: &mut [u8],
+        events: &mut Vec<ClientEvent>,
+    ) -> Result<(), String> {
+        if readable {
+            while let Ok(n) = self.socket.recv(buf) {
+                self.client.handle_datagram(now, &buf[..n]);
+            }
         }
-        self.client.handle_timeout(now);
+        if self.client.poll_timeout().is_some_and(|t| t <= now) {
+            self.client.handle_timeout(now);
+        }
         while let Some(t) = self.client.poll_transmit() {
             let _ = self.socket.send(&t);
         }
@@ -90,8 +99,71 @@ impl Peer {
     }
 }
 
+/// Readiness of every client's socket through one epoll set, so that with thousands of
+/// clients an iteration costs one system call plus the sockets that have data.
+struct Poller {
+    epoll: nix::sys::epoll::Epoll,
+    events: Vec<nix::sys::epoll::EpollEvent>,
+    ready: Vec<bool>,
+}
+
+impl Poller {
+    fn new(peers: &[Peer]) -> Result<Self, String> {
+        use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags};
+        let epoll = Epoll::new(EpollCreateFlags::empty()).map_err(|e| e.to_string())?;
+        for (i, p) in peers.iter().enumerate() {
+            epoll
+                .add(&p.socket, EpollEvent::new(EpollFlags::EPOLLIN, i as u64))
+                .map_err(|e| e.to_string())?;
+        }
+        Ok(Poller {
+            epoll,
+            events: vec![EpollEvent::empty(); 1024],
+            ready: vec![false; peers.len()],
+        })
+    }
+
+    /// Marks the sockets with data (level-triggered: still ready until drained).
+    fn poll(&mut self) {
+        self.ready.iter_mut().for_each(|r| *r = false);
+        let n = self
+            .epoll
+            .wait(&mut self.events, nix::sys::epoll::EpollTimeout::ZERO)
+            .unwrap_or(0);
+        for e in &self.events[..n] {
+            if let Some(r) = self.ready.get_mut(e.data() as usize) {
+                *r = true;
+            }
+        }
+    }
+}
+
+/// Every client handles what concerns it: received data, due timers, queued sends.
+fn pump_all(
+    peers: &mut [Peer],
+    poller: &mut Poller,
+    buf: &mut [u8],
+    events: &mut Vec<ClientEvent>,
+) -> Result<(), String> {
+    poller.poll();
+    let now = Instant::now();
+    for (p, r) in peers.iter_mut().zip(poller.ready.iter()) {
+        p.pump(now, *r, buf, events)?;
+    }
+    Ok(())
+}
+
+/// Lets the open-file limit grow to its hard limit (one socket per simulated client).
+fn raise_fd_limit() {
+    use nix::sys::resource::{getrlimit, setrlimit, Resource};
+    if let Ok((_, hard)) = getrlimit(Resource::RLIMIT_NOFILE) {
+        let _ = setrlimit(Resource::RLIMIT_NOFILE, hard, hard);
+    }
+}
+
 fn pump_until(
     peers: &mut [Peer],
+    poller: &mut Poller,
     limit: Duration,
     mut done: impl FnMut(&[Peer]) -> bool,
 ) -> Result<bool, String> {
@@ -100,9 +172,7 @@ fn pump_until(
     let mut ignored = Vec::new();
     let mut last_report = Instant::now();
     while Instant::now() < end {
-        for p in peers.iter_mut() {
-            p.pump(&mut buf, &mut ignored)?;
-        }
+        pump_all(peers, poller, &mut buf, &mut ignored)?;
         ignored.clear();
         if done(peers) {
             return Ok(true);
@@ -338,6 +408,7 @@ struct AgentUse {
 
 fn main() -> Result<(), String> {
     let a = Args::parse();
+    raise_fd_limit();
     let (port, publishers, samples, payload, domain, rate) = (
         a.port,
         a.publishers as usize,
@@ -388,11 +459,12 @@ fn main() -> Result<(), String> {
             Peer::new(port, [0x10, 0xAD, (i >> 8) as u8, i as u8]).map_err(|e| e.to_string())?,
         );
     }
+    let mut poller = Poller::new(&peers)?;
     let t_start = Instant::now();
     for p in peers.iter_mut() {
         p.client.connect(Instant::now());
     }
-    if !pump_until(&mut peers, Duration::from_secs(60), |ps| {
+    if !pump_until(&mut peers, &mut poller, Duration::from_secs(60), |ps| {
         ps.iter().all(|p| p.client.is_connected())
     })? {
         return Err("not every session was established within 60 s".into());
@@ -433,7 +505,7 @@ fn main() -> Result<(), String> {
             )?;
         }
     }
-    if !pump_until(&mut peers, Duration::from_secs(120), |ps| {
+    if !pump_until(&mut peers, &mut poller, Duration::from_secs(120), |ps| {
         ps.iter().all(|p| p.pending.is_empty())
     })? {
         return Err("not every entity was created within 120 s".into());
@@ -481,9 +553,7 @@ fn main() -> Result<(), String> {
                         .write(Instant::now(), stream, writer, &sample(u32::MAX - i as u32));
             }
         }
-        for p in peers.iter_mut() {
-            p.pump(&mut buf, &mut events)?;
-        }
+        pump_all(&mut peers, &mut poller, &mut buf, &mut events)?;
         for e in events.drain(..) {
             if let ClientEvent::Data { data, .. } = e {
                 let tag = u32::from_le_bytes([data[0], data[1], data[2], data[3]]);
@@ -501,9 +571,7 @@ fn main() -> Result<(), String> {
     let matched = t_start.elapsed();
     let unmatched = heard.iter().filter(|h| !**h).count();
     std::thread::sleep(Duration::from_millis(200));
-    for p in peers.iter_mut() {
-        p.pump(&mut buf, &mut Vec::new())?;
-    }
+    pump_all(&mut peers, &mut poller, &mut buf, &mut Vec::new())?;
 
     // The run: publishers take turns; the subscriber records each sample once.
     let (mut sent, mut next_pub) = (0u32, 1usize);
@@ -547,9 +615,7 @@ fn main() -> Result<(), String> {
                 break;
             }
         }
-        for p in peers.iter_mut() {
-            p.pump(&mut buf, &mut events)?;
-        }
+        pump_all(&mut peers, &mut poller, &mut buf, &mut events)?;
         let now_ns = base.elapsed().as_nanos() as u64;
         for e in events.drain(..) {
             if let ClientEvent::Data { data, .. } = e {
