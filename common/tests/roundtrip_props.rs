@@ -353,3 +353,70 @@ fn captured_binary_bodies_decode_to_their_values() {
     );
     assert_eq!(w.encode(true, true), writer);
 }
+
+fn object_info() -> impl Strategy<Value = xrce_common::wire::info::ObjectInfo> {
+    use xrce_common::wire::info::*;
+    let locator = prop_oneof![
+        (any::<[u8; 2]>(), any::<u8>())
+            .prop_map(|(address, port)| TransportLocator::Small { address, port }),
+        (any::<[u8; 4]>(), any::<u16>())
+            .prop_map(|(address, port)| TransportLocator::Medium { address, port }),
+        (any::<[u8; 16]>(), any::<u32>())
+            .prop_map(|(address, port)| TransportLocator::Large { address, port }),
+        name().prop_map(TransportLocator::String),
+    ];
+    let activity = prop_oneof![
+        (any::<i16>(), proptest::collection::vec(locator, 0..4)).prop_map(
+            |(availability, locators)| ActivityInfo::Agent {
+                availability,
+                locators
+            }
+        ),
+        (any::<u64>(), any::<i16>()).prop_map(|(sample_seq_num, stream_seq_num)| {
+            ActivityInfo::DataWriter {
+                sample_seq_num,
+                stream_seq_num,
+            }
+        }),
+        any::<i16>().prop_map(|highest_acked_num| ActivityInfo::DataReader { highest_acked_num }),
+    ];
+    let config = prop_oneof![
+        (any::<[u8; 2]>(), any::<[u8; 2]>(), properties()).prop_map(
+            |(version, vendor_id, properties)| {
+                ObjectConfig::Agent(AgentRepresentation {
+                    cookie: XRCE_COOKIE,
+                    version,
+                    vendor_id,
+                    properties,
+                })
+            }
+        ),
+        variant().prop_map(ObjectConfig::Object),
+    ];
+    (proptest::option::of(activity), proptest::option::of(config))
+        .prop_map(|(activity, config)| ObjectInfo { activity, config })
+}
+
+proptest! {
+    #[test]
+    fn object_infos_round_trip_in_both_dialects_and_byte_orders(
+        info in object_info(),
+        le in any::<bool>(),
+        lead in 0usize..8,
+    ) {
+        for dialect in [Dialect::Spec, Dialect::Eprosima] {
+            // Preceded by `lead` bytes, as the 6-byte reply precedes it in INFO.
+            let mut out = Vec::new();
+            {
+                let w = &mut CdrWriter::new(&mut out, le);
+                w.bytes(&vec![0u8; lead]);
+                info.encode(w, dialect);
+            }
+            let full = out;
+            let r = &mut CdrReader::new(&full, le);
+            r.take(lead).expect("lead");
+            let back = xrce_common::wire::info::ObjectInfo::decode(r, dialect);
+            prop_assert_eq!(back, Ok(info.clone()));
+        }
+    }
+}

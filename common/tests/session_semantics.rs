@@ -498,3 +498,37 @@ fn eprosimas_bare_answer_to_a_probe_is_recognised_not_dropped() {
         "the answer counted as a sign of life"
     );
 }
+
+#[test]
+fn ping_replies_match_the_reference_agent_byte_for_byte() {
+    // From wire-traces/ping.txt: PingAgentUDP without, then within, a session.
+    let unhex = |s: &str| -> Vec<u8> {
+        (0..s.len())
+            .step_by(2)
+            .map(|i| u8::from_str_radix(&s[i..i + 2], 16).expect("hex"))
+            .collect()
+    };
+    let t0 = Instant::now();
+    let mut agent: Agent<u32> = Agent::new(AgentConfig::default());
+    let mut rec = Recorder::default();
+    let exchange = [
+        (
+            "8000000002010800000afffd02000000",
+            "8000000006011c00000afffd0000010d585243450100010f00010d000100000000000000",
+        ),
+        (
+            "8000000000011000585243450100010faaaabbbb8100fc01",
+            "8100000004010b000000585243450100010f00",
+        ),
+        (
+            "8100000002010800000afffd02000000",
+            "8100000006011c00000afffd0001010d585243450100010f00010d000100000000000000",
+        ),
+    ];
+    for (c2a, a2c) in exchange {
+        agent.handle_datagram(t0, ADDR, &unhex(c2a), &mut rec);
+        let out = drain(&mut agent);
+        assert_eq!(out.len(), 1);
+        assert_eq!(hex(&out[0].data), a2c);
+    }
+}

@@ -17,12 +17,13 @@ use std::time::{Duration, Instant};
 use super::fragment::{fragments, Reassembly};
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
 use crate::wire::cdr::CdrWriter;
+use crate::wire::info::{ActivityInfo, AgentRepresentation, ObjectConfig, ObjectInfo};
 use crate::wire::sample::{encode_samples, SampleInfo, SampleInfoDetail, SampleRef};
 use crate::wire::{
-    data_format, hex, object_kind, status, stream_id, submessage_id, AcknackPayload,
-    BaseObjectReply, BaseObjectRequest, ClientKey, CreateClientPayload, CreatePayload, DataPayload,
-    DecodeError, Dialect, InfoPayload, MessageBuilder, MessageHeader, ObjectId, ObjectVariant,
-    Payload, RawSubmessage, ReadSpecification, ResultStatus, StatusAgentPayload, Submessages, Time,
+    data_format, hex, status, stream_id, submessage_id, AcknackPayload, BaseObjectReply,
+    BaseObjectRequest, ClientKey, CreateClientPayload, CreatePayload, DataPayload, DecodeError,
+    Dialect, InfoPayload, MessageBuilder, MessageHeader, ObjectId, ObjectVariant, Payload,
+    RawSubmessage, ReadSpecification, ResultStatus, StatusAgentPayload, Submessages, Time,
     TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
 };
 
@@ -228,6 +229,16 @@ impl<A> ProxyClient<A> {
             .map_or(first_probe, |p| (p + probe_every).max(first_probe));
         Some(next_probe.min(self.last_heard + dead))
     }
+}
+
+/// An INFO payload (reply and ObjectInfo) encoded whole, so that the ObjectInfo is aligned
+/// relative to the payload start as on the wire.
+fn info_bytes(reply: BaseObjectReply, info: &ObjectInfo, dialect: Dialect) -> Vec<u8> {
+    let mut buf = Vec::new();
+    let w = &mut CdrWriter::new(&mut buf, true);
+    reply.encode(w);
+    info.encode(w, dialect);
+    buf
 }
 
 /// Request id of the agent's liveliness probes (GET_INFO). Its first octet is no submessage id,
@@ -729,34 +740,6 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         in_session: bool,
         dialect: Dialect,
     ) {
-        // ObjectInfo: config (AGENT_Representation: cookie, version, vendor, no properties)
-        // and activity (AGENT_ActivityInfo: availability 1, no locators), in the dialect's
-        // member order.
-        let mut config = vec![0x01, object_kind::AGENT];
-        config.extend_from_slice(&XRCE_COOKIE);
-        config.extend_from_slice(&XRCE_VERSION);
-        config.extend_from_slice(&self.config.vendor_id);
-        config.push(0x00);
-        // ObjectInfo starts at payload offset 6 (after the 6-byte BaseObjectReply); the
-        // padding below aligns the activity's members relative to the payload start.
-        let info = match dialect {
-            Dialect::Eprosima => {
-                // config? (offsets 6..=16), activity? 17, kind 18, pad, availability 20..22,
-                // pad, locator count 24..28; no DHEADER.
-                let mut v = config;
-                v.extend_from_slice(&[0x01, object_kind::AGENT, 0x00, 0x01, 0x00, 0x00, 0x00]);
-                v.extend_from_slice(&[0, 0, 0, 0]);
-                v
-            }
-            Dialect::Spec => {
-                // activity? 6, kind 7, DHEADER 8..12 (= 8 bytes follow), availability 12..14,
-                // pad, locator count 16..20; then config? from 20.
-                let mut v = vec![0x01, object_kind::AGENT, 8, 0, 0, 0, 0x01, 0x00, 0, 0];
-                v.extend_from_slice(&[0, 0, 0, 0]);
-                v.extend_from_slice(&config);
-                v
-            }
-        };
         let reply = BaseObjectReply {
             related: request,
             result: ResultStatus {
@@ -764,16 +747,30 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 implementation_status: in_session as u8,
             },
         };
+        // The agent's representation and activity (available, no locators advertised).
+        let info = ObjectInfo {
+            activity: Some(ActivityInfo::Agent {
+                availability: 1,
+                locators: Vec::new(),
+            }),
+            config: Some(ObjectConfig::Agent(AgentRepresentation {
+                cookie: XRCE_COOKIE,
+                version: XRCE_VERSION,
+                vendor_id: self.config.vendor_id,
+                properties: None,
+            })),
+        };
         let h = MessageHeader {
             stream_id: stream_id::NONE,
             sequence_nr: 0,
             ..header
         };
         let mut b = MessageBuilder::new(h);
+        let bytes = info_bytes(reply, &info, dialect);
         let _ = b.push(
             &Payload::Info(InfoPayload {
                 reply,
-                object_info: &info,
+                object_info: bytes.get(BaseObjectReply::LEN..).unwrap_or_default(),
             }),
             true,
         );
@@ -1174,22 +1171,11 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             related: request,
             result,
         };
-        // Encoded whole so that the variant is aligned relative to the payload start.
-        let mut buf = Vec::new();
-        {
-            let w = &mut CdrWriter::new(&mut buf, true);
-            reply.encode(w);
-            if dialect == Dialect::Spec {
-                w.bool(false); // no activity
-            }
-            w.bool(config.is_some());
-            if let Some(v) = config {
-                v.encode(w);
-            }
-            if dialect == Dialect::Eprosima {
-                w.bool(false);
-            }
-        }
+        let info = ObjectInfo {
+            activity: None,
+            config: config.cloned().map(ObjectConfig::Object),
+        };
+        let buf = info_bytes(reply, &info, dialect);
         let payload = Payload::Info(InfoPayload {
             reply,
             object_info: buf.get(BaseObjectReply::LEN..).unwrap_or_default(),

@@ -7,6 +7,7 @@
 pub mod binary;
 pub mod cdr;
 pub mod header;
+pub mod info;
 pub mod payload;
 pub mod sample;
 pub mod types;

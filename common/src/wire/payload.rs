@@ -104,7 +104,9 @@ impl BaseObjectReply {
 /// A vendor property (name, value).
 pub type Property = (String, String);
 
-fn decode_properties(r: &mut CdrReader<'_>) -> Result<Option<Vec<Property>>, DecodeError> {
+pub(crate) fn decode_properties(
+    r: &mut CdrReader<'_>,
+) -> Result<Option<Vec<Property>>, DecodeError> {
     if !r.bool()? {
         return Ok(None);
     }
@@ -119,7 +121,7 @@ fn decode_properties(r: &mut CdrReader<'_>) -> Result<Option<Vec<Property>>, Dec
     Ok(Some(v))
 }
 
-fn encode_properties(w: &mut CdrWriter<'_>, p: &Option<Vec<Property>>) {
+pub(crate) fn encode_properties(w: &mut CdrWriter<'_>, p: &Option<Vec<Property>>) {
     w.bool(p.is_some());
     if let Some(p) = p {
         w.u32(p.len() as u32);
