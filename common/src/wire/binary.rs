@@ -44,29 +44,6 @@ fn put_optional<T>(w: &mut CdrWriter<'_>, v: &Option<T>, f: impl FnOnce(&mut Cdr
     }
 }
 
-fn read_u64(r: &mut CdrReader<'_>) -> Result<u64, DecodeError> {
-    r.align(8)?;
-    let a = u64::from(r.u32()?);
-    let b = u64::from(r.u32()?);
-    Ok(if r.is_little_endian() {
-        a | b << 32
-    } else {
-        a << 32 | b
-    })
-}
-
-fn write_u64(w: &mut CdrWriter<'_>, v: u64) {
-    w.align(8);
-    let (lo, hi) = (v as u32, (v >> 32) as u32);
-    if w.is_little_endian() {
-        w.u32(lo);
-        w.u32(hi);
-    } else {
-        w.u32(hi);
-        w.u32(lo);
-    }
-}
-
 /// `OBJK_DomainParticipant_Binary`.
 #[derive(Clone, PartialEq, Eq, Debug, Default)]
 pub struct ParticipantBinary {
@@ -250,9 +227,9 @@ impl EndpointBinary {
                 ..EndpointBinaryQos::default()
             };
             if writer {
-                q.ownership_strength = optional(r, read_u64)?;
+                q.ownership_strength = optional(r, |r| r.u64_aligned(8))?;
             } else {
-                q.timebasedfilter_msec = optional(r, read_u64)?;
+                q.timebasedfilter_msec = optional(r, |r| r.u64_aligned(8))?;
                 q.contentbased_filter = optional(r, |r| r.string(MAX_BLOB))?;
             }
             Ok(q)
@@ -272,9 +249,9 @@ impl EndpointBinary {
             put_optional(w, &q.base.lifespan_msec, |w, v| w.u32(*v));
             put_optional(w, &q.base.user_data, |w, d| w.octet_seq(d));
             if writer {
-                put_optional(w, &q.ownership_strength, |w, v| write_u64(w, *v));
+                put_optional(w, &q.ownership_strength, |w, v| w.u64_aligned(*v, 8));
             } else {
-                put_optional(w, &q.timebasedfilter_msec, |w, v| write_u64(w, *v));
+                put_optional(w, &q.timebasedfilter_msec, |w, v| w.u64_aligned(*v, 8));
                 put_optional(w, &q.contentbased_filter, |w, s| w.string(s));
             }
         });

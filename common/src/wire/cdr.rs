@@ -116,6 +116,18 @@ impl<'a> CdrReader<'a> {
         self.u32().map(|v| v as i32)
     }
 
+    /// Reads an unsigned long long aligned to `align` (8 for Micro-CDR, 4 for XCDR2).
+    pub fn u64_aligned(&mut self, align: usize) -> Result<u64, DecodeError> {
+        self.align(align)?;
+        let a = u64::from(self.u32()?);
+        let b = u64::from(self.u32()?);
+        Ok(if self.little_endian {
+            a | b << 32
+        } else {
+            a << 32 | b
+        })
+    }
+
     /// Reads a string (length including NUL, bytes, NUL) of at most `max` characters.
     pub fn string(&mut self, max: usize) -> Result<String, DecodeError> {
         let len = self.u32()? as usize;
@@ -229,6 +241,19 @@ impl<'a> CdrWriter<'a> {
     /// Appends an aligned long.
     pub fn i32(&mut self, v: i32) {
         self.u32(v as u32);
+    }
+
+    /// Appends an unsigned long long aligned to `align` (8 for Micro-CDR, 4 for XCDR2).
+    pub fn u64_aligned(&mut self, v: u64, align: usize) {
+        self.align(align);
+        let (lo, hi) = (v as u32, (v >> 32) as u32);
+        if self.little_endian {
+            self.u32(lo);
+            self.u32(hi);
+        } else {
+            self.u32(hi);
+            self.u32(lo);
+        }
     }
 
     /// Appends a string with its NUL terminator.

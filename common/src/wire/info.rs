@@ -97,29 +97,6 @@ pub enum ActivityInfo {
     },
 }
 
-fn read_u64(r: &mut CdrReader<'_>, align: usize) -> Result<u64, DecodeError> {
-    r.align(align)?;
-    let a = u64::from(r.u32()?);
-    let b = u64::from(r.u32()?);
-    Ok(if r.is_little_endian() {
-        a | b << 32
-    } else {
-        a << 32 | b
-    })
-}
-
-fn write_u64(w: &mut CdrWriter<'_>, v: u64, align: usize) {
-    w.align(align);
-    let (lo, hi) = (v as u32, (v >> 32) as u32);
-    if w.is_little_endian() {
-        w.u32(lo);
-        w.u32(hi);
-    } else {
-        w.u32(hi);
-        w.u32(lo);
-    }
-}
-
 impl ActivityInfo {
     fn kind(&self) -> u8 {
         match self {
@@ -147,12 +124,12 @@ impl ActivityInfo {
                 stream_seq_num,
             } => match dialect {
                 Dialect::Spec => {
-                    write_u64(w, *sample_seq_num, 4);
+                    w.u64_aligned(*sample_seq_num, 4);
                     w.i16(*stream_seq_num);
                 }
                 Dialect::Eprosima => {
                     w.i16(*stream_seq_num);
-                    write_u64(w, *sample_seq_num, 8);
+                    w.u64_aligned(*sample_seq_num, 8);
                 }
             },
             ActivityInfo::DataReader { highest_acked_num } => w.i16(*highest_acked_num),
@@ -181,13 +158,13 @@ impl ActivityInfo {
             }
             object_kind::DATAWRITER => match dialect {
                 Dialect::Spec => ActivityInfo::DataWriter {
-                    sample_seq_num: read_u64(r, 4)?,
+                    sample_seq_num: r.u64_aligned(4)?,
                     stream_seq_num: r.i16()?,
                 },
                 Dialect::Eprosima => {
                     let stream_seq_num = r.i16()?;
                     ActivityInfo::DataWriter {
-                        sample_seq_num: read_u64(r, 8)?,
+                        sample_seq_num: r.u64_aligned(8)?,
                         stream_seq_num,
                     }
                 }
