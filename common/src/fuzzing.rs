@@ -37,6 +37,32 @@ pub fn decode_message(data: &[u8]) {
                 samples_round_trip(d.format, d.data, s.little_endian, dialect);
             }
         }
+        if let Payload::Info(i) = &s.payload {
+            // ObjectInfo follows the 6-byte reply; decoding may fail, never panic, and what
+            // decodes re-encodes to something that decodes the same.
+            let mut bytes = vec![0u8; crate::wire::BaseObjectReply::LEN];
+            bytes.extend_from_slice(i.object_info);
+            for dialect in [Dialect::Spec, Dialect::Eprosima] {
+                let r = &mut crate::wire::cdr::CdrReader::new(&bytes, s.little_endian);
+                let _ = r.take(crate::wire::BaseObjectReply::LEN);
+                if let Ok(info) = crate::wire::info::ObjectInfo::decode(r, dialect) {
+                    let mut out = Vec::new();
+                    {
+                        let w = &mut crate::wire::cdr::CdrWriter::new(&mut out, s.little_endian);
+                        w.bytes(&[0; crate::wire::BaseObjectReply::LEN]);
+                        info.encode(w, dialect);
+                    }
+                    let r = &mut crate::wire::cdr::CdrReader::new(&out, s.little_endian);
+                    let _ = r.take(crate::wire::BaseObjectReply::LEN);
+                    let again = crate::wire::info::ObjectInfo::decode(r, dialect);
+                    assert_eq!(
+                        again.as_ref(),
+                        Ok(&info),
+                        "ObjectInfo changed by a round trip"
+                    );
+                }
+            }
+        }
     }
 }
 
