@@ -176,6 +176,8 @@ struct FrontendPort {
     dirty: bool,
     /// Replies the front-end's full queue refused, oldest first (sent before anything new).
     backlog: std::collections::VecDeque<Vec<u8>>,
+    /// Bytes in `backlog`.
+    backlog_bytes: usize,
     /// Readers not drained while the front-end is congested; pumped once it has room.
     deferred: HashSet<EntityKey>,
     /// When the front-end last took a message (a dead one takes none: back off).
@@ -186,6 +188,8 @@ struct FrontendPort {
 /// Samples stop being taken from DDS readers while a front-end is congested, so this only
 /// fills if a front-end stops reading altogether.
 const BACKLOG_MAX: usize = 4096;
+/// Bytes of refused replies kept per front-end (samples reach 1 MiB each).
+const BACKLOG_MAX_BYTES: usize = 64 << 20;
 
 use crate::representation::OpError;
 
@@ -358,6 +362,7 @@ impl Worker {
                     processed: 0,
                     dirty: false,
                     backlog: Default::default(),
+                    backlog_bytes: 0,
                     deferred: HashSet::new(),
                     last_delivery: Instant::now(),
                 }))
@@ -390,11 +395,19 @@ impl Worker {
                 Err(e) => tracing::debug!(error = %e, "reply send failed; queued"),
             }
         }
-        let overflow = port.backlog.len() >= BACKLOG_MAX;
-        if overflow {
-            port.backlog.pop_front();
+        let m = h.encode(body);
+        let mut overflow = false;
+        while !port.backlog.is_empty()
+            && (port.backlog.len() >= BACKLOG_MAX
+                || port.backlog_bytes + m.len() > BACKLOG_MAX_BYTES)
+        {
+            if let Some(old) = port.backlog.pop_front() {
+                port.backlog_bytes -= old.len();
+            }
+            overflow = true;
         }
-        port.backlog.push_back(h.encode(body));
+        port.backlog_bytes += m.len();
+        port.backlog.push_back(m);
         if overflow {
             self.count("reply_backlog_overflow");
         }
@@ -431,6 +444,7 @@ impl Worker {
                 // Replies held for a previous incarnation of this front-end mean nothing now.
                 if let Some(p) = self.ports.get_mut(&h.frontend_id) {
                     p.backlog.clear();
+                    p.backlog_bytes = 0;
                     p.deferred.clear();
                 }
                 let mut hello = IpcHeader::new(MessageKind::WorkerHello);
@@ -515,7 +529,9 @@ impl Worker {
                         tracing::warn!(frontend = fe, error = %e, "reply dropped");
                     }
                 }
-                p.backlog.pop_front();
+                if let Some(m) = p.backlog.pop_front() {
+                    p.backlog_bytes -= m.len();
+                }
                 sent = true;
             }
             if p.backlog.is_empty() {
