@@ -7,8 +7,6 @@ use std::process::Command;
 #[test]
 fn fifty_clients_deliver_every_reliable_sample() {
     let json = std::env::temp_dir().join(format!("loadgen-smoke-{}.json", std::process::id()));
-    // A port of its own, derived from the pid (the generator starts the agent on it).
-    let port = 20_000 + (std::process::id() % 20_000) as u16;
     // The generator starts the `xrce-agent` next to it; build it if this run did not.
     let loadgen = std::path::Path::new(env!("CARGO_BIN_EXE_xrce-loadgen"));
     if !loadgen.with_file_name("xrce-agent").exists() {
@@ -19,25 +17,41 @@ fn fifty_clients_deliver_every_reliable_sample() {
             .is_ok_and(|s| s.success());
         assert!(ok, "building xrce-agent failed");
     }
-    let out = Command::new(env!("CARGO_BIN_EXE_xrce-loadgen"))
-        .args([
-            "--port",
-            &port.to_string(),
-            "--publishers",
-            "50",
-            "--samples",
-            "3000",
-            "--rate",
-            "1000",
-            "--domain",
-            "23",
-            "--duration",
-            "60",
-            "--json",
-        ])
-        .arg(&json)
-        .output()
-        .expect("run xrce-loadgen");
+    // A port found free may be taken before the agent binds it (tests run in parallel):
+    // then the agent cannot start and another port is tried.
+    let mut out = None;
+    for _ in 0..3 {
+        let port = std::net::UdpSocket::bind("127.0.0.1:0")
+            .and_then(|s| s.local_addr())
+            .map(|a| a.port())
+            .expect("a free port");
+        let o = Command::new(loadgen)
+            .args([
+                "--port",
+                &port.to_string(),
+                "--publishers",
+                "50",
+                "--samples",
+                "3000",
+                "--rate",
+                "1000",
+                "--domain",
+                "23",
+                "--duration",
+                "60",
+                "--json",
+            ])
+            .arg(&json)
+            .output()
+            .expect("run xrce-loadgen");
+        let retry =
+            !o.status.success() && String::from_utf8_lossy(&o.stderr).contains("cannot bind UDP");
+        out = Some(o);
+        if !retry {
+            break;
+        }
+    }
+    let out = out.expect("ran");
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(
         out.status.success(),

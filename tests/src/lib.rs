@@ -96,9 +96,16 @@ pub struct AgentProcess {
 impl AgentProcess {
     /// Starts an agent on a free port.
     pub fn start(tag: &str) -> Self {
-        let port = free_udp_port();
-        let instance = unique_instance(tag);
-        Self::start_on(([127, 0, 0, 1], port).into(), Some(instance))
+        // A port found free can be taken by another process before the agent binds it
+        // (tests run in parallel): then the agent exits at once, and another port is tried.
+        for _ in 0..5 {
+            let port = free_udp_port();
+            let instance = unique_instance(tag);
+            if let Some(a) = Self::try_start(([127, 0, 0, 1], port).into(), Some(instance), &[]) {
+                return a;
+            }
+        }
+        panic!("the agent did not start on any of 5 free ports");
     }
 
     /// Starts an agent bound to `addr`; without `instance` it picks its default name
@@ -109,6 +116,11 @@ impl AgentProcess {
 
     /// Starts an agent bound to `addr` with extra command-line arguments.
     pub fn start_with(addr: SocketAddr, instance: Option<String>, extra: &[&str]) -> Self {
+        Self::try_start(addr, instance, extra).expect("the agent did not answer a ping")
+    }
+
+    /// Starts an agent; `None` if it exits or does not answer a ping within 20 s.
+    fn try_start(addr: SocketAddr, instance: Option<String>, extra: &[&str]) -> Option<Self> {
         let port = addr.port();
         let mut args = vec![
             "udp4".to_string(),
@@ -131,17 +143,22 @@ impl AgentProcess {
             .spawn()
             .expect("start xrce-agent");
         let instance = instance.unwrap_or_else(|| format!("udp4-{port}-{}", child.id()));
-        let agent = AgentProcess {
+        let mut agent = AgentProcess {
             child,
             port,
             instance,
             ip: addr.ip(),
         };
-        assert!(
-            agent.ping(Duration::from_secs(20)),
-            "the agent did not answer a ping"
-        );
-        agent
+        let end = Instant::now() + Duration::from_secs(20);
+        while Instant::now() < end {
+            if agent.ping(Duration::from_millis(200)) {
+                return Some(agent);
+            }
+            if let Ok(Some(_)) = agent.child.try_wait() {
+                return None;
+            }
+        }
+        None
     }
 
     /// Pings the agent (GET_INFO without a session) until it answers INFO, up to `d`.

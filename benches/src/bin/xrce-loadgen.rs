@@ -333,8 +333,9 @@ fn proc_usage(root: u32) -> Option<ProcUsage> {
     Some(u)
 }
 
-/// Waits until something answers an XRCE ping on `port`.
-fn wait_for_agent(port: u16, limit: Duration) -> bool {
+/// Waits until something answers an XRCE ping on `port` (giving up early if the agent we
+/// started exited).
+fn wait_for_agent(port: u16, limit: Duration, agent: &mut Option<AgentUnderTest>) -> bool {
     let Ok(socket) = UdpSocket::bind("127.0.0.1:0") else {
         return false;
     };
@@ -353,6 +354,12 @@ fn wait_for_agent(port: u16, limit: Duration) -> bool {
     let end = Instant::now() + limit;
     let mut buf = [0u8; 512];
     while Instant::now() < end {
+        if let Some(a) = agent.as_mut() {
+            if let Ok(Some(status)) = a.child.try_wait() {
+                eprintln!("the agent exited before answering: {status}");
+                return false;
+            }
+        }
         let _ = socket.send(&ping);
         if let Ok(n) = socket.recv(&mut buf) {
             if n > 4 && buf[4] == 0x06 {
@@ -422,7 +429,7 @@ fn main() -> Result<(), String> {
     } else {
         stream_id::BUILTIN_RELIABLE
     };
-    let agent = if a.no_agent {
+    let mut agent = if a.no_agent {
         None
     } else {
         let cmd = match &a.agent_cmd {
@@ -438,7 +445,7 @@ fn main() -> Result<(), String> {
         };
         Some(AgentUnderTest::start(&cmd, port)?)
     };
-    if !wait_for_agent(port, Duration::from_secs(30)) {
+    if !wait_for_agent(port, Duration::from_secs(30), &mut agent) {
         return Err(format!("no agent answers a ping on UDP port {port}"));
     }
     let topic = "<dds><topic><name>LoadTopic</name><dataType>Load</dataType></topic></dds>";
