@@ -592,8 +592,14 @@ fn main() -> Result<(), String> {
     let deadline = t0 + Duration::from_secs(a.duration);
     let mut last_rx = t0;
     while (received as u32) < samples && Instant::now() < deadline {
-        // Everything sent and nothing more for 2 s: the rest is lost.
-        if sent == samples && last_rx.elapsed() > Duration::from_secs(2) {
+        // Everything sent and nothing more for a while: the rest is lost. Reliable samples
+        // are still coming while the agent works through a backlog, so they get longer.
+        let idle = if stream == stream_id::BUILTIN_RELIABLE {
+            Duration::from_secs(10)
+        } else {
+            Duration::from_secs(2)
+        };
+        if sent == samples && last_rx.elapsed() > idle {
             break;
         }
         let allowed = if rate > 0.0 {
