@@ -146,12 +146,19 @@ pub fn endpoint_qos(side: EndpointSide, topic: &QosDesc, endpoint: &QosDesc) -> 
         History::KeepLast(depth) => policy::History::KeepLast { depth },
         History::KeepAll => policy::History::KeepAll,
     });
+    // Beyond 2^31 s a DDS duration is infinite (and RustDDS's conversion would wrap).
     let d = |p: Period| match p {
-        Period::Infinite => rustdds::Duration::INFINITE,
-        Period::Finite(d) => rustdds::Duration::from_std(d),
+        Period::Finite(d) if d.as_secs() < i32::MAX as u64 => rustdds::Duration::from_std(d),
+        _ => rustdds::Duration::INFINITE,
     };
-    if let Some(p) = merged.deadline {
-        b = b.deadline(policy::Deadline(d(p)));
+    // A deadline under 1 ms would re-arm RustDDS's deadline timer without pause on the
+    // participant's event thread, shared by every client of the domain: treated as none.
+    match merged.deadline {
+        Some(Period::Finite(p)) if p < std::time::Duration::from_millis(1) => {
+            tracing::warn!(deadline = ?p, "deadline below 1 ms ignored (treated as infinite)");
+        }
+        Some(p) => b = b.deadline(policy::Deadline(d(p))),
+        None => {}
     }
     if let Some(p) = merged.lifespan {
         b = b.lifespan(policy::Lifespan { duration: d(p) });

@@ -1116,13 +1116,13 @@ impl Worker {
                 "content filters are not supported yet".into(),
             ));
         }
-        let paused = self.reads.get(&key).is_some_and(|r| r.paused);
+        // A new read starts unpaused (the front-end forgets its pause too).
+        let paused = false;
         let read = match spec.delivery_control {
             Some(d) if d.max_samples == 0 => {
                 self.reads.remove(&key);
                 return Ok(());
             }
-            // A new read replaces the old one but not the front-end's flow control.
             Some(d) => ActiveRead {
                 request_id: h.request_id,
                 remaining: (d.max_samples != u16::MAX).then_some(d.max_samples as u32),

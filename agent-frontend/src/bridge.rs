@@ -599,7 +599,12 @@ impl Bridge {
                     if let Some(g) = self.graphs.get_mut(&h.client_key) {
                         if waited.is_some_and(|w| w.2 == MessageKind::Create) {
                             g.remove(h.object_id);
-                        } else {
+                        } else if g
+                            .read_mut(h.object_id)
+                            .is_some_and(|r| r.request_id == h.request_id)
+                        {
+                            // The read itself failed (not, say, a write to the same
+                            // requester or replier).
                             g.end_read(h.object_id);
                         }
                     }
@@ -653,6 +658,7 @@ impl Bridge {
                 }
             }
             MessageKind::ReadEnded => {
+                self.paused.remove(&(h.client_key, h.object_id));
                 if let Some(g) = self.graphs.get_mut(&h.client_key) {
                     let same = g
                         .reads()
@@ -884,6 +890,8 @@ impl OperationSink for Bridge {
                     ));
                     return;
                 }
+                // A new read starts unpaused on both sides.
+                self.paused.remove(&(client, request.object_id));
                 if let Some(g) = self.graphs.get_mut(&client) {
                     g.set_read(
                         request.object_id,

@@ -39,8 +39,9 @@ impl FrontendArgs {
     /// The session-core settings these arguments ask for.
     pub fn agent_config(&self) -> anyhow::Result<AgentConfig> {
         let dead = self.client_dead_time;
-        if !(dead.is_finite() && dead >= 0.0) {
-            anyhow::bail!("--client-dead-time must be a number of seconds ≥ 0, got {dead}");
+        // At most a year: longer is "never" in practice, and keeps Instant arithmetic safe.
+        if !(dead.is_finite() && (0.0..=31_536_000.0).contains(&dead)) {
+            anyhow::bail!("--client-dead-time must be 0 to 31536000 seconds, got {dead}");
         }
         Ok(AgentConfig {
             dialect: self.dialect,

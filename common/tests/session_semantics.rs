@@ -532,3 +532,34 @@ fn ping_replies_match_the_reference_agent_byte_for_byte() {
         assert_eq!(hex(&out[0].data), a2c);
     }
 }
+
+#[test]
+fn an_info_larger_than_the_mtu_goes_out_in_fragments() {
+    let (mut agent, _rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
+    let request = BaseObjectRequest {
+        request_id: RequestId::from_u16(4),
+        object_id: ObjectId::new(2, object_kind::TOPIC),
+    };
+    let variant = ObjectVariant {
+        kind: object_kind::TOPIC,
+        representation: Representation::Xml(format!(
+            "<dds><topic>{}</topic></dds>",
+            "x".repeat(2000)
+        )),
+        extra: VariantExtra::Parent(ObjectId::new(1, object_kind::PARTICIPANT)),
+    };
+    agent
+        .send_info(t0, KEY, request, ResultStatus::OK, Some(&variant))
+        .expect("queued");
+    let mut out = drain(&mut agent);
+    // The window sends up to 16 messages at once; ACKNACK the rest out if needed.
+    assert!(out.len() > 1, "one INFO of 2 kB in one datagram");
+    assert!(
+        out.iter().all(|t| t.data.len() <= 512),
+        "a datagram beyond the MTU"
+    );
+    out.retain(|t| t.data[1] == 0x80);
+    assert!(payloads(&out)
+        .iter()
+        .all(|p| matches!(p, Payload::Fragment { .. })));
+}

@@ -132,8 +132,10 @@ fn main() -> anyhow::Result<()> {
             .into(),
         ));
     }
-    if !(common.client_dead_time.is_finite() && common.client_dead_time >= 0.0) {
-        anyhow::bail!("--client-dead-time must be a number of seconds ≥ 0");
+    if !(common.client_dead_time.is_finite()
+        && (0.0..=31_536_000.0).contains(&common.client_dead_time))
+    {
+        anyhow::bail!("--client-dead-time must be 0 to 31536000 seconds (a year)");
     }
     env.push((
         "XRCE_CLIENT_DEAD_TIME".into(),

@@ -1101,6 +1101,17 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         }
     }
 
+    /// One message if the submessage fits the client's MTU, else FRAGMENTs filling it, as
+    /// the reference agent sends them.
+    fn fit_or_fragment(c: &ProxyClient<A>, sub: Vec<u8>) -> Vec<Vec<u8>> {
+        let header_len = MessageHeader::encoded_len(c.session_id);
+        if header_len + sub.len() <= c.mtu as usize {
+            vec![sub]
+        } else {
+            fragments(&sub, c.mtu as usize - header_len - 4)
+        }
+    }
+
     fn encode_submessage(payload: &Payload<'_>, little_endian: bool) -> Result<Vec<u8>, SendError> {
         crate::wire::encode_submessage(payload, little_endian).map_err(|_| SendError::TooLarge)
     }
@@ -1181,7 +1192,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             object_info: buf.get(BaseObjectReply::LEN..).unwrap_or_default(),
         });
         let sub = Self::encode_submessage(&payload, true)?;
-        self.queue_reliable(key, stream_id::BUILTIN_RELIABLE, vec![sub])?;
+        let c = self.clients.get(&key).ok_or(SendError::NoClient)?;
+        let parts = Self::fit_or_fragment(c, sub);
+        self.queue_reliable(key, stream_id::BUILTIN_RELIABLE, parts)?;
         self.flush_client(now, key);
         Ok(())
     }
@@ -1230,14 +1243,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         if stream_id::is_reliable(stream) {
             let sub = crate::wire::encode_large_submessage(&payload, little_endian)
                 .map_err(|_| SendError::TooLarge)?;
-            let header_len = MessageHeader::encoded_len(c.session_id);
-            let fits = header_len + sub.len() <= c.mtu as usize;
-            let parts = if fits {
-                vec![sub]
-            } else {
-                // FRAGMENTs filling the client's MTU, as the reference agent sends them.
-                fragments(&sub, c.mtu as usize - header_len - 4)
-            };
+            let parts = Self::fit_or_fragment(c, sub);
             self.queue_reliable(key, stream, parts)?;
             self.flush_client(now, key);
         } else {
