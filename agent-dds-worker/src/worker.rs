@@ -89,14 +89,24 @@ struct Rematch {
     matched_at: Option<Instant>,
     /// Held writes: (front-end operation sequence number, sample).
     held: std::collections::VecDeque<(u64, RawSample)>,
+    /// Matched: the held samples are being written, a batch per loop pass (new writes still
+    /// queue behind them, so order is kept).
+    draining: bool,
 }
+
+/// Held samples written per loop pass while a writer drains: a whole backlog at once would
+/// overrun the writer's keep-last history before its reader acknowledged (RustDDS then drops
+/// the oldest), which lost samples after a worker restart.
+const RELEASE_BATCH: usize = 16;
 
 /// Longest hold of a replayed writer's samples when no reader matches.
 const REMATCH_MAX: Duration = Duration::from_secs(3);
 /// Longest hold of a new writer's first samples when no reader matches (there may be none).
 const NEW_WRITER_HOLD_MAX: Duration = Duration::from_secs(1);
-/// Margin after the writer's match so the reader has matched the writer too.
-const REMATCH_MARGIN: Duration = Duration::from_millis(200);
+/// Margin after the writer's match so the reader has matched the writer too (with 200 ms,
+/// a burst released at a replayed writer's match occasionally lost its last samples to
+/// Cyclone DDS under load; RustDDS then never repaired them).
+const REMATCH_MARGIN: Duration = Duration::from_millis(500);
 /// Most samples one holding writer keeps; beyond, writes fail with STATUS_ERR_RESOURCES.
 const REMATCH_HELD_MAX: usize = 4096;
 
@@ -317,7 +327,10 @@ impl Worker {
             return 0;
         }
         if !self.holding.is_empty() {
-            return 20;
+            let draining = self.holding.iter().any(|k| {
+                matches!(self.entities.get(k), Some(Entity { kind: EntityKind::Writer(_, r), .. }) if r.draining)
+            });
+            return if draining { 2 } else { 20 };
         }
         let waiting = self
             .ports
@@ -1006,6 +1019,7 @@ impl Worker {
                 "writer stops waiting for readers: too many samples held"
             );
             rematch.until = None;
+            rematch.draining = false;
             for (_, s) in rematch.held.drain(..) {
                 let _ = w.write(s);
             }
@@ -1047,18 +1061,27 @@ impl Worker {
                 .matched_at
                 .is_some_and(|t| now >= t + REMATCH_MARGIN)
                 || now >= until;
-            if ready {
+            if ready && !rematch.draining {
                 tracing::info!(
                     held = rematch.held.len(),
                     matched = rematch.matched_at.is_some(),
                     "holding writer resumes"
                 );
-                rematch.until = None;
-                done.push(*key);
-                for (_, sample) in rematch.held.drain(..) {
+                rematch.draining = true;
+            }
+            if rematch.draining {
+                for _ in 0..RELEASE_BATCH {
+                    let Some((_, sample)) = rematch.held.pop_front() else {
+                        break;
+                    };
                     if w.write(sample).is_err() {
                         failures += 1;
                     }
+                }
+                if rematch.held.is_empty() {
+                    rematch.until = None;
+                    rematch.draining = false;
+                    done.push(*key);
                 }
             }
         }

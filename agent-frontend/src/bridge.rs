@@ -38,8 +38,9 @@ pub const OUTBOX_MAX: usize = 8192;
 pub const OUTBOX_HARD_MAX: usize = 4 * OUTBOX_MAX;
 /// Bytes of queued operations before new ones are refused (flow control; samples reach 1 MiB).
 pub const OUTBOX_MAX_BYTES: usize = 64 << 20;
-/// Reliable writes kept for a possible resend before new ones are refused (flow control).
-pub const RETAIN_MAX: usize = 8192;
+/// Reliable writes kept for a possible resend before new ones are refused (flow control);
+/// with [`SETTLE_TIME`] this caps reliable throughput near 43,000 samples/s.
+pub const RETAIN_MAX: usize = 65_536;
 /// Bytes of retained writes before new ones are refused (flow control).
 pub const RETAIN_MAX_BYTES: usize = 64 << 20;
 /// A read is paused when its client's reliable stream has this many messages (or bytes)
@@ -48,8 +49,12 @@ pub const PAUSE_READ_AT: (usize, usize) = (1024, 1 << 20);
 /// A paused read resumes when the backlog is down to this.
 pub const RESUME_READ_AT: (usize, usize) = (256, 256 << 10);
 
-/// How long an executed reliable write is kept in case the worker dies right after.
-pub const SETTLE_TIME: Duration = Duration::from_millis(250);
+/// How long an executed reliable write is kept in case the worker dies right after. A write
+/// the DDS writer has taken may still need a repair (its first datagram lost): RustDDS
+/// heartbeats unacknowledged data every 100 ms to 1 s, so a worker killed within that window
+/// could lose it. Kept 1.5 s, the resend after a crash covers the repair window (at the cost of
+/// up to 1.5 s of duplicates for the DDS readers).
+pub const SETTLE_TIME: Duration = Duration::from_millis(1500);
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Awaited {
