@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use xrce_common::session::client::ClientConfig;
 use xrce_common::wire::ClientKey;
-use xrce_tests::{hello_world_be, parse_sample_line, AgentProcess, DdsPeer, TestClient};
+use xrce_tests::{hello_world_be, AgentProcess, DdsPeer, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 
@@ -43,17 +43,12 @@ fn a_big_endian_client_publishes_values_cyclone_reads_correctly() {
     for i in &indexes {
         c.write_reliable(w, &hello_world_be(*i, "big end"));
     }
-    let mut got = BTreeSet::new();
-    let end = std::time::Instant::now() + 30 * SECOND;
-    while got.len() < indexes.len() && std::time::Instant::now() < end {
-        c.step();
-        while let Some(l) = reader.line(Duration::from_millis(1)) {
-            if let Some((i, m)) = parse_sample_line(&l) {
-                assert_eq!(m, "big end");
-                got.insert(i);
-            }
-        }
-    }
+    let got = reader.collect_samples(indexes.len(), 30 * SECOND, || c.step());
+    assert!(
+        got.values().all(|m| m == "big end"),
+        "unexpected message: {got:?}"
+    );
+    let got: BTreeSet<u32> = got.into_keys().collect();
     assert_eq!(got, indexes.into_iter().collect::<BTreeSet<u32>>());
     assert!(agent.stop(), "agent did not stop cleanly");
 }
@@ -143,16 +138,8 @@ fn a_big_endian_client_creates_its_entities_in_binary() {
     for i in [7u32, 0x0100, 0x010000] {
         c.write_reliable(w, &hello_world_be(i, "binary big end"));
     }
-    let mut got = BTreeSet::new();
-    let end = std::time::Instant::now() + 30 * SECOND;
-    while got.len() < 3 && std::time::Instant::now() < end {
-        c.step();
-        while let Some(l) = reader.line(Duration::from_millis(1)) {
-            if let Some((i, _)) = parse_sample_line(&l) {
-                got.insert(i);
-            }
-        }
-    }
+    let got = reader.collect_samples(3, 30 * SECOND, || c.step());
+    let got: BTreeSet<u32> = got.into_keys().collect();
     assert_eq!(got, [7u32, 0x0100, 0x010000].into_iter().collect());
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -8,9 +8,7 @@ use std::time::Duration;
 use xrce_common::wire::cdr::CdrWriter;
 use xrce_common::wire::sample::{decode_samples, SampleInfo, SampleInfoDetail};
 use xrce_common::wire::{data_format, stream_id, DataDeliveryControl, Dialect, ReadSpecification};
-use xrce_tests::{
-    hello_world, parse_hello_world, parse_sample_line, AgentProcess, DdsPeer, TestClient,
-};
+use xrce_tests::{hello_world, parse_hello_world, AgentProcess, DdsPeer, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 
@@ -116,17 +114,12 @@ fn write_data_in_format_sample_is_published() {
         body.extend_from_slice(&hello_world(i, "sampled"));
         c.write_reliable_format(w, data_format::SAMPLE, &body);
     }
-    let mut got = BTreeSet::new();
-    let end = std::time::Instant::now() + 30 * SECOND;
-    while got.len() < 5 && std::time::Instant::now() < end {
-        c.step();
-        while let Some(l) = reader.line(Duration::from_millis(1)) {
-            if let Some((i, m)) = parse_sample_line(&l) {
-                assert_eq!(m, "sampled");
-                got.insert(i);
-            }
-        }
-    }
+    let got = reader.collect_samples(5, 30 * SECOND, || c.step());
+    assert!(
+        got.values().all(|m| m == "sampled"),
+        "unexpected message: {got:?}"
+    );
+    let got: BTreeSet<u32> = got.into_keys().collect();
     assert_eq!(got, (0..5).collect::<BTreeSet<u32>>());
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -5,7 +5,7 @@
 use std::collections::BTreeSet;
 use std::time::Duration;
 
-use xrce_tests::{hello_world, parse_sample_line, AgentProcess, DdsPeer, TestClient};
+use xrce_tests::{hello_world, AgentProcess, DdsPeer, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 
@@ -31,17 +31,12 @@ fn a_late_transient_local_reader_gets_the_history() {
         "--timeout",
         "60",
     ]);
-    let mut got = BTreeSet::new();
-    let end = std::time::Instant::now() + 45 * SECOND;
-    while got.len() < 8 && std::time::Instant::now() < end {
-        c.step();
-        while let Some(l) = reader.line(Duration::from_millis(1)) {
-            if let Some((i, m)) = parse_sample_line(&l) {
-                assert_eq!(m, "before you came");
-                got.insert(i);
-            }
-        }
-    }
+    let got = reader.collect_samples(8, 45 * SECOND, || c.step());
+    assert!(
+        got.values().all(|m| m == "before you came"),
+        "unexpected message: {got:?}"
+    );
+    let got: BTreeSet<u32> = got.into_keys().collect();
     assert_eq!(
         got,
         (0..8).collect::<BTreeSet<u32>>(),

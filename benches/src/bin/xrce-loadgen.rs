@@ -563,7 +563,12 @@ fn main() -> Result<(), String> {
         pump_all(&mut peers, &mut poller, &mut buf, &mut events)?;
         for e in events.drain(..) {
             if let ClientEvent::Data { data, .. } = e {
-                let tag = u32::from_le_bytes([data[0], data[1], data[2], data[3]]);
+                let Some(tag) = data
+                    .get(..4)
+                    .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                else {
+                    continue;
+                };
                 if let Some(i) = u32::MAX
                     .checked_sub(tag)
                     .map(|i| i as usize)
