@@ -53,6 +53,11 @@ pub fn parse_endpoint(body: &[u8], writer: bool, le: bool) -> Result<EndpointDes
         topic: None,
         topic_ref: None,
         topic_id: Some(e.topic_id),
+        content_filter: e
+            .qos
+            .as_ref()
+            .and_then(|q| q.contentbased_filter.clone())
+            .filter(|f| !f.trim().is_empty()),
         qos: e.qos.map(|q| endpoint_qos(&q)).unwrap_or_default(),
     })
 }

@@ -35,9 +35,11 @@
 pub mod binary;
 pub mod cli;
 pub mod dds;
+pub mod filter;
 pub mod fuzzing;
 pub mod raw;
 pub mod references;
 pub mod representation;
+pub mod types;
 pub mod worker;
 pub mod xml;

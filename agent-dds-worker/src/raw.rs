@@ -5,6 +5,8 @@ use rustdds::bytes::Bytes;
 use rustdds::no_key::{Decode, DefaultDecoder, DeserializerAdapter, SerializerAdapter};
 use rustdds::RepresentationIdentifier;
 
+use crate::types::KeyDescriptor;
+
 /// A serialized sample body (no encapsulation header) and its encoding.
 #[derive(Debug, Clone)]
 pub struct RawSample {
@@ -34,25 +36,25 @@ pub struct RawLe;
 #[derive(Debug)]
 pub struct RawBe;
 
-impl SerializerAdapter<RawSample> for RawLe {
-    type Error = RawError;
-    fn output_encoding() -> RepresentationIdentifier {
-        RepresentationIdentifier::CDR_LE
-    }
-    fn to_bytes(value: &RawSample) -> Result<Bytes, RawError> {
-        Ok(value.body.clone())
-    }
+/// A pass-through serializer: `$adapter` writes `$data` as `$encoding`, its body being
+/// what `$body` returns.
+macro_rules! pass_through_serializer {
+    ($adapter:ty, $data:ty, $encoding:ident, $body:expr) => {
+        impl SerializerAdapter<$data> for $adapter {
+            type Error = RawError;
+            fn output_encoding() -> RepresentationIdentifier {
+                RepresentationIdentifier::$encoding
+            }
+            fn to_bytes(value: &$data) -> Result<Bytes, RawError> {
+                let body: fn(&$data) -> &Bytes = $body;
+                Ok(body(value).clone())
+            }
+        }
+    };
 }
 
-impl SerializerAdapter<RawSample> for RawBe {
-    type Error = RawError;
-    fn output_encoding() -> RepresentationIdentifier {
-        RepresentationIdentifier::CDR_BE
-    }
-    fn to_bytes(value: &RawSample) -> Result<Bytes, RawError> {
-        Ok(value.body.clone())
-    }
-}
+pass_through_serializer!(RawLe, RawSample, CDR_LE, |v| &v.body);
+pass_through_serializer!(RawBe, RawSample, CDR_BE, |v| &v.body);
 
 static ACCEPTED: [RepresentationIdentifier; 4] = [
     RepresentationIdentifier::CDR_LE,
@@ -95,12 +97,323 @@ impl DefaultDecoder<RawSample> for RawLe {
     const DECODER: RawDecoder = RawDecoder;
 }
 
+/// A serialized sample of a keyed topic, with its key (from the type description).
+#[derive(Debug, Clone)]
+pub struct RawKeyed {
+    /// The sample (for a dispose: the key-only payload).
+    pub sample: RawSample,
+    /// Its key.
+    pub key: RawKey,
+}
+
+/// A key: its KeyHash, and the key fields serialized in the writer's encoding.
+#[derive(Debug, Clone)]
+pub struct RawKey {
+    /// The XTypes KeyHash.
+    pub hash: [u8; 16],
+    /// The key-only payload (what a dispose carries).
+    pub payload: Bytes,
+}
+
+impl PartialEq for RawKey {
+    fn eq(&self, other: &Self) -> bool {
+        self.hash == other.hash
+    }
+}
+impl Eq for RawKey {}
+impl PartialOrd for RawKey {
+    fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(other))
+    }
+}
+impl Ord for RawKey {
+    fn cmp(&self, other: &Self) -> std::cmp::Ordering {
+        self.hash.cmp(&other.hash)
+    }
+}
+impl std::hash::Hash for RawKey {
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        self.hash.hash(state)
+    }
+}
+impl serde::Serialize for RawKey {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_bytes(&self.payload)
+    }
+}
+impl rustdds::dds::key::CdrEncodingSize for RawKey {
+    fn cdr_encoding_max_size() -> rustdds::dds::key::CdrEncodingMaxSize {
+        rustdds::dds::key::CdrEncodingMaxSize::Unbounded
+    }
+}
+impl rustdds::Key for RawKey {
+    fn hash_key(&self, _force_md5: bool) -> rustdds::dds::key::KeyHash {
+        rustdds::dds::key::KeyHash::from_pl_cdr_bytes(self.hash.to_vec())
+            .unwrap_or_else(|_| rustdds::dds::key::KeyHash::zero())
+    }
+}
+impl rustdds::Keyed for RawKeyed {
+    type K = RawKey;
+    fn key(&self) -> RawKey {
+        self.key.clone()
+    }
+}
+
+/// Adapter writing keyed little-endian CDR (XCDR1).
+#[derive(Debug)]
+pub struct RawKeyedLe;
+/// Adapter writing keyed big-endian CDR (XCDR1).
+#[derive(Debug)]
+pub struct RawKeyedBe;
+
+pass_through_serializer!(RawKeyedLe, RawKeyed, CDR_LE, |v| &v.sample.body);
+pass_through_serializer!(RawKeyedBe, RawKeyed, CDR_BE, |v| &v.sample.body);
+
+macro_rules! key_serializer {
+    ($adapter:ty) => {
+        impl rustdds::with_key::SerializerAdapter<RawKeyed> for $adapter {
+            fn key_to_bytes(value: &RawKey) -> Result<Bytes, RawError> {
+                Ok(value.payload.clone())
+            }
+        }
+    };
+}
+key_serializer!(RawKeyedLe);
+key_serializer!(RawKeyedBe);
+
+thread_local! {
+    /// The key of the topic whose reader is being taken from: RustDDS's default decoder is
+    /// a constant, so the type knowledge travels this way (set by [`RawReader::take_next`]).
+    static READING_KEY: std::cell::RefCell<Option<std::sync::Arc<KeyDescriptor>>> =
+        const { std::cell::RefCell::new(None) };
+}
+
+/// Whether an encoding is XCDR version 2.
+pub fn is_xcdr2(encoding: RepresentationIdentifier) -> bool {
+    encoding == RepresentationIdentifier::XCDR2_LE || encoding == RepresentationIdentifier::XCDR2_BE
+}
+
+fn key_of(
+    body: &[u8],
+    encoding: RepresentationIdentifier,
+    key_only: bool,
+) -> Result<RawKey, RawError> {
+    let le = encoding.to_bytes()[1] & 1 == 1;
+    READING_KEY.with(|k| {
+        let k = k.borrow();
+        let k = k
+            .as_ref()
+            .ok_or(RawError("keyed sample read without its type"))?;
+        let key = k
+            .of_received(body, le, is_xcdr2(encoding), key_only)
+            .map_err(|_| RawError("sample does not match its type"))?;
+        Ok(RawKey {
+            hash: key.hash,
+            payload: Bytes::from(key.payload),
+        })
+    })
+}
+
+impl DeserializerAdapter<RawKeyed> for RawKeyedLe {
+    type Error = RawError;
+    type Decoded = RawKeyed;
+    fn supported_encodings() -> &'static [RepresentationIdentifier] {
+        &ACCEPTED
+    }
+    fn transform_decoded(decoded: RawKeyed) -> RawKeyed {
+        decoded
+    }
+}
+
+impl rustdds::with_key::DeserializerAdapter<RawKeyed> for RawKeyedLe {
+    type DecodedKey = RawKey;
+    fn transform_decoded_key(decoded_key: RawKey) -> RawKey {
+        decoded_key
+    }
+}
+
+/// Decodes keyed samples with the type description of [`READING_KEY`].
+#[derive(Debug, Clone)]
+pub struct RawKeyedDecoder;
+
+impl<'de> Decode<'de, RawKeyed> for RawKeyedDecoder {
+    type Error = RawError;
+    fn decode_bytes(
+        self,
+        input: &'de [u8],
+        encoding: RepresentationIdentifier,
+    ) -> Result<RawKeyed, RawError> {
+        Ok(RawKeyed {
+            key: key_of(input, encoding, false)?,
+            sample: RawSample {
+                encoding,
+                body: Bytes::copy_from_slice(input),
+            },
+        })
+    }
+}
+
+impl<'de> rustdds::with_key::Decode<'de, RawKeyed, RawKey> for RawKeyedDecoder {
+    fn decode_key_bytes(
+        self,
+        input: &'de [u8],
+        encoding: RepresentationIdentifier,
+    ) -> Result<RawKey, RawError> {
+        key_of(input, encoding, true)
+    }
+}
+
+impl DefaultDecoder<RawKeyed> for RawKeyedLe {
+    type Decoder = RawKeyedDecoder;
+    const DECODER: RawKeyedDecoder = RawKeyedDecoder;
+}
+
+impl rustdds::with_key::DefaultDecoder<RawKeyed> for RawKeyedLe {
+    type Decoder = RawKeyedDecoder;
+    const DECODER: RawKeyedDecoder = RawKeyedDecoder;
+}
+
+/// A sample taken from a [`RawReader`].
+#[derive(Debug)]
+pub struct Taken {
+    /// The sample; for a dispose or unregister, the key-only payload.
+    pub sample: RawSample,
+    /// DDS sample info.
+    pub info: rustdds::SampleInfo,
+    /// The instance was disposed (no data).
+    pub disposed: bool,
+    /// The instance has no writers any more (no data).
+    pub unregistered: bool,
+}
+
+/// A data reader of raw samples, keyed or not.
+pub enum RawReader {
+    /// A NO_KEY topic (or a keyed one whose type is unknown).
+    NoKey(Box<rustdds::no_key::DataReader<RawSample, RawLe>>),
+    /// A WITH_KEY topic with its key description.
+    Keyed(
+        Box<rustdds::with_key::DataReader<RawKeyed, RawKeyedLe>>,
+        std::sync::Arc<KeyDescriptor>,
+    ),
+}
+
+impl std::fmt::Debug for RawReader {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RawReader::NoKey(_) => f.write_str("RawReader(no key)"),
+            RawReader::Keyed(_, k) => write!(f, "RawReader(key of {})", k.ty().name),
+        }
+    }
+}
+
+impl RawReader {
+    /// Creates a reader; keyed when `key` is given.
+    pub fn create(
+        subscriber: &rustdds::Subscriber,
+        topic: &rustdds::Topic,
+        qos: rustdds::QosPolicies,
+        key: Option<std::sync::Arc<KeyDescriptor>>,
+    ) -> rustdds::dds::CreateResult<Self> {
+        Ok(match key {
+            None => RawReader::NoKey(Box::new(
+                subscriber.create_datareader_no_key::<RawSample, RawLe>(topic, Some(qos))?,
+            )),
+            Some(k) => RawReader::Keyed(
+                Box::new(subscriber.create_datareader::<RawKeyed, RawKeyedLe>(topic, Some(qos))?),
+                k,
+            ),
+        })
+    }
+
+    /// Takes the next sample, if any.
+    pub fn take_next(&mut self) -> rustdds::dds::ReadResult<Option<Taken>> {
+        match self {
+            RawReader::NoKey(r) => Ok(r.take_next_sample()?.map(|s| Taken {
+                info: s.sample_info().clone(),
+                sample: s.into_value(),
+                disposed: false,
+                unregistered: false,
+            })),
+            RawReader::Keyed(r, k) => {
+                READING_KEY.with(|c| *c.borrow_mut() = Some(k.clone()));
+                let s = r.take_next_sample();
+                READING_KEY.with(|c| *c.borrow_mut() = None);
+                let Some(s) = s? else {
+                    return Ok(None);
+                };
+                let info = s.sample_info().clone();
+                let state = info.instance_state();
+                Ok(Some(match s.into_value() {
+                    rustdds::with_key::Sample::Value(v) => Taken {
+                        sample: v.sample,
+                        info,
+                        disposed: false,
+                        unregistered: false,
+                    },
+                    rustdds::with_key::Sample::Dispose(key) => Taken {
+                        sample: RawSample {
+                            // The key payload is in this worker's own order (see
+                            // KeyDescriptor): little endian.
+                            encoding: RepresentationIdentifier::CDR_LE,
+                            body: key.payload,
+                        },
+                        info,
+                        disposed: state != rustdds::InstanceState::NotAliveNoWriters,
+                        unregistered: state == rustdds::InstanceState::NotAliveNoWriters,
+                    },
+                }))
+            }
+        }
+    }
+}
+
+impl rustdds::mio1::event::Source for RawReader {
+    fn register(
+        &mut self,
+        registry: &rustdds::mio1::Registry,
+        token: rustdds::mio1::Token,
+        interests: rustdds::mio1::Interest,
+    ) -> std::io::Result<()> {
+        match self {
+            RawReader::NoKey(r) => r.register(registry, token, interests),
+            RawReader::Keyed(r, _) => r.register(registry, token, interests),
+        }
+    }
+    fn reregister(
+        &mut self,
+        registry: &rustdds::mio1::Registry,
+        token: rustdds::mio1::Token,
+        interests: rustdds::mio1::Interest,
+    ) -> std::io::Result<()> {
+        match self {
+            RawReader::NoKey(r) => r.reregister(registry, token, interests),
+            RawReader::Keyed(r, _) => r.reregister(registry, token, interests),
+        }
+    }
+    fn deregister(&mut self, registry: &rustdds::mio1::Registry) -> std::io::Result<()> {
+        match self {
+            RawReader::NoKey(r) => r.deregister(registry),
+            RawReader::Keyed(r, _) => r.deregister(registry),
+        }
+    }
+}
+
 /// A data writer publishing raw samples in the byte order of the client that created it.
 pub enum RawWriter {
     /// CDR_LE.
     Le(rustdds::no_key::DataWriter<RawSample, RawLe>),
     /// CDR_BE.
     Be(rustdds::no_key::DataWriter<RawSample, RawBe>),
+    /// CDR_LE, keyed.
+    KeyedLe(
+        rustdds::with_key::DataWriter<RawKeyed, RawKeyedLe>,
+        std::sync::Arc<KeyDescriptor>,
+    ),
+    /// CDR_BE, keyed.
+    KeyedBe(
+        rustdds::with_key::DataWriter<RawKeyed, RawKeyedBe>,
+        std::sync::Arc<KeyDescriptor>,
+    ),
 }
 
 impl std::fmt::Debug for RawWriter {
@@ -120,7 +433,19 @@ impl RawWriter {
         topic: &rustdds::Topic,
         qos: rustdds::QosPolicies,
         little_endian: bool,
+        key: Option<std::sync::Arc<KeyDescriptor>>,
     ) -> rustdds::dds::CreateResult<Self> {
+        if let Some(k) = key {
+            return if little_endian {
+                publisher
+                    .create_datawriter::<RawKeyed, RawKeyedLe>(topic, Some(qos))
+                    .map(|w| RawWriter::KeyedLe(w, k))
+            } else {
+                publisher
+                    .create_datawriter::<RawKeyed, RawKeyedBe>(topic, Some(qos))
+                    .map(|w| RawWriter::KeyedBe(w, k))
+            };
+        }
         if little_endian {
             publisher
                 .create_datawriter_no_key::<RawSample, RawLe>(topic, Some(qos))
@@ -134,7 +459,28 @@ impl RawWriter {
 
     /// Whether it publishes little-endian samples.
     pub fn little_endian(&self) -> bool {
-        matches!(self, RawWriter::Le(_))
+        matches!(self, RawWriter::Le(_) | RawWriter::KeyedLe(..))
+    }
+
+    /// The key description of a keyed writer.
+    pub fn key(&self) -> Option<&std::sync::Arc<KeyDescriptor>> {
+        match self {
+            RawWriter::KeyedLe(_, k) | RawWriter::KeyedBe(_, k) => Some(k),
+            _ => None,
+        }
+    }
+
+    fn keyed(k: &KeyDescriptor, sample: RawSample) -> Result<RawKeyed, String> {
+        let key = k
+            .of_sample(&sample.body, sample.little_endian(), false)
+            .map_err(|e| format!("key of a {} sample: {e}", k.ty().name))?;
+        Ok(RawKeyed {
+            sample,
+            key: RawKey {
+                hash: key.hash,
+                payload: Bytes::from(key.payload),
+            },
+        })
     }
 
     /// Publishes a sample (already in the writer's byte order).
@@ -142,6 +488,35 @@ impl RawWriter {
         match self {
             RawWriter::Le(w) => w.write(sample, None).map_err(|e| e.to_string()),
             RawWriter::Be(w) => w.write(sample, None).map_err(|e| e.to_string()),
+            RawWriter::KeyedLe(w, k) => w
+                .write(Self::keyed(k, sample)?, None)
+                .map_err(|e| e.to_string()),
+            RawWriter::KeyedBe(w, k) => w
+                .write(Self::keyed(k, sample)?, None)
+                .map_err(|e| e.to_string()),
+        }
+    }
+
+    /// Disposes the instance of `sample` (a whole sample, or its key fields alone). RustDDS
+    /// has no unregister; DDS's default `autodispose_unregistered_instances` makes an
+    /// unregister a dispose too, which is what callers do.
+    pub fn dispose(&self, sample: &RawSample) -> Result<(), String> {
+        let Some(k) = self.key() else {
+            return Err("dispose on a topic without a key".into());
+        };
+        let le = sample.little_endian();
+        let key = k
+            .of_sample(&sample.body, le, false)
+            .or_else(|_| k.of_key_payload(&sample.body, le, false))
+            .map_err(|e| format!("key of a {} sample: {e}", k.ty().name))?;
+        let key = RawKey {
+            hash: key.hash,
+            payload: Bytes::from(key.payload),
+        };
+        match self {
+            RawWriter::KeyedLe(w, _) => w.dispose(&key, None).map_err(|e| e.to_string()),
+            RawWriter::KeyedBe(w, _) => w.dispose(&key, None).map_err(|e| e.to_string()),
+            _ => Err("dispose on a topic without a key".into()),
         }
     }
 
@@ -161,6 +536,12 @@ impl RawWriter {
             RawWriter::Be(w) => w
                 .write_with_options(sample, opts)
                 .map_err(|e| e.to_string()),
+            RawWriter::KeyedLe(w, k) => w
+                .write_with_options(Self::keyed(k, sample)?, opts)
+                .map_err(|e| e.to_string()),
+            RawWriter::KeyedBe(w, k) => w
+                .write_with_options(Self::keyed(k, sample)?, opts)
+                .map_err(|e| e.to_string()),
         }
     }
 
@@ -170,6 +551,8 @@ impl RawWriter {
         match self {
             RawWriter::Le(w) => w.guid(),
             RawWriter::Be(w) => w.guid(),
+            RawWriter::KeyedLe(w, _) => w.guid(),
+            RawWriter::KeyedBe(w, _) => w.guid(),
         }
     }
 
@@ -179,6 +562,8 @@ impl RawWriter {
         match self {
             RawWriter::Le(w) => w.try_recv_status(),
             RawWriter::Be(w) => w.try_recv_status(),
+            RawWriter::KeyedLe(w, _) => w.try_recv_status(),
+            RawWriter::KeyedBe(w, _) => w.try_recv_status(),
         }
     }
 }

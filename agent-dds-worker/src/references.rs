@@ -9,6 +9,7 @@ use std::collections::HashMap;
 #[derive(Debug, Clone, Default)]
 pub struct References {
     profiles: HashMap<String, Profile>,
+    types: crate::types::TypeSet,
 }
 
 #[derive(Debug, Clone)]
@@ -26,6 +27,12 @@ pub enum ReferencesError {
     /// The file is not well-formed XML.
     #[error("parsing {path}: {error}")]
     Xml { path: String, error: String },
+    /// A `<types>` section could not be used.
+    #[error("{path}: {error}")]
+    Types {
+        path: String,
+        error: crate::types::TypeError,
+    },
     /// Two profiles share a name.
     #[error("{path}: profile_name {name:?} appears twice")]
     Duplicate { path: String, name: String },
@@ -63,7 +70,17 @@ impl References {
                 });
             }
         }
-        Ok(References { profiles })
+        let types = crate::types::TypeSet::parse(text).map_err(|error| ReferencesError::Types {
+            path: origin.into(),
+            error,
+        })?;
+        Ok(References { profiles, types })
+    }
+
+    /// The types the file's `<types>` sections define (keyed topics and content filters of
+    /// every client can use them).
+    pub fn types(&self) -> &crate::types::TypeSet {
+        &self.types
     }
 
     /// Number of profiles.
@@ -118,6 +135,11 @@ mod tests {
     <kind>WITH_KEY</kind><name>Square</name><dataType>ShapeType</dataType>
   </topic>
 </profiles>
+<types>
+  <type><struct name="ShapeType">
+    <member name="color" type="string" key="true"/><member name="x" type="int32"/>
+  </struct></type>
+</types>
 </dds>"#;
 
     #[test]
@@ -136,6 +158,7 @@ mod tests {
         assert_eq!(xml::parse_topic(t).expect("topic").type_name, "ShapeType");
         assert!(r.resolve("shapetype_topic", "data_reader").is_err());
         assert!(r.resolve("nope", "topic").is_err());
+        assert!(r.types().get("ShapeType").is_some_and(|t| t.is_keyed()));
     }
 
     #[test]
@@ -148,6 +171,11 @@ mod tests {
         assert!(matches!(
             References::parse(dup, "x"),
             Err(ReferencesError::Duplicate { .. })
+        ));
+        let bad_type = r#"<dds><types><struct name="A"><member name="b" type="nonBasic" nonBasicTypeName="B"/></struct></types></dds>"#;
+        assert!(matches!(
+            References::parse(bad_type, "x"),
+            Err(ReferencesError::Types { .. })
         ));
     }
 }

@@ -10,7 +10,8 @@ use std::os::fd::AsRawFd;
 use std::time::{Duration, Instant};
 
 use rustdds::mio1::{Events, Interest, Poll, Token};
-use rustdds::no_key::DataReader;
+use std::sync::Arc;
+
 use rustdds::{DomainParticipant, Publisher, QosPolicies, Subscriber, Topic, TopicKind};
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
 use xrce_common::ipc::{
@@ -25,8 +26,10 @@ use xrce_common::wire::{
 };
 
 use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
-use crate::raw::{RawLe, RawSample, RawWriter};
+use crate::filter::Filter;
+use crate::raw::{RawReader, RawSample, RawWriter};
 use crate::representation::{check_plain, describe_endpoint, describe_service, describe_topic};
+use crate::types::{sample_len, KeyDescriptor, StructDef, Ty, TypeSet};
 use crate::xml::{self, TopicDesc};
 
 /// Worker settings.
@@ -49,11 +52,23 @@ enum EntityKind {
     Topic(TopicDesc),
     Publisher(Publisher, DomainParticipant),
     Subscriber(Subscriber, DomainParticipant),
-    Writer(Box<RawWriter>, Rematch),
-    Reader(Box<DataReader<RawSample, RawLe>>, Token),
+    /// A type definition (`<types>`) the client's topics can use.
+    Type(Arc<TypeSet>),
+    /// A data writer, its hold state, and its topic's type if known.
+    Writer(Box<RawWriter>, Rematch, Option<Arc<StructDef>>),
+    /// A data reader, its poll token, and what its content filters need.
+    Reader(Box<RawReader>, Token, ReaderInfo),
     /// A requester (publishes requests, reads the replies to them) or a replier (reads
     /// requests, publishes replies).
     Service(Box<ServiceEndpoint>),
+}
+
+/// What a data reader's content filters need.
+struct ReaderInfo {
+    /// The topic's type, if known.
+    ty: Option<Arc<StructDef>>,
+    /// The reader's own filter (XML `<content_filter>` or the binary `contentbased_filter`).
+    filter: Option<Filter>,
 }
 
 /// Most requests a requester keeps waiting for their reply (the oldest are forgotten).
@@ -63,7 +78,7 @@ const PENDING_REQUESTS_MAX: usize = 4096;
 struct ServiceEndpoint {
     requester: bool,
     writer: RawWriter,
-    reader: DataReader<RawSample, RawLe>,
+    reader: RawReader,
     token: Token,
     /// Requester: the sequence number of each published request -> its XRCE request id.
     pending: HashMap<i64, xrce_common::wire::RequestId>,
@@ -87,8 +102,8 @@ struct Rematch {
     until: Option<Instant>,
     /// When the writer first matched a reader again.
     matched_at: Option<Instant>,
-    /// Held writes: (front-end operation sequence number, sample).
-    held: std::collections::VecDeque<(u64, RawSample)>,
+    /// Held writes: (front-end operation sequence number, sample, is a dispose).
+    held: std::collections::VecDeque<(u64, RawSample, bool)>,
     /// Matched: the held samples are being written, a batch per loop pass (new writes still
     /// queue behind them, so order is kept).
     draining: bool,
@@ -122,6 +137,8 @@ struct ActiveRead {
     paused: bool,
     /// DataDeliveryControl pacing; samples wait in the DDS reader meanwhile.
     pacing: Pacing,
+    /// The read's content filter.
+    filter: Option<Filter>,
 }
 
 /// DataDeliveryControl's `min_pace_period` and `max_bytes_per_second`.
@@ -328,7 +345,7 @@ impl Worker {
         }
         if !self.holding.is_empty() {
             let draining = self.holding.iter().any(|k| {
-                matches!(self.entities.get(k), Some(Entity { kind: EntityKind::Writer(_, r), .. }) if r.draining)
+                matches!(self.entities.get(k), Some(Entity { kind: EntityKind::Writer(_, r, _), .. }) if r.draining)
             });
             return if draining { 2 } else { 20 };
         }
@@ -685,10 +702,10 @@ impl Worker {
                         }
                     };
                 let desc = describe_endpoint(repr, true, &self.config.references, little_endian)?;
-                let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
+                let (topic, tdesc, ty, kd) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
                 // A client writes in its native byte order, the one of its CREATE.
-                let w = RawWriter::create(&publisher, &topic, qos, little_endian)
+                let w = RawWriter::create(&publisher, &topic, qos, little_endian, kd)
                     .map_err(|e| dds_err("create data writer", &e))?;
                 let rematch = Rematch {
                     until: Some(
@@ -701,7 +718,7 @@ impl Worker {
                     ),
                     ..Default::default()
                 };
-                (Some(p), EntityKind::Writer(Box::new(w), rematch))
+                (Some(p), EntityKind::Writer(Box::new(w), rematch, ty))
             }
             (object_kind::DATAREADER, VariantExtra::Parent(p)) => {
                 let (subscriber, dp) =
@@ -715,10 +732,14 @@ impl Worker {
                         }
                     };
                 let desc = describe_endpoint(repr, false, &self.config.references, little_endian)?;
-                let (topic, tdesc) = self.endpoint_topic(key, p, &dp, &desc)?;
+                let (topic, tdesc, ty, kd) = self.endpoint_topic(key, p, &dp, &desc)?;
+                let filter = desc
+                    .content_filter
+                    .as_deref()
+                    .map(|f| compile_filter(f, ty.as_ref(), &tdesc.type_name))
+                    .transpose()?;
                 let qos = endpoint_qos(EndpointSide::Reader, &tdesc.qos, &desc.qos);
-                let mut r = subscriber
-                    .create_datareader_no_key::<RawSample, RawLe>(&topic, Some(qos))
+                let mut r = RawReader::create(&subscriber, &topic, qos, kd)
                     .map_err(|e| dds_err("create data reader", &e))?;
                 let token = Token(self.next_token);
                 self.next_token += 1;
@@ -727,7 +748,10 @@ impl Worker {
                     .register(&mut r, token, Interest::READABLE)
                     .map_err(|e| dds_err("register reader", &e))?;
                 self.readers.insert(token, key);
-                (Some(p), EntityKind::Reader(Box::new(r), token))
+                (
+                    Some(p),
+                    EntityKind::Reader(Box::new(r), token, ReaderInfo { ty, filter }),
+                )
             }
             (kind @ (object_kind::REQUESTER | object_kind::REPLIER), VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
@@ -748,6 +772,36 @@ impl Worker {
                 );
                 (Some(p), EntityKind::Service(Box::new(endpoint)))
             }
+            (object_kind::TYPE, _) => {
+                let set = match repr {
+                    xrce_common::wire::Representation::Xml(x) => {
+                        TypeSet::parse(x).map_err(|e| (status::ERR_INVALID_DATA, e.to_string()))?
+                    }
+                    xrce_common::wire::Representation::Reference(r) => {
+                        let t = self.config.references.types().get(r).ok_or_else(|| {
+                            (
+                                status::ERR_UNKNOWN_REFERENCE,
+                                format!("type {r:?} is not in the references file"),
+                            )
+                        })?;
+                        TypeSet::single(t)
+                    }
+                    xrce_common::wire::Representation::Binary(_) => {
+                        return Err((
+                            status::ERR_INVALID_DATA,
+                            "a TYPE object is described by XML or by reference".into(),
+                        ))
+                    }
+                };
+                if set.is_empty() {
+                    return Err((
+                        status::ERR_INVALID_DATA,
+                        "the TYPE representation defines no structure".into(),
+                    ));
+                }
+                tracing::info!(main = ?set.main(), "types registered");
+                (None, EntityKind::Type(Arc::new(set)))
+            }
             (k, _) => {
                 return Err((
                     status::ERR_INVALID_DATA,
@@ -755,7 +809,7 @@ impl Worker {
                 ))
             }
         };
-        if matches!(&kind, EntityKind::Writer(_, r) if r.until.is_some()) {
+        if matches!(&kind, EntityKind::Writer(_, r, _) if r.until.is_some()) {
             self.holding.insert(key);
         }
         self.entities.insert(key, Entity { parent, kind });
@@ -765,16 +819,50 @@ impl Worker {
     fn make_topic(
         dp: &DomainParticipant,
         desc: &TopicDesc,
+        keyed: bool,
     ) -> Result<Topic, rustdds::dds::CreateError> {
-        if desc.keyed {
-            tracing::warn!(topic = %desc.name, "keyed topics are carried without key hashing for now");
-        }
         dp.create_topic(
             desc.name.clone(),
             desc.type_name.clone(),
             &QosPolicies::qos_none(),
-            TopicKind::NoKey,
+            if keyed {
+                TopicKind::WithKey
+            } else {
+                TopicKind::NoKey
+            },
         )
+    }
+
+    /// A type by name: from the client's TYPE objects, else the references file.
+    fn type_named(&self, key: EntityKey, name: &str) -> Option<Arc<StructDef>> {
+        self.entities
+            .iter()
+            .filter(|(k, _)| k.0 == key.0 && k.1 == key.1)
+            .find_map(|(_, e)| match &e.kind {
+                EntityKind::Type(set) => set.get(name),
+                _ => None,
+            })
+            .or_else(|| self.config.references.types().get(name))
+    }
+
+    /// A topic's type and key, when its type is known.
+    fn topic_type(
+        &self,
+        key: EntityKey,
+        tdesc: &TopicDesc,
+    ) -> (Option<Arc<StructDef>>, Option<Arc<KeyDescriptor>>) {
+        let ty = self.type_named(key, &tdesc.type_name);
+        let kd = ty.clone().and_then(KeyDescriptor::new).map(Arc::new);
+        if tdesc.keyed && kd.is_none() {
+            tracing::warn!(
+                topic = %tdesc.name,
+                r#type = %tdesc.type_name,
+                known = ty.is_some(),
+                "WITH_KEY topic carried without a key: its type is unknown or has no key member \
+                 (define it in <types>, by a TYPE object or in the references file)"
+            );
+        }
+        (ty, kd)
     }
 
     /// The writer and reader of a requester or replier, on the DDS participants of `domain`.
@@ -844,10 +932,9 @@ impl Worker {
             &qos_desc,
             &crate::xml::QosDesc::default(),
         );
-        let writer = RawWriter::create(&publisher, &wt, wq, little_endian)
+        let writer = RawWriter::create(&publisher, &wt, wq, little_endian, None)
             .map_err(|e| dds_err("create data writer", &e))?;
-        let mut reader = subscriber
-            .create_datareader_no_key::<RawSample, RawLe>(&rt, Some(rq))
+        let mut reader = RawReader::create(&subscriber, &rt, rq, None)
             .map_err(|e| dds_err("create data reader", &e))?;
         let token = Token(self.next_token);
         self.next_token += 1;
@@ -875,7 +962,7 @@ impl Worker {
         parent: ObjectId,
         dp: &DomainParticipant,
         desc: &xml::EndpointDesc,
-    ) -> Result<(Topic, TopicDesc), OpError> {
+    ) -> Result<EndpointTopic, OpError> {
         let (pid, _) = self
             .participant_of(key, parent)
             .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
@@ -893,9 +980,10 @@ impl Worker {
                     ))
                 }
             };
-            let t = Self::make_topic(dp, &d)
+            let (ty, kd) = self.topic_type(key, &d);
+            let t = Self::make_topic(dp, &d, kd.is_some())
                 .map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
-            return Ok((t, d));
+            return Ok((t, d, ty, kd));
         }
         let wanted = desc
             .topic
@@ -927,9 +1015,10 @@ impl Worker {
                 ))
             }
         };
-        let t = Self::make_topic(dp, &tdesc)
+        let (ty, kd) = self.topic_type(key, &tdesc);
+        let t = Self::make_topic(dp, &tdesc, kd.is_some())
             .map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
-        Ok((t, tdesc))
+        Ok((t, tdesc, ty, kd))
     }
 
     /// Publishes the samples of one WRITE_DATA (one, or several in the sequence formats).
@@ -941,33 +1030,47 @@ impl Worker {
             Dialect::Eprosima
         };
         // Without a type description the end of a sample is the end of the submessage, so
-        // a sequence can be split only when it holds one sample.
-        let samples = decode_samples(h.data_format, body, little_endian, dialect, None)
+        // a sequence can be split only when it holds one sample; with it, the type says
+        // where each sample ends.
+        let ty = match self.entities.get(&key) {
+            Some(Entity {
+                kind: EntityKind::Writer(_, _, ty),
+                ..
+            }) => ty.clone().map(Ty::Struct),
+            _ => None,
+        };
+        let sizer =
+            ty.map(|t| move |b: &[u8], origin: usize| sample_len(&t, b, origin, little_endian));
+        let sizer_ref = sizer
+            .as_ref()
+            .map(|f| f as &dyn Fn(&[u8], usize) -> Option<usize>);
+        let samples = decode_samples(h.data_format, body, little_endian, dialect, sizer_ref)
             .map_err(|e| (status::ERR_INVALID_DATA, format!("WRITE_DATA: {e}")))?;
-        if samples.iter().any(|s| {
+        let ends_instance = |s: &xrce_common::wire::sample::SampleRef<'_>| {
             s.info.is_some_and(|i| {
                 i.state & (sample_state::INSTANCE_DISPOSED | sample_state::INSTANCE_UNREGISTERED)
                     != 0
             })
-        }) {
-            return Err((
-                status::ERR_INCOMPATIBLE,
-                "dispose and unregister need a keyed topic, which this worker does not support yet"
-                    .into(),
-            ));
-        }
+        };
         if let Some(Entity {
             kind: EntityKind::Service(svc),
             ..
         }) = self.entities.get_mut(&key)
         {
+            if samples.iter().any(ends_instance) {
+                return Err((
+                    status::ERR_INCOMPATIBLE,
+                    "a requester or replier cannot dispose or unregister".into(),
+                ));
+            }
             for s in samples {
                 service_write(svc, h.request_id, little_endian, s.data)?;
             }
             return Ok(());
         }
         for s in samples {
-            self.write_one(key, h.op_seq, little_endian, s.data)?;
+            let dispose = ends_instance(&s);
+            self.write_one(key, h.op_seq, little_endian, s.data, dispose)?;
         }
         Ok(())
     }
@@ -978,9 +1081,10 @@ impl Worker {
         seq: u64,
         little_endian: bool,
         body: &[u8],
+        dispose: bool,
     ) -> Result<(), OpError> {
         let Some(Entity {
-            kind: EntityKind::Writer(w, rematch),
+            kind: EntityKind::Writer(w, rematch, _),
             ..
         }) = self.entities.get_mut(&key)
         else {
@@ -1008,9 +1112,16 @@ impl Worker {
             },
             body: rustdds::bytes::Bytes::copy_from_slice(body),
         };
+        if dispose && w.key().is_none() {
+            // DDS has no instances on a topic without a key.
+            return Err((
+                status::ERR_INCOMPATIBLE,
+                "dispose or unregister on a topic without a key (or whose type is unknown)".into(),
+            ));
+        }
         if rematch.until.is_some() {
             if rematch.held.len() < REMATCH_HELD_MAX {
-                rematch.held.push_back((seq, sample));
+                rematch.held.push_back((seq, sample, dispose));
                 return Ok(());
             }
             // Bounded: a writer that would hold more stops waiting for its readers.
@@ -1020,9 +1131,14 @@ impl Worker {
             );
             rematch.until = None;
             rematch.draining = false;
-            for (_, s) in rematch.held.drain(..) {
-                let _ = w.write(s);
+            for (_, s, d) in rematch.held.drain(..) {
+                let _ = if d { w.dispose(&s) } else { w.write(s) };
             }
+        }
+        if dispose {
+            return w
+                .dispose(&sample)
+                .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS dispose: {e}")));
         }
         w.write(sample)
             .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
@@ -1035,7 +1151,7 @@ impl Worker {
         let mut done = Vec::new();
         for key in &self.holding {
             let Some(Entity {
-                kind: EntityKind::Writer(w, rematch),
+                kind: EntityKind::Writer(w, rematch, _),
                 ..
             }) = self.entities.get_mut(key)
             else {
@@ -1071,10 +1187,18 @@ impl Worker {
             }
             if rematch.draining {
                 for _ in 0..RELEASE_BATCH {
-                    let Some((_, sample)) = rematch.held.pop_front() else {
+                    let Some((_, sample, dispose)) = rematch.held.pop_front() else {
                         break;
                     };
-                    if w.write(sample).is_err() {
+                    let done = if dispose {
+                        w.dispose(&sample)
+                    } else {
+                        w.write(sample)
+                    };
+                    if let Err(e) = &done {
+                        tracing::warn!(error = %e, dispose, "held sample not published");
+                    }
+                    if done.is_err() {
                         failures += 1;
                     }
                 }
@@ -1101,8 +1225,8 @@ impl Worker {
             .iter()
             .filter_map(|k| Some((k, self.entities.get(k)?)))
         {
-            if let EntityKind::Writer(_, r) = &e.kind {
-                if let Some((seq, _)) = r.held.front() {
+            if let EntityKind::Writer(_, r, _) = &e.kind {
+                if let Some((seq, _, _)) = r.held.front() {
                     let v = m.entry(k.0).or_insert(*seq);
                     *v = (*v).min(*seq);
                 }
@@ -1112,18 +1236,22 @@ impl Worker {
     }
 
     fn start_read(&mut self, key: EntityKey, h: &IpcHeader, body: &[u8]) -> Result<(), OpError> {
-        if !matches!(
-            self.entities.get(&key),
+        let reader_type = match self.entities.get(&key) {
             Some(Entity {
-                kind: EntityKind::Reader(..) | EntityKind::Service(..),
+                kind: EntityKind::Reader(_, _, info),
                 ..
-            })
-        ) {
-            return Err((
-                status::ERR_UNKNOWN_REFERENCE,
-                "read from an unknown data reader, requester or replier".into(),
-            ));
-        }
+            }) => Some(info.ty.clone()),
+            Some(Entity {
+                kind: EntityKind::Service(..),
+                ..
+            }) => None,
+            _ => {
+                return Err((
+                    status::ERR_UNKNOWN_REFERENCE,
+                    "read from an unknown data reader, requester or replier".into(),
+                ))
+            }
+        };
         let spec = ReadSpecification::decode(&mut CdrReader::new(body, true))
             .map_err(|e| (status::ERR_INVALID_DATA, format!("read specification: {e}")))?;
         // The front-end puts each sample in the requested format.
@@ -1133,12 +1261,17 @@ impl Worker {
                 format!("undefined data format {:#04x}", spec.data_format),
             ));
         }
-        if spec.content_filter_expression.is_some() {
-            return Err((
-                status::ERR_INVALID_DATA,
-                "content filters are not supported yet".into(),
-            ));
-        }
+        let filter = match (spec.content_filter_expression.as_deref(), reader_type) {
+            (None, _) => None,
+            (Some(f), _) if f.trim().is_empty() => None,
+            (Some(f), Some(ty)) => Some(compile_filter(f, ty.as_ref(), "the reader's topic")?),
+            (Some(_), None) => {
+                return Err((
+                    status::ERR_INCOMPATIBLE,
+                    "content filters apply to data readers, not requesters or repliers".into(),
+                ))
+            }
+        };
         // A new read starts unpaused (the front-end forgets its pause too).
         let paused = false;
         let read = match spec.delivery_control {
@@ -1154,6 +1287,7 @@ impl Worker {
                 one_shot: false,
                 paused,
                 pacing: Pacing::new(&d),
+                filter,
             },
             None => ActiveRead {
                 request_id: h.request_id,
@@ -1162,6 +1296,7 @@ impl Worker {
                 one_shot: true,
                 paused,
                 pacing: Pacing::default(),
+                filter,
             },
         };
         self.reads.insert(key, read);
@@ -1179,11 +1314,11 @@ impl Worker {
             return;
         }
         let request_id = read.request_id;
-        let (reader, mut service) = match self.entities.get_mut(&key) {
+        let (reader, mut service, reader_filter) = match self.entities.get_mut(&key) {
             Some(Entity {
-                kind: EntityKind::Reader(reader, _),
+                kind: EntityKind::Reader(reader, _, info),
                 ..
-            }) => (&mut **reader, None),
+            }) => (&mut **reader, None, info.filter.as_ref()),
             Some(Entity {
                 kind: EntityKind::Service(s),
                 ..
@@ -1192,6 +1327,7 @@ impl Worker {
                 (
                     &mut s.reader,
                     Some((s.requester, &s.writer, &mut s.pending)),
+                    None,
                 )
             }
             _ => return,
@@ -1201,16 +1337,17 @@ impl Worker {
         let mut limit = read.remaining.unwrap_or(u32::MAX).min(PUMP_BATCH as u32);
         let one_shot = read.one_shot;
         let mut errors = 0u64;
+        let mut filtered = 0u64;
         let now = Instant::now();
         while limit > 0 {
             if read.pacing.limited() && !read.pacing.may_send(now) {
                 // Paced: the rest waits in the DDS reader until `next_at`.
                 break;
             }
-            match reader.take_next_sample() {
-                Ok(Some(s)) => {
-                    let info = s.sample_info().clone();
-                    let mut s = s.into_value();
+            match reader.take_next() {
+                Ok(Some(taken)) => {
+                    let info = taken.info;
+                    let mut s = taken.sample;
                     if let Some((requester, writer, pending)) = service.as_mut() {
                         match service_sample(*requester, writer, pending, &info, key.2, s) {
                             Some(wrapped) => s = wrapped,
@@ -1218,8 +1355,33 @@ impl Worker {
                             None => continue,
                         }
                     }
+                    let ends = taken.disposed || taken.unregistered;
+                    // A filter sees samples; instance ends (key fields only) pass.
+                    let passes = |f: Option<&Filter>| {
+                        f.is_none_or(|f| {
+                            f.matches(&s.body, s.little_endian(), crate::raw::is_xcdr2(s.encoding))
+                        })
+                    };
+                    let selected = ends || (passes(reader_filter) && passes(read.filter.as_ref()));
+                    if !selected {
+                        // Taken and dropped; it does not count against max_samples, but it
+                        // counts against the batch so a flood cannot starve the loop.
+                        filtered += 1;
+                        if filtered > 4 * PUMP_BATCH as u64 {
+                            more = true;
+                            break;
+                        }
+                        continue;
+                    }
+                    let mut flags = 0;
+                    if taken.disposed {
+                        flags |= ipc::FLAG_DISPOSED;
+                    }
+                    if taken.unregistered {
+                        flags |= ipc::FLAG_UNREGISTERED;
+                    }
                     read.pacing.sent(now, s.body.len());
-                    out.push(s);
+                    out.push((s, flags));
                     limit -= 1;
                     if one_shot {
                         break;
@@ -1240,18 +1402,23 @@ impl Worker {
         for _ in 0..errors {
             self.count("dds_sample_undecodable");
         }
+        if filtered > 0 {
+            // Not a fault: counted so a filter's effect can be seen.
+            *self.dropped.entry("content_filtered").or_default() += filtered;
+        }
         let sent = out.len() as u32;
-        for s in out {
+        for (s, flags) in out {
             let mut h = IpcHeader::new(MessageKind::Sample);
             h.frontend_id = key.0;
             h.client_key = key.1;
             h.object_id = key.2;
             h.request_id = request_id;
-            h.flags = if s.little_endian() {
-                FLAG_LITTLE_ENDIAN
-            } else {
-                0
-            };
+            h.flags = flags
+                | if s.little_endian() {
+                    FLAG_LITTLE_ENDIAN
+                } else {
+                    0
+                };
             self.reply(h, &s.body);
         }
         let ended = match self.reads.get_mut(&key) {
@@ -1322,7 +1489,7 @@ impl Worker {
         self.holding.remove(&key);
         if let Some(e) = self.entities.remove(&key) {
             match e.kind {
-                EntityKind::Reader(mut r, token) => {
+                EntityKind::Reader(mut r, token, _) => {
                     let _ = self.poll.registry().deregister(&mut *r);
                     self.readers.remove(&token);
                 }
@@ -1422,4 +1589,35 @@ fn service_write(
             .map(drop)
             .map_err(dds)
     }
+}
+
+/// Every endpoint's topic: the RustDDS topic, its description, its type and its key.
+type EndpointTopic = (
+    Topic,
+    TopicDesc,
+    Option<Arc<StructDef>>,
+    Option<Arc<KeyDescriptor>>,
+);
+
+/// Compiles a content filter against a reader's type (which it needs).
+fn compile_filter(
+    expression: &str,
+    ty: Option<&Arc<StructDef>>,
+    type_name: &str,
+) -> Result<Filter, OpError> {
+    let ty = ty.ok_or_else(|| {
+        (
+            status::ERR_INCOMPATIBLE,
+            format!(
+                "a content filter needs the type of {type_name}: define it in <types>, by a \
+                 TYPE object or in the references file"
+            ),
+        )
+    })?;
+    Filter::compile(expression, ty.clone()).map_err(|e| {
+        (
+            status::ERR_INVALID_DATA,
+            format!("content filter {expression:?}: {e}"),
+        )
+    })
 }

@@ -203,6 +203,8 @@ pub struct EndpointDesc {
     pub topic_id: Option<xrce_common::wire::ObjectId>,
     /// Endpoint QoS.
     pub qos: QosDesc,
+    /// A data reader's content filter expression (`<content_filter><expression>`).
+    pub content_filter: Option<String>,
 }
 
 fn parse(xml: &str) -> Result<Document<'_>, XmlError> {
@@ -631,11 +633,18 @@ pub fn parse_endpoint(xml: &str, element: &'static str) -> Result<EndpointDesc, 
     {
         qos = qos.overridden_by(parse_qos(q)?);
     }
+    let content_filter = child(e, "content_filter")
+        .and_then(|f| {
+            text(f, "expression").or_else(|| f.attribute("expression").map(str::to_string))
+        })
+        .map(|x| x.trim().to_string())
+        .filter(|x| !x.is_empty());
     Ok(EndpointDesc {
         topic,
         topic_ref,
         topic_id: None,
         qos,
+        content_filter,
     })
 }
 

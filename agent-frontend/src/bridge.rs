@@ -177,6 +177,8 @@ pub struct BridgeStats {
     pub samples_dropped: u64,
     /// Times a read was paused because its client did not keep up.
     pub reads_paused: u64,
+    /// Disposes and unregisters not delivered to a read whose format has no SampleInfo.
+    pub instance_ends_skipped: u64,
 }
 
 /// The front-end's IPC state.
@@ -637,6 +639,12 @@ impl Bridge {
                 }
                 if h.flags & FLAG_UNREGISTERED != 0 {
                     state |= sample_state::INSTANCE_UNREGISTERED;
+                }
+                if state != 0 && matches!(format, data_format::DATA | data_format::DATA_SEQ) {
+                    // Without a SampleInfo the client could not tell a disposed instance's
+                    // key from a sample: instance ends reach only SAMPLE-format reads.
+                    self.stats.instance_ends_skipped += 1;
+                    return;
                 }
                 let reply = DataReply {
                     request: req,

@@ -143,6 +143,7 @@ impl StatsReport {
             ops_dropped = bridge.stats().ops_dropped,
             samples_dropped = bridge.stats().samples_dropped,
             reads_paused = bridge.stats().reads_paused,
+            instance_ends_skipped = bridge.stats().instance_ends_skipped,
             "front-end counters"
         );
         self.last = now;

@@ -4,11 +4,16 @@
 Subcommands:
   read  --count N                       print READY, then one JSON line per sample
   write --count N --interval-ms M ...   publish N HelloWorld samples
+  --keyed (both)                        use the keyed ShapesDemoTypes::ShapeType {@key string
+                                        color; long x, y, shapesize} instead of HelloWorld
 
 Output protocol (stdout, one line each, flushed):
   READY                  reader (read) / writer (write) exists
   MATCHED <n>            matched-endpoint count changed to n (n >= 1 for write --wait-match)
   {"index": i, "message": "..."}   one received sample (read)
+  {"color": c, "x": x, "state": "alive"|"disposed"|"no_writers"}   (read --keyed; disposes
+                         and unregisters count as samples)
+  DISPOSED <color>       instance disposed (write --keyed --dispose)
   SENT <i>               sample i written (write)
 On timeout: exit code 3 and a `TIMEOUT ...` line on stderr.
 Usage errors / missing CYCLONEDDS_URI: exit code 2.
@@ -50,6 +55,10 @@ def parse_args(argv):
                         help="TRANSIENT_LOCAL durability (default VOLATILE)")
     common.add_argument("--timeout", type=float, default=30.0,
                         help="seconds before giving up (default 30)")
+    common.add_argument("--keyed", action="store_true",
+                        help="keyed ShapeType samples instead of HelloWorld")
+    common.add_argument("--history", type=int, default=0,
+                        help="KEEP_LAST depth (default: KEEP_ALL for read, --count for write)")
 
     p = argparse.ArgumentParser(prog="dds_peer.py", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -67,6 +76,10 @@ def parse_args(argv):
                    help="wait (up to --timeout) for at least one matched reader before writing")
     w.add_argument("--linger-ms", type=int, default=1000,
                    help="stay alive this long after the last write (default 1000)")
+    w.add_argument("--colors", default="RED,GREEN,BLUE",
+                   help="keyed: colors written round robin, x = sample number")
+    w.add_argument("--dispose", default="",
+                   help="keyed: dispose the instance of this color after the writes")
     return p.parse_args(argv)
 
 
@@ -88,7 +101,7 @@ def main(argv=None):
     from cyclonedds.domain import DomainParticipant
     from cyclonedds.idl import IdlStruct
     from cyclonedds.idl import annotations as annotate
-    from cyclonedds.idl.types import uint32
+    from cyclonedds.idl.types import int32, uint32
     from cyclonedds.pub import DataWriter
     from cyclonedds.qos import Policy, Qos
     from cyclonedds.sub import DataReader
@@ -100,6 +113,15 @@ def main(argv=None):
     class HelloWorld(IdlStruct, typename="HelloWorld"):
         index: uint32
         message: str
+
+    @dataclass
+    @annotate.final
+    @annotate.keylist(["color"])
+    class ShapeType(IdlStruct, typename="ShapesDemoTypes::ShapeType"):
+        color: str
+        x: int32
+        y: int32
+        shapesize: int32
 
     start = time.monotonic()
     deadline = start + args.timeout
@@ -114,12 +136,13 @@ def main(argv=None):
     ]
 
     dp = DomainParticipant(args.domain)
-    topic = Topic(dp, args.topic, HelloWorld)
+    topic = Topic(dp, args.topic, ShapeType if args.keyed else HelloWorld)
     waitset = WaitSet(dp)
 
     if args.cmd == "read":
         qos = Qos(*policies,
-                  Policy.History.KeepAll,
+                  Policy.History.KeepLast(args.history) if args.history > 0
+                  else Policy.History.KeepAll,
                   # Accept both XCDR1 and XCDR2 writers.
                   Policy.DataRepresentation(use_cdrv0_representation=True,
                                             use_xcdrv2_representation=True))
@@ -140,6 +163,22 @@ def main(argv=None):
                     last_matched = st.current_count
                     out(f"MATCHED {last_matched}")
             for s in reader.take(N=64, condition=cond):
+                if args.keyed:
+                    # A valid sample carries its instance's state at take time too (a
+                    # dispose that arrives before the take is not a separate sample).
+                    st = s.sample_info.instance_state
+                    state = ("alive" if st == InstanceState.Alive
+                             else "disposed" if st == InstanceState.NotAliveDisposed
+                             else "no_writers")
+                    if isinstance(s, ShapeType):
+                        out(json.dumps({"color": s.color, "x": int(s.x), "state": state}))
+                    else:
+                        key = getattr(s.key_sample, "color", None)
+                        out(json.dumps({"color": key, "x": None, "state": state}))
+                    got += 1
+                    if got >= args.count:
+                        break
+                    continue
                 if not isinstance(s, HelloWorld):  # invalid sample (e.g. dispose / no writers)
                     continue
                 out(json.dumps({"index": int(s.index), "message": s.message}))
@@ -156,7 +195,7 @@ def main(argv=None):
         return EXIT_OK
 
     # write
-    depth = max(1, args.count)
+    depth = args.history if args.history > 0 else max(1, args.count)
     qos = Qos(*policies,
               Policy.History.KeepLast(depth),
               # Cyclone sizes the TRANSIENT_LOCAL history kept for late joiners from the
@@ -185,8 +224,15 @@ def main(argv=None):
     for i in range(args.count):
         if i > 0 and args.interval_ms > 0:
             time.sleep(args.interval_ms / 1000.0)
-        writer.write(HelloWorld(index=i, message=args.message * args.message_repeat))
+        if args.keyed:
+            colors = args.colors.split(",")
+            writer.write(ShapeType(color=colors[i % len(colors)], x=i, y=2 * i, shapesize=30))
+        else:
+            writer.write(HelloWorld(index=i, message=args.message * args.message_repeat))
         out(f"SENT {i}")
+    if args.keyed and args.dispose:
+        writer.dispose(ShapeType(color=args.dispose, x=0, y=0, shapesize=0))
+        out(f"DISPOSED {args.dispose}")
 
     if args.linger_ms > 0:
         time.sleep(args.linger_ms / 1000.0)

@@ -1,0 +1,398 @@
+//! Keyed topics and content filters end to end with Cyclone DDS.
+//!
+//! The type comes from a TYPE object (DDS-XML `<types>`) the client creates; with it the
+//! worker extracts the key of every sample (KeyHash per XTypes), keeps a history per
+//! instance, publishes disposes, delivers Cyclone's disposes with their SampleInfo state, and
+//! evaluates content filters on samples.
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use xrce_common::wire::cdr::CdrWriter;
+use xrce_common::wire::sample::{decode_samples, sample_state, SampleInfo, SampleInfoDetail};
+use xrce_common::wire::{
+    data_format, object_kind, status, stream_id, DataDeliveryControl, Dialect, ObjectId,
+    ReadSpecification, VariantExtra,
+};
+use xrce_tests::{AgentProcess, DdsPeer, TestClient};
+
+const SECOND: Duration = Duration::from_secs(1);
+
+const TYPES: &str = r#"<dds><types><module name="ShapesDemoTypes">
+  <struct name="ShapeType">
+    <member name="color" key="true" type="string" stringMaxLength="128"/>
+    <member name="x" type="int32"/>
+    <member name="y" type="int32"/>
+    <member name="shapesize" type="int32"/>
+  </struct></module></types></dds>"#;
+
+/// A ShapeType sample, XCDR1 little endian.
+fn shape(color: &str, x: i32) -> Vec<u8> {
+    let mut b = Vec::new();
+    b.extend((color.len() as u32 + 1).to_le_bytes());
+    b.extend(color.as_bytes());
+    b.push(0);
+    while b.len() % 4 != 0 {
+        b.push(0);
+    }
+    for v in [x, 2 * x, 30] {
+        b.extend(v.to_le_bytes());
+    }
+    b
+}
+
+/// Decodes a ShapeType sample or key payload: (color, x if present).
+fn parse_shape(b: &[u8]) -> Option<(String, Option<i32>)> {
+    let n = u32::from_le_bytes(b.get(..4)?.try_into().ok()?) as usize;
+    let color = std::str::from_utf8(b.get(4..4 + n.checked_sub(1)?)?).ok()?;
+    let at = (4 + n).div_ceil(4) * 4;
+    let x = b
+        .get(at..at + 4)
+        .map(|v| i32::from_le_bytes(v.try_into().unwrap_or_default()));
+    Some((color.to_string(), x))
+}
+
+/// `{"color": "RED", "x": 3, "state": "alive"}` from dds_peer.py read --keyed.
+fn parse_keyed_line(l: &str) -> Option<(String, Option<i64>, String)> {
+    let field = |name: &str| -> Option<&str> {
+        let at = l.find(&format!("\"{name}\": "))? + name.len() + 4;
+        let rest = &l[at..];
+        let end = rest.find([',', '}'])?;
+        Some(rest[..end].trim().trim_matches('"'))
+    };
+    Some((
+        field("color")?.to_string(),
+        field("x")?.parse().ok(),
+        field("state")?.to_string(),
+    ))
+}
+
+/// Participant, TYPE, topic "Square" and the group in `domain`; returns the participant.
+fn setup(c: &mut TestClient, domain: i16, group: u8) -> ObjectId {
+    let p = ObjectId::new(1, object_kind::PARTICIPANT);
+    let participant = "<dds><participant><rtps><name>keyed</name></rtps></participant></dds>";
+    assert_eq!(
+        c.create(
+            p,
+            object_kind::PARTICIPANT,
+            participant,
+            VariantExtra::DomainId(domain)
+        ),
+        status::OK
+    );
+    let ty = ObjectId::new(1, object_kind::TYPE);
+    assert_eq!(
+        c.create(ty, object_kind::TYPE, TYPES, VariantExtra::None),
+        status::OK,
+        "TYPE object"
+    );
+    let topic = "<dds><topic><kind>WITH_KEY</kind><name>Square</name><dataType>ShapesDemoTypes::ShapeType</dataType></topic></dds>";
+    let t = ObjectId::new(1, object_kind::TOPIC);
+    assert_eq!(
+        c.create(t, object_kind::TOPIC, topic, VariantExtra::Parent(p)),
+        status::OK
+    );
+    let g = ObjectId::new(1, group);
+    assert_eq!(c.create(g, group, "", VariantExtra::Parent(p)), status::OK);
+    p
+}
+
+fn endpoint_xml(element: &str, qos: &str) -> String {
+    format!(
+        "<dds><{element}><topic><kind>WITH_KEY</kind><name>Square</name>\
+         <dataType>ShapesDemoTypes::ShapeType</dataType></topic><qos>{qos}</qos></{element}></dds>"
+    )
+}
+
+fn sample_with_state(state: u8, data: &[u8]) -> Vec<u8> {
+    let mut body = Vec::new();
+    SampleInfo {
+        state,
+        detail: SampleInfoDetail::SequenceNumber(0),
+    }
+    .encode(&mut CdrWriter::new(&mut body, true), Dialect::Eprosima);
+    body.extend_from_slice(data);
+    body
+}
+
+#[test]
+fn a_keyed_writer_publishes_instances_and_disposes_them() {
+    let agent = AgentProcess::start("keyedpub");
+    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4E, 0x00, 0x01]);
+    c.connect(10 * SECOND);
+    setup(&mut c, 40, object_kind::PUBLISHER);
+    let w = ObjectId::new(1, object_kind::DATAWRITER);
+    let xml = endpoint_xml(
+        "data_writer",
+        "<reliability><kind>RELIABLE</kind></reliability>\
+         <durability><kind>TRANSIENT_LOCAL</kind></durability>\
+         <history><kind>KEEP_LAST</kind><depth>1</depth></history>",
+    );
+    assert_eq!(
+        c.create(
+            w,
+            object_kind::DATAWRITER,
+            &xml,
+            VariantExtra::Parent(ObjectId::new(1, object_kind::PUBLISHER))
+        ),
+        status::OK
+    );
+    // Three rounds over three instances; with KEEP_LAST 1 per instance only round 3 stays.
+    for round in 0..3 {
+        for (i, color) in ["RED", "GREEN", "BLUE"].iter().enumerate() {
+            c.write_reliable(w, &shape(color, round * 10 + i as i32));
+        }
+    }
+    // GREEN is disposed by a WRITE_DATA whose SampleInfo says so.
+    c.write_reliable_format(
+        w,
+        data_format::SAMPLE,
+        &sample_with_state(sample_state::INSTANCE_DISPOSED, &shape("GREEN", 0)),
+    );
+    c.run_until(2 * SECOND, |_| false);
+    // A late joiner with KEEP_LAST 1 per instance gets the writer's history and ends with
+    // the last value of each live instance and GREEN disposed: distinct instances, so the
+    // keys were extracted and the dispose carried GREEN's key. (RustDDS keeps a writer's
+    // history per writer, not per instance, so superseded samples may arrive first.)
+    let reader = DdsPeer::start(&[
+        "read",
+        "--keyed",
+        "--topic",
+        "Square",
+        "--domain",
+        "40",
+        "--count",
+        "100",
+        "--history",
+        "1",
+        "--reliable",
+        "--transient-local",
+        "--timeout",
+        "40",
+    ]);
+    let mut last: BTreeMap<String, (Option<i64>, String)> = BTreeMap::new();
+    let mut lines = Vec::new();
+    let want = |last: &BTreeMap<String, (Option<i64>, String)>| {
+        last.get("RED") == Some(&(Some(20), "alive".to_string()))
+            && last.get("BLUE") == Some(&(Some(22), "alive".to_string()))
+            && last.get("GREEN").is_some_and(|(_, st)| st == "disposed")
+    };
+    let ok = c.run_until(45 * SECOND, |c| {
+        while let Some(l) = reader.line(Duration::from_millis(1)) {
+            lines.push(l.clone());
+            if let Some((color, x, state)) = parse_keyed_line(&l) {
+                last.insert(color, (x, state));
+            }
+        }
+        c.step();
+        want(&last)
+    });
+    assert!(ok, "late joiner saw {lines:?}");
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn cyclone_disposes_reach_a_sample_read_and_filters_select_samples() {
+    let agent = AgentProcess::start("keyedsub");
+    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4E, 0x00, 0x02]);
+    c.connect(10 * SECOND);
+    setup(&mut c, 41, object_kind::SUBSCRIBER);
+    let sub = ObjectId::new(1, object_kind::SUBSCRIBER);
+    let xml = endpoint_xml(
+        "data_reader",
+        "<reliability><kind>RELIABLE</kind></reliability>",
+    );
+    let r = ObjectId::new(1, object_kind::DATAREADER);
+    assert_eq!(
+        c.create(r, object_kind::DATAREADER, &xml, VariantExtra::Parent(sub)),
+        status::OK
+    );
+    // A malformed filter is refused with INVALID_DATA.
+    let read = |filter: &str| ReadSpecification {
+        preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+        data_format: data_format::SAMPLE,
+        content_filter_expression: Some(filter.to_string()),
+        delivery_control: Some(DataDeliveryControl {
+            max_samples: u16::MAX,
+            ..Default::default()
+        }),
+        ..Default::default()
+    };
+    let bad = c
+        .client
+        .read(std::time::Instant::now(), r, read("x >> 3"))
+        .expect("read");
+    assert_eq!(c.wait_status(bad, 10 * SECOND), status::ERR_INVALID_DATA);
+    let good = c
+        .client
+        .read(
+            std::time::Instant::now(),
+            r,
+            read("(color = 'RED' OR color LIKE 'BL%') AND x >= 6"),
+        )
+        .expect("read");
+    let _ = good;
+    let mut writer = DdsPeer::start(&[
+        "write",
+        "--keyed",
+        "--topic",
+        "Square",
+        "--domain",
+        "41",
+        "--count",
+        "12",
+        "--interval-ms",
+        "10",
+        "--dispose",
+        "BLUE",
+        "--wait-match",
+        "--reliable",
+        "--timeout",
+        "60",
+        "--linger-ms",
+        "3000",
+    ]);
+    // x = 0..11 round robin RED, GREEN, BLUE: RED 6, 9; BLUE 8, 11; then BLUE's dispose.
+    let mut got = Vec::new();
+    let ok = c.run_until(60 * SECOND, |c| {
+        for (format, bytes) in c.take_data() {
+            assert_eq!(format, data_format::SAMPLE);
+            let s = decode_samples(format, &bytes, true, Dialect::Eprosima, None).expect("SAMPLE");
+            let state = s[0].info.map(|i| i.state).unwrap_or(0xFF);
+            got.push((parse_shape(s[0].data).expect("ShapeType"), state));
+        }
+        got.len() >= 5
+    });
+    assert!(ok, "client got {got:?}");
+    let alive: Vec<(String, i32)> = got
+        .iter()
+        .filter(|(_, st)| *st == 0)
+        .map(|((c, x), _)| (c.clone(), x.unwrap_or(-1)))
+        .collect();
+    assert_eq!(
+        alive,
+        vec![
+            ("RED".to_string(), 6),
+            ("BLUE".to_string(), 8),
+            ("RED".to_string(), 9),
+            ("BLUE".to_string(), 11)
+        ],
+        "exactly the samples the filter selects, in order: {got:?}"
+    );
+    let ends: Vec<_> = got.iter().filter(|(_, st)| *st != 0).collect();
+    assert_eq!(ends.len(), 1, "{got:?}");
+    assert_eq!(ends[0].0 .0, "BLUE", "the disposed instance's key");
+    assert_eq!(ends[0].1, sample_state::INSTANCE_DISPOSED);
+    assert_eq!(writer.wait(30 * SECOND, || c.step()), Some(0));
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn a_filter_on_a_topic_of_unknown_type_is_refused() {
+    let agent = AgentProcess::start("keyednotype");
+    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4E, 0x00, 0x03]);
+    c.connect(10 * SECOND);
+    let r = c.setup_subscriber_with(
+        42,
+        ReadSpecification {
+            preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+            data_format: data_format::DATA,
+            delivery_control: Some(DataDeliveryControl {
+                max_samples: 1,
+                ..Default::default()
+            }),
+            ..Default::default()
+        },
+    );
+    let req = c
+        .client
+        .read(
+            std::time::Instant::now(),
+            r,
+            ReadSpecification {
+                preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+                data_format: data_format::DATA,
+                content_filter_expression: Some("index > 3".into()),
+                ..Default::default()
+            },
+        )
+        .expect("read");
+    assert_eq!(c.wait_status(req, 10 * SECOND), status::ERR_INCOMPATIBLE);
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn a_keep_last_reader_keeps_one_sample_per_instance() {
+    let agent = AgentProcess::start("keyedhist");
+    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4E, 0x00, 0x04]);
+    c.connect(10 * SECOND);
+    setup(&mut c, 43, object_kind::SUBSCRIBER);
+    let xml = endpoint_xml(
+        "data_reader",
+        "<reliability><kind>RELIABLE</kind></reliability>\
+         <history><kind>KEEP_LAST</kind><depth>1</depth></history>",
+    );
+    let r = ObjectId::new(1, object_kind::DATAREADER);
+    assert_eq!(
+        c.create(
+            r,
+            object_kind::DATAREADER,
+            &xml,
+            VariantExtra::Parent(ObjectId::new(1, object_kind::SUBSCRIBER))
+        ),
+        status::OK
+    );
+    // Twelve samples over three instances arrive while no read is active; they wait in
+    // the DDS reader, whose KEEP_LAST 1 applies per instance (by the key the worker
+    // extracts).
+    let mut writer = DdsPeer::start(&[
+        "write",
+        "--keyed",
+        "--topic",
+        "Square",
+        "--domain",
+        "43",
+        "--count",
+        "12",
+        "--interval-ms",
+        "5",
+        "--wait-match",
+        "--reliable",
+        "--timeout",
+        "60",
+        "--linger-ms",
+        "4000",
+    ]);
+    assert!(
+        writer
+            .wait_for("SENT 11", 60 * SECOND, || c.step())
+            .is_some(),
+        "Cyclone did not write"
+    );
+    c.run_until(2 * SECOND, |_| false);
+    c.read_unlimited(r);
+    let mut got = Vec::new();
+    c.run_until(4 * SECOND, |c| {
+        got.extend(c.take_data());
+        false
+    });
+    let mut shapes: Vec<(String, i32)> = got
+        .iter()
+        .map(|(_, b)| {
+            let (color, x) = parse_shape(b).expect("ShapeType");
+            (color, x.unwrap_or(-1))
+        })
+        .collect();
+    shapes.sort();
+    assert_eq!(
+        shapes,
+        vec![
+            ("BLUE".to_string(), 11),
+            ("GREEN".to_string(), 10),
+            ("RED".to_string(), 9)
+        ],
+        "the last sample of each instance"
+    );
+    assert_eq!(writer.wait(30 * SECOND, || c.step()), Some(0));
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
