@@ -40,6 +40,7 @@ pub mod fuzzing;
 pub mod raw;
 pub mod references;
 pub mod representation;
+pub mod ros_graph;
 pub mod types;
 pub mod worker;
 pub mod xml;

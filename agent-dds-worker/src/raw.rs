@@ -325,6 +325,15 @@ impl RawReader {
         })
     }
 
+    /// The reader's GUID.
+    pub fn guid(&self) -> rustdds::GUID {
+        use rustdds::RTPSEntity;
+        match self {
+            RawReader::NoKey(r) => r.guid(),
+            RawReader::Keyed(r, _) => r.guid(),
+        }
+    }
+
     /// Takes the next sample, if any.
     pub fn take_next(&mut self) -> rustdds::dds::ReadResult<Option<Taken>> {
         match self {

@@ -69,6 +69,24 @@ pub fn check_plain(
     }
 }
 
+/// The name a participant was created with (XML `<name>`, or the binary form's
+/// `qos_profile_reference`, where eProsima's client puts it), if any.
+pub fn participant_name(
+    repr: &Representation,
+    refs: &References,
+    little_endian: bool,
+) -> Option<String> {
+    let name = match repr {
+        Representation::Binary(b) => {
+            xrce_common::wire::binary::ParticipantBinary::decode(b, little_endian)
+                .ok()?
+                .qos_profile_reference
+        }
+        _ => xml::parse_participant(as_xml(repr, refs, "participant").ok()??).ok()?,
+    };
+    name.filter(|n| !n.trim().is_empty())
+}
+
 /// Partitions cannot be honoured (RustDDS has none): refuse, rather than let the entity's
 /// data reach readers outside the partitions the client asked for.
 fn no_partitions(has_partitions: bool) -> Result<(), OpError> {

@@ -28,7 +28,10 @@ use xrce_common::wire::{
 use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
 use crate::filter::Filter;
 use crate::raw::{RawReader, RawSample, RawWriter};
-use crate::representation::{check_plain, describe_endpoint, describe_service, describe_topic};
+use crate::representation::{
+    check_plain, describe_endpoint, describe_service, describe_topic, participant_name,
+};
+use crate::ros_graph::{DomainNodes, RosGraph};
 use crate::types::{sample_len, KeyDescriptor, StructDef, Ty, TypeSet};
 use crate::xml::{self, TopicDesc};
 
@@ -41,13 +44,15 @@ pub struct WorkerConfig {
     pub dds: DdsConfig,
     /// Profiles clients may create by reference (`-r`).
     pub references: crate::references::References,
+    /// Announce ROS 2 nodes on `ros_discovery_info`.
+    pub ros_graph: bool,
 }
 
 type EntityKey = (u32, ClientKey, ObjectId);
 
 enum EntityKind {
-    /// A logical XRCE participant in a DDS domain.
-    Participant(u16),
+    /// A logical XRCE participant in a DDS domain, and the ROS node its name stands for.
+    Participant(u16, Option<ros2_client::NodeName>),
     /// A topic description; RustDDS topics are made per DDS participant when endpoints are.
     Topic(TopicDesc),
     Publisher(Publisher, DomainParticipant),
@@ -239,6 +244,7 @@ pub struct Worker {
     /// every entity: with thousands of clients that scan dominated the worker's CPU).
     holding: HashSet<EntityKey>,
     poll: Poll,
+    graph: RosGraph,
     /// Counters by reason of rejected or failed work.
     pub dropped: HashMap<&'static str, u64>,
 }
@@ -270,6 +276,7 @@ impl Worker {
             .unwrap_or(0);
         let generation = (nanos ^ std::process::id().rotate_left(16)) | 1;
         let pool = ParticipantPool::new(config.dds.clone());
+        let ros_graph = config.ros_graph;
         let w = Worker {
             config,
             node,
@@ -285,6 +292,7 @@ impl Worker {
             to_pump: HashSet::new(),
             holding: HashSet::new(),
             poll: Poll::new()?,
+            graph: RosGraph::new(ros_graph),
             dropped: HashMap::new(),
         };
         let mut hello = IpcHeader::new(MessageKind::WorkerHello);
@@ -335,7 +343,80 @@ impl Worker {
             }
             self.expire_reads();
             self.release_rematched();
+            self.publish_graph();
             self.flush();
+        }
+    }
+
+    /// Publishes the ROS graph of every domain that changed, when its update is due.
+    fn publish_graph(&mut self) {
+        for domain in self.graph.due(Instant::now()) {
+            let nodes = self.domain_nodes(domain);
+            let dp = match self.pool.get(domain, Role::Publish) {
+                Ok(dp) => dp,
+                Err(e) => {
+                    tracing::warn!(domain, error = %e, "ROS graph not published");
+                    continue;
+                }
+            };
+            if let Err(e) = self.graph.publish(domain, &dp, nodes) {
+                tracing::warn!(domain, error = %e, "ROS graph not published");
+            }
+        }
+    }
+
+    /// The ROS nodes of `domain`: participants with a node name, with the GUIDs of the
+    /// writers and readers below them (requesters and repliers included).
+    fn domain_nodes(&self, domain: u16) -> DomainNodes {
+        let mut nodes: std::collections::BTreeMap<
+            EntityKey,
+            (
+                ros2_client::NodeName,
+                Vec<rustdds::GUID>,
+                Vec<rustdds::GUID>,
+            ),
+        > = Default::default();
+        for (k, e) in &self.entities {
+            if let EntityKind::Participant(d, Some(name)) = &e.kind {
+                if *d == domain {
+                    nodes.insert(*k, (name.clone(), Vec::new(), Vec::new()));
+                }
+            }
+        }
+        for (k, e) in &self.entities {
+            let (writer, reader) = match &e.kind {
+                EntityKind::Writer(w, _, _) => (Some(w.guid()), None),
+                EntityKind::Reader(r, _, _) => (None, Some(r.guid())),
+                EntityKind::Service(s) => (Some(s.writer.guid()), Some(s.reader.guid())),
+                _ => continue,
+            };
+            let Some((pid, _)) = e.parent.and_then(|p| self.participant_of(*k, p)) else {
+                continue;
+            };
+            if let Some(n) = nodes.get_mut(&(k.0, k.1, pid)) {
+                n.1.extend(writer);
+                n.2.extend(reader);
+            }
+        }
+        DomainNodes {
+            nodes: nodes
+                .into_values()
+                .map(|(n, mut w, mut r)| {
+                    w.sort();
+                    r.sort();
+                    (n, w, r)
+                })
+                .collect(),
+        }
+    }
+
+    /// The domain an entity lives in, if it is part of a participant.
+    fn domain_of(&self, key: EntityKey) -> Option<u16> {
+        match &self.entities.get(&key)?.kind {
+            EntityKind::Participant(d, _) => Some(*d),
+            _ => self
+                .participant_of(key, self.entities.get(&key)?.parent?)
+                .map(|(_, d)| d),
         }
     }
 
@@ -367,6 +448,7 @@ impl Worker {
             .values()
             .flat_map(|r| [r.deadline, r.pacing.next_at])
             .flatten()
+            .chain(self.graph.deadline())
             .min()
             .map(|d| {
                 d.saturating_duration_since(now)
@@ -615,7 +697,7 @@ impl Worker {
         for _ in 0..8 {
             let e = self.entities.get(&(key.0, key.1, id))?;
             match &e.kind {
-                EntityKind::Participant(domain) => return Some((id, *domain)),
+                EntityKind::Participant(domain, _) => return Some((id, *domain)),
                 _ => id = e.parent?,
             }
         }
@@ -652,7 +734,10 @@ impl Worker {
             (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
                 check_plain(repr, variant.kind, &self.config.references, little_endian)?;
                 let domain = effective_domain(d).map_err(|e| (status::ERR_INVALID_DATA, e))?;
-                (None, EntityKind::Participant(domain))
+                let node = participant_name(repr, &self.config.references, little_endian)
+                    .as_deref()
+                    .and_then(crate::ros_graph::node_name);
+                (None, EntityKind::Participant(domain, node))
             }
             (object_kind::TOPIC, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
@@ -812,7 +897,19 @@ impl Worker {
         if matches!(&kind, EntityKind::Writer(_, r, _) if r.until.is_some()) {
             self.holding.insert(key);
         }
+        let graph_change = matches!(
+            &kind,
+            EntityKind::Participant(_, Some(_))
+                | EntityKind::Writer(..)
+                | EntityKind::Reader(..)
+                | EntityKind::Service(..)
+        );
         self.entities.insert(key, Entity { parent, kind });
+        if graph_change {
+            if let Some(d) = self.domain_of(key) {
+                self.graph.touch(d, Instant::now());
+            }
+        }
         Ok(())
     }
 
@@ -1485,6 +1582,9 @@ impl Worker {
             .collect();
         for c in children {
             self.remove_subtree(c);
+        }
+        if let Some(d) = self.domain_of(key) {
+            self.graph.touch(d, Instant::now());
         }
         self.holding.remove(&key);
         if let Some(e) = self.entities.remove(&key) {

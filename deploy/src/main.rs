@@ -69,6 +69,10 @@ struct Common {
         default_value_t = 0.0
     )]
     client_dead_time: f64,
+    /// Announce XRCE participants named like ROS 2 nodes (micro-ROS) on `ros_discovery_info`
+    /// so `ros2 node list` shows them: `true` (default) or `false`.
+    #[arg(long = "ros-graph", env = "XRCE_ROS_GRAPH", default_value_t = true, action = clap::ArgAction::Set)]
+    ros_graph: bool,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -141,6 +145,7 @@ fn main() -> anyhow::Result<()> {
         "XRCE_CLIENT_DEAD_TIME".into(),
         common.client_dead_time.to_string(),
     ));
+    env.push(("XRCE_ROS_GRAPH".into(), common.ros_graph.to_string()));
     if !common.dds_interfaces.is_empty() {
         let list: Vec<String> = common
             .dds_interfaces

@@ -4,6 +4,8 @@
 Subcommands:
   read  --count N                       print READY, then one JSON line per sample
   write --count N --interval-ms M ...   publish N HelloWorld samples
+  graph --count N                       read ros_discovery_info (ROS 2 graph) and the DDS
+                                        built-in publication/subscription topics
   --keyed (both)                        use the keyed ShapesDemoTypes::ShapeType {@key string
                                         color; long x, y, shapesize} instead of HelloWorld
 
@@ -14,6 +16,9 @@ Output protocol (stdout, one line each, flushed):
   {"color": c, "x": x, "state": "alive"|"disposed"|"no_writers"}   (read --keyed; disposes
                          and unregisters count as samples)
   DISPOSED <color>       instance disposed (write --keyed --dispose)
+  GRAPH {"gid": hex, "nodes": [{"ns", "name", "writers": [hex], "readers": [hex]}]}
+                         one ros_discovery_info sample (graph)
+  ENDPOINT <pub|sub> <guid hex> <topic>   a discovered DDS endpoint (graph)
   SENT <i>               sample i written (write)
 On timeout: exit code 3 and a `TIMEOUT ...` line on stderr.
 Usage errors / missing CYCLONEDDS_URI: exit code 2.
@@ -65,6 +70,9 @@ def parse_args(argv):
 
     r = sub.add_parser("read", parents=[common], help="subscribe and print samples as JSON lines")
     r.add_argument("--count", type=int, default=1, help="samples to receive before exiting 0 (default 1)")
+
+    g = sub.add_parser("graph", parents=[common], help="print ros_discovery_info samples")
+    g.add_argument("--count", type=int, default=1, help="graph samples to receive (default 1)")
 
     w = sub.add_parser("write", parents=[common], help="publish samples")
     w.add_argument("--count", type=int, default=1, help="samples to write (default 1)")
@@ -136,6 +144,8 @@ def main(argv=None):
     ]
 
     dp = DomainParticipant(args.domain)
+    if args.cmd == "graph":
+        return graph(args, dp, remaining_ns)
     topic = Topic(dp, args.topic, ShapeType if args.keyed else HelloWorld)
     waitset = WaitSet(dp)
 
@@ -236,6 +246,82 @@ def main(argv=None):
 
     if args.linger_ms > 0:
         time.sleep(args.linger_ms / 1000.0)
+    return EXIT_OK
+
+
+def graph(args, dp, remaining_ns):
+    """Prints each ros_discovery_info sample and every discovered DDS endpoint."""
+    from cyclonedds.builtin import (BuiltinDataReader, BuiltinTopicDcpsPublication,
+                                    BuiltinTopicDcpsSubscription)
+    from cyclonedds.core import WaitSet, ReadCondition, SampleState, ViewState, InstanceState
+    from cyclonedds.idl import IdlStruct
+    from cyclonedds.idl import annotations as annotate
+    from cyclonedds.idl import types
+    from cyclonedds.qos import Policy, Qos
+    from cyclonedds.sub import DataReader
+    from cyclonedds.topic import Topic
+
+    @dataclass
+    @annotate.final
+    class Gid(IdlStruct, typename="rmw_dds_common::msg::dds_::Gid_"):
+        data: types.array[types.uint8, 16]
+
+    @dataclass
+    @annotate.final
+    class NodeEntitiesInfo(IdlStruct, typename="rmw_dds_common::msg::dds_::NodeEntitiesInfo_"):
+        node_namespace: str
+        node_name: str
+        reader_gid_seq: types.sequence[Gid]
+        writer_gid_seq: types.sequence[Gid]
+
+    @dataclass
+    @annotate.final
+    class ParticipantEntitiesInfo(IdlStruct,
+                                  typename="rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_"):
+        gid: Gid
+        node_entities_info_seq: types.sequence[NodeEntitiesInfo]
+
+    topic = Topic(dp, "ros_discovery_info", ParticipantEntitiesInfo)
+    qos = Qos(Policy.Reliability.Reliable(max_blocking_time=0),
+              Policy.Durability.TransientLocal, Policy.History.KeepLast(1),
+              Policy.DataRepresentation(use_cdrv0_representation=True,
+                                        use_xcdrv2_representation=True))
+    reader = DataReader(dp, topic, qos=qos)
+    pubs = BuiltinDataReader(dp, BuiltinTopicDcpsPublication)
+    subs = BuiltinDataReader(dp, BuiltinTopicDcpsSubscription)
+    waitset = WaitSet(dp)
+    any_state = SampleState.Any | ViewState.Any | InstanceState.Any
+    conds = [ReadCondition(r, any_state) for r in (reader, pubs, subs)]
+    for c in conds:
+        waitset.attach(c)
+    out("READY")
+
+    def hexgid(g):
+        return bytes(g.data).hex()
+
+    got = 0
+    while got < args.count:
+        for kind, r, c in (("pub", pubs, conds[1]), ("sub", subs, conds[2])):
+            for e in r.take(N=64, condition=c):
+                topic_name = getattr(e, "topic_name", None)
+                if topic_name is not None:
+                    out(f"ENDPOINT {kind} {e.key.bytes.hex()} {topic_name}")
+        for s in reader.take(N=16, condition=conds[0]):
+            if not isinstance(s, ParticipantEntitiesInfo):
+                continue
+            nodes = [{"ns": n.node_namespace, "name": n.node_name,
+                      "writers": [hexgid(g) for g in n.writer_gid_seq],
+                      "readers": [hexgid(g) for g in n.reader_gid_seq]}
+                     for n in s.node_entities_info_seq]
+            out("GRAPH " + json.dumps({"gid": hexgid(s.gid), "nodes": nodes}))
+            got += 1
+        if got >= args.count:
+            break
+        left = remaining_ns()
+        if left == 0:
+            eprint(f"TIMEOUT got={got}")
+            return EXIT_TIMEOUT
+        waitset.wait(min(left, 100_000_000))
     return EXIT_OK
 
 
