@@ -26,7 +26,24 @@
 //! | Presentation | `presentation`: `access_scope`, `coherent_access`, `ordered_access` | — | `Presentation` | instance, false, false |
 //! | Partition | `partition/names/name` (publisher, subscriber, endpoint) | publisher/subscriber `partitions` | **none**: the CREATE is refused with `STATUS_ERR_INCOMPATIBLE` and a log line | — |
 //! | User / group / topic data | ignored | `user_data`, `group_data` ignored | not set | — |
-//! | Content filter | not yet (issue 5) | `contentbased_filter` ignored | — | — |
+//! | Content filter | `data_reader/content_filter/expression` | `contentbased_filter` | none: evaluated by the worker ([`filter`]) on the topic's type | no filter |
+//!
+//! # Types, keys and filters
+//!
+//! Type descriptions come from `<types>` (DDS-XML and Fast DDS spellings, [`types`]): a
+//! client's TYPE objects (XML, or a reference to a type of the references file) and the
+//! references file itself. A topic whose type is known and has key members is a WITH_KEY
+//! topic: the worker extracts the key of every sample (KeyHash per XTypes 1.3 §7.6.8),
+//! RustDDS keeps reader history per instance, a WRITE_DATA whose SampleInfo says disposed or
+//! unregistered disposes the instance (RustDDS has no unregister; DDS's default
+//! `autodispose_unregistered_instances` makes them equal), and DDS disposes reach SAMPLE-format
+//! reads with their instance state. A WITH_KEY topic whose type is unknown is carried without
+//! key (logged). Content filters (READ_DATA, reader XML or binary) need the type; without it
+//! they are refused with `STATUS_ERR_INCOMPATIBLE`.
+//!
+//! RustDDS 0.15 keeps a writer's history per writer, not per instance: a late joiner of a
+//! transient-local keyed writer may first get superseded samples of an instance before its
+//! latest (a KEEP_LAST reader ends with the right values).
 //!
 //! Durations accept `<sec>` and `<nanosec>`, `DURATION_INFINITY` (and its `DURATION_INFINITE_*`
 //! spellings), and values beyond 2³¹ s as infinite; a malformed value refuses the CREATE

@@ -284,6 +284,10 @@ struct ProcUsage {
     peak_rss_kib: u64,
     /// Processes counted.
     processes: usize,
+    /// Threads of all the processes.
+    threads: u64,
+    /// Open file descriptors of all the processes.
+    fds: u64,
 }
 
 /// Reads /proc for `root` and its descendants.
@@ -321,13 +325,18 @@ fn proc_usage(root: u32) -> Option<ProcUsage> {
         let t = |k: usize| f.get(k).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
         u.cpu_seconds += (t(11) + t(12)) / ticks;
         if let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) {
-            u.peak_rss_kib += status
-                .lines()
-                .find_map(|l| l.strip_prefix("VmHWM:"))
-                .and_then(|v| v.split_whitespace().next())
-                .and_then(|v| v.parse::<u64>().ok())
-                .unwrap_or(0);
+            let field = |name: &str| {
+                status
+                    .lines()
+                    .find_map(|l| l.strip_prefix(name))
+                    .and_then(|v| v.split_whitespace().next())
+                    .and_then(|v| v.parse::<u64>().ok())
+                    .unwrap_or(0)
+            };
+            u.peak_rss_kib += field("VmHWM:");
+            u.threads += field("Threads:");
         }
+        u.fds += std::fs::read_dir(format!("/proc/{pid}/fd")).map_or(0, |d| d.count() as u64);
         u.processes += 1;
     }
     Some(u)
@@ -411,6 +420,10 @@ struct AgentUse {
     /// Summed peak RSS of the agent's processes at the end, KiB.
     peak_rss_kib: u64,
     processes: usize,
+    /// Threads of the agent's processes at the end of the measured phase.
+    threads: u64,
+    /// Open file descriptors of the agent's processes at the end of the measured phase.
+    fds: u64,
 }
 
 fn main() -> Result<(), String> {
@@ -695,6 +708,8 @@ fn main() -> Result<(), String> {
                 cpu_us_per_sample: (e.cpu_seconds - b.cpu_seconds) * 1e6 / (received.max(1) as f64),
                 peak_rss_kib: e.peak_rss_kib,
                 processes: e.processes,
+                threads: e.threads,
+                fds: e.fds,
             }),
             _ => None,
         },
@@ -726,8 +741,10 @@ fn main() -> Result<(), String> {
     );
     if let Some(u) = &report.agent {
         println!(
-            "  agent ({} processes): {:.2} CPU s = {:.1} us/sample, peak RSS {:.1} MiB",
+            "  agent ({} processes, {} threads, {} fds): {:.2} CPU s = {:.1} us/sample, peak RSS {:.1} MiB",
             u.processes,
+            u.threads,
+            u.fds,
             u.cpu_seconds,
             u.cpu_us_per_sample,
             u.peak_rss_kib as f64 / 1024.0
