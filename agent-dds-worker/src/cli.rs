@@ -38,6 +38,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    raise_fd_limit();
     let references = match &args.refs {
         Some(path) => {
             let refs = crate::references::References::load(path)?;
@@ -55,4 +56,19 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         ros_graph: args.ros_graph,
     })?;
     worker.run()
+}
+
+/// Raises the open-file limit to its hard limit: RustDDS holds about two descriptors per
+/// data writer or reader (its notification channels), so a worker serving 1,000 clients
+/// needs over 2,000, beyond the usual soft limit of 1,024.
+fn raise_fd_limit() {
+    use nix::sys::resource::{getrlimit, setrlimit, Resource};
+    match getrlimit(Resource::RLIMIT_NOFILE) {
+        Ok((soft, hard)) if soft < hard => match setrlimit(Resource::RLIMIT_NOFILE, hard, hard) {
+            Ok(()) => tracing::info!(from = soft, to = hard, "open-file limit raised"),
+            Err(e) => tracing::warn!(soft, hard, error = %e, "could not raise the open-file limit"),
+        },
+        Ok((soft, _)) => tracing::debug!(limit = soft, "open-file limit"),
+        Err(e) => tracing::warn!(error = %e, "could not read the open-file limit"),
+    }
 }
