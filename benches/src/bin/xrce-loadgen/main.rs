@@ -8,7 +8,12 @@
 //! `--agent-cmd 'CMD {port}'` starts any other agent with a shell, and `--no-agent` uses one
 //! already running. `--json FILE` writes the results for machines.
 //!
+//! An independent DDS reader (RustDDS, its own participant, pinned to loopback) counts what
+//! reaches DDS and its latency client → agent → DDS (`--dds-reader false` leaves it out).
+//!
 //! Example: `xrce-loadgen --publishers 100 --samples 50000 --best-effort --json run.json`.
+
+mod dds_reader;
 
 use std::collections::HashSet;
 use std::net::UdpSocket;
@@ -231,6 +236,9 @@ struct Args {
     /// Write the results as JSON to this file.
     #[arg(long)]
     json: Option<std::path::PathBuf>,
+    /// Count the samples that reach DDS with an independent RustDDS reader in this process.
+    #[arg(long = "dds-reader", default_value_t = true, action = clap::ArgAction::Set)]
+    dds_reader: bool,
 }
 
 /// The agent under test, started by the generator and stopped when dropped.
@@ -398,6 +406,8 @@ struct Report {
     seconds: f64,
     samples_per_second: f64,
     bytes_per_second: f64,
+    /// What the independent DDS reader counted (client → agent → DDS).
+    dds: Option<DdsReport>,
     latency_us: Percentiles,
     agent: Option<AgentUse>,
 }
@@ -409,6 +419,15 @@ struct Percentiles {
     p99: f64,
     p999: f64,
     max: f64,
+}
+
+#[derive(Debug, serde::Serialize)]
+struct DdsReport {
+    received: u64,
+    lost: u64,
+    duplicates: u64,
+    samples_per_second: f64,
+    latency_us: Percentiles,
 }
 
 #[derive(Debug, serde::Serialize)]
@@ -471,6 +490,20 @@ fn main() -> Result<(), String> {
         format!(
             "<dds><{e}><topic><kind>NO_KEY</kind><name>LoadTopic</name><dataType>Load</dataType></topic><qos><reliability><kind>RELIABLE</kind></reliability><durability><kind>VOLATILE</kind></durability><historyQos>{history}</historyQos></qos></{e}></dds>"
         )
+    };
+    let base = Instant::now();
+    let dds = if a.dds_reader {
+        Some(dds_reader::DdsReader::start(
+            u16::try_from(domain).map_err(|_| format!("domain {domain} is not a DDS domain"))?,
+            "LoadTopic",
+            "Load",
+            stream == stream_id::BUILTIN_RELIABLE,
+            samples,
+            publishers,
+            base,
+        )?)
+    } else {
+        None
     };
     // Peer 0 subscribes, the others publish.
     let mut peers = Vec::with_capacity(publishers + 1);
@@ -552,7 +585,6 @@ fn main() -> Result<(), String> {
         .read(Instant::now(), reader, spec)
         .map_err(|e| e.to_string())?;
 
-    let base = Instant::now();
     let sample = |seq: u32| {
         let mut v = vec![0u8; payload];
         v[0..4].copy_from_slice(&seq.to_le_bytes());
@@ -565,9 +597,16 @@ fn main() -> Result<(), String> {
     let mut heard = vec![false; peers.len()];
     heard[0] = true;
     let probe_end = Instant::now() + Duration::from_secs(60);
-    while heard.iter().any(|h| !h) && Instant::now() < probe_end {
+    let dds_pending = |d: &Option<dds_reader::DdsReader>| {
+        d.as_ref().is_some_and(|d| d.probes_heard() < publishers)
+    };
+    let mut round = 0u64;
+    while (heard.iter().any(|h| !h) || dds_pending(&dds)) && Instant::now() < probe_end {
+        round += 1;
+        // The DDS reader may still miss some: every publisher probes again now and then.
+        let again = dds_pending(&dds) && round % 20 == 0;
         for (i, p) in peers.iter_mut().enumerate().skip(1) {
-            if !heard[i] && p.client.can_send_reliable(stream) {
+            if (!heard[i] || again) && p.client.can_send_reliable(stream) {
                 let _ =
                     p.client
                         .write(Instant::now(), stream, writer, &sample(u32::MAX - i as u32));
@@ -595,6 +634,12 @@ fn main() -> Result<(), String> {
     }
     let matched = t_start.elapsed();
     let unmatched = heard.iter().filter(|h| !**h).count();
+    if dds_pending(&dds) {
+        eprintln!(
+            "the DDS reader heard {} of {publishers} publishers before the run",
+            dds.as_ref().map_or(0, |d| d.probes_heard())
+        );
+    }
     std::thread::sleep(Duration::from_millis(200));
     pump_all(&mut peers, &mut poller, &mut buf, &mut Vec::new())?;
 
@@ -678,6 +723,34 @@ fn main() -> Result<(), String> {
         .max(Duration::from_millis(1));
     let usage_after = agent.as_ref().and_then(AgentUnderTest::usage);
     let pct = |q: f64| latencies.value_at_quantile(q) as f64 / 1000.0;
+    let dds = match dds {
+        Some(d) => {
+            std::thread::sleep(Duration::from_millis(300));
+            let c = d.finish()?;
+            let secs = c
+                .last_rx
+                .map_or(Duration::from_millis(1), |l| {
+                    l.saturating_duration_since(t0)
+                })
+                .max(Duration::from_millis(1))
+                .as_secs_f64();
+            let q = |x: f64| c.latencies.value_at_quantile(x) as f64 / 1000.0;
+            Some(DdsReport {
+                received: c.received,
+                lost: u64::from(sent).saturating_sub(c.received),
+                duplicates: c.duplicates,
+                samples_per_second: c.received as f64 / secs,
+                latency_us: Percentiles {
+                    p50: q(0.5),
+                    p90: q(0.9),
+                    p99: q(0.99),
+                    p999: q(0.999),
+                    max: c.latencies.max() as f64 / 1000.0,
+                },
+            })
+        }
+        None => None,
+    };
     let report = Report {
         publishers: publishers as u32,
         subscribers: 1,
@@ -695,6 +768,7 @@ fn main() -> Result<(), String> {
         seconds: elapsed.as_secs_f64(),
         samples_per_second: received as f64 / elapsed.as_secs_f64(),
         bytes_per_second: (received as f64 * payload as f64) / elapsed.as_secs_f64(),
+        dds,
         latency_us: Percentiles {
             p50: pct(0.5),
             p90: pct(0.9),
@@ -739,6 +813,21 @@ fn main() -> Result<(), String> {
         "  latency us: p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}",
         l.p50, l.p90, l.p99, l.p999, l.max
     );
+    if let Some(d) = &report.dds {
+        println!(
+            "  into DDS (independent RustDDS reader): {} of {} = {:.0} samples/s, {} lost, {} duplicates; latency us: p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}",
+            d.received,
+            sent,
+            d.samples_per_second,
+            d.lost,
+            d.duplicates,
+            d.latency_us.p50,
+            d.latency_us.p90,
+            d.latency_us.p99,
+            d.latency_us.p999,
+            d.latency_us.max
+        );
+    }
     if let Some(u) = &report.agent {
         println!(
             "  agent ({} processes, {} threads, {} fds): {:.2} CPU s = {:.1} us/sample, peak RSS {:.1} MiB",

@@ -1,0 +1,161 @@
+//! The independent DDS reader inside the generator: a RustDDS participant of its own, pinned
+//! to loopback, reading the load topic, so the samples/s and latency *into DDS* (client →
+//! agent → DDS) are measured by something that is not the agent.
+
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use rustdds::mio1::{Events, Interest, Poll, Token};
+use rustdds::{DomainParticipantBuilder, QosPolicyBuilder, TopicKind};
+use xrce_dds_worker::raw::{RawLe, RawSample};
+
+/// What the DDS reader saw.
+#[derive(Debug)]
+pub struct DdsCounts {
+    /// Distinct measured samples (sequence numbers below the run's count).
+    pub received: u64,
+    /// Measured samples seen again.
+    pub duplicates: u64,
+    /// When the last measured sample arrived.
+    pub last_rx: Option<Instant>,
+    /// Latency from the client's send to the DDS reader, ns.
+    pub latencies: hdrhistogram::Histogram<u64>,
+}
+
+/// A running DDS reader thread.
+pub struct DdsReader {
+    stop: Arc<AtomicBool>,
+    probes: Arc<AtomicUsize>,
+    counts: Arc<Mutex<Option<DdsCounts>>>,
+    thread: Option<std::thread::JoinHandle<Result<(), String>>>,
+}
+
+/// Probe samples carry `u32::MAX - publisher` as their sequence number.
+pub fn is_probe(seq: u32, publishers: usize) -> bool {
+    seq > u32::MAX - publishers as u32 - 1
+}
+
+impl DdsReader {
+    /// Starts reading `topic` of type `type_name` in `domain`; measured samples are those
+    /// with a sequence number below `samples`, their send time relative to `base`.
+    pub fn start(
+        domain: u16,
+        topic: &str,
+        type_name: &str,
+        reliable: bool,
+        samples: u32,
+        publishers: usize,
+        base: Instant,
+    ) -> Result<Self, String> {
+        let stop = Arc::new(AtomicBool::new(false));
+        let probes = Arc::new(AtomicUsize::new(0));
+        let counts = Arc::new(Mutex::new(None));
+        let dp = DomainParticipantBuilder::new(domain)
+            .with_only_networks(vec![std::net::IpAddr::from([127, 0, 0, 1])])
+            .build()
+            .map_err(|e| format!("DDS participant: {e:?}"))?;
+        let qos = if reliable {
+            QosPolicyBuilder::new().reliable(rustdds::Duration::from_millis(100))
+        } else {
+            QosPolicyBuilder::new().best_effort()
+        }
+        .history(rustdds::policy::History::KeepAll)
+        .build();
+        let t = dp
+            .create_topic(topic.into(), type_name.into(), &qos, TopicKind::NoKey)
+            .map_err(|e| format!("DDS topic: {e:?}"))?;
+        let sub = dp
+            .create_subscriber(&qos)
+            .map_err(|e| format!("DDS subscriber: {e:?}"))?;
+        let mut reader = sub
+            .create_datareader_no_key::<RawSample, RawLe>(&t, Some(qos))
+            .map_err(|e| format!("DDS reader: {e:?}"))?;
+        let (stop2, probes2, counts2) = (stop.clone(), probes.clone(), counts.clone());
+        let thread = std::thread::spawn(move || -> Result<(), String> {
+            let _keep = (dp, sub, t);
+            let mut poll = Poll::new().map_err(|e| e.to_string())?;
+            poll.registry()
+                .register(&mut reader, Token(0), Interest::READABLE)
+                .map_err(|e| e.to_string())?;
+            let mut events = Events::with_capacity(8);
+            let mut seen = vec![false; samples as usize];
+            let mut heard = vec![false; publishers + 1];
+            let mut c = DdsCounts {
+                received: 0,
+                duplicates: 0,
+                last_rx: None,
+                latencies: hdrhistogram::Histogram::new_with_bounds(1, 60_000_000_000, 3)
+                    .map_err(|e| e.to_string())?,
+            };
+            while !stop2.load(Ordering::Relaxed) {
+                let _ = poll.poll(&mut events, Some(Duration::from_millis(50)));
+                while let Ok(Some(s)) = reader.take_next_sample() {
+                    let now_ns = base.elapsed().as_nanos() as u64;
+                    let body = &s.value().body;
+                    let (Some(seq), Some(ts)) = (body.get(..4), body.get(4..12)) else {
+                        continue;
+                    };
+                    let seq = u32::from_le_bytes([seq[0], seq[1], seq[2], seq[3]]);
+                    if is_probe(seq, publishers) {
+                        let i = (u32::MAX - seq) as usize;
+                        if i < heard.len() && !heard[i] {
+                            heard[i] = true;
+                            probes2.fetch_add(1, Ordering::Relaxed);
+                        }
+                        continue;
+                    }
+                    let Some(slot) = seen.get_mut(seq as usize) else {
+                        continue;
+                    };
+                    if *slot {
+                        c.duplicates += 1;
+                        continue;
+                    }
+                    *slot = true;
+                    c.received += 1;
+                    c.last_rx = Some(Instant::now());
+                    let mut t = [0u8; 8];
+                    t.copy_from_slice(ts);
+                    let ns = now_ns.saturating_sub(u64::from_le_bytes(t)).max(1);
+                    let _ = c.latencies.record(ns.min(60_000_000_000));
+                }
+            }
+            if let Ok(mut g) = counts2.lock() {
+                *g = Some(c);
+            }
+            Ok(())
+        });
+        Ok(DdsReader {
+            stop,
+            probes,
+            counts,
+            thread: Some(thread),
+        })
+    }
+
+    /// Publishers whose probe the DDS reader has received.
+    pub fn probes_heard(&self) -> usize {
+        self.probes.load(Ordering::Relaxed)
+    }
+
+    /// Stops the reader and returns its counts.
+    pub fn finish(mut self) -> Result<DdsCounts, String> {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            t.join()
+                .map_err(|_| "DDS reader thread panicked".to_string())??;
+        }
+        self.counts
+            .lock()
+            .map_err(|_| "DDS reader counts poisoned".to_string())?
+            .take()
+            .ok_or_else(|| "DDS reader left no counts".to_string())
+    }
+}
+
+impl Drop for DdsReader {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
