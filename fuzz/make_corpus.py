@@ -53,5 +53,18 @@ for (stem, port), datagrams in per_client.items():
         write("agent_session", blob)
 for f in sorted((root / "tests/data").glob("*.refs")):
     write("representations", f.read_bytes())
+# Type documents (keys, nesting, typedefs, enums) for the type and filter parsers.
+for doc in (
+    b'<dds><types><module name="M"><const name="N" type="int32" value="8"/>'
+    b'<enum name="C"><enumerator name="R"/><enumerator name="G" value="4"/></enum>'
+    b'<struct name="P"><member name="x" type="float64"/><member name="c" type="nonBasic" nonBasicTypeName="C"/></struct>'
+    b'<struct name="S"><member name="id" type="string" key="true" stringMaxLength="N"/>'
+    b'<member name="p" type="nonBasic" nonBasicTypeName="P" arrayDimensions="2,3"/>'
+    b'<member name="v" type="int16" sequenceMaxLength="-1"/></struct></module></types></dds>',
+    b'<types><type><struct name="B"><member name="k" type="uint64" key="true"/></struct></type>'
+    b'<type><struct name="D" baseType="B"><member name="s" type="string" sequenceMaxLength="4"/></struct></type>'
+    b'<typedef name="A" type="nonBasic" nonBasicTypeName="D"/></types>',
+):
+    write("representations", doc)
 for kind in ("decode", "agent_session", "representations"):
     print(kind, len(list((out / kind).iterdir())))

@@ -425,16 +425,25 @@ fn compare(a: &Value, b: &Value) -> Option<std::cmp::Ordering> {
     }
 }
 
-/// SQL LIKE: `%` any run, `_` any one character (iterative, no backtracking blow-up).
+/// Most steps one LIKE may take: the greedy matcher is O(|s|·|p|), and a client can send a
+/// long pattern against a long string; beyond this the sample does not match.
+const LIKE_MAX_STEPS: usize = 1 << 20;
+
+/// SQL LIKE: `%` any run, `_` any one character (iterative, bounded).
 fn like(s: &[u8], p: &[u8]) -> bool {
     let (mut si, mut pi) = (0, 0);
     let mut star: Option<(usize, usize)> = None;
+    let mut steps = 0usize;
     while si < s.len() {
-        if pi < p.len() && (p[pi] == b'_' || p[pi] == s[si]) {
-            si += 1;
-            pi += 1;
-        } else if pi < p.len() && p[pi] == b'%' {
+        steps += 1;
+        if steps > LIKE_MAX_STEPS {
+            return false;
+        }
+        if pi < p.len() && p[pi] == b'%' {
             star = Some((pi, si));
+            pi += 1;
+        } else if pi < p.len() && (p[pi] == b'_' || p[pi] == s[si]) {
+            si += 1;
             pi += 1;
         } else if let Some((sp, ss)) = star {
             pi = sp + 1;
@@ -547,5 +556,12 @@ mod tests {
         assert!(!like(b"abc", b"a%d"));
         assert!(like(b"aaa", b"%a%a%a%"));
         assert!(!like(&[b'a'; 40], b"%a%a%a%a%a%a%b"));
+        assert!(like(b"%x", b"%"), "a literal % in the string");
+        assert!(like(b"a%c", b"a%c"));
+        let long = vec![b'a'; 1 << 20];
+        assert!(!like(
+            &long,
+            &[b"%".as_slice(), &[b'a'; 2000], b"b"].concat()
+        ));
     }
 }

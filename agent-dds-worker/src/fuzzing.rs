@@ -30,4 +30,30 @@ pub fn representations(data: &[u8]) {
         let _ = describe_endpoint(repr, true, &refs, le);
         let _ = describe_endpoint(repr, false, &refs, le);
     }
+    types_and_filters(data);
+}
+
+/// Type documents, keys and content filters: `data` as a `<types>` document, then as a
+/// sample of each type it defines and as a filter expression over it.
+fn types_and_filters(data: &[u8]) {
+    let Ok(text) = std::str::from_utf8(data) else {
+        return;
+    };
+    let Ok(set) = crate::types::TypeSet::parse(text) else {
+        return;
+    };
+    for ty in set.structs().take(8) {
+        if let Some(k) = crate::types::KeyDescriptor::new(ty.clone()) {
+            for (le, xcdr2) in [(true, false), (false, true)] {
+                let _ = k.of_sample(data, le, xcdr2);
+                let _ = k.of_key_payload(data, le, xcdr2);
+            }
+        }
+        let t = crate::types::Ty::Struct(ty.clone());
+        let _ = crate::types::sample_len(&t, data, 4, true);
+        let _ = crate::types::rebase(&t, data, 4, false);
+        if let Ok(f) = crate::filter::Filter::compile(text, ty.clone()) {
+            let _ = f.matches(data, true, false);
+        }
+    }
 }

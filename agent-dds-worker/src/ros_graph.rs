@@ -83,6 +83,11 @@ impl RosGraph {
         }
     }
 
+    /// Whether `domain` has a graph writer (it had a node once).
+    pub fn has_writer(&self, domain: u16) -> bool {
+        self.writers.contains_key(&domain)
+    }
+
     /// When the next update is due, if one is pending.
     pub fn deadline(&self) -> Option<Instant> {
         self.next_at

@@ -33,6 +33,10 @@ pub enum TypeError {
 
 /// Deepest nesting of types the worker accepts.
 pub const MAX_DEPTH: usize = 32;
+/// Most dimensions of one array member.
+const MAX_ARRAY_DIMENSIONS: usize = 8;
+/// Most nodes a key holder or a size computation visits.
+const MAX_TYPE_WORK: usize = 1 << 16;
 /// Most elements a single walk visits (bounds the work one sample can cause).
 const MAX_STEPS: usize = 1 << 20;
 
@@ -152,6 +156,29 @@ pub struct StructDef {
     pub name: String,
     /// Members in serialization order.
     pub members: Vec<Member>,
+    /// Nesting depth (1 + the deepest member's), at most [`MAX_DEPTH`].
+    pub depth: usize,
+}
+
+impl StructDef {
+    /// A structure of these members.
+    pub fn new(name: String, members: Vec<Member>) -> Self {
+        let depth = 1 + members.iter().map(|m| ty_depth(&m.ty)).max().unwrap_or(0);
+        StructDef {
+            name,
+            members,
+            depth,
+        }
+    }
+}
+
+/// How deep a type nests (structures count their stored depth, so this is shallow).
+fn ty_depth(ty: &Ty) -> usize {
+    match ty {
+        Ty::Prim(_) | Ty::Str { .. } | Ty::Enum(_) => 0,
+        Ty::Struct(s) => s.depth,
+        Ty::Seq(t, _) | Ty::Array(t, _) => 1 + ty_depth(t),
+    }
 }
 
 /// A member of a structure.
@@ -190,11 +217,19 @@ impl TypeSet {
             .descendants()
             .filter(|n| n.is_element() && n.tag_name().name() == "types")
         {
-            collect(types, "", &mut defs)?;
+            collect(types, "", &mut defs, 0)?;
         }
         let mut resolved = HashMap::new();
         let mut used = std::collections::HashSet::new();
         for name in defs.order.clone() {
+            if let Some(Def::Typedef(_)) = defs.items.get(&name) {
+                // An alias is resolved so it can be found; if it names a structure, that
+                // structure is what the alias gives.
+                let t = resolve_named(&name, &defs, &mut resolved, 0)?;
+                if !matches!(t, Ty::Struct(_)) {
+                    mark_used(&t, &mut used);
+                }
+            }
             if let Some(Def::Struct { base, .. }) = defs.items.get(&name) {
                 if let Some((b, _)) = base.as_deref().and_then(|b| {
                     let scope = name.rsplit_once("::").map(|(a, _)| a).unwrap_or_default();
@@ -214,10 +249,11 @@ impl TypeSet {
                 structs.insert(name, s);
             }
         }
+        // Typedef aliases of a structure are found by name but are not types of their own.
         let mut top: Vec<&String> = defs
             .order
             .iter()
-            .filter(|n| structs.contains_key(*n) && !used.contains(*n))
+            .filter(|n| structs.get(*n).is_some_and(|s| s.name == **n) && !used.contains(*n))
             .collect();
         let main = (top.len() == 1).then(|| top.remove(0).clone());
         Ok(TypeSet { structs, main })
@@ -251,6 +287,11 @@ impl TypeSet {
     /// The structure the document creates (see [`TypeSet::parse`]), if it is unambiguous.
     pub fn main(&self) -> Option<&str> {
         self.main.as_deref()
+    }
+
+    /// Every structure defined (aliases included).
+    pub fn structs(&self) -> impl Iterator<Item = &Arc<StructDef>> {
+        self.structs.values()
     }
 
     /// Whether no type was defined.
@@ -306,7 +347,15 @@ fn qualify(scope: &str, name: &str) -> String {
     }
 }
 
-fn collect(node: Node<'_, '_>, scope: &str, defs: &mut Defs) -> Result<(), TypeError> {
+fn collect(
+    node: Node<'_, '_>,
+    scope: &str,
+    defs: &mut Defs,
+    depth: usize,
+) -> Result<(), TypeError> {
+    if depth > MAX_DEPTH {
+        return Err(TypeError::TooDeep(scope.to_string()));
+    }
     for n in node.children().filter(|n| n.is_element()) {
         let tag = n.tag_name().name();
         let name = n.attribute("name").unwrap_or_default();
@@ -314,11 +363,11 @@ fn collect(node: Node<'_, '_>, scope: &str, defs: &mut Defs) -> Result<(), TypeE
         let def = match tag {
             // Fast DDS wraps each definition in <type>.
             "type" => {
-                collect(n, scope, defs)?;
+                collect(n, scope, defs, depth + 1)?;
                 continue;
             }
             "module" => {
-                collect(n, &full, defs)?;
+                collect(n, &full, defs, depth + 1)?;
                 continue;
             }
             "struct" => Def::Struct {
@@ -342,7 +391,9 @@ fn collect(node: Node<'_, '_>, scope: &str, defs: &mut Defs) -> Result<(), TypeE
                         })?;
                     }
                     values.push((e.attribute("name").unwrap_or_default().to_string(), next));
-                    next += 1;
+                    next = next.checked_add(1).ok_or_else(|| {
+                        TypeError::Invalid(full.clone(), "enumerator value", next.to_string())
+                    })?;
                 }
                 Def::Enum(values)
             }
@@ -470,10 +521,7 @@ fn resolve_named(
                     key: m.key,
                 });
             }
-            Ty::Struct(Arc::new(StructDef {
-                name: full.to_string(),
-                members: all,
-            }))
+            Ty::Struct(Arc::new(StructDef::new(full.to_string(), all)))
         }
         Some(Def::Enum(values)) => Ty::Enum(Arc::new(EnumDef {
             name: full.to_string(),
@@ -482,6 +530,11 @@ fn resolve_named(
         Some(Def::Typedef(m)) => resolve_member(m, full, defs, done, depth + 1)?,
         Some(Def::Const(_)) | None => return Err(TypeError::Unknown(full.into(), full.into())),
     };
+    // Types defined in dependency order resolve one level at a time, so the depth check
+    // above alone would not bound them.
+    if ty_depth(&ty) > MAX_DEPTH {
+        return Err(TypeError::TooDeep(full.into()));
+    }
     done.insert(full.to_string(), ty.clone());
     Ok(ty)
 }
@@ -523,6 +576,13 @@ fn resolve_member(
             .split(',')
             .map(|d| number(defs, &m.scope, owner, "arrayDimensions", d))
             .collect::<Result<_, _>>()?;
+        if dims.len() > MAX_ARRAY_DIMENSIONS {
+            return Err(TypeError::Invalid(
+                owner.into(),
+                "arrayDimensions",
+                format!("{} dimensions", dims.len()),
+            ));
+        }
         for d in dims.into_iter().rev() {
             ty = Ty::Array(Box::new(ty), d);
         }
@@ -658,6 +718,14 @@ impl<'a> Cursor<'a> {
         Ok(n)
     }
 
+    /// XCDR2 puts a DHEADER before a sequence or array of non-primitive elements.
+    fn collection_header(&mut self, elem: &Ty) -> Result<(), WalkError> {
+        if self.xcdr2 && !matches!(elem, Ty::Prim(_) | Ty::Enum(_)) {
+            self.u32()?;
+        }
+        Ok(())
+    }
+
     /// Skips one value of `ty`.
     pub fn skip(&mut self, ty: &Ty) -> Result<(), WalkError> {
         self.step()?;
@@ -667,10 +735,14 @@ impl<'a> Cursor<'a> {
             Ty::Enum(_) => self.u32().map(drop),
             Ty::Struct(s) => s.members.iter().try_for_each(|m| self.skip(&m.ty)),
             Ty::Seq(t, bound) => {
+                self.collection_header(t)?;
                 let n = self.count(*bound)?;
                 self.skip_n(t, n)
             }
-            Ty::Array(t, n) => self.skip_n(t, *n as usize),
+            Ty::Array(t, n) => {
+                self.collection_header(t)?;
+                self.skip_n(t, *n as usize)
+            }
         }
     }
 
@@ -734,6 +806,25 @@ pub fn sample_len(ty: &Ty, buf: &[u8], origin: usize, le: bool) -> Option<usize>
     Some(c.position())
 }
 
+/// Re-serializes one sample of `ty` that sits at `origin` in its CDR stream (XCDR1, byte
+/// order `le`) so that it aligns from its own start, as DDS expects: a sample split out of a
+/// WRITE_DATA sequence at an offset that is not a multiple of 8.
+pub fn rebase(ty: &Ty, buf: &[u8], origin: usize, le: bool) -> Result<Vec<u8>, WalkError> {
+    let mut c = Cursor::new(buf, origin, le, false);
+    let mut ignored = KeyWriter {
+        out: Vec::new(),
+        le,
+        xcdr2: true,
+    };
+    let mut out = KeyWriter {
+        out: Vec::with_capacity(buf.len()),
+        le,
+        xcdr2: false,
+    };
+    copy_key(ty, &mut c, &mut ignored, &mut out, false)?;
+    Ok(out.out)
+}
+
 /// A serialized key: the bytes of the KeyHash rule and the key-only payload.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct KeyBytes {
@@ -792,8 +883,11 @@ impl KeyDescriptor {
         if !ty.is_keyed() {
             return None;
         }
-        let holder = key_holder(&Ty::Struct(ty.clone()));
-        let md5 = max_size(&holder, 0).is_none_or(|n| n > 16);
+        let Some(holder) = key_holder(&Ty::Struct(ty.clone()), &mut MAX_TYPE_WORK.clone()) else {
+            tracing::warn!(r#type = %ty.name, "key too complex to describe; carried without key");
+            return None;
+        };
+        let md5 = max_size(&holder, 0, 16, &mut MAX_TYPE_WORK.clone()).is_none();
         Some(KeyDescriptor { ty, holder, md5 })
     }
 
@@ -871,37 +965,39 @@ impl KeyDescriptor {
 
 /// The key holder of a type: for a structure, its key members (their own key holders), or
 /// all members when none is a key (XTypes: a key member of a keyless struct type keys on
-/// the whole value).
-fn key_holder(ty: &Ty) -> Ty {
-    match ty {
+/// the whole value). None when building it takes more than `budget` nodes.
+fn key_holder(ty: &Ty, budget: &mut usize) -> Option<Ty> {
+    *budget = budget.checked_sub(1)?;
+    Some(match ty {
         Ty::Struct(s) => {
             let keyed = s.is_keyed();
             let members = s
                 .members
                 .iter()
                 .filter(|m| !keyed || m.key)
-                .map(|m| Member {
-                    name: m.name.clone(),
-                    ty: key_holder(&m.ty),
-                    key: true,
+                .map(|m| {
+                    Some(Member {
+                        name: m.name.clone(),
+                        ty: key_holder(&m.ty, budget)?,
+                        key: true,
+                    })
                 })
-                .collect();
-            Ty::Struct(Arc::new(StructDef {
-                name: s.name.clone(),
-                members,
-            }))
+                .collect::<Option<Vec<_>>>()?;
+            Ty::Struct(Arc::new(StructDef::new(s.name.clone(), members)))
         }
-        Ty::Array(t, n) => Ty::Array(Box::new(key_holder(t)), *n),
-        Ty::Seq(t, b) => Ty::Seq(Box::new(key_holder(t)), *b),
+        Ty::Array(t, n) => Ty::Array(Box::new(key_holder(t, budget)?), *n),
+        Ty::Seq(t, b) => Ty::Seq(Box::new(key_holder(t, budget)?), *b),
         other => other.clone(),
-    }
+    })
 }
 
-/// The largest XCDR2 size of `ty` starting at `off` (None = unbounded). Every later
-/// alignment only grows with the offset, so the largest lengths give the largest size.
-fn max_size(ty: &Ty, off: usize) -> Option<usize> {
+/// The largest XCDR2 size of `ty` starting at `off`, if it is at most `limit` (None =
+/// larger, unbounded, or more than `budget` nodes to visit). Every later alignment only
+/// grows with the offset, so the largest lengths give the largest size.
+fn max_size(ty: &Ty, off: usize, limit: usize, budget: &mut usize) -> Option<usize> {
+    *budget = budget.checked_sub(1)?;
     let align = |off: usize, a: usize| off.div_ceil(a) * a;
-    Some(match ty {
+    let size = match ty {
         Ty::Prim(p) => align(off, p.align(true)) + p.size() - off,
         Ty::Enum(_) => align(off, 4) + 4 - off,
         Ty::Str { bound, wide } => {
@@ -911,32 +1007,26 @@ fn max_size(ty: &Ty, off: usize) -> Option<usize> {
         Ty::Struct(s) => {
             let mut o = off;
             for m in &s.members {
-                o += max_size(&m.ty, o)?;
+                o += max_size(&m.ty, o, limit.checked_sub(o - off)?, budget)?;
             }
             o - off
         }
         Ty::Array(t, n) => {
             let mut o = off;
-            for _ in 0..(*n).min(4096) {
-                o += max_size(t, o)?;
-            }
-            if *n > 4096 {
-                return None;
+            for _ in 0..*n {
+                o += max_size(t, o, limit.checked_sub(o - off)?, budget)?;
             }
             o - off
         }
         Ty::Seq(t, b) => {
-            let n = (*b)? as usize;
             let mut o = align(off, 4) + 4;
-            for _ in 0..n.min(4096) {
-                o += max_size(t, o)?;
-            }
-            if n > 4096 {
-                return None;
+            for _ in 0..(*b)? {
+                o += max_size(t, o, limit.checked_sub(o - off)?, budget)?;
             }
             o - off
         }
-    })
+    };
+    (size <= limit).then_some(size)
 }
 
 /// Walks a value of `ty` from `c`, copying its key fields (all of it when `in_key`) to both
@@ -985,11 +1075,13 @@ fn copy_key(
             }
         }
         Ty::Array(t, n) => {
+            c.collection_header(t)?;
             for _ in 0..*n {
                 copy_key(t, c, hash, payload, full)?;
             }
         }
         Ty::Seq(t, bound) => {
+            c.collection_header(t)?;
             let n = c.count(*bound)?;
             hash.u32(n as u32);
             payload.u32(n as u32);
@@ -1102,11 +1194,13 @@ fn read_into(
             }
         }
         Ty::Array(t, n) => {
+            c.collection_header(t)?;
             for k in 0..*n as usize {
                 read_into(t, c, &sub(Seg::Index(k)), out)?;
             }
         }
         Ty::Seq(t, bound) => {
+            c.collection_header(t)?;
             let n = c.count(*bound)?;
             for k in 0..n {
                 read_into(t, c, &sub(Seg::Index(k)), out)?;
@@ -1295,6 +1389,92 @@ mod tests {
         let t = TypeSet::parse(xml).expect("test value");
         let ty = Ty::Struct(t.get("S").expect("test value"));
         assert_eq!(sample_len(&ty, &u32::MAX.to_le_bytes(), 0, true), None);
+    }
+
+    #[test]
+    fn hostile_type_documents_are_refused_quickly() {
+        // Structures defined in dependency order, each containing the previous one.
+        let mut chain =
+            String::from("<types><struct name=\"S0\"><member name=\"v\" type=\"int8\"/></struct>");
+        for i in 1..200 {
+            chain += &format!(
+                "<struct name=\"S{i}\"><member name=\"v\" type=\"nonBasic\" nonBasicTypeName=\"S{}\"/></struct>",
+                i - 1
+            );
+        }
+        chain += "</types>";
+        assert!(matches!(TypeSet::parse(&chain), Err(TypeError::TooDeep(_))));
+        // The same with typedefs of arrays.
+        let mut defs =
+            String::from("<types><typedef name=\"T0\" type=\"int8\" arrayDimensions=\"2\"/>");
+        for i in 1..200 {
+            defs += &format!(
+                "<typedef name=\"T{i}\" type=\"nonBasic\" nonBasicTypeName=\"T{}\" arrayDimensions=\"2\"/>",
+                i - 1
+            );
+        }
+        defs += "<struct name=\"U\"><member name=\"v\" type=\"nonBasic\" nonBasicTypeName=\"T199\"/></struct></types>";
+        assert!(matches!(TypeSet::parse(&defs), Err(TypeError::TooDeep(_))));
+        // Deeply nested modules.
+        let deep = "<module name=\"m\">".repeat(500) + &"</module>".repeat(500);
+        assert!(TypeSet::parse(&format!("<types>{deep}</types>")).is_err());
+        // Too many array dimensions; an enumerator counting past i64::MAX.
+        let dims = format!(
+            "<types><struct name=\"A\"><member name=\"v\" type=\"int8\" arrayDimensions=\"{}\"/></struct></types>",
+            vec!["1"; 50].join(",")
+        );
+        assert!(TypeSet::parse(&dims).is_err());
+        let en = r#"<types><enum name="E"><enumerator name="A" value="9223372036854775807"/><enumerator name="B"/></enum></types>"#;
+        assert!(matches!(TypeSet::parse(en), Err(TypeError::Invalid(..))));
+        // A huge key array: its size is settled without visiting every element.
+        let big = r#"<types><struct name="K"><member name="k" type="int8" key="true" arrayDimensions="4096,4096,4096"/></struct></types>"#;
+        let t = TypeSet::parse(big).expect("valid");
+        let started = std::time::Instant::now();
+        let k = KeyDescriptor::new(t.get("K").expect("K")).expect("keyed");
+        assert!(k.md5);
+        assert!(started.elapsed() < std::time::Duration::from_secs(5));
+    }
+
+    #[test]
+    fn a_typedef_alias_of_a_struct_is_not_a_second_main_type() {
+        let xml = r#"<types><struct name="P"><member name="x" type="int32"/></struct>
+            <typedef name="Alias" type="nonBasic" nonBasicTypeName="P"/></types>"#;
+        let t = TypeSet::parse(xml).expect("valid");
+        assert_eq!(t.main(), Some("P"));
+        assert_eq!(t.get("Alias").map(|s| s.name.clone()), Some("P".into()));
+    }
+
+    #[test]
+    fn rebase_realigns_a_sample_split_at_an_offset() {
+        let xml = r#"<types><struct name="D"><member name="a" type="uint32"/><member name="b" type="float64"/></struct></types>"#;
+        let t = TypeSet::parse(xml).expect("valid");
+        let ty = Ty::Struct(t.get("D").expect("D"));
+        // At stream offset 4: a (4 bytes) then b aligned to 8 in the stream (no padding).
+        let mut at4 = 7u32.to_le_bytes().to_vec();
+        at4.extend(2.5f64.to_le_bytes());
+        assert_eq!(sample_len(&ty, &at4, 4, true), Some(12));
+        let rebased = rebase(&ty, &at4, 4, true).expect("rebase");
+        let mut want = 7u32.to_le_bytes().to_vec();
+        want.extend([0; 4]);
+        want.extend(2.5f64.to_le_bytes());
+        assert_eq!(rebased, want);
+    }
+
+    #[test]
+    fn xcdr2_sequences_of_strings_have_a_dheader() {
+        let xml = r#"<types><struct name="N"><member name="names" type="string" sequenceMaxLength="-1"/>
+            <member name="id" type="uint16" key="true"/></struct></types>"#;
+        let t = TypeSet::parse(xml).expect("valid");
+        let n = t.get("N").expect("N");
+        let mut b = Vec::new();
+        b.extend(10u32.to_le_bytes()); // DHEADER: the 10 bytes that follow
+        b.extend(1u32.to_le_bytes());
+        b.extend(2u32.to_le_bytes());
+        b.extend(b"a\0");
+        b.extend(9u16.to_le_bytes());
+        let (path, _) = resolve_path(&n, "id").expect("id");
+        let v = read_fields(&n, &[path], &b, true, true).expect("XCDR2");
+        assert_eq!(v, vec![Some(Value::Int(9))]);
     }
 
     #[test]

@@ -144,6 +144,9 @@ struct ActiveRead {
     pacing: Pacing,
     /// The read's content filter.
     filter: Option<Filter>,
+    /// The DataFormat the client asked for: without a SampleInfo (DATA, DATA_SEQ) a
+    /// dispose cannot be told from a sample, so those reads get no instance ends.
+    data_format: u8,
 }
 
 /// DataDeliveryControl's `min_pace_period` and `max_bytes_per_second`.
@@ -350,17 +353,20 @@ impl Worker {
 
     /// Publishes the ROS graph of every domain that changed, when its update is due.
     fn publish_graph(&mut self) {
-        for domain in self.graph.due(Instant::now()) {
+        let now = Instant::now();
+        for domain in self.graph.due(now) {
             let nodes = self.domain_nodes(domain);
-            let dp = match self.pool.get(domain, Role::Publish) {
-                Ok(dp) => dp,
-                Err(e) => {
-                    tracing::warn!(domain, error = %e, "ROS graph not published");
-                    continue;
-                }
-            };
-            if let Err(e) = self.graph.publish(domain, &dp, nodes) {
-                tracing::warn!(domain, error = %e, "ROS graph not published");
+            if nodes.nodes.is_empty() && !self.graph.has_writer(domain) {
+                // No node ever: no graph writer (nor DDS participant) for this domain.
+                continue;
+            }
+            let published = self
+                .pool
+                .get(domain, Role::Publish)
+                .and_then(|dp| self.graph.publish(domain, &dp, nodes));
+            if let Err(e) = published {
+                tracing::warn!(domain, error = %e, "ROS graph not published; retrying");
+                self.graph.touch(domain, now);
             }
         }
     }
@@ -932,13 +938,16 @@ impl Worker {
 
     /// A type by name: from the client's TYPE objects, else the references file.
     fn type_named(&self, key: EntityKey, name: &str) -> Option<Arc<StructDef>> {
+        // The client's TYPE object with the lowest id wins when several define the name.
         self.entities
             .iter()
             .filter(|(k, _)| k.0 == key.0 && k.1 == key.1)
-            .find_map(|(_, e)| match &e.kind {
-                EntityKind::Type(set) => set.get(name),
+            .filter_map(|(k, e)| match &e.kind {
+                EntityKind::Type(set) => Some((k.2 .0, set.get(name)?)),
                 _ => None,
             })
+            .min_by_key(|(id, _)| *id)
+            .map(|(_, t)| t)
             .or_else(|| self.config.references.types().get(name))
     }
 
@@ -1136,6 +1145,7 @@ impl Worker {
             }) => ty.clone().map(Ty::Struct),
             _ => None,
         };
+        let sizer_ty = ty.clone();
         let sizer =
             ty.map(|t| move |b: &[u8], origin: usize| sample_len(&t, b, origin, little_endian));
         let sizer_ref = sizer
@@ -1165,9 +1175,22 @@ impl Worker {
             }
             return Ok(());
         }
+        let several = samples.len() > 1;
         for s in samples {
             let dispose = ends_instance(&s);
-            self.write_one(key, h.op_seq, little_endian, s.data, dispose)?;
+            // A sample split out of a sequence aligns from the WRITE_DATA's payload; DDS
+            // wants it aligned from its own start.
+            let offset = (s.data.as_ptr() as usize).saturating_sub(body.as_ptr() as usize);
+            let rebased = match (&sizer_ty, several && offset % 8 != 0) {
+                (Some(t), true) => Some(
+                    crate::types::rebase(t, s.data, offset, little_endian).map_err(|e| {
+                        (status::ERR_INVALID_DATA, format!("WRITE_DATA sample: {e}"))
+                    })?,
+                ),
+                _ => None,
+            };
+            let data = rebased.as_deref().unwrap_or(s.data);
+            self.write_one(key, h.op_seq, little_endian, data, dispose)?;
         }
         Ok(())
     }
@@ -1215,6 +1238,17 @@ impl Worker {
                 status::ERR_INCOMPATIBLE,
                 "dispose or unregister on a topic without a key (or whose type is unknown)".into(),
             ));
+        }
+        if let Some(k) = w.key() {
+            // Checked now, so a held sample cannot fail later, unreported.
+            let whole = k.of_sample(body, little_endian, false);
+            if whole.is_err() && !(dispose && k.of_key_payload(body, little_endian, false).is_ok())
+            {
+                return Err((
+                    status::ERR_INVALID_DATA,
+                    format!("a sample that is not a {}", k.ty().name),
+                ));
+            }
         }
         if rematch.until.is_some() {
             if rematch.held.len() < REMATCH_HELD_MAX {
@@ -1385,6 +1419,7 @@ impl Worker {
                 paused,
                 pacing: Pacing::new(&d),
                 filter,
+                data_format: spec.data_format,
             },
             None => ActiveRead {
                 request_id: h.request_id,
@@ -1394,6 +1429,7 @@ impl Worker {
                 paused,
                 pacing: Pacing::default(),
                 filter,
+                data_format: spec.data_format,
             },
         };
         self.reads.insert(key, read);
@@ -1453,6 +1489,16 @@ impl Worker {
                         }
                     }
                     let ends = taken.disposed || taken.unregistered;
+                    if ends
+                        && matches!(
+                            read.data_format,
+                            xrce_common::wire::data_format::DATA
+                                | xrce_common::wire::data_format::DATA_SEQ
+                        )
+                    {
+                        // Taken, not delivered, not counted against max_samples.
+                        continue;
+                    }
                     // A filter sees samples; instance ends (key fields only) pass.
                     let passes = |f: Option<&Filter>| {
                         f.is_none_or(|f| {
@@ -1492,7 +1538,8 @@ impl Worker {
                     tracing::debug!(error = ?e, "undecodable DDS sample skipped");
                 }
             }
-            if limit == 0 && out.len() == PUMP_BATCH {
+            if limit == 0 {
+                // The batch is used up (by samples or by undecodable ones): come back.
                 more = true;
             }
         }

@@ -143,6 +143,11 @@ fn a_keyed_writer_publishes_instances_and_disposes_them() {
             c.write_reliable(w, &shape(color, round * 10 + i as i32));
         }
     }
+    // A sequence of two samples in one WRITE_DATA: the worker splits it with the type.
+    let mut seq = 2u32.to_le_bytes().to_vec();
+    seq.extend(shape("RED", 30));
+    seq.extend(shape("BLUE", 32));
+    c.write_reliable_format(w, data_format::DATA_SEQ, &seq);
     // GREEN is disposed by a WRITE_DATA whose SampleInfo says so.
     c.write_reliable_format(
         w,
@@ -151,7 +156,7 @@ fn a_keyed_writer_publishes_instances_and_disposes_them() {
     );
     c.run_until(2 * SECOND, |_| false);
     // A late joiner with KEEP_LAST 1 per instance gets the writer's history and ends with
-    // the last value of each live instance and GREEN disposed: distinct instances, so the
+    // the last value of each live instance (from the sequence) and GREEN disposed: distinct instances, so the
     // keys were extracted and the dispose carried GREEN's key. (RustDDS keeps a writer's
     // history per writer, not per instance, so superseded samples may arrive first.)
     let reader = DdsPeer::start(&[
@@ -173,8 +178,8 @@ fn a_keyed_writer_publishes_instances_and_disposes_them() {
     let mut last: BTreeMap<String, (Option<i64>, String)> = BTreeMap::new();
     let mut lines = Vec::new();
     let want = |last: &BTreeMap<String, (Option<i64>, String)>| {
-        last.get("RED") == Some(&(Some(20), "alive".to_string()))
-            && last.get("BLUE") == Some(&(Some(22), "alive".to_string()))
+        last.get("RED") == Some(&(Some(30), "alive".to_string()))
+            && last.get("BLUE") == Some(&(Some(32), "alive".to_string()))
             && last.get("GREEN").is_some_and(|(_, st)| st == "disposed")
     };
     let ok = c.run_until(45 * SECOND, |c| {
