@@ -96,12 +96,19 @@ pub struct AgentProcess {
 impl AgentProcess {
     /// Starts an agent on a free port.
     pub fn start(tag: &str) -> Self {
+        Self::start_with_env(tag, &[])
+    }
+
+    /// Starts an agent on a free port with extra environment variables.
+    pub fn start_with_env(tag: &str, env: &[(&str, &str)]) -> Self {
         // A port found free can be taken by another process before the agent binds it
         // (tests run in parallel): then the agent exits at once, and another port is tried.
         for _ in 0..5 {
             let port = free_udp_port();
             let instance = unique_instance(tag);
-            if let Some(a) = Self::try_start(([127, 0, 0, 1], port).into(), Some(instance), &[]) {
+            if let Some(a) =
+                Self::try_start(([127, 0, 0, 1], port).into(), Some(instance), &[], env)
+            {
                 return a;
             }
         }
@@ -116,11 +123,16 @@ impl AgentProcess {
 
     /// Starts an agent bound to `addr` with extra command-line arguments.
     pub fn start_with(addr: SocketAddr, instance: Option<String>, extra: &[&str]) -> Self {
-        Self::try_start(addr, instance, extra).expect("the agent did not answer a ping")
+        Self::try_start(addr, instance, extra, &[]).expect("the agent did not answer a ping")
     }
 
     /// Starts an agent; `None` if it exits or does not answer a ping within 20 s.
-    fn try_start(addr: SocketAddr, instance: Option<String>, extra: &[&str]) -> Option<Self> {
+    fn try_start(
+        addr: SocketAddr,
+        instance: Option<String>,
+        extra: &[&str],
+        env: &[(&str, &str)],
+    ) -> Option<Self> {
         let port = addr.port();
         let mut args = vec![
             "udp4".to_string(),
@@ -140,6 +152,7 @@ impl AgentProcess {
                 "XRCE_LOG",
                 std::env::var("XRCE_TEST_LOG").unwrap_or_else(|_| "info".into()),
             )
+            .envs(env.iter().copied())
             .spawn()
             .expect("start xrce-agent");
         let instance = instance.unwrap_or_else(|| format!("udp4-{port}-{}", child.id()));
