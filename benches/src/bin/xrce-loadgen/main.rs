@@ -11,6 +11,9 @@
 //! An independent DDS reader (RustDDS, its own participant, pinned to loopback) counts what
 //! reaches DDS and its latency client → agent → DDS (`--dds-reader false` leaves it out).
 //!
+//! `--compare-with 'OTHER-AGENT {port}'` runs the same scenario alternately against ours (or
+//! `--agent-cmd`) and the other agent, `--rounds` times each, and prints medians and ratios.
+//!
 //! Example: `xrce-loadgen --publishers 100 --samples 50000 --best-effort --json run.json`.
 
 mod dds_reader;
@@ -236,6 +239,13 @@ struct Args {
     /// Write the results as JSON to this file.
     #[arg(long)]
     json: Option<std::path::PathBuf>,
+    /// Compare mode: also run the scenario against this agent command (`{port}` replaced),
+    /// alternating with ours (or `--agent-cmd`), and print the medians and ratios.
+    #[arg(long = "compare-with")]
+    compare_with: Option<String>,
+    /// Rounds per agent in compare mode.
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=100))]
+    rounds: u32,
     /// Count the samples that reach DDS with an independent RustDDS reader in this process.
     #[arg(long = "dds-reader", default_value_t = true, action = clap::ArgAction::Set)]
     dds_reader: bool,
@@ -448,6 +458,21 @@ struct AgentUse {
 fn main() -> Result<(), String> {
     let a = Args::parse();
     raise_fd_limit();
+    if let Some(other) = &a.compare_with {
+        return compare(&a, other);
+    }
+    let report = run(&a, a.agent_cmd.as_deref())?;
+    print_report(&report);
+    if let Some(path) = &a.json {
+        let text = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
+        std::fs::write(path, text).map_err(|e| format!("writing {}: {e}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// Runs the scenario of `a` once against the agent `agent_cmd` starts (ours if None, none
+/// with `--no-agent`).
+fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     let (port, publishers, samples, payload, domain, rate) = (
         a.port,
         a.publishers as usize,
@@ -464,8 +489,8 @@ fn main() -> Result<(), String> {
     let mut agent = if a.no_agent {
         None
     } else {
-        let cmd = match &a.agent_cmd {
-            Some(c) => c.clone(),
+        let cmd = match agent_cmd {
+            Some(c) => c.to_string(),
             None => {
                 let exe = std::env::current_exe().map_err(|e| e.to_string())?;
                 let ours = exe.with_file_name("xrce-agent");
@@ -788,10 +813,16 @@ fn main() -> Result<(), String> {
             _ => None,
         },
     };
+    drop(agent);
+    Ok(report)
+}
+
+/// Prints a run's results for people.
+fn print_report(report: &Report) {
     println!(
         "{} publishers + 1 subscriber, {} B {}: set-up {:.0} ms (sessions {:.0} ms), writers matched at {:.0} ms ({} never)",
         report.publishers,
-        payload,
+        report.payload_bytes,
         if report.reliable { "reliable" } else { "best-effort" },
         report.setup_ms,
         report.sessions_ms,
@@ -800,13 +831,13 @@ fn main() -> Result<(), String> {
     );
     println!(
         "  {} of {} samples in {:.2} s = {:.0} samples/s ({:.1} MB/s), {} lost, {} duplicates",
-        received,
-        sent,
+        report.received,
+        report.sent,
         report.seconds,
         report.samples_per_second,
         report.bytes_per_second / 1e6,
         report.lost,
-        duplicates
+        report.duplicates
     );
     let l = &report.latency_us;
     println!(
@@ -817,7 +848,7 @@ fn main() -> Result<(), String> {
         println!(
             "  into DDS (independent RustDDS reader): {} of {} = {:.0} samples/s, {} lost, {} duplicates; latency us: p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}",
             d.received,
-            sent,
+            report.sent,
             d.samples_per_second,
             d.lost,
             d.duplicates,
@@ -839,10 +870,76 @@ fn main() -> Result<(), String> {
             u.peak_rss_kib as f64 / 1024.0
         );
     }
+}
+
+/// Runs the scenario alternately against our agent (or `--agent-cmd`) and `other`,
+/// `--rounds` times each, and prints the medians and their ratios.
+fn compare(a: &Args, other: &str) -> Result<(), String> {
+    if a.no_agent {
+        return Err("--compare-with starts both agents; it cannot use --no-agent".into());
+    }
+    let mut runs: [Vec<Report>; 2] = [Vec::new(), Vec::new()];
+    for round in 0..a.rounds {
+        for (side, cmd) in [a.agent_cmd.as_deref(), Some(other)]
+            .into_iter()
+            .enumerate()
+        {
+            eprintln!(
+                "round {} of {}, agent {}",
+                round + 1,
+                a.rounds,
+                ["A", "B"][side]
+            );
+            let r = run(a, cmd)?;
+            print_report(&r);
+            runs[side].push(r);
+        }
+    }
+    let median = |side: usize, f: &dyn Fn(&Report) -> f64| {
+        let mut v: Vec<f64> = runs[side].iter().map(f).filter(|x| x.is_finite()).collect();
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    type Metric = (&'static str, Box<dyn Fn(&Report) -> f64>);
+    let metrics: Vec<Metric> = vec![
+        ("set-up ms", Box::new(|r| r.setup_ms)),
+        ("samples/s", Box::new(|r| r.samples_per_second)),
+        ("lost", Box::new(|r| r.lost as f64)),
+        ("p50 us", Box::new(|r| r.latency_us.p50)),
+        ("p99 us", Box::new(|r| r.latency_us.p99)),
+        (
+            "into DDS samples/s",
+            Box::new(|r| r.dds.as_ref().map_or(f64::NAN, |d| d.samples_per_second)),
+        ),
+        (
+            "agent CPU us/sample",
+            Box::new(|r| r.agent.as_ref().map_or(f64::NAN, |u| u.cpu_us_per_sample)),
+        ),
+        (
+            "agent peak RSS MiB",
+            Box::new(|r| {
+                r.agent
+                    .as_ref()
+                    .map_or(f64::NAN, |u| u.peak_rss_kib as f64 / 1024.0)
+            }),
+        ),
+    ];
+    println!(
+        "\nmedians of {} rounds; A = {}, B = {other}",
+        a.rounds,
+        a.agent_cmd.as_deref().unwrap_or("our xrce-agent")
+    );
+    println!("{:<22} {:>12} {:>12} {:>8}", "metric", "A", "B", "B / A");
+    let mut table = Vec::new();
+    for (name, f) in &metrics {
+        let (x, y) = (median(0, f), median(1, f));
+        println!("{name:<22} {x:>12.1} {y:>12.1} {:>8.2}", y / x);
+        table.push(serde_json::json!({"metric": name, "a": x, "b": y, "ratio_b_over_a": y / x}));
+    }
     if let Some(path) = &a.json {
-        let text = serde_json::to_string_pretty(&report).map_err(|e| e.to_string())?;
+        let doc = serde_json::json!({"a": runs[0], "b": runs[1], "medians": table});
+        let text = serde_json::to_string_pretty(&doc).map_err(|e| e.to_string())?;
         std::fs::write(path, text).map_err(|e| format!("writing {}: {e}", path.display()))?;
     }
-    drop(agent);
     Ok(())
 }
