@@ -471,6 +471,17 @@ impl RawWriter {
         matches!(self, RawWriter::Le(_) | RawWriter::KeyedLe(..))
     }
 
+    /// The name of the topic it writes.
+    pub fn topic_name(&self) -> String {
+        use rustdds::TopicDescription;
+        match self {
+            RawWriter::Le(w) => w.topic().name(),
+            RawWriter::Be(w) => w.topic().name(),
+            RawWriter::KeyedLe(w, _) => w.topic().name(),
+            RawWriter::KeyedBe(w, _) => w.topic().name(),
+        }
+    }
+
     /// The key description of a keyed writer.
     pub fn key(&self) -> Option<&std::sync::Arc<KeyDescriptor>> {
         match self {

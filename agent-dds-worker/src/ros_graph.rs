@@ -1,5 +1,6 @@
-//! The ROS 2 graph: XRCE participants created with a ROS node name (what micro-ROS does) are
-//! announced on `ros_discovery_info`, with the GIDs of their data writers and readers, so
+//! The ROS 2 graph: XRCE participants created with a ROS node name and with an endpoint on a
+//! ROS topic (`rt/`, `rq/`, `rr/`: what micro-ROS does) are announced on
+//! `ros_discovery_info`, with the GIDs of their data writers and readers, so
 //! `ros2 node list` and `ros2 node info` see them. Without this, their topics work but the
 //! nodes are invisible, as with MicroXRCEAgent (the micro-ROS agent adds a graph manager).
 //!

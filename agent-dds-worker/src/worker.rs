@@ -70,6 +70,8 @@ enum EntityKind {
 
 /// What a data reader's content filters need.
 struct ReaderInfo {
+    /// The topic's name.
+    topic: String,
     /// The topic's type, if known.
     ty: Option<Arc<StructDef>>,
     /// The reader's own filter (XML `<content_filter>` or the binary `contentbased_filter`).
@@ -389,11 +391,20 @@ impl Worker {
                 }
             }
         }
+        // A participant is announced as a ROS node once it has an endpoint on a ROS topic
+        // (`rt/`, `rq/`, `rr/`, as micro-ROS names them): plain XRCE applications, whose
+        // participants are named too, stay out of the ROS graph.
+        let mut ros = std::collections::BTreeSet::new();
+        let is_ros = |t: &str| ["rt/", "rq/", "rr/"].iter().any(|p| t.starts_with(p));
         for (k, e) in &self.entities {
-            let (writer, reader) = match &e.kind {
-                EntityKind::Writer(w, _, _) => (Some(w.guid()), None),
-                EntityKind::Reader(r, _, _) => (None, Some(r.guid())),
-                EntityKind::Service(s) => (Some(s.writer.guid()), Some(s.reader.guid())),
+            let (writer, reader, ros_topic) = match &e.kind {
+                EntityKind::Writer(w, _, _) => (Some(w.guid()), None, is_ros(&w.topic_name())),
+                EntityKind::Reader(r, _, info) => (None, Some(r.guid()), is_ros(&info.topic)),
+                EntityKind::Service(s) => (
+                    Some(s.writer.guid()),
+                    Some(s.reader.guid()),
+                    is_ros(&s.writer.topic_name()),
+                ),
                 _ => continue,
             };
             let Some((pid, _)) = e.parent.and_then(|p| self.participant_of(*k, p)) else {
@@ -402,12 +413,16 @@ impl Worker {
             if let Some(n) = nodes.get_mut(&(k.0, k.1, pid)) {
                 n.1.extend(writer);
                 n.2.extend(reader);
+                if ros_topic {
+                    ros.insert((k.0, k.1, pid));
+                }
             }
         }
         DomainNodes {
             nodes: nodes
-                .into_values()
-                .map(|(n, mut w, mut r)| {
+                .into_iter()
+                .filter(|(k, _)| ros.contains(k))
+                .map(|(_, (n, mut w, mut r))| {
                     w.sort();
                     r.sort();
                     (n, w, r)
@@ -841,7 +856,15 @@ impl Worker {
                 self.readers.insert(token, key);
                 (
                     Some(p),
-                    EntityKind::Reader(Box::new(r), token, ReaderInfo { ty, filter }),
+                    EntityKind::Reader(
+                        Box::new(r),
+                        token,
+                        ReaderInfo {
+                            topic: tdesc.name.clone(),
+                            ty,
+                            filter,
+                        },
+                    ),
                 )
             }
             (kind @ (object_kind::REQUESTER | object_kind::REPLIER), VariantExtra::Parent(p)) => {

@@ -97,6 +97,35 @@ fn setup(c: &mut TestClient, domain: i16, group: u8) -> ObjectId {
     p
 }
 
+/// An agent, a connected client (key `F04E00nn`), and its keyed writer or reader with `qos`
+/// in `domain` (after [`setup`]).
+fn keyed_endpoint(
+    tag: &str,
+    client: u8,
+    domain: i16,
+    endpoint: u8,
+    qos: &str,
+) -> (AgentProcess, TestClient, ObjectId) {
+    let agent = AgentProcess::start(tag);
+    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4E, 0x00, client]);
+    c.connect(10 * SECOND);
+    let (group, element) = if endpoint == object_kind::DATAWRITER {
+        (object_kind::PUBLISHER, "data_writer")
+    } else {
+        (object_kind::SUBSCRIBER, "data_reader")
+    };
+    setup(&mut c, domain, group);
+    let id = ObjectId::new(1, endpoint);
+    let parent = VariantExtra::Parent(ObjectId::new(1, group));
+    let xml = endpoint_xml(element, qos);
+    assert_eq!(
+        c.create(id, endpoint, &xml, parent),
+        status::OK,
+        "{element}"
+    );
+    (agent, c, id)
+}
+
 fn endpoint_xml(element: &str, qos: &str) -> String {
     format!(
         "<dds><{element}><topic><kind>WITH_KEY</kind><name>Square</name>\
@@ -117,27 +146,16 @@ fn sample_with_state(state: u8, data: &[u8]) -> Vec<u8> {
 
 #[test]
 fn a_keyed_writer_publishes_instances_and_disposes_them() {
-    let agent = AgentProcess::start("keyedpub");
-    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4E, 0x00, 0x01]);
-    c.connect(10 * SECOND);
-    setup(&mut c, 40, object_kind::PUBLISHER);
-    let w = ObjectId::new(1, object_kind::DATAWRITER);
-    let xml = endpoint_xml(
-        "data_writer",
+    let (agent, mut c, w) = keyed_endpoint(
+        "keyedpub",
+        1,
+        40,
+        object_kind::DATAWRITER,
         "<reliability><kind>RELIABLE</kind></reliability>\
          <durability><kind>TRANSIENT_LOCAL</kind></durability>\
          <history><kind>KEEP_LAST</kind><depth>1</depth></history>",
     );
-    assert_eq!(
-        c.create(
-            w,
-            object_kind::DATAWRITER,
-            &xml,
-            VariantExtra::Parent(ObjectId::new(1, object_kind::PUBLISHER))
-        ),
-        status::OK
-    );
-    // Three rounds over three instances; with KEEP_LAST 1 per instance only round 3 stays.
+    // Three rounds over three instances.
     for round in 0..3 {
         for (i, color) in ["RED", "GREEN", "BLUE"].iter().enumerate() {
             c.write_reliable(w, &shape(color, round * 10 + i as i32));
@@ -198,19 +216,12 @@ fn a_keyed_writer_publishes_instances_and_disposes_them() {
 
 #[test]
 fn cyclone_disposes_reach_a_sample_read_and_filters_select_samples() {
-    let agent = AgentProcess::start("keyedsub");
-    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4E, 0x00, 0x02]);
-    c.connect(10 * SECOND);
-    setup(&mut c, 41, object_kind::SUBSCRIBER);
-    let sub = ObjectId::new(1, object_kind::SUBSCRIBER);
-    let xml = endpoint_xml(
-        "data_reader",
+    let (agent, mut c, r) = keyed_endpoint(
+        "keyedsub",
+        2,
+        41,
+        object_kind::DATAREADER,
         "<reliability><kind>RELIABLE</kind></reliability>",
-    );
-    let r = ObjectId::new(1, object_kind::DATAREADER);
-    assert_eq!(
-        c.create(r, object_kind::DATAREADER, &xml, VariantExtra::Parent(sub)),
-        status::OK
     );
     // A malformed filter is refused with INVALID_DATA.
     let read = |filter: &str| ReadSpecification {
@@ -328,24 +339,13 @@ fn a_filter_on_a_topic_of_unknown_type_is_refused() {
 
 #[test]
 fn a_keep_last_reader_keeps_one_sample_per_instance() {
-    let agent = AgentProcess::start("keyedhist");
-    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4E, 0x00, 0x04]);
-    c.connect(10 * SECOND);
-    setup(&mut c, 43, object_kind::SUBSCRIBER);
-    let xml = endpoint_xml(
-        "data_reader",
+    let (agent, mut c, r) = keyed_endpoint(
+        "keyedhist",
+        4,
+        43,
+        object_kind::DATAREADER,
         "<reliability><kind>RELIABLE</kind></reliability>\
          <history><kind>KEEP_LAST</kind><depth>1</depth></history>",
-    );
-    let r = ObjectId::new(1, object_kind::DATAREADER);
-    assert_eq!(
-        c.create(
-            r,
-            object_kind::DATAREADER,
-            &xml,
-            VariantExtra::Parent(ObjectId::new(1, object_kind::SUBSCRIBER))
-        ),
-        status::OK
     );
     // Twelve samples over three instances arrive while no read is active; they wait in
     // the DDS reader, whose KEEP_LAST 1 applies per instance (by the key the worker

@@ -55,6 +55,11 @@ fn a_micro_ros_node_is_announced_with_its_endpoints_and_removed_with_them() {
         "--timeout",
         "60",
     ]);
+    // A plain XRCE application (participant `default_xrce_participant`, topic
+    // HelloWorldTopic) in the same domain is not a ROS node.
+    let mut plain = TestClient::new(agent.addr(), [0xF0, 0x4F, 0x00, 0x02]);
+    plain.connect(10 * SECOND);
+    plain.setup_publisher(44);
     let mut c = TestClient::new(agent.addr(), [0xF0, 0x4F, 0x00, 0x01]);
     c.connect(10 * SECOND);
     let p = ObjectId::new(1, k::PARTICIPANT);
@@ -148,6 +153,14 @@ fn a_micro_ros_node_is_announced_with_its_endpoints_and_removed_with_them() {
         })
     });
     assert!(ok, "graph and endpoints seen: {node:?} in {lines:?}");
+    assert!(
+        lines
+            .iter()
+            .filter_map(|l| parse_graph(l))
+            .flatten()
+            .all(|n| n.1 == "arm_driver"),
+        "only the micro-ROS node is announced: {lines:?}"
+    );
     // Deleting the participant (and its endpoints) empties the node list.
     let del = c
         .client
