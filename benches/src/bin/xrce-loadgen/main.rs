@@ -17,6 +17,7 @@
 //! Example: `xrce-loadgen --publishers 100 --samples 50000 --best-effort --json run.json`.
 
 mod dds_reader;
+mod plot;
 
 use std::collections::HashSet;
 use std::net::UdpSocket;
@@ -200,7 +201,7 @@ fn pump_until(
 }
 
 /// Command line.
-#[derive(Debug, Parser)]
+#[derive(Debug, Clone, Parser)]
 #[command(name = "xrce-loadgen", about = "Load generator for XRCE agents")]
 struct Args {
     /// UDP port of the agent.
@@ -243,6 +244,13 @@ struct Args {
     /// alternating with ours (or `--agent-cmd`), and print the medians and ratios.
     #[arg(long = "compare-with")]
     compare_with: Option<String>,
+    /// Sweep mode: run the scenario once per publisher count in this list (e.g.
+    /// `1,10,100,1000`), print a table, and with `--svg` plot it.
+    #[arg(long, value_delimiter = ',', value_parser = clap::value_parser!(u32).range(1..=60_000))]
+    sweep: Vec<u32>,
+    /// Sweep mode: write an SVG plot of throughput and latency against client count.
+    #[arg(long)]
+    svg: Option<std::path::PathBuf>,
     /// Rounds per agent in compare mode.
     #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..=100))]
     rounds: u32,
@@ -460,6 +468,9 @@ fn main() -> Result<(), String> {
     raise_fd_limit();
     if let Some(other) = &a.compare_with {
         return compare(&a, other);
+    }
+    if !a.sweep.is_empty() {
+        return sweep(&a);
     }
     let report = run(&a, a.agent_cmd.as_deref())?;
     print_report(&report);
@@ -938,6 +949,70 @@ fn compare(a: &Args, other: &str) -> Result<(), String> {
     }
     if let Some(path) = &a.json {
         let doc = serde_json::json!({"a": runs[0], "b": runs[1], "medians": table});
+        let text = serde_json::to_string_pretty(&doc).map_err(|e| e.to_string())?;
+        std::fs::write(path, text).map_err(|e| format!("writing {}: {e}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// Runs the scenario for each publisher count of `--sweep`, prints a table, and writes the
+/// SVG plot and the JSON of every run when asked.
+fn sweep(a: &Args) -> Result<(), String> {
+    let mut points = Vec::new();
+    let mut reports = Vec::new();
+    for &n in &a.sweep {
+        let mut one = a.clone();
+        one.publishers = n;
+        eprintln!("sweep: {n} publishing clients");
+        let r = run(&one, a.agent_cmd.as_deref())?;
+        print_report(&r);
+        points.push(plot::SweepPoint {
+            clients: n,
+            samples_per_second: r.samples_per_second,
+            into_dds_per_second: r.dds.as_ref().map(|d| d.samples_per_second),
+            p50_us: r.latency_us.p50,
+            p99_us: r.latency_us.p99,
+            lost_fraction: r.lost as f64 / f64::from(r.sent.max(1)),
+        });
+        reports.push(r);
+    }
+    println!(
+        "\n{:>8} {:>12} {:>12} {:>8} {:>10} {:>10}",
+        "clients", "samples/s", "into DDS/s", "lost %", "p50 us", "p99 us"
+    );
+    for p in &points {
+        println!(
+            "{:>8} {:>12.0} {:>12} {:>8.2} {:>10.0} {:>10.0}",
+            p.clients,
+            p.samples_per_second,
+            p.into_dds_per_second
+                .map_or("-".to_string(), |v| format!("{v:.0}")),
+            p.lost_fraction * 100.0,
+            p.p50_us,
+            p.p99_us
+        );
+    }
+    if let Some(path) = &a.svg {
+        let title = format!(
+            "xrce-loadgen sweep: {} B {} samples, {} in total{}",
+            a.payload.max(12),
+            if a.best_effort {
+                "best-effort"
+            } else {
+                "reliable"
+            },
+            a.samples,
+            if a.rate > 0.0 {
+                format!(" at {:.0}/s", a.rate)
+            } else {
+                ", unpaced".to_string()
+            }
+        );
+        plot::write_svg(path, &title, &points)?;
+        eprintln!("plot written to {}", path.display());
+    }
+    if let Some(path) = &a.json {
+        let doc = serde_json::json!({"points": points, "runs": reports});
         let text = serde_json::to_string_pretty(&doc).map_err(|e| e.to_string())?;
         std::fs::write(path, text).map_err(|e| format!("writing {}: {e}", path.display()))?;
     }
