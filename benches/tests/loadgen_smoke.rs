@@ -68,6 +68,11 @@ fn fifty_clients_deliver_every_reliable_sample() {
     assert_eq!(v["lost"], 0, "{stdout}");
     assert_eq!(v["duplicates"], 0, "{stdout}");
     assert!(v["latency_us"]["p50"].as_f64().is_some_and(|p| p > 0.0));
+    // The independent DDS reader (best-effort, may lose under load) saw the traffic.
+    assert!(
+        v["dds"]["received"].as_u64().is_some_and(|n| n > 0),
+        "{stdout}"
+    );
     assert!(
         v["agent"]["processes"].as_u64().is_some_and(|n| n >= 3),
         "{stdout}"

@@ -1,6 +1,10 @@
 //! The independent DDS reader inside the generator: a RustDDS participant of its own, pinned
 //! to loopback, reading the load topic, so the samples/s and latency *into DDS* (client →
 //! agent → DDS) are measured by something that is not the agent.
+//!
+//! It is best-effort whatever the scenario: a reliable reader that falls behind (it shares
+//! the generator's process) would hold back the agent's reliable writers (their send window
+//! fills and `write()` blocks), disturbing what it measures. Its own losses are reported.
 
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
@@ -43,7 +47,6 @@ impl DdsReader {
         domain: u16,
         topic: &str,
         type_name: &str,
-        reliable: bool,
         samples: u32,
         publishers: usize,
         base: Instant,
@@ -55,13 +58,10 @@ impl DdsReader {
             .with_only_networks(vec![std::net::IpAddr::from([127, 0, 0, 1])])
             .build()
             .map_err(|e| format!("DDS participant: {e:?}"))?;
-        let qos = if reliable {
-            QosPolicyBuilder::new().reliable(rustdds::Duration::from_millis(100))
-        } else {
-            QosPolicyBuilder::new().best_effort()
-        }
-        .history(rustdds::policy::History::KeepAll)
-        .build();
+        let qos = QosPolicyBuilder::new()
+            .best_effort()
+            .history(rustdds::policy::History::KeepAll)
+            .build();
         let t = dp
             .create_topic(topic.into(), type_name.into(), &qos, TopicKind::NoKey)
             .map_err(|e| format!("DDS topic: {e:?}"))?;
