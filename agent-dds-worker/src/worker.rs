@@ -1354,7 +1354,8 @@ impl Worker {
                 .is_some_and(|t| now >= t + REMATCH_MARGIN)
                 || now >= until;
             if ready && !rematch.draining {
-                tracing::info!(
+                // Debug: with many clients every new writer passes here once.
+                tracing::debug!(
                     held = rematch.held.len(),
                     matched = rematch.matched_at.is_some(),
                     "holding writer resumes"

@@ -52,7 +52,7 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
         let deadline = [
             agent.poll_timeout(),
             bridge.poll_timeout(),
-            report.due(&agent),
+            report.due(&agent, &bridge),
         ]
         .into_iter()
         .flatten()
@@ -116,17 +116,24 @@ impl StatsReport {
         }
     }
 
-    fn total(agent: &Agent<SocketAddr>) -> u64 {
-        agent.stats().dropped.values().sum()
+    /// Everything counted as not delivered: the core's drops by reason and the bridge's.
+    fn total(agent: &Agent<SocketAddr>, bridge: &Bridge) -> u64 {
+        let b = bridge.stats();
+        agent.stats().dropped.values().sum::<u64>()
+            + b.ops_dropped
+            + b.samples_dropped
+            + b.ipc_dropped
+            + b.instance_ends_skipped
+            + b.reads_paused
     }
 
     /// A deadline only while there is something new to report.
-    fn due(&self, agent: &Agent<SocketAddr>) -> Option<Instant> {
-        (Self::total(agent) != self.last_dropped).then_some(self.last + STATS_PERIOD)
+    fn due(&self, agent: &Agent<SocketAddr>, bridge: &Bridge) -> Option<Instant> {
+        (Self::total(agent, bridge) != self.last_dropped).then_some(self.last + STATS_PERIOD)
     }
 
     fn maybe_log(&mut self, now: Instant, agent: &Agent<SocketAddr>, bridge: &Bridge) {
-        let total = Self::total(agent);
+        let total = Self::total(agent, bridge);
         if total == self.last_dropped || now < self.last + STATS_PERIOD {
             return;
         }

@@ -535,9 +535,15 @@ fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     } else {
         format!("<kind>KEEP_LAST</kind><depth>{}</depth>", a.history)
     };
+    // The DDS endpoints follow the scenario: reliable, or best-effort end to end.
+    let reliability = if a.best_effort {
+        "BEST_EFFORT"
+    } else {
+        "RELIABLE"
+    };
     let endpoint = |e: &str| {
         format!(
-            "<dds><{e}><topic><kind>NO_KEY</kind><name>LoadTopic</name><dataType>Load</dataType></topic><qos><reliability><kind>RELIABLE</kind></reliability><durability><kind>VOLATILE</kind></durability><historyQos>{history}</historyQos></qos></{e}></dds>"
+            "<dds><{e}><topic><kind>NO_KEY</kind><name>LoadTopic</name><dataType>Load</dataType></topic><qos><reliability><kind>{reliability}</kind></reliability><durability><kind>VOLATILE</kind></durability><historyQos>{history}</historyQos></qos></{e}></dds>"
         )
     };
     let base = Instant::now();
