@@ -114,18 +114,7 @@ struct Rematch {
     /// Matched: the held samples are being written, a batch per loop pass (new writes still
     /// queue behind them, so order is kept).
     draining: bool,
-    /// The writer has published its first sample.
-    sent_first: bool,
-    /// No held sample is written before this (the gap after the first sample).
-    pause_until: Option<Instant>,
 }
-
-/// After a writer's first sample, the next ones wait this long. RustDDS's heartbeats
-/// announce every sample `write()` accepted, sent or not, and Cyclone DDS treats the range
-/// of the first heartbeat it accepts from a writer as a gap: a burst written at once could
-/// lose its middle (seen in CI: samples 7..15 of a burst of 41, never repaired). The first
-/// sample alone makes that first heartbeat cover only itself.
-const FIRST_SAMPLE_GAP: Duration = Duration::from_millis(50);
 
 /// Held samples written per loop pass while a writer drains: a whole backlog at once would
 /// overrun the writer's keep-last history before its reader acknowledged (RustDDS then drops
@@ -1300,24 +1289,13 @@ impl Worker {
                 let _ = if d { w.dispose(&s) } else { w.write(s) };
             }
         }
-        let first = !rematch.sent_first;
-        let published = if dispose {
-            w.dispose(&sample)
-                .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS dispose: {e}")))
-        } else {
-            w.write(sample)
-                .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
-        };
-        if first && published.is_ok() {
-            // The next samples wait a little (see FIRST_SAMPLE_GAP), in order.
-            let until = Instant::now() + FIRST_SAMPLE_GAP;
-            rematch.sent_first = true;
-            rematch.until = Some(until);
-            rematch.pause_until = Some(until);
-            rematch.draining = true;
-            self.holding.insert(key);
+        if dispose {
+            return w
+                .dispose(&sample)
+                .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS dispose: {e}")));
         }
-        published
+        w.write(sample)
+            .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
     }
 
     /// Releases the samples of replayed writers that matched again (or waited long enough).
@@ -1363,18 +1341,10 @@ impl Worker {
                 rematch.draining = true;
             }
             if rematch.draining {
-                if rematch.pause_until.is_some_and(|t| now < t) {
-                    continue;
-                }
-                let first = !rematch.sent_first;
-                for _ in 0..if first { 1 } else { RELEASE_BATCH } {
+                for _ in 0..RELEASE_BATCH {
                     let Some((_, sample, dispose)) = rematch.held.pop_front() else {
                         break;
                     };
-                    if first {
-                        rematch.sent_first = true;
-                        rematch.pause_until = Some(now + FIRST_SAMPLE_GAP);
-                    }
                     let done = if dispose {
                         w.dispose(&sample)
                     } else {
@@ -1387,7 +1357,7 @@ impl Worker {
                         failures += 1;
                     }
                 }
-                if rematch.held.is_empty() && rematch.pause_until.is_none_or(|t| now >= t) {
+                if rematch.held.is_empty() {
                     rematch.until = None;
                     rematch.draining = false;
                     done.push(*key);
