@@ -21,8 +21,8 @@ pub struct WorkerArgs {
     /// References file: Fast DDS XML profiles that clients may create by reference.
     #[arg(short = 'r', long = "refs", env = "XRCE_REFS")]
     pub refs: Option<std::path::PathBuf>,
-    /// Announce XRCE participants named like ROS 2 nodes (micro-ROS) on
-    /// `ros_discovery_info`, so ROS 2 tools list them.
+    /// Announce XRCE participants named like ROS 2 nodes that have an endpoint on a ROS topic
+    /// (`rt/`, `rq/`, `rr/`: micro-ROS) on `ros_discovery_info`, so ROS 2 tools list them.
     #[arg(long = "ros-graph", env = "XRCE_ROS_GRAPH", default_value_t = true, action = clap::ArgAction::Set)]
     pub ros_graph: bool,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_dds_worker=debug`.

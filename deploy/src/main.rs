@@ -69,8 +69,9 @@ struct Common {
         default_value_t = 0.0
     )]
     client_dead_time: f64,
-    /// Announce XRCE participants named like ROS 2 nodes (micro-ROS) on `ros_discovery_info`
-    /// so `ros2 node list` shows them: `true` (default) or `false`.
+    /// Announce XRCE participants named like ROS 2 nodes that have an endpoint on a ROS topic
+    /// (`rt/`, `rq/`, `rr/`: micro-ROS) on `ros_discovery_info`, so `ros2 node list` shows
+    /// them: `true` (default) or `false`.
     #[arg(long = "ros-graph", env = "XRCE_ROS_GRAPH", default_value_t = true, action = clap::ArgAction::Set)]
     ros_graph: bool,
 }
