@@ -122,3 +122,26 @@ fn collect(requester: &mut TestClient, req: ObjectId, answered: &mut BTreeMap<Re
         answered.insert(RequestId([d[0], d[1]]), sum);
     }
 }
+
+#[test]
+fn a_content_filter_on_a_requester_is_refused() {
+    let agent = AgentProcess::start("rpcfilter");
+    let mut c = TestClient::new(agent.addr(), [0xF0, 0x51, 0x00, 0x01]);
+    c.connect(10 * SECOND);
+    let requester = endpoint(&mut c, k::REQUESTER, "requester");
+    let spec = xrce_common::wire::ReadSpecification {
+        preferred_stream_id: xrce_common::wire::stream_id::BUILTIN_RELIABLE,
+        content_filter_expression: Some("a > 1".into()),
+        ..Default::default()
+    };
+    let req = c
+        .client
+        .read(Instant::now(), requester, spec)
+        .expect("read");
+    assert_eq!(
+        c.wait_status(req, 10 * SECOND),
+        xrce_common::wire::status::ERR_INCOMPATIBLE,
+        "requests and replies carry no type the worker could filter on"
+    );
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
