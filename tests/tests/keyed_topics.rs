@@ -54,16 +54,11 @@ fn parse_shape(b: &[u8]) -> Option<(String, Option<i32>)> {
 
 /// `{"color": "RED", "x": 3, "state": "alive"}` from dds_peer.py read --keyed.
 fn parse_keyed_line(l: &str) -> Option<(String, Option<i64>, String)> {
-    let field = |name: &str| -> Option<&str> {
-        let at = l.find(&format!("\"{name}\": "))? + name.len() + 4;
-        let rest = &l[at..];
-        let end = rest.find([',', '}'])?;
-        Some(rest[..end].trim().trim_matches('"'))
-    };
+    let v: serde_json::Value = serde_json::from_str(l).ok()?;
     Some((
-        field("color")?.to_string(),
-        field("x")?.parse().ok(),
-        field("state")?.to_string(),
+        v["color"].as_str()?.to_string(),
+        v["x"].as_i64(),
+        v["state"].as_str()?.to_string(),
     ))
 }
 

@@ -19,28 +19,29 @@ type Node = (String, String, Vec<String>, Vec<String>);
 
 /// A `GRAPH {...}` line: its nodes.
 fn parse_graph(l: &str) -> Option<Vec<Node>> {
-    let json = l.strip_prefix("GRAPH ")?;
-    let nodes_at = json.find("\"nodes\": [")? + "\"nodes\": [".len();
-    let mut out = Vec::new();
-    for node in json[nodes_at..].split("{\"ns\": ").skip(1) {
-        let strings = |key: &str| -> Vec<String> {
-            let Some(at) = node.find(&format!("\"{key}\": [")) else {
-                return Vec::new();
-            };
-            let rest = &node[at + key.len() + 5..];
-            let end = rest.find(']').unwrap_or(0);
-            rest[..end]
-                .split(',')
-                .map(|s| s.trim().trim_matches('"').to_string())
-                .filter(|s| !s.is_empty())
-                .collect()
-        };
-        let ns = node.split('"').nth(1)?.to_string();
-        let name_at = node.find("\"name\": \"")? + "\"name\": \"".len();
-        let name = node[name_at..].split('"').next()?.to_string();
-        out.push((ns, name, strings("writers"), strings("readers")));
-    }
-    Some(out)
+    let v: serde_json::Value = serde_json::from_str(l.strip_prefix("GRAPH ")?).ok()?;
+    let strings = |n: &serde_json::Value, key: &str| -> Vec<String> {
+        n[key]
+            .as_array()
+            .map(|a| {
+                a.iter()
+                    .filter_map(|g| Some(g.as_str()?.to_string()))
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    v["nodes"]
+        .as_array()?
+        .iter()
+        .map(|n| {
+            Some((
+                n["ns"].as_str()?.to_string(),
+                n["name"].as_str()?.to_string(),
+                strings(n, "writers"),
+                strings(n, "readers"),
+            ))
+        })
+        .collect()
 }
 
 #[test]
