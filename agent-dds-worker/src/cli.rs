@@ -25,6 +25,12 @@ pub struct WorkerArgs {
     /// (`rt/`, `rq/`, `rr/`: micro-ROS) on `ros_discovery_info`, so ROS 2 tools list them.
     #[arg(long = "ros-graph", env = "XRCE_ROS_GRAPH", default_value_t = true, action = clap::ArgAction::Set)]
     pub ros_graph: bool,
+    /// Map the XRCE data writers of one domain, topic, type and QoS onto one shared DDS
+    /// writer (volatile, shared-ownership writers only): thousands of clients publishing on
+    /// one topic then cost one DDS writer instead of one each. DDS readers see one writer
+    /// instead of one per client (one GUID, no per-client liveliness).
+    #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
+    pub share_writers: bool,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_dds_worker=debug`.
     #[arg(long, env = "XRCE_LOG", default_value = "info,rustdds=error")]
     pub log: String,
@@ -54,6 +60,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         },
         references,
         ros_graph: args.ros_graph,
+        share_writers: args.share_writers,
     })?;
     worker.run()
 }

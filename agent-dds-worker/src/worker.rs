@@ -5,11 +5,13 @@
 //! front-end cannot rebuild: after a restart it announces a new generation and the front-ends
 //! replay their clients' object graphs.
 
+use std::cell::Cell;
 use std::collections::{HashMap, HashSet};
 use std::os::fd::AsRawFd;
 use std::time::{Duration, Instant};
 
 use rustdds::mio1::{Events, Interest, Poll, Token};
+use std::rc::Rc;
 use std::sync::Arc;
 
 use rustdds::{DomainParticipant, Publisher, QosPolicies, Subscriber, Topic, TopicKind};
@@ -46,6 +48,9 @@ pub struct WorkerConfig {
     pub references: crate::references::References,
     /// Announce ROS 2 nodes on `ros_discovery_info`.
     pub ros_graph: bool,
+    /// Map XRCE data writers of one domain, topic, type, byte order and QoS onto one shared
+    /// DDS writer (volatile, shared-ownership writers only).
+    pub share_writers: bool,
 }
 
 type EntityKey = (u32, ClientKey, ObjectId);
@@ -59,14 +64,62 @@ enum EntityKind {
     Subscriber(Subscriber, DomainParticipant),
     /// A type definition (`<types>`) the client's topics can use.
     Type(Arc<TypeSet>),
-    /// A data writer, its hold state, and its topic's type if known.
-    Writer(Box<RawWriter>, Rematch, Option<Arc<StructDef>>),
+    /// A data writer (its DDS writer, possibly shared), its hold state, and its topic's type
+    /// if known.
+    Writer(Rc<DdsWriter>, Rematch, Option<Arc<StructDef>>),
     /// A data reader, its poll token, and what its content filters need.
     Reader(Box<RawReader>, Token, ReaderInfo),
     /// A requester (publishes requests, reads the replies to them) or a replier (reads
     /// requests, publishes replies).
     Service(Box<ServiceEndpoint>),
 }
+
+/// The DDS writer behind one XRCE data writer, or behind several with `share_writers`.
+struct DdsWriter {
+    raw: RawWriter,
+    /// When it first matched a reader (read from its status events, which only this
+    /// structure consumes, so that every XRCE writer sharing it sees the match).
+    matched_at: Cell<Option<Instant>>,
+}
+
+impl DdsWriter {
+    /// Reads the writer's pending status events; returns when it first matched a reader.
+    fn poll_matched(&self, now: Instant) -> Option<Instant> {
+        while let Some(st) = self.raw.try_recv_status() {
+            if let rustdds::dds::statusevents::DataWriterStatus::PublicationMatched {
+                current,
+                ..
+            } = st
+            {
+                if current.count() > 0 && self.matched_at.get().is_none() {
+                    self.matched_at.set(Some(now));
+                }
+            }
+        }
+        self.matched_at.get()
+    }
+}
+
+/// A shared DDS writer, with the QoS and key type it was made with.
+struct SharedWriterEntry {
+    qos: QosPolicies,
+    ty: Option<Arc<StructDef>>,
+    writer: std::rc::Weak<DdsWriter>,
+}
+
+/// Whether XRCE writers with this QoS may share a DDS writer without changing what DDS
+/// readers get beyond the writer's identity: a volatile writer keeps no history for late
+/// joiners (a shared transient one would keep its depth over all clients together), and
+/// exclusive ownership picks one writer per instance (sharing would merge the contenders).
+fn shareable(qos: &QosPolicies) -> bool {
+    use rustdds::policy::{Durability, Ownership};
+    matches!(qos.durability(), None | Some(Durability::Volatile))
+        && matches!(qos.ownership(), None | Some(Ownership::Shared))
+}
+
+/// What makes two XRCE data writers able to share one DDS writer, besides equal QoS and
+/// type: the domain, topic name, type name and byte order.
+type SharedWriterKey = (u16, String, String, bool);
 
 /// What a data reader's content filters need.
 struct ReaderInfo {
@@ -248,6 +301,9 @@ pub struct Worker {
     /// Writers holding their samples until matched (kept apart so that the loop never scans
     /// every entity: with thousands of clients that scan dominated the worker's CPU).
     holding: HashSet<EntityKey>,
+    /// DDS writers shared by XRCE writers (`share_writers`), with the QoS and type they
+    /// were made with; dead entries are pruned on lookup.
+    shared_writers: HashMap<SharedWriterKey, Vec<SharedWriterEntry>>,
     poll: Poll,
     graph: RosGraph,
     /// Counters by reason of rejected or failed work.
@@ -296,6 +352,7 @@ impl Worker {
             reads: HashMap::new(),
             to_pump: HashSet::new(),
             holding: HashSet::new(),
+            shared_writers: HashMap::new(),
             poll: Poll::new()?,
             graph: RosGraph::new(ros_graph),
             dropped: HashMap::new(),
@@ -398,7 +455,9 @@ impl Worker {
         let is_ros = |t: &str| ["rt/", "rq/", "rr/"].iter().any(|p| t.starts_with(p));
         for (k, e) in &self.entities {
             let (writer, reader, ros_topic) = match &e.kind {
-                EntityKind::Writer(w, _, _) => (Some(w.guid()), None, is_ros(&w.topic_name())),
+                EntityKind::Writer(w, _, _) => {
+                    (Some(w.raw.guid()), None, is_ros(&w.raw.topic_name()))
+                }
                 EntityKind::Reader(r, _, info) => (None, Some(r.guid()), is_ros(&info.topic)),
                 EntityKind::Service(s) => (
                     Some(s.writer.guid()),
@@ -810,21 +869,60 @@ impl Worker {
                 let desc = describe_endpoint(repr, true, &self.config.references, little_endian)?;
                 let (topic, tdesc, ty, kd) = self.endpoint_topic(key, p, &dp, &desc)?;
                 let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
-                // A client writes in its native byte order, the one of its CREATE.
-                let w = RawWriter::create(&publisher, &topic, qos, little_endian, kd)
-                    .map_err(|e| dds_err("create data writer", &e))?;
+                let domain = self.participant_of(key, p).map_or(0, |(_, d)| d);
+                let shared_key: Option<SharedWriterKey> =
+                    (self.config.share_writers && shareable(&qos)).then(|| {
+                        (
+                            domain,
+                            tdesc.name.clone(),
+                            tdesc.type_name.clone(),
+                            little_endian,
+                        )
+                    });
+                let existing = shared_key
+                    .as_ref()
+                    .and_then(|k| self.shared_writer(k, &qos, ty.as_ref()));
+                let w = match existing {
+                    Some(w) => w,
+                    None => {
+                        // A client writes in its native byte order, the one of its CREATE.
+                        let raw =
+                            RawWriter::create(&publisher, &topic, qos.clone(), little_endian, kd)
+                                .map_err(|e| dds_err("create data writer", &e))?;
+                        let w = Rc::new(DdsWriter {
+                            raw,
+                            matched_at: Cell::new(None),
+                        });
+                        if let Some(k) = shared_key {
+                            self.shared_writers
+                                .entry(k)
+                                .or_default()
+                                .push(SharedWriterEntry {
+                                    qos,
+                                    ty: ty.clone(),
+                                    writer: Rc::downgrade(&w),
+                                });
+                        }
+                        w
+                    }
+                };
+                let now = Instant::now();
+                // A writer joining a shared DDS writer that matched its readers long enough
+                // ago writes at once.
+                let matched = w
+                    .poll_matched(now)
+                    .is_some_and(|t| now >= t + REMATCH_MARGIN);
                 let rematch = Rematch {
-                    until: Some(
-                        Instant::now()
-                            + if replay {
-                                REMATCH_MAX
-                            } else {
-                                NEW_WRITER_HOLD_MAX
-                            },
-                    ),
+                    until: (!matched).then(|| {
+                        now + if replay {
+                            REMATCH_MAX
+                        } else {
+                            NEW_WRITER_HOLD_MAX
+                        }
+                    }),
                     ..Default::default()
                 };
-                (Some(p), EntityKind::Writer(Box::new(w), rematch, ty))
+                (Some(p), EntityKind::Writer(w, rematch, ty))
             }
             (object_kind::DATAREADER, VariantExtra::Parent(p)) => {
                 let (subscriber, dp) =
@@ -1236,14 +1334,18 @@ impl Worker {
                 "write to an unknown data writer".into(),
             ));
         };
-        if little_endian != w.little_endian() {
+        if little_endian != w.raw.little_endian() {
             // Without the type the bytes cannot be swapped.
             return Err((
                 status::ERR_INVALID_DATA,
                 format!(
                     "a {}-endian sample for a data writer created {}-endian",
                     if little_endian { "little" } else { "big" },
-                    if w.little_endian() { "little" } else { "big" },
+                    if w.raw.little_endian() {
+                        "little"
+                    } else {
+                        "big"
+                    },
                 ),
             ));
         }
@@ -1255,14 +1357,14 @@ impl Worker {
             },
             body: rustdds::bytes::Bytes::copy_from_slice(body),
         };
-        if dispose && w.key().is_none() {
+        if dispose && w.raw.key().is_none() {
             // DDS has no instances on a topic without a key.
             return Err((
                 status::ERR_INCOMPATIBLE,
                 "dispose or unregister on a topic without a key (or whose type is unknown)".into(),
             ));
         }
-        if let Some(k) = w.key() {
+        if let Some(k) = w.raw.key() {
             // Checked now, so a held sample cannot fail later, unreported.
             let whole = k.of_sample(body, little_endian, false);
             if whole.is_err() && !(dispose && k.of_key_payload(body, little_endian, false).is_ok())
@@ -1286,16 +1388,37 @@ impl Worker {
             rematch.until = None;
             rematch.draining = false;
             for (_, s, d) in rematch.held.drain(..) {
-                let _ = if d { w.dispose(&s) } else { w.write(s) };
+                let _ = if d { w.raw.dispose(&s) } else { w.raw.write(s) };
             }
         }
         if dispose {
             return w
+                .raw
                 .dispose(&sample)
                 .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS dispose: {e}")));
         }
-        w.write(sample)
+        w.raw
+            .write(sample)
             .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
+    }
+
+    /// A live shared DDS writer made with this QoS and type, if any (dead entries pruned).
+    fn shared_writer(
+        &mut self,
+        key: &SharedWriterKey,
+        qos: &QosPolicies,
+        ty: Option<&Arc<StructDef>>,
+    ) -> Option<Rc<DdsWriter>> {
+        let entries = self.shared_writers.get_mut(key)?;
+        entries.retain(|e| e.writer.strong_count() > 0);
+        let found = entries
+            .iter()
+            .find(|e| &e.qos == qos && e.ty.as_deref() == ty.map(|t| &**t))
+            .and_then(|e| e.writer.upgrade());
+        if entries.is_empty() {
+            self.shared_writers.remove(key);
+        }
+        found
     }
 
     /// Releases the samples of replayed writers that matched again (or waited long enough).
@@ -1316,16 +1439,8 @@ impl Worker {
                 done.push(*key);
                 continue;
             };
-            while let Some(st) = w.try_recv_status() {
-                if let rustdds::dds::statusevents::DataWriterStatus::PublicationMatched {
-                    current,
-                    ..
-                } = st
-                {
-                    if current.count() > 0 && rematch.matched_at.is_none() {
-                        rematch.matched_at = Some(now);
-                    }
-                }
+            if rematch.matched_at.is_none() {
+                rematch.matched_at = w.poll_matched(now);
             }
             let ready = rematch
                 .matched_at
@@ -1346,9 +1461,9 @@ impl Worker {
                         break;
                     };
                     let done = if dispose {
-                        w.dispose(&sample)
+                        w.raw.dispose(&sample)
                     } else {
-                        w.write(sample)
+                        w.raw.write(sample)
                     };
                     if let Err(e) = &done {
                         tracing::warn!(error = %e, dispose, "held sample not published");

@@ -1,12 +1,13 @@
-//! CI smoke run of the load generator (a test, not a benchmark: no timing thresholds):
-//! 50 publishing clients through our agent for a few seconds; every session is established,
-//! every writer matched, and every reliable sample delivered.
+//! CI smoke runs of the load generator (tests, not benchmarks: no timing thresholds): 50
+//! publishing clients through our agent for a few seconds; every session is established,
+//! every writer matched, and every reliable sample delivered to every subscriber.
 
 use std::process::Command;
 
-#[test]
-fn fifty_clients_deliver_every_reliable_sample() {
-    let json = std::env::temp_dir().join(format!("loadgen-smoke-{}.json", std::process::id()));
+/// Runs `xrce-loadgen` (which starts our agent) with `args` plus a free port and a JSON
+/// report; returns the report and the generator's stdout.
+fn run_loadgen(name: &str, args: &[&str]) -> (serde_json::Value, String) {
+    let json = std::env::temp_dir().join(format!("loadgen-{name}-{}.json", std::process::id()));
     // The generator starts the `xrce-agent` next to it; build it if this run did not.
     let loadgen = std::path::Path::new(env!("CARGO_BIN_EXE_xrce-loadgen"));
     if !loadgen.with_file_name("xrce-agent").exists() {
@@ -26,22 +27,9 @@ fn fifty_clients_deliver_every_reliable_sample() {
             .map(|a| a.port())
             .expect("a free port");
         let o = Command::new(loadgen)
-            .args([
-                "--port",
-                &port.to_string(),
-                "--publishers",
-                "50",
-                "--samples",
-                "1500",
-                "--rate",
-                "500",
-                "--domain",
-                "23",
-                "--duration",
-                "60",
-                "--json",
-            ])
+            .args(["--port", &port.to_string(), "--duration", "60", "--json"])
             .arg(&json)
+            .args(args)
             .output()
             .expect("run xrce-loadgen");
         let retry =
@@ -52,7 +40,7 @@ fn fifty_clients_deliver_every_reliable_sample() {
         }
     }
     let out = out.expect("ran");
-    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stdout = String::from_utf8_lossy(&out.stdout).to_string();
     assert!(
         out.status.success(),
         "xrce-loadgen failed: {stdout}\n{}",
@@ -60,11 +48,41 @@ fn fifty_clients_deliver_every_reliable_sample() {
     );
     let text = std::fs::read_to_string(&json).expect("JSON report written");
     let _ = std::fs::remove_file(&json);
-    let v: serde_json::Value = serde_json::from_str(&text).expect("valid JSON");
+    (serde_json::from_str(&text).expect("valid JSON"), stdout)
+}
+
+#[test]
+fn fifty_clients_deliver_every_reliable_sample_to_two_subscribers() {
+    // Two generator threads, two subscribers, a warm-up: 1,000 measured samples each
+    // subscriber must get once.
+    let (v, stdout) = run_loadgen(
+        "xml",
+        &[
+            "--publishers",
+            "50",
+            "--subscribers",
+            "2",
+            "--threads",
+            "2",
+            "--samples",
+            "1000",
+            "--warmup",
+            "100",
+            // Two subscribers double the worker's work: a debug build keeps up at this rate
+            // (beyond it the backlog outgrows the readers' KEEP_LAST 1000 history).
+            "--rate",
+            "250",
+            "--domain",
+            "23",
+        ],
+    );
     assert_eq!(v["publishers"], 50);
+    assert_eq!(v["subscribers"], 2);
+    assert_eq!(v["threads"], 2);
+    assert_eq!(v["creation"], "xml");
     assert_eq!(v["unmatched_writers"], 0, "{stdout}");
-    assert_eq!(v["sent"], 1500, "{stdout}");
-    assert_eq!(v["received"], 1500, "{stdout}");
+    assert_eq!(v["sent"], 1000, "{stdout}");
+    assert_eq!(v["received"], 2000, "{stdout}");
     assert_eq!(v["lost"], 0, "{stdout}");
     assert_eq!(v["duplicates"], 0, "{stdout}");
     assert!(v["latency_us"]["p50"].as_f64().is_some_and(|p| p > 0.0));
@@ -77,4 +95,54 @@ fn fifty_clients_deliver_every_reliable_sample() {
         v["agent"]["processes"].as_u64().is_some_and(|n| n >= 3),
         "{stdout}"
     );
+    assert!(
+        v["generator"]["cpu_seconds"]
+            .as_f64()
+            .is_some_and(|s| s > 0.0),
+        "{stdout}"
+    );
+}
+
+#[test]
+fn binary_creation_with_shared_writers_delivers_every_sample_and_measures_idle() {
+    // The agent maps the 50 clients' writers onto one DDS writer (`--share-writers`).
+    let (v, stdout) = run_loadgen(
+        "binary",
+        &[
+            "--publishers",
+            "50",
+            "--creation",
+            "binary",
+            "--samples",
+            "1000",
+            "--rate",
+            "500",
+            "--domain",
+            "29",
+            "--idle",
+            "1",
+            "--agent-args",
+            "--share-writers true",
+        ],
+    );
+    assert_eq!(v["creation"], "binary");
+    assert_eq!(v["unmatched_writers"], 0, "{stdout}");
+    assert_eq!(v["received"], 1000, "{stdout}");
+    assert_eq!(v["lost"], 0, "{stdout}");
+    assert_eq!(v["duplicates"], 0, "{stdout}");
+    let idle = &v["idle"];
+    assert!(
+        idle["seconds"].as_f64().is_some_and(|s| s >= 1.0),
+        "{stdout}"
+    );
+    assert!(
+        idle["rss_idle_kib"].as_u64().is_some_and(|r| r > 0),
+        "{stdout}"
+    );
+    // Every process of the agent is listed, the worker among them.
+    let names: Vec<&str> = idle["each"]
+        .as_array()
+        .map(|a| a.iter().filter_map(|p| p["name"].as_str()).collect())
+        .unwrap_or_default();
+    assert!(names.iter().any(|n| n.contains("dds-worker")), "{names:?}");
 }

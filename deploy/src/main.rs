@@ -74,6 +74,11 @@ struct Common {
     /// them: `true` (default) or `false`.
     #[arg(long = "ros-graph", env = "XRCE_ROS_GRAPH", default_value_t = true, action = clap::ArgAction::Set)]
     ros_graph: bool,
+    /// Map the XRCE data writers of one domain, topic, type and QoS onto one shared DDS
+    /// writer (volatile, shared-ownership writers only): `true` or `false` (default). Scales
+    /// to thousands of clients publishing on one topic; DDS readers then see one writer.
+    #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
+    share_writers: bool,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -147,6 +152,10 @@ fn main() -> anyhow::Result<()> {
         common.client_dead_time.to_string(),
     ));
     env.push(("XRCE_ROS_GRAPH".into(), common.ros_graph.to_string()));
+    env.push((
+        "XRCE_SHARE_WRITERS".into(),
+        common.share_writers.to_string(),
+    ));
     if !common.dds_interfaces.is_empty() {
         let list: Vec<String> = common
             .dds_interfaces

@@ -440,7 +440,7 @@ impl TestClient {
     /// Creates the HelloWorld chain participant (in `domain`) → topic → `group` (publisher
     /// or subscriber) → `endpoint` (writer or reader), asserting every STATUS is OK; returns
     /// the endpoint id.
-    fn setup_chain(
+    pub fn setup_chain(
         &mut self,
         domain: i16,
         group: u8,

@@ -58,7 +58,7 @@ impl ObjectId {
     pub const SESSION: ObjectId = ObjectId([0xFF, 0xFF]);
 
     /// Builds an id from a 12-bit prefix number and a kind, the way the eProsima client does.
-    pub fn new(prefix: u16, kind: u8) -> Self {
+    pub const fn new(prefix: u16, kind: u8) -> Self {
         let raw = (prefix << 4) | (kind as u16 & 0x0F);
         ObjectId(raw.to_be_bytes())
     }

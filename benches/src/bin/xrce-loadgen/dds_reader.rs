@@ -60,7 +60,9 @@ impl DdsReader {
             .map_err(|e| format!("DDS participant: {e:?}"))?;
         let qos = QosPolicyBuilder::new()
             .best_effort()
-            .history(rustdds::policy::History::KeepAll)
+            // A deep history makes RustDDS's take slow (it walks the cache): with 100 writers
+            // and KEEP_ALL it fell to a few hundred samples/s. The reader takes as they come.
+            .history(rustdds::policy::History::KeepLast { depth: 1000 })
             .build();
         let t = dp
             .create_topic(topic.into(), type_name.into(), &qos, TopicKind::NoKey)

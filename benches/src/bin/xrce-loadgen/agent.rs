@@ -1,0 +1,205 @@
+//! The agent under test: started (any command, `{port}` replaced) and stopped by the
+//! generator, and its resource use read from /proc over its whole process tree.
+
+use std::net::UdpSocket;
+use std::process::{Child, Command};
+use std::time::{Duration, Instant};
+
+/// The agent under test, started by the generator and stopped when dropped.
+pub struct AgentUnderTest {
+    child: Child,
+}
+
+impl AgentUnderTest {
+    pub fn start(cmd: &str, port: u16) -> Result<Self, String> {
+        let line = cmd.replace("{port}", &port.to_string());
+        eprintln!("starting agent: {line}");
+        let child = Command::new("sh")
+            .arg("-c")
+            .arg(format!("exec {line}"))
+            .spawn()
+            .map_err(|e| format!("starting {line:?}: {e}"))?;
+        Ok(AgentUnderTest { child })
+    }
+
+    /// CPU seconds and summed peak RSS (KiB) of the agent and every descendant.
+    pub fn usage(&self) -> Option<ProcUsage> {
+        proc_usage(self.child.id())
+    }
+}
+
+impl Drop for AgentUnderTest {
+    fn drop(&mut self) {
+        let pid = self.child.id() as i32;
+        // SIGINT first (agents clean up), then give them 5 s.
+        let _ = Command::new("kill")
+            .args(["-INT", &pid.to_string()])
+            .status();
+        let end = Instant::now() + Duration::from_secs(5);
+        while Instant::now() < end {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Resource use of a process tree, summed, and per process.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct ProcUsage {
+    /// User plus system CPU seconds.
+    pub cpu_seconds: f64,
+    /// Sum of the processes' resident set sizes now, KiB.
+    pub rss_kib: u64,
+    /// Sum of the processes' peak resident set sizes, KiB.
+    pub peak_rss_kib: u64,
+    /// Processes counted.
+    pub processes: usize,
+    /// Threads of all the processes.
+    pub threads: u64,
+    /// Open file descriptors of all the processes.
+    pub fds: u64,
+    /// Each process of the tree.
+    pub each: Vec<ProcOne>,
+}
+
+/// Resource use of one process.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct ProcOne {
+    pub pid: u32,
+    /// The command name (`comm`).
+    pub name: String,
+    pub cpu_seconds: f64,
+    pub rss_kib: u64,
+    pub peak_rss_kib: u64,
+    pub threads: u64,
+    pub fds: u64,
+}
+
+/// Reads /proc for `root` and its descendants.
+pub fn proc_usage(root: u32) -> Option<ProcUsage> {
+    let ticks = 100.0; // USER_HZ on Linux
+    let mut parents: Vec<(u32, u32)> = Vec::new();
+    for e in std::fs::read_dir("/proc").ok()?.flatten() {
+        let Some(pid) = e.file_name().to_str().and_then(|s| s.parse::<u32>().ok()) else {
+            continue;
+        };
+        let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+            continue;
+        };
+        let after = stat.rsplit_once(')').map(|(_, r)| r).unwrap_or("");
+        let ppid = after.split_whitespace().nth(1).and_then(|v| v.parse().ok());
+        if let Some(ppid) = ppid {
+            parents.push((pid, ppid));
+        }
+    }
+    let mut tree = vec![root];
+    let mut i = 0;
+    while i < tree.len() {
+        let p = tree[i];
+        tree.extend(parents.iter().filter(|(_, pp)| *pp == p).map(|(c, _)| *c));
+        i += 1;
+    }
+    let mut u = ProcUsage::default();
+    for pid in &tree {
+        let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else {
+            continue;
+        };
+        let (before, after) = stat.rsplit_once(')').unwrap_or(("", ""));
+        let f: Vec<&str> = after.split_whitespace().collect();
+        // Fields after the command: state(0) ppid(1) ... utime(11) stime(12).
+        let t = |k: usize| f.get(k).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+        let mut one = ProcOne {
+            pid: *pid,
+            name: before
+                .split_once('(')
+                .map_or(String::new(), |(_, n)| n.to_string()),
+            cpu_seconds: (t(11) + t(12)) / ticks,
+            ..Default::default()
+        };
+        // Our agent's processes share one executable: its first argument (the transport or
+        // `dds-worker`, `frontend`) tells them apart.
+        if let Ok(cmdline) = std::fs::read(format!("/proc/{pid}/cmdline")) {
+            if let Some(arg) = cmdline
+                .split(|b| *b == 0)
+                .nth(1)
+                .filter(|a| !a.is_empty() && !a.starts_with(b"-"))
+            {
+                one.name = format!("{} {}", one.name, String::from_utf8_lossy(arg));
+            }
+        }
+        if let Ok(status) = std::fs::read_to_string(format!("/proc/{pid}/status")) {
+            let field = |name: &str| {
+                status
+                    .lines()
+                    .find_map(|l| l.strip_prefix(name))
+                    .and_then(|v| v.split_whitespace().next())
+                    .and_then(|v| v.parse::<u64>().ok())
+                    .unwrap_or(0)
+            };
+            one.peak_rss_kib = field("VmHWM:");
+            one.rss_kib = field("VmRSS:");
+            one.threads = field("Threads:");
+        }
+        one.fds = std::fs::read_dir(format!("/proc/{pid}/fd")).map_or(0, |d| d.count() as u64);
+        u.cpu_seconds += one.cpu_seconds;
+        u.rss_kib += one.rss_kib;
+        u.peak_rss_kib += one.peak_rss_kib;
+        u.threads += one.threads;
+        u.fds += one.fds;
+        u.processes += 1;
+        u.each.push(one);
+    }
+    Some(u)
+}
+
+/// Waits until something answers an XRCE ping on `port` (giving up early if the agent we
+/// started exited).
+pub fn wait_for_agent(port: u16, limit: Duration, agent: &mut Option<AgentUnderTest>) -> bool {
+    let Ok(socket) = UdpSocket::bind("127.0.0.1:0") else {
+        return false;
+    };
+    if socket.connect(("127.0.0.1", port)).is_err()
+        || socket
+            .set_read_timeout(Some(Duration::from_millis(100)))
+            .is_err()
+    {
+        return false;
+    }
+    // GET_INFO without a session, as eProsima's ping sends it.
+    let ping = [
+        0x80, 0x00, 0x00, 0x00, 0x02, 0x01, 0x08, 0x00, 0x00, 0x01, 0xFF, 0xFD, 0x02, 0x00, 0x00,
+        0x00,
+    ];
+    let end = Instant::now() + limit;
+    let mut buf = [0u8; 512];
+    while Instant::now() < end {
+        if let Some(a) = agent.as_mut() {
+            if let Ok(Some(status)) = a.child.try_wait() {
+                eprintln!("the agent exited before answering: {status}");
+                return false;
+            }
+        }
+        let _ = socket.send(&ping);
+        if let Ok(n) = socket.recv(&mut buf) {
+            if n > 4 && buf[4] == 0x06 {
+                return true;
+            }
+        }
+    }
+    false
+}
+
+/// CPU seconds this process (the generator, without the agent it started) has used.
+pub fn own_cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return 0.0;
+    };
+    let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<&str> = after.split_whitespace().collect();
+    let t = |k: usize| f.get(k).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    (t(11) + t(12)) / 100.0
+}

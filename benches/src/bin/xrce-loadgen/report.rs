@@ -1,0 +1,211 @@
+//! What one run measured: for people (a table on stdout) and for machines (JSON).
+
+use crate::agent::ProcOne;
+
+/// What one run measured (also written as JSON).
+#[derive(Debug, serde::Serialize)]
+pub struct Report {
+    pub publishers: u32,
+    pub subscribers: u32,
+    pub payload_bytes: usize,
+    pub reliable: bool,
+    /// How the entities were created: `xml` or `binary`.
+    pub creation: String,
+    /// Samples per second asked for in total (0 = unpaced).
+    pub rate_requested: f64,
+    /// Samples sent before the measured phase, not counted.
+    pub warmup_samples: u32,
+    /// Generator threads sending and receiving in the measured phase.
+    pub threads: u32,
+    pub sessions_ms: f64,
+    pub setup_ms: f64,
+    pub matched_ms: f64,
+    pub unmatched_writers: usize,
+    /// Samples sent (each is expected once at every subscriber).
+    pub sent: u32,
+    /// Distinct samples received, summed over the subscribers.
+    pub received: u64,
+    pub lost: u64,
+    pub duplicates: u64,
+    pub seconds: f64,
+    /// Samples per second received, summed over the subscribers.
+    pub samples_per_second: f64,
+    pub bytes_per_second: f64,
+    /// What the independent DDS reader counted (client → agent → DDS).
+    pub dds: Option<DdsReport>,
+    /// Client → agent → DDS → agent → client.
+    pub latency_us: Percentiles,
+    pub agent: Option<AgentUse>,
+    /// The agent with every session set up and silent (`--idle`).
+    pub idle: Option<IdleUse>,
+    /// The generator's own CPU in the measured phase.
+    pub generator: GeneratorUse,
+}
+
+/// Latency percentiles, µs.
+#[derive(Debug, serde::Serialize)]
+pub struct Percentiles {
+    pub p50: f64,
+    pub p90: f64,
+    pub p99: f64,
+    pub p999: f64,
+    pub max: f64,
+}
+
+impl Percentiles {
+    /// The percentiles of a histogram of nanoseconds.
+    pub fn of(h: &hdrhistogram::Histogram<u64>) -> Self {
+        let q = |x: f64| h.value_at_quantile(x) as f64 / 1000.0;
+        Percentiles {
+            p50: q(0.5),
+            p90: q(0.9),
+            p99: q(0.99),
+            p999: q(0.999),
+            max: h.max() as f64 / 1000.0,
+        }
+    }
+}
+
+/// What the independent DDS reader counted.
+#[derive(Debug, serde::Serialize)]
+pub struct DdsReport {
+    pub received: u64,
+    pub lost: u64,
+    pub duplicates: u64,
+    pub samples_per_second: f64,
+    pub latency_us: Percentiles,
+}
+
+/// The agent's resource use in the measured phase.
+#[derive(Debug, serde::Serialize)]
+pub struct AgentUse {
+    /// CPU seconds of the agent's processes during the measured phase.
+    pub cpu_seconds: f64,
+    /// CPU microseconds per delivered sample.
+    pub cpu_us_per_sample: f64,
+    /// Summed peak RSS of the agent's processes at the end, KiB.
+    pub peak_rss_kib: u64,
+    pub processes: usize,
+    /// Threads of the agent's processes at the end of the measured phase.
+    pub threads: u64,
+    /// Open file descriptors of the agent's processes at the end of the measured phase.
+    pub fds: u64,
+    /// Each process at the end of the measured phase, with its CPU over the phase.
+    pub each: Vec<ProcOne>,
+}
+
+/// The agent's cost with every session and entity set up and no traffic.
+#[derive(Debug, serde::Serialize)]
+pub struct IdleUse {
+    pub seconds: f64,
+    /// Agent CPU over the idle period, as a percentage of one core.
+    pub cpu_percent: f64,
+    /// Resident memory of the agent's processes before any session, KiB.
+    pub rss_before_kib: u64,
+    /// Resident memory with every session set up, KiB.
+    pub rss_idle_kib: u64,
+    /// (idle − before) / sessions, bytes.
+    pub rss_bytes_per_session: f64,
+    /// Each process at the end of the idle period, with its CPU over the period.
+    pub each: Vec<ProcOne>,
+}
+
+/// The generator's own CPU in the measured phase.
+#[derive(Debug, serde::Serialize)]
+pub struct GeneratorUse {
+    pub cpu_seconds: f64,
+    /// CPU seconds over (seconds × threads): near 100 % means the generator was the limit.
+    pub busy_percent: f64,
+}
+
+/// Prints a run's results for people.
+pub fn print_report(report: &Report) {
+    println!(
+        "{} publishers + {} subscribers, {} B {}, {} creation, {} generator threads: set-up {:.0} ms (sessions {:.0} ms), writers matched at {:.0} ms ({} never)",
+        report.publishers,
+        report.subscribers,
+        report.payload_bytes,
+        if report.reliable { "reliable" } else { "best-effort" },
+        report.creation,
+        report.threads,
+        report.setup_ms,
+        report.sessions_ms,
+        report.matched_ms,
+        report.unmatched_writers
+    );
+    if let Some(i) = &report.idle {
+        println!(
+            "  idle {:.0} s with every session set up: agent CPU {:.2} % of a core, RSS {:.1} MiB (before sessions {:.1} MiB) = {:.1} KiB per session",
+            i.seconds,
+            i.cpu_percent,
+            i.rss_idle_kib as f64 / 1024.0,
+            i.rss_before_kib as f64 / 1024.0,
+            i.rss_bytes_per_session / 1024.0
+        );
+        for p in &i.each {
+            println!(
+                "    {:<22} RSS {:>8.1} MiB  {:>3} threads  {:>5} fds  CPU {:.2} s",
+                p.name,
+                p.rss_kib as f64 / 1024.0,
+                p.threads,
+                p.fds,
+                p.cpu_seconds
+            );
+        }
+    }
+    println!(
+        "  {} of {} samples in {:.2} s = {:.0} samples/s ({:.1} MB/s), {} lost, {} duplicates",
+        report.received,
+        u64::from(report.sent) * u64::from(report.subscribers),
+        report.seconds,
+        report.samples_per_second,
+        report.bytes_per_second / 1e6,
+        report.lost,
+        report.duplicates
+    );
+    let l = &report.latency_us;
+    println!(
+        "  latency us: p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}",
+        l.p50, l.p90, l.p99, l.p999, l.max
+    );
+    if let Some(d) = &report.dds {
+        println!(
+            "  into DDS (independent RustDDS reader): {} of {} = {:.0} samples/s, {} lost, {} duplicates; latency us: p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}",
+            d.received,
+            report.sent,
+            d.samples_per_second,
+            d.lost,
+            d.duplicates,
+            d.latency_us.p50,
+            d.latency_us.p90,
+            d.latency_us.p99,
+            d.latency_us.p999,
+            d.latency_us.max
+        );
+    }
+    if let Some(u) = &report.agent {
+        println!(
+            "  agent ({} processes, {} threads, {} fds): {:.2} CPU s = {:.1} us/sample, peak RSS {:.1} MiB",
+            u.processes,
+            u.threads,
+            u.fds,
+            u.cpu_seconds,
+            u.cpu_us_per_sample,
+            u.peak_rss_kib as f64 / 1024.0
+        );
+        for p in &u.each {
+            println!(
+                "    {:<22} CPU {:>6.2} s  peak RSS {:>8.1} MiB  {:>3} threads  {:>5} fds",
+                p.name,
+                p.cpu_seconds,
+                p.peak_rss_kib as f64 / 1024.0,
+                p.threads,
+                p.fds
+            );
+        }
+    }
+    println!(
+        "  generator: {:.2} CPU s, {:.0} % busy",
+        report.generator.cpu_seconds, report.generator.busy_percent
+    );
+}

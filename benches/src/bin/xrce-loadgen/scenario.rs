@@ -1,0 +1,728 @@
+//! One run of a scenario: start the agent, set up every client's session and entities,
+//! optionally measure the idle agent, match, warm up, then the measured phase, where groups
+//! of publishing clients send from their own threads and the subscribing clients record
+//! every sample once.
+
+use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::time::{Duration, Instant};
+
+use xrce_common::session::client::ClientEvent;
+use xrce_common::wire::binary::{
+    qos_flags, EndpointBinary, EndpointBinaryQos, EndpointQosBinary, GroupBinary,
+    ParticipantBinary, TopicBinary,
+};
+use xrce_common::wire::{
+    object_kind as k, stream_id, DataDeliveryControl, ObjectId, ReadSpecification, Representation,
+    VariantExtra,
+};
+
+use crate::agent::{own_cpu_seconds, wait_for_agent, AgentUnderTest, ProcOne, ProcUsage};
+use crate::dds_reader::DdsReader;
+use crate::peer::{Group, Peer};
+use crate::report::{AgentUse, DdsReport, GeneratorUse, IdleUse, Percentiles, Report};
+use crate::{Args, Creation};
+
+/// Sequence numbers of warm-up samples start here (measured ones are below `--samples`,
+/// probes at the top of the range).
+const WARMUP_TAG: u32 = 0x8000_0000;
+
+const PARTICIPANT: ObjectId = ObjectId::new(1, k::PARTICIPANT);
+const TOPIC: ObjectId = ObjectId::new(1, k::TOPIC);
+const PUBLISHER: ObjectId = ObjectId::new(1, k::PUBLISHER);
+const SUBSCRIBER: ObjectId = ObjectId::new(1, k::SUBSCRIBER);
+const WRITER: ObjectId = ObjectId::new(1, k::DATAWRITER);
+const READER: ObjectId = ObjectId::new(1, k::DATAREADER);
+
+/// The CREATE representations of one client's entities, in the scenario's creation mode.
+struct Bodies {
+    participant: Representation,
+    topic: Representation,
+    group: Representation,
+    writer: Representation,
+    reader: Representation,
+}
+
+impl Bodies {
+    fn new(a: &Args) -> Self {
+        match a.creation {
+            Creation::Xml => {
+                let history = if a.history == 0 {
+                    "<kind>KEEP_ALL</kind>".to_string()
+                } else {
+                    format!("<kind>KEEP_LAST</kind><depth>{}</depth>", a.history)
+                };
+                // The DDS endpoints follow the scenario: reliable, or best-effort end to end.
+                let reliability = if a.best_effort {
+                    "BEST_EFFORT"
+                } else {
+                    "RELIABLE"
+                };
+                let endpoint = |e: &str| {
+                    Representation::Xml(format!(
+                        "<dds><{e}><topic><kind>NO_KEY</kind><name>LoadTopic</name><dataType>Load</dataType></topic><qos><reliability><kind>{reliability}</kind></reliability><durability><kind>VOLATILE</kind></durability><historyQos>{history}</historyQos></qos></{e}></dds>"
+                    ))
+                };
+                Bodies {
+                    participant: Representation::Xml(
+                        "<dds><participant><rtps><name>load</name></rtps></participant></dds>"
+                            .into(),
+                    ),
+                    topic: Representation::Xml(
+                        "<dds><topic><name>LoadTopic</name><dataType>Load</dataType></topic></dds>"
+                            .into(),
+                    ),
+                    group: Representation::Xml(String::new()),
+                    writer: endpoint("data_writer"),
+                    reader: endpoint("data_reader"),
+                }
+            }
+            Creation::Binary => {
+                let mut flags = 0;
+                if !a.best_effort {
+                    flags |= qos_flags::RELIABLE;
+                }
+                if a.history > 0 {
+                    flags |= qos_flags::HISTORY_KEEP_LAST;
+                }
+                let endpoint = EndpointBinary {
+                    topic_id: TOPIC,
+                    qos: Some(EndpointBinaryQos {
+                        base: EndpointQosBinary {
+                            flags,
+                            history_depth: (a.history > 0)
+                                .then(|| u16::try_from(a.history).unwrap_or(u16::MAX)),
+                            ..EndpointQosBinary::default()
+                        },
+                        ..EndpointBinaryQos::default()
+                    }),
+                };
+                Bodies {
+                    participant: Representation::Binary(
+                        ParticipantBinary {
+                            domain_reference: None,
+                            qos_profile_reference: Some("load".into()),
+                        }
+                        .encode(true),
+                    ),
+                    topic: Representation::Binary(
+                        TopicBinary {
+                            topic_name: "LoadTopic".into(),
+                            type_reference: None,
+                            type_name: Some("Load".into()),
+                        }
+                        .encode(true),
+                    ),
+                    group: Representation::Binary(GroupBinary::default().encode(true)),
+                    writer: Representation::Binary(endpoint.encode(true, true)),
+                    reader: Representation::Binary(endpoint.encode(false, true)),
+                }
+            }
+        }
+    }
+}
+
+/// A sample: its sequence number and send time (ns since `base`), then zeros.
+fn sample(payload: usize, seq: u32, base: Instant) -> Vec<u8> {
+    let mut v = vec![0u8; payload];
+    v[0..4].copy_from_slice(&seq.to_le_bytes());
+    v[4..12].copy_from_slice(&(base.elapsed().as_nanos() as u64).to_le_bytes());
+    v
+}
+
+/// The sequence number and send time of a received sample.
+fn tag(data: &[u8]) -> Option<(u32, u64)> {
+    let seq = u32::from_le_bytes(data.get(0..4)?.try_into().ok()?);
+    let ts = u64::from_le_bytes(data.get(4..12)?.try_into().ok()?);
+    Some((seq, ts))
+}
+
+/// What a group of publishers sends in the measured phase: the sequence numbers
+/// `first, first + step, …` below `samples`, paced at `rate` (0 = unpaced).
+struct Share {
+    next: u32,
+    step: u32,
+    samples: u32,
+    rate: f64,
+    sent: u32,
+    /// The publisher (index in the group) to use next.
+    next_pub: usize,
+}
+
+impl Share {
+    fn done(&self) -> bool {
+        self.next >= self.samples
+    }
+
+    /// When the next sample is due (None: all sent or unpaced).
+    fn next_due(&self, t0: Instant) -> Option<Instant> {
+        (self.rate > 0.0 && !self.done())
+            .then(|| t0 + Duration::from_secs_f64(f64::from(self.sent + 1) / self.rate))
+    }
+
+    /// How long the group may wait for data before its next send: until the next sample is
+    /// due, but at least 1 ms (then the samples due by then go out together), or not at all
+    /// when unpaced.
+    fn wait(&self, t0: Instant) -> Duration {
+        if self.done() {
+            return Duration::from_millis(1);
+        }
+        match self.next_due(t0) {
+            None => Duration::ZERO,
+            Some(t) => t
+                .saturating_duration_since(Instant::now())
+                .max(Duration::from_millis(1)),
+        }
+    }
+
+    /// Sends what is due by now (at most 64 per call), round robin over `pubs`.
+    fn send_due(
+        &mut self,
+        group: &mut Group,
+        pubs: std::ops::Range<usize>,
+        t0: Instant,
+        stream: u8,
+        payload: usize,
+        base: Instant,
+    ) {
+        if pubs.is_empty() {
+            return;
+        }
+        let allowed = if self.rate > 0.0 {
+            (t0.elapsed().as_secs_f64() * self.rate) as u32
+        } else {
+            u32::MAX
+        };
+        let mut tries = 0;
+        let mut burst = 0;
+        while !self.done() && self.sent < allowed && tries < pubs.len() && burst < 64 {
+            if self.next_pub < pubs.start || self.next_pub >= pubs.end {
+                self.next_pub = pubs.start;
+            }
+            let i = self.next_pub;
+            self.next_pub += 1;
+            if stream == stream_id::BUILTIN_RELIABLE
+                && !group.peers[i].client.can_send_reliable(stream)
+            {
+                tries += 1;
+                continue;
+            }
+            tries = 0;
+            group.write(i, stream, WRITER, &sample(payload, self.next, base));
+            self.next += self.step;
+            self.sent += 1;
+            burst += 1;
+        }
+    }
+}
+
+/// Runs the scenario of `a` against the agent `agent_cmd` (ours when None).
+pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
+    let (port, publishers, subscribers, samples, payload) = (
+        a.port,
+        a.publishers as usize,
+        a.subscribers as usize,
+        a.samples,
+        a.payload.max(12),
+    );
+    let domain =
+        u16::try_from(a.domain).map_err(|_| format!("domain {} is not a DDS domain", a.domain))?;
+    let rate = match a.client_rate {
+        Some(r) => r * publishers as f64,
+        None => a.rate,
+    };
+    let stream = if a.best_effort {
+        stream_id::BUILTIN_BEST_EFFORT
+    } else {
+        stream_id::BUILTIN_RELIABLE
+    };
+    let mut agent = if a.no_agent {
+        None
+    } else {
+        let cmd = match agent_cmd {
+            Some(c) => c.to_string(),
+            None => {
+                let exe = std::env::current_exe().map_err(|e| e.to_string())?;
+                let ours = exe.with_file_name("xrce-agent");
+                format!(
+                    "{} udp4 -p {{port}} --bind 127.0.0.1 --dds-interface 127.0.0.1 -v 3 {}",
+                    ours.display(),
+                    a.agent_args
+                )
+            }
+        };
+        Some(AgentUnderTest::start(&cmd, port)?)
+    };
+    if !wait_for_agent(port, Duration::from_secs(30), &mut agent) {
+        return Err(format!("no agent answers a ping on UDP port {port}"));
+    }
+    let usage_empty = agent.as_ref().and_then(AgentUnderTest::usage);
+    let bodies = Bodies::new(a);
+    let base = Instant::now();
+    let dds = if a.dds_reader {
+        Some(DdsReader::start(
+            domain,
+            "LoadTopic",
+            "Load",
+            samples,
+            publishers,
+            base,
+        )?)
+    } else {
+        None
+    };
+
+    // Peers 0..subscribers subscribe, the others publish (publisher j is peer
+    // subscribers + j - 1, its probe tag u32::MAX - j).
+    let total = subscribers + publishers;
+    let mut peers = Vec::with_capacity(total);
+    for i in 0..total {
+        let key = [0x10, (i >> 16) as u8, (i >> 8) as u8, i as u8];
+        peers.push(Peer::new(port, key).map_err(|e| format!("client socket: {e}"))?);
+    }
+    let mut all = Group::new(peers)?;
+    let t_start = Instant::now();
+    for i in 0..total {
+        all.peers[i].client.connect(Instant::now());
+        all.touch(i);
+    }
+    if !all.pump_until(Duration::from_secs(60), |ps| {
+        ps.iter().all(|p| p.client.is_connected())
+    })? {
+        return Err("not every session was established within 60 s".into());
+    }
+    let sessions_at = t_start.elapsed();
+    let extra = VariantExtra::Parent;
+    for (i, p) in all.peers.iter_mut().enumerate() {
+        p.create(
+            PARTICIPANT,
+            k::PARTICIPANT,
+            bodies.participant.clone(),
+            VariantExtra::DomainId(a.domain),
+        )?;
+        p.create(TOPIC, k::TOPIC, bodies.topic.clone(), extra(PARTICIPANT))?;
+        if i < subscribers {
+            p.create(
+                SUBSCRIBER,
+                k::SUBSCRIBER,
+                bodies.group.clone(),
+                extra(PARTICIPANT),
+            )?;
+            p.create(
+                READER,
+                k::DATAREADER,
+                bodies.reader.clone(),
+                extra(SUBSCRIBER),
+            )?;
+        } else {
+            p.create(
+                PUBLISHER,
+                k::PUBLISHER,
+                bodies.group.clone(),
+                extra(PARTICIPANT),
+            )?;
+            p.create(
+                WRITER,
+                k::DATAWRITER,
+                bodies.writer.clone(),
+                extra(PUBLISHER),
+            )?;
+        }
+    }
+    (0..total).for_each(|i| all.touch(i));
+    if !all.pump_until(Duration::from_secs(120), |ps| {
+        ps.iter().all(|p| p.pending.is_empty())
+    })? {
+        return Err("not every entity was created within 120 s".into());
+    }
+    let setup = t_start.elapsed();
+    eprintln!(
+        "{total} sessions in {:.0} ms, their {} entities in {:.0} ms ({:.0} sessions/s)",
+        sessions_at.as_secs_f64() * 1e3,
+        total * 4,
+        setup.as_secs_f64() * 1e3,
+        total as f64 / setup.as_secs_f64()
+    );
+    let idle = if a.idle > 0.0 {
+        measure_idle(
+            a.idle,
+            &mut all,
+            agent.as_ref(),
+            usage_empty.as_ref(),
+            total,
+        )?
+    } else {
+        None
+    };
+
+    let spec = ReadSpecification {
+        preferred_stream_id: stream,
+        delivery_control: Some(DataDeliveryControl {
+            max_samples: u16::MAX,
+            ..Default::default()
+        }),
+        ..Default::default()
+    };
+    for i in 0..subscribers {
+        all.peers[i]
+            .client
+            .read(Instant::now(), READER, spec.clone())
+            .map_err(|e| e.to_string())?;
+        all.touch(i);
+    }
+
+    // Probe until DDS matched every writer with every reader: each publisher's probe comes
+    // back to every subscriber (and reaches the independent DDS reader).
+    let (matched, unmatched) = probe(
+        &mut all,
+        subscribers,
+        publishers,
+        stream,
+        payload,
+        base,
+        &dds,
+    )?;
+    let matched = matched.saturating_duration_since(t_start);
+    if a.warmup > 0 {
+        warm_up(a, &mut all, subscribers, rate, stream, payload, base)?;
+    }
+
+    // The measured phase: the publishers are split into groups, one per thread; the first
+    // group also holds the subscribers and is pumped by this thread.
+    let threads = (a.threads as usize).clamp(1, publishers);
+    let mut sizes = vec![0usize; threads];
+    for j in 0..publishers {
+        sizes[j * threads / publishers] += 1;
+    }
+    sizes[0] += subscribers;
+    let mut groups = all.split(&sizes)?;
+    let stop = AtomicBool::new(false);
+    let sent_total = AtomicU32::new(0);
+    let shares: Vec<Share> = (0..threads)
+        .map(|t| Share {
+            next: t as u32,
+            step: threads as u32,
+            samples,
+            rate: rate / threads as f64,
+            sent: 0,
+            next_pub: 0,
+        })
+        .collect();
+    let mut latencies = hdrhistogram::Histogram::<u64>::new_with_bounds(1, 60_000_000_000, 3)
+        .map_err(|e| e.to_string())?;
+    let (mut received, mut duplicates) = (0u64, 0u64);
+    let mut seen = vec![false; samples as usize * subscribers];
+    let usage_before = agent.as_ref().and_then(AgentUnderTest::usage);
+    let cpu_before = own_cpu_seconds();
+    let t0 = Instant::now();
+    let deadline = t0 + Duration::from_secs(a.duration);
+    let mut last_rx = t0;
+    let expected = u64::from(samples) * subscribers as u64;
+    let mut shares = shares.into_iter();
+    let mut first_share = shares.next().ok_or("no generator thread")?;
+    let (first, others) = groups.split_first_mut().ok_or("no client group")?;
+    std::thread::scope(|scope| -> Result<(), String> {
+        let mut handles = Vec::new();
+        for (g, mut share) in others.iter_mut().zip(shares) {
+            let (stop, sent_total) = (&stop, &sent_total);
+            handles.push(scope.spawn(move || -> Result<(), String> {
+                let mut events = Vec::new();
+                let n = g.peers.len();
+                let mut counted = 0;
+                // Keeps pumping after its share is sent: reliable streams still need their
+                // acknowledgements and repairs.
+                while !stop.load(Ordering::Relaxed) {
+                    share.send_due(g, 0..n, t0, stream, payload, base);
+                    if share.sent > counted {
+                        sent_total.fetch_add(share.sent - counted, Ordering::Relaxed);
+                        counted = share.sent;
+                    }
+                    g.pump(&mut events, share.wait(t0))?;
+                    events.clear();
+                }
+                Ok(())
+            }));
+        }
+        let n = first.peers.len();
+        let mut events = Vec::new();
+        let mut counted = 0;
+        let mut last_report = t0;
+        let result = loop {
+            if received >= expected || Instant::now() >= deadline {
+                break Ok(());
+            }
+            // Everything sent and nothing more for a while: the rest is lost. Reliable samples
+            // are still coming while the agent works through a backlog, so they get longer.
+            let quiet = if stream == stream_id::BUILTIN_RELIABLE {
+                Duration::from_secs(10)
+            } else {
+                Duration::from_secs(2)
+            };
+            if sent_total.load(Ordering::Relaxed) >= samples && last_rx.elapsed() > quiet {
+                break Ok(());
+            }
+            first_share.send_due(first, subscribers..n, t0, stream, payload, base);
+            if first_share.sent > counted {
+                sent_total.fetch_add(first_share.sent - counted, Ordering::Relaxed);
+                counted = first_share.sent;
+            }
+            if let Err(e) = first.pump(&mut events, first_share.wait(t0)) {
+                break Err(e);
+            }
+            let now_ns = base.elapsed().as_nanos() as u64;
+            for (i, e) in events.drain(..) {
+                let ClientEvent::Data { data, .. } = e else {
+                    continue;
+                };
+                let Some((seq, ts)) = tag(&data) else {
+                    continue;
+                };
+                if i >= subscribers || seq >= samples {
+                    continue;
+                }
+                let slot = &mut seen[i * samples as usize + seq as usize];
+                if *slot {
+                    duplicates += 1;
+                    continue;
+                }
+                *slot = true;
+                received += 1;
+                last_rx = Instant::now();
+                let ns = now_ns.saturating_sub(ts).max(1);
+                let _ = latencies.record(ns.min(60_000_000_000));
+            }
+            if last_report.elapsed() > Duration::from_secs(1) {
+                last_report = Instant::now();
+                eprintln!(
+                    "progress: sent {}, received {received}",
+                    sent_total.load(Ordering::Relaxed)
+                );
+            }
+        };
+        stop.store(true, Ordering::Relaxed);
+        for h in handles {
+            h.join().map_err(|_| "a generator thread panicked")??;
+        }
+        result
+    })?;
+    let sent = sent_total.load(Ordering::Relaxed);
+    // Throughput over the time until the last sample arrived.
+    let elapsed = last_rx
+        .saturating_duration_since(t0)
+        .max(Duration::from_millis(1));
+    let generator_cpu = own_cpu_seconds() - cpu_before;
+    let wall = t0.elapsed().as_secs_f64();
+    let usage_after = agent.as_ref().and_then(AgentUnderTest::usage);
+    let dds = match dds {
+        Some(d) => {
+            std::thread::sleep(Duration::from_millis(300));
+            let c = d.finish()?;
+            let secs = c
+                .last_rx
+                .map_or(Duration::from_millis(1), |l| {
+                    l.saturating_duration_since(t0)
+                })
+                .max(Duration::from_millis(1))
+                .as_secs_f64();
+            Some(DdsReport {
+                received: c.received,
+                lost: u64::from(sent).saturating_sub(c.received),
+                duplicates: c.duplicates,
+                samples_per_second: c.received as f64 / secs,
+                latency_us: Percentiles::of(&c.latencies),
+            })
+        }
+        None => None,
+    };
+    let report = Report {
+        publishers: publishers as u32,
+        subscribers: subscribers as u32,
+        payload_bytes: payload,
+        reliable: stream == stream_id::BUILTIN_RELIABLE,
+        creation: format!("{:?}", a.creation).to_lowercase(),
+        rate_requested: rate,
+        warmup_samples: a.warmup,
+        threads: threads as u32,
+        sessions_ms: sessions_at.as_secs_f64() * 1e3,
+        setup_ms: setup.as_secs_f64() * 1e3,
+        matched_ms: matched.as_secs_f64() * 1e3,
+        unmatched_writers: unmatched,
+        sent,
+        received,
+        lost: (u64::from(sent) * subscribers as u64).saturating_sub(received),
+        duplicates,
+        seconds: elapsed.as_secs_f64(),
+        samples_per_second: received as f64 / elapsed.as_secs_f64(),
+        bytes_per_second: (received as f64 * payload as f64) / elapsed.as_secs_f64(),
+        dds,
+        latency_us: Percentiles::of(&latencies),
+        agent: match (usage_before, usage_after) {
+            (Some(b), Some(e)) => Some(AgentUse {
+                cpu_seconds: e.cpu_seconds - b.cpu_seconds,
+                cpu_us_per_sample: (e.cpu_seconds - b.cpu_seconds) * 1e6 / (received.max(1) as f64),
+                peak_rss_kib: e.peak_rss_kib,
+                processes: e.processes,
+                threads: e.threads,
+                fds: e.fds,
+                each: per_process_delta(&b, &e),
+            }),
+            _ => None,
+        },
+        idle,
+        generator: GeneratorUse {
+            cpu_seconds: generator_cpu,
+            busy_percent: 100.0 * generator_cpu / (wall * threads as f64).max(1e-3),
+        },
+    };
+    drop(agent);
+    Ok(report)
+}
+
+/// Each process of `after`, with the CPU it used since `before`.
+fn per_process_delta(before: &ProcUsage, after: &ProcUsage) -> Vec<ProcOne> {
+    after
+        .each
+        .iter()
+        .map(|p| {
+            let b = before
+                .each
+                .iter()
+                .find(|q| q.pid == p.pid)
+                .map_or(0.0, |q| q.cpu_seconds);
+            ProcOne {
+                cpu_seconds: p.cpu_seconds - b,
+                ..p.clone()
+            }
+        })
+        .collect()
+}
+
+/// Keeps every session open and silent for `seconds` (the clients still answer what the
+/// agent sends) and reads the agent's CPU and memory.
+fn measure_idle(
+    seconds: f64,
+    all: &mut Group,
+    agent: Option<&AgentUnderTest>,
+    empty: Option<&ProcUsage>,
+    sessions: usize,
+) -> Result<Option<IdleUse>, String> {
+    let Some(agent) = agent else {
+        return Ok(None);
+    };
+    // Let the set-up settle (discovery, held samples) before measuring.
+    all.pump_until(Duration::from_secs(1), |_| false)?;
+    let before = agent.usage();
+    let t = Instant::now();
+    all.pump_until(Duration::from_secs_f64(seconds), |_| false)?;
+    let after = agent.usage();
+    let secs = t.elapsed().as_secs_f64();
+    Ok(match (empty, before, after) {
+        (Some(empty), Some(b), Some(e)) => Some(IdleUse {
+            seconds: secs,
+            cpu_percent: 100.0 * (e.cpu_seconds - b.cpu_seconds) / secs,
+            rss_before_kib: empty.rss_kib,
+            rss_idle_kib: e.rss_kib,
+            rss_bytes_per_session: (e.rss_kib.saturating_sub(empty.rss_kib) as f64 * 1024.0)
+                / sessions.max(1) as f64,
+            each: per_process_delta(&b, &e),
+        }),
+        _ => None,
+    })
+}
+
+/// Each publisher writes a probe (tag `u32::MAX - j`) until every subscriber and the
+/// independent DDS reader heard it. Returns when that was done and how many publishers were
+/// never heard by some subscriber.
+fn probe(
+    all: &mut Group,
+    subscribers: usize,
+    publishers: usize,
+    stream: u8,
+    payload: usize,
+    base: Instant,
+    dds: &Option<DdsReader>,
+) -> Result<(Instant, usize), String> {
+    // heard[s][j]: subscriber s got publisher j's probe (j from 1).
+    let mut heard = vec![vec![false; publishers + 1]; subscribers];
+    let mut missing = subscribers * publishers;
+    let mut events = Vec::new();
+    let end = Instant::now() + Duration::from_secs(60);
+    let dds_pending = || dds.as_ref().is_some_and(|d| d.probes_heard() < publishers);
+    let mut round = 0u64;
+    while (missing > 0 || dds_pending()) && Instant::now() < end {
+        round += 1;
+        // The DDS reader may still miss some: every publisher probes again now and then.
+        let again = dds_pending() && round % 20 == 0;
+        for j in 1..=publishers {
+            let unheard = heard.iter().any(|h| !h[j]);
+            let i = subscribers + j - 1;
+            if (unheard || again) && all.peers[i].client.can_send_reliable(stream) {
+                all.write(
+                    i,
+                    stream,
+                    WRITER,
+                    &sample(payload, u32::MAX - j as u32, base),
+                );
+            }
+        }
+        all.pump(&mut events, Duration::ZERO)?;
+        for (i, e) in events.drain(..) {
+            let ClientEvent::Data { data, .. } = e else {
+                continue;
+            };
+            let Some((seq, _)) = tag(&data) else { continue };
+            let j = (u32::MAX - seq) as usize;
+            if let Some(slot) = heard.get_mut(i).and_then(|h| h.get_mut(j)) {
+                if j >= 1 && !*slot {
+                    *slot = true;
+                    missing -= 1;
+                }
+            }
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let matched = Instant::now();
+    if dds_pending() {
+        eprintln!(
+            "the DDS reader heard {} of {publishers} publishers before the run",
+            dds.as_ref().map_or(0, |d| d.probes_heard())
+        );
+    }
+    let unmatched = (1..=publishers)
+        .filter(|&j| heard.iter().any(|h| !h[j]))
+        .count();
+    // Late probes and their acknowledgements settle before the run.
+    all.pump_until(Duration::from_millis(200), |_| false)?;
+    Ok((matched, unmatched))
+}
+
+/// Sends `--warmup` samples (not counted) at the run's rate, then lets them drain.
+fn warm_up(
+    a: &Args,
+    all: &mut Group,
+    subscribers: usize,
+    rate: f64,
+    stream: u8,
+    payload: usize,
+    base: Instant,
+) -> Result<(), String> {
+    let mut share = Share {
+        next: WARMUP_TAG,
+        step: 1,
+        samples: WARMUP_TAG + a.warmup,
+        rate,
+        sent: 0,
+        next_pub: subscribers,
+    };
+    let n = all.peers.len();
+    let t0 = Instant::now();
+    let end = t0 + Duration::from_secs(a.duration);
+    let mut events = Vec::new();
+    while !share.done() && Instant::now() < end {
+        share.send_due(all, subscribers..n, t0, stream, payload, base);
+        all.pump(&mut events, share.wait(t0))?;
+        events.clear();
+    }
+    all.pump_until(Duration::from_millis(500), |_| false)?;
+    eprintln!("warm-up: {} samples sent", share.sent);
+    Ok(())
+}
