@@ -400,14 +400,22 @@ impl Bridge {
         }
     }
 
-    /// Handles worker announcements and replies; applies results to the agent core.
+    /// Handles worker announcements and replies (consuming their wake-ups when their
+    /// descriptors were readable: `replies_ready`, `announce_ready`); applies results to the
+    /// agent core.
     pub fn poll_ipc<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
         &mut self,
         now: Instant,
         agent: &mut Agent<A>,
+        replies_ready: bool,
+        announce_ready: bool,
     ) {
-        self.announce.clear_events();
+        // Wake-ups are consumed only when there are some (a system call each time, and the
+        // loop runs per datagram under load); the queues themselves are read every time.
         let mut hellos = Vec::new();
+        if announce_ready {
+            self.announce.clear_events();
+        }
         let _ = self.announce.drain(|m| hellos.push(m.to_vec()));
         for m in hellos {
             match IpcHeader::decode(&m) {
@@ -425,7 +433,9 @@ impl Bridge {
             }
         }
         if let Some(replies) = self.replies.take() {
-            replies.clear_events();
+            if replies_ready {
+                replies.clear_events();
+            }
             if let Err(e) = replies.drain(|m| self.handle_reply(now, m, agent)) {
                 tracing::warn!(error = %e, "receiving from the worker failed");
             }

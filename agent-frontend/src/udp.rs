@@ -41,7 +41,7 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
     let mut send_errors = 0u64;
     let mut report = StatsReport::new(Instant::now());
     // Pick up a worker that announced itself before we started.
-    bridge.poll_ipc(Instant::now(), &mut agent);
+    bridge.poll_ipc(Instant::now(), &mut agent, true, true);
     bridge.pump();
     loop {
         if bridge.termination_requested() {
@@ -61,12 +61,16 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
             Some(d) => d.saturating_duration_since(now).as_millis().min(60_000) as i32 + 1,
             None => -1,
         };
-        xrce_common::ipc::shm::wait_readable(&[sock_fd, replies_fd, announce_fd], timeout)?;
+        let ready =
+            xrce_common::ipc::shm::wait_readable(&[sock_fd, replies_fd, announce_fd], timeout)?;
         let now = Instant::now();
         if let Ok(d) = SystemTime::now().duration_since(UNIX_EPOCH) {
             agent.set_wall_clock(now, d);
         }
-        for _ in 0..RECV_BATCH {
+        // Only what is readable: each check is a system call, and the loop runs per sample
+        // under load.
+        let batch = if ready & 1 != 0 { RECV_BATCH } else { 0 };
+        for _ in 0..batch {
             match socket.recv_from(&mut buf) {
                 Ok((n, src)) => {
                     agent.handle_datagram(now, src, &buf[..n], &mut bridge);
@@ -81,7 +85,7 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
             }
         }
         bridge.apply_replies(now, &mut agent);
-        bridge.poll_ipc(now, &mut agent);
+        bridge.poll_ipc(now, &mut agent, ready & 0b10 != 0, ready & 0b100 != 0);
         bridge.resume_reads(&agent);
         bridge.pump();
         agent.handle_timeout(now, &mut bridge);

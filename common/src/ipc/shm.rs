@@ -165,35 +165,41 @@ impl IpcNode {
     }
 }
 
+/// Most descriptors [`wait_readable`] watches.
+pub const WAIT_MAX_FDS: usize = 8;
+
 /// Blocks until one of `fds` is readable, `timeout_ms` passes (-1: no timeout) or a signal
 /// arrives (then it returns `Ok` too, so the caller can check for termination). The event
 /// loops of the front-end and the worker wait here on their sockets and IPC listeners.
-pub fn wait_readable(fds: &[RawFd], timeout_ms: i32) -> std::io::Result<()> {
-    let mut pollfds: Vec<libc::pollfd> = fds
-        .iter()
-        .map(|&fd| libc::pollfd {
-            fd,
-            events: libc::POLLIN,
-            revents: 0,
-        })
-        .collect();
-    // SAFETY: `pollfds` is a valid, exclusively borrowed array of `pollfds.len()` pollfd for
+/// Returns which are readable (or in error, so that the caller's read reports it): bit `i`
+/// for `fds[i]`; descriptors beyond [`WAIT_MAX_FDS`] are not watched.
+pub fn wait_readable(fds: &[RawFd], timeout_ms: i32) -> std::io::Result<u64> {
+    let mut pollfds = [libc::pollfd {
+        fd: -1,
+        events: 0,
+        revents: 0,
+    }; WAIT_MAX_FDS];
+    let n = fds.len().min(WAIT_MAX_FDS);
+    for (p, &fd) in pollfds.iter_mut().zip(fds) {
+        p.fd = fd;
+        p.events = libc::POLLIN;
+    }
+    // SAFETY: `pollfds` is a valid, exclusively borrowed array of at least `n` pollfd for
     // the duration of the call.
     #[allow(unsafe_code)]
-    let rc = unsafe {
-        libc::poll(
-            pollfds.as_mut_ptr(),
-            pollfds.len() as libc::nfds_t,
-            timeout_ms,
-        )
-    };
+    let rc = unsafe { libc::poll(pollfds.as_mut_ptr(), n as libc::nfds_t, timeout_ms) };
     if rc < 0 {
         let e = std::io::Error::last_os_error();
         if e.kind() != std::io::ErrorKind::Interrupted {
             return Err(e);
         }
+        return Ok(0);
     }
-    Ok(())
+    Ok(pollfds[..n]
+        .iter()
+        .enumerate()
+        .filter(|(_, p)| p.revents != 0)
+        .fold(0, |m, (i, _)| m | (1 << i)))
 }
 
 /// Removes what an instance leaves in `/dev/shm` after its last node is gone (iceoryx2
