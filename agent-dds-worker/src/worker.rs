@@ -272,6 +272,8 @@ struct FrontendPort {
     deferred: HashSet<EntityKey>,
     /// When the front-end last took a message (a dead one takes none: back off).
     last_delivery: Instant,
+    /// Messages were published since the front-end was last woken.
+    unnotified: bool,
 }
 
 /// Most replies held for one congested front-end; beyond, the oldest are dropped (counted).
@@ -561,6 +563,7 @@ impl Worker {
                     dirty: false,
                     backlog: Default::default(),
                     backlog_bytes: 0,
+                    unnotified: false,
                     deferred: HashSet::new(),
                     last_delivery: Instant::now(),
                 }))
@@ -587,6 +590,7 @@ impl Worker {
             match port.sender.send(&h, body) {
                 Ok(true) => {
                     port.last_delivery = Instant::now();
+                    port.unnotified = true;
                     return;
                 }
                 Ok(false) => {}
@@ -752,7 +756,14 @@ impl Worker {
             }
             if sent {
                 p.last_delivery = Instant::now();
+            }
+            // Also when only replies sent directly went out (a full queue may have refused
+            // the progress message): a front-end that is not woken does not read them.
+            if sent || p.unnotified {
+                p.unnotified = false;
                 if let Err(e) = p.sender.notify() {
+                    // Tried again on the next pass.
+                    p.unnotified = true;
                     tracing::debug!(frontend = fe, error = %e, "front-end wake-up failed");
                 }
             }

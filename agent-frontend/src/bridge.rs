@@ -393,10 +393,11 @@ impl Bridge {
             self.after_send(header, retain, awaited, move || body);
         }
         if self.dirty {
-            if let Err(e) = self.requests.notify() {
-                tracing::debug!(error = %e, "worker wake-up failed");
+            match self.requests.notify() {
+                Ok(()) => self.dirty = false,
+                // Kept dirty: tried again on the next pass.
+                Err(e) => tracing::debug!(error = %e, "worker wake-up failed"),
             }
-            self.dirty = false;
         }
     }
 
