@@ -17,18 +17,36 @@ fn first_with(datagrams: &[Vec<u8>], id: u8) -> Vec<u8> {
 }
 
 fn codec(c: &mut Criterion) {
-    let to_agent = xrce_benches::captured("reliable-xml-helloworld.txt", true);
-    let to_client = xrce_benches::captured("reliable-xml-helloworld.txt", false);
+    let trace = |name: &str, to_agent: bool| xrce_benches::captured(name, to_agent);
+    let to_agent = trace("reliable-xml-helloworld.txt", true);
+    let to_client = trace("reliable-xml-helloworld.txt", false);
+    let (big_in, big_out) = (
+        trace("big-fragmented.txt", true),
+        trace("big-fragmented.txt", false),
+    );
+    let (ping_in, ping_out) = (trace("ping.txt", true), trace("ping.txt", false));
+    let (time_in, time_out) = (trace("timesync.txt", true), trace("timesync.txt", false));
+    // Every submessage kind the real client and agent exchange, from the captured traces.
     let cases = [
+        ("create_client", first_with(&to_agent, 0x00)),
         ("create_x4_xml", first_with(&to_agent, 0x01)),
+        ("get_info", first_with(&ping_in, 0x02)),
+        ("delete", first_with(&to_agent, 0x03)),
+        ("status_agent", first_with(&to_client, 0x04)),
+        ("status", first_with(&to_client, 0x05)),
+        ("info", first_with(&ping_out, 0x06)),
         ("write_data", first_with(&to_agent, 0x07)),
         ("read_data", first_with(&to_agent, 0x08)),
-        ("acknack", first_with(&to_agent, 0x0A)),
         ("data", first_with(&to_client, 0x09)),
-        ("status", first_with(&to_client, 0x05)),
+        ("acknack", first_with(&to_agent, 0x0A)),
+        ("heartbeat", first_with(&big_out, 0x0B)),
+        ("fragment", first_with(&big_in, 0x0D)),
+        ("timestamp", first_with(&time_in, 0x0E)),
+        ("timestamp_reply", first_with(&time_out, 0x0F)),
     ];
     let mut g = c.benchmark_group("decode");
     for (name, bytes) in &cases {
+        assert!(!bytes.is_empty(), "no {name} datagram in the traces");
         g.throughput(Throughput::Bytes(bytes.len() as u64));
         g.bench_function(*name, |b| {
             b.iter(|| Message::decode(black_box(bytes)).map(|m| m.submessages.len()))
@@ -67,5 +85,24 @@ fn session_core(c: &mut Criterion) {
     });
 }
 
-criterion_group!(benches, codec, session_core);
+fn session_core_best_effort(c: &mut Criterion) {
+    let to_agent = xrce_benches::captured("besteffort-xml-helloworld.txt", true);
+    let create_client = to_agent[0].clone();
+    let write = first_with(&to_agent, 0x07);
+    c.bench_function("agent_core/best_effort_write_datagram", |b| {
+        let mut agent: Agent<u16> = Agent::new(AgentConfig::default());
+        let now = Instant::now();
+        agent.handle_datagram(now, 1, &create_client, &mut NullSink);
+        let mut msg = write.clone();
+        let mut seq: u16 = 0;
+        b.iter(|| {
+            msg[2..4].copy_from_slice(&seq.to_le_bytes());
+            seq = seq.wrapping_add(1);
+            agent.handle_datagram(now, 1, black_box(&msg), &mut NullSink);
+            while agent.poll_transmit().is_some() {}
+        })
+    });
+}
+
+criterion_group!(benches, codec, session_core, session_core_best_effort);
 criterion_main!(benches);
