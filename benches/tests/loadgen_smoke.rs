@@ -146,3 +146,28 @@ fn binary_creation_with_shared_writers_delivers_every_sample_and_measures_idle()
         .unwrap_or_default();
     assert!(names.iter().any(|n| n.contains("dds-worker")), "{names:?}");
 }
+
+#[test]
+fn null_agent_carries_every_sample_without_dds() {
+    // The generator's ceiling check: the session core alone, in the generator's process.
+    let (v, stdout) = run_loadgen(
+        "null",
+        &[
+            "--null-agent",
+            "--publishers",
+            "20",
+            "--subscribers",
+            "2",
+            "--samples",
+            "2000",
+            "--rate",
+            "2000",
+        ],
+    );
+    assert_eq!(v["unmatched_writers"], 0, "{stdout}");
+    assert_eq!(v["received"], 4000, "{stdout}");
+    assert_eq!(v["lost"], 0, "{stdout}");
+    assert_eq!(v["duplicates"], 0, "{stdout}");
+    assert!(v["dds"].is_null(), "no DDS reader against the null agent");
+    assert!(v["agent"].is_null(), "no agent process to measure");
+}

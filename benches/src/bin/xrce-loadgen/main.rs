@@ -20,6 +20,7 @@
 
 mod agent;
 mod dds_reader;
+mod null_agent;
 mod peer;
 mod plot;
 mod report;
@@ -98,6 +99,10 @@ pub struct Args {
     /// `--share-writers true`); not used with `--agent-cmd`.
     #[arg(long, default_value = "", allow_hyphen_values = true)]
     pub agent_args: String,
+    /// Run against a null agent in this process (the XRCE session core, no DDS): measures
+    /// the generator's own ceiling. Leaves out the DDS reader.
+    #[arg(long, conflicts_with_all = ["agent_cmd", "no_agent", "compare_with"])]
+    pub null_agent: bool,
     /// Use an agent that is already running on `--port`.
     #[arg(long, conflicts_with = "agent_cmd")]
     pub no_agent: bool,

@@ -235,7 +235,12 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     } else {
         stream_id::BUILTIN_RELIABLE
     };
-    let mut agent = if a.no_agent {
+    let _null = if a.null_agent {
+        Some(crate::null_agent::NullAgent::start(port)?)
+    } else {
+        None
+    };
+    let mut agent = if a.no_agent || a.null_agent {
         None
     } else {
         let cmd = match agent_cmd {
@@ -258,7 +263,7 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     let usage_empty = agent.as_ref().and_then(AgentUnderTest::usage);
     let bodies = Bodies::new(a);
     let base = Instant::now();
-    let dds = if a.dds_reader {
+    let dds = if a.dds_reader && !a.null_agent {
         Some(DdsReader::start(
             domain,
             "LoadTopic",
