@@ -1250,7 +1250,8 @@ impl Worker {
                     format!("topic {wanted} exists with type {}", d.type_name),
                 ))
             }
-            (_, Some(found)) => found,
+            (Some(inline), Some(found)) => found.refined_by(inline),
+            (None, Some(found)) => found,
             (Some(inline), None) => inline.clone(),
             (None, None) => {
                 return Err((

@@ -192,6 +192,18 @@ pub struct TopicDesc {
     pub qos: QosDesc,
 }
 
+impl TopicDesc {
+    /// This topic (a topic object the client created), as an endpoint that names it in its
+    /// own `<topic>` element uses it: the element's QoS (Fast DDS puts `historyQos` and
+    /// resource limits there) applies to the endpoint, over the topic object's.
+    pub fn refined_by(self, endpoint_topic: &TopicDesc) -> TopicDesc {
+        TopicDesc {
+            qos: self.qos.overridden_by(endpoint_topic.qos),
+            ..self
+        }
+    }
+}
+
 /// A data writer or reader as described in XML.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct EndpointDesc {
@@ -650,6 +662,34 @@ pub fn parse_endpoint(xml: &str, element: &'static str) -> Result<EndpointDesc, 
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn an_endpoint_topic_element_refines_the_topic_object_qos() {
+        let object = parse_topic(
+            "<dds><topic><name>T</name><dataType>D</dataType>\
+             <historyQos><kind>KEEP_LAST</kind><depth>5</depth></historyQos></topic></dds>",
+        )
+        .expect("topic");
+        let writer = parse_endpoint(
+            "<dds><data_writer><topic><kind>NO_KEY</kind><name>T</name><dataType>D</dataType>\
+             <historyQos><kind>KEEP_LAST</kind><depth>1000</depth></historyQos></topic>\
+             <qos><reliability><kind>BEST_EFFORT</kind></reliability></qos></data_writer></dds>",
+            "data_writer",
+        )
+        .expect("writer");
+        let inline = writer.topic.as_ref().expect("inline topic");
+        let used = object.clone().refined_by(inline);
+        assert_eq!(used.name, "T");
+        assert_eq!(used.qos.history, Some(History::KeepLast(1000)));
+        // Without a history of its own, the endpoint's topic element keeps the object's.
+        let plain = parse_endpoint(
+            "<dds><data_writer><topic><name>T</name><dataType>D</dataType></topic></data_writer></dds>",
+            "data_writer",
+        )
+        .expect("writer");
+        let used = object.refined_by(plain.topic.as_ref().expect("inline topic"));
+        assert_eq!(used.qos.history, Some(History::KeepLast(5)));
+    }
+
     use super::*;
 
     #[test]

@@ -57,9 +57,11 @@ impl Bodies {
                 } else {
                     "RELIABLE"
                 };
+                // Fast DDS's form (what the reference agent parses): the history inside the
+                // endpoint's <topic>, reliability and durability inside its <qos>.
                 let endpoint = |e: &str| {
                     Representation::Xml(format!(
-                        "<dds><{e}><topic><kind>NO_KEY</kind><name>LoadTopic</name><dataType>Load</dataType></topic><qos><reliability><kind>{reliability}</kind></reliability><durability><kind>VOLATILE</kind></durability><historyQos>{history}</historyQos></qos></{e}></dds>"
+                        "<dds><{e}><topic><kind>NO_KEY</kind><name>LoadTopic</name><dataType>Load</dataType><historyQos>{history}</historyQos></topic><qos><reliability><kind>{reliability}</kind></reliability><durability><kind>VOLATILE</kind></durability></qos></{e}></dds>"
                     ))
                 };
                 Bodies {
