@@ -73,6 +73,8 @@ pub struct DdsReport {
     pub lost: u64,
     pub duplicates: u64,
     pub samples_per_second: f64,
+    /// Sample payload bytes per second (the serialized samples, without RTPS headers).
+    pub bytes_per_second: f64,
     pub latency_us: Percentiles,
 }
 
@@ -170,10 +172,11 @@ pub fn print_report(report: &Report) {
     );
     if let Some(d) = &report.dds {
         println!(
-            "  into DDS (independent RustDDS reader): {} of {} = {:.0} samples/s, {} lost, {} duplicates; latency us: p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}",
+            "  into DDS (independent RustDDS reader): {} of {} = {:.0} samples/s ({:.1} MB/s), {} lost, {} duplicates; latency us: p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}",
             d.received,
             report.sent,
             d.samples_per_second,
+            d.bytes_per_second / 1e6,
             d.lost,
             d.duplicates,
             d.latency_us.p50,

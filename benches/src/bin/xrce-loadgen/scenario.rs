@@ -535,6 +535,7 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
                 lost: u64::from(sent).saturating_sub(c.received),
                 duplicates: c.duplicates,
                 samples_per_second: c.received as f64 / secs,
+                bytes_per_second: c.received as f64 * payload as f64 / secs,
                 latency_us: Percentiles::of(&c.latencies),
             })
         }
