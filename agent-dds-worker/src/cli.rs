@@ -25,10 +25,11 @@ pub struct WorkerArgs {
     /// (`rt/`, `rq/`, `rr/`: micro-ROS) on `ros_discovery_info`, so ROS 2 tools list them.
     #[arg(long = "ros-graph", env = "XRCE_ROS_GRAPH", default_value_t = true, action = clap::ArgAction::Set)]
     pub ros_graph: bool,
-    /// Map the XRCE data writers of one domain, topic, type and QoS onto one shared DDS
-    /// writer (volatile, shared-ownership writers only): thousands of clients publishing on
-    /// one topic then cost one DDS writer instead of one each. DDS readers see one writer
-    /// instead of one per client (one GUID, no per-client liveliness).
+    /// Map the XRCE data writers of one domain, topic, type and QoS onto shared DDS writers,
+    /// one per 32 clients, each keeping 32 times the clients' history depth (volatile,
+    /// shared-ownership writers only): thousands of clients publishing on one topic then
+    /// cost a few DDS writers. DDS readers see one writer per group instead of one per
+    /// client (one GUID, no per-client liveliness).
     #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
     pub share_writers: bool,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_dds_worker=debug`.

@@ -77,6 +77,8 @@ enum EntityKind {
 /// The DDS writer behind one XRCE data writer, or behind several with `share_writers`.
 struct DdsWriter {
     raw: RawWriter,
+    /// Its place among the shared writers, if it is one.
+    shared: Option<SharedWriterKey>,
     /// When it first matched a reader (read from its status events, which only this
     /// structure consumes, so that every XRCE writer sharing it sees the match).
     matched_at: Cell<Option<Instant>>,
@@ -115,6 +117,28 @@ fn shareable(qos: &QosPolicies) -> bool {
     use rustdds::policy::{Durability, Ownership};
     matches!(qos.durability(), None | Some(Durability::Volatile))
         && matches!(qos.ownership(), None | Some(Ownership::Shared))
+}
+
+/// Most XRCE writers on one shared DDS writer. The shared writer keeps this many times the
+/// history depth the clients asked for, so that every client keeps the resend window of a
+/// writer of its own (a reliable writer overwrites samples beyond its depth, acknowledged
+/// or not), and its memory stays within what that many writers of their own would hold.
+const SHARE_GROUP: usize = 32;
+
+/// The QoS of a shared DDS writer: the clients' own, with [`SHARE_GROUP`] times their
+/// keep-last depth.
+fn shared_history(qos: &QosPolicies) -> QosPolicies {
+    match qos.history() {
+        Some(rustdds::policy::History::KeepLast { depth }) => {
+            let deeper = depth.saturating_mul(SHARE_GROUP as i32);
+            qos.modify_by(
+                &rustdds::QosPolicyBuilder::new()
+                    .history(rustdds::policy::History::KeepLast { depth: deeper })
+                    .build(),
+            )
+        }
+        _ => qos.clone(),
+    }
 }
 
 /// What makes two XRCE data writers able to share one DDS writer, besides equal QoS and
@@ -521,7 +545,7 @@ impl Worker {
         let waiting = self
             .ports
             .values()
-            .filter(|p| !p.backlog.is_empty() || p.dirty);
+            .filter(|p| !p.backlog.is_empty() || p.dirty || p.unnotified);
         if let Some(newest) = waiting.map(|p| p.last_delivery).max() {
             // A congested front-end does not signal when it drained: try again shortly, and
             // rarely once it has taken nothing for a while (it may be gone).
@@ -902,12 +926,17 @@ impl Worker {
                 let w = match existing {
                     Some(w) => w,
                     None => {
+                        let dds_qos = if shared_key.is_some() {
+                            shared_history(&qos)
+                        } else {
+                            qos.clone()
+                        };
                         // A client writes in its native byte order, the one of its CREATE.
-                        let raw =
-                            RawWriter::create(&publisher, &topic, qos.clone(), little_endian, kd)
-                                .map_err(|e| dds_err("create data writer", &e))?;
+                        let raw = RawWriter::create(&publisher, &topic, dds_qos, little_endian, kd)
+                            .map_err(|e| dds_err("create data writer", &e))?;
                         let w = Rc::new(DdsWriter {
                             raw,
+                            shared: shared_key.clone(),
                             matched_at: Cell::new(None),
                         });
                         if let Some(k) = shared_key {
@@ -1431,6 +1460,7 @@ impl Worker {
         entries.retain(|e| e.writer.strong_count() > 0);
         let found = entries
             .iter()
+            .filter(|e| e.writer.strong_count() < SHARE_GROUP)
             .find(|e| &e.qos == qos && e.ty.as_deref() == ty.map(|t| &**t))
             .and_then(|e| e.writer.upgrade());
         if entries.is_empty() {
@@ -1793,6 +1823,18 @@ impl Worker {
         self.holding.remove(&key);
         if let Some(e) = self.entities.remove(&key) {
             match e.kind {
+                EntityKind::Writer(w, _, _) => {
+                    // The last XRCE writer of a shared DDS writer: forget the entry.
+                    if let Some(k) = w.shared.clone() {
+                        drop(w);
+                        if let Some(entries) = self.shared_writers.get_mut(&k) {
+                            entries.retain(|e| e.writer.strong_count() > 0);
+                            if entries.is_empty() {
+                                self.shared_writers.remove(&k);
+                            }
+                        }
+                    }
+                }
                 EntityKind::Reader(mut r, token, _) => {
                     let _ = self.poll.registry().deregister(&mut *r);
                     self.readers.remove(&token);

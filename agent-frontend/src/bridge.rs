@@ -741,12 +741,18 @@ impl Bridge {
         }
     }
 
-    /// When retained writes need another look.
+    /// When retained writes need another look, or a failed wake-up of the worker is tried
+    /// again.
     pub fn poll_timeout(&self) -> Option<Instant> {
-        self.retained
+        let settle = self
+            .retained
             .front()
             .and_then(|r| r.executed_at)
-            .map(|t| t + SETTLE_TIME)
+            .map(|t| t + SETTLE_TIME);
+        let retry = self
+            .dirty
+            .then(|| Instant::now() + std::time::Duration::from_millis(1));
+        settle.into_iter().chain(retry).min()
     }
 
     /// Sends STATUS replies decided here (creation modes, unknown objects, replays).

@@ -87,8 +87,9 @@ pub fn run(socket: UdpSocket, mut bridge: Bridge, config: AgentConfig) -> anyhow
         bridge.apply_replies(now, &mut agent);
         bridge.poll_ipc(now, &mut agent, ready & 0b10 != 0, ready & 0b100 != 0);
         bridge.resume_reads(&agent);
-        bridge.pump();
         agent.handle_timeout(now, &mut bridge);
+        // After the timers: what they hand over (a dead client's deletion) goes out now.
+        bridge.pump();
         report.maybe_log(now, &agent, &bridge);
         while let Some(t) = agent.poll_transmit() {
             if let Err(e) = socket.send_to(&t.data, t.destination) {

@@ -67,7 +67,7 @@ fn codec(c: &mut Criterion) {
 
 fn session_core(c: &mut Criterion) {
     let to_agent = xrce_benches::captured("reliable-xml-helloworld.txt", true);
-    let create_client = to_agent[0].clone();
+    let create_client = first_with(&to_agent, 0x00);
     let write = first_with(&to_agent, 0x07);
     c.bench_function("agent_core/reliable_write_datagram", |b| {
         let mut agent: Agent<u16> = Agent::new(AgentConfig::default());
@@ -87,7 +87,7 @@ fn session_core(c: &mut Criterion) {
 
 fn session_core_best_effort(c: &mut Criterion) {
     let to_agent = xrce_benches::captured("besteffort-xml-helloworld.txt", true);
-    let create_client = to_agent[0].clone();
+    let create_client = first_with(&to_agent, 0x00);
     let write = first_with(&to_agent, 0x07);
     c.bench_function("agent_core/best_effort_write_datagram", |b| {
         let mut agent: Agent<u16> = Agent::new(AgentConfig::default());

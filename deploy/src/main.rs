@@ -74,9 +74,10 @@ struct Common {
     /// them: `true` (default) or `false`.
     #[arg(long = "ros-graph", env = "XRCE_ROS_GRAPH", default_value_t = true, action = clap::ArgAction::Set)]
     ros_graph: bool,
-    /// Map the XRCE data writers of one domain, topic, type and QoS onto one shared DDS
-    /// writer (volatile, shared-ownership writers only): `true` or `false` (default). Scales
-    /// to thousands of clients publishing on one topic; DDS readers then see one writer.
+    /// Map the XRCE data writers of one domain, topic, type and QoS onto shared DDS writers,
+    /// one per 32 clients (volatile, shared-ownership writers only): `true` or `false`
+    /// (default). Scales to thousands of clients publishing on one topic; DDS readers then
+    /// see one writer per group of clients.
     #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
     share_writers: bool,
 }

@@ -179,6 +179,7 @@ pub fn wait_readable(fds: &[RawFd], timeout_ms: i32) -> std::io::Result<u64> {
         events: 0,
         revents: 0,
     }; WAIT_MAX_FDS];
+    debug_assert!(fds.len() <= WAIT_MAX_FDS, "wait_readable watches at most 8");
     let n = fds.len().min(WAIT_MAX_FDS);
     for (p, &fd) in pollfds.iter_mut().zip(fds) {
         p.fd = fd;

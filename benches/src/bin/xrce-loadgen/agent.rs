@@ -11,6 +11,7 @@ pub struct AgentUnderTest {
 }
 
 impl AgentUnderTest {
+    /// Starts `cmd` (`{port}` replaced) with a shell.
     pub fn start(cmd: &str, port: u16) -> Result<Self, String> {
         let line = cmd.replace("{port}", &port.to_string());
         eprintln!("starting agent: {line}");
@@ -69,13 +70,19 @@ pub struct ProcUsage {
 /// Resource use of one process.
 #[derive(Debug, Clone, Default, serde::Serialize)]
 pub struct ProcOne {
+    /// Process id.
     pub pid: u32,
-    /// The command name (`comm`).
+    /// The command name (`comm`) and, for our agent, its subcommand.
     pub name: String,
+    /// User plus system CPU seconds (over the measured period where reported as such).
     pub cpu_seconds: f64,
+    /// Resident set size now, KiB.
     pub rss_kib: u64,
+    /// Peak resident set size, KiB.
     pub peak_rss_kib: u64,
+    /// Threads.
     pub threads: u64,
+    /// Open file descriptors.
     pub fds: u64,
 }
 
@@ -191,15 +198,4 @@ pub fn wait_for_agent(port: u16, limit: Duration, agent: &mut Option<AgentUnderT
         }
     }
     false
-}
-
-/// CPU seconds this process (the generator, without the agent it started) has used.
-pub fn own_cpu_seconds() -> f64 {
-    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
-        return 0.0;
-    };
-    let after = stat.rsplit_once(')').map_or("", |(_, r)| r);
-    let f: Vec<&str> = after.split_whitespace().collect();
-    let t = |k: usize| f.get(k).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
-    (t(11) + t(12)) / 100.0
 }

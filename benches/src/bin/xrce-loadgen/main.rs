@@ -67,7 +67,7 @@ pub struct Args {
     #[arg(long, conflicts_with = "rate")]
     pub client_rate: Option<f64>,
     /// Samples sent (at the run's rate) before the measured phase, not counted.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=100_000_000))]
     pub warmup: u32,
     /// Seconds to keep every session set up and silent before the traffic, measuring the
     /// agent's idle CPU and memory per session (0 = skip).
@@ -146,8 +146,6 @@ fn main() -> Result<(), String> {
     Ok(())
 }
 
-/// Runs the scenario of `a` once against the agent `agent_cmd` starts (ours if None, none
-/// with `--no-agent`).
 /// Runs the scenario alternately against our agent (or `--agent-cmd`) and `other`,
 /// `--rounds` times each, and prints the medians and their ratios.
 fn compare(a: &Args, other: &str) -> Result<(), String> {
@@ -237,7 +235,8 @@ fn sweep(a: &Args) -> Result<(), String> {
             into_dds_per_second: r.dds.as_ref().map(|d| d.samples_per_second),
             p50_us: r.latency_us.p50,
             p99_us: r.latency_us.p99,
-            lost_fraction: r.lost as f64 / f64::from(r.sent.max(1)),
+            // Deliveries: every sample is expected once at each subscriber.
+            lost_fraction: r.lost as f64 / (f64::from(r.sent) * f64::from(r.subscribers)).max(1.0),
         });
         reports.push(r);
     }

@@ -138,7 +138,12 @@ fn serve(socket: &UdpSocket, stop: &AtomicBool) {
                 }
             }
         }
-        agent.handle_timeout(now, &mut Collected::default());
+        // Sessions the core deletes on its timers (dead clients) end their reads too.
+        let mut timed = Collected::default();
+        agent.handle_timeout(now, &mut timed);
+        for k in timed.gone {
+            reads.remove(&k);
+        }
         while let Some(t) = agent.poll_transmit() {
             let _ = socket.send_to(&t.data, t.destination);
         }

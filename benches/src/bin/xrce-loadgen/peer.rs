@@ -13,12 +13,15 @@ use xrce_common::wire::{
 
 /// One simulated client: its protocol state and its socket.
 pub struct Peer {
+    /// The client's protocol state.
     pub client: Client,
     socket: UdpSocket,
     /// Creations whose STATUS has not come yet.
     pub pending: HashSet<RequestId>,
     /// The client's next timer, as of its last pump.
     next_timeout: Option<Instant>,
+    /// The timer entered in its group's heap (at most one live entry per client).
+    registered: Option<Instant>,
     /// The group's pump round in which it was last pumped.
     round: u64,
 }
@@ -34,6 +37,7 @@ impl Peer {
             socket,
             pending: HashSet::new(),
             next_timeout: None,
+            registered: None,
             round: 0,
         })
     }
@@ -102,6 +106,7 @@ impl Peer {
 /// call plus the clients that have something to do (data arrived, a timer due, something
 /// queued), so thousands of idle clients cost nothing.
 pub struct Group {
+    /// The group's clients.
     pub peers: Vec<Peer>,
     epoll: nix::sys::epoll::Epoll,
     events: Vec<nix::sys::epoll::EpollEvent>,
@@ -115,8 +120,13 @@ pub struct Group {
 
 impl Group {
     /// Registers every peer's socket; every peer is pumped once on the first pump.
-    pub fn new(peers: Vec<Peer>) -> Result<Self, String> {
+    pub fn new(mut peers: Vec<Peer>) -> Result<Self, String> {
         use nix::sys::epoll::{Epoll, EpollCreateFlags, EpollEvent, EpollFlags};
+        // A new heap: every client registers its timer again on its first pump.
+        for p in &mut peers {
+            p.registered = None;
+            p.round = 0;
+        }
         let epoll = Epoll::new(EpollCreateFlags::empty()).map_err(|e| e.to_string())?;
         for (i, p) in peers.iter().enumerate() {
             epoll
@@ -180,10 +190,14 @@ impl Group {
                 .map_or(wait, |t| wait.min(t.saturating_duration_since(now)))
         };
         let ms = u16::try_from(wait.as_millis()).unwrap_or(u16::MAX);
-        let n = self
+        let n = match self
             .epoll
             .wait(&mut self.events, nix::sys::epoll::EpollTimeout::from(ms))
-            .unwrap_or(0);
+        {
+            Ok(n) => n,
+            Err(nix::errno::Errno::EINTR) => 0,
+            Err(e) => return Err(format!("epoll_wait: {e}")),
+        };
         self.round += 1;
         let round = self.round;
         let now = Instant::now();
@@ -193,7 +207,11 @@ impl Group {
                 break;
             }
             self.timers.pop();
-            due.push(i);
+            // Only the client's live entry counts (older ones were superseded).
+            if let Some(p) = self.peers.get_mut(i).filter(|p| p.registered == Some(t)) {
+                p.registered = None;
+                due.push(i);
+            }
         }
         let ready = self.events[..n].iter().map(|e| (e.data() as usize, true));
         let all: Vec<(usize, bool)> = ready.chain(due.drain(..).map(|i| (i, false))).collect();
@@ -206,9 +224,14 @@ impl Group {
                 continue;
             }
             p.round = round;
-            let before = p.next_timeout;
             p.pump(i, now, readable, &mut self.buf, events)?;
-            if let Some(t) = p.next_timeout.filter(|t| Some(*t) != before || *t <= now) {
+            // A new entry only when the timer is earlier than the live one (a later timer
+            // is looked at when the live entry falls due).
+            if let Some(t) = p
+                .next_timeout
+                .filter(|t| p.registered.is_none_or(|r| *t < r))
+            {
+                p.registered = Some(t);
                 self.timers.push(Reverse((t, i)));
             }
         }

@@ -5,9 +5,13 @@ use crate::agent::ProcOne;
 /// What one run measured (also written as JSON).
 #[derive(Debug, serde::Serialize)]
 pub struct Report {
+    /// Publishing clients.
     pub publishers: u32,
+    /// Subscribing clients.
     pub subscribers: u32,
+    /// Bytes per sample.
     pub payload_bytes: usize,
+    /// Reliable streams and DDS endpoints (else best-effort).
     pub reliable: bool,
     /// How the entities were created: `xml` or `binary`.
     pub creation: String,
@@ -17,24 +21,33 @@ pub struct Report {
     pub warmup_samples: u32,
     /// Generator threads sending and receiving in the measured phase.
     pub threads: u32,
+    /// From the start to every session established.
     pub sessions_ms: f64,
+    /// From the start to every entity created.
     pub setup_ms: f64,
+    /// From the start to every publisher heard by every subscriber (DDS matched).
     pub matched_ms: f64,
+    /// Publishers some subscriber never heard before the run.
     pub unmatched_writers: usize,
     /// Samples sent (each is expected once at every subscriber).
     pub sent: u32,
     /// Distinct samples received, summed over the subscribers.
     pub received: u64,
+    /// Deliveries missing: sent × subscribers − received.
     pub lost: u64,
+    /// Samples received again by the same subscriber.
     pub duplicates: u64,
+    /// From the first send to the last sample received.
     pub seconds: f64,
     /// Samples per second received, summed over the subscribers.
     pub samples_per_second: f64,
+    /// Sample bytes per second received, summed over the subscribers.
     pub bytes_per_second: f64,
     /// What the independent DDS reader counted (client → agent → DDS).
     pub dds: Option<DdsReport>,
     /// Client → agent → DDS → agent → client.
     pub latency_us: Percentiles,
+    /// The agent's resource use (None for an agent not started by the generator).
     pub agent: Option<AgentUse>,
     /// The agent with every session set up and silent (`--idle`).
     pub idle: Option<IdleUse>,
@@ -45,10 +58,15 @@ pub struct Report {
 /// Latency percentiles, µs.
 #[derive(Debug, serde::Serialize)]
 pub struct Percentiles {
+    /// Median.
     pub p50: f64,
+    /// 90th percentile.
     pub p90: f64,
+    /// 99th percentile.
     pub p99: f64,
+    /// 99.9th percentile.
     pub p999: f64,
+    /// Largest.
     pub max: f64,
 }
 
@@ -69,12 +87,17 @@ impl Percentiles {
 /// What the independent DDS reader counted.
 #[derive(Debug, serde::Serialize)]
 pub struct DdsReport {
+    /// Distinct measured samples received.
     pub received: u64,
+    /// Sent but not received.
     pub lost: u64,
+    /// Received again.
     pub duplicates: u64,
+    /// Received per second, until the last one.
     pub samples_per_second: f64,
     /// Sample payload bytes per second (the serialized samples, without RTPS headers).
     pub bytes_per_second: f64,
+    /// Client → agent → DDS.
     pub latency_us: Percentiles,
 }
 
@@ -87,6 +110,7 @@ pub struct AgentUse {
     pub cpu_us_per_sample: f64,
     /// Summed peak RSS of the agent's processes at the end, KiB.
     pub peak_rss_kib: u64,
+    /// Processes of the agent.
     pub processes: usize,
     /// Threads of the agent's processes at the end of the measured phase.
     pub threads: u64,
@@ -99,6 +123,7 @@ pub struct AgentUse {
 /// The agent's cost with every session and entity set up and no traffic.
 #[derive(Debug, serde::Serialize)]
 pub struct IdleUse {
+    /// Length of the idle period.
     pub seconds: f64,
     /// Agent CPU over the idle period, as a percentage of one core.
     pub cpu_percent: f64,
@@ -112,9 +137,11 @@ pub struct IdleUse {
     pub each: Vec<ProcOne>,
 }
 
-/// The generator's own CPU in the measured phase.
+/// The generator's own CPU in the measured phase: the threads that drive the clients
+/// (not its DDS reader's, nor a null agent's).
 #[derive(Debug, serde::Serialize)]
 pub struct GeneratorUse {
+    /// CPU seconds of those threads.
     pub cpu_seconds: f64,
     /// CPU seconds over (seconds × threads): near 100 % means the generator was the limit.
     pub busy_percent: f64,

@@ -16,7 +16,7 @@ use xrce_common::wire::{
     VariantExtra,
 };
 
-use crate::agent::{own_cpu_seconds, wait_for_agent, AgentUnderTest, ProcOne, ProcUsage};
+use crate::agent::{wait_for_agent, AgentUnderTest, ProcOne, ProcUsage};
 use crate::dds_reader::DdsReader;
 use crate::peer::{Group, Peer};
 use crate::report::{AgentUse, DdsReport, GeneratorUse, IdleUse, Percentiles, Report};
@@ -121,6 +121,13 @@ impl Bodies {
             }
         }
     }
+}
+
+/// CPU seconds the calling thread has used.
+fn thread_cpu_seconds() -> f64 {
+    use nix::time::{clock_gettime, ClockId};
+    clock_gettime(ClockId::CLOCK_THREAD_CPUTIME_ID)
+        .map_or(0.0, |t| t.tv_sec() as f64 + t.tv_nsec() as f64 * 1e-9)
 }
 
 /// A sample: its sequence number and send time (ns since `base`), then zeros.
@@ -228,6 +235,10 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     );
     let domain =
         u16::try_from(a.domain).map_err(|_| format!("domain {} is not a DDS domain", a.domain))?;
+    // One flag per (subscriber, sample): bounded so that a typo cannot exhaust memory.
+    if u64::from(samples) * subscribers as u64 > 1 << 32 {
+        return Err("--samples × --subscribers must stay within 2^32".into());
+    }
     let rate = match a.client_rate {
         Some(r) => r * publishers as f64,
         None => a.rate,
@@ -419,7 +430,8 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     let (mut received, mut duplicates) = (0u64, 0u64);
     let mut seen = vec![false; samples as usize * subscribers];
     let usage_before = agent.as_ref().and_then(AgentUnderTest::usage);
-    let cpu_before = own_cpu_seconds();
+    // CPU of the threads that drive the clients (not the DDS reader's nor a null agent's).
+    let mut generator_cpu = 0.0;
     let t0 = Instant::now();
     let deadline = t0 + Duration::from_secs(a.duration);
     let mut last_rx = t0;
@@ -431,7 +443,8 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
         let mut handles = Vec::new();
         for (g, mut share) in others.iter_mut().zip(shares) {
             let (stop, sent_total) = (&stop, &sent_total);
-            handles.push(scope.spawn(move || -> Result<(), String> {
+            handles.push(scope.spawn(move || -> Result<f64, String> {
+                let cpu = thread_cpu_seconds();
                 let mut events = Vec::new();
                 let n = g.peers.len();
                 let mut counted = 0;
@@ -443,18 +456,23 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
                         sent_total.fetch_add(share.sent - counted, Ordering::Relaxed);
                         counted = share.sent;
                     }
-                    g.pump(&mut events, share.wait(t0))?;
+                    if let Err(e) = g.pump(&mut events, share.wait(t0)) {
+                        // The others stop too, rather than waiting out the duration.
+                        stop.store(true, Ordering::Relaxed);
+                        return Err(e);
+                    }
                     events.clear();
                 }
-                Ok(())
+                Ok(thread_cpu_seconds() - cpu)
             }));
         }
+        let cpu = thread_cpu_seconds();
         let n = first.peers.len();
         let mut events = Vec::new();
         let mut counted = 0;
         let mut last_report = t0;
         let result = loop {
-            if received >= expected || Instant::now() >= deadline {
+            if received >= expected || Instant::now() >= deadline || stop.load(Ordering::Relaxed) {
                 break Ok(());
             }
             // Everything sent and nothing more for a while: the rest is lost. Reliable samples
@@ -506,8 +524,9 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
             }
         };
         stop.store(true, Ordering::Relaxed);
+        generator_cpu = thread_cpu_seconds() - cpu;
         for h in handles {
-            h.join().map_err(|_| "a generator thread panicked")??;
+            generator_cpu += h.join().map_err(|_| "a generator thread panicked")??;
         }
         result
     })?;
@@ -516,7 +535,6 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     let elapsed = last_rx
         .saturating_duration_since(t0)
         .max(Duration::from_millis(1));
-    let generator_cpu = own_cpu_seconds() - cpu_before;
     let wall = t0.elapsed().as_secs_f64();
     let usage_after = agent.as_ref().and_then(AgentUnderTest::usage);
     let dds = match dds {
