@@ -65,44 +65,39 @@ fn codec(c: &mut Criterion) {
     g.finish();
 }
 
+/// The session core handling a client's WRITE_DATA datagrams, each the next in sequence
+/// (so every one is delivered and, on a reliable stream, acknowledged).
+fn write_datagrams(c: &mut Criterion, name: &str, trace: &str) {
+    let to_agent = xrce_benches::captured(trace, true);
+    let create_client = first_with(&to_agent, 0x00);
+    let write = first_with(&to_agent, 0x07);
+    c.bench_function(name, |b| {
+        let mut agent: Agent<u16> = Agent::new(AgentConfig::default());
+        let now = Instant::now();
+        agent.handle_datagram(now, 1, &create_client, &mut NullSink);
+        let mut msg = write.clone();
+        let mut seq: u16 = 0;
+        b.iter(|| {
+            msg[2..4].copy_from_slice(&seq.to_le_bytes());
+            seq = seq.wrapping_add(1);
+            agent.handle_datagram(now, 1, black_box(&msg), &mut NullSink);
+            while agent.poll_transmit().is_some() {}
+        })
+    });
+}
+
 fn session_core(c: &mut Criterion) {
-    let to_agent = xrce_benches::captured("reliable-xml-helloworld.txt", true);
-    let create_client = first_with(&to_agent, 0x00);
-    let write = first_with(&to_agent, 0x07);
-    c.bench_function("agent_core/reliable_write_datagram", |b| {
-        let mut agent: Agent<u16> = Agent::new(AgentConfig::default());
-        let now = Instant::now();
-        agent.handle_datagram(now, 1, &create_client, &mut NullSink);
-        let mut msg = write.clone();
-        let mut seq: u16 = 0;
-        b.iter(|| {
-            // Each datagram is the next in sequence, so every one is delivered and acknowledged.
-            msg[2..4].copy_from_slice(&seq.to_le_bytes());
-            seq = seq.wrapping_add(1);
-            agent.handle_datagram(now, 1, black_box(&msg), &mut NullSink);
-            while agent.poll_transmit().is_some() {}
-        })
-    });
+    write_datagrams(
+        c,
+        "agent_core/reliable_write_datagram",
+        "reliable-xml-helloworld.txt",
+    );
+    write_datagrams(
+        c,
+        "agent_core/best_effort_write_datagram",
+        "besteffort-xml-helloworld.txt",
+    );
 }
 
-fn session_core_best_effort(c: &mut Criterion) {
-    let to_agent = xrce_benches::captured("besteffort-xml-helloworld.txt", true);
-    let create_client = first_with(&to_agent, 0x00);
-    let write = first_with(&to_agent, 0x07);
-    c.bench_function("agent_core/best_effort_write_datagram", |b| {
-        let mut agent: Agent<u16> = Agent::new(AgentConfig::default());
-        let now = Instant::now();
-        agent.handle_datagram(now, 1, &create_client, &mut NullSink);
-        let mut msg = write.clone();
-        let mut seq: u16 = 0;
-        b.iter(|| {
-            msg[2..4].copy_from_slice(&seq.to_le_bytes());
-            seq = seq.wrapping_add(1);
-            agent.handle_datagram(now, 1, black_box(&msg), &mut NullSink);
-            while agent.poll_transmit().is_some() {}
-        })
-    });
-}
-
-criterion_group!(benches, codec, session_core, session_core_best_effort);
+criterion_group!(benches, codec, session_core);
 criterion_main!(benches);
