@@ -108,6 +108,10 @@ pub enum EndpointSide {
     Reader,
 }
 
+/// Samples a KEEP_ALL data reader keeps when the client gives no resource limits (RustDDS's
+/// own default is 64). Bounded, so that a reader that is not drained cannot exhaust memory.
+pub const KEEP_ALL_READER_SAMPLES: i32 = 1000;
+
 /// Builds RustDDS QoS from topic and endpoint descriptions (endpoint settings win).
 pub fn endpoint_qos(side: EndpointSide, topic: &QosDesc, endpoint: &QosDesc) -> QosPolicies {
     let merged = topic.overridden_by(*endpoint);
@@ -202,6 +206,14 @@ pub fn endpoint_qos(side: EndpointSide, topic: &QosDesc, endpoint: &QosDesc) -> 
             max_instances: r.max_instances,
             max_samples_per_instance: r.max_samples_per_instance,
         });
+    } else if side == EndpointSide::Reader && matches!(history, History::KeepAll) {
+        // Without limits RustDDS keeps 64 samples per topic for a KEEP_ALL reader: a burst
+        // beyond that between two takes was lost (100 writers at 20,000 samples/s: 41 %).
+        b = b.resource_limits(policy::ResourceLimits {
+            max_samples: KEEP_ALL_READER_SAMPLES,
+            max_instances: KEEP_ALL_READER_SAMPLES,
+            max_samples_per_instance: KEEP_ALL_READER_SAMPLES,
+        });
     }
     if let Some(p) = merged.presentation {
         b = b.presentation(policy::Presentation {
@@ -220,6 +232,29 @@ pub fn endpoint_qos(side: EndpointSide, topic: &QosDesc, endpoint: &QosDesc) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_keep_all_reader_without_limits_keeps_a_bounded_thousand_samples() {
+        let keep_all = QosDesc {
+            history: Some(History::KeepAll),
+            ..QosDesc::default()
+        };
+        let reader = endpoint_qos(EndpointSide::Reader, &QosDesc::default(), &keep_all);
+        assert_eq!(reader.history(), Some(policy::History::KeepAll));
+        assert_eq!(
+            reader.resource_limits().map(|r| r.max_samples),
+            Some(KEEP_ALL_READER_SAMPLES)
+        );
+        // Writers and keep-last readers are left as described.
+        let writer = endpoint_qos(EndpointSide::Writer, &QosDesc::default(), &keep_all);
+        assert_eq!(writer.resource_limits(), None);
+        let keep_last = QosDesc {
+            history: Some(History::KeepLast(5)),
+            ..QosDesc::default()
+        };
+        let reader = endpoint_qos(EndpointSide::Reader, &QosDesc::default(), &keep_last);
+        assert_eq!(reader.resource_limits(), None);
+    }
 
     #[test]
     fn every_described_policy_reaches_rustdds_and_the_endpoint_overrides_the_topic() {

@@ -20,7 +20,7 @@
 //! | Ownership | `ownership/kind` | flags bit 2 (exclusive) | `Ownership` | shared |
 //! | Ownership strength | `ownershipStrength` / `ownership_strength` `/value` | `ownership_strength` | in `Ownership::Exclusive` | 0 |
 //! | Destination order | `destinationOrder` / `destination_order` `/kind` | — | `DestinationOrder` | by reception |
-//! | Resource limits | `resourceLimitsQos` / `resource_limits` (≤ 0 = unlimited) | — | `ResourceLimits` | unlimited |
+//! | Resource limits | `resourceLimitsQos` / `resource_limits` (≤ 0 = unlimited) | — | `ResourceLimits` | unlimited; 1,000 samples for a KEEP_ALL reader (RustDDS would keep 64) |
 //! | Time-based filter | `timeBasedFilter` / `time_based_filter` `/minimum_separation` | `timebasedfilter_msec` | `TimeBasedFilter` | 0 |
 //! | Latency budget | `latencyBudget` / `latency_budget` `/duration` | — | `LatencyBudget` | 0 |
 //! | Presentation | `presentation`: `access_scope`, `coherent_access`, `ordered_access` | — | `Presentation` | instance, false, false |
