@@ -10,12 +10,22 @@ use xrce_tests::{hello_world, xml, AgentProcess, DdsPeer, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 
+/// A volatile, reliable HelloWorld writer with a deeper history: shareable, but not with
+/// [`VOLATILE_WRITER`].
+const DEEPER_VOLATILE_WRITER: &str = "<dds><data_writer><topic><kind>NO_KEY</kind><name>HelloWorldTopic</name><dataType>HelloWorld</dataType><historyQos><kind>KEEP_LAST</kind><depth>50</depth></historyQos></topic><qos><reliability><kind>RELIABLE</kind></reliability><durability><kind>VOLATILE</kind></durability></qos></data_writer></dds>";
+
 /// A volatile, reliable HelloWorld writer: shareable.
 const VOLATILE_WRITER: &str = "<dds><data_writer><topic><kind>NO_KEY</kind><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic><qos><reliability><kind>RELIABLE</kind></reliability><durability><kind>VOLATILE</kind></durability></qos></data_writer></dds>";
 
 /// Two clients publish 5 samples each through an agent started with `env`; returns the
 /// highest matched-writer count Cyclone reported, after checking that every sample arrived.
-fn two_clients_publish(tag: &str, domain: i16, env: &[(&str, &str)], writer_xml: &str) -> usize {
+fn two_clients_publish(
+    tag: &str,
+    domain: i16,
+    env: &[(&str, &str)],
+    writer_xml: &str,
+    second_writer_xml: &str,
+) -> usize {
     let agent = AgentProcess::start_with_env(tag, env);
     let d = domain.to_string();
     let reader = DdsPeer::start(&[
@@ -33,7 +43,7 @@ fn two_clients_publish(tag: &str, domain: i16, env: &[(&str, &str)], writer_xml:
     a.connect(10 * SECOND);
     b.connect(10 * SECOND);
     let wa = a.setup_chain(domain, k::PUBLISHER, k::DATAWRITER, writer_xml);
-    let wb = b.setup_chain(domain, k::PUBLISHER, k::DATAWRITER, writer_xml);
+    let wb = b.setup_chain(domain, k::PUBLISHER, k::DATAWRITER, second_writer_xml);
     let mut lines = Vec::new();
     let first = reader.wait_for("MATCHED", 30 * SECOND, || {
         a.step();
@@ -78,6 +88,7 @@ fn clients_on_one_topic_share_one_dds_writer() {
         30,
         &[("XRCE_SHARE_WRITERS", "true")],
         VOLATILE_WRITER,
+        VOLATILE_WRITER,
     );
     assert_eq!(
         matched, 1,
@@ -88,7 +99,13 @@ fn clients_on_one_topic_share_one_dds_writer() {
 #[test]
 fn transient_local_writers_are_not_shared() {
     // A shared transient-local writer would keep its history over all clients together.
-    let matched = two_clients_publish("tlw", 32, &[("XRCE_SHARE_WRITERS", "true")], xml::WRITER);
+    let matched = two_clients_publish(
+        "tlw",
+        32,
+        &[("XRCE_SHARE_WRITERS", "true")],
+        xml::WRITER,
+        xml::WRITER,
+    );
     assert_eq!(
         matched, 2,
         "transient-local writers must keep their own DDS writer"
@@ -102,9 +119,25 @@ fn without_sharing_every_client_has_its_own_dds_writer() {
         31,
         &[("XRCE_SHARE_WRITERS", "false")],
         VOLATILE_WRITER,
+        VOLATILE_WRITER,
     );
     assert_eq!(
         matched, 2,
         "without --share-writers Cyclone should see two writers"
+    );
+}
+
+#[test]
+fn writers_with_different_qos_are_not_shared() {
+    let matched = two_clients_publish(
+        "qosw",
+        33,
+        &[("XRCE_SHARE_WRITERS", "true")],
+        VOLATILE_WRITER,
+        DEEPER_VOLATILE_WRITER,
+    );
+    assert_eq!(
+        matched, 2,
+        "writers of different QoS must keep their own DDS writer"
     );
 }
