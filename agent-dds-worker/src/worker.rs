@@ -320,6 +320,9 @@ pub struct Worker {
     ports: HashMap<u32, FrontendPort>,
     pool: ParticipantPool,
     entities: HashMap<EntityKey, Entity>,
+    /// The object ids of each client's entities (per front-end), so that finding a client's
+    /// objects or an entity's children never scans every client's entities.
+    by_client: HashMap<(u32, ClientKey), HashSet<ObjectId>>,
     readers: HashMap<Token, EntityKey>,
     next_token: usize,
     reads: HashMap<EntityKey, ActiveRead>,
@@ -373,6 +376,7 @@ impl Worker {
             ports: HashMap::new(),
             pool,
             entities: HashMap::new(),
+            by_client: HashMap::new(),
             readers: HashMap::new(),
             next_token: 1,
             reads: HashMap::new(),
@@ -666,7 +670,7 @@ impl Worker {
         match h.kind {
             MessageKind::FrontendHello => {
                 tracing::info!(frontend = h.frontend_id, "front-end (re)connected");
-                self.remove_where(|k| k.0 == h.frontend_id);
+                self.remove_where(|c| c.0 == h.frontend_id);
                 // Replies held for a previous incarnation of this front-end mean nothing now.
                 if let Some(p) = self.ports.get_mut(&h.frontend_id) {
                     p.backlog.clear();
@@ -678,7 +682,7 @@ impl Worker {
                 self.reply(hello, &[]);
             }
             MessageKind::DeleteClient => {
-                self.remove_where(|k| k.0 == h.frontend_id && k.1 == h.client_key)
+                self.remove_where(|c| c.0 == h.frontend_id && c.1 == h.client_key)
             }
             MessageKind::Create => {
                 let r = self.create(
@@ -1078,6 +1082,10 @@ impl Worker {
                 | EntityKind::Service(..)
         );
         self.entities.insert(key, Entity { parent, kind });
+        self.by_client
+            .entry((key.0, key.1))
+            .or_default()
+            .insert(key.2);
         if graph_change {
             if let Some(d) = self.domain_of(key) {
                 self.graph.touch(d, Instant::now());
@@ -1799,20 +1807,35 @@ impl Worker {
         }
     }
 
-    fn remove_where(&mut self, pred: impl Fn(&EntityKey) -> bool) {
-        let keys: Vec<EntityKey> = self.entities.keys().filter(|k| pred(k)).copied().collect();
+    /// Removes the entities of the clients `pred` selects (by front-end and client key).
+    fn remove_where(&mut self, pred: impl Fn(&(u32, ClientKey)) -> bool) {
+        let keys: Vec<EntityKey> = self
+            .by_client
+            .iter()
+            .filter(|(c, _)| pred(c))
+            .flat_map(|(c, ids)| ids.iter().map(|id| (c.0, c.1, *id)))
+            .collect();
         for k in keys {
-            self.remove_subtree(k);
+            // Already gone with its parent's subtree, or still there.
+            if self.entities.contains_key(&k) {
+                self.remove_subtree(k);
+            }
         }
     }
 
     /// Removes an entity and its descendants, endpoints before their parents.
     fn remove_subtree(&mut self, key: EntityKey) {
         let children: Vec<EntityKey> = self
-            .entities
-            .iter()
-            .filter(|(k, e)| k.0 == key.0 && k.1 == key.1 && e.parent == Some(key.2))
-            .map(|(k, _)| *k)
+            .by_client
+            .get(&(key.0, key.1))
+            .into_iter()
+            .flatten()
+            .map(|id| (key.0, key.1, *id))
+            .filter(|k| {
+                self.entities
+                    .get(k)
+                    .is_some_and(|e| e.parent == Some(key.2))
+            })
             .collect();
         for c in children {
             self.remove_subtree(c);
@@ -1821,6 +1844,12 @@ impl Worker {
             self.graph.touch(d, Instant::now());
         }
         self.holding.remove(&key);
+        if let Some(ids) = self.by_client.get_mut(&(key.0, key.1)) {
+            ids.remove(&key.2);
+            if ids.is_empty() {
+                self.by_client.remove(&(key.0, key.1));
+            }
+        }
         if let Some(e) = self.entities.remove(&key) {
             match e.kind {
                 EntityKind::Writer(w, _, _) => {
