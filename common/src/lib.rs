@@ -3,6 +3,7 @@
 //! * [`wire`]: encode and decode XRCE messages (header, submessages, payloads).
 //! * [`session`]: sans-IO state machines: the agent side (client registry, streams,
 //!   reliability) and a client side used by tests and the load generator.
+//! * [`framing`]: byte-stream framers for TCP (length prefix) and serial lines.
 //! * [`ipc`]: the versioned contract between front-ends and the DDS worker.
 //! * [`fuzzing`]: invariant-checking entry points for the fuzz targets and their corpus tests.
 //!
@@ -11,6 +12,7 @@
 //! is [`ipc::shm`] (feature `shm`): the iceoryx2 ports both processes use for the contract.
 #![deny(unsafe_code)]
 
+pub mod framing;
 pub mod fuzzing;
 pub mod ipc;
 pub mod session;

@@ -563,3 +563,93 @@ fn an_info_larger_than_the_mtu_goes_out_in_fragments() {
         .iter()
         .all(|p| matches!(p, Payload::Fragment { .. })));
 }
+
+#[test]
+fn a_closed_endpoint_keeps_its_session_and_silences_it_until_the_client_returns() {
+    let props = Some(vec![("uxr_hl".to_string(), "002000".to_string())]);
+    let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, props);
+    let request = BaseObjectRequest {
+        request_id: RequestId::from_u16(9),
+        object_id: ObjectId::new(1, object_kind::PARTICIPANT),
+    };
+    assert!(agent.endpoint_closed(ADDR), "a session was there");
+    assert!(!agent.endpoint_closed(ADDR), "only once");
+    assert!(agent.has_client(KEY), "the session is kept");
+    // A reply meanwhile is queued but not sent, and no heartbeat or probe goes out.
+    agent
+        .send_status(t0, KEY, request, ResultStatus::OK)
+        .expect("queued");
+    assert!(drain(&mut agent).is_empty(), "sent to a closed endpoint");
+    let probes = run_timers(
+        &mut agent,
+        &mut rec,
+        Duration::ZERO,
+        Duration::from_millis(1500),
+        t0,
+    );
+    assert_eq!(probes, 0);
+    assert!(drain(&mut agent).is_empty());
+    let next = agent.poll_timeout().expect("the dead time still runs");
+    assert!(next > t0 + Duration::from_millis(1500), "timer in the past");
+    // The client reconnecting elsewhere and creating its session again finds it, objects
+    // included (no ClientDeleted), and is served there.
+    let t1 = t0 + Duration::from_millis(1700);
+    agent.handle_datagram(
+        t1,
+        ADDR + 1,
+        &create_client(VENDOR_EPROSIMA, None),
+        &mut rec,
+    );
+    assert_eq!(rec.0, [Op::Created(KEY)], "{:?}", rec.0);
+    let out = drain(&mut agent);
+    assert!(out.iter().all(|t| t.destination == ADDR + 1));
+    assert!(payloads(&out)
+        .iter()
+        .any(|p| matches!(p, Payload::StatusAgent(_))));
+    // Without hard liveliness now, nothing deletes it.
+    agent.handle_timeout(t1 + Duration::from_secs(5), &mut rec);
+    assert!(agent.has_client(KEY));
+}
+
+#[test]
+fn a_closed_endpoints_client_is_deleted_after_its_dead_time() {
+    let props = Some(vec![("uxr_hl".to_string(), "000400".to_string())]);
+    let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, props);
+    agent.endpoint_closed(ADDR);
+    run_timers(
+        &mut agent,
+        &mut rec,
+        Duration::ZERO,
+        Duration::from_millis(450),
+        t0,
+    );
+    assert!(!agent.has_client(KEY));
+    assert_eq!(rec.0.last(), Some(&Op::Deleted(KEY)));
+}
+
+#[test]
+fn the_client_mtu_is_capped_to_the_transports_largest_message() {
+    let config = AgentConfig {
+        max_message_size: 100,
+        ..AgentConfig::default()
+    };
+    let (mut agent, _rec, t0) = connected(config, VENDOR_EPROSIMA, None);
+    let request = BaseObjectRequest {
+        request_id: RequestId::from_u16(4),
+        object_id: ObjectId::new(2, object_kind::TOPIC),
+    };
+    let variant = ObjectVariant {
+        kind: object_kind::TOPIC,
+        representation: Representation::Xml("<dds/>".repeat(40)),
+        extra: VariantExtra::Parent(ObjectId::new(1, object_kind::PARTICIPANT)),
+    };
+    agent
+        .send_info(t0, KEY, request, ResultStatus::OK, Some(&variant))
+        .expect("queued");
+    let out = drain(&mut agent);
+    assert!(out.len() > 2);
+    assert!(
+        out.iter().all(|t| t.data.len() <= 100),
+        "beyond the transport"
+    );
+}

@@ -17,7 +17,9 @@ use std::time::{Duration, Instant};
 use super::fragment::{fragments, Reassembly};
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
 use crate::wire::cdr::CdrWriter;
-use crate::wire::info::{ActivityInfo, AgentRepresentation, ObjectConfig, ObjectInfo};
+use crate::wire::info::{
+    ActivityInfo, AgentRepresentation, ObjectConfig, ObjectInfo, TransportLocator,
+};
 use crate::wire::sample::{encode_samples, SampleInfo, SampleInfoDetail, SampleRef};
 use crate::wire::{
     data_format, hex, status, stream_id, submessage_id, AcknackPayload, BaseObjectReply,
@@ -27,7 +29,7 @@ use crate::wire::{
     TimestampReplyPayload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
 };
 
-/// Largest datagram any transport carries (UDP over IPv4); client MTUs are capped to it.
+/// Largest datagram UDP over IPv4 carries: the default [`AgentConfig::max_message_size`].
 pub const MAX_DATAGRAM: u16 = 65_507;
 
 /// Tunables of the agent core.
@@ -54,6 +56,9 @@ pub struct AgentConfig {
     pub max_reassembly: usize,
     /// MTU assumed for clients that announce none.
     pub default_mtu: u16,
+    /// Largest message the transport carries (UDP: [`MAX_DATAGRAM`], TCP and serial: 65,535);
+    /// client MTUs are capped to it.
+    pub max_message_size: u16,
     /// Vendor id announced in STATUS_AGENT and INFO.
     pub vendor_id: [u8; 2],
     /// A CREATE_CLIENT repeating the current session this soon after it was established,
@@ -80,6 +85,7 @@ impl Default for AgentConfig {
             max_input_streams: 8,
             heartbeat_period: Duration::from_millis(100),
             default_mtu: 512,
+            max_message_size: MAX_DATAGRAM,
             max_reassembly: 1 << 20,
             // The reference client accepts any vendor; announce eProsima's so clients that
             // tune behaviour by vendor treat us like the agent they were tested against.
@@ -199,6 +205,8 @@ struct ProxyClient<A> {
     dialect: Dialect,
     /// Silence after which the client is dead (hard liveliness or the configured dead time).
     dead_time: Option<Duration>,
+    /// Its endpoint closed (a TCP connection): nothing is sent until it is heard again.
+    detached: bool,
     /// When the last GET_INFO liveliness probe went out.
     last_probe: Option<Instant>,
 }
@@ -239,6 +247,52 @@ fn info_bytes(reply: BaseObjectReply, info: &ObjectInfo, dialect: Dialect) -> Ve
     reply.encode(w);
     info.encode(w, dialect);
     buf
+}
+
+/// An INFO message about the agent: its representation and activity (available, with
+/// `locators`), answering `request`, with `header`'s session and key.
+pub(crate) fn agent_info_message(
+    header: MessageHeader,
+    request: BaseObjectRequest,
+    in_session: bool,
+    dialect: Dialect,
+    vendor_id: [u8; 2],
+    locators: Vec<TransportLocator>,
+) -> Vec<u8> {
+    let reply = BaseObjectReply {
+        related: request,
+        result: ResultStatus {
+            status: status::OK,
+            implementation_status: in_session as u8,
+        },
+    };
+    let info = ObjectInfo {
+        activity: Some(ActivityInfo::Agent {
+            availability: 1,
+            locators,
+        }),
+        config: Some(ObjectConfig::Agent(AgentRepresentation {
+            cookie: XRCE_COOKIE,
+            version: XRCE_VERSION,
+            vendor_id,
+            properties: None,
+        })),
+    };
+    let h = MessageHeader {
+        stream_id: stream_id::NONE,
+        sequence_nr: 0,
+        ..header
+    };
+    let mut b = MessageBuilder::new(h);
+    let bytes = info_bytes(reply, &info, dialect);
+    let _ = b.push(
+        &Payload::Info(InfoPayload {
+            reply,
+            object_info: bytes.get(BaseObjectReply::LEN..).unwrap_or_default(),
+        }),
+        true,
+    );
+    b.finish()
 }
 
 /// Request id of the agent's liveliness probes (GET_INFO). Its first octet is no submessage id,
@@ -426,6 +480,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             return self.drop_input("wrong_session", bytes);
         }
         client.last_heard = now;
+        client.detached = false;
         if client.addr != src {
             // With a key in the header the client may move (e.g. a new source port).
             self.by_addr.remove(&client.addr);
@@ -636,11 +691,11 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             {
                 self.remove_client(other, sink);
             }
-            // At least 64 (so fragments carry data), at most what one UDP datagram carries.
+            // At least 64 (so fragments carry data), at most what the transport carries.
             let mtu = c
                 .mtu
                 .unwrap_or(self.config.default_mtu)
-                .clamp(64, MAX_DATAGRAM);
+                .clamp(64, self.config.max_message_size.max(64));
             let dialect = self
                 .config
                 .dialect
@@ -667,6 +722,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     }
                     existing.mtu = mtu;
                     existing.last_heard = now;
+                    existing.detached = false;
                     existing.dialect = dialect;
                     existing.dead_time = dead_time;
                     let old = existing.addr;
@@ -699,6 +755,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                             dialect,
                             dead_time,
                             last_probe: None,
+                            detached: false,
                         },
                     );
                     self.by_addr.insert(src, c.client_key);
@@ -740,47 +797,42 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         in_session: bool,
         dialect: Dialect,
     ) {
-        let reply = BaseObjectReply {
-            related: request,
-            result: ResultStatus {
-                status: status::OK,
-                implementation_status: in_session as u8,
-            },
-        };
-        // The agent's representation and activity (available, no locators advertised).
-        let info = ObjectInfo {
-            activity: Some(ActivityInfo::Agent {
-                availability: 1,
-                locators: Vec::new(),
-            }),
-            config: Some(ObjectConfig::Agent(AgentRepresentation {
-                cookie: XRCE_COOKIE,
-                version: XRCE_VERSION,
-                vendor_id: self.config.vendor_id,
-                properties: None,
-            })),
-        };
-        let h = MessageHeader {
-            stream_id: stream_id::NONE,
-            sequence_nr: 0,
-            ..header
-        };
-        let mut b = MessageBuilder::new(h);
-        let bytes = info_bytes(reply, &info, dialect);
-        let _ = b.push(
-            &Payload::Info(InfoPayload {
-                reply,
-                object_info: bytes.get(BaseObjectReply::LEN..).unwrap_or_default(),
-            }),
-            true,
+        // Available, no locators advertised (discovery answers with them, see `discovery`).
+        let m = agent_info_message(
+            header,
+            request,
+            in_session,
+            dialect,
+            self.config.vendor_id,
+            Vec::new(),
         );
-        self.push_transmit(dst, b.finish());
+        self.push_transmit(dst, m);
     }
 
     fn client_dialect(&self, key: ClientKey) -> Dialect {
         self.clients
             .get(&key)
             .map_or(Dialect::default(), |c| c.dialect)
+    }
+
+    /// Tells the core that a transport endpoint is gone for good (a TCP connection closed).
+    /// The session there is kept, with its objects: a client that reconnects and creates its
+    /// session again with the same key continues with them, as over UDP. Until it is heard
+    /// again nothing is sent to it (replies meanwhile wait in its reliable streams, bounded as
+    /// ever). Returns whether a session was at that endpoint.
+    pub fn endpoint_closed(&mut self, endpoint: A) -> bool {
+        let Some(key) = self.by_addr.remove(&endpoint) else {
+            return false;
+        };
+        match self.clients.get_mut(&key) {
+            Some(c) if c.addr == endpoint => {
+                c.detached = true;
+                c.heartbeat_due = None;
+                tracing::info!(client = %key, "client's endpoint closed; session kept");
+                true
+            }
+            _ => false,
+        }
     }
 
     /// Messages and bytes waiting for window room on a client's reliable output stream
@@ -1089,6 +1141,10 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 out.push(msg);
             }
         }
+        if c.detached {
+            // Kept for when it comes back; its streams restart if it creates its session anew.
+            return;
+        }
         let unacked = c.reliable_out.values().any(|s| s.reliable.unacked() > 0);
         if unacked && c.heartbeat_due.is_none() {
             let due = now + period;
@@ -1246,6 +1302,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             let parts = Self::fit_or_fragment(c, sub);
             self.queue_reliable(key, stream, parts)?;
             self.flush_client(now, key);
+        } else if c.detached {
+            self.count_drop("endpoint_closed");
         } else {
             let seq = c.best_effort_out.entry(stream).or_insert(0);
             let mut b = MessageBuilder::new(MessageHeader::new(c.session_id, stream, *seq, c.key));
@@ -1276,7 +1334,10 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     dead.push((c.key, silence));
                     continue;
                 }
-                if c.liveliness_due().is_some_and(|d| d <= now) {
+                if c.detached {
+                    // Nobody to probe: only the dead time runs.
+                    merge(c.last_heard + dead_time);
+                } else if c.liveliness_due().is_some_and(|d| d <= now) {
                     // GET_INFO about the agent, as a ping: a live client answers with INFO.
                     let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
                     let probe = crate::wire::GetInfoPayload {
@@ -1290,11 +1351,15 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     out.push((c.addr, b.finish()));
                     c.last_probe = Some(now);
                 }
-                if let Some(d) = c.liveliness_due() {
+                if let Some(d) = c.liveliness_due().filter(|_| !c.detached) {
                     merge(d);
                 }
             }
             let Some(due) = c.heartbeat_due else { continue };
+            if c.detached {
+                c.heartbeat_due = None;
+                continue;
+            }
             if due <= now {
                 let mut any = false;
                 for s in c.reliable_out.values() {

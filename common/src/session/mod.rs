@@ -2,12 +2,14 @@
 //!
 //! * [`agent`]: the agent side of every session of one front-end.
 //! * [`client`]: a client side, for tests, simulation and the load generator.
+//! * [`discovery`]: answers to multicast agent discovery.
 //! * [`graph`]: a client's object graph and active reads, kept for replay.
 //! * [`fragment`]: FRAGMENT splitting and reassembly.
 //! * [`stream`] and [`seq`]: reliable and best-effort stream state, serial numbers.
 
 pub mod agent;
 pub mod client;
+pub mod discovery;
 pub mod fragment;
 pub mod graph;
 pub mod seq;
