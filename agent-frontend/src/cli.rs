@@ -1,13 +1,64 @@
-//! Command-line settings of a front-end, shared by `xrce-frontend` and `xrce-agent frontend`.
+//! Command-line settings of a front-end, shared by `xrce-frontend` and `xrce-agent frontend`,
+//! and its start-up: open the transport, connect to the worker, run the event loop.
 
-use std::net::{SocketAddr, UdpSocket};
-
+use std::io::Write;
+use std::net::{SocketAddr, TcpListener, UdpSocket};
+use std::path::PathBuf;
 use std::time::Duration;
 
 use xrce_common::session::agent::AgentConfig;
 use xrce_common::wire::Dialect;
 
 use crate::bridge::Bridge;
+use crate::event_loop::OnServing;
+use crate::transport::discovery::Discovery;
+use crate::transport::multiserial::{LineDevice, SerialTransport};
+use crate::transport::serial::TtyConfig;
+use crate::transport::tcp::{TcpConfig, TcpTransport};
+use crate::transport::udp::UdpTransport;
+use crate::transport::Transport;
+
+/// The transports a front-end serves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum TransportKind {
+    /// UDP over IPv4.
+    Udp4,
+    /// UDP over IPv6.
+    Udp6,
+    /// TCP over IPv4.
+    Tcp4,
+    /// TCP over IPv6.
+    Tcp6,
+    /// One serial device.
+    Serial,
+    /// Several serial devices.
+    Multiserial,
+    /// A pseudoterminal.
+    Pseudoterminal,
+}
+
+impl TransportKind {
+    /// The name used on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            TransportKind::Udp4 => "udp4",
+            TransportKind::Udp6 => "udp6",
+            TransportKind::Tcp4 => "tcp4",
+            TransportKind::Tcp6 => "tcp6",
+            TransportKind::Serial => "serial",
+            TransportKind::Multiserial => "multiserial",
+            TransportKind::Pseudoterminal => "pseudoterminal",
+        }
+    }
+
+    /// Whether it serves an IP port.
+    pub fn is_ip(self) -> bool {
+        matches!(
+            self,
+            TransportKind::Udp4 | TransportKind::Udp6 | TransportKind::Tcp4 | TransportKind::Tcp6
+        )
+    }
+}
 
 /// Settings of a front-end process.
 #[derive(Debug, Clone, clap::Args)]
@@ -18,9 +69,37 @@ pub struct FrontendArgs {
     /// This front-end's id within the instance (unique per front-end).
     #[arg(long, default_value_t = 0)]
     pub frontend_id: u32,
-    /// UDP address to serve, e.g. 0.0.0.0:8888 or [::]:8888.
+    /// The transport served.
+    #[arg(long, value_enum, default_value = "udp4")]
+    pub transport: TransportKind,
+    /// Address and port served by udp4/udp6/tcp4/tcp6, e.g. 0.0.0.0:8888 or [::]:8888.
+    #[arg(long, visible_alias = "udp")]
+    pub listen: Option<SocketAddr>,
+    /// Serial device (serial: one; multiserial: repeat the option, one per device).
+    #[arg(long = "device")]
+    pub devices: Vec<PathBuf>,
+    /// Baud rate of the serial devices (any rate; non-standard ones are set as custom rates).
+    #[arg(long, default_value_t = 115_200)]
+    pub baudrate: u32,
+    /// RTS/CTS hardware flow control on the serial devices.
     #[arg(long)]
-    pub udp: SocketAddr,
+    pub flow_control: bool,
+    /// pseudoterminal: serve the pty master the parent left open at this descriptor
+    /// (without it, a new pseudoterminal is opened and its path printed).
+    #[arg(long, requires = "pty_path")]
+    pub pty_fd: Option<i32>,
+    /// The slave path of the pty at `--pty-fd` (for logs).
+    #[arg(long)]
+    pub pty_path: Option<PathBuf>,
+    /// Answer multicast discovery (239.255.0.2) on this port.
+    #[arg(long)]
+    pub discovery: Option<u16>,
+    /// TCP connections served at once; more are refused with a log line.
+    #[arg(long, default_value_t = TcpConfig::default().max_connections)]
+    pub max_connections: usize,
+    /// Bytes buffered for a TCP client that does not read before its connection is closed.
+    #[arg(long, default_value_t = TcpConfig::default().send_buffer)]
+    pub tcp_send_buffer: usize,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_common=debug`.
     #[arg(long, env = "XRCE_LOG", default_value = "info")]
     pub log: String,
@@ -49,6 +128,74 @@ impl FrontendArgs {
             ..AgentConfig::default()
         })
     }
+
+    /// The address an IP transport serves.
+    fn listen_addr(&self) -> anyhow::Result<SocketAddr> {
+        self.listen.ok_or_else(|| {
+            anyhow::anyhow!(
+                "--listen ADDRESS:PORT is needed for {}",
+                self.transport.name()
+            )
+        })
+    }
+
+    /// The serial devices, checked for the transport.
+    fn serial_lines(&self) -> anyhow::Result<Vec<LineDevice>> {
+        match (self.transport, self.devices.len()) {
+            (TransportKind::Serial, 1) | (TransportKind::Multiserial, 1..) => {}
+            (TransportKind::Serial, n) => {
+                anyhow::bail!("serial serves exactly one --device, got {n}")
+            }
+            _ => anyhow::bail!("multiserial needs at least one --device"),
+        }
+        if self.devices.len() > u16::MAX as usize {
+            anyhow::bail!("at most 65535 devices");
+        }
+        Ok(self
+            .devices
+            .iter()
+            .map(|path| {
+                LineDevice::Tty(TtyConfig {
+                    path: path.clone(),
+                    baudrate: self.baudrate,
+                    flow_control: self.flow_control,
+                })
+            })
+            .collect())
+    }
+}
+
+/// Writes "READY" to the descriptor named by `XRCE_READY_FD`, if any (the supervisor waits on
+/// it before it reports the agent ready).
+fn readiness_reporter() -> Option<OnServing> {
+    let fd: i32 = std::env::var("XRCE_READY_FD").ok()?.parse().ok()?;
+    std::env::remove_var("XRCE_READY_FD");
+    let file = match crate::owned_fd::inherited(fd) {
+        Ok(f) => f,
+        Err(e) => {
+            tracing::warn!(error = %e, "XRCE_READY_FD");
+            return None;
+        }
+    };
+    Some(Box::new(move || {
+        let mut file = file;
+        if let Err(e) = file.write_all(b"READY\n") {
+            tracing::debug!(error = %e, "readiness report");
+        }
+    }))
+}
+
+/// Raises the open-file limit to the hard limit: every TCP connection is a descriptor.
+fn raise_fd_limit() {
+    use nix::sys::resource::{getrlimit, setrlimit, Resource};
+    if let Ok((soft, hard)) = getrlimit(Resource::RLIMIT_NOFILE) {
+        if soft < hard {
+            match setrlimit(Resource::RLIMIT_NOFILE, hard, hard) {
+                Ok(()) => tracing::debug!(from = soft, to = hard, "open-file limit raised"),
+                Err(e) => tracing::warn!(error = %e, soft, "could not raise the open-file limit"),
+            }
+        }
+    }
 }
 
 /// Runs a front-end until SIGINT/SIGTERM.
@@ -60,8 +207,77 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let config = args.agent_config()?;
-    let socket =
-        UdpSocket::bind(args.udp).map_err(|e| anyhow::anyhow!("binding UDP {}: {e}", args.udp))?;
+    let on_serving = readiness_reporter();
+    match args.transport {
+        TransportKind::Udp4 | TransportKind::Udp6 => {
+            let addr = args.listen_addr()?;
+            let socket =
+                UdpSocket::bind(addr).map_err(|e| anyhow::anyhow!("binding UDP {addr}: {e}"))?;
+            serve(UdpTransport::new(socket)?, &args, config, on_serving)
+        }
+        TransportKind::Tcp4 | TransportKind::Tcp6 => {
+            raise_fd_limit();
+            let addr = args.listen_addr()?;
+            let listener =
+                TcpListener::bind(addr).map_err(|e| anyhow::anyhow!("binding TCP {addr}: {e}"))?;
+            let tcp = TcpConfig {
+                max_connections: args.max_connections.max(1),
+                send_buffer: args.tcp_send_buffer.max(1024),
+                ..TcpConfig::default()
+            };
+            serve(TcpTransport::new(listener, tcp)?, &args, config, on_serving)
+        }
+        TransportKind::Serial | TransportKind::Multiserial => {
+            let lines = args.serial_lines()?;
+            if !crate::transport::serial::is_standard_rate(args.baudrate) {
+                tracing::warn!(
+                    baudrate = args.baudrate,
+                    "not a standard baud rate: set as a custom rate"
+                );
+            }
+            let name = args.transport.name();
+            let t = SerialTransport::new(name, lines, xrce_common::framing::serial::MAX_PAYLOAD);
+            serve(t, &args, config, on_serving)
+        }
+        TransportKind::Pseudoterminal => {
+            let (master, slave_path) = match args.pty_fd {
+                Some(fd) => {
+                    let master = crate::owned_fd::inherited(fd)?;
+                    crate::transport::serial::set_nonblocking(&master)?;
+                    (master, args.pty_path.clone().unwrap_or_default())
+                }
+                None => {
+                    let pty = crate::transport::pty::open(args.baudrate)?;
+                    println!("Pseudoterminal opened at {}", pty.slave_path.display());
+                    (pty.master, pty.slave_path)
+                }
+            };
+            let t = SerialTransport::new(
+                "pseudoterminal",
+                vec![LineDevice::Pty { master, slave_path }],
+                xrce_common::framing::serial::MAX_PAYLOAD,
+            );
+            serve(t, &args, config, on_serving)
+        }
+    }
+}
+
+fn serve<T: Transport>(
+    transport: T,
+    args: &FrontendArgs,
+    config: AgentConfig,
+    on_serving: Option<OnServing>,
+) -> anyhow::Result<()> {
+    let discovery = match args.discovery {
+        Some(port) => {
+            let served = args.listen.map(|a| a.ip());
+            Some(
+                Discovery::new(port, served, config.vendor_id, transport.locators())
+                    .map_err(|e| anyhow::anyhow!("discovery on port {port}: {e}"))?,
+            )
+        }
+        None => None,
+    };
     let bridge = Bridge::new(&args.instance, args.frontend_id)?;
-    crate::udp::run(socket, bridge, config)
+    crate::event_loop::run(transport, bridge, config, discovery, on_serving)
 }

@@ -1,7 +1,18 @@
 //! The XRCE front-end: terminates one client transport, runs the XRCE sessions of its
 //! clients with the sans-IO core of `xrce_common`, and exchanges operations with the DDS
 //! worker over iceoryx2 ([`bridge`]). It never touches DDS.
+//!
+//! * [`transport`]: the seam between the event loop and each way of reaching clients (UDP,
+//!   TCP, serial lines, pseudoterminals) and the discovery responder;
+//! * [`event_loop`]: the one loop driving a transport, the session core and the bridge;
+//! * [`bridge`]: operations to the worker, replies back, replay after a worker restart;
+//! * [`cli`]: the front-end's settings and start-up;
+//! * [`report`]: counters in the log.
+#![deny(unsafe_code)]
 
 pub mod bridge;
 pub mod cli;
-pub mod udp;
+pub mod event_loop;
+mod owned_fd;
+pub mod report;
+pub mod transport;

@@ -2,11 +2,14 @@
 //! restarts a child that dies (with back-off), forwards SIGINT/SIGTERM for a clean stop and
 //! removes shared-memory leftovers of children that died hard.
 
+use std::os::fd::{AsRawFd, OwnedFd, RawFd};
 use std::path::PathBuf;
-
-pub mod readiness;
 use std::process::{Child, Command};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
+
+pub mod cli;
+pub mod readiness;
 
 use nix::sys::signal::{kill, SigSet, Signal};
 use nix::unistd::Pid;
@@ -22,6 +25,22 @@ pub struct ChildSpec {
     pub args: Vec<String>,
     /// Extra environment.
     pub env: Vec<(String, String)>,
+    /// Descriptors the child gets at fixed numbers: (the supervisor's descriptor, its number
+    /// in the child). The supervisor keeps them open, so a restarted child gets them again
+    /// (a pseudoterminal keeps its path across front-end restarts).
+    pub fds: Vec<(Arc<OwnedFd>, RawFd)>,
+}
+
+/// Lowest descriptor number [`high_fd`] returns: above every number a child is given.
+const HIGH_FD_BASE: RawFd = 10;
+
+/// A duplicate of `fd` numbered at least 10 (close-on-exec), so that handing descriptors to
+/// a child at low fixed numbers never overwrites one still to be handed over.
+pub fn high_fd(fd: &impl std::os::fd::AsFd) -> std::io::Result<OwnedFd> {
+    let raw = nix::fcntl::fcntl(fd, nix::fcntl::FcntlArg::F_DUPFD_CLOEXEC(HIGH_FD_BASE))?;
+    // SAFETY: F_DUPFD_CLOEXEC returned a new descriptor that nothing else owns.
+    #[allow(unsafe_code)]
+    Ok(unsafe { std::os::fd::FromRawFd::from_raw_fd(raw) })
 }
 
 #[derive(Debug)]
@@ -50,14 +69,27 @@ fn spawn(spec: &ChildSpec) -> std::io::Result<Child> {
     for (k, v) in &spec.env {
         cmd.env(k, v);
     }
-    // SAFETY: only async-signal-safe calls (sigprocmask, prctl) between fork and exec.
+    let fds: Vec<(RawFd, RawFd)> = spec
+        .fds
+        .iter()
+        .map(|(fd, number)| (fd.as_raw_fd(), *number))
+        .collect();
+    // SAFETY: only async-signal-safe calls (sigprocmask, prctl, dup2, fcntl) between fork
+    // and exec, on descriptors the supervisor keeps open (`spec.fds`).
     #[allow(unsafe_code)]
     unsafe {
-        cmd.pre_exec(|| {
+        cmd.pre_exec(move || {
             let set = SigSet::all();
             let _ = set.thread_unblock();
             // Children die with the supervisor, even if it is SIGKILLed.
             libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+            for &(from, to) in &fds {
+                // dup2 clears close-on-exec on the copy; sources are numbered above every
+                // target (`high_fd`), so none is overwritten before it is copied.
+                if libc::dup2(from, to) < 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+            }
             Ok(())
         });
     }

@@ -1,60 +1,73 @@
-//! Readiness: the supervisor pings its own front-end over XRCE (GET_INFO, the same ping a
-//! client uses) and, once answered, reports the agent ready, to systemd too when run under it
-//! (`Type=notify`).
+//! Readiness: each front-end reports that it serves (its transport is open and a DDS worker
+//! answered it) by writing `READY` to a pipe the supervisor gave it at descriptor
+//! [`READY_FD`] (`XRCE_READY_FD`). That works for every transport alike (a UDP ping cannot
+//! test a serial line). Once every front-end has reported, the supervisor logs that the agent
+//! is ready and tells systemd (`Type=notify`). A restarted front-end reports again.
 
-use std::net::{SocketAddr, UdpSocket};
-use std::time::{Duration, Instant};
+use std::io::BufRead;
+use std::os::fd::{OwnedFd, RawFd};
+use std::sync::mpsc;
+use std::time::Duration;
 
-use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
-use xrce_common::wire::ClientKey;
+/// The descriptor number at which a front-end finds its readiness pipe.
+pub const READY_FD: RawFd = 4;
 
-/// Pings `agent` until it answers INFO or `timeout` passes; returns whether it answered.
-pub fn wait_until_serving(agent: SocketAddr, timeout: Duration) -> bool {
-    let local: SocketAddr = if agent.is_ipv4() {
-        ([127, 0, 0, 1], 0).into()
-    } else {
-        (std::net::Ipv6Addr::LOCALHOST, 0).into()
-    };
-    let Ok(socket) = UdpSocket::bind(local) else {
-        return false;
-    };
-    if socket.connect(agent).is_err()
-        || socket
-            .set_read_timeout(Some(Duration::from_millis(100)))
-            .is_err()
-    {
-        return false;
-    }
-    let mut client = Client::new(ClientConfig::new(ClientKey(*b"RDY?")));
-    let mut buf = [0u8; 512];
-    let end = Instant::now() + timeout;
-    while Instant::now() < end {
-        client.ping();
-        while let Some(t) = client.poll_transmit() {
-            let _ = socket.send(&t);
-        }
-        if let Ok(n) = socket.recv(&mut buf) {
-            client.handle_datagram(Instant::now(), &buf[..n]);
-            if std::iter::from_fn(|| client.poll_event()).any(|e| matches!(e, ClientEvent::Info(_)))
-            {
-                return true;
-            }
-        } else {
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
-    false
+/// A readiness pipe: (read end for the supervisor, write end for the front-end), both
+/// numbered above the descriptors children get ([`crate::high_fd`]) and close-on-exec.
+pub fn pipe() -> std::io::Result<(OwnedFd, OwnedFd)> {
+    let (r, w) = nix::unistd::pipe2(nix::fcntl::OFlag::O_CLOEXEC)?;
+    Ok((crate::high_fd(&r)?, crate::high_fd(&w)?))
 }
 
-/// The address to ping for a front-end bound to `bind` (wildcards become loopback).
-pub fn probe_address(bind: SocketAddr) -> SocketAddr {
-    match bind {
-        SocketAddr::V4(a) if a.ip().is_unspecified() => ([127, 0, 0, 1], a.port()).into(),
-        SocketAddr::V6(a) if a.ip().is_unspecified() => {
-            (std::net::Ipv6Addr::LOCALHOST, a.port()).into()
-        }
-        other => other,
+/// Watches the read ends of the front-ends' readiness pipes (named for logs) on threads of
+/// its own; calls `on_ready` once all of them reported, and warns about those still silent
+/// after `patience`.
+pub fn watch(
+    frontends: Vec<(String, OwnedFd)>,
+    patience: Duration,
+    on_ready: impl FnOnce() + Send + 'static,
+) {
+    let (tx, rx) = mpsc::channel::<String>();
+    let names: Vec<String> = frontends.iter().map(|(n, _)| n.clone()).collect();
+    for (name, fd) in frontends {
+        let tx = tx.clone();
+        std::thread::spawn(move || {
+            let reader = std::io::BufReader::new(std::fs::File::from(fd));
+            for line in reader.lines() {
+                match line {
+                    Ok(l) if l.trim() == "READY" => {
+                        if tx.send(name.clone()).is_err() {
+                            tracing::info!(frontend = %name, "front-end serving again");
+                        }
+                    }
+                    Ok(_) => {}
+                    Err(_) => return,
+                }
+            }
+        });
     }
+    drop(tx);
+    std::thread::spawn(move || {
+        let mut waiting = names;
+        let mut warned = false;
+        while !waiting.is_empty() {
+            match rx.recv_timeout(patience) {
+                Ok(name) => {
+                    tracing::debug!(frontend = %name, "front-end serving");
+                    waiting.retain(|n| *n != name);
+                }
+                Err(mpsc::RecvTimeoutError::Timeout) if !warned => {
+                    tracing::warn!(?waiting, waited = ?patience, "front-ends not serving yet");
+                    warned = true;
+                }
+                Err(mpsc::RecvTimeoutError::Timeout) => {}
+                Err(mpsc::RecvTimeoutError::Disconnected) => return,
+            }
+        }
+        on_ready();
+        // Later reports (restarted front-ends) are logged by the reader threads.
+        drop(rx);
+    });
 }
 
 /// Sends `state` (e.g. `READY=1`) to systemd if `NOTIFY_SOCKET` is set; returns whether sent.
@@ -97,14 +110,25 @@ mod tests {
     }
 
     #[test]
-    fn nobody_listening_is_not_ready() {
-        let port = UdpSocket::bind("127.0.0.1:0")
-            .and_then(|s| s.local_addr())
-            .expect("port");
-        assert!(!wait_until_serving(port, Duration::from_millis(300)));
-        assert_eq!(
-            probe_address("0.0.0.0:8888".parse().expect("addr")),
-            "127.0.0.1:8888".parse().expect("addr")
+    fn every_frontend_must_report_before_ready() {
+        use std::io::Write;
+        let (r1, w1) = pipe().expect("pipe");
+        let (r2, w2) = pipe().expect("pipe");
+        let (tx, rx) = mpsc::channel();
+        watch(
+            vec![("a".into(), r1), ("b".into(), r2)],
+            Duration::from_secs(30),
+            move || tx.send(()).expect("send"),
         );
+        let mut w1 = std::fs::File::from(w1);
+        w1.write_all(b"READY\n").expect("write");
+        assert!(
+            rx.recv_timeout(Duration::from_millis(300)).is_err(),
+            "ready with one of two"
+        );
+        let mut w2 = std::fs::File::from(w2);
+        w2.write_all(b"READY\n").expect("write");
+        rx.recv_timeout(Duration::from_secs(5))
+            .expect("ready once both reported");
     }
 }

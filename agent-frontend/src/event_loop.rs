@@ -1,0 +1,136 @@
+//! The front-end's one event loop: a single thread blocked in epoll (through mio) on the
+//! transport's sockets or devices, the two IPC event descriptors and the discovery socket,
+//! with the earliest timer as timeout. After each wake-up it drains what is ready: client
+//! messages into the session core, worker replies out of shared memory, timers; then it
+//! hands the core's transmits to the transport. No busy polling: idle, it sleeps.
+//!
+//! mio's readiness is edge-triggered: a source read only up to a batch limit stays marked
+//! ready inside its transport, and the loop then polls without waiting.
+
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
+
+use mio::unix::SourceFd;
+use mio::{Events, Interest, Poll, Token};
+use xrce_common::session::agent::{Agent, AgentConfig};
+
+use crate::bridge::Bridge;
+use crate::report::StatsReport;
+use crate::transport::discovery::Discovery;
+use crate::transport::Transport;
+
+/// The worker's replies are ready.
+const REPLIES: Token = Token(0);
+/// A worker announced itself.
+const ANNOUNCE: Token = Token(1);
+/// A discovery request arrived.
+const DISCOVERY: Token = Token(2);
+/// The transport's tokens start here.
+const TRANSPORT_TOKENS: usize = 16;
+/// Messages handled per wake-up before IPC and timers get a turn.
+const RECV_BATCH: usize = 256;
+/// Longest sleep: a stop signal that lands just before the loop blocks is seen this late.
+const MAX_SLEEP: Duration = Duration::from_secs(1);
+
+/// Called once the front-end serves: its transport is registered and a worker answered.
+pub type OnServing = Box<dyn FnOnce()>;
+
+/// Runs a front-end over `transport` until SIGINT/SIGTERM.
+pub fn run<T: Transport>(
+    mut transport: T,
+    mut bridge: Bridge,
+    mut config: AgentConfig,
+    mut discovery: Option<Discovery>,
+    mut on_serving: Option<OnServing>,
+) -> anyhow::Result<()> {
+    config.max_message_size = transport.max_message_size();
+    let mut poll = Poll::new()?;
+    let [replies_fd, announce_fd] = bridge.raw_fds();
+    poll.registry()
+        .register(&mut SourceFd(&replies_fd), REPLIES, Interest::READABLE)?;
+    poll.registry()
+        .register(&mut SourceFd(&announce_fd), ANNOUNCE, Interest::READABLE)?;
+    if let Some(d) = discovery.as_mut() {
+        d.register(poll.registry(), DISCOVERY)?;
+    }
+    transport.register(poll.registry(), TRANSPORT_TOKENS)?;
+    let name = transport.name();
+    let mut agent: Agent<T::Endpoint> = Agent::new(config);
+    let mut events = Events::with_capacity(1024);
+    let mut report = StatsReport::new(Instant::now());
+    let mut input_left = true;
+    let mut discovery_left = true;
+    // Pick up a worker that announced itself before we started.
+    bridge.poll_ipc(Instant::now(), &mut agent, true, true);
+    bridge.pump();
+    loop {
+        if bridge.termination_requested() {
+            tracing::info!(transport = name, "termination requested");
+            return Ok(());
+        }
+        if bridge.generation().is_some() {
+            if let Some(f) = on_serving.take() {
+                f();
+            }
+        }
+        let now = Instant::now();
+        let timeout = if input_left || discovery_left {
+            Duration::ZERO
+        } else {
+            [
+                agent.poll_timeout(),
+                bridge.poll_timeout(),
+                transport.poll_timeout(),
+                report.due(&agent, &bridge, transport.stats()),
+            ]
+            .into_iter()
+            .flatten()
+            .min()
+            // mio rounds the timeout up to whole milliseconds, so no early wake-up spins.
+            .map_or(MAX_SLEEP, |d| {
+                d.saturating_duration_since(now).min(MAX_SLEEP)
+            })
+        };
+        match poll.poll(&mut events, Some(timeout)) {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e.into()),
+        }
+        let (mut replies_ready, mut announce_ready) = (false, false);
+        for event in events.iter() {
+            match event.token() {
+                REPLIES => replies_ready = true,
+                ANNOUNCE => announce_ready = true,
+                DISCOVERY => {
+                    if let Some(d) = discovery.as_mut() {
+                        d.on_event(event);
+                    }
+                }
+                _ => transport.on_event(event),
+            }
+        }
+        let now = Instant::now();
+        if let Ok(d) = SystemTime::now().duration_since(UNIX_EPOCH) {
+            agent.set_wall_clock(now, d);
+        }
+        input_left = transport.receive(now, RECV_BATCH, &mut |from, bytes| {
+            agent.handle_datagram(now, from, bytes, &mut bridge)
+        });
+        while let Some(closed) = transport.poll_closed() {
+            agent.endpoint_closed(closed);
+        }
+        discovery_left = discovery.as_mut().is_some_and(Discovery::answer_pending);
+        bridge.apply_replies(now, &mut agent);
+        bridge.poll_ipc(now, &mut agent, replies_ready, announce_ready);
+        bridge.resume_reads(&agent);
+        if transport.poll_timeout().is_some_and(|t| t <= now) {
+            transport.handle_timeout(now);
+        }
+        agent.handle_timeout(now, &mut bridge);
+        // After the timers: what they hand over (a dead client's deletion) goes out now.
+        bridge.pump();
+        report.maybe_log(now, &agent, &bridge, name, transport.stats());
+        while let Some(t) = agent.poll_transmit() {
+            transport.send(t.destination, &t.data);
+        }
+    }
+}

@@ -1,0 +1,85 @@
+//! Pseudoterminals (`pseudoterminal` transport): the agent opens a pty master, prints the path
+//! of its slave (`/dev/pts/N`), and a client program opens that path as its serial port.
+//! The master is set raw (the pair shares one line discipline, so the slave is raw too: the
+//! eProsima client sets no terminal mode itself).
+//!
+//! While no program has the slave open the master reports a hang-up; that is the normal
+//! state between clients, not an error: [`slave_is_open`] tells when one arrived.
+
+use std::fs::File;
+use std::os::fd::{AsFd, OwnedFd};
+use std::path::PathBuf;
+
+use nix::fcntl::OFlag;
+use nix::sys::termios;
+
+/// An open pseudoterminal.
+#[derive(Debug)]
+pub struct Pty {
+    /// The master side (non-blocking), what the agent reads and writes.
+    pub master: File,
+    /// Where clients open the slave side.
+    pub slave_path: PathBuf,
+}
+
+/// Opens a new pseudoterminal, raw, at `baudrate` (which a pty ignores; set for tools that
+/// read it back).
+pub fn open(baudrate: u32) -> std::io::Result<Pty> {
+    let master = nix::pty::posix_openpt(OFlag::O_RDWR | OFlag::O_NOCTTY | OFlag::O_CLOEXEC)?;
+    nix::pty::grantpt(&master)?;
+    nix::pty::unlockpt(&master)?;
+    let slave_path = PathBuf::from(nix::pty::ptsname_r(&master)?);
+    let master = File::from(OwnedFd::from(master));
+    make_raw(&master, baudrate)?;
+    super::serial::set_nonblocking(&master)?;
+    Ok(Pty { master, slave_path })
+}
+
+/// Sets a terminal raw 8N1 (no echo, no line editing, no translation).
+pub fn make_raw(fd: &impl AsFd, baudrate: u32) -> std::io::Result<()> {
+    let mut t = termios::tcgetattr(fd)?;
+    termios::cfmakeraw(&mut t);
+    if let Some(rate) = standard_baud(baudrate) {
+        // Informational only on a pty; a rate without a termios constant is left alone.
+        let _ = termios::cfsetspeed(&mut t, rate);
+    }
+    termios::tcsetattr(fd, termios::SetArg::TCSANOW, &t)?;
+    Ok(())
+}
+
+fn standard_baud(rate: u32) -> Option<termios::BaudRate> {
+    use termios::BaudRate::*;
+    Some(match rate {
+        9600 => B9600,
+        19200 => B19200,
+        38400 => B38400,
+        57600 => B57600,
+        115200 => B115200,
+        230400 => B230400,
+        460800 => B460800,
+        500000 => B500000,
+        576000 => B576000,
+        921600 => B921600,
+        1000000 => B1000000,
+        1152000 => B1152000,
+        1500000 => B1500000,
+        2000000 => B2000000,
+        2500000 => B2500000,
+        3000000 => B3000000,
+        3500000 => B3500000,
+        4000000 => B4000000,
+        _ => return None,
+    })
+}
+
+/// Whether a program has the slave side of `master` open (the master reports no hang-up).
+pub fn slave_is_open(master: &File) -> bool {
+    use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
+    let mut fds = [PollFd::new(master.as_fd(), PollFlags::POLLIN)];
+    match poll(&mut fds, PollTimeout::ZERO) {
+        Ok(_) => !fds[0]
+            .revents()
+            .is_some_and(|r| r.contains(PollFlags::POLLHUP)),
+        Err(_) => false,
+    }
+}

@@ -1,0 +1,502 @@
+//! TCP over IPv4 or IPv6: a listener and one connection per client, each XRCE message with a
+//! 2-byte little-endian length prefix ([`xrce_common::framing::length_prefix`]).
+//!
+//! Bounded per connection: the receive buffer holds at most one message being completed,
+//! the send buffer at most [`TcpConfig::send_buffer`] bytes. A client that does not read
+//! (its kernel buffer full, then ours) is disconnected and counted, so one stuck client
+//! never holds memory or blocks the others. At most [`TcpConfig::max_connections`] are
+//! served; more are accepted and closed at once, with a log line.
+
+use std::collections::VecDeque;
+use std::io::{IoSlice, Read, Write};
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+use mio::event::Event;
+use mio::{Interest, Registry, Token};
+use xrce_common::framing::length_prefix::{self, LengthPrefixDecoder};
+use xrce_common::wire::info::TransportLocator;
+
+use super::{is_gone, Transport, TransportStats};
+
+/// Limits of the TCP transport.
+#[derive(Debug, Clone)]
+pub struct TcpConfig {
+    /// Connections served at once; more are closed as they arrive.
+    pub max_connections: usize,
+    /// Bytes waiting to be written to one connection before it is closed as stuck.
+    pub send_buffer: usize,
+    /// Largest message accepted (at most 65,535, what the prefix can say); a longer one
+    /// closes its connection.
+    pub max_message: usize,
+}
+
+impl Default for TcpConfig {
+    fn default() -> Self {
+        TcpConfig {
+            max_connections: 10_000,
+            send_buffer: 512 << 10,
+            max_message: length_prefix::MAX_MESSAGE,
+        }
+    }
+}
+
+/// One connection, as the session core knows it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct TcpEndpoint {
+    slot: u32,
+    generation: u32,
+}
+
+#[derive(Debug)]
+struct Connection {
+    stream: mio::net::TcpStream,
+    peer: SocketAddr,
+    generation: u32,
+    decoder: LengthPrefixDecoder,
+    /// Framed bytes not written yet, from `out_start` on.
+    out: Vec<u8>,
+    out_start: usize,
+    /// Registered for writability (only while `out` holds something).
+    writable: bool,
+    /// In the transport's ready list.
+    queued: bool,
+    opened_at: Instant,
+}
+
+impl Connection {
+    fn pending_out(&self) -> usize {
+        self.out.len() - self.out_start
+    }
+
+    /// Writes buffered output; `Err` when the connection is gone.
+    fn flush(&mut self) -> std::io::Result<()> {
+        while self.out_start < self.out.len() {
+            match self.stream.write(&self.out[self.out_start..]) {
+                Ok(0) => return Err(std::io::ErrorKind::WriteZero.into()),
+                Ok(n) => self.out_start += n,
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(e),
+            }
+        }
+        if self.out_start == self.out.len() {
+            self.out.clear();
+            self.out_start = 0;
+            if self.out.capacity() > 64 << 10 {
+                self.out = Vec::new();
+            }
+        } else if self.out_start > self.out.len() / 2 {
+            self.out.drain(..self.out_start);
+            self.out_start = 0;
+        }
+        Ok(())
+    }
+}
+
+/// The TCP transport.
+#[derive(Debug)]
+pub struct TcpTransport {
+    listener: mio::net::TcpListener,
+    local: SocketAddr,
+    config: TcpConfig,
+    slots: Vec<Option<Connection>>,
+    free: Vec<u32>,
+    live: usize,
+    next_generation: u32,
+    registry: Option<Registry>,
+    first_token: usize,
+    accept_ready: bool,
+    /// Accepting paused (out of descriptors) until then.
+    accept_retry: Option<Instant>,
+    ready: VecDeque<u32>,
+    closed: VecDeque<TcpEndpoint>,
+    stats: TransportStats,
+}
+
+/// Why a connection was closed by us (counted as drops; a peer's own close is not one).
+const STUCK: &str = "tcp_send_buffer_overflow";
+const TOO_LONG: &str = "tcp_frame_too_long";
+const REFUSED: &str = "tcp_connection_refused";
+
+impl TcpTransport {
+    /// Serves clients on a bound listener.
+    pub fn new(listener: std::net::TcpListener, config: TcpConfig) -> std::io::Result<Self> {
+        listener.set_nonblocking(true)?;
+        let local = listener.local_addr()?;
+        Ok(TcpTransport {
+            listener: mio::net::TcpListener::from_std(listener),
+            local,
+            config,
+            slots: Vec::new(),
+            free: Vec::new(),
+            live: 0,
+            next_generation: 0,
+            registry: None,
+            first_token: 0,
+            accept_ready: true,
+            accept_retry: None,
+            ready: VecDeque::new(),
+            closed: VecDeque::new(),
+            stats: TransportStats::default(),
+        })
+    }
+
+    /// The address served.
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local
+    }
+
+    /// Connections open now.
+    pub fn connections(&self) -> usize {
+        self.live
+    }
+
+    fn token(&self, slot: u32) -> Token {
+        Token(self.first_token + 1 + slot as usize)
+    }
+
+    fn queue_read(&mut self, slot: u32) {
+        if let Some(c) = self.slots.get_mut(slot as usize).and_then(Option::as_mut) {
+            if !c.queued {
+                c.queued = true;
+                self.ready.push_back(slot);
+            }
+        }
+    }
+
+    /// Closes a connection; `reason` is counted as a drop unless the peer closed it.
+    fn close(&mut self, slot: u32, reason: Option<&'static str>, detail: &str) {
+        let Some(mut c) = self.slots.get_mut(slot as usize).and_then(Option::take) else {
+            return;
+        };
+        if let Some(r) = &self.registry {
+            let _ = r.deregister(&mut c.stream);
+        }
+        self.free.push(slot);
+        self.live -= 1;
+        self.stats.closed += 1;
+        self.closed.push_back(TcpEndpoint {
+            slot,
+            generation: c.generation,
+        });
+        let age_ms = c.opened_at.elapsed().as_millis() as u64;
+        match reason {
+            Some(reason) => {
+                let n = self.stats.drop(reason);
+                tracing::warn!(peer = %c.peer, reason, detail, closed_for_this_reason = n, age_ms, "TCP connection closed");
+            }
+            None => tracing::debug!(peer = %c.peer, detail, age_ms, "TCP connection closed"),
+        }
+    }
+
+    fn accept(&mut self) {
+        loop {
+            let (stream, peer) = match self.listener.accept() {
+                Ok(s) => s,
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                    self.accept_ready = false;
+                    return;
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) if matches!(e.raw_os_error(), Some(libc::EMFILE | libc::ENFILE)) => {
+                    // Out of descriptors: pending connections wait in the backlog.
+                    let n = self.stats.drop("tcp_accept_no_descriptors");
+                    if n.is_power_of_two() {
+                        tracing::error!(error = %e, connections = self.live, "cannot accept TCP connections: out of file descriptors (raise LimitNOFILE / ulimit -n)");
+                    }
+                    self.accept_ready = false;
+                    self.accept_retry = Some(Instant::now() + Duration::from_millis(100));
+                    return;
+                }
+                Err(e) => {
+                    // ECONNABORTED and the like concern one connection, not the listener.
+                    tracing::debug!(error = %e, "accept");
+                    continue;
+                }
+            };
+            if self.live >= self.config.max_connections {
+                let n = self.stats.drop(REFUSED);
+                if n.is_power_of_two() {
+                    tracing::warn!(%peer, max = self.config.max_connections, refused = n, "TCP connection refused: the front-end serves its maximum of connections (--max-connections)");
+                }
+                drop(stream);
+                continue;
+            }
+            if let Err(e) = stream.set_nodelay(true) {
+                tracing::debug!(%peer, error = %e, "TCP_NODELAY");
+            }
+            let slot = match self.free.pop() {
+                Some(s) => s,
+                None => {
+                    self.slots.push(None);
+                    (self.slots.len() - 1) as u32
+                }
+            };
+            let generation = self.next_generation;
+            self.next_generation = self.next_generation.wrapping_add(1);
+            let mut c = Connection {
+                stream,
+                peer,
+                generation,
+                decoder: LengthPrefixDecoder::new(self.config.max_message),
+                out: Vec::new(),
+                out_start: 0,
+                writable: false,
+                queued: false,
+                opened_at: Instant::now(),
+            };
+            let token = self.token(slot);
+            if let Some(r) = &self.registry {
+                if let Err(e) = r.register(&mut c.stream, token, Interest::READABLE) {
+                    tracing::warn!(%peer, error = %e, "could not watch a TCP connection");
+                    self.free.push(slot);
+                    continue;
+                }
+            }
+            self.slots[slot as usize] = Some(c);
+            self.live += 1;
+            self.stats.opened += 1;
+            tracing::debug!(%peer, connections = self.live, "TCP connection accepted");
+            // Data may have arrived before the registration.
+            self.queue_read(slot);
+        }
+    }
+
+    /// Reads one connection; returns how many messages it delivered, and whether it still
+    /// has input (budget used up).
+    fn read_connection(
+        &mut self,
+        slot: u32,
+        budget: usize,
+        deliver: &mut dyn FnMut(TcpEndpoint, &[u8]),
+    ) -> (usize, bool) {
+        let mut delivered = 0;
+        let mut close: Option<(Option<&'static str>, String)> = None;
+        let mut left = false;
+        let Some(c) = self.slots.get_mut(slot as usize).and_then(Option::as_mut) else {
+            return (0, false);
+        };
+        let ep = TcpEndpoint {
+            slot,
+            generation: c.generation,
+        };
+        'read: loop {
+            // Whole messages first (some may be left from a budget used up).
+            while let Some(m) = c.decoder.next_message() {
+                match m {
+                    Ok(msg) => {
+                        deliver(ep, msg);
+                        delivered += 1;
+                        if delivered >= budget {
+                            left = true;
+                            break 'read;
+                        }
+                    }
+                    Err(e) => {
+                        close = Some((Some(TOO_LONG), e.to_string()));
+                        break 'read;
+                    }
+                }
+            }
+            match c.stream.read(c.decoder.spare()) {
+                Ok(0) => {
+                    close = Some((None, "closed by the client".into()));
+                    break;
+                }
+                Ok(n) => c.decoder.filled(n),
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => {
+                    close = Some((None, e.to_string()));
+                    break;
+                }
+            }
+        }
+        self.stats.messages_in += delivered as u64;
+        if let Some((reason, detail)) = close {
+            self.close(slot, reason, &detail);
+            return (delivered, false);
+        }
+        (delivered, left)
+    }
+}
+
+impl Transport for TcpTransport {
+    type Endpoint = TcpEndpoint;
+
+    fn name(&self) -> &'static str {
+        if self.local.is_ipv4() {
+            "tcp4"
+        } else {
+            "tcp6"
+        }
+    }
+
+    fn max_message_size(&self) -> u16 {
+        self.config.max_message.min(length_prefix::MAX_MESSAGE) as u16
+    }
+
+    fn register(&mut self, registry: &Registry, first_token: usize) -> std::io::Result<()> {
+        self.first_token = first_token;
+        registry.register(&mut self.listener, Token(first_token), Interest::READABLE)?;
+        self.registry = Some(registry.try_clone()?);
+        tracing::info!(local = %self.local, max_connections = self.config.max_connections, "TCP front-end listening");
+        Ok(())
+    }
+
+    fn on_event(&mut self, event: &Event) {
+        let token = event.token().0;
+        if token == self.first_token {
+            self.accept_ready = self.accept_retry.is_none();
+            return;
+        }
+        let Some(slot) = token.checked_sub(self.first_token + 1) else {
+            return;
+        };
+        let slot = slot as u32;
+        if event.is_readable() || event.is_read_closed() || event.is_error() {
+            self.queue_read(slot);
+        }
+        if event.is_writable() {
+            let Some(c) = self.slots.get_mut(slot as usize).and_then(Option::as_mut) else {
+                return;
+            };
+            let flushed = c.flush();
+            let (empty, writable) = (c.pending_out() == 0, c.writable);
+            match flushed {
+                Err(e) => self.close(slot, None, &e.to_string()),
+                Ok(()) if empty && writable => {
+                    let token = self.token(slot);
+                    if let (Some(r), Some(c)) = (
+                        &self.registry,
+                        self.slots.get_mut(slot as usize).and_then(Option::as_mut),
+                    ) {
+                        if r.reregister(&mut c.stream, token, Interest::READABLE)
+                            .is_ok()
+                        {
+                            c.writable = false;
+                        }
+                    }
+                }
+                Ok(()) => {}
+            }
+        }
+    }
+
+    fn receive(
+        &mut self,
+        _now: Instant,
+        budget: usize,
+        deliver: &mut dyn FnMut(TcpEndpoint, &[u8]),
+    ) -> bool {
+        if self.accept_ready {
+            self.accept();
+        }
+        let mut budget = budget;
+        // Each connection gets a turn; one with more input goes to the back.
+        for _ in 0..self.ready.len() {
+            if budget == 0 {
+                break;
+            }
+            let Some(slot) = self.ready.pop_front() else {
+                break;
+            };
+            let (n, left) = self.read_connection(slot, budget, deliver);
+            budget = budget.saturating_sub(n);
+            match self.slots.get_mut(slot as usize).and_then(Option::as_mut) {
+                Some(_) if left => self.ready.push_back(slot),
+                Some(c) => c.queued = false,
+                None => {}
+            }
+        }
+        !self.ready.is_empty() || self.accept_ready
+    }
+
+    fn send(&mut self, to: TcpEndpoint, message: &[u8]) {
+        let limit = self.config.send_buffer;
+        let token = self.token(to.slot);
+        let registry = self.registry.as_ref();
+        let Some(c) = self
+            .slots
+            .get_mut(to.slot as usize)
+            .and_then(Option::as_mut)
+            .filter(|c| c.generation == to.generation)
+        else {
+            self.stats.drop("tcp_connection_gone");
+            return;
+        };
+        let Ok(len) = u16::try_from(message.len()) else {
+            self.stats.drop("message_too_long");
+            return;
+        };
+        let prefix = len.to_le_bytes();
+        let mut written = 0;
+        if c.pending_out() == 0 {
+            match c
+                .stream
+                .write_vectored(&[IoSlice::new(&prefix), IoSlice::new(message)])
+            {
+                Ok(n) => written = n,
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => {
+                    let detail = e.to_string();
+                    let gone = is_gone(&e);
+                    self.close(to.slot, (!gone).then_some("tcp_send_failed"), &detail);
+                    return;
+                }
+            }
+        }
+        let total = prefix.len() + message.len();
+        if written < total {
+            if c.pending_out() + (total - written) > limit {
+                let detail = format!(
+                    "{} bytes waiting for a client that does not read",
+                    c.pending_out() + total - written
+                );
+                self.close(to.slot, Some(STUCK), &detail);
+                return;
+            }
+            let framed = prefix.iter().chain(message).skip(written);
+            c.out.extend(framed);
+            if !c.writable {
+                if let Some(r) = registry {
+                    if r.reregister(
+                        &mut c.stream,
+                        token,
+                        Interest::READABLE | Interest::WRITABLE,
+                    )
+                    .is_ok()
+                    {
+                        c.writable = true;
+                    }
+                }
+            }
+        }
+        self.stats.messages_out += 1;
+    }
+
+    fn poll_closed(&mut self) -> Option<TcpEndpoint> {
+        self.closed.pop_front()
+    }
+
+    fn poll_timeout(&self) -> Option<Instant> {
+        self.accept_retry
+    }
+
+    fn handle_timeout(&mut self, now: Instant) {
+        if self.accept_retry.is_some_and(|t| t <= now) {
+            self.accept_retry = None;
+            self.accept_ready = true;
+        }
+    }
+
+    fn stats(&self) -> &TransportStats {
+        &self.stats
+    }
+
+    fn locators(&self) -> Vec<TransportLocator> {
+        super::discovery::ip_locators(self.local)
+    }
+}

@@ -1,0 +1,542 @@
+//! The user-facing command line, a drop-in for eProsima's `MicroXRCEAgent` v2.4.3:
+//! `xrce-agent <transport> <options>` with the same transports, option names, defaults and
+//! value forms (`-p8888` as well as `-p 8888`), plus this agent's own options. What the
+//! reference offers but this agent does not (the CED middleware, its P2P mode, CAN FD) is
+//! refused with a clear message and exit status 2, like any other usage error.
+
+use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
+use std::path::{Path, PathBuf};
+
+use clap::{Args, Parser, Subcommand};
+
+/// DDS-XRCE agent: lets XRCE clients (Micro XRCE-DDS, micro-ROS, PX4) join a DDS data space.
+#[derive(Debug, Parser)]
+#[command(name = "xrce-agent", version)]
+pub struct Cli {
+    /// The transport to serve, or an internal role.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// What to run.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Serve clients over UDP/IPv4.
+    Udp4(IpArgs),
+    /// Serve clients over UDP/IPv6.
+    Udp6(IpArgs),
+    /// Serve clients over TCP/IPv4.
+    Tcp4(TcpArgs),
+    /// Serve clients over TCP/IPv6.
+    #[command(alias = "tpc6")]
+    Tcp6(TcpArgs),
+    /// Serve clients on a serial device.
+    Serial(SerialArgs),
+    /// Serve clients on several serial devices.
+    Multiserial(MultiserialArgs),
+    /// Open a pseudoterminal and serve the client that opens it.
+    Pseudoterminal(PtyArgs),
+    /// CAN FD (not supported by this agent).
+    Canfd(CanfdArgs),
+    /// Internal: run the DDS worker (started by the supervisor).
+    #[command(hide = true)]
+    DdsWorker(xrce_dds_worker::cli::WorkerArgs),
+    /// Internal: run a front-end (started by the supervisor).
+    #[command(hide = true)]
+    Frontend(xrce_frontend::cli::FrontendArgs),
+}
+
+/// Options every transport takes.
+#[derive(Debug, Clone, Args)]
+pub struct Common {
+    /// Verbosity 0 (off) … 6 (trace, with a hex dump of every message); 4 = info, 5 adds
+    /// per-message debug logs.
+    #[arg(short = 'v', long = "verbose", default_value_t = 4, value_parser = clap::value_parser!(u8).range(0..=6))]
+    pub verbose: u8,
+    /// Middleware: `dds` (the only one here; `ced` and `rtps` are refused).
+    #[arg(short = 'm', long = "middleware", default_value = "dds")]
+    pub middleware: String,
+    /// References file: Fast DDS XML profiles that clients may create by reference.
+    #[arg(short = 'r', long = "refs")]
+    pub refs: Option<PathBuf>,
+    /// Answer multicast discovery (group 239.255.0.2) on this port (7400 if given alone).
+    #[arg(short = 'd', long = "discovery", num_args = 0..=1, default_missing_value = "7400")]
+    pub discovery: Option<u16>,
+    /// P2P port of the CED middleware (not supported by this agent).
+    #[arg(short = 'P', long = "p2p")]
+    pub p2p: Option<u16>,
+    /// Restrict DDS to these local addresses (comma-separated); default: every interface.
+    #[arg(
+        long = "dds-interface",
+        env = "XRCE_DDS_INTERFACES",
+        value_delimiter = ','
+    )]
+    pub dds_interfaces: Vec<IpAddr>,
+    /// Instance name shared by the agent's processes (default: derived from the transport).
+    #[arg(long, env = "XRCE_INSTANCE")]
+    pub instance: Option<String>,
+    /// Protocol dialect for every session: `spec` or `eprosima` (default: per session, from
+    /// the client's vendor id).
+    #[arg(long, env = "XRCE_DIALECT")]
+    pub dialect: Option<xrce_common::wire::Dialect>,
+    /// Seconds of silence after which a client's session and entities are deleted; silent
+    /// clients are probed with GET_INFO first. 0 (default) keeps them, like MicroXRCEAgent.
+    #[arg(
+        long = "client-dead-time",
+        env = "XRCE_CLIENT_DEAD_TIME",
+        default_value_t = 0.0
+    )]
+    pub client_dead_time: f64,
+    /// Announce XRCE participants named like ROS 2 nodes that have an endpoint on a ROS topic
+    /// (`rt/`, `rq/`, `rr/`: micro-ROS) on `ros_discovery_info`, so `ros2 node list` shows
+    /// them: `true` (default) or `false`.
+    #[arg(long = "ros-graph", env = "XRCE_ROS_GRAPH", default_value_t = true, action = clap::ArgAction::Set)]
+    pub ros_graph: bool,
+    /// Map the XRCE data writers of one domain, topic, type and QoS onto shared DDS writers,
+    /// one per 32 clients (volatile, shared-ownership writers only): `true` or `false`
+    /// (default). Scales to thousands of clients publishing on one topic; DDS readers then
+    /// see one writer per group of clients.
+    #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
+    pub share_writers: bool,
+}
+
+/// Options of the UDP transports.
+#[derive(Debug, Clone, Args)]
+pub struct IpArgs {
+    /// Port to listen on.
+    #[arg(short = 'p', long = "port")]
+    pub port: u16,
+    /// Address to bind (default: every interface).
+    #[arg(long)]
+    pub bind: Option<IpAddr>,
+    #[command(flatten)]
+    pub common: Common,
+}
+
+/// Options of the TCP transports.
+#[derive(Debug, Clone, Args)]
+pub struct TcpArgs {
+    #[command(flatten)]
+    pub ip: IpArgs,
+    /// Connections served at once; more are refused with a log line.
+    #[arg(long = "max-connections", default_value_t = 10_000)]
+    pub max_connections: usize,
+}
+
+/// Options of the serial transport.
+#[derive(Debug, Clone, Args)]
+#[command(group(clap::ArgGroup::new("device").required(true).args(["dev", "file"])))]
+pub struct SerialArgs {
+    /// The serial device, e.g. /dev/ttyACM0.
+    #[arg(short = 'D', long = "dev")]
+    pub dev: Option<PathBuf>,
+    /// A file whose first line is the device path.
+    #[arg(short = 'f', long = "file")]
+    pub file: Option<PathBuf>,
+    /// Baud rate: any standard rate up to 4000000, or another value as a custom rate.
+    #[arg(short = 'b', long = "baudrate", default_value_t = 115_200)]
+    pub baudrate: u32,
+    /// RTS/CTS hardware flow control.
+    #[arg(long = "flow-control")]
+    pub flow_control: bool,
+    #[command(flatten)]
+    pub common: Common,
+}
+
+/// Options of the multiserial transport.
+#[derive(Debug, Clone, Args)]
+#[command(group(clap::ArgGroup::new("devices").required(true).args(["devs", "file"])))]
+pub struct MultiserialArgs {
+    /// The serial devices, space-separated in one argument: "/dev/ttyUSB0 /dev/ttyUSB1".
+    #[arg(short = 'D', long = "devs")]
+    pub devs: Option<String>,
+    /// A file with one device path a line.
+    #[arg(short = 'f', long = "file")]
+    pub file: Option<PathBuf>,
+    /// Baud rate of every device.
+    #[arg(short = 'b', long = "baudrate", default_value_t = 115_200)]
+    pub baudrate: u32,
+    /// RTS/CTS hardware flow control on every device.
+    #[arg(long = "flow-control")]
+    pub flow_control: bool,
+    #[command(flatten)]
+    pub common: Common,
+}
+
+/// Options of the pseudoterminal transport.
+#[derive(Debug, Clone, Args)]
+pub struct PtyArgs {
+    /// Baud rate (a pseudoterminal ignores it).
+    #[arg(short = 'b', long = "baudrate", default_value_t = 115_200)]
+    pub baudrate: u32,
+    #[command(flatten)]
+    pub common: Common,
+}
+
+/// Options of the CAN FD transport (refused).
+#[derive(Debug, Clone, Args)]
+pub struct CanfdArgs {
+    /// CAN interface.
+    #[arg(short = 'D', long = "dev")]
+    pub dev: Option<String>,
+    /// CAN id (hex).
+    #[arg(short = 'I', long = "id")]
+    pub id: Option<String>,
+    #[command(flatten)]
+    pub common: Common,
+}
+
+/// A usage error with the reference's exit status (2).
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct Unsupported(pub String);
+
+/// What one front-end serves, decided from the command line.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum FrontendPlan {
+    /// UDP or TCP at an address.
+    Ip {
+        /// `udp4`, `udp6`, `tcp4` or `tcp6`.
+        kind: xrce_frontend::cli::TransportKind,
+        /// Where.
+        listen: SocketAddr,
+        /// TCP connections served at once.
+        max_connections: usize,
+    },
+    /// Serial devices (one for `serial`).
+    Serial {
+        /// `serial` or `multiserial`.
+        kind: xrce_frontend::cli::TransportKind,
+        /// The devices.
+        devices: Vec<PathBuf>,
+        /// Their baud rate.
+        baudrate: u32,
+        /// RTS/CTS.
+        flow_control: bool,
+    },
+    /// A pseudoterminal the supervisor opens.
+    Pty {
+        /// Its baud rate.
+        baudrate: u32,
+    },
+}
+
+impl FrontendPlan {
+    /// The transport's name.
+    pub fn kind(&self) -> xrce_frontend::cli::TransportKind {
+        match self {
+            FrontendPlan::Ip { kind, .. } | FrontendPlan::Serial { kind, .. } => *kind,
+            FrontendPlan::Pty { .. } => xrce_frontend::cli::TransportKind::Pseudoterminal,
+        }
+    }
+
+    /// A short label for instance names and logs (`udp4-8888`, `serial`).
+    pub fn label(&self) -> String {
+        match self {
+            FrontendPlan::Ip { kind, listen, .. } => format!("{}-{}", kind.name(), listen.port()),
+            other => other.kind().name().to_string(),
+        }
+    }
+
+    /// The hidden `frontend` subcommand's arguments for this plan (the pty descriptor, if
+    /// any, is added by the caller).
+    pub fn frontend_args(&self) -> Vec<String> {
+        let mut a = vec!["--transport".to_string(), self.kind().name().to_string()];
+        match self {
+            FrontendPlan::Ip {
+                listen,
+                max_connections,
+                ..
+            } => {
+                a.extend(["--listen".into(), listen.to_string()]);
+                a.extend(["--max-connections".into(), max_connections.to_string()]);
+            }
+            FrontendPlan::Serial {
+                devices,
+                baudrate,
+                flow_control,
+                ..
+            } => {
+                for d in devices {
+                    a.extend(["--device".into(), d.display().to_string()]);
+                }
+                a.extend(["--baudrate".into(), baudrate.to_string()]);
+                if *flow_control {
+                    a.push("--flow-control".into());
+                }
+            }
+            FrontendPlan::Pty { baudrate } => {
+                a.extend(["--baudrate".into(), baudrate.to_string()]);
+            }
+        }
+        a
+    }
+}
+
+/// Refuses what the reference offers and this agent does not.
+pub fn check_supported(common: &Common) -> Result<(), Unsupported> {
+    match common.middleware.as_str() {
+        "dds" => {}
+        m @ ("ced" | "rtps") => {
+            return Err(Unsupported(format!(
+                "middleware '{m}' is not supported by this agent: it serves DDS only (-m dds)"
+            )))
+        }
+        m => {
+            return Err(Unsupported(format!(
+                "unknown middleware '{m}' (MicroXRCEAgent knows dds, ced and rtps; this agent serves dds)"
+            )))
+        }
+    }
+    if common.p2p.is_some() {
+        return Err(Unsupported(
+            "-P/--p2p is a mode of the CED middleware, which this agent does not have".into(),
+        ));
+    }
+    Ok(())
+}
+
+fn ip_plan(
+    kind: xrce_frontend::cli::TransportKind,
+    a: &IpArgs,
+    v6: bool,
+    max_connections: usize,
+) -> FrontendPlan {
+    let bind = a.bind.unwrap_or(if v6 {
+        IpAddr::V6(Ipv6Addr::UNSPECIFIED)
+    } else {
+        IpAddr::V4(Ipv4Addr::UNSPECIFIED)
+    });
+    FrontendPlan::Ip {
+        kind,
+        listen: SocketAddr::new(bind, a.port),
+        max_connections,
+    }
+}
+
+/// Device paths from a file: one a line, blank lines and `#` comments skipped.
+fn devices_from_file(file: &Path, first_only: bool) -> anyhow::Result<Vec<PathBuf>> {
+    let text = std::fs::read_to_string(file)
+        .map_err(|e| anyhow::anyhow!("reading the device file {}: {e}", file.display()))?;
+    let mut out: Vec<PathBuf> = text
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#'))
+        .map(PathBuf::from)
+        .collect();
+    if first_only {
+        out.truncate(1);
+    }
+    if out.is_empty() {
+        anyhow::bail!("the device file {} names no device", file.display());
+    }
+    Ok(out)
+}
+
+/// The front-end plan and the common options of a transport command; `None` for the
+/// internal roles.
+pub fn plan(command: &Command) -> anyhow::Result<Option<(FrontendPlan, Common)>> {
+    use xrce_frontend::cli::TransportKind as K;
+    Ok(Some(match command {
+        Command::Udp4(a) => (ip_plan(K::Udp4, a, false, 0), a.common.clone()),
+        Command::Udp6(a) => (ip_plan(K::Udp6, a, true, 0), a.common.clone()),
+        Command::Tcp4(a) => (
+            ip_plan(K::Tcp4, &a.ip, false, a.max_connections),
+            a.ip.common.clone(),
+        ),
+        Command::Tcp6(a) => (
+            ip_plan(K::Tcp6, &a.ip, true, a.max_connections),
+            a.ip.common.clone(),
+        ),
+        Command::Serial(a) => {
+            let devices = match (&a.dev, &a.file) {
+                (Some(d), _) => vec![d.clone()],
+                (None, Some(f)) => devices_from_file(f, true)?,
+                (None, None) => anyhow::bail!("serial needs --dev DEVICE or --file FILE"),
+            };
+            (
+                FrontendPlan::Serial {
+                    kind: K::Serial,
+                    devices,
+                    baudrate: a.baudrate,
+                    flow_control: a.flow_control,
+                },
+                a.common.clone(),
+            )
+        }
+        Command::Multiserial(a) => {
+            let devices = match (&a.devs, &a.file) {
+                (Some(d), _) => d.split_whitespace().map(PathBuf::from).collect(),
+                (None, Some(f)) => devices_from_file(f, false)?,
+                (None, None) => {
+                    anyhow::bail!("multiserial needs --devs \"DEV1 DEV2\" or --file FILE")
+                }
+            };
+            if devices.is_empty() {
+                anyhow::bail!("multiserial: --devs names no device");
+            }
+            let mut seen = std::collections::HashSet::new();
+            if let Some(d) = devices.iter().find(|d| !seen.insert(*d)) {
+                anyhow::bail!("multiserial: {} is named twice", d.display());
+            }
+            (
+                FrontendPlan::Serial {
+                    kind: K::Multiserial,
+                    devices,
+                    baudrate: a.baudrate,
+                    flow_control: a.flow_control,
+                },
+                a.common.clone(),
+            )
+        }
+        Command::Pseudoterminal(a) => (
+            FrontendPlan::Pty {
+                baudrate: a.baudrate,
+            },
+            a.common.clone(),
+        ),
+        Command::Canfd(a) => {
+            check_supported(&a.common)?;
+            return Err(Unsupported(
+                "the canfd transport is not supported by this agent (UDP, TCP, serial, multiserial and pseudoterminal are)".into(),
+            )
+            .into());
+        }
+        Command::DdsWorker(_) | Command::Frontend(_) => return Ok(None),
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use xrce_frontend::cli::TransportKind as K;
+
+    fn parse(args: &[&str]) -> Result<Cli, clap::Error> {
+        Cli::try_parse_from(std::iter::once("xrce-agent").chain(args.iter().copied()))
+    }
+
+    fn planned(args: &[&str]) -> FrontendPlan {
+        let cli = parse(args).expect("parses");
+        plan(&cli.command).expect("plan").expect("a transport").0
+    }
+
+    #[test]
+    fn reference_command_lines_parse_unchanged() {
+        assert_eq!(
+            planned(&["udp4", "-p", "8888"]),
+            FrontendPlan::Ip {
+                kind: K::Udp4,
+                listen: "0.0.0.0:8888".parse().expect("addr"),
+                max_connections: 0
+            }
+        );
+        // Values glued to their flag, and verbosity.
+        assert_eq!(
+            planned(&["tcp6", "-p8888", "-v6"]),
+            FrontendPlan::Ip {
+                kind: K::Tcp6,
+                listen: "[::]:8888".parse().expect("addr"),
+                max_connections: 10_000
+            }
+        );
+        // The reference's misspelling in its usage line.
+        assert_eq!(planned(&["tpc6", "-p", "1"]).kind(), K::Tcp6);
+        assert_eq!(
+            planned(&["serial", "--dev", "/dev/ttyACM0", "-b", "921600"]),
+            FrontendPlan::Serial {
+                kind: K::Serial,
+                devices: vec!["/dev/ttyACM0".into()],
+                baudrate: 921_600,
+                flow_control: false
+            }
+        );
+        assert_eq!(
+            planned(&["serial", "-D/dev/ttyUSB0"]),
+            FrontendPlan::Serial {
+                kind: K::Serial,
+                devices: vec!["/dev/ttyUSB0".into()],
+                baudrate: 115_200,
+                flow_control: false
+            }
+        );
+        assert_eq!(
+            planned(&["multiserial", "--devs", "/dev/a /dev/b", "-b", "57600"]),
+            FrontendPlan::Serial {
+                kind: K::Multiserial,
+                devices: vec!["/dev/a".into(), "/dev/b".into()],
+                baudrate: 57_600,
+                flow_control: false
+            }
+        );
+        assert_eq!(
+            planned(&["pseudoterminal", "-b", "115200"]),
+            FrontendPlan::Pty { baudrate: 115_200 }
+        );
+    }
+
+    #[test]
+    fn discovery_takes_an_optional_port() {
+        let cli = parse(&["udp4", "-p", "8888", "-d"]).expect("parses");
+        let (_, common) = plan(&cli.command).expect("plan").expect("transport");
+        assert_eq!(common.discovery, Some(7400));
+        let cli = parse(&["udp4", "-d", "7500", "-p", "8888"]).expect("parses");
+        let (_, common) = plan(&cli.command).expect("plan").expect("transport");
+        assert_eq!(common.discovery, Some(7500));
+        let cli = parse(&["udp4", "-p", "8888"]).expect("parses");
+        let (_, common) = plan(&cli.command).expect("plan").expect("transport");
+        assert_eq!(common.discovery, None);
+    }
+
+    #[test]
+    fn device_files_name_the_devices() {
+        let dir = std::env::temp_dir().join(format!("xrce-cli-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let f = dir.join("devs");
+        std::fs::write(&f, "/dev/ttyUSB0\n\n# spare\n/dev/ttyUSB1\n").expect("write");
+        let path = f.display().to_string();
+        assert_eq!(
+            planned(&["serial", "-f", &path]),
+            FrontendPlan::Serial {
+                kind: K::Serial,
+                devices: vec!["/dev/ttyUSB0".into()],
+                baudrate: 115_200,
+                flow_control: false
+            }
+        );
+        match planned(&["multiserial", "-f", &path, "--flow-control"]) {
+            FrontendPlan::Serial {
+                devices,
+                flow_control,
+                ..
+            } => {
+                assert_eq!(devices.len(), 2);
+                assert!(flow_control);
+            }
+            other => panic!("{other:?}"),
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn what_this_agent_lacks_is_refused() {
+        for args in [
+            &["udp4", "-p", "1", "-m", "ced"][..],
+            &["udp4", "-p", "1", "-m", "rtps"],
+            &["udp4", "-p", "1", "-P", "2020"],
+        ] {
+            let cli = parse(args).expect("parses");
+            let (_, common) = plan(&cli.command).expect("plan").expect("transport");
+            assert!(check_supported(&common).is_err(), "{args:?}");
+        }
+        let cli = parse(&["canfd", "-D", "can0", "-I", "1"]).expect("parses");
+        let e = plan(&cli.command).expect_err("refused");
+        assert!(e.downcast_ref::<Unsupported>().is_some());
+        // Usage errors: clap's exit status is 2 as well.
+        let e = parse(&["serial"]).expect_err("a device is required");
+        assert_eq!(e.exit_code(), 2);
+        let e = parse(&["udp4"]).expect_err("a port is required");
+        assert_eq!(e.exit_code(), 2);
+        let cli = parse(&["multiserial", "--devs", "/dev/a /dev/a"]).expect("parses");
+        assert!(plan(&cli.command).is_err());
+    }
+}
