@@ -12,6 +12,8 @@ use std::sync::mpsc;
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
+pub mod link;
+pub use link::{Link, PtyPair};
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
 use xrce_common::wire::{
     object_kind, stream_id, ClientKey, DataDeliveryControl, ObjectId, ObjectVariant,
@@ -63,6 +65,29 @@ pub fn binaries() -> &'static Path {
     })
 }
 
+/// The address and port named by `-p PORT` / `--bind ADDR` in an agent command line
+/// (loopback and 0 when absent).
+fn ip_and_port(args: &[&str]) -> (std::net::IpAddr, u16) {
+    let mut ip: std::net::IpAddr = [127, 0, 0, 1].into();
+    let mut port = 0;
+    for w in args.windows(2) {
+        match w[0] {
+            "-p" | "--port" => port = w[1].parse().unwrap_or(0),
+            "--bind" => ip = w[1].parse().unwrap_or(ip),
+            _ => {}
+        }
+    }
+    (ip, port)
+}
+
+/// A free TCP port on 127.0.0.1.
+pub fn free_tcp_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .map(|a| a.port())
+        .expect("free port")
+}
+
 /// A free UDP port on 127.0.0.1.
 pub fn free_udp_port() -> u16 {
     UdpSocket::bind("127.0.0.1:0")
@@ -82,18 +107,144 @@ pub fn unique_instance(tag: &str) -> String {
     )
 }
 
-/// A running `xrce-agent udp4` with DDS pinned to loopback. Stopped (SIGTERM) on drop.
+/// A running `xrce-agent` with DDS pinned to loopback. Stopped (SIGTERM) on drop.
 #[derive(Debug)]
 pub struct AgentProcess {
     child: Child,
-    /// The UDP port it serves.
+    /// The UDP or TCP port it serves (0 for serial transports).
     pub port: u16,
     /// Its instance name.
     pub instance: String,
     ip: std::net::IpAddr,
+    /// What it printed (stdout and stderr), when started with [`AgentProcess::launch`].
+    output: Option<AgentOutput>,
+}
+
+/// The lines an agent printed, collected by reader threads (and echoed to the test's
+/// stderr), so tests can wait for a log line instead of sleeping.
+#[derive(Debug, Clone, Default)]
+pub struct AgentOutput {
+    lines: std::sync::Arc<(std::sync::Mutex<Vec<String>>, std::sync::Condvar)>,
+}
+
+impl AgentOutput {
+    fn collect(&self, pipe: impl std::io::Read + Send + 'static, echo: bool) {
+        let lines = self.lines.clone();
+        std::thread::spawn(move || {
+            for line in BufReader::new(pipe).lines() {
+                let Ok(line) = line else { return };
+                if echo {
+                    eprintln!("{line}");
+                }
+                let (m, cv) = &*lines;
+                if let Ok(mut v) = m.lock() {
+                    v.push(line);
+                }
+                cv.notify_all();
+            }
+        });
+    }
+
+    /// The first line (from line `from` on) containing `needle`, waiting up to `d`; returns
+    /// its index and text.
+    pub fn wait_for(&self, from: usize, needle: &str, d: Duration) -> Option<(usize, String)> {
+        let end = Instant::now() + d;
+        let (m, cv) = &*self.lines;
+        let mut v = m.lock().ok()?;
+        loop {
+            if let Some((i, l)) = v
+                .iter()
+                .enumerate()
+                .skip(from)
+                .find(|(_, l)| l.contains(needle))
+            {
+                return Some((i, l.clone()));
+            }
+            let left = end.checked_duration_since(Instant::now())?;
+            v = cv.wait_timeout(v, left).ok()?.0;
+        }
+    }
+
+    /// How many lines were printed so far.
+    pub fn len(&self) -> usize {
+        self.lines.0.lock().map(|v| v.len()).unwrap_or(0)
+    }
+
+    /// Whether nothing was printed yet.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// How many lines contain `needle`.
+    pub fn count(&self, needle: &str) -> usize {
+        self.lines
+            .0
+            .lock()
+            .map(|v| v.iter().filter(|l| l.contains(needle)).count())
+            .unwrap_or(0)
+    }
 }
 
 impl AgentProcess {
+    /// Starts `xrce-agent <args>` (DDS pinned to loopback, instance `tag`-based) and waits
+    /// until it reports ready (every front-end serving), up to 30 s. Its output is collected
+    /// ([`Self::output`]). `None` if it exited first.
+    pub fn launch(tag: &str, args: &[&str]) -> Option<Self> {
+        let instance = unique_instance(tag);
+        let mut full: Vec<String> = args.iter().map(|a| a.to_string()).collect();
+        full.extend([
+            "--dds-interface".into(),
+            "127.0.0.1".into(),
+            "--instance".into(),
+            instance.clone(),
+        ]);
+        let mut child = Command::new(binaries().join("xrce-agent"))
+            .args(&full)
+            .env(
+                "XRCE_LOG",
+                std::env::var("XRCE_TEST_LOG").unwrap_or_else(|_| "info".into()),
+            )
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start xrce-agent");
+        let output = AgentOutput::default();
+        if let Some(out) = child.stdout.take() {
+            output.collect(out, true);
+        }
+        if let Some(err) = child.stderr.take() {
+            output.collect(err, true);
+        }
+        let (ip, port) = ip_and_port(args);
+        let mut agent = AgentProcess {
+            child,
+            port,
+            instance,
+            ip,
+            output: Some(output.clone()),
+        };
+        let end = Instant::now() + Duration::from_secs(30);
+        while Instant::now() < end {
+            if output
+                .wait_for(0, "agent ready", Duration::from_millis(100))
+                .is_some()
+            {
+                return Some(agent);
+            }
+            if let Ok(Some(_)) = agent.child.try_wait() {
+                return None;
+            }
+        }
+        None
+    }
+
+    /// The agent's collected output (agents started with [`Self::launch`]).
+    pub fn output(&self) -> &AgentOutput {
+        self.output
+            .as_ref()
+            .expect("output is collected for agents started with launch()")
+    }
+
     /// Starts an agent on a free port.
     pub fn start(tag: &str) -> Self {
         Self::start_with_env(tag, &[])
@@ -161,6 +312,7 @@ impl AgentProcess {
             port,
             instance,
             ip: addr.ip(),
+            output: None,
         };
         let end = Instant::now() + Duration::from_secs(20);
         while Instant::now() < end {
@@ -315,12 +467,14 @@ pub mod xml {
     pub const READER: &str = "<dds><data_reader><topic><kind>NO_KEY</kind><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic><qos><reliability><kind>RELIABLE</kind></reliability></qos></data_reader></dds>";
 }
 
-/// A Rust XRCE client on a UDP socket, driving `xrce_common`'s client state machine.
+/// A Rust XRCE client over a [`Link`] (UDP, TCP or a serial line), driving `xrce_common`'s
+/// client state machine.
 #[derive(Debug)]
 pub struct TestClient {
     /// The protocol state.
     pub client: Client,
-    socket: UdpSocket,
+    /// How it reaches the agent.
+    pub link: Link,
     /// Events received and not yet consumed.
     pub events: Vec<ClientEvent>,
     buf: Vec<u8>,
@@ -334,14 +488,28 @@ impl TestClient {
 
     /// A client with its own settings (byte order, liveliness, ...), talking to `agent`.
     pub fn with_config(agent: SocketAddr, config: ClientConfig) -> Self {
-        let socket = UdpSocket::bind("127.0.0.1:0").expect("bind client");
-        socket.connect(agent).expect("connect");
-        socket
-            .set_read_timeout(Some(Duration::from_millis(5)))
-            .expect("timeout");
+        Self::on_link(Link::udp(agent), config)
+    }
+
+    /// A client with `key` on a TCP connection to `agent`.
+    pub fn tcp(agent: SocketAddr, key: [u8; 4]) -> Self {
+        let link = Link::tcp(agent).expect("TCP connection to the agent");
+        Self::on_link(link, ClientConfig::new(ClientKey(key)))
+    }
+
+    /// A client with `key` at `address` on a serial line.
+    pub fn serial(line: std::fs::File, address: u8, key: [u8; 4]) -> Self {
+        Self::on_link(
+            Link::serial(line, address),
+            ClientConfig::new(ClientKey(key)),
+        )
+    }
+
+    /// A client on any link.
+    pub fn on_link(link: Link, config: ClientConfig) -> Self {
         TestClient {
             client: Client::new(config),
-            socket,
+            link,
             events: Vec::new(),
             buf: vec![0; 65_536],
         }
@@ -364,25 +532,17 @@ impl TestClient {
     /// One round: flush, receive what arrived (up to 5 ms), fire timers.
     pub fn step(&mut self) {
         while let Some(t) = self.client.poll_transmit() {
-            let _ = self.socket.send(&t);
+            self.link.send(&t);
         }
-        if let Ok(n) = self.socket.recv(&mut self.buf) {
-            let data = self.buf[..n].to_vec();
-            self.client.handle_datagram(Instant::now(), &data);
-            // Drain anything else already queued without blocking.
-            self.socket.set_nonblocking(true).ok();
-            while let Ok(n) = self.socket.recv(&mut self.buf) {
-                let data = self.buf[..n].to_vec();
-                self.client.handle_datagram(Instant::now(), &data);
-            }
-            self.socket.set_nonblocking(false).ok();
+        for m in self.link.receive(Duration::from_millis(5), &mut self.buf) {
+            self.client.handle_datagram(Instant::now(), &m);
         }
         self.client.handle_timeout(Instant::now());
         while let Some(e) = self.client.poll_event() {
             self.events.push(e);
         }
         while let Some(t) = self.client.poll_transmit() {
-            let _ = self.socket.send(&t);
+            self.link.send(&t);
         }
     }
 
@@ -725,4 +885,127 @@ pub fn parse_sample_line(l: &str) -> Option<(u32, String)> {
     let m = l.find("\"message\": \"")? + 12;
     let mend = l[m..].rfind('"')? + m;
     Some((index, l[m..mend].to_string()))
+}
+
+/// Every delivery of a HelloWorld sample, by index and in arrival order, so that a sample
+/// delivered twice is as visible as one never delivered.
+#[derive(Debug, Clone, Default)]
+pub struct Deliveries {
+    counts: std::collections::BTreeMap<u32, usize>,
+    order: Vec<u32>,
+}
+
+impl Deliveries {
+    /// Records one delivery.
+    pub fn record(&mut self, index: u32) {
+        *self.counts.entry(index).or_default() += 1;
+        self.order.push(index);
+    }
+
+    /// Distinct indices delivered.
+    pub fn distinct(&self) -> usize {
+        self.counts.len()
+    }
+
+    /// Deliveries in all, duplicates included.
+    pub fn total(&self) -> usize {
+        self.order.len()
+    }
+
+    /// Asserts that every index of `expected` arrived exactly once and nothing else did.
+    pub fn assert_exactly_once(&self, expected: impl IntoIterator<Item = u32>, what: &str) {
+        let expected: std::collections::BTreeSet<u32> = expected.into_iter().collect();
+        let missing: Vec<u32> = expected
+            .iter()
+            .copied()
+            .filter(|i| !self.counts.contains_key(i))
+            .collect();
+        let repeated: Vec<(u32, usize)> = self
+            .counts
+            .iter()
+            .filter(|(_, n)| **n > 1)
+            .map(|(i, n)| (*i, *n))
+            .collect();
+        let unexpected: Vec<u32> = self
+            .counts
+            .keys()
+            .copied()
+            .filter(|i| !expected.contains(i))
+            .collect();
+        assert!(
+            missing.is_empty() && repeated.is_empty() && unexpected.is_empty(),
+            "{what}: missing {missing:?}, delivered more than once {repeated:?}, unexpected {unexpected:?}"
+        );
+    }
+
+    /// Asserts that the deliveries came in increasing index order (what a reliable stream
+    /// from one writer promises).
+    pub fn assert_in_order(&self, what: &str) {
+        let inversions: Vec<(u32, u32)> = self
+            .order
+            .windows(2)
+            .filter(|w| w[1] <= w[0])
+            .map(|w| (w[0], w[1]))
+            .collect();
+        assert!(
+            inversions.is_empty(),
+            "{what}: out of order: {inversions:?}"
+        );
+    }
+}
+
+/// How long collections keep listening after the last expected sample, so that a duplicate
+/// arriving just after it is seen too.
+pub const DUPLICATE_GRACE: Duration = Duration::from_millis(500);
+
+impl DdsPeer {
+    /// Records the HelloWorld samples a `read` peer prints (checking each message is
+    /// `message`) until `want` distinct ones arrived and [`DUPLICATE_GRACE`] passed, or `d`
+    /// passed, while `pump` keeps other parties running.
+    pub fn collect_deliveries(
+        &self,
+        want: usize,
+        message: &str,
+        d: Duration,
+        mut pump: impl FnMut(),
+    ) -> Deliveries {
+        let mut got = Deliveries::default();
+        let end = Instant::now() + d;
+        let mut complete_at: Option<Instant> = None;
+        while Instant::now() < end && complete_at.is_none_or(|t| t.elapsed() < DUPLICATE_GRACE) {
+            pump();
+            while let Some(l) = self.line(Duration::from_millis(1)) {
+                if let Some((i, m)) = parse_sample_line(&l) {
+                    assert_eq!(m, message, "sample {i} carries another message");
+                    got.record(i);
+                }
+            }
+            if complete_at.is_none() && got.distinct() >= want {
+                complete_at = Some(Instant::now());
+            }
+        }
+        got
+    }
+}
+
+impl TestClient {
+    /// Records the HelloWorld samples this client receives (checking each message is
+    /// `message`) until `want` distinct ones arrived and [`DUPLICATE_GRACE`] passed, or `d`
+    /// passed.
+    pub fn collect_deliveries(&mut self, want: usize, message: &str, d: Duration) -> Deliveries {
+        let mut got = Deliveries::default();
+        let end = Instant::now() + d;
+        let mut complete_at: Option<Instant> = None;
+        while Instant::now() < end && complete_at.is_none_or(|t| t.elapsed() < DUPLICATE_GRACE) {
+            self.step();
+            for (i, m) in self.take_samples() {
+                assert_eq!(m, message, "sample {i} carries another message");
+                got.record(i);
+            }
+            if complete_at.is_none() && got.distinct() >= want {
+                complete_at = Some(Instant::now());
+            }
+        }
+        got
+    }
 }

@@ -707,7 +707,11 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     // ours restart too; its objects stay (§7.8.2.1 "no action"). A copy of the
                     // CREATE_CLIENT that arrives just after the client began using its streams
                     // is a network duplicate or a stale retry, not a restart: keep the streams.
+                    // From another endpoint (a new connection, a new source port) it is a
+                    // restart whatever the timing.
                     let stale = existing.streams_used
+                        && existing.addr == src
+                        && !existing.detached
                         && now.saturating_duration_since(existing.established_at)
                             < self.config.duplicate_create_guard;
                     if stale {

@@ -1,0 +1,192 @@
+//! TCP end to end: Rust XRCE clients on real TCP connections (IPv4 and IPv6 loopback, 2-byte
+//! length prefix) ↔ `xrce-agent tcp4|tcp6` ↔ Cyclone DDS. Every sample is counted: each must
+//! arrive exactly once.
+
+use std::time::{Duration, Instant};
+
+use xrce_common::wire::{
+    object_kind, status, ObjectId, ObjectVariant, Representation, VariantExtra,
+};
+use xrce_tests::{free_tcp_port, hello_world, xml, AgentProcess, DdsPeer, Link, TestClient};
+
+const SECOND: Duration = Duration::from_secs(1);
+
+fn tcp_agent(tag: &str, transport: &str, bind: &str) -> AgentProcess {
+    for _ in 0..5 {
+        let port = free_tcp_port().to_string();
+        if let Some(a) = AgentProcess::launch(tag, &[transport, "-p", &port, "--bind", bind]) {
+            return a;
+        }
+    }
+    panic!("the TCP agent did not start on any of 5 free ports");
+}
+
+#[test]
+fn tcp4_client_publishes_cyclone_reads_each_sample_once() {
+    let agent = tcp_agent("tcp4pub", "tcp4", "127.0.0.1");
+    let reader = DdsPeer::start(&[
+        "read",
+        "--domain",
+        "50",
+        "--count",
+        "50",
+        "--reliable",
+        "--timeout",
+        "60",
+    ]);
+    let mut c = TestClient::tcp(agent.addr(), [0x7C, 0x90, 0, 1]);
+    c.connect(10 * SECOND);
+    let w = c.setup_publisher(50);
+    assert!(
+        reader
+            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+            .is_some(),
+        "Cyclone never matched the agent's writer"
+    );
+    for i in 0..50 {
+        c.write_reliable(w, &hello_world(i, "over tcp"));
+    }
+    let got = reader.collect_deliveries(50, "over tcp", 30 * SECOND, || c.step());
+    got.assert_exactly_once(0..50, "Cyclone reading a TCP client");
+    got.assert_in_order("Cyclone reading a TCP client");
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn cyclone_publishes_tcp6_client_reads_each_sample_once() {
+    let agent = tcp_agent("tcp6sub", "tcp6", "::1");
+    assert!(agent.addr().is_ipv6());
+    let mut c = TestClient::tcp(agent.addr(), [0x7C, 0x90, 0, 2]);
+    c.connect(10 * SECOND);
+    c.setup_subscriber(51);
+    let _writer = DdsPeer::start(&[
+        "write",
+        "--domain",
+        "51",
+        "--count",
+        "20",
+        "--interval-ms",
+        "10",
+        "--message",
+        "to tcp6",
+        "--wait-match",
+        "--reliable",
+        "--timeout",
+        "60",
+        "--linger-ms",
+        "3000",
+    ]);
+    let got = c.collect_deliveries(20, "to tcp6", 60 * SECOND);
+    got.assert_exactly_once(0..20, "a TCP/IPv6 client reading Cyclone");
+    got.assert_in_order("a TCP/IPv6 client reading Cyclone");
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+/// A client whose connection breaks reconnects and creates its session again with the same
+/// key: its objects are still there (creating them again says so), and its writer publishes
+/// without being re-created.
+#[test]
+fn a_reconnecting_client_gets_its_objects_back() {
+    let agent = tcp_agent("tcprecon", "tcp4", "127.0.0.1");
+    let reader = DdsPeer::start(&[
+        "read",
+        "--domain",
+        "52",
+        "--count",
+        "10",
+        "--reliable",
+        "--timeout",
+        "60",
+    ]);
+    let key = [0x7C, 0x90, 0, 3];
+    let mut c = TestClient::tcp(agent.addr(), key);
+    c.connect(10 * SECOND);
+    let w = c.setup_publisher(52);
+    assert!(reader
+        .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+        .is_some());
+    for i in 0..5 {
+        c.write_reliable(w, &hello_world(i, "reconnect"));
+    }
+    // Every sample acknowledged before the connection goes.
+    assert!(c.run_until(10 * SECOND, |c| c
+        .client
+        .unacked(xrce_common::wire::stream_id::BUILTIN_RELIABLE)
+        == 0));
+    drop(c);
+    let mut c = TestClient::tcp(agent.addr(), key);
+    c.connect(10 * SECOND);
+    // Created again without REUSE or REPLACE: refused because it still exists.
+    let participant = ObjectVariant {
+        kind: object_kind::PARTICIPANT,
+        representation: Representation::Xml(xml::PARTICIPANT.into()),
+        extra: VariantExtra::DomainId(52),
+    };
+    let p = ObjectId::new(1, object_kind::PARTICIPANT);
+    let req = c
+        .client
+        .create(Instant::now(), p, participant, false, false)
+        .expect("create");
+    assert_eq!(
+        c.wait_status(req, 10 * SECOND),
+        status::ERR_ALREADY_EXISTS,
+        "the participant did not survive the reconnection"
+    );
+    for i in 5..10 {
+        c.write_reliable(w, &hello_world(i, "reconnect"));
+    }
+    let got = reader.collect_deliveries(10, "reconnect", 30 * SECOND, || c.step());
+    got.assert_exactly_once(0..10, "samples around a reconnection");
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+/// Hundreds of clients connected and in session at once; the agent keeps serving a new one.
+#[test]
+fn hundreds_of_tcp_sessions_at_once() {
+    let agent = tcp_agent("tcpmany", "tcp4", "127.0.0.1");
+    let mut clients: Vec<TestClient> = (0..300u16)
+        .map(|i| {
+            let [a, b] = i.to_be_bytes();
+            let mut c = TestClient::on_link(
+                Link::tcp(agent.addr()).expect("connect"),
+                xrce_common::session::client::ClientConfig::new(xrce_common::wire::ClientKey([
+                    0x7D, 0, a, b,
+                ])),
+            );
+            c.client.connect(std::time::Instant::now());
+            c
+        })
+        .collect();
+    let end = std::time::Instant::now() + 60 * SECOND;
+    while clients.iter().any(|c| !c.client.is_connected()) && std::time::Instant::now() < end {
+        for c in clients.iter_mut().filter(|c| !c.client.is_connected()) {
+            c.step();
+        }
+    }
+    let connected = clients.iter().filter(|c| c.client.is_connected()).count();
+    assert_eq!(connected, 300, "sessions established");
+    // One more, publishing, while all the others stay connected.
+    let reader = DdsPeer::start(&[
+        "read",
+        "--domain",
+        "53",
+        "--count",
+        "5",
+        "--reliable",
+        "--timeout",
+        "60",
+    ]);
+    let mut c = TestClient::tcp(agent.addr(), [0x7C, 0x90, 0, 4]);
+    c.connect(10 * SECOND);
+    let w = c.setup_publisher(53);
+    assert!(reader
+        .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+        .is_some());
+    for i in 0..5 {
+        c.write_reliable(w, &hello_world(i, "one of many"));
+    }
+    let got = reader.collect_deliveries(5, "one of many", 30 * SECOND, || c.step());
+    got.assert_exactly_once(0..5, "a client among 300 others");
+    drop(clients);
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
