@@ -13,7 +13,7 @@ use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 pub mod link;
-pub use link::{Link, PtyPair};
+pub use link::{Link, PtyPair, SharedLine};
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
 use xrce_common::wire::{
     object_kind, stream_id, ClientKey, DataDeliveryControl, ObjectId, ObjectVariant,

@@ -23,6 +23,13 @@ pub enum Link {
         /// Splits the byte stream.
         decoder: LengthPrefixDecoder,
     },
+    /// A serial line shared with other clients (at other addresses) of this test.
+    SharedSerial {
+        /// The line and what arrived on it for each address.
+        line: SharedLine,
+        /// This client's address on the line.
+        address: u8,
+    },
     /// A serial line.
     Serial {
         /// The line (non-blocking).
@@ -87,13 +94,27 @@ impl Link {
                 }
                 write_all(file, &framed)
             }
+            Link::SharedSerial { line, address } => {
+                let mut framed = Vec::new();
+                if serial_framing::encode(*address, AGENT_ADDRESS, message, &mut framed).is_err() {
+                    return false;
+                }
+                let Ok(mut l) = line.0.lock() else {
+                    return false;
+                };
+                write_all(&mut l.file, &framed)
+            }
         }
     }
 
     /// Waits up to `wait` for input, then returns every whole message that arrived.
     pub fn receive(&mut self, wait: Duration, buf: &mut [u8]) -> Vec<Vec<u8>> {
         let mut out = Vec::new();
+        if let Link::SharedSerial { line, address } = self {
+            return line.receive(*address, wait, buf);
+        }
         let readable = match self {
+            Link::SharedSerial { .. } => false,
             Link::Udp(s) => wait_readable(s, wait),
             Link::Tcp { stream, .. } => wait_readable(stream, wait),
             Link::Serial { file, .. } => wait_readable(file, wait),
@@ -102,6 +123,7 @@ impl Link {
             return out;
         }
         match self {
+            Link::SharedSerial { .. } => {}
             Link::Udp(s) => {
                 while let Ok(n) = s.recv(buf) {
                     out.push(buf[..n].to_vec());
@@ -193,5 +215,75 @@ impl PtyPair {
         nix::sys::termios::tcsetattr(&master, nix::sys::termios::SetArg::TCSANOW, &t)
             .expect("tcsetattr");
         PtyPair { master, slave_path }
+    }
+}
+
+/// One serial line several test clients share: whatever is read from it is decoded for
+/// every address and queued for the client at that address.
+#[derive(Debug, Clone)]
+pub struct SharedLine(std::sync::Arc<std::sync::Mutex<SharedLineState>>);
+
+/// The state behind a [`SharedLine`].
+#[derive(Debug)]
+pub struct SharedLineState {
+    file: File,
+    decoders: std::collections::BTreeMap<u8, SerialDecoder>,
+    queues: std::collections::BTreeMap<u8, std::collections::VecDeque<Vec<u8>>>,
+}
+
+impl SharedLine {
+    /// Shares `file` (a pty master) between clients.
+    pub fn new(file: File) -> Self {
+        set_nonblocking(&file);
+        SharedLine(std::sync::Arc::new(std::sync::Mutex::new(
+            SharedLineState {
+                file,
+                decoders: Default::default(),
+                queues: Default::default(),
+            },
+        )))
+    }
+
+    /// A link for the client at `address`.
+    pub fn link(&self, address: u8) -> Link {
+        if let Ok(mut l) = self.0.lock() {
+            l.decoders.insert(
+                address,
+                SerialDecoder::new(address, serial_framing::MAX_PAYLOAD),
+            );
+            l.queues.entry(address).or_default();
+        }
+        Link::SharedSerial {
+            line: self.clone(),
+            address,
+        }
+    }
+
+    fn receive(&self, address: u8, wait: Duration, buf: &mut [u8]) -> Vec<Vec<u8>> {
+        let Ok(mut guard) = self.0.lock() else {
+            return Vec::new();
+        };
+        let l = &mut *guard;
+        if l.queues.get(&address).is_some_and(|q| q.is_empty()) && wait_readable(&l.file, wait) {
+            while let Ok(n) = l.file.read(buf) {
+                if n == 0 {
+                    break;
+                }
+                for (a, d) in l.decoders.iter_mut() {
+                    let q = l.queues.entry(*a).or_default();
+                    d.push(&buf[..n], |f| {
+                        if let Ok(f) = f {
+                            if f.source == AGENT_ADDRESS {
+                                q.push_back(f.payload.to_vec());
+                            }
+                        }
+                    });
+                }
+            }
+        }
+        l.queues
+            .get_mut(&address)
+            .map(|q| q.drain(..).collect())
+            .unwrap_or_default()
     }
 }
