@@ -233,7 +233,10 @@ impl SerialTransport {
             (LineDevice::Tty(c), Some(ms)) => {
                 tracing::info!(line = i, path = %c.path.display(), outage_ms = ms, "serial device back; its clients' sessions continue")
             }
-            (LineDevice::Pty { slave_path, .. }, _) => {
+            (LineDevice::Pty { slave_path, .. }, None) => {
+                tracing::info!(line = i, path = %slave_path.display(), "pseudoterminal ready for a client")
+            }
+            (LineDevice::Pty { slave_path, .. }, Some(_)) => {
                 tracing::info!(line = i, path = %slave_path.display(), "a client opened the pseudoterminal")
             }
         }

@@ -3,8 +3,10 @@
 //! The master is set raw (the pair shares one line discipline, so the slave is raw too: the
 //! eProsima client sets no terminal mode itself).
 //!
-//! While no program has the slave open the master reports a hang-up; that is the normal
-//! state between clients, not an error: [`slave_is_open`] tells when one arrived.
+//! Once a client has closed the slave the master reports a hang-up until another opens it;
+//! that is the normal state between clients, not an error: [`slave_is_open`] tells when one
+//! arrived. (Before the first client nothing tells; the line counts as open then, and nothing
+//! is sent on it before a client speaks.)
 
 use std::fs::File;
 use std::os::fd::{AsFd, OwnedFd};

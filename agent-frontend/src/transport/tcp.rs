@@ -152,6 +152,15 @@ impl TcpTransport {
         self.live
     }
 
+    /// Bytes held in the connections' receive and send buffers.
+    pub fn buffered_capacity(&self) -> usize {
+        self.slots
+            .iter()
+            .flatten()
+            .map(|c| c.decoder.capacity() + c.out.capacity())
+            .sum()
+    }
+
     fn token(&self, slot: u32) -> Token {
         Token(self.first_token + 1 + slot as usize)
     }
