@@ -66,5 +66,46 @@ for doc in (
     b'<typedef name="A" type="nonBasic" nonBasicTypeName="D"/></types>',
 ):
     write("representations", doc)
-for kind in ("decode", "agent_session", "representations"):
+# Byte streams for the framers: the serial hexdump per direction and the TCP pcap's
+# payloads per direction, each with a leading chunking seed byte, plus cuts of them.
+hexdump = (root / "common/tests/data/wire-traces/serial-ping-and-ref-creation.hexdump.txt").read_text()
+streams = {"<": b"", ">": b""}
+lines = hexdump.splitlines()
+for i, line in enumerate(lines):
+    if line[:1] in streams and i + 1 < len(lines):
+        streams[line[:1]] += bytes.fromhex(lines[i + 1])
+for direction, stream in streams.items():
+    for seed in (1, 77, 200):
+        write("serial_framing", bytes([seed]) + stream)
+    for cut in range(0, len(stream), 97):
+        write("serial_framing", bytes([cut % 251]) + stream[cut:cut + 300])
+
+
+def pcap_tcp_payloads(path):
+    """TCP payloads of an Ethernet/IPv4 pcap, as (source port, bytes), in order."""
+    data = path.read_bytes()
+    off, out = 24, []
+    while off + 16 <= len(data):
+        incl = struct.unpack_from("<I", data, off + 8)[0]
+        pkt = data[off + 16:off + 16 + incl]
+        off += 16 + incl
+        if len(pkt) < 34 or pkt[12:14] != b"\x08\x00" or pkt[23] != 6:
+            continue
+        ihl = (pkt[14] & 0x0F) * 4
+        total = struct.unpack_from(">H", pkt, 16)[0]
+        tcp = pkt[14 + ihl:14 + total]
+        payload = tcp[(tcp[12] >> 4) * 4:]
+        if payload:
+            out.append((struct.unpack_from(">H", tcp, 0)[0], payload))
+    return out
+
+
+segments = pcap_tcp_payloads(root / "common/tests/data/wire-traces/tcp-ping-and-ref-creation.pcap")
+for port in sorted({p for p, _ in segments}):
+    stream = b"".join(s for p, s in segments if p == port)
+    for seed in (3, 91, 250):
+        write("tcp_framing", bytes([seed]) + stream)
+    for cut in range(0, len(stream), 61):
+        write("tcp_framing", bytes([cut % 251]) + stream[cut:cut + 200])
+for kind in ("decode", "agent_session", "representations", "serial_framing", "tcp_framing"):
     print(kind, len(list((out / kind).iterdir())))

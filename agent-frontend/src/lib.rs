@@ -15,4 +15,5 @@ pub mod cli;
 pub mod event_loop;
 mod owned_fd;
 pub mod report;
+mod tokio_loop;
 pub mod transport;

@@ -222,3 +222,22 @@ fn the_agents_pseudoterminal_waits_for_each_client() {
     }
     assert!(h.serial.stats().opened >= 2);
 }
+
+#[test]
+fn standard_and_custom_baud_rates_are_accepted() {
+    for baudrate in [9_600, 115_200, 921_600, 4_000_000, 250_000, 1_234_567] {
+        let (mut master, slave) = pty_pair();
+        let mut h = Harness::new(vec![LineDevice::Tty(TtyConfig {
+            path: slave,
+            baudrate,
+            flow_control: baudrate == 250_000,
+        })]);
+        h.run(Duration::from_secs(5), |s, _| s.lines_up() == 1);
+        assert_eq!(h.serial.lines_up(), 1, "{baudrate} baud not opened");
+        master
+            .write_all(&frame(1, AGENT_ADDRESS, b"rate"))
+            .expect("write");
+        let got = h.run(Duration::from_secs(5), |_, g| !g.is_empty());
+        assert_eq!(got.len(), 1, "{baudrate} baud");
+    }
+}

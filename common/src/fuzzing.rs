@@ -159,3 +159,125 @@ pub fn agent_session(data: &[u8]) {
     });
     assert!(answered, "ping not answered after the fuzz input");
 }
+
+/// Splits `data` into the chunks a byte-stream reader might see: the first byte seeds the
+/// chunk lengths (1 to 64 bytes each), the rest is the stream.
+fn chunks(data: &[u8]) -> impl Iterator<Item = &[u8]> {
+    let (seed, mut rest) = data.split_first().map_or((0u8, &[][..]), |(s, r)| (*s, r));
+    let mut state = u32::from(seed) | 1;
+    std::iter::from_fn(move || {
+        if rest.is_empty() {
+            return None;
+        }
+        state ^= state << 13;
+        state ^= state >> 17;
+        state ^= state << 5;
+        let n = (state as usize % 64 + 1).min(rest.len());
+        let (head, tail) = rest.split_at(n);
+        rest = tail;
+        Some(head)
+    })
+}
+
+/// TCP framing oracle: the stream, cut anywhere, gives messages no longer than the maximum,
+/// never empty; their re-encoding is what the decoder consumed minus skipped zero lengths;
+/// the buffer stays bounded; and after an over-long length nothing more comes out.
+pub fn tcp_framing(data: &[u8]) {
+    use crate::framing::length_prefix::{encode, LengthPrefixDecoder, PREFIX_LEN};
+    const MAX: usize = 300;
+    let mut d = LengthPrefixDecoder::new(MAX);
+    let mut messages: Vec<Vec<u8>> = Vec::new();
+    let mut failed = false;
+    for chunk in chunks(data) {
+        let r = d.push(chunk, |m| {
+            assert!(
+                !m.is_empty() && m.len() <= MAX,
+                "message of {} bytes",
+                m.len()
+            );
+            messages.push(m.to_vec());
+        });
+        assert!(
+            d.capacity() <= MAX + PREFIX_LEN + 2048,
+            "buffer grew to {}",
+            d.capacity()
+        );
+        if r.is_err() {
+            failed = true;
+            break;
+        }
+    }
+    if failed {
+        assert!(
+            d.next_message().is_some_and(|m| m.is_err()),
+            "failure not sticky"
+        );
+        return;
+    }
+    // Re-encoded, the messages and the leftover are the input without its zero lengths.
+    let stream: Vec<u8> = data.iter().skip(1).copied().collect();
+    let mut again = Vec::new();
+    for m in &messages {
+        encode(m, &mut again).expect("fits");
+    }
+    let mut cleaned = Vec::new();
+    let mut i = 0;
+    while i + PREFIX_LEN <= stream.len() {
+        let len = usize::from(u16::from_le_bytes([stream[i], stream[i + 1]]));
+        if len == 0 {
+            i += PREFIX_LEN;
+            continue;
+        }
+        if i + PREFIX_LEN + len > stream.len() {
+            break;
+        }
+        cleaned.extend_from_slice(&stream[i..i + PREFIX_LEN + len]);
+        i += PREFIX_LEN + len;
+    }
+    assert_eq!(again, cleaned, "messages differ from the stream");
+}
+
+/// Serial framing oracle: the stream, cut anywhere, gives the same frames as whole; every
+/// frame is addressed to the agent, no longer than the maximum, and re-encodes to a frame
+/// that decodes to itself; and the encoder's output always decodes back (the data, read as
+/// a payload, round-trips).
+pub fn serial_framing(data: &[u8]) {
+    use crate::framing::serial::{encode, SerialDecoder, AGENT_ADDRESS};
+    const MAX: usize = 512;
+    let decode = |pieces: &mut dyn Iterator<Item = &[u8]>| {
+        let mut d = SerialDecoder::new(AGENT_ADDRESS, MAX);
+        let mut out = Vec::new();
+        for p in pieces {
+            d.push(p, |f| {
+                if let Ok(f) = f {
+                    assert_eq!(f.destination, AGENT_ADDRESS);
+                    assert!(f.payload.len() <= MAX);
+                    out.push((f.source, f.payload.to_vec()));
+                }
+            });
+        }
+        out
+    };
+    let stream = data.get(1..).unwrap_or_default();
+    let whole = decode(&mut std::iter::once(stream));
+    let split = decode(&mut chunks(data));
+    assert_eq!(whole, split, "frames depend on how the stream was cut");
+    for (source, payload) in &whole {
+        let mut wire = Vec::new();
+        encode(*source, AGENT_ADDRESS, payload, &mut wire).expect("fits");
+        assert_eq!(
+            decode(&mut std::iter::once(&wire[..])),
+            [(*source, payload.clone())]
+        );
+    }
+    let payload = &stream[..stream.len().min(MAX)];
+    let mut wire = Vec::new();
+    encode(7, AGENT_ADDRESS, payload, &mut wire).expect("fits");
+    assert_eq!(
+        decode(&mut chunks(
+            &[&[data.first().copied().unwrap_or(0)][..], &wire].concat()
+        )),
+        [(7, payload.to_vec())],
+        "an encoded frame did not decode back"
+    );
+}

@@ -45,3 +45,23 @@ fn agent_session_corpus_and_regressions() {
         xrce_common::fuzzing::agent_session(&bytes);
     }
 }
+
+#[test]
+fn tcp_framing_corpus_and_regressions() {
+    let all = inputs(&["corpus/tcp_framing", "regressions/tcp_framing"]);
+    assert!(all.len() >= 10, "seed corpus missing: {}", all.len());
+    for (path, bytes) in all {
+        eprintln!("{}", path.display());
+        xrce_common::fuzzing::tcp_framing(&bytes);
+    }
+}
+
+#[test]
+fn serial_framing_corpus_and_regressions() {
+    let all = inputs(&["corpus/serial_framing", "regressions/serial_framing"]);
+    assert!(all.len() >= 10, "seed corpus missing: {}", all.len());
+    for (path, bytes) in all {
+        eprintln!("{}", path.display());
+        xrce_common::fuzzing::serial_framing(&bytes);
+    }
+}

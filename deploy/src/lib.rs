@@ -225,6 +225,8 @@ pub fn verbosity_filter(v: u8) -> &'static str {
         3 => "warn,rustdds=error",
         4 => "info,rustdds=error",
         5 => "debug,rustdds=warn",
-        _ => "trace",
+        // Every XRCE message in and out as hex (the core logs them at trace), without the
+        // trace of the DDS stack underneath.
+        _ => "trace,rustdds=warn,iceoryx2=info,mio=info",
     }
 }

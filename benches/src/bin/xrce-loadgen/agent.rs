@@ -199,3 +199,32 @@ pub fn wait_for_agent(port: u16, limit: Duration, agent: &mut Option<AgentUnderT
     }
     false
 }
+
+/// Pings the agent over TCP (GET_INFO without a session, length-prefixed) until it answers
+/// INFO or `limit` passes.
+pub fn wait_for_tcp_agent(port: u16, limit: Duration, agent: &mut Option<AgentUnderTest>) -> bool {
+    use std::io::{Read, Write};
+    let ping = [
+        16, 0, 0x80, 0x00, 0x00, 0x00, 0x02, 0x01, 0x08, 0x00, 0x00, 0x01, 0xFF, 0xFD, 0x02, 0x00,
+        0x00, 0x00,
+    ];
+    let end = Instant::now() + limit;
+    while Instant::now() < end {
+        if let Some(a) = agent.as_mut() {
+            if let Ok(Some(status)) = a.child.try_wait() {
+                eprintln!("the agent exited before answering: {status}");
+                return false;
+            }
+        }
+        let Ok(mut s) = std::net::TcpStream::connect(("127.0.0.1", port)) else {
+            std::thread::sleep(Duration::from_millis(50));
+            continue;
+        };
+        let _ = s.set_read_timeout(Some(Duration::from_millis(500)));
+        let mut buf = [0u8; 64];
+        if s.write_all(&ping).is_ok() && s.read(&mut buf).is_ok_and(|n| n > 6 && buf[6] == 0x06) {
+            return true;
+        }
+    }
+    false
+}

@@ -20,6 +20,7 @@
 
 mod agent;
 mod dds_reader;
+mod link;
 mod null_agent;
 mod peer;
 mod plot;
@@ -41,13 +42,32 @@ pub enum Creation {
     Binary,
 }
 
+/// How the simulated clients reach the agent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum TransportArg {
+    /// A UDP socket each.
+    Udp,
+    /// A TCP connection each.
+    Tcp,
+    /// A serial line each (a pty pair; the agent serves them all with `multiserial`),
+    /// paced at `--baud`.
+    Serial,
+}
+
 /// Command line.
 #[derive(Debug, Clone, Parser)]
 #[command(name = "xrce-loadgen", about = "Load generator for XRCE agents")]
 pub struct Args {
-    /// UDP port of the agent.
+    /// UDP or TCP port of the agent.
     #[arg(long, default_value_t = 8888)]
     pub port: u16,
+    /// How the clients reach the agent.
+    #[arg(long, value_enum, default_value_t = TransportArg::Udp)]
+    pub transport: TransportArg,
+    /// Serial transport: the line rate in bits per second (8N1, 10 bits a byte) at which each
+    /// client's output is paced, as a UART would send it.
+    #[arg(long, default_value_t = 921_600)]
+    pub baud: u32,
     /// Publishing clients (each its own session and socket).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=60_000))]
     pub publishers: u32,
@@ -92,7 +112,9 @@ pub struct Args {
     /// Longest measured phase in seconds.
     #[arg(long, default_value_t = 60)]
     pub duration: u64,
-    /// Command starting the agent under test, `{port}` replaced (run with `sh -c`).
+    /// Command starting the agent under test, `{port}` replaced (run with `sh -c`); with
+    /// `--transport serial`, `{devices}` (space-separated) and `{device_file}` (one a line)
+    /// name the pty slaves the agent is to serve.
     #[arg(long)]
     pub agent_cmd: Option<String>,
     /// Extra arguments for our agent when the generator starts it (e.g.

@@ -1,9 +1,9 @@
-//! Simulated clients: common's client state machine and a UDP socket each, polled through
-//! one epoll set per group of clients.
+//! Simulated clients: common's client state machine and a link each (UDP socket, TCP
+//! connection or paced serial line), polled through one epoll set per group of clients.
 
 use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashSet};
-use std::net::UdpSocket;
+use std::net::{TcpStream, UdpSocket};
 use std::time::{Duration, Instant};
 
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
@@ -11,11 +11,13 @@ use xrce_common::wire::{
     status, ClientKey, ObjectId, ObjectVariant, Representation, RequestId, VariantExtra,
 };
 
-/// One simulated client: its protocol state and its socket.
+use crate::link::PeerLink;
+
+/// One simulated client: its protocol state and its link to the agent.
 pub struct Peer {
     /// The client's protocol state.
     pub client: Client,
-    socket: UdpSocket,
+    link: PeerLink,
     /// Creations whose STATUS has not come yet.
     pub pending: HashSet<RequestId>,
     /// The client's next timer, as of its last pump.
@@ -32,14 +34,31 @@ impl Peer {
         let socket = UdpSocket::bind("127.0.0.1:0")?;
         socket.connect(("127.0.0.1", port))?;
         socket.set_nonblocking(true)?;
-        Ok(Peer {
+        Ok(Self::on_link(PeerLink::Udp(socket), key))
+    }
+
+    /// A client on its own TCP connection to the agent's port on 127.0.0.1.
+    pub fn tcp(port: u16, key: [u8; 4]) -> std::io::Result<Self> {
+        let stream = TcpStream::connect(("127.0.0.1", port))?;
+        stream.set_nodelay(true)?;
+        stream.set_nonblocking(true)?;
+        Ok(Self::on_link(PeerLink::tcp(stream), key))
+    }
+
+    /// A client on a serial line (a pty master) paced at `baud`.
+    pub fn serial(line: std::fs::File, baud: u32, key: [u8; 4]) -> Self {
+        Self::on_link(PeerLink::serial(line, baud), key)
+    }
+
+    fn on_link(link: PeerLink, key: [u8; 4]) -> Self {
+        Peer {
             client: Client::new(ClientConfig::new(ClientKey(key))),
-            socket,
+            link,
             pending: HashSet::new(),
             next_timeout: None,
             registered: None,
             round: 0,
-        })
+        }
     }
 
     /// Sends what is due, receives what arrived (if `readable`), and collects events, each
@@ -53,17 +72,20 @@ impl Peer {
         events: &mut Vec<(usize, ClientEvent)>,
     ) -> Result<(), String> {
         if readable {
-            while let Ok(n) = self.socket.recv(buf) {
-                self.client.handle_datagram(now, &buf[..n]);
-            }
+            let client = &mut self.client;
+            self.link.receive(buf, |m| client.handle_datagram(now, m));
         }
         if self.client.poll_timeout().is_some_and(|t| t <= now) {
             self.client.handle_timeout(now);
         }
+        self.link.flush(now);
         while let Some(t) = self.client.poll_transmit() {
-            let _ = self.socket.send(&t);
+            self.link.send(&t, now);
         }
-        self.next_timeout = self.client.poll_timeout();
+        self.next_timeout = match (self.client.poll_timeout(), self.link.next_flush(now)) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        };
         for e in std::iter::from_fn(|| self.client.poll_event()) {
             match e {
                 ClientEvent::Status(s) if self.pending.remove(&s.related.request_id) => {
@@ -130,7 +152,7 @@ impl Group {
         let epoll = Epoll::new(EpollCreateFlags::empty()).map_err(|e| e.to_string())?;
         for (i, p) in peers.iter().enumerate() {
             epoll
-                .add(&p.socket, EpollEvent::new(EpollFlags::EPOLLIN, i as u64))
+                .add(p.link.fd(), EpollEvent::new(EpollFlags::EPOLLIN, i as u64))
                 .map_err(|e| e.to_string())?;
         }
         let n = peers.len();

@@ -5,6 +5,10 @@ use crate::agent::ProcOne;
 /// What one run measured (also written as JSON).
 #[derive(Debug, serde::Serialize)]
 pub struct Report {
+    /// How the clients reached the agent: `udp`, `tcp` or `serial`.
+    pub transport: String,
+    /// Serial: each line's raw rate in bytes per second (baud / 10 at 8N1).
+    pub line_bytes_per_second: Option<f64>,
     /// Publishing clients.
     pub publishers: u32,
     /// Subscribing clients.
@@ -150,7 +154,8 @@ pub struct GeneratorUse {
 /// Prints a run's results for people.
 pub fn print_report(report: &Report) {
     println!(
-        "{} publishers + {} subscribers, {} B {}, {} creation, {} generator threads: set-up {:.0} ms (sessions {:.0} ms), writers matched at {:.0} ms ({} never)",
+        "{} {} publishers + {} subscribers, {} B {}, {} creation, {} generator threads: set-up {:.0} ms (sessions {:.0} ms), writers matched at {:.0} ms ({} never)",
+        report.transport,
         report.publishers,
         report.subscribers,
         report.payload_bytes,
@@ -211,6 +216,15 @@ pub fn print_report(report: &Report) {
             d.latency_us.p99,
             d.latency_us.p999,
             d.latency_us.max
+        );
+    }
+    if let (Some(line), Some(d)) = (report.line_bytes_per_second, &report.dds) {
+        let per_line = d.bytes_per_second / f64::from(report.publishers.max(1));
+        println!(
+            "  serial: each publisher's line carries {:.0} B/s raw; {:.0} sample payload B/s per line reached DDS = {:.1} % of the line",
+            line,
+            per_line,
+            100.0 * per_line / line
         );
     }
     if let Some(u) = &report.agent {

@@ -16,11 +16,11 @@ use xrce_common::wire::{
     VariantExtra,
 };
 
-use crate::agent::{wait_for_agent, AgentUnderTest, ProcOne, ProcUsage};
+use crate::agent::{wait_for_agent, wait_for_tcp_agent, AgentUnderTest, ProcOne, ProcUsage};
 use crate::dds_reader::DdsReader;
 use crate::peer::{Group, Peer};
 use crate::report::{AgentUse, DdsReport, GeneratorUse, IdleUse, Percentiles, Report};
-use crate::{Args, Creation};
+use crate::{Args, Creation, TransportArg};
 
 /// Sequence numbers of warm-up samples start here (measured ones are below `--samples`,
 /// probes at the top of the range).
@@ -253,6 +253,24 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     } else {
         None
     };
+    let total = subscribers + publishers;
+    // Serial: one pty pair per client, made before the agent starts (it opens the slaves).
+    let mut lines = Vec::new();
+    if a.transport == TransportArg::Serial {
+        if a.null_agent {
+            return Err("--null-agent serves UDP only".into());
+        }
+        for _ in 0..total {
+            lines.push(crate::link::pty_pair()?);
+        }
+    }
+    let device_file =
+        std::env::temp_dir().join(format!("xrce-loadgen-devs-{}", std::process::id()));
+    if !lines.is_empty() {
+        let list: Vec<String> = lines.iter().map(|(_, p)| p.display().to_string()).collect();
+        std::fs::write(&device_file, list.join("\n"))
+            .map_err(|e| format!("writing {}: {e}", device_file.display()))?;
+    }
     let mut agent = if a.no_agent || a.null_agent {
         None
     } else {
@@ -261,17 +279,32 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
             None => {
                 let exe = std::env::current_exe().map_err(|e| e.to_string())?;
                 let ours = exe.with_file_name("xrce-agent");
+                let transport = match a.transport {
+                    TransportArg::Udp => "udp4 -p {port} --bind 127.0.0.1".to_string(),
+                    TransportArg::Tcp => "tcp4 -p {port} --bind 127.0.0.1".to_string(),
+                    TransportArg::Serial => format!("multiserial -f {{device_file}} -b {}", a.baud),
+                };
                 format!(
-                    "{} udp4 -p {{port}} --bind 127.0.0.1 --dds-interface 127.0.0.1 -v 3 {}",
+                    "{} {transport} --dds-interface 127.0.0.1 -v 3 {}",
                     ours.display(),
                     a.agent_args
                 )
             }
         };
+        let devices: Vec<String> = lines.iter().map(|(_, p)| p.display().to_string()).collect();
+        let cmd = cmd
+            .replace("{device_file}", &device_file.display().to_string())
+            .replace("{devices}", &devices.join(" "));
         Some(AgentUnderTest::start(&cmd, port)?)
     };
-    if !wait_for_agent(port, Duration::from_secs(30), &mut agent) {
-        return Err(format!("no agent answers a ping on UDP port {port}"));
+    let ready = match a.transport {
+        TransportArg::Udp => wait_for_agent(port, Duration::from_secs(30), &mut agent),
+        TransportArg::Tcp => wait_for_tcp_agent(port, Duration::from_secs(30), &mut agent),
+        // Serial clients retry their CREATE_CLIENT until the agent opened their line.
+        TransportArg::Serial => true,
+    };
+    if !ready {
+        return Err(format!("no agent answers a ping on port {port}"));
     }
     let usage_empty = agent.as_ref().and_then(AgentUnderTest::usage);
     let bodies = Bodies::new(a);
@@ -291,11 +324,21 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
 
     // Peers 0..subscribers subscribe, the others publish (publisher j is peer
     // subscribers + j - 1, its probe tag u32::MAX - j).
-    let total = subscribers + publishers;
     let mut peers = Vec::with_capacity(total);
+    let mut lines = lines.into_iter();
     for i in 0..total {
         let key = [0x10, (i >> 16) as u8, (i >> 8) as u8, i as u8];
-        peers.push(Peer::new(port, key).map_err(|e| format!("client socket: {e}"))?);
+        let peer = match a.transport {
+            TransportArg::Udp => Peer::new(port, key).map_err(|e| format!("client socket: {e}"))?,
+            TransportArg::Tcp => {
+                Peer::tcp(port, key).map_err(|e| format!("client connection: {e}"))?
+            }
+            TransportArg::Serial => {
+                let (line, _) = lines.next().ok_or("no pty for a client")?;
+                Peer::serial(line, a.baud, key)
+            }
+        };
+        peers.push(peer);
     }
     let mut all = Group::new(peers)?;
     let t_start = Instant::now();
@@ -560,6 +603,9 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
         None => None,
     };
     let report = Report {
+        transport: format!("{:?}", a.transport).to_lowercase(),
+        line_bytes_per_second: (a.transport == TransportArg::Serial)
+            .then(|| f64::from(a.baud) / crate::link::BITS_PER_BYTE),
         publishers: publishers as u32,
         subscribers: subscribers as u32,
         payload_bytes: payload,
@@ -600,6 +646,7 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
         },
     };
     drop(agent);
+    let _ = std::fs::remove_file(&device_file);
     Ok(report)
 }
 
