@@ -213,10 +213,6 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
             let addr = args.listen_addr()?;
             let socket =
                 UdpSocket::bind(addr).map_err(|e| anyhow::anyhow!("binding UDP {addr}: {e}"))?;
-            if std::env::var("XRCE_EVENT_LOOP").as_deref() == Ok("tokio") {
-                let bridge = Bridge::new(&args.instance, args.frontend_id)?;
-                return crate::tokio_loop::run(socket, bridge, config, on_serving);
-            }
             serve(UdpTransport::new(socket)?, &args, config, on_serving)
         }
         TransportKind::Tcp4 | TransportKind::Tcp6 => {

@@ -15,5 +15,4 @@ pub mod cli;
 pub mod event_loop;
 mod owned_fd;
 pub mod report;
-mod tokio_loop;
 pub mod transport;
