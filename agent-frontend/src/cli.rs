@@ -248,7 +248,8 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
                 }
                 None => {
                     let pty = crate::transport::pty::open(args.baudrate)?;
-                    println!("Pseudoterminal opened at {}", pty.slave_path.display());
+                    let path = pty.slave_path.display();
+                    println!("Pseudoterminal opened at {path} (dev: {path})");
                     (pty.master, pty.slave_path)
                 }
             };

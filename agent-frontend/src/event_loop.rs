@@ -124,6 +124,8 @@ pub fn run<T: Transport>(
         bridge.resume_reads(&agent);
         if transport.poll_timeout().is_some_and(|t| t <= now) {
             transport.handle_timeout(now);
+            // A timer may have made input ready (a device reopened, accepting resumed).
+            input_left = true;
         }
         agent.handle_timeout(now, &mut bridge);
         // After the timers: what they hand over (a dead client's deletion) goes out now.

@@ -17,12 +17,24 @@ pub fn from_serial_port(port: serialport::TTYPort) -> File {
     unsafe { File::from_raw_fd(port.into_raw_fd()) }
 }
 
-/// A descriptor the parent process left open for us (`--pty-fd`), owned as a [`File`].
-/// Fails if `fd` is not open or is one of the standard streams.
+/// Descriptors already taken by [`inherited`], so none is owned twice.
+static TAKEN: std::sync::Mutex<Vec<RawFd>> = std::sync::Mutex::new(Vec::new());
+
+/// A descriptor the parent process left open for us (`--pty-fd`, `XRCE_READY_FD`), owned as
+/// a [`File`]. Fails if `fd` is not open, is one of the standard streams, or was taken
+/// already.
 pub fn inherited(fd: RawFd) -> std::io::Result<File> {
     if fd <= 2 {
         return Err(std::io::Error::other(format!(
             "descriptor {fd} is a standard stream, not an inherited one"
+        )));
+    }
+    let mut taken = TAKEN
+        .lock()
+        .map_err(|_| std::io::Error::other("descriptor registry poisoned"))?;
+    if taken.contains(&fd) {
+        return Err(std::io::Error::other(format!(
+            "descriptor {fd} is inherited for two uses"
         )));
     }
     // SAFETY: only borrowed for the duration of the check; F_GETFD fails with EBADF on a
@@ -30,7 +42,8 @@ pub fn inherited(fd: RawFd) -> std::io::Result<File> {
     let borrowed = unsafe { BorrowedFd::borrow_raw(fd) };
     nix::fcntl::fcntl(borrowed, nix::fcntl::FcntlArg::F_GETFD)
         .map_err(|e| std::io::Error::other(format!("descriptor {fd} is not open: {e}")))?;
-    // SAFETY: open (checked above) and handed to this process by its parent for this use
-    // only; it is taken once, at start-up (invariant above).
+    taken.push(fd);
+    // SAFETY: open (checked above), handed to this process by its parent for this use only,
+    // and taken once (the registry above refuses a second take).
     Ok(unsafe { File::from_raw_fd(fd) })
 }

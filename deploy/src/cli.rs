@@ -49,10 +49,10 @@ pub enum Command {
 /// Options every transport takes.
 #[derive(Debug, Clone, Args)]
 pub struct Common {
-    /// Verbosity 0 (off) … 6 (trace, with a hex dump of every message); 4 = info, 5 adds
-    /// per-message debug logs.
-    #[arg(short = 'v', long = "verbose", default_value_t = 4, value_parser = clap::value_parser!(u8).range(0..=6))]
-    pub verbose: u8,
+    /// Verbosity 0 (off) … 6 (a hex dump of every message); 4 = info (the default), 5 adds
+    /// per-message debug logs. Given, it wins over the XRCE_LOG environment variable.
+    #[arg(short = 'v', long = "verbose", value_parser = clap::value_parser!(u8).range(0..=6))]
+    pub verbose: Option<u8>,
     /// Middleware: `dds` (the only one here; `ced` and `rtps` are refused).
     #[arg(short = 'm', long = "middleware", default_value = "dds")]
     pub middleware: String,
@@ -119,7 +119,7 @@ pub struct TcpArgs {
     #[command(flatten)]
     pub ip: IpArgs,
     /// Connections served at once; more are refused with a log line.
-    #[arg(long = "max-connections", default_value_t = 10_000)]
+    #[arg(long = "max-connections", default_value_t = 2_000)]
     pub max_connections: usize,
 }
 
@@ -185,6 +185,9 @@ pub struct CanfdArgs {
     #[command(flatten)]
     pub common: Common,
 }
+
+/// Verbosity without `-v` (and without XRCE_LOG), as MicroXRCEAgent's.
+pub const DEFAULT_VERBOSITY: u8 = 4;
 
 /// A usage error with the reference's exit status (2).
 #[derive(Debug, thiserror::Error)]
@@ -436,7 +439,7 @@ mod tests {
             FrontendPlan::Ip {
                 kind: K::Tcp6,
                 listen: "[::]:8888".parse().expect("addr"),
-                max_connections: 10_000
+                max_connections: 2_000
             }
         );
         // The reference's misspelling in its usage line.

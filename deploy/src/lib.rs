@@ -1,6 +1,7 @@
 //! The supervisor of an XRCE agent instance: starts the DDS worker and the front-ends,
 //! restarts a child that dies (with back-off), forwards SIGINT/SIGTERM for a clean stop and
 //! removes shared-memory leftovers of children that died hard.
+#![deny(unsafe_code)]
 
 use std::os::fd::{AsRawFd, OwnedFd, RawFd};
 use std::path::PathBuf;
@@ -10,6 +11,11 @@ use std::time::{Duration, Instant};
 
 pub mod cli;
 pub mod readiness;
+#[allow(unsafe_code)]
+mod sys;
+
+pub use sys::high_fd;
+use sys::wait_signal;
 
 use nix::sys::signal::{kill, SigSet, Signal};
 use nix::unistd::Pid;
@@ -29,18 +35,6 @@ pub struct ChildSpec {
     /// in the child). The supervisor keeps them open, so a restarted child gets them again
     /// (a pseudoterminal keeps its path across front-end restarts).
     pub fds: Vec<(Arc<OwnedFd>, RawFd)>,
-}
-
-/// Lowest descriptor number [`high_fd`] returns: above every number a child is given.
-const HIGH_FD_BASE: RawFd = 10;
-
-/// A duplicate of `fd` numbered at least 10 (close-on-exec), so that handing descriptors to
-/// a child at low fixed numbers never overwrites one still to be handed over.
-pub fn high_fd(fd: &impl std::os::fd::AsFd) -> std::io::Result<OwnedFd> {
-    let raw = nix::fcntl::fcntl(fd, nix::fcntl::FcntlArg::F_DUPFD_CLOEXEC(HIGH_FD_BASE))?;
-    // SAFETY: F_DUPFD_CLOEXEC returned a new descriptor that nothing else owns.
-    #[allow(unsafe_code)]
-    Ok(unsafe { std::os::fd::FromRawFd::from_raw_fd(raw) })
 }
 
 #[derive(Debug)]
@@ -63,7 +57,6 @@ pub const STABLE_AFTER: Duration = Duration::from_secs(10);
 pub const STOP_GRACE: Duration = Duration::from_secs(5);
 
 fn spawn(spec: &ChildSpec) -> std::io::Result<Child> {
-    use std::os::unix::process::CommandExt;
     let mut cmd = Command::new(&spec.program);
     cmd.args(&spec.args);
     for (k, v) in &spec.env {
@@ -74,42 +67,8 @@ fn spawn(spec: &ChildSpec) -> std::io::Result<Child> {
         .iter()
         .map(|(fd, number)| (fd.as_raw_fd(), *number))
         .collect();
-    // SAFETY: only async-signal-safe calls (sigprocmask, prctl, dup2, fcntl) between fork
-    // and exec, on descriptors the supervisor keeps open (`spec.fds`).
-    #[allow(unsafe_code)]
-    unsafe {
-        cmd.pre_exec(move || {
-            let set = SigSet::all();
-            let _ = set.thread_unblock();
-            // Children die with the supervisor, even if it is SIGKILLed.
-            libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
-            for &(from, to) in &fds {
-                // dup2 clears close-on-exec on the copy; sources are numbered above every
-                // target (`high_fd`), so none is overwritten before it is copied.
-                if libc::dup2(from, to) < 0 {
-                    return Err(std::io::Error::last_os_error());
-                }
-            }
-            Ok(())
-        });
-    }
+    sys::prepare_child(&mut cmd, fds);
     cmd.spawn()
-}
-
-/// Waits for a signal of `set` for at most `timeout`.
-fn wait_signal(set: &SigSet, timeout: Duration) -> Option<Signal> {
-    let ts = libc::timespec {
-        tv_sec: timeout.as_secs() as libc::time_t,
-        tv_nsec: timeout.subsec_nanos() as libc::c_long,
-    };
-    // SAFETY: `set` is a valid sigset and `ts` a valid timespec for the duration of the call.
-    #[allow(unsafe_code)]
-    let rc = unsafe { libc::sigtimedwait(set.as_ref(), std::ptr::null_mut(), &ts) };
-    if rc > 0 {
-        Signal::try_from(rc).ok()
-    } else {
-        None
-    }
 }
 
 /// Runs the children until SIGINT or SIGTERM; returns the signal that stopped it.

@@ -34,8 +34,12 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         };
     };
     check_supported(&common)?;
-    let filter =
-        std::env::var("XRCE_LOG").unwrap_or_else(|_| verbosity_filter(common.verbose).to_string());
+    // An explicit -v wins over XRCE_LOG (the systemd units set it), which wins over the default.
+    let filter = match common.verbose {
+        Some(v) => verbosity_filter(v).to_string(),
+        None => std::env::var("XRCE_LOG")
+            .unwrap_or_else(|_| verbosity_filter(xrce_agent::cli::DEFAULT_VERBOSITY).to_string()),
+    };
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_new(&filter).unwrap_or_else(|_| "info".into()),
@@ -59,7 +63,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     let mut frontend_args = vec!["frontend".to_string(), "--frontend-id".into(), "0".into()];
     frontend_args.extend(frontend.frontend_args());
     if let Some(port) = common.discovery {
-        frontend_args.extend(["--discovery".into(), port.to_string()]);
+        if frontend.kind().is_ip() {
+            frontend_args.extend(["--discovery".into(), port.to_string()]);
+        } else {
+            tracing::warn!(
+                transport = frontend.kind().name(),
+                "-d/--discovery is not supported on this transport (UDP and TCP only); ignored"
+            );
+        }
     }
     let mut frontend_fds = Vec::new();
     // The supervisor owns the pseudoterminal, so its path survives front-end restarts.
@@ -67,7 +78,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         let pty = xrce_frontend::transport::pty::open(baudrate)
             .map_err(|e| anyhow::anyhow!("opening a pseudoterminal: {e}"))?;
         let path = pty.slave_path.display().to_string();
-        println!("Pseudoterminal opened at {path}");
+        // Also in the reference's words ("dev: ..."), which scripts look for.
+        println!("Pseudoterminal opened at {path} (dev: {path})");
         tracing::info!(%path, "pseudoterminal opened; clients open this path as their serial port");
         let master = Arc::new(xrce_agent::high_fd(&pty.master)?);
         frontend_fds.push((master.clone(), 3));

@@ -81,11 +81,11 @@ impl Link {
         match self {
             Link::Udp(s) => s.send(message).is_ok(),
             Link::Tcp { stream, .. } => {
-                let mut framed = Vec::new();
-                if length_prefix::encode(message, &mut framed).is_err() {
+                // As the eProsima client sends it: the prefix, then the message, apart.
+                let Ok(len) = u16::try_from(message.len()) else {
                     return false;
-                }
-                write_all(stream, &framed)
+                };
+                write_all(stream, &len.to_le_bytes()) && write_all(stream, message)
             }
             Link::Serial { file, address, .. } => {
                 let mut framed = Vec::new();

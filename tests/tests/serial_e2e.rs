@@ -203,16 +203,22 @@ fn a_serial_device_unplugged_and_plugged_back_keeps_the_session() {
         .client
         .unacked(stream_id::BUILTIN_RELIABLE)
         == 0));
-    // Unplug: the other end of the line goes away, and with it the device node.
+    // Unplug: the device node goes away, and the other end of the line with it (the link
+    // first, so the agent cannot open a /dev/pts number a parallel test reuses).
+    let _ = std::fs::remove_file(&dev);
     let unplugged = std::mem::replace(&mut c.link, Link::udp("127.0.0.1:9".parse().expect("addr")));
     drop(unplugged);
-    let _ = std::fs::remove_file(&dev);
     let (gone, _) = out
         .wait_for(opened, "serial device gone", 10 * SECOND)
         .expect("the agent did not notice the device going away");
     // Written while unplugged: the reliable stream keeps them for the repair.
     let mut i = 10;
+    let deadline = Instant::now() + 10 * SECOND;
     while i < 15 {
+        assert!(
+            Instant::now() < deadline,
+            "the reliable window stayed full while unplugged"
+        );
         if c.client.can_send_reliable(stream_id::BUILTIN_RELIABLE) {
             c.client
                 .write(
@@ -227,7 +233,6 @@ fn a_serial_device_unplugged_and_plugged_back_keeps_the_session() {
         c.client.handle_timeout(Instant::now());
         while c.client.poll_transmit().is_some() {}
     }
-    std::thread::sleep(Duration::from_millis(300));
     let second = PtyPair::open();
     plug(&dev, &second);
     out.wait_for(gone, "serial device back", 10 * SECOND)
@@ -260,9 +265,10 @@ fn the_agents_pseudoterminal_serves_one_client_after_another() {
     let pts = line
         .rsplit("Pseudoterminal opened at ")
         .next()
+        .and_then(|rest| rest.split_whitespace().next())
         .expect("path")
-        .trim()
         .to_string();
+    assert!(line.contains(&format!("(dev: {pts})")), "{line}");
     assert!(pts.starts_with("/dev/pts/"), "{pts}");
     let reader = DdsPeer::start(&[
         "read",

@@ -186,9 +186,26 @@ fn ipv6_interfaces() -> Vec<std::net::Ipv6Addr> {
     out
 }
 
-/// The locators of an IP transport served at `local`: that address, or every address of
-/// its family when it is unspecified (as the reference agent lists them).
+/// Most locators an answer lists: the eProsima client keeps the first four (and reads
+/// answers into a 200-byte buffer).
+pub const MAX_ANSWER_LOCATORS: usize = 4;
+
+/// The locators of an IP transport served at `local`: that address, or, when it is
+/// unspecified, the addresses of its family, as the reference agent lists them, but other
+/// than loopback first and at most [`MAX_ANSWER_LOCATORS`] (a client discovering an agent
+/// on another machine cannot use 127.0.0.1).
 pub fn ip_locators(local: SocketAddr) -> Vec<TransportLocator> {
+    let mut all = all_ip_locators(local);
+    all.sort_by_key(|l| match l {
+        TransportLocator::Medium { address, .. } => address[0] == 127,
+        TransportLocator::Large { address, .. } => std::net::Ipv6Addr::from(*address).is_loopback(),
+        _ => false,
+    });
+    all.truncate(MAX_ANSWER_LOCATORS);
+    all
+}
+
+fn all_ip_locators(local: SocketAddr) -> Vec<TransportLocator> {
     let port = local.port();
     match local.ip() {
         IpAddr::V4(a) if a.is_unspecified() => ipv4_interfaces()

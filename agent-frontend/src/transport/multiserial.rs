@@ -28,10 +28,17 @@ use super::{is_gone, Transport, TransportStats};
 
 /// How often a missing device is looked for, and a pty checked for a client.
 pub const REOPEN_PERIOD: Duration = Duration::from_millis(100);
-/// Bytes waiting for a line before new messages to it are dropped.
-pub const LINE_SEND_BUFFER: usize = 64 << 10;
+/// Output a line may queue, in line time: beyond it new messages are dropped (counted),
+/// rather than queued behind seconds of old output the client would ask for again.
+pub const LINE_SEND_TIME: Duration = Duration::from_millis(250);
+/// Output queued for a line at least (and for a pseudoterminal, which has no rate).
+pub const LINE_SEND_MIN: usize = 4096;
+/// Output queued for a pseudoterminal.
+pub const PTY_SEND_BUFFER: usize = 64 << 10;
 /// Bytes read from a line at once.
 const READ_CHUNK: usize = 4096;
+/// Bytes read from one line per loop pass before the others get a turn.
+const READ_BUDGET: usize = 64 << 10;
 
 /// A client on a line: which line, and its address there.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -79,6 +86,8 @@ struct Line {
     last_error: Option<OpenError>,
     /// When it last went down, for the outage length in the log.
     down_since: Option<Instant>,
+    /// Bytes of output it may queue.
+    send_limit: usize,
 }
 
 impl Line {
@@ -134,6 +143,8 @@ pub struct SerialTransport {
     first_token: usize,
     read_buf: Vec<u8>,
     frame_buf: Vec<u8>,
+    /// The line read first in the next pass (turns rotate, so none starves).
+    next_first: usize,
     stats: TransportStats,
 }
 
@@ -146,6 +157,13 @@ impl SerialTransport {
             .into_iter()
             .take(u16::MAX as usize + 1)
             .map(|device| Line {
+                send_limit: match &device {
+                    LineDevice::Tty(c) => {
+                        let per_second = f64::from(c.baudrate) / 10.0;
+                        ((per_second * LINE_SEND_TIME.as_secs_f64()) as usize).max(LINE_SEND_MIN)
+                    }
+                    LineDevice::Pty { .. } => PTY_SEND_BUFFER,
+                },
                 device,
                 tty: None,
                 state: LineState::Waiting(now),
@@ -165,6 +183,7 @@ impl SerialTransport {
             first_token: 0,
             read_buf: vec![0; READ_CHUNK],
             frame_buf: Vec::new(),
+            next_first: 0,
             stats: TransportStats::default(),
         }
     }
@@ -279,12 +298,13 @@ impl SerialTransport {
         deliver: &mut dyn FnMut(SerialEndpoint, &[u8]),
     ) -> usize {
         let mut delivered = 0;
+        let mut read = 0;
         let mut gone: Option<String> = None;
         {
             let line = &mut self.lines[i];
             let stats = &mut self.stats;
             let buf = &mut self.read_buf;
-            while line.readable && delivered < budget {
+            while line.readable && delivered < budget && read < READ_BUDGET {
                 let Some(mut f) = line.file() else {
                     break;
                 };
@@ -294,6 +314,7 @@ impl SerialTransport {
                         break;
                     }
                     Ok(n) => {
+                        read += n;
                         line.decoder.push(&buf[..n], |frame| match frame {
                             Ok(f) if f.payload.is_empty() => {
                                 stats.drop("serial_empty_frame");
@@ -400,10 +421,14 @@ impl Transport for SerialTransport {
         deliver: &mut dyn FnMut(SerialEndpoint, &[u8]),
     ) -> bool {
         let mut budget = budget;
-        for i in 0..self.lines.len() {
+        let n = self.lines.len();
+        let first = self.next_first % n.max(1);
+        self.next_first = first + 1;
+        for k in 0..n {
             if budget == 0 {
                 break;
             }
+            let i = (first + k) % n;
             if self.lines[i].state == LineState::Up && self.lines[i].readable {
                 budget -= self.read_line(i, now, budget, deliver).min(budget);
             }
@@ -429,7 +454,7 @@ impl Transport for SerialTransport {
             self.stats.drop("message_too_long");
             return;
         }
-        if line.pending_out() + self.frame_buf.len() > LINE_SEND_BUFFER {
+        if line.pending_out() + self.frame_buf.len() > line.send_limit {
             let n = self.stats.drop("serial_send_buffer_full");
             if n.is_power_of_two() {
                 tracing::warn!(line = i, path = %line.path().display(), dropped = n, "serial line too slow for its output; messages dropped (raise the baud rate?)");

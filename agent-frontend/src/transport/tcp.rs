@@ -3,9 +3,12 @@
 //!
 //! Bounded per connection: the receive buffer holds at most one message being completed,
 //! the send buffer at most [`TcpConfig::send_buffer`] bytes. A client that does not read
-//! (its kernel buffer full, then ours) is disconnected and counted, so one stuck client
-//! never holds memory or blocks the others. At most [`TcpConfig::max_connections`] are
-//! served; more are accepted and closed at once, with a log line.
+//! (its kernel buffer full, then ours) first loses best-effort output (counted), then is
+//! disconnected (counted), so one stuck client never holds memory or blocks the others. A
+//! connection that sends no whole message within [`SILENCE_LIMIT`] of opening, or stops in
+//! the middle of one for as long, is closed too. At most [`TcpConfig::max_connections`] are
+//! served; more are accepted and closed at once, with a log line. Each connection gets at
+//! most [`READ_BUDGET`] bytes read per loop pass, so a fast sender cannot starve the others.
 
 use std::collections::VecDeque;
 use std::io::{IoSlice, Read, Write};
@@ -34,8 +37,9 @@ pub struct TcpConfig {
 impl Default for TcpConfig {
     fn default() -> Self {
         TcpConfig {
-            max_connections: 10_000,
-            send_buffer: 512 << 10,
+            // Worst case 2,000 × (64 KiB being received + 128 KiB unsent) = 384 MiB.
+            max_connections: 2_000,
+            send_buffer: 128 << 10,
             max_message: length_prefix::MAX_MESSAGE,
         }
     }
@@ -62,6 +66,10 @@ struct Connection {
     /// In the transport's ready list.
     queued: bool,
     opened_at: Instant,
+    /// When bytes last arrived.
+    last_input: Instant,
+    /// Whole messages received.
+    delivered: u64,
 }
 
 impl Connection {
@@ -111,6 +119,7 @@ pub struct TcpTransport {
     accept_retry: Option<Instant>,
     ready: VecDeque<u32>,
     closed: VecDeque<TcpEndpoint>,
+    next_sweep: Instant,
     stats: TransportStats,
 }
 
@@ -118,6 +127,25 @@ pub struct TcpTransport {
 const STUCK: &str = "tcp_send_buffer_overflow";
 const TOO_LONG: &str = "tcp_frame_too_long";
 const REFUSED: &str = "tcp_connection_refused";
+const SILENT: &str = "tcp_silent_connection";
+const STALLED: &str = "tcp_stalled_message";
+
+/// Bytes read from one connection per loop pass before the others get a turn.
+pub const READ_BUDGET: usize = 256 << 10;
+/// A connection that sends no whole message this long after opening, or stops this long
+/// in the middle of one, is closed.
+pub const SILENCE_LIMIT: Duration = Duration::from_secs(30);
+/// How often connections are checked against [`SILENCE_LIMIT`].
+const SWEEP_PERIOD: Duration = Duration::from_secs(1);
+/// Accept errors tolerated in one pass (aborted handshakes and the like) before the
+/// listener waits for the next retry.
+const ACCEPT_ERRORS_PER_PASS: usize = 64;
+
+/// Whether an XRCE message travels on a best-effort stream (its header's stream id, the
+/// second octet, is 1 to 127): such output may be dropped rather than queued for ever.
+fn is_best_effort(message: &[u8]) -> bool {
+    matches!(message.get(1), Some(1..=0x7F))
+}
 
 impl TcpTransport {
     /// Serves clients on a bound listener.
@@ -138,6 +166,7 @@ impl TcpTransport {
             accept_retry: None,
             ready: VecDeque::new(),
             closed: VecDeque::new(),
+            next_sweep: Instant::now() + SWEEP_PERIOD,
             stats: TransportStats::default(),
         })
     }
@@ -200,6 +229,7 @@ impl TcpTransport {
     }
 
     fn accept(&mut self) {
+        let mut errors = 0;
         loop {
             let (stream, peer) = match self.listener.accept() {
                 Ok(s) => s,
@@ -219,8 +249,18 @@ impl TcpTransport {
                     return;
                 }
                 Err(e) => {
-                    // ECONNABORTED and the like concern one connection, not the listener.
-                    tracing::debug!(error = %e, "accept");
+                    // ECONNABORTED and the like concern one connection, not the listener;
+                    // others (ENOBUFS, ENOMEM) may repeat: then wait for the retry timer.
+                    errors += 1;
+                    let n = self.stats.drop("tcp_accept_failed");
+                    if n.is_power_of_two() {
+                        tracing::warn!(error = %e, failed = n, "accepting a TCP connection failed");
+                    }
+                    if errors >= ACCEPT_ERRORS_PER_PASS {
+                        self.accept_ready = false;
+                        self.accept_retry = Some(Instant::now() + Duration::from_millis(100));
+                        return;
+                    }
                     continue;
                 }
             };
@@ -254,6 +294,8 @@ impl TcpTransport {
                 writable: false,
                 queued: false,
                 opened_at: Instant::now(),
+                last_input: Instant::now(),
+                delivered: 0,
             };
             let token = self.token(slot);
             if let Some(r) = &self.registry {
@@ -281,6 +323,7 @@ impl TcpTransport {
         deliver: &mut dyn FnMut(TcpEndpoint, &[u8]),
     ) -> (usize, bool) {
         let mut delivered = 0;
+        let mut read = 0;
         let mut close: Option<(Option<&'static str>, String)> = None;
         let mut left = false;
         let Some(c) = self.slots.get_mut(slot as usize).and_then(Option::as_mut) else {
@@ -308,12 +351,20 @@ impl TcpTransport {
                     }
                 }
             }
+            if read >= READ_BUDGET {
+                left = true;
+                break;
+            }
             match c.stream.read(c.decoder.spare()) {
                 Ok(0) => {
                     close = Some((None, "closed by the client".into()));
                     break;
                 }
-                Ok(n) => c.decoder.filled(n),
+                Ok(n) => {
+                    c.decoder.filled(n);
+                    read += n;
+                    c.last_input = Instant::now();
+                }
                 Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
                 Err(e) => {
@@ -323,6 +374,9 @@ impl TcpTransport {
             }
         }
         self.stats.messages_in += delivered as u64;
+        if let Some(c) = self.slots.get_mut(slot as usize).and_then(Option::as_mut) {
+            c.delivered += delivered as u64;
+        }
         if let Some((reason, detail)) = close {
             self.close(slot, reason, &detail);
             return (delivered, false);
@@ -459,6 +513,15 @@ impl Transport for TcpTransport {
         }
         let total = prefix.len() + message.len();
         if written < total {
+            if written == 0 && c.pending_out() > limit / 2 && is_best_effort(message) {
+                // Half full: best-effort output is dropped first (the client loses samples
+                // it would lose on a lossy link anyway) before the connection is given up.
+                let n = self.stats.drop("tcp_best_effort_dropped");
+                if n.is_power_of_two() {
+                    tracing::debug!(peer = %c.peer, dropped = n, "best-effort output dropped for a slow TCP client");
+                }
+                return;
+            }
             if c.pending_out() + (total - written) > limit {
                 let detail = format!(
                     "{} bytes waiting for a client that does not read",
@@ -491,13 +554,34 @@ impl Transport for TcpTransport {
     }
 
     fn poll_timeout(&self) -> Option<Instant> {
-        self.accept_retry
+        let sweep = (self.live > 0).then_some(self.next_sweep);
+        match (self.accept_retry, sweep) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
     }
 
     fn handle_timeout(&mut self, now: Instant) {
         if self.accept_retry.is_some_and(|t| t <= now) {
             self.accept_retry = None;
             self.accept_ready = true;
+        }
+        if now >= self.next_sweep {
+            self.next_sweep = now + SWEEP_PERIOD;
+            let mut silent = Vec::new();
+            for (slot, c) in self.slots.iter().enumerate() {
+                let Some(c) = c else { continue };
+                if c.delivered == 0 && now.saturating_duration_since(c.opened_at) > SILENCE_LIMIT {
+                    silent.push((slot as u32, SILENT));
+                } else if c.decoder.buffered() > 0
+                    && now.saturating_duration_since(c.last_input) > SILENCE_LIMIT
+                {
+                    silent.push((slot as u32, STALLED));
+                }
+            }
+            for (slot, reason) in silent {
+                self.close(slot, Some(reason), "no whole message for too long");
+            }
         }
     }
 

@@ -95,9 +95,11 @@ impl Transport for UdpTransport {
         if !self.readable {
             return false;
         }
+        let mut errors = 0;
         for _ in 0..budget {
             match self.socket.recv_from(&mut self.buf) {
                 Ok((n, src)) => {
+                    errors = 0;
                     self.stats.messages_in += 1;
                     deliver(src, &self.buf[..n]);
                 }
@@ -107,8 +109,16 @@ impl Transport for UdpTransport {
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
                 Err(e) => {
-                    // ICMP errors from earlier sends surface here on Linux; keep serving.
+                    // ICMP errors from earlier sends surface here on Linux, one each: keep
+                    // reading. Errors that repeat mean the socket itself fails: wait for
+                    // the next readiness rather than spin.
                     tracing::debug!(error = %e, "recv_from");
+                    errors += 1;
+                    if errors >= 16 {
+                        self.stats.drop("recv_failed");
+                        self.readable = false;
+                        return false;
+                    }
                 }
             }
         }

@@ -483,7 +483,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         client.detached = false;
         if client.addr != src {
             // With a key in the header the client may move (e.g. a new source port).
-            self.by_addr.remove(&client.addr);
+            if self.by_addr.get(&client.addr) == Some(&key) {
+                self.by_addr.remove(&client.addr);
+            }
             client.addr = src;
             self.by_addr.insert(src, key);
         }
@@ -731,7 +733,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     existing.dead_time = dead_time;
                     let old = existing.addr;
                     existing.addr = src;
-                    self.by_addr.remove(&old);
+                    if self.by_addr.get(&old) == Some(&c.client_key) {
+                        self.by_addr.remove(&old);
+                    }
                     self.by_addr.insert(src, c.client_key);
                     tracing::info!(client = %c.client_key, session = c.session_id, "session re-established");
                 }
