@@ -32,6 +32,14 @@ pub struct WorkerArgs {
     /// client (one GUID, no per-client liveliness).
     #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
     pub share_writers: bool,
+    /// Seconds the entities of a front-end whose process is gone are kept for it to come
+    /// back, before they are deleted.
+    #[arg(
+        long = "frontend-grace",
+        env = "XRCE_FRONTEND_GRACE",
+        default_value_t = 30.0
+    )]
+    pub frontend_grace: f64,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_dds_worker=debug`.
     #[arg(long, env = "XRCE_LOG", default_value = "info,rustdds=error")]
     pub log: String,
@@ -62,7 +70,16 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         references,
         ros_graph: args.ros_graph,
         share_writers: args.share_writers,
+        frontend_grace: std::time::Duration::from_secs_f64(if args.frontend_grace.is_finite() {
+            args.frontend_grace.clamp(0.0, 86_400.0)
+        } else {
+            30.0
+        }),
     })?;
+    // Under systemd (a unit of its own), the worker is ready once it serves.
+    if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {
+        tracing::warn!(error = %e, "sd_notify failed");
+    }
     worker.run()
 }
 

@@ -51,7 +51,13 @@ pub struct WorkerConfig {
     /// Map XRCE data writers of one domain, topic, type, byte order and QoS onto one shared
     /// DDS writer (volatile, shared-ownership writers only).
     pub share_writers: bool,
+    /// How long the entities of a front-end whose process is gone are kept for it to come
+    /// back (restarted by its supervisor) before they are deleted.
+    pub frontend_grace: Duration,
 }
+
+/// How often the worker looks for front-ends whose process is gone.
+const CENSUS_PERIOD: Duration = Duration::from_secs(1);
 
 type EntityKey = (u32, ClientKey, ObjectId);
 
@@ -335,6 +341,10 @@ pub struct Worker {
     shared_writers: HashMap<SharedWriterKey, Vec<SharedWriterEntry>>,
     poll: Poll,
     graph: RosGraph,
+    /// Front-ends with entities whose process is gone, and since when.
+    orphaned: HashMap<u32, Instant>,
+    /// When to look for gone front-ends next.
+    next_census: Instant,
     /// Counters by reason of rejected or failed work.
     pub dropped: HashMap<&'static str, u64>,
 }
@@ -385,6 +395,8 @@ impl Worker {
             shared_writers: HashMap::new(),
             poll: Poll::new()?,
             graph: RosGraph::new(ros_graph),
+            orphaned: HashMap::new(),
+            next_census: Instant::now() + CENSUS_PERIOD,
             dropped: HashMap::new(),
         };
         let mut hello = IpcHeader::new(MessageKind::WorkerHello);
@@ -443,6 +455,54 @@ impl Worker {
             self.release_rematched();
             self.publish_graph();
             self.flush();
+            self.watch_frontends();
+        }
+    }
+
+    /// Deletes the entities of front-ends whose process has been gone for the grace period
+    /// (a gateway front-end stopped for good); a restarted one says hello within it and
+    /// takes over, as before. Dead nodes' shared-memory resources are removed on the way.
+    fn watch_frontends(&mut self) {
+        let now = Instant::now();
+        if now < self.next_census {
+            return;
+        }
+        self.next_census = now + CENSUS_PERIOD;
+        let served: HashSet<u32> = self.by_client.keys().map(|(fe, _)| *fe).collect();
+        if served.is_empty() && self.orphaned.is_empty() {
+            return;
+        }
+        let census = self.node.nodes();
+        self.orphaned.retain(|fe, _| served.contains(fe));
+        for fe in served {
+            let name = format!("xrce-frontend-{fe}");
+            if census.alive.contains(&name) {
+                if self.orphaned.remove(&fe).is_some() {
+                    tracing::info!(frontend = fe, "front-end is back");
+                }
+                continue;
+            }
+            let grace = self.config.frontend_grace;
+            let since = *self.orphaned.entry(fe).or_insert_with(|| {
+                tracing::warn!(
+                    frontend = fe,
+                    grace_s = grace.as_secs_f64(),
+                    "front-end process gone; its clients' entities are kept for it to come back"
+                );
+                now
+            });
+            if now.saturating_duration_since(since) >= grace {
+                let clients = self.by_client.keys().filter(|(f, _)| *f == fe).count();
+                tracing::warn!(
+                    frontend = fe,
+                    clients,
+                    "front-end did not come back; deleting its clients' entities"
+                );
+                self.remove_where(|c| c.0 == fe);
+                self.ports.remove(&fe);
+                self.orphaned.remove(&fe);
+                self.count("frontend_gone");
+            }
         }
     }
 
@@ -560,11 +620,14 @@ impl Worker {
             };
         }
         let now = Instant::now();
+        let census =
+            (!self.by_client.is_empty() || !self.orphaned.is_empty()).then_some(self.next_census);
         self.reads
             .values()
             .flat_map(|r| [r.deadline, r.pacing.next_at])
             .flatten()
             .chain(self.graph.deadline())
+            .chain(census)
             .min()
             .map(|d| {
                 d.saturating_duration_since(now)

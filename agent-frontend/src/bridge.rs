@@ -56,6 +56,22 @@ pub const RESUME_READ_AT: (usize, usize) = (256, 256 << 10);
 /// up to 1.5 s of duplicates for the DDS readers).
 pub const SETTLE_TIME: Duration = Duration::from_millis(1500);
 
+/// Why a bridge could not be opened.
+#[derive(Debug, thiserror::Error)]
+pub enum BridgeError {
+    /// The shared-memory services could not be opened.
+    #[error(transparent)]
+    Shm(#[from] ShmError),
+    /// Another live front-end of the instance has this id.
+    #[error("front-end {id} already runs in agent instance {instance:?}; give each front-end its own id")]
+    DuplicateId {
+        /// The id.
+        id: u32,
+        /// The instance.
+        instance: String,
+    },
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Awaited {
     /// The client waits for a STATUS.
@@ -229,8 +245,16 @@ fn header(
 
 impl Bridge {
     /// Opens the services of front-end `frontend_id` in agent instance `instance`.
-    pub fn new(instance: &str, frontend_id: u32) -> Result<Self, ShmError> {
+    pub fn new(instance: &str, frontend_id: u32) -> Result<Self, BridgeError> {
         let node = IpcNode::new(instance, &format!("xrce-frontend-{frontend_id}"))?;
+        // Another live front-end with this id would lose its clients' entities to our
+        // hello: the later one refuses to start.
+        if node.older_namesakes() > 0 {
+            return Err(BridgeError::DuplicateId {
+                id: frontend_id,
+                instance: instance.to_string(),
+            });
+        }
         let replies = node.receiver(
             &ipc::reply_service(instance, frontend_id),
             ServiceKind::Reply,

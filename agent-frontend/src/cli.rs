@@ -165,24 +165,30 @@ impl FrontendArgs {
     }
 }
 
-/// Writes "READY" to the descriptor named by `XRCE_READY_FD`, if any (the supervisor waits on
-/// it before it reports the agent ready).
-fn readiness_reporter() -> Option<OnServing> {
-    let fd: i32 = std::env::var("XRCE_READY_FD").ok()?.parse().ok()?;
-    std::env::remove_var("XRCE_READY_FD");
-    let file = match crate::owned_fd::inherited(fd) {
-        Ok(f) => f,
-        Err(e) => {
-            tracing::warn!(error = %e, "XRCE_READY_FD");
-            return None;
+/// Once serving: writes "READY" to the descriptor named by `XRCE_READY_FD`, if any (the
+/// supervisor waits on it before it reports the agent ready), and tells systemd when the
+/// front-end runs as a unit of its own (`NOTIFY_SOCKET`).
+fn readiness_reporter() -> OnServing {
+    let pipe = std::env::var("XRCE_READY_FD")
+        .ok()
+        .and_then(|v| v.parse::<i32>().ok())
+        .and_then(|fd| match crate::owned_fd::inherited(fd) {
+            Ok(f) => Some(f),
+            Err(e) => {
+                tracing::warn!(error = %e, "XRCE_READY_FD");
+                None
+            }
+        });
+    Box::new(move || {
+        if let Some(mut file) = pipe {
+            if let Err(e) = file.write_all(b"READY\n") {
+                tracing::debug!(error = %e, "readiness report");
+            }
         }
-    };
-    Some(Box::new(move || {
-        let mut file = file;
-        if let Err(e) = file.write_all(b"READY\n") {
-            tracing::debug!(error = %e, "readiness report");
+        if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {
+            tracing::warn!(error = %e, "sd_notify failed");
         }
-    }))
+    })
 }
 
 /// Raises the open-file limit to the hard limit: every TCP connection is a descriptor.
@@ -207,7 +213,7 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let config = args.agent_config()?;
-    let on_serving = readiness_reporter();
+    let on_serving = Some(readiness_reporter());
     match args.transport {
         TransportKind::Udp4 | TransportKind::Udp6 => {
             let addr = args.listen_addr()?;

@@ -10,12 +10,26 @@ use std::path::{Path, PathBuf};
 use clap::{Args, Parser, Subcommand};
 
 /// DDS-XRCE agent: lets XRCE clients (Micro XRCE-DDS, micro-ROS, PX4) join a DDS data space.
+///
+/// Either one transport (`xrce-agent udp4 -p 8888`, as MicroXRCEAgent) or a gateway of
+/// several from a file (`xrce-agent --config gateway.toml`).
 #[derive(Debug, Parser)]
-#[command(name = "xrce-agent", version)]
+#[command(name = "xrce-agent", version, args_conflicts_with_subcommands = true)]
 pub struct Cli {
+    /// Run a gateway: one DDS worker and one front-end process per `[[frontend]]` of this
+    /// TOML file (see deploy/gateway.example.toml).
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    /// With --config: check the file, print what it would run, and exit (0 when valid).
+    #[arg(long, requires = "config")]
+    pub check: bool,
+    /// With --config: run only this process of the gateway, in the foreground (`worker`, or
+    /// a front-end's name), for deployments that run each process as a systemd unit.
+    #[arg(long, requires = "config", value_name = "NAME")]
+    pub process: Option<String>,
     /// The transport to serve, or an internal role.
     #[command(subcommand)]
-    pub command: Command,
+    pub command: Option<Command>,
 }
 
 /// What to run.
@@ -233,6 +247,29 @@ impl FrontendPlan {
         }
     }
 
+    /// What it serves, for people (`tcp4 on 0.0.0.0:8888`, `serial /dev/ttyACM0 at 921600
+    /// baud`).
+    pub fn describe(&self) -> String {
+        match self {
+            FrontendPlan::Ip { kind, listen, .. } => format!("{} on {listen}", kind.name()),
+            FrontendPlan::Serial {
+                kind,
+                devices,
+                baudrate,
+                flow_control,
+            } => {
+                let list: Vec<String> = devices.iter().map(|d| d.display().to_string()).collect();
+                format!(
+                    "{} {} at {baudrate} baud{}",
+                    kind.name(),
+                    list.join(" "),
+                    if *flow_control { " with RTS/CTS" } else { "" }
+                )
+            }
+            FrontendPlan::Pty { .. } => "pseudoterminal".into(),
+        }
+    }
+
     /// A short label for instance names and logs (`udp4-8888`, `serial`).
     pub fn label(&self) -> String {
         match self {
@@ -420,7 +457,10 @@ mod tests {
 
     fn planned(args: &[&str]) -> FrontendPlan {
         let cli = parse(args).expect("parses");
-        plan(&cli.command).expect("plan").expect("a transport").0
+        plan(cli.command.as_ref().expect("a command"))
+            .expect("plan")
+            .expect("a transport")
+            .0
     }
 
     #[test]
@@ -480,13 +520,19 @@ mod tests {
     #[test]
     fn discovery_takes_an_optional_port() {
         let cli = parse(&["udp4", "-p", "8888", "-d"]).expect("parses");
-        let (_, common) = plan(&cli.command).expect("plan").expect("transport");
+        let (_, common) = plan(cli.command.as_ref().expect("a command"))
+            .expect("plan")
+            .expect("transport");
         assert_eq!(common.discovery, Some(7400));
         let cli = parse(&["udp4", "-d", "7500", "-p", "8888"]).expect("parses");
-        let (_, common) = plan(&cli.command).expect("plan").expect("transport");
+        let (_, common) = plan(cli.command.as_ref().expect("a command"))
+            .expect("plan")
+            .expect("transport");
         assert_eq!(common.discovery, Some(7500));
         let cli = parse(&["udp4", "-p", "8888"]).expect("parses");
-        let (_, common) = plan(&cli.command).expect("plan").expect("transport");
+        let (_, common) = plan(cli.command.as_ref().expect("a command"))
+            .expect("plan")
+            .expect("transport");
         assert_eq!(common.discovery, None);
     }
 
@@ -528,11 +574,13 @@ mod tests {
             &["udp4", "-p", "1", "-P", "2020"],
         ] {
             let cli = parse(args).expect("parses");
-            let (_, common) = plan(&cli.command).expect("plan").expect("transport");
+            let (_, common) = plan(cli.command.as_ref().expect("a command"))
+                .expect("plan")
+                .expect("transport");
             assert!(check_supported(&common).is_err(), "{args:?}");
         }
         let cli = parse(&["canfd", "-D", "can0", "-I", "1"]).expect("parses");
-        let e = plan(&cli.command).expect_err("refused");
+        let e = plan(cli.command.as_ref().expect("a command")).expect_err("refused");
         assert!(e.downcast_ref::<Unsupported>().is_some());
         // Usage errors: clap's exit status is 2 as well.
         let e = parse(&["serial"]).expect_err("a device is required");
@@ -540,6 +588,6 @@ mod tests {
         let e = parse(&["udp4"]).expect_err("a port is required");
         assert_eq!(e.exit_code(), 2);
         let cli = parse(&["multiserial", "--devs", "/dev/a /dev/a"]).expect("parses");
-        assert!(plan(&cli.command).is_err());
+        assert!(plan(cli.command.as_ref().expect("a command")).is_err());
     }
 }

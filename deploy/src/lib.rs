@@ -10,6 +10,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 pub mod cli;
+pub mod gateway;
+pub mod group;
 pub mod readiness;
 #[allow(unsafe_code)]
 mod sys;
@@ -59,6 +61,8 @@ pub const STOP_GRACE: Duration = Duration::from_secs(5);
 fn spawn(spec: &ChildSpec) -> std::io::Result<Child> {
     let mut cmd = Command::new(&spec.program);
     cmd.args(&spec.args);
+    // Readiness reaches systemd through the supervisor (NotifyAccess=main).
+    cmd.env_remove("NOTIFY_SOCKET");
     for (k, v) in &spec.env {
         cmd.env(k, v);
     }

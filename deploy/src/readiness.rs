@@ -2,7 +2,8 @@
 //! answered it) by writing `READY` to a pipe the supervisor gave it at descriptor
 //! [`READY_FD`] (`XRCE_READY_FD`). That works for every transport alike (a UDP ping cannot
 //! test a serial line). Once every front-end has reported, the supervisor logs that the agent
-//! is ready and tells systemd (`Type=notify`). A restarted front-end reports again.
+//! is ready and tells systemd (`Type=notify`, through the `sd-notify` crate). A restarted
+//! front-end reports again.
 
 use std::io::BufRead;
 use std::os::fd::{OwnedFd, RawFd};
@@ -70,44 +71,9 @@ pub fn watch(
     });
 }
 
-/// Sends `state` (e.g. `READY=1`) to systemd if `NOTIFY_SOCKET` is set; returns whether sent.
-pub fn notify_systemd(state: &str) -> std::io::Result<bool> {
-    use std::os::unix::net::{SocketAddr as UnixAddr, UnixDatagram};
-    let Some(path) = std::env::var_os("NOTIFY_SOCKET") else {
-        return Ok(false);
-    };
-    let socket = UnixDatagram::unbound()?;
-    let bytes = path.as_encoded_bytes();
-    let addr = if let Some(abstract_name) = bytes.strip_prefix(b"@") {
-        use std::os::linux::net::SocketAddrExt;
-        UnixAddr::from_abstract_name(abstract_name)?
-    } else {
-        UnixAddr::from_pathname(std::path::Path::new(&path))?
-    };
-    socket.send_to_addr(state.as_bytes(), &addr)?;
-    Ok(true)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn notifies_a_unix_socket() {
-        let dir = std::env::temp_dir().join(format!("xrce-notify-{}", std::process::id()));
-        let _ = std::fs::create_dir_all(&dir);
-        let path = dir.join("notify.sock");
-        let _ = std::fs::remove_file(&path);
-        let listener = std::os::unix::net::UnixDatagram::bind(&path).expect("bind");
-        // Set for this test process only; no other test in this crate reads NOTIFY_SOCKET.
-        std::env::set_var("NOTIFY_SOCKET", &path);
-        assert!(notify_systemd("READY=1").expect("send"));
-        let mut buf = [0u8; 32];
-        let n = listener.recv(&mut buf).expect("recv");
-        assert_eq!(&buf[..n], b"READY=1");
-        std::env::remove_var("NOTIFY_SOCKET");
-        let _ = std::fs::remove_dir_all(&dir);
-    }
 
     #[test]
     fn every_frontend_must_report_before_ready() {

@@ -44,6 +44,19 @@ pub enum ServiceKind {
     Announce,
 }
 
+/// Most front-ends of one agent instance (each subscribes to the worker's announcements).
+pub const MAX_FRONTENDS: usize = 64;
+
+/// Receivers a service has: every front-end hears the announcements; requests have the
+/// worker, replies their front-end (two each, so that a restarted process can subscribe
+/// before its dead predecessor's port is cleaned up).
+fn max_receivers(kind: ServiceKind) -> usize {
+    match kind {
+        ServiceKind::Announce => MAX_FRONTENDS + 2,
+        ServiceKind::Data | ServiceKind::Reply => 2,
+    }
+}
+
 /// One iceoryx2 node of an agent instance.
 #[derive(Debug)]
 pub struct IpcNode {
@@ -81,6 +94,59 @@ impl IpcNode {
         Ok(IpcNode { node })
     }
 
+    /// How many other live nodes of this instance carry this node's name and were created
+    /// before it: a second front-end with the same id, say, which this one must not replace.
+    /// Ties (created in the same nanosecond) go to the lower id.
+    pub fn older_namesakes(&self) -> usize {
+        use iceoryx2::node::{NodeState, NodeView};
+        let me = *self.node.id();
+        let name = self.node.name().clone();
+        let key = |id: &iceoryx2::identifiers::UniqueNodeId| {
+            let t = id
+                .creation_time::<ipc::Service>()
+                .map(|t| t.as_duration())
+                .unwrap_or_default();
+            (t, id.value())
+        };
+        let mine = key(&me);
+        let mut n = 0;
+        let _ = Node::<ipc::Service>::list(self.node.config(), |state| {
+            if let NodeState::Alive(v) = &state {
+                let same_name = v.details().as_ref().is_some_and(|d| *d.name() == name);
+                if *v.id() != me && same_name && key(v.id()) < mine {
+                    n += 1;
+                }
+            }
+            CallbackProgression::Continue
+        });
+        n
+    }
+
+    /// The names of this instance's live nodes, and of its dead ones (whose resources this
+    /// call removes, as far as it can).
+    pub fn nodes(&self) -> NodeCensus {
+        use iceoryx2::node::{NodeState, NodeView};
+        let mut census = NodeCensus::default();
+        let _ = Node::<ipc::Service>::list(self.node.config(), |state| {
+            match state {
+                NodeState::Alive(v) => {
+                    if let Some(d) = v.details() {
+                        census.alive.push(d.name().to_string());
+                    }
+                }
+                NodeState::Dead(v) => {
+                    if let Some(d) = v.details() {
+                        census.dead.push(d.name().to_string());
+                    }
+                    let _ = v.try_remove_stale_resources();
+                }
+                _ => {}
+            }
+            CallbackProgression::Continue
+        });
+        census
+    }
+
     /// Whether SIGINT or SIGTERM arrived (iceoryx2's handler records them).
     pub fn termination_requested(&self) -> bool {
         self.node.wait(std::time::Duration::ZERO).is_err()
@@ -99,7 +165,7 @@ impl IpcNode {
             .service_builder(&name)
             .publish_subscribe::<[u8]>()
             .max_publishers(64)
-            .max_subscribers(2)
+            .max_subscribers(max_receivers(kind))
             .subscriber_max_buffer_size(CHANNEL_DEPTH)
             .subscriber_max_borrowed_samples(2)
             .history_size(if kind == ServiceKind::Announce { 1 } else { 0 })
@@ -111,13 +177,14 @@ impl IpcNode {
     fn event(
         &self,
         service: &str,
+        kind: ServiceKind,
     ) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, ShmError> {
         let name = ServiceName::new(&super::event_service(service)).map_err(err("service name"))?;
         self.node
             .service_builder(&name)
             .event()
             .max_notifiers(64)
-            .max_listeners(4)
+            .max_listeners(max_receivers(kind).max(4))
             .open_or_create()
             .map_err(err("open event service"))
     }
@@ -136,7 +203,7 @@ impl IpcNode {
             .create()
             .map_err(err("create publisher"))?;
         let notifier = self
-            .event(service)?
+            .event(service, kind)?
             .notifier_builder()
             .create()
             .map_err(err("create notifier"))?;
@@ -154,7 +221,7 @@ impl IpcNode {
             .create()
             .map_err(err("create subscriber"))?;
         let listener = self
-            .event(service)?
+            .event(service, kind)?
             .listener_builder()
             .create()
             .map_err(err("create listener"))?;
@@ -317,6 +384,15 @@ impl Sender {
     pub fn notify(&self) -> Result<(), ShmError> {
         self.notifier.notify().map(|_| ()).map_err(err("notify"))
     }
+}
+
+/// The nodes of an instance by state ([`IpcNode::nodes`]).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct NodeCensus {
+    /// Names of the live nodes.
+    pub alive: Vec<String>,
+    /// Names of the nodes whose process died without removing them.
+    pub dead: Vec<String>,
 }
 
 /// Receives IPC messages of one service.

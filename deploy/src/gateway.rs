@@ -1,0 +1,596 @@
+//! The gateway configuration file (`xrce-agent --config FILE`): one DDS worker and one
+//! front-end process per `[[frontend]]`, each its own transport and interface.
+//!
+//! ```toml
+//! [agent]
+//! instance = "gw"                  # optional: shared-memory name of the agent's processes
+//! verbose = 4                      # optional, like -v
+//!
+//! [worker]
+//! refs = "profiles.xml"            # optional, like -r
+//! dds_interfaces = ["127.0.0.1"]   # optional, like --dds-interface
+//! ros_graph = true                 # optional
+//! share_writers = false            # optional
+//! frontend_grace = 30              # optional: seconds a gone front-end's clients are kept
+//!
+//! [[frontend]]
+//! name = "ethernet"                # optional, unique (default: transport and id)
+//! id = 0                           # optional, unique (default: its place in the file)
+//! transport = "udp4"               # udp4 udp6 tcp4 tcp6 serial multiserial pseudoterminal
+//! port = 8888                      # udp and tcp
+//! bind = "0.0.0.0"                 # optional, udp and tcp
+//! discovery = 7400                 # optional, udp and tcp
+//! max_connections = 2000           # optional, tcp
+//! client_dead_time = 0.0           # optional, seconds (any transport)
+//! dialect = "eprosima"             # optional: spec or eprosima (any transport)
+//!
+//! [[frontend]]
+//! transport = "serial"
+//! device = "/dev/ttyACM0"
+//! baudrate = 921600                # optional, serial transports (default 115200)
+//! flow_control = false             # optional, serial transports
+//!
+//! [[frontend]]
+//! transport = "multiserial"
+//! devices = ["/dev/ttyUSB0", "/dev/ttyUSB1"]
+//! ```
+//!
+//! Every error names the key, the front-end and the line.
+
+use std::collections::HashMap;
+use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+use toml::Spanned;
+use xrce_frontend::cli::TransportKind;
+
+use crate::cli::FrontendPlan;
+
+/// A gateway file as written.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct File {
+    #[serde(default)]
+    agent: AgentSection,
+    #[serde(default)]
+    worker: WorkerSection,
+    #[serde(default)]
+    frontend: Vec<Spanned<FrontendSection>>,
+}
+
+/// `[agent]`: the group as a whole.
+#[derive(Debug, Default, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AgentSection {
+    /// Shared-memory name of the agent's processes (default: `gw-<pid>`).
+    pub instance: Option<String>,
+    /// Verbosity 0..6, like `-v`.
+    pub verbose: Option<Spanned<u8>>,
+}
+
+/// `[worker]`: the DDS side.
+#[derive(Debug, Default, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WorkerSection {
+    /// References file (Fast DDS XML profiles), like `-r`; relative to the gateway file.
+    pub refs: Option<Spanned<PathBuf>>,
+    /// Local addresses DDS is restricted to, like `--dds-interface`.
+    #[serde(default)]
+    pub dds_interfaces: Vec<IpAddr>,
+    /// Announce micro-ROS nodes on `ros_discovery_info` (default true).
+    pub ros_graph: Option<bool>,
+    /// Map many clients' writers onto shared DDS writers (default false).
+    pub share_writers: Option<bool>,
+    /// Seconds a gone front-end's entities are kept for it to come back (default 30).
+    pub frontend_grace: Option<f64>,
+}
+
+/// One `[[frontend]]` as written.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FrontendSection {
+    name: Option<Spanned<String>>,
+    id: Option<Spanned<u32>>,
+    transport: Spanned<String>,
+    port: Option<Spanned<u16>>,
+    bind: Option<Spanned<IpAddr>>,
+    discovery: Option<Spanned<u16>>,
+    max_connections: Option<Spanned<usize>>,
+    device: Option<Spanned<PathBuf>>,
+    devices: Option<Spanned<Vec<PathBuf>>>,
+    baudrate: Option<Spanned<u32>>,
+    flow_control: Option<Spanned<bool>>,
+    client_dead_time: Option<Spanned<f64>>,
+    dialect: Option<Spanned<String>>,
+}
+
+/// One front-end of a checked gateway.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GatewayFrontend {
+    /// Unique name (for logs, readiness and `--process`).
+    pub name: String,
+    /// Unique front-end id (the worker keys its entities by it).
+    pub id: u32,
+    /// What it serves.
+    pub plan: FrontendPlan,
+    /// Answer multicast discovery on this port.
+    pub discovery: Option<u16>,
+    /// Seconds of silence before a client's session is deleted (0 = never).
+    pub client_dead_time: f64,
+    /// Forced protocol dialect.
+    pub dialect: Option<String>,
+}
+
+impl GatewayFrontend {
+    /// The hidden `frontend` subcommand's arguments.
+    pub fn frontend_args(&self) -> Vec<String> {
+        let mut a = vec!["--frontend-id".to_string(), self.id.to_string()];
+        a.extend(self.plan.frontend_args());
+        if let Some(d) = self.discovery {
+            a.extend(["--discovery".into(), d.to_string()]);
+        }
+        a.extend([
+            "--client-dead-time".into(),
+            self.client_dead_time.to_string(),
+        ]);
+        if let Some(d) = &self.dialect {
+            a.extend(["--dialect".into(), d.clone()]);
+        }
+        a
+    }
+}
+
+/// A checked gateway file.
+#[derive(Debug, Clone)]
+pub struct Gateway {
+    /// Where it was read from.
+    pub path: PathBuf,
+    /// `[agent]`.
+    pub agent: AgentSection,
+    /// `[worker]`, with `refs` resolved against the file's directory.
+    pub worker: WorkerSection,
+    /// The front-ends, in file order.
+    pub frontends: Vec<GatewayFrontend>,
+}
+
+/// Why a gateway file is refused.
+#[derive(Debug, thiserror::Error)]
+#[error("{path}:{line}: {message}")]
+pub struct ConfigError {
+    /// The file.
+    pub path: String,
+    /// 1-based line of the offending key (or its table).
+    pub line: usize,
+    /// What is wrong, naming the key.
+    pub message: String,
+}
+
+/// The 1-based line of a byte offset.
+fn line_of(text: &str, offset: usize) -> usize {
+    text.get(..offset.min(text.len()))
+        .map_or(1, |t| t.bytes().filter(|b| *b == b'\n').count() + 1)
+}
+
+struct Checker<'a> {
+    path: &'a Path,
+    text: &'a str,
+}
+
+impl Checker<'_> {
+    fn err(&self, span: Range<usize>, message: impl Into<String>) -> ConfigError {
+        ConfigError {
+            path: self.path.display().to_string(),
+            line: line_of(self.text, span.start),
+            message: message.into(),
+        }
+    }
+}
+
+fn kind_of(name: &str) -> Option<TransportKind> {
+    use TransportKind as K;
+    Some(match name {
+        "udp4" => K::Udp4,
+        "udp6" => K::Udp6,
+        "tcp4" => K::Tcp4,
+        "tcp6" | "tpc6" => K::Tcp6,
+        "serial" => K::Serial,
+        "multiserial" => K::Multiserial,
+        "pseudoterminal" => K::Pseudoterminal,
+        _ => return None,
+    })
+}
+
+/// Whether sockets bound to `a` and `b` (same port and protocol) would collide: the same
+/// address, a wildcard of the same family, or the IPv6 wildcard (dual-stack) with anything.
+fn overlaps(a: IpAddr, b: IpAddr) -> bool {
+    let v6_any = |x: IpAddr| x.is_ipv6() && x.is_unspecified();
+    a == b
+        || (a.is_ipv6() == b.is_ipv6() && (a.is_unspecified() || b.is_unspecified()))
+        || v6_any(a)
+        || v6_any(b)
+}
+
+/// Reads and checks a gateway file.
+pub fn load(path: &Path) -> Result<Gateway, ConfigError> {
+    let text = std::fs::read_to_string(path).map_err(|e| ConfigError {
+        path: path.display().to_string(),
+        line: 0,
+        message: format!("cannot read it: {e}"),
+    })?;
+    parse(path, &text)
+}
+
+/// Checks a gateway file's text (`path` names it in errors and anchors relative paths).
+pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
+    let c = Checker { path, text };
+    let file: File = toml::from_str(text).map_err(|e| {
+        let line = e.span().map_or(0, |s| line_of(text, s.start));
+        ConfigError {
+            path: path.display().to_string(),
+            line,
+            message: e.message().to_string(),
+        }
+    })?;
+    if let Some(v) = &file.agent.verbose {
+        if *v.get_ref() > 6 {
+            return Err(c.err(v.span(), "agent.verbose must be 0 to 6"));
+        }
+    }
+    if let Some(i) = &file.agent.instance {
+        if !xrce_common::ipc::shm::valid_instance(i) {
+            return Err(c.err(
+                0..0,
+                format!("agent.instance {i:?} must be 1-32 characters of [A-Za-z0-9_-]"),
+            ));
+        }
+    }
+    let mut worker = file.worker.clone();
+    if let Some(r) = &file.worker.refs {
+        let base = path.parent().unwrap_or(Path::new("."));
+        let resolved = base.join(r.get_ref());
+        if let Err(e) = xrce_dds_worker::references::References::load(&resolved) {
+            return Err(c.err(r.span(), format!("worker.refs: {e}")));
+        }
+        worker.refs = Some(Spanned::new(r.span(), resolved));
+    }
+    if file.frontend.is_empty() {
+        return Err(c.err(
+            0..0,
+            "no [[frontend]]: a gateway serves at least one transport",
+        ));
+    }
+    let mut frontends = Vec::new();
+    let mut ids: HashMap<u32, usize> = HashMap::new();
+    let mut names: HashMap<String, usize> = HashMap::new();
+    let mut ports: HashMap<(bool, u16, IpAddr), usize> = HashMap::new();
+    let mut devices: HashMap<PathBuf, usize> = HashMap::new();
+    for (index, section) in file.frontend.iter().enumerate() {
+        let table = section.span();
+        let f = section.get_ref();
+        let n = index + 1;
+        let kind = kind_of(f.transport.get_ref()).ok_or_else(|| {
+            c.err(
+                f.transport.span(),
+                format!(
+                    "frontend {n}: transport {:?} is not one of udp4, udp6, tcp4, tcp6, serial, multiserial, pseudoterminal",
+                    f.transport.get_ref()
+                ),
+            )
+        })?;
+        let here = |key: &str, span: Range<usize>, what: &str| {
+            c.err(
+                span,
+                format!("frontend {n} ({}): `{key}` {what}", kind.name()),
+            )
+        };
+        // Keys that do not apply to the transport are mistakes, not silently ignored.
+        let ip_only = [
+            ("port", f.port.as_ref().map(Spanned::span)),
+            ("bind", f.bind.as_ref().map(Spanned::span)),
+            ("discovery", f.discovery.as_ref().map(Spanned::span)),
+        ];
+        let serial_only = [
+            ("device", f.device.as_ref().map(Spanned::span)),
+            ("devices", f.devices.as_ref().map(Spanned::span)),
+            ("flow_control", f.flow_control.as_ref().map(Spanned::span)),
+        ];
+        if kind.is_ip() {
+            for (key, span) in serial_only {
+                if let Some(s) = span {
+                    return Err(here(key, s, "applies to serial transports only"));
+                }
+            }
+            if let Some(b) = &f.baudrate {
+                return Err(here(
+                    "baudrate",
+                    b.span(),
+                    "applies to serial transports only",
+                ));
+            }
+        } else {
+            for (key, span) in ip_only {
+                if let Some(s) = span {
+                    return Err(here(key, s, "applies to udp and tcp only"));
+                }
+            }
+        }
+        let is_tcp = matches!(kind, TransportKind::Tcp4 | TransportKind::Tcp6);
+        if let (false, Some(m)) = (is_tcp, &f.max_connections) {
+            return Err(here("max_connections", m.span(), "applies to tcp only"));
+        }
+        let plan = match kind {
+            TransportKind::Udp4
+            | TransportKind::Udp6
+            | TransportKind::Tcp4
+            | TransportKind::Tcp6 => {
+                let port = f
+                    .port
+                    .as_ref()
+                    .ok_or_else(|| here("port", table.clone(), "is required"))?;
+                let v6 = matches!(kind, TransportKind::Udp6 | TransportKind::Tcp6);
+                let bind = match &f.bind {
+                    Some(b) => {
+                        if b.get_ref().is_ipv6() != v6 {
+                            return Err(here(
+                                "bind",
+                                b.span(),
+                                &format!("{} is not an address of {}", b.get_ref(), kind.name()),
+                            ));
+                        }
+                        *b.get_ref()
+                    }
+                    None if v6 => IpAddr::V6(Ipv6Addr::UNSPECIFIED),
+                    None => IpAddr::V4(Ipv4Addr::UNSPECIFIED),
+                };
+                let max_connections = match &f.max_connections {
+                    Some(m) if *m.get_ref() == 0 => {
+                        return Err(here("max_connections", m.span(), "must be at least 1"))
+                    }
+                    Some(m) => *m.get_ref(),
+                    None => xrce_frontend::transport::tcp::TcpConfig::default().max_connections,
+                };
+                // Two front-ends on one port: same protocol and overlapping addresses.
+                for (&(tcp, p, addr), &other) in &ports {
+                    if tcp == is_tcp && p == *port.get_ref() && overlaps(addr, bind) {
+                        return Err(here(
+                            "port",
+                            port.span(),
+                            &format!("{} is also served by frontend {other}", port.get_ref()),
+                        ));
+                    }
+                }
+                ports.insert((is_tcp, *port.get_ref(), bind), n);
+                FrontendPlan::Ip {
+                    kind,
+                    listen: SocketAddr::new(bind, *port.get_ref()),
+                    max_connections: if is_tcp { max_connections } else { 0 },
+                }
+            }
+            TransportKind::Serial | TransportKind::Multiserial => {
+                let list: Vec<(PathBuf, Range<usize>)> = match (kind, &f.device, &f.devices) {
+                    (TransportKind::Serial, Some(d), None) => vec![(d.get_ref().clone(), d.span())],
+                    (TransportKind::Serial, _, Some(d)) => {
+                        return Err(here(
+                            "devices",
+                            d.span(),
+                            "is for multiserial; serial takes `device`",
+                        ))
+                    }
+                    (TransportKind::Serial, None, None) => {
+                        return Err(here("device", table.clone(), "is required"))
+                    }
+                    (_, Some(d), _) => {
+                        return Err(here(
+                            "device",
+                            d.span(),
+                            "is for serial; multiserial takes `devices`",
+                        ))
+                    }
+                    (_, None, Some(d)) if d.get_ref().is_empty() => {
+                        return Err(here("devices", d.span(), "names no device"))
+                    }
+                    (_, None, Some(d)) => {
+                        d.get_ref().iter().map(|p| (p.clone(), d.span())).collect()
+                    }
+                    (_, None, None) => return Err(here("devices", table.clone(), "is required")),
+                };
+                for (dev, span) in &list {
+                    if let Some(other) = devices.insert(dev.clone(), n) {
+                        let whom = if other == n {
+                            "twice here".to_string()
+                        } else {
+                            format!("by frontend {other} too")
+                        };
+                        return Err(here(
+                            "device",
+                            span.clone(),
+                            &format!("{} is named {whom}", dev.display()),
+                        ));
+                    }
+                }
+                FrontendPlan::Serial {
+                    kind,
+                    devices: list.into_iter().map(|(p, _)| p).collect(),
+                    baudrate: f.baudrate.as_ref().map_or(115_200, |b| *b.get_ref()),
+                    flow_control: f.flow_control.as_ref().is_some_and(|b| *b.get_ref()),
+                }
+            }
+            TransportKind::Pseudoterminal => FrontendPlan::Pty {
+                baudrate: f.baudrate.as_ref().map_or(115_200, |b| *b.get_ref()),
+            },
+        };
+        let id = f.id.as_ref().map_or(index as u32, |i| *i.get_ref());
+        if let Some(other) = ids.insert(id, n) {
+            let span = f.id.as_ref().map_or(table.clone(), Spanned::span);
+            return Err(here(
+                "id",
+                span,
+                &format!("{id} is also frontend {other}'s"),
+            ));
+        }
+        let name = f
+            .name
+            .as_ref()
+            .map_or_else(|| format!("{}-{id}", kind.name()), |s| s.get_ref().clone());
+        if name.is_empty()
+            || name.len() > 48
+            || !name
+                .chars()
+                .all(|ch| ch.is_ascii_alphanumeric() || ch == '-' || ch == '_')
+        {
+            let span = f.name.as_ref().map_or(table.clone(), Spanned::span);
+            return Err(here(
+                "name",
+                span,
+                "must be 1-48 characters of [A-Za-z0-9_-]",
+            ));
+        }
+        if let Some(other) = names.insert(name.clone(), n) {
+            let span = f.name.as_ref().map_or(table.clone(), Spanned::span);
+            return Err(here(
+                "name",
+                span,
+                &format!("{name:?} is also frontend {other}'s"),
+            ));
+        }
+        let client_dead_time = match &f.client_dead_time {
+            Some(d) if !(d.get_ref().is_finite() && (0.0..=31_536_000.0).contains(d.get_ref())) => {
+                return Err(here(
+                    "client_dead_time",
+                    d.span(),
+                    "must be 0 to 31536000 seconds",
+                ))
+            }
+            Some(d) => *d.get_ref(),
+            None => 0.0,
+        };
+        let dialect = match &f.dialect {
+            Some(d) if d.get_ref() != "spec" && d.get_ref() != "eprosima" => {
+                return Err(here(
+                    "dialect",
+                    d.span(),
+                    "must be \"spec\" or \"eprosima\"",
+                ))
+            }
+            Some(d) => Some(d.get_ref().clone()),
+            None => None,
+        };
+        frontends.push(GatewayFrontend {
+            name,
+            id,
+            plan,
+            discovery: f.discovery.as_ref().map(|d| *d.get_ref()),
+            client_dead_time,
+            dialect,
+        });
+    }
+    Ok(Gateway {
+        path: path.to_path_buf(),
+        agent: file.agent,
+        worker,
+        frontends,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn check(text: &str) -> Result<Gateway, ConfigError> {
+        parse(Path::new("gw.toml"), text)
+    }
+
+    #[test]
+    fn the_documented_example_is_valid() {
+        let g = check(
+            r#"
+[worker]
+dds_interfaces = ["127.0.0.1"]
+[[frontend]]
+transport = "udp4"
+port = 8888
+bind = "0.0.0.0"
+discovery = 7400
+[[frontend]]
+transport = "serial"
+device = "/dev/ttyACM0"
+baudrate = 921600
+[[frontend]]
+transport = "multiserial"
+devices = ["/dev/ttyUSB0", "/dev/ttyUSB1"]
+baudrate = 115200
+[[frontend]]
+name = "companion"
+id = 7
+transport = "tcp6"
+port = 9999
+max_connections = 50
+client_dead_time = 30
+dialect = "spec"
+"#,
+        )
+        .expect("valid");
+        assert_eq!(g.frontends.len(), 4);
+        assert_eq!(g.frontends[0].name, "udp4-0");
+        assert_eq!(g.frontends[1].id, 1);
+        assert_eq!(g.frontends[3].name, "companion");
+        assert_eq!(g.frontends[3].id, 7);
+        let args = g.frontends[3].frontend_args();
+        assert!(args.windows(2).any(|w| w == ["--max-connections", "50"]));
+        assert!(args.windows(2).any(|w| w == ["--dialect", "spec"]));
+        assert!(args.windows(2).any(|w| w == ["--client-dead-time", "30"]));
+    }
+
+    fn refused(text: &str) -> ConfigError {
+        check(text).expect_err("refused")
+    }
+
+    #[test]
+    fn mistakes_are_refused_naming_the_key_and_line() {
+        let e = refused("[[frontend]]\ntransport = \"udp4\"\nport = 1\nprot = 2\n");
+        assert_eq!(e.line, 4, "{e}");
+        assert!(e.to_string().contains("prot"), "{e}");
+        let e = refused("[[frontend]]\ntransport = \"tcp4\"\n");
+        assert!(e.to_string().contains("`port` is required"), "{e}");
+        assert_eq!(e.line, 1, "{e}");
+        let e = refused(
+            "[[frontend]]\ntransport = \"udp4\"\nport = 1\nid = 3\n\n[[frontend]]\ntransport = \"udp4\"\nport = 2\nid = 3\n",
+        );
+        assert_eq!(e.line, 9, "{e}");
+        assert!(e.to_string().contains("`id` 3 is also frontend 1's"), "{e}");
+        let e = refused("[[frontend]]\ntransport = \"serial\"\ndevice = \"/dev/a\"\nport = 5\n");
+        assert!(
+            e.to_string().contains("`port` applies to udp and tcp only"),
+            "{e}"
+        );
+        assert_eq!(e.line, 4);
+        let e = refused("[[frontend]]\ntransport = \"can\"\n");
+        assert!(e.to_string().contains("transport \"can\""), "{e}");
+        let e = refused(
+            "[[frontend]]\ntransport = \"udp4\"\nport = 8888\n[[frontend]]\ntransport = \"udp4\"\nport = 8888\nbind = \"127.0.0.1\"\n",
+        );
+        assert!(e.to_string().contains("also served by frontend 1"), "{e}");
+        // TCP and UDP may share a port number.
+        check("[[frontend]]\ntransport = \"udp4\"\nport = 8888\n[[frontend]]\ntransport = \"tcp4\"\nport = 8888\n")
+            .expect("udp and tcp on one port number");
+        let e = refused(
+            "[[frontend]]\ntransport = \"serial\"\ndevice = \"/dev/a\"\n[[frontend]]\ntransport = \"multiserial\"\ndevices = [\"/dev/b\", \"/dev/a\"]\n",
+        );
+        assert!(e.to_string().contains("by frontend 1 too"), "{e}");
+        let e = refused("[[frontend]]\ntransport = \"udp4\"\nport = 70000\n");
+        assert_eq!(e.line, 3, "{e}");
+        let e = refused(
+            "[worker]\nrefs = \"missing.xml\"\n[[frontend]]\ntransport = \"pseudoterminal\"\n",
+        );
+        assert!(e.to_string().contains("worker.refs"), "{e}");
+        assert_eq!(e.line, 2);
+        let e = refused("[agent]\nverbose = 9\n[[frontend]]\ntransport = \"pseudoterminal\"\n");
+        assert!(e.to_string().contains("verbose"), "{e}");
+        let e = refused("[worker]\n");
+        assert!(e.to_string().contains("no [[frontend]]"), "{e}");
+        let e = refused("[[frontend]]\ntransport = \"udp6\"\nport = 1\nbind = \"127.0.0.1\"\n");
+        assert!(e.to_string().contains("not an address of udp6"), "{e}");
+    }
+}

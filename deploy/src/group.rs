@@ -1,0 +1,336 @@
+//! The processes of one agent: a DDS worker and one or more front-ends, described either by
+//! a MicroXRCEAgent command line (one front-end) or by a gateway file (several), then run
+//! under the supervisor ([`Group::supervise`]) or one at a time in the foreground for
+//! systemd units of their own ([`Group::exec_one`]).
+
+use std::net::IpAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use xrce_frontend::cli::TransportKind;
+
+use crate::cli::{Common, FrontendPlan, DEFAULT_VERBOSITY};
+use crate::gateway::Gateway;
+use crate::{readiness, supervise, verbosity_filter, ChildSpec};
+
+/// One front-end of the group.
+#[derive(Debug, Clone)]
+pub struct FrontendLaunch {
+    /// Name for logs and readiness (and `--process`).
+    pub name: String,
+    /// What it serves.
+    pub plan: FrontendPlan,
+    /// Arguments of the hidden `frontend` subcommand, the pty descriptor aside.
+    pub args: Vec<String>,
+}
+
+/// The processes of one agent instance and their settings.
+#[derive(Debug, Clone)]
+pub struct Group {
+    /// Shared-memory name of the instance.
+    pub instance: String,
+    /// Given by the user (else derived, and leftovers of dead agents with the same stem are
+    /// removed at start).
+    pub explicit_instance: bool,
+    /// Prefix of derived instance names (`udp4-8888-`, `gw-`).
+    pub stem: String,
+    /// Log filter of every process.
+    pub filter: String,
+    /// Environment of every process (instance, log, the worker's settings).
+    pub env: Vec<(String, String)>,
+    /// The front-ends.
+    pub frontends: Vec<FrontendLaunch>,
+}
+
+/// The log filter: `-v` (or the file's `verbose`) first, then XRCE_LOG, then the default.
+fn log_filter(verbose: Option<u8>) -> String {
+    match verbose {
+        Some(v) => verbosity_filter(v).to_string(),
+        None => std::env::var("XRCE_LOG")
+            .unwrap_or_else(|_| verbosity_filter(DEFAULT_VERBOSITY).to_string()),
+    }
+}
+
+fn init_logging(filter: &str) {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_new(filter).unwrap_or_else(|_| "info".into()),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+}
+
+/// The worker's settings as environment variables.
+fn worker_env(
+    refs: Option<&std::path::Path>,
+    dds_interfaces: &[IpAddr],
+    ros_graph: bool,
+    share_writers: bool,
+) -> anyhow::Result<Vec<(String, String)>> {
+    let mut env = Vec::new();
+    if let Some(path) = refs {
+        // Refuse a bad file here, with a clear message, rather than in a worker crash loop.
+        let refs = xrce_dds_worker::references::References::load(path)?;
+        let absolute = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
+        tracing::info!(path = %absolute.display(), profiles = refs.len(), "references file");
+        env.push(("XRCE_REFS".into(), absolute.display().to_string()));
+    }
+    env.push(("XRCE_ROS_GRAPH".into(), ros_graph.to_string()));
+    env.push(("XRCE_SHARE_WRITERS".into(), share_writers.to_string()));
+    if !dds_interfaces.is_empty() {
+        let list: Vec<String> = dds_interfaces.iter().map(ToString::to_string).collect();
+        env.push(("XRCE_DDS_INTERFACES".into(), list.join(",")));
+    }
+    Ok(env)
+}
+
+impl Group {
+    /// One front-end, from a MicroXRCEAgent command line.
+    pub fn from_command_line(frontend: FrontendPlan, common: &Common) -> anyhow::Result<Self> {
+        let filter = log_filter(common.verbose);
+        init_logging(&filter);
+        // By default every agent is its own instance (two agents on one port, bound to
+        // different addresses or in different network namespaces, must not share their IPC).
+        let stem = format!("{}-", frontend.label());
+        let instance = common
+            .instance
+            .clone()
+            .unwrap_or_else(|| format!("{stem}{}", std::process::id()));
+        if !xrce_common::ipc::shm::valid_instance(&instance) {
+            anyhow::bail!("instance name {instance:?} must be 1-32 characters of [A-Za-z0-9_-]");
+        }
+        if !(common.client_dead_time.is_finite()
+            && (0.0..=31_536_000.0).contains(&common.client_dead_time))
+        {
+            anyhow::bail!("--client-dead-time must be 0 to 31536000 seconds (a year)");
+        }
+        let mut env = vec![
+            ("XRCE_INSTANCE".to_string(), instance.clone()),
+            ("XRCE_LOG".to_string(), filter.clone()),
+        ];
+        env.extend(worker_env(
+            common.refs.as_deref(),
+            &common.dds_interfaces,
+            common.ros_graph,
+            common.share_writers,
+        )?);
+        if let Some(d) = common.dialect {
+            let name = if d == xrce_common::wire::Dialect::Spec {
+                "spec"
+            } else {
+                "eprosima"
+            };
+            env.push(("XRCE_DIALECT".into(), name.into()));
+        }
+        env.push((
+            "XRCE_CLIENT_DEAD_TIME".into(),
+            common.client_dead_time.to_string(),
+        ));
+        let mut args = vec!["--frontend-id".to_string(), "0".into()];
+        args.extend(frontend.frontend_args());
+        if let Some(port) = common.discovery {
+            if frontend.kind().is_ip() {
+                args.extend(["--discovery".into(), port.to_string()]);
+            } else {
+                tracing::warn!(
+                    transport = frontend.kind().name(),
+                    "-d/--discovery is not supported on this transport (UDP and TCP only); ignored"
+                );
+            }
+        }
+        Ok(Group {
+            instance,
+            explicit_instance: common.instance.is_some(),
+            stem,
+            filter,
+            env,
+            frontends: vec![FrontendLaunch {
+                name: frontend.label(),
+                plan: frontend,
+                args,
+            }],
+        })
+    }
+
+    /// Every front-end of a gateway file.
+    pub fn from_gateway(g: &Gateway) -> anyhow::Result<Self> {
+        let filter = log_filter(g.agent.verbose.as_ref().map(|v| *v.get_ref()));
+        init_logging(&filter);
+        let stem = "gw-".to_string();
+        let instance = g
+            .agent
+            .instance
+            .clone()
+            .unwrap_or_else(|| format!("{stem}{}", std::process::id()));
+        let mut env = vec![
+            ("XRCE_INSTANCE".to_string(), instance.clone()),
+            ("XRCE_LOG".to_string(), filter.clone()),
+        ];
+        env.extend(worker_env(
+            g.worker.refs.as_ref().map(|r| r.get_ref().as_path()),
+            &g.worker.dds_interfaces,
+            g.worker.ros_graph.unwrap_or(true),
+            g.worker.share_writers.unwrap_or(false),
+        )?);
+        if let Some(grace) = g.worker.frontend_grace {
+            env.push(("XRCE_FRONTEND_GRACE".into(), grace.to_string()));
+        }
+        let frontends = g
+            .frontends
+            .iter()
+            .map(|f| FrontendLaunch {
+                name: f.name.clone(),
+                plan: f.plan.clone(),
+                args: f.frontend_args(),
+            })
+            .collect();
+        Ok(Group {
+            instance,
+            explicit_instance: g.agent.instance.is_some(),
+            stem,
+            filter,
+            env,
+            frontends,
+        })
+    }
+
+    /// Fails early and clearly if a port is taken, instead of a crash loop in a child.
+    fn preflight(&self) -> anyhow::Result<()> {
+        for f in &self.frontends {
+            if let FrontendPlan::Ip { kind, listen, .. } = &f.plan {
+                match kind {
+                    TransportKind::Udp4 | TransportKind::Udp6 => {
+                        drop(std::net::UdpSocket::bind(listen).map_err(|e| {
+                            anyhow::anyhow!("front-end {}: cannot bind UDP {listen}: {e}", f.name)
+                        })?)
+                    }
+                    _ => drop(std::net::TcpListener::bind(listen).map_err(|e| {
+                        anyhow::anyhow!("front-end {}: cannot listen on TCP {listen}: {e}", f.name)
+                    })?),
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Runs every process under the supervisor until SIGINT or SIGTERM.
+    pub fn supervise(self) -> anyhow::Result<()> {
+        self.preflight()?;
+        let exe = std::env::current_exe()
+            .map_err(|e| anyhow::anyhow!("locating this executable: {e}"))?;
+        let mut specs = vec![ChildSpec {
+            name: "xrce-dds-worker".into(),
+            program: exe.clone(),
+            args: vec!["dds-worker".into()],
+            env: self.env.clone(),
+            fds: Vec::new(),
+        }];
+        let mut ready = Vec::new();
+        // Kept open for the group's life: a restarted front-end gets the same pty.
+        let mut ptys = Vec::new();
+        for f in &self.frontends {
+            let mut args = vec!["frontend".to_string()];
+            args.extend(f.args.iter().cloned());
+            let mut fds = Vec::new();
+            if let FrontendPlan::Pty { baudrate } = f.plan {
+                let pty = xrce_frontend::transport::pty::open(baudrate)
+                    .map_err(|e| anyhow::anyhow!("opening a pseudoterminal: {e}"))?;
+                let path = pty.slave_path.display().to_string();
+                // Also in the reference's words ("dev: ..."), which scripts look for.
+                println!("Pseudoterminal opened at {path} (dev: {path})");
+                tracing::info!(frontend = %f.name, %path, "pseudoterminal opened; clients open this path as their serial port");
+                let master = Arc::new(crate::high_fd(&pty.master)?);
+                fds.push((master.clone(), 3));
+                ptys.push(master);
+                args.extend(["--pty-fd".into(), "3".into(), "--pty-path".into(), path]);
+            }
+            let (read, write) = readiness::pipe()?;
+            fds.push((Arc::new(write), readiness::READY_FD));
+            ready.push((f.name.clone(), read));
+            let mut env = self.env.clone();
+            env.push(("XRCE_READY_FD".into(), readiness::READY_FD.to_string()));
+            specs.push(ChildSpec {
+                name: format!("xrce-frontend-{}", f.name),
+                program: exe.clone(),
+                args,
+                env,
+                fds,
+            });
+        }
+        let plans: Vec<String> = self
+            .frontends
+            .iter()
+            .map(|f| format!("{}: {}", f.name, f.plan.describe()))
+            .collect();
+        tracing::info!(instance = %self.instance, frontends = ?plans, "xrce-agent starting");
+        let (instance, stem, explicit) = (
+            self.instance.clone(),
+            self.stem.clone(),
+            self.explicit_instance,
+        );
+        let cleanup = move |last: bool| {
+            if !last && !explicit {
+                // Leftovers of earlier agents with this stem that died without cleaning up.
+                for dead in xrce_common::ipc::shm::dead_instances(&stem) {
+                    if let Ok(n) = xrce_common::ipc::shm::IpcNode::new(&dead, "xrce-agent") {
+                        drop(n);
+                    }
+                    xrce_common::ipc::shm::remove_instance_leftovers(&dead);
+                    tracing::info!(instance = %dead, "removed shared memory of a dead agent");
+                }
+            }
+            // Creating a node removes what dead nodes of this instance left in shared memory.
+            match xrce_common::ipc::shm::IpcNode::new(&instance, "xrce-agent") {
+                Ok(n) => drop(n),
+                Err(e) => tracing::warn!(error = %e, "shared-memory cleanup failed"),
+            }
+            if last {
+                xrce_common::ipc::shm::remove_instance_leftovers(&instance);
+            }
+        };
+        // Ready once every front-end reports that it serves (to systemd too, if present).
+        let report_ready = move || {
+            readiness::watch(ready, Duration::from_secs(30), || {
+                tracing::info!("agent ready");
+                if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {
+                    tracing::warn!(error = %e, "sd_notify failed");
+                }
+            });
+        };
+        supervise(specs, cleanup, report_ready)?;
+        drop(ptys);
+        Ok(())
+    }
+
+    /// Replaces this process with one of the group's (`worker`, or a front-end by name), for
+    /// a systemd unit per process: same settings, readiness straight to systemd.
+    pub fn exec_one(self, name: &str) -> anyhow::Result<()> {
+        use std::os::unix::process::CommandExt;
+        if !self.explicit_instance {
+            anyhow::bail!(
+                "--process needs [agent] instance in the file: the processes of separate units must agree on it"
+            );
+        }
+        let exe = std::env::current_exe()
+            .map_err(|e| anyhow::anyhow!("locating this executable: {e}"))?;
+        let mut cmd = std::process::Command::new(exe);
+        if name == "worker" {
+            cmd.arg("dds-worker");
+        } else {
+            let f = self
+                .frontends
+                .iter()
+                .find(|f| f.name == name)
+                .ok_or_else(|| {
+                    let names: Vec<&str> = self.frontends.iter().map(|f| f.name.as_str()).collect();
+                    anyhow::anyhow!(
+                        "no process {name:?}: the file has `worker` and the front-ends {names:?}"
+                    )
+                })?;
+            cmd.arg("frontend").args(&f.args);
+        }
+        cmd.envs(self.env.iter().map(|(k, v)| (k, v)));
+        tracing::info!(process = name, instance = %self.instance, "starting");
+        Err(anyhow::anyhow!("starting {name}: {}", cmd.exec()))
+    }
+}
