@@ -120,6 +120,24 @@ pub struct AgentProcess {
     output: Option<AgentOutput>,
 }
 
+/// `line` without ANSI escape sequences (`ESC [ ... letter`).
+fn strip_ansi(line: &str) -> String {
+    let mut out = String::with_capacity(line.len());
+    let mut chars = line.chars();
+    while let Some(c) = chars.next() {
+        if c == '\u{1b}' {
+            for d in chars.by_ref() {
+                if d.is_ascii_alphabetic() {
+                    break;
+                }
+            }
+        } else {
+            out.push(c);
+        }
+    }
+    out
+}
+
 /// The lines an agent printed, collected by reader threads (and echoed to the test's
 /// stderr), so tests can wait for a log line instead of sleeping.
 #[derive(Debug, Clone, Default)]
@@ -136,6 +154,8 @@ impl AgentOutput {
                 if echo {
                     eprintln!("{line}");
                 }
+                // Matched without the terminal colours.
+                let line = strip_ansi(&line);
                 let (m, cv) = &*lines;
                 if let Ok(mut v) = m.lock() {
                     v.push(line);
@@ -191,13 +211,22 @@ impl AgentProcess {
     /// ([`Self::output`]). `None` if it exited first.
     pub fn launch(tag: &str, args: &[&str]) -> Option<Self> {
         let instance = unique_instance(tag);
-        let mut full: Vec<String> = args.iter().map(|a| a.to_string()).collect();
-        full.extend([
-            "--dds-interface".into(),
-            "127.0.0.1".into(),
-            "--instance".into(),
-            instance.clone(),
-        ]);
+        let mut full: Vec<&str> = args.to_vec();
+        full.extend(["--dds-interface", "127.0.0.1", "--instance", &instance]);
+        let (ip, port) = ip_and_port(args);
+        Self::launch_raw(&full, instance.clone(), "agent ready", ip, port)
+    }
+
+    /// Starts `xrce-agent <args>` exactly as given (a gateway file names its instance and
+    /// pins DDS itself) and waits up to 30 s for a log line containing `ready`.
+    pub fn launch_raw(
+        args: &[&str],
+        instance: String,
+        ready: &str,
+        ip: std::net::IpAddr,
+        port: u16,
+    ) -> Option<Self> {
+        let full: Vec<String> = args.iter().map(|a| a.to_string()).collect();
         let mut child = Command::new(binaries().join("xrce-agent"))
             .args(&full)
             .env(
@@ -215,7 +244,6 @@ impl AgentProcess {
         if let Some(err) = child.stderr.take() {
             output.collect(err, true);
         }
-        let (ip, port) = ip_and_port(args);
         let mut agent = AgentProcess {
             child,
             port,
@@ -226,7 +254,7 @@ impl AgentProcess {
         let end = Instant::now() + Duration::from_secs(30);
         while Instant::now() < end {
             if output
-                .wait_for(0, "agent ready", Duration::from_millis(100))
+                .wait_for(0, ready, Duration::from_millis(100))
                 .is_some()
             {
                 return Some(agent);
@@ -374,6 +402,26 @@ impl AgentProcess {
             }
         }
         out
+    }
+
+    /// The pid of the child started with `subcommand` whose command line contains `needle`
+    /// (a front-end by its transport or port, say).
+    pub fn child_pid_with(&self, subcommand: &str, needle: &str) -> Option<i32> {
+        self.child_pids(subcommand).into_iter().find(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline"))
+                .map(|c| {
+                    String::from_utf8_lossy(&c)
+                        .replace('\0', " ")
+                        .contains(needle)
+                })
+                .unwrap_or(false)
+        })
+    }
+
+    /// Sends SIGTERM and waits; returns whether it exited cleanly (code 0). For one process
+    /// of a group (`--process`), whose instance's files belong to the group.
+    pub fn stop_process(mut self) -> bool {
+        self.terminate()
     }
 
     /// Sends SIGTERM and waits; returns whether it exited cleanly (code 0) and left no
