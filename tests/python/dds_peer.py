@@ -191,7 +191,8 @@ def main(argv=None):
                     continue
                 if not isinstance(s, HelloWorld):  # invalid sample (e.g. dispose / no writers)
                     continue
-                out(json.dumps({"index": int(s.index), "message": s.message}))
+                out(json.dumps({"index": int(s.index), "message": s.message,
+                                "writer": int(s.sample_info.publication_handle)}))
                 got += 1
                 if got >= args.count:
                     break

@@ -466,6 +466,44 @@ impl Drop for AgentProcess {
     }
 }
 
+/// Runs `cmd` (its output piped) to its end and returns what it printed; panics if it
+/// takes longer than `d` (it is killed then), so that a hang fails instead of blocking.
+pub fn output_within(cmd: &mut Command, d: Duration) -> std::process::Output {
+    let mut child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start the command");
+    let read = |pipe: Option<Box<dyn std::io::Read + Send>>| {
+        std::thread::spawn(move || {
+            let mut buf = Vec::new();
+            if let Some(mut p) = pipe {
+                let _ = p.read_to_end(&mut buf);
+            }
+            buf
+        })
+    };
+    let out = read(child.stdout.take().map(|p| Box::new(p) as _));
+    let err = read(child.stderr.take().map(|p| Box::new(p) as _));
+    let end = Instant::now() + d;
+    let status = loop {
+        if let Ok(Some(s)) = child.try_wait() {
+            break s;
+        }
+        if Instant::now() >= end {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("{cmd:?} did not finish within {d:?}");
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    };
+    std::process::Output {
+        status,
+        stdout: out.join().unwrap_or_default(),
+        stderr: err.join().unwrap_or_default(),
+    }
+}
+
 /// SIGKILLs a process.
 pub fn sigkill(pid: i32) {
     let _ = nix::sys::signal::kill(
@@ -926,13 +964,17 @@ impl Drop for DdsPeer {
 
 /// Parses a `{"index": i, "message": "..."}` line from the peer.
 pub fn parse_sample_line(l: &str) -> Option<(u32, String)> {
-    let i = l.find("\"index\":")? + 8;
-    let rest = l[i..].trim_start();
-    let end = rest.find(|c: char| !c.is_ascii_digit())?;
-    let index = rest[..end].parse().ok()?;
-    let m = l.find("\"message\": \"")? + 12;
-    let mend = l[m..].rfind('"')? + m;
-    Some((index, l[m..mend].to_string()))
+    let v: serde_json::Value = serde_json::from_str(l).ok()?;
+    let index = u32::try_from(v.get("index")?.as_u64()?).ok()?;
+    Some((index, v.get("message")?.as_str()?.to_string()))
+}
+
+/// Parses a sample line's index and the DDS writer it came from (Cyclone's publication
+/// handle: one per remote writer).
+pub fn parse_sample_writer(l: &str) -> Option<(u32, u64)> {
+    let v: serde_json::Value = serde_json::from_str(l).ok()?;
+    let index = u32::try_from(v.get("index")?.as_u64()?).ok()?;
+    Some((index, v.get("writer")?.as_u64()?))
 }
 
 /// Every delivery of a HelloWorld sample, by index and in arrival order, so that a sample
@@ -999,6 +1041,25 @@ impl Deliveries {
             inversions.is_empty(),
             "{what}: out of order: {inversions:?}"
         );
+    }
+}
+
+impl Deliveries {
+    /// Runs `pump` (which returns the indices delivered in that round) until `want`
+    /// distinct ones arrived and [`DUPLICATE_GRACE`] passed, or `d` passed.
+    pub fn collect(want: usize, d: Duration, mut pump: impl FnMut() -> Vec<u32>) -> Self {
+        let mut got = Deliveries::default();
+        let end = Instant::now() + d;
+        let mut complete_at: Option<Instant> = None;
+        while Instant::now() < end && complete_at.is_none_or(|t| t.elapsed() < DUPLICATE_GRACE) {
+            for i in pump() {
+                got.record(i);
+            }
+            if complete_at.is_none() && got.distinct() >= want {
+                complete_at = Some(Instant::now());
+            }
+        }
+        got
     }
 }
 

@@ -1,7 +1,6 @@
 //! A big-endian client: its CREATE and WRITE_DATA are big endian, and its samples reach
 //! Cyclone DDS with the CDR_BE encapsulation, decoded to the right values.
 
-use std::collections::BTreeSet;
 use std::time::Duration;
 
 use xrce_common::session::client::ClientConfig;
@@ -43,13 +42,9 @@ fn a_big_endian_client_publishes_values_cyclone_reads_correctly() {
     for i in &indexes {
         c.write_reliable(w, &hello_world_be(*i, "big end"));
     }
-    let got = reader.collect_samples(indexes.len(), 30 * SECOND, || c.step());
-    assert!(
-        got.values().all(|m| m == "big end"),
-        "unexpected message: {got:?}"
-    );
-    let got: BTreeSet<u32> = got.into_keys().collect();
-    assert_eq!(got, indexes.into_iter().collect::<BTreeSet<u32>>());
+    let got = reader.collect_deliveries(indexes.len(), "big end", 30 * SECOND, || c.step());
+    got.assert_exactly_once(indexes, "Cyclone reading a big-endian client");
+    got.assert_in_order("Cyclone reading a big-endian client");
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
@@ -138,8 +133,8 @@ fn a_big_endian_client_creates_its_entities_in_binary() {
     for i in [7u32, 0x0100, 0x010000] {
         c.write_reliable(w, &hello_world_be(i, "binary big end"));
     }
-    let got = reader.collect_samples(3, 30 * SECOND, || c.step());
-    let got: BTreeSet<u32> = got.into_keys().collect();
-    assert_eq!(got, [7u32, 0x0100, 0x010000].into_iter().collect());
+    let got = reader.collect_deliveries(3, "binary big end", 30 * SECOND, || c.step());
+    got.assert_exactly_once([7u32, 0x0100, 0x010000], "binary big-endian entities");
+    got.assert_in_order("binary big-endian entities");
     assert!(agent.stop(), "agent did not stop cleanly");
 }

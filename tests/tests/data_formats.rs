@@ -8,7 +8,7 @@ use std::time::Duration;
 use xrce_common::wire::cdr::CdrWriter;
 use xrce_common::wire::sample::{decode_samples, SampleInfo, SampleInfoDetail};
 use xrce_common::wire::{data_format, stream_id, DataDeliveryControl, Dialect, ReadSpecification};
-use xrce_tests::{hello_world, parse_hello_world, AgentProcess, DdsPeer, TestClient};
+use xrce_tests::{hello_world, parse_hello_world, AgentProcess, DdsPeer, Deliveries, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 
@@ -47,11 +47,23 @@ fn a_read_asking_for_sample_seq_gets_numbered_sample_infos() {
         "3000",
     ]);
     let mut got = Vec::new();
-    let ok = c.run_until(60 * SECOND, |c| {
-        got.extend(c.take_data());
-        got.len() >= 5
+    let mut data = Vec::new();
+    let deliveries = Deliveries::collect(5, 60 * SECOND, || {
+        c.step();
+        let new = c.take_data();
+        let indexes = new
+            .iter()
+            .filter_map(|(f, bytes)| {
+                let s = decode_samples(*f, bytes, true, Dialect::Eprosima, None).ok()?;
+                parse_hello_world(s.first()?.data).map(|(i, _)| i)
+            })
+            .collect();
+        data.extend(new);
+        indexes
     });
-    assert!(ok, "client got {} of 5 DATA", got.len());
+    got.extend(data);
+    deliveries.assert_exactly_once(0..5, "a SAMPLE_SEQ read of Cyclone's samples");
+    deliveries.assert_in_order("a SAMPLE_SEQ read of Cyclone's samples");
     let mut seqs = BTreeSet::new();
     let mut indexes = BTreeSet::new();
     for (format, bytes) in &got {
@@ -114,12 +126,8 @@ fn write_data_in_format_sample_is_published() {
         body.extend_from_slice(&hello_world(i, "sampled"));
         c.write_reliable_format(w, data_format::SAMPLE, &body);
     }
-    let got = reader.collect_samples(5, 30 * SECOND, || c.step());
-    assert!(
-        got.values().all(|m| m == "sampled"),
-        "unexpected message: {got:?}"
-    );
-    let got: BTreeSet<u32> = got.into_keys().collect();
-    assert_eq!(got, (0..5).collect::<BTreeSet<u32>>());
+    let got = reader.collect_deliveries(5, "sampled", 30 * SECOND, || c.step());
+    got.assert_exactly_once(0..5, "WRITE_DATA in FORMAT_SAMPLE");
+    got.assert_in_order("WRITE_DATA in FORMAT_SAMPLE");
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -152,10 +152,10 @@ fn unsupported_options_exit_with_status_2() {
         (vec!["serial"], "--dev"),
         (vec!["tcp4"], "--port"),
     ] {
-        let out = Command::new(binaries().join("xrce-agent"))
-            .args(&args)
-            .output()
-            .expect("run xrce-agent");
+        let out = xrce_tests::output_within(
+            &mut Command::new(binaries().join("xrce-agent")).args(&args),
+            Duration::from_secs(30),
+        );
         let stderr = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(2), "{args:?}: {stderr}");
         assert!(

@@ -1,7 +1,6 @@
 //! Domain id 255 means "the agent's default": with `XRCE_DOMAIN_ID_OVERRIDE` set, a client's
 //! participant in domain 255 publishes in that domain, where Cyclone DDS reads it.
 
-use std::collections::BTreeSet;
 use std::time::Duration;
 
 use xrce_tests::{hello_world, AgentProcess, DdsPeer, TestClient};
@@ -33,11 +32,8 @@ fn domain_255_follows_xrce_domain_id_override() {
     for i in 0..5u32 {
         c.write_reliable(w, &hello_world(i, "overridden"));
     }
-    let got = reader.collect_samples(5, 30 * SECOND, || c.step());
-    assert!(got.values().all(|m| m == "overridden"), "{got:?}");
-    assert_eq!(
-        got.into_keys().collect::<BTreeSet<u32>>(),
-        (0..5).collect::<BTreeSet<u32>>()
-    );
+    let got = reader.collect_deliveries(5, "overridden", 30 * SECOND, || c.step());
+    got.assert_exactly_once(0..5, "a domain-255 participant, overridden");
+    got.assert_in_order("a domain-255 participant, overridden");
     assert!(agent.stop(), "agent did not stop cleanly");
 }

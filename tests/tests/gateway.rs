@@ -260,10 +260,14 @@ bind = "127.0.0.1"
 }
 
 fn check(path: &Path) -> (Option<i32>, String, String) {
-    let out = Command::new(binaries().join("xrce-agent"))
-        .args(["--config", path.to_str().expect("utf-8"), "--check"])
-        .output()
-        .expect("run xrce-agent --check");
+    let out = xrce_tests::output_within(
+        &mut Command::new(binaries().join("xrce-agent")).args([
+            "--config",
+            path.to_str().expect("utf-8"),
+            "--check",
+        ]),
+        Duration::from_secs(30),
+    );
     (
         out.status.code(),
         String::from_utf8_lossy(&out.stdout).into_owned(),
@@ -303,10 +307,8 @@ fn gateway_files_are_checked_with_the_key_and_line() {
         assert_eq!(code, Some(1), "{text}: {stderr}");
         assert!(stderr.contains(&format!("gateway.toml:{line}:")), "{text}: {stderr}");
         assert!(stderr.contains(says), "{text}: {stderr}");
-        let run = Command::new(binaries().join("xrce-agent"))
-            .args(["--config", path.to_str().expect("utf-8")])
-            .output()
-            .expect("run xrce-agent --config");
+        let run = xrce_tests::output_within(&mut Command::new(binaries().join("xrce-agent"))
+            .args(["--config", path.to_str().expect("utf-8")]), Duration::from_secs(30));
         assert_eq!(run.status.code(), Some(1));
         assert!(String::from_utf8_lossy(&run.stderr).contains(says));
     }
@@ -362,12 +364,13 @@ bind = "127.0.0.1"
     // A second front-end with the same id on another port (another file naming the same
     // instance, say): it would take the first one's clients' entities; it is refused.
     let other = format!("127.0.0.1:{}", free_udp_port());
-    let second = Command::new(binaries().join("xrce-agent"))
-        .args(["frontend", "--instance", &instance, "--frontend-id", "0"])
-        .args(["--transport", "udp4", "--listen", &other])
-        .env("XRCE_LOG", "info")
-        .output()
-        .expect("run a second front-end");
+    let second = xrce_tests::output_within(
+        &mut Command::new(binaries().join("xrce-agent"))
+            .args(["frontend", "--instance", &instance, "--frontend-id", "0"])
+            .args(["--transport", "udp4", "--listen", &other])
+            .env("XRCE_LOG", "info"),
+        Duration::from_secs(30),
+    );
     assert!(!second.status.success());
     let stderr = String::from_utf8_lossy(&second.stderr);
     assert!(stderr.contains("already runs"), "{stderr}");

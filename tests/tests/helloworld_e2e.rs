@@ -2,10 +2,9 @@
 //! loopback, iceoryx2 between front-end and worker) ↔ Cyclone DDS (independent DDS).
 //! Each test uses its own DDS domain so they can run in parallel.
 
-use std::collections::BTreeSet;
 use std::time::Duration;
 
-use xrce_tests::{hello_world, parse_sample_line, AgentProcess, DdsPeer, TestClient};
+use xrce_tests::{hello_world, AgentProcess, DdsPeer, Deliveries, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 
@@ -34,22 +33,9 @@ fn client_publishes_cyclone_reads_every_sample() {
     for i in 0..50 {
         c.write_reliable(w, &hello_world(i, "Hello DDS world!"));
     }
-    let mut got = BTreeSet::new();
-    let end = std::time::Instant::now() + 30 * SECOND;
-    while got.len() < 50 && std::time::Instant::now() < end {
-        c.step();
-        while let Some(l) = reader.line(Duration::from_millis(1)) {
-            if let Some((i, m)) = parse_sample_line(&l) {
-                assert_eq!(m, "Hello DDS world!");
-                got.insert(i);
-            }
-        }
-    }
-    assert_eq!(
-        got,
-        (0..50).collect::<BTreeSet<u32>>(),
-        "Cyclone did not receive every sample"
-    );
+    let got = reader.collect_deliveries(50, "Hello DDS world!", 30 * SECOND, || c.step());
+    got.assert_exactly_once(0..50, "Cyclone reading a client");
+    got.assert_in_order("Cyclone reading a client");
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
@@ -76,16 +62,11 @@ fn cyclone_publishes_client_reads() {
         "--linger-ms",
         "3000",
     ]);
-    let mut got = BTreeSet::new();
-    let ok = c.run_until(60 * SECOND, |c| {
-        for (i, m) in c.take_samples() {
-            assert_eq!(m, "from cyclone");
-            got.insert(i);
-        }
-        got.len() == 20
-    });
-    assert!(ok, "client got {} of 20 samples: {:?}", got.len(), got);
+    let got = c.collect_deliveries(20, "from cyclone", 60 * SECOND);
+    got.assert_exactly_once(0..20, "a client reading Cyclone");
+    got.assert_in_order("a client reading Cyclone");
     assert_eq!(writer.wait(30 * SECOND, || c.step()), Some(0));
+    assert!(agent.stop(), "agent did not stop cleanly");
 }
 
 #[test]
@@ -99,15 +80,22 @@ fn client_to_client_through_the_agent() {
     let w = publ.setup_publisher(13);
     // The writer is transient-local (the reference agent's default), so samples written
     // before the two RustDDS endpoints matched are still delivered.
-    let mut got = BTreeSet::new();
     for i in 0..30 {
         publ.write_reliable(w, &hello_world(i, "c2c"));
         sub.step();
     }
-    let ok = sub.run_until(30 * SECOND, |s| {
+    let got = Deliveries::collect(30, 30 * SECOND, || {
         publ.step();
-        got.extend(s.take_samples().into_iter().map(|(i, _)| i));
-        got.len() == 30
+        sub.step();
+        sub.take_samples()
+            .into_iter()
+            .map(|(i, m)| {
+                assert_eq!(m, "c2c");
+                i
+            })
+            .collect()
     });
-    assert!(ok, "subscriber got {} of 30: {:?}", got.len(), got);
+    got.assert_exactly_once(0..30, "a client reading another through the agent");
+    got.assert_in_order("a client reading another through the agent");
+    assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -3,10 +3,9 @@
 //! shared memory that grows for it, RustDDS fragments it for Cyclone DDS, and the other way
 //! round the agent fragments DATA to the client's MTU.
 
-use std::collections::BTreeMap;
 use std::time::Duration;
 
-use xrce_tests::{hello_world, parse_sample_line, AgentProcess, DdsPeer, TestClient};
+use xrce_tests::{hello_world, parse_sample_line, AgentProcess, DdsPeer, Deliveries, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 
@@ -41,26 +40,34 @@ fn client_publishes_200_kb_samples_that_cyclone_reads_intact() {
     // One at a time: RustDDS 0.15 does not reliably repair a burst of back-to-back
     // fragmented samples (see the issue notes), which is not what this test is about.
     let texts: Vec<String> = (0..3).map(|i| big_text(200_000, i)).collect();
-    let mut got = BTreeMap::new();
+    let mut got = Deliveries::default();
     for (i, t) in texts.iter().enumerate() {
         c.write_reliable(w, &hello_world(i as u32, t));
         let end = std::time::Instant::now() + 30 * SECOND;
-        while !got.contains_key(&(i as u32)) && std::time::Instant::now() < end {
+        let mut arrived = false;
+        while !arrived && std::time::Instant::now() < end {
             c.step();
             while let Some(l) = reader.line(Duration::from_millis(1)) {
                 if let Some((k, m)) = parse_sample_line(&l) {
-                    got.insert(k, m);
+                    assert!(texts.get(k as usize) == Some(&m), "sample {k} differs");
+                    got.record(k);
+                    arrived |= k == i as u32;
                 }
             }
         }
-        assert!(
-            got.contains_key(&(i as u32)),
-            "Cyclone never received large sample {i}"
-        );
+        assert!(arrived, "Cyclone never received large sample {i}");
     }
-    for (i, t) in texts.iter().enumerate() {
-        assert!(got.get(&(i as u32)) == Some(t), "sample {i} differs");
+    // A late copy of one of them would show here.
+    let end = std::time::Instant::now() + xrce_tests::DUPLICATE_GRACE;
+    while std::time::Instant::now() < end {
+        c.step();
+        while let Some(l) = reader.line(Duration::from_millis(1)) {
+            if let Some((k, _)) = parse_sample_line(&l) {
+                got.record(k);
+            }
+        }
     }
+    got.assert_exactly_once(0..3, "200 kB samples");
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
@@ -90,18 +97,9 @@ fn cyclone_publishes_150_kb_samples_that_the_client_reads_intact() {
         "5000",
     ]);
     let expected = "0123456789".repeat(15_000);
-    let mut got = BTreeMap::new();
-    let ok = c.run_until(60 * SECOND, |c| {
-        for (i, m) in c.take_samples() {
-            got.insert(i, m);
-        }
-        got.len() == 2
-    });
-    assert!(ok, "client got {} of 2 large samples", got.len());
-    assert!(
-        got.values().all(|m| *m == expected),
-        "a large sample arrived corrupted"
-    );
+    let got = c.collect_deliveries(2, &expected, 60 * SECOND);
+    got.assert_exactly_once(0..2, "150 kB samples from Cyclone, intact");
+    got.assert_in_order("150 kB samples from Cyclone");
     assert_eq!(writer.wait(30 * SECOND, || c.step()), Some(0));
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -2,7 +2,6 @@
 //! Cyclone DDS reader that joins later with TRANSIENT_LOCAL durability (the agent's writers
 //! are transient-local by default, as Fast DDS's).
 
-use std::collections::BTreeSet;
 use std::time::Duration;
 
 use xrce_tests::{hello_world, AgentProcess, DdsPeer, TestClient};
@@ -31,16 +30,8 @@ fn a_late_transient_local_reader_gets_the_history() {
         "--timeout",
         "60",
     ]);
-    let got = reader.collect_samples(8, 45 * SECOND, || c.step());
-    assert!(
-        got.values().all(|m| m == "before you came"),
-        "unexpected message: {got:?}"
-    );
-    let got: BTreeSet<u32> = got.into_keys().collect();
-    assert_eq!(
-        got,
-        (0..8).collect::<BTreeSet<u32>>(),
-        "the late reader missed history"
-    );
+    let got = reader.collect_deliveries(8, "before you came", 45 * SECOND, || c.step());
+    got.assert_exactly_once(0..8, "a late transient-local reader's history");
+    got.assert_in_order("a late transient-local reader's history");
     assert!(agent.stop(), "agent did not stop cleanly");
 }

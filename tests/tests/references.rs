@@ -2,13 +2,11 @@
 //! creates its participant, topic and writer by profile name, and Cyclone DDS receives every
 //! sample. An unknown reference gets STATUS_ERR_UNKNOWN_REFERENCE.
 
-use std::collections::BTreeSet;
 use std::time::Duration;
 
 use xrce_common::wire::{object_kind as k, status, ObjectId, Representation, VariantExtra};
 use xrce_tests::{
-    free_udp_port, hello_world, parse_sample_line, unique_instance, workspace, AgentProcess,
-    DdsPeer, TestClient,
+    free_udp_port, hello_world, unique_instance, workspace, AgentProcess, DdsPeer, TestClient,
 };
 
 #[test]
@@ -97,19 +95,9 @@ fn entities_created_by_reference_publish_to_cyclone() {
     for i in 0..20 {
         c.write_reliable(w, &hello_world(i, "by reference"));
     }
-    let mut got = BTreeSet::new();
-    let end = std::time::Instant::now() + Duration::from_secs(30);
-    while got.len() < 20 && std::time::Instant::now() < end {
-        c.step();
-        while let Some(l) = reader.line(Duration::from_millis(1)) {
-            got.extend(parse_sample_line(&l).map(|(i, _)| i));
-        }
-    }
-    assert_eq!(
-        got,
-        (0..20).collect(),
-        "Cyclone did not receive every sample"
-    );
+    let got = reader.collect_deliveries(20, "by reference", Duration::from_secs(30), || c.step());
+    got.assert_exactly_once(0..20, "entities created by reference");
+    got.assert_in_order("entities created by reference");
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
@@ -119,18 +107,19 @@ fn a_bad_references_file_is_refused_at_start() {
     std::fs::create_dir_all(&dir).expect("dir");
     let bad = dir.join("bad.refs");
     std::fs::write(&bad, "<profiles><topic profile_name=\"a\"></profiles>").expect("write");
-    let out = std::process::Command::new(xrce_tests::binaries().join("xrce-agent"))
-        .args([
-            "udp4",
-            "-p",
-            &free_udp_port().to_string(),
-            "--bind",
-            "127.0.0.1",
-            "-r",
-        ])
-        .arg(&bad)
-        .output()
-        .expect("run xrce-agent");
+    let mut cmd = std::process::Command::new(xrce_tests::binaries().join("xrce-agent"));
+    cmd.args([
+        "udp4",
+        "-p",
+        &free_udp_port().to_string(),
+        "--bind",
+        "127.0.0.1",
+        "-r",
+    ])
+    .arg(&bad)
+    .stdout(std::process::Stdio::piped())
+    .stderr(std::process::Stdio::piped());
+    let out = xrce_tests::output_within(&mut cmd, Duration::from_secs(30));
     assert!(
         !out.status.success(),
         "a malformed references file must stop the agent"
