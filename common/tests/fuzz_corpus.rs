@@ -3,16 +3,23 @@
 
 use std::path::PathBuf;
 
-fn inputs(target_dirs: &[&str]) -> Vec<(PathBuf, Vec<u8>)> {
+/// Every input of a target: its seed corpus (`fuzz/corpus/<target>`, rebuilt by
+/// `fuzz/make_corpus.py`) and its past findings (`fuzz/regressions/<target>`). Both folders
+/// must exist: a missing one fails the test instead of replaying nothing. Dotfiles (the
+/// `.gitkeep` of a target without findings yet) are not inputs.
+fn inputs(target: &str) -> Vec<(PathBuf, Vec<u8>)> {
     let fuzz = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fuzz");
     let mut out = Vec::new();
-    for dir in target_dirs {
-        let Ok(entries) = std::fs::read_dir(fuzz.join(dir)) else {
-            continue;
-        };
+    for dir in [format!("corpus/{target}"), format!("regressions/{target}")] {
+        let path = fuzz.join(&dir);
+        let entries = std::fs::read_dir(&path)
+            .unwrap_or_else(|e| panic!("fuzz/{dir} is missing ({e}): nothing would be replayed"));
         for e in entries.flatten() {
             let path = e.path();
-            if path.is_file() {
+            let hidden = path
+                .file_name()
+                .is_some_and(|n| n.to_string_lossy().starts_with('.'));
+            if path.is_file() && !hidden {
                 let bytes = std::fs::read(&path).expect("readable corpus file");
                 out.push((path, bytes));
             }
@@ -24,7 +31,7 @@ fn inputs(target_dirs: &[&str]) -> Vec<(PathBuf, Vec<u8>)> {
 
 #[test]
 fn decode_corpus_and_regressions() {
-    let all = inputs(&["corpus/decode", "regressions/decode"]);
+    let all = inputs("decode");
     assert!(all.len() > 100, "seed corpus missing: {}", all.len());
     for (path, bytes) in all {
         eprintln!("{}", path.display());
@@ -34,11 +41,7 @@ fn decode_corpus_and_regressions() {
 
 #[test]
 fn agent_session_corpus_and_regressions() {
-    let all = inputs(&[
-        "corpus/agent",
-        "corpus/agent_session",
-        "regressions/agent_session",
-    ]);
+    let all = inputs("agent_session");
     assert!(all.len() >= 10, "seed corpus missing: {}", all.len());
     for (path, bytes) in all {
         eprintln!("{}", path.display());
@@ -48,7 +51,7 @@ fn agent_session_corpus_and_regressions() {
 
 #[test]
 fn tcp_framing_corpus_and_regressions() {
-    let all = inputs(&["corpus/tcp_framing", "regressions/tcp_framing"]);
+    let all = inputs("tcp_framing");
     assert!(all.len() >= 10, "seed corpus missing: {}", all.len());
     for (path, bytes) in all {
         eprintln!("{}", path.display());
@@ -58,7 +61,7 @@ fn tcp_framing_corpus_and_regressions() {
 
 #[test]
 fn serial_framing_corpus_and_regressions() {
-    let all = inputs(&["corpus/serial_framing", "regressions/serial_framing"]);
+    let all = inputs("serial_framing");
     assert!(all.len() >= 10, "seed corpus missing: {}", all.len());
     for (path, bytes) in all {
         eprintln!("{}", path.display());

@@ -20,6 +20,7 @@ Output protocol (stdout, one line each, flushed):
                          one ros_discovery_info sample (graph)
   ENDPOINT <pub|sub> <guid hex> <topic>   a discovered DDS endpoint (graph)
   SENT <i>               sample i written (write)
+  ACKED                  every matched reliable reader acknowledged every sample (write)
 On timeout: exit code 3 and a `TIMEOUT ...` line on stderr.
 Usage errors / missing CYCLONEDDS_URI: exit code 2.
 
@@ -245,6 +246,10 @@ def main(argv=None):
         writer.dispose(ShapeType(color=args.dispose, x=0, y=0, shapesize=0))
         out(f"DISPOSED {args.dispose}")
 
+    # Every matched reliable reader has every sample (the tests wait for this line instead
+    # of sleeping).
+    if args.reliable and writer.wait_for_acks(duration(seconds=10)):
+        out("ACKED")
     if args.linger_ms > 0:
         time.sleep(args.linger_ms / 1000.0)
     return EXIT_OK

@@ -902,27 +902,6 @@ impl DdsPeer {
         self.lines.recv_timeout(d).ok()
     }
 
-    /// Collects the HelloWorld samples a `read` peer prints, (index → message), until `want`
-    /// distinct ones arrived or `d` passed, while `pump` keeps other parties running.
-    pub fn collect_samples(
-        &self,
-        want: usize,
-        d: Duration,
-        mut pump: impl FnMut(),
-    ) -> std::collections::BTreeMap<u32, String> {
-        let mut got = std::collections::BTreeMap::new();
-        let end = Instant::now() + d;
-        while got.len() < want && Instant::now() < end {
-            pump();
-            while let Some(l) = self.line(Duration::from_millis(1)) {
-                if let Some((i, m)) = parse_sample_line(&l) {
-                    got.insert(i, m);
-                }
-            }
-        }
-        got
-    }
-
     /// Waits for a line starting with `prefix`, while `pump` keeps other parties running.
     pub fn wait_for(&self, prefix: &str, d: Duration, mut pump: impl FnMut()) -> Option<String> {
         let end = Instant::now() + d;
@@ -1000,6 +979,20 @@ impl Deliveries {
     /// Deliveries in all, duplicates included.
     pub fn total(&self) -> usize {
         self.order.len()
+    }
+
+    /// How often `index` was delivered.
+    pub fn count(&self, index: u32) -> usize {
+        self.counts.get(&index).copied().unwrap_or(0)
+    }
+
+    /// The indices delivered more than once, with their counts.
+    pub fn repeated(&self) -> Vec<(u32, usize)> {
+        self.counts
+            .iter()
+            .filter(|(_, n)| **n > 1)
+            .map(|(i, n)| (*i, *n))
+            .collect()
     }
 
     /// Asserts that every index of `expected` arrived exactly once and nothing else did.

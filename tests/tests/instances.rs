@@ -11,7 +11,32 @@ fn two_agents_on_one_port_do_not_share_their_ipc() {
     let port = free_udp_port();
     let a = AgentProcess::start_on(([127, 0, 0, 1], port).into(), None);
     let b = AgentProcess::start_on(([127, 0, 0, 2], port).into(), None);
-    assert_ne!(a.instance, b.instance);
+    // The instance each agent's processes really use (not the name the harness expects).
+    let used = |agent: &AgentProcess| -> Vec<String> {
+        agent
+            .child_pids("dds-worker")
+            .into_iter()
+            .chain(agent.child_pids("frontend"))
+            .filter_map(|pid| {
+                let env = std::fs::read(format!("/proc/{pid}/environ")).ok()?;
+                env.split(|b| *b == 0)
+                    .find_map(|kv| kv.strip_prefix(b"XRCE_INSTANCE="))
+                    .map(|v| String::from_utf8_lossy(v).into_owned())
+            })
+            .collect()
+    };
+    let (ia, ib) = (used(&a), used(&b));
+    assert_eq!(
+        ia,
+        [a.instance.clone(), a.instance.clone()],
+        "agent A's processes"
+    );
+    assert_eq!(
+        ib,
+        [b.instance.clone(), b.instance.clone()],
+        "agent B's processes"
+    );
+    assert_ne!(ia[0], ib[0], "two agents on one port share an instance");
     assert!(
         !xrce_common::ipc::shm::instance_files(&a.instance).is_empty(),
         "agent A has no shared memory of its own"
@@ -42,16 +67,27 @@ fn shared_memory_of_a_killed_agent_is_removed_by_the_next_one() {
     // Freeze the supervisor so it restarts nothing, then kill everything without cleanup.
     let supervisor = Pid::from_raw(dead.pid() as i32);
     kill(supervisor, Signal::SIGSTOP).expect("SIGSTOP");
-    for child in dead
+    let children: Vec<i32> = dead
         .child_pids("dds-worker")
         .into_iter()
         .chain(dead.child_pids("frontend"))
-    {
-        xrce_tests::sigkill(child);
+        .collect();
+    assert_eq!(children.len(), 2, "the worker and the front-end");
+    for child in &children {
+        xrce_tests::sigkill(*child);
     }
     kill(supervisor, Signal::SIGKILL).expect("SIGKILL");
     drop(dead);
-    std::thread::sleep(Duration::from_millis(200));
+    // Until every process of the killed agent is gone.
+    let end = std::time::Instant::now() + Duration::from_secs(10);
+    while children
+        .iter()
+        .chain([supervisor.as_raw()].iter())
+        .any(|p| is_alive(*p))
+        && std::time::Instant::now() < end
+    {
+        std::thread::sleep(Duration::from_millis(10));
+    }
     assert!(
         !xrce_common::ipc::shm::instance_files(&instance).is_empty(),
         "the killed agent left nothing to clean"
@@ -60,4 +96,14 @@ fn shared_memory_of_a_killed_agent_is_removed_by_the_next_one() {
     let left = xrce_common::ipc::shm::instance_files(&instance);
     assert!(left.is_empty(), "leftovers of the killed agent: {left:?}");
     assert!(next.stop());
+}
+
+/// Whether a process exists and is not a zombie.
+fn is_alive(pid: i32) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .map(|s| {
+            !s.lines()
+                .any(|l| l.starts_with("State:") && l.contains('Z'))
+        })
+        .unwrap_or(false)
 }

@@ -17,8 +17,12 @@ fn a_late_transient_local_reader_gets_the_history() {
     for i in 0..8 {
         c.write_reliable(w, &hello_world(i, "before you came"));
     }
-    // Let the writer take them (it holds new writers' samples until matched, at most 1 s).
-    c.run_until(2 * SECOND, |_| false);
+    // Every write taken by the agent (its worker may still hold them until its writer has
+    // matched a reader: they reach the history then, which the late joiner gets either way).
+    assert!(c.run_until(10 * SECOND, |c| c
+        .client
+        .unacked(xrce_common::wire::stream_id::BUILTIN_RELIABLE)
+        == 0));
     let reader = DdsPeer::start(&[
         "read",
         "--domain",

@@ -3,11 +3,13 @@
 //! independent Cyclone DDS reader still receives every sample. The client never re-creates
 //! its session.
 
-use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use xrce_common::session::client::ClientEvent;
-use xrce_tests::{hello_world, parse_sample_line, sigkill, AgentProcess, DdsPeer, TestClient};
+use xrce_tests::{
+    hello_world, parse_sample_line, sigkill, AgentProcess, DdsPeer, Deliveries, TestClient,
+    DUPLICATE_GRACE,
+};
 
 const SECOND: Duration = Duration::from_secs(1);
 
@@ -43,11 +45,12 @@ fn worker_sigkill_mid_stream_loses_no_reliable_sample() {
         "expected one worker, got {old_workers:?}"
     );
 
-    let mut got: BTreeMap<u32, u32> = BTreeMap::new();
-    let collect = |reader: &DdsPeer, got: &mut BTreeMap<u32, u32>| {
+    let mut got = Deliveries::default();
+    let collect = |reader: &DdsPeer, got: &mut Deliveries| {
         while let Some(l) = reader.line(Duration::ZERO) {
-            if let Some((i, _)) = parse_sample_line(&l) {
-                *got.entry(i).or_default() += 1;
+            if let Some((i, m)) = parse_sample_line(&l) {
+                assert_eq!(m, "through a crash");
+                got.record(i);
             }
         }
     };
@@ -62,22 +65,47 @@ fn worker_sigkill_mid_stream_loses_no_reliable_sample() {
         c.run_until(Duration::from_millis(10), |_| false);
         collect(&reader, &mut got);
     }
-    let done = c.run_until(60 * SECOND, |_| {
+    c.run_until(60 * SECOND, |_| {
         collect(&reader, &mut got);
-        got.len() as u32 == N
+        got.distinct() as u32 >= N
+    });
+    // Late copies would show within the grace.
+    c.run_until(DUPLICATE_GRACE, |_| {
+        collect(&reader, &mut got);
+        false
     });
     let killed_at = killed_at.expect("killed");
-    let missing: Vec<u32> = (0..N).filter(|i| !got.contains_key(i)).collect();
-    let duplicates: u32 = got.values().map(|n| n - 1).sum();
+    let repeated = got.repeated();
     eprintln!(
-        "worker restart: {} of {N} delivered, {duplicates} duplicates, {:?} since the kill",
-        got.len(),
+        "worker restart: {} of {N} delivered, {} duplicates (samples {:?} to {:?}), {:?} since the kill",
+        got.distinct(),
+        got.total() - got.distinct(),
+        repeated.first().map(|r| r.0),
+        repeated.last().map(|r| r.0),
         killed_at.elapsed()
     );
+    // Nothing lost. Duplicates are still possible (issue 11, exactly once across crashes):
+    // the front-end resends the reliable writes the worker executed in the 1.5 s before the
+    // kill (SETTLE_TIME), and the new DDS writer's copies are new samples to DDS readers.
+    // This is the bound until then: only samples written within that window (at ~100/s,
+    // 150 before the kill, plus those in flight) come twice, none more than twice.
+    let expected: Vec<u32> = (0..N).collect();
+    let missing: Vec<u32> = expected
+        .iter()
+        .copied()
+        .filter(|i| got.count(*i) == 0)
+        .collect();
     assert!(
-        done && missing.is_empty(),
+        missing.is_empty(),
         "samples lost across the worker restart: {missing:?}"
     );
+    for (i, n) in repeated {
+        assert!(n <= 2, "sample {i} delivered {n} times");
+        assert!(
+            (KILL_AT.saturating_sub(200)..KILL_AT + 50).contains(&i),
+            "sample {i}, far from the kill at {KILL_AT}, delivered twice"
+        );
+    }
 
     let new_workers = agent.child_pids("dds-worker");
     assert_eq!(
