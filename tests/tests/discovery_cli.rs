@@ -153,7 +153,7 @@ fn unsupported_options_exit_with_status_2() {
         (vec!["tcp4"], "--port"),
     ] {
         let out = xrce_tests::output_within(
-            &mut Command::new(binaries().join("xrce-agent")).args(&args),
+            Command::new(binaries().join("xrce-agent")).args(&args),
             Duration::from_secs(30),
         );
         let stderr = String::from_utf8_lossy(&out.stderr);

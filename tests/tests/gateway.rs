@@ -261,7 +261,7 @@ bind = "127.0.0.1"
 
 fn check(path: &Path) -> (Option<i32>, String, String) {
     let out = xrce_tests::output_within(
-        &mut Command::new(binaries().join("xrce-agent")).args([
+        Command::new(binaries().join("xrce-agent")).args([
             "--config",
             path.to_str().expect("utf-8"),
             "--check",
@@ -307,7 +307,7 @@ fn gateway_files_are_checked_with_the_key_and_line() {
         assert_eq!(code, Some(1), "{text}: {stderr}");
         assert!(stderr.contains(&format!("gateway.toml:{line}:")), "{text}: {stderr}");
         assert!(stderr.contains(says), "{text}: {stderr}");
-        let run = xrce_tests::output_within(&mut Command::new(binaries().join("xrce-agent"))
+        let run = xrce_tests::output_within(Command::new(binaries().join("xrce-agent"))
             .args(["--config", path.to_str().expect("utf-8")]), Duration::from_secs(30));
         assert_eq!(run.status.code(), Some(1));
         assert!(String::from_utf8_lossy(&run.stderr).contains(says));
@@ -365,7 +365,7 @@ bind = "127.0.0.1"
     // instance, say): it would take the first one's clients' entities; it is refused.
     let other = format!("127.0.0.1:{}", free_udp_port());
     let second = xrce_tests::output_within(
-        &mut Command::new(binaries().join("xrce-agent"))
+        Command::new(binaries().join("xrce-agent"))
             .args(["frontend", "--instance", &instance, "--frontend-id", "0"])
             .args(["--transport", "udp4", "--listen", &other])
             .env("XRCE_LOG", "info"),

@@ -271,7 +271,7 @@ fn cyclone_disposes_reach_a_sample_read_and_filters_select_samples() {
     ]);
     // x = 0..11 round robin RED, GREEN, BLUE: RED 6, 9; BLUE 8, 11; then BLUE's dispose.
     let mut got = Vec::new();
-    let mut take = |c: &mut TestClient, got: &mut Vec<_>| {
+    let take = |c: &mut TestClient, got: &mut Vec<_>| {
         for (format, bytes) in c.take_data() {
             assert_eq!(format, data_format::SAMPLE);
             let s = decode_samples(format, &bytes, true, Dialect::Eprosima, None).expect("SAMPLE");
