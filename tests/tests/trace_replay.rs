@@ -9,6 +9,8 @@ use xrce_common::wire::{hex, Message, Payload};
 use xrce_tests::{workspace, AgentProcess};
 
 struct Line {
+    /// Seconds since the capture's first datagram.
+    at: f64,
     to_agent: bool,
     port: u16,
     bytes: Vec<u8>,
@@ -30,6 +32,7 @@ fn trace(name: &str) -> Vec<Line> {
         .map(|l| {
             let f: Vec<&str> = l.split_whitespace().collect();
             Line {
+                at: f[0].parse().expect("time"),
                 to_agent: f[1] == "C>A",
                 port: f[2].parse().expect("port"),
                 bytes: unhex(f[3]),
@@ -116,24 +119,72 @@ fn replay(name: &str) {
     // The client's first sample follows its writer's creation within milliseconds, as in the
     // capture: the reference agent delivers it inside one Fast DDS process, ours holds it
     // until the new DDS writer has matched the subscriber's reader, so it is not lost either.
-    for l in lines.iter().filter(|l| l.to_agent) {
-        let (_, s) = clients
+    //
+    // Paced as the real client was: never before the capture's own time for the message
+    // (the HelloWorld examples write once a second), and never before our agent has sent
+    // what caused it: the STATUS replies the reference had sent to each client by that
+    // point of the capture (a client creates after its previous creation's answer), and,
+    // for an ACKNACK, every stream message it acknowledges.
+    let start = Instant::now();
+    type Keys = std::collections::BTreeSet<(u8, u16)>;
+    let index = |port: u16| clients.iter().position(|(p, _)| *p == port);
+    let key =
+        |d: &Vec<u8>| (d.len() > 4 && d[1] != 0).then(|| (d[1], u16::from_le_bytes([d[2], d[3]])));
+    let is_status = |d: &Vec<u8>| d.get(4) == Some(&0x05);
+    let mut statuses: Vec<Keys> = vec![Keys::new(); clients.len()];
+    let mut everything: Vec<Keys> = vec![Keys::new(); clients.len()];
+    let ours = |rx: &Vec<Vec<u8>>| -> Keys { rx.iter().filter_map(key).collect() };
+    let wait_for = |rx: &mut Vec<Vec<Vec<u8>>>, want: &[Keys], what: &str| {
+        let end = Instant::now() + Duration::from_secs(30);
+        while !want
             .iter()
-            .find(|(p, _)| *p == l.port)
-            .expect("client socket");
-        s.send(&l.bytes).expect("send");
-        // Creations need the worker's answer before the client's next step.
-        let wait = if l.bytes.get(8) == Some(&0x01) {
-            1500
-        } else if l.bytes.get(8) == Some(&0x0D) || l.bytes.get(1) == Some(&0) {
-            // FRAGMENTs and acknowledgements: the client sends them back to back.
-            4
-        } else {
-            60
-        };
-        receive(&mut rx, Duration::from_millis(wait));
+            .enumerate()
+            .all(|(i, w)| w.is_subset(&ours(&rx[i])))
+        {
+            assert!(
+                Instant::now() < end,
+                "{name}: the agent never sent {what}: want {want:?}"
+            );
+            receive(rx, Duration::from_millis(1));
+        }
+    };
+    for l in &lines {
+        let Some(i) = index(l.port) else { continue };
+        if !l.to_agent {
+            if let Some(k) = key(&l.bytes) {
+                everything[i].insert(k);
+                if is_status(&l.bytes) {
+                    statuses[i].insert(k);
+                }
+            }
+            continue;
+        }
+        let due = start + Duration::from_secs_f64(l.at);
+        while Instant::now() < due {
+            receive(&mut rx, Duration::from_millis(1));
+        }
+        wait_for(
+            &mut rx,
+            &statuses,
+            "the STATUS replies that came before this message",
+        );
+        // ACKNACK: first unacknowledged sequence number at 8, stream id at 12.
+        if l.bytes.len() >= 13 && l.bytes[4] == 0x0A {
+            let first = u16::from_le_bytes([l.bytes[8], l.bytes[9]]);
+            let mut want = vec![Keys::new(); clients.len()];
+            want[i] = (0..first).map(|s| (l.bytes[12], s)).collect();
+            wait_for(&mut rx, &want, "the messages this ACKNACK acknowledges");
+        }
+        clients[i].1.send(&l.bytes).expect("send");
+        receive(&mut rx, Duration::ZERO);
     }
-    receive(&mut rx, Duration::from_millis(500));
+    wait_for(
+        &mut rx,
+        &everything,
+        "every stream reply the reference sent",
+    );
+    // A reply the reference did not send would show within this grace.
+    receive(&mut rx, xrce_tests::DUPLICATE_GRACE);
 
     // STATUS_AGENT: byte for byte.
     let ref_sa = lines
