@@ -663,10 +663,16 @@ impl Worker {
     }
 
     /// Sends a reply to its front-end, or queues it behind earlier refused ones.
-    fn reply(&mut self, mut h: IpcHeader, body: &[u8]) {
+    fn reply(&mut self, h: IpcHeader, body: &[u8]) {
+        self.reply_with(h, body.len(), |b| b.copy_from_slice(body));
+    }
+
+    /// Sends a reply of `len` body bytes that `fill` writes (in place in shared memory when
+    /// the front-end's queue has room), else keeps it in the front-end's backlog.
+    fn reply_with(&mut self, mut h: IpcHeader, len: usize, fill: impl Fn(&mut [u8])) {
         h.generation = self.generation;
-        if body.len() > ipc::MAX_BODY {
-            tracing::warn!(frontend = h.frontend_id, client = %h.client_key, len = body.len(), "sample too large for the front-end link; dropped");
+        if len > ipc::MAX_BODY {
+            tracing::warn!(frontend = h.frontend_id, client = %h.client_key, len, "sample too large for the front-end link; dropped");
             return self.count("sample_too_large");
         }
         let port = match self.port(h.frontend_id) {
@@ -678,7 +684,7 @@ impl Worker {
         };
         port.dirty = true;
         if port.backlog.is_empty() {
-            match port.sender.send(&h, body) {
+            match port.sender.send_with(&h, len, &fill) {
                 Ok(true) => {
                     port.last_delivery = Instant::now();
                     port.unnotified = true;
@@ -688,7 +694,9 @@ impl Worker {
                 Err(e) => tracing::debug!(error = %e, "reply send failed; queued"),
             }
         }
-        let m = h.encode(body);
+        let mut m = vec![0u8; IpcHeader::LEN + len];
+        h.write(&mut m, len);
+        fill(&mut m[IpcHeader::LEN..]);
         let mut overflow = false;
         while !port.backlog.is_empty()
             && (port.backlog.len() >= BACKLOG_MAX
@@ -1782,7 +1790,12 @@ impl Worker {
                         flags |= ipc::FLAG_UNREGISTERED;
                     }
                     read.pacing.sent(now, s.body.len());
-                    out.push((s, flags));
+                    let id = info.sample_identity();
+                    let identity = ipc::SampleIdentity {
+                        writer: id.writer_guid.to_bytes(),
+                        sequence_number: i64::from(id.sequence_number),
+                    };
+                    out.push((s, flags, identity));
                     limit -= 1;
                     if one_shot {
                         break;
@@ -1809,7 +1822,7 @@ impl Worker {
             *self.dropped.entry("content_filtered").or_default() += filtered;
         }
         let sent = out.len() as u32;
-        for (s, flags) in out {
+        for (s, flags, identity) in out {
             let mut h = IpcHeader::new(MessageKind::Sample);
             h.frontend_id = key.0;
             h.client_key = key.1;
@@ -1821,7 +1834,11 @@ impl Worker {
                 } else {
                     0
                 };
-            self.reply(h, &s.body);
+            let id = identity.encode();
+            self.reply_with(h, ipc::SAMPLE_IDENTITY_LEN + s.body.len(), |b| {
+                b[..ipc::SAMPLE_IDENTITY_LEN].copy_from_slice(&id);
+                b[ipc::SAMPLE_IDENTITY_LEN..].copy_from_slice(&s.body);
+            });
         }
         let ended = match self.reads.get_mut(&key) {
             Some(r) => {

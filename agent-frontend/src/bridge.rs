@@ -195,6 +195,8 @@ pub struct BridgeStats {
     pub reads_paused: u64,
     /// Disposes and unregisters not delivered to a read whose format has no SampleInfo.
     pub instance_ends_skipped: u64,
+    /// Samples not delivered again to a read replayed on a new worker (the client had them).
+    pub samples_already_delivered: u64,
 }
 
 /// The front-end's IPC state.
@@ -658,14 +660,33 @@ impl Bridge {
                 }
             }
             MessageKind::Sample => {
-                // The read's stream and format; a sample that overtook the end of its read
-                // goes out plain on the built-in reliable stream.
-                let (stream, format, sequence_number) = self
+                let Some((identity, body)) = ipc::SampleIdentity::split(body) else {
+                    self.stats.ipc_dropped += 1;
+                    return;
+                };
+                // A sample this read delivered before the worker restarted (offered again
+                // by a writer that outlived the worker) is not delivered twice.
+                let read = self
                     .graphs
                     .get_mut(&h.client_key)
-                    .and_then(|g| g.read_mut(h.object_id))
-                    .map_or((stream_id::BUILTIN_RELIABLE, data_format::DATA, 0), |a| {
+                    .and_then(|g| g.read_mut(h.object_id));
+                if let Some(a) = &read {
+                    if identity.is_known()
+                        && a.marks
+                            .already_delivered(&identity.writer, identity.sequence_number)
+                    {
+                        self.stats.samples_already_delivered += 1;
+                        return;
+                    }
+                }
+                // The read's stream and format; a sample that overtook the end of its read
+                // goes out plain on the built-in reliable stream.
+                let (stream, format, sequence_number) =
+                    read.map_or((stream_id::BUILTIN_RELIABLE, data_format::DATA, 0), |a| {
                         a.delivered = a.delivered.wrapping_add(1);
+                        if identity.is_known() {
+                            a.marks.record(identity.writer, identity.sequence_number);
+                        }
                         (a.spec.preferred_stream_id, a.spec.data_format, a.delivered)
                     });
                 let mut state = 0;
@@ -953,6 +974,7 @@ impl OperationSink for Bridge {
                             request_id: request.request_id,
                             spec: spec.clone(),
                             delivered: 0,
+                            marks: Default::default(),
                         },
                     );
                 }

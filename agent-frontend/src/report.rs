@@ -88,6 +88,7 @@ impl StatsReport {
             samples_dropped = b.samples_dropped,
             reads_paused = b.reads_paused,
             instance_ends_skipped = b.instance_ends_skipped,
+            samples_already_delivered = b.samples_already_delivered,
             "front-end counters"
         );
         self.last = now;

@@ -981,6 +981,11 @@ impl Deliveries {
         self.order.len()
     }
 
+    /// The index delivered last (0 if none).
+    pub fn order_last(&self) -> u32 {
+        self.order.last().copied().unwrap_or(0)
+    }
+
     /// How often `index` was delivered.
     pub fn count(&self, index: u32) -> usize {
         self.counts.get(&index).copied().unwrap_or(0)

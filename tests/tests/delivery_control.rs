@@ -2,11 +2,10 @@
 //! gets, and `max_bytes_per_second` caps the sample bytes per second; the samples held back
 //! wait in the DDS reader and all arrive.
 
-use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
 use xrce_common::wire::{stream_id, DataDeliveryControl, ReadSpecification};
-use xrce_tests::{AgentProcess, DdsPeer, TestClient};
+use xrce_tests::{AgentProcess, DdsPeer, Deliveries, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 
@@ -49,18 +48,21 @@ fn paced_arrivals(
         "--linger-ms",
         "8000",
     ]);
-    let mut seen = BTreeSet::new();
     let mut arrivals = Vec::new();
-    let ok = c.run_until(60 * SECOND, |c| {
-        for (i, m) in c.take_samples() {
-            assert_eq!(m, message);
-            if seen.insert(i) {
-                arrivals.push(Instant::now());
-            }
-        }
-        seen.len() as u32 == count
+    let got = Deliveries::collect(count as usize, 60 * SECOND, || {
+        c.step();
+        let now = Instant::now();
+        c.take_samples()
+            .into_iter()
+            .map(|(i, m)| {
+                assert_eq!(m, message);
+                arrivals.push(now);
+                i
+            })
+            .collect()
     });
-    assert!(ok, "client got {} of {count} paced samples", seen.len());
+    got.assert_exactly_once(0..count, "paced samples");
+    got.assert_in_order("paced samples");
     assert_eq!(writer.wait(30 * SECOND, || c.step()), Some(0));
     assert!(agent.stop(), "agent did not stop cleanly");
     arrivals
@@ -96,5 +98,118 @@ fn max_bytes_per_second_caps_the_rate_and_loses_none() {
     assert!(
         span >= Duration::from_millis(1800),
         "20 samples within {span:?}"
+    );
+}
+
+/// A client reads through the agent with `ddc` while Cyclone writes `count` samples `every`
+/// ms; returns what it got and when, relative to the read, until `listen` after it.
+fn limited_read(
+    name: &str,
+    domain: i16,
+    ddc: DataDeliveryControl,
+    count: u32,
+    every: u32,
+    listen: Duration,
+) -> Vec<(u32, Duration)> {
+    let agent = AgentProcess::start(name);
+    let mut c = TestClient::new(agent.addr(), [0xDD, 0xC1, 0x00, domain as u8]);
+    c.connect(10 * SECOND);
+    let domain_arg = domain.to_string();
+    let (count_arg, every_arg) = (count.to_string(), every.to_string());
+    let writer = DdsPeer::start(&[
+        "write",
+        "--domain",
+        &domain_arg,
+        "--count",
+        &count_arg,
+        "--interval-ms",
+        &every_arg,
+        "--message",
+        "limited",
+        "--wait-match",
+        "--reliable",
+        "--timeout",
+        "60",
+        "--linger-ms",
+        "3000",
+    ]);
+    let started = Instant::now();
+    c.setup_subscriber_with(
+        domain,
+        ReadSpecification {
+            preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+            delivery_control: Some(ddc),
+            ..Default::default()
+        },
+    );
+    assert!(
+        writer
+            .wait_for("MATCHED", 30 * SECOND, || c.step())
+            .is_some(),
+        "Cyclone never matched the agent's reader"
+    );
+    let mut got = Vec::new();
+    c.run_until(listen, |c| {
+        for (i, m) in c.take_samples() {
+            assert_eq!(m, "limited");
+            got.push((i, started.elapsed()));
+        }
+        false
+    });
+    drop(writer);
+    assert!(agent.stop(), "agent did not stop cleanly");
+    got
+}
+
+#[test]
+fn max_samples_ends_the_read_after_that_many() {
+    let ddc = DataDeliveryControl {
+        max_samples: 3,
+        ..Default::default()
+    };
+    // Cyclone writes 10; the read takes the first 3 and ends.
+    let got = limited_read("maxs", 34, ddc, 10, 50, 5 * SECOND);
+    let indices: Vec<u32> = got.iter().map(|(i, _)| *i).collect();
+    assert_eq!(
+        indices,
+        [0, 1, 2],
+        "a read of max_samples 3 got {indices:?}"
+    );
+}
+
+#[test]
+fn max_elapsed_time_ends_the_read() {
+    let ddc = DataDeliveryControl {
+        max_samples: u16::MAX,
+        // Seconds (spec Table 9, eProsima's documentation).
+        max_elapsed_time: 2,
+        ..Default::default()
+    };
+    // A sample every 100 ms for 6 s: the read gets those of its first 2 s, none after.
+    let got = limited_read("maxt", 35, ddc, 60, 100, 7 * SECOND);
+    assert!(
+        !got.is_empty(),
+        "nothing delivered before the read's deadline"
+    );
+    let mut seen = Deliveries::default();
+    for (i, _) in &got {
+        seen.record(*i);
+    }
+    assert_eq!(
+        seen.total(),
+        seen.distinct(),
+        "a sample delivered twice: {got:?}"
+    );
+    assert!(
+        got.len() < 60,
+        "the read went on past its max_elapsed_time: {} samples",
+        got.len()
+    );
+    let last = got.last().map(|(_, t)| *t).unwrap_or_default();
+    // The deadline counts from the READ_DATA (sent after `started`, before Cyclone
+    // matched); a second of slack for the last delivery pass.
+    assert!(
+        last < 3 * SECOND,
+        "a sample arrived {last:?} after the read started, past its 2 s"
     );
 }

@@ -15,7 +15,7 @@ pub mod shm;
 use crate::wire::{ClientKey, ObjectId, RequestId};
 
 /// Version of this contract; both sides drop (and log) messages of another version.
-pub const IPC_VERSION: u16 = 2;
+pub const IPC_VERSION: u16 = 3;
 /// Magic at the start of every message.
 pub const IPC_MAGIC: [u8; 4] = *b"XRIP";
 
@@ -55,7 +55,8 @@ pub enum MessageKind {
     WorkerHello = 16,
     /// Worker → front-end: the result of a Create, Delete, Write or Read (body: status, detail).
     Status = 17,
-    /// Worker → front-end: a sample for an active read (body: serialized sample; flag LE).
+    /// Worker → front-end: a sample for an active read (body: its [`SampleIdentity`], then
+    /// the serialized sample; flag LE).
     Sample = 18,
     /// Worker → front-end: every operation up to `op_seq` has left the queue; the body (u64
     /// LE) says up to which one they have all been executed (writes held by a writer that
@@ -96,6 +97,50 @@ pub const FLAG_REPLAY: u8 = 0x02;
 pub const FLAG_STATUS_REQUESTED: u8 = 0x04;
 /// Flag on Write: SampleInfos in the body are in the spec dialect (else eProsima's).
 pub const FLAG_DIALECT_SPEC: u8 = 0x08;
+/// Bytes in front of every Sample body: the DDS identity of the sample ([`SampleIdentity`]).
+pub const SAMPLE_IDENTITY_LEN: usize = 24;
+
+/// Which DDS writer wrote a sample, and its sequence number there: what a front-end
+/// remembers per read so that a replayed read does not hand a client a sample again.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub struct SampleIdentity {
+    /// The writer's GUID (all zero: unknown).
+    pub writer: [u8; 16],
+    /// The writer's sequence number of the sample.
+    pub sequence_number: i64,
+}
+
+impl SampleIdentity {
+    /// Whether the identity is known.
+    pub fn is_known(&self) -> bool {
+        self.writer != [0; 16]
+    }
+
+    /// The identity as it leads a Sample body.
+    pub fn encode(&self) -> [u8; SAMPLE_IDENTITY_LEN] {
+        let mut out = [0u8; SAMPLE_IDENTITY_LEN];
+        out[..16].copy_from_slice(&self.writer);
+        out[16..].copy_from_slice(&self.sequence_number.to_le_bytes());
+        out
+    }
+
+    /// Splits a Sample body into the identity and the sample; `None` if it is too short.
+    pub fn split(body: &[u8]) -> Option<(Self, &[u8])> {
+        let (id, sample) = body.split_at_checked(SAMPLE_IDENTITY_LEN)?;
+        let mut writer = [0u8; 16];
+        writer.copy_from_slice(&id[..16]);
+        let mut seq = [0u8; 8];
+        seq.copy_from_slice(&id[16..]);
+        Some((
+            SampleIdentity {
+                writer,
+                sequence_number: i64::from_le_bytes(seq),
+            },
+            sample,
+        ))
+    }
+}
+
 /// Flag on Write and Sample: the sample disposes its instance.
 pub const FLAG_DISPOSED: u8 = 0x10;
 /// Flag on Write and Sample: the sample unregisters its instance.

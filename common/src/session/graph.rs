@@ -40,6 +40,50 @@ pub struct ActiveRead {
     pub spec: ReadSpecification,
     /// Samples delivered so far (numbers the SampleInfos of the formats that carry one).
     pub delivered: u32,
+    /// The last sample delivered from each DDS writer.
+    pub marks: DeliveredMarks,
+}
+
+/// Writers whose last delivered sample a read remembers; the oldest is forgotten beyond.
+pub const MAX_MARKED_WRITERS: usize = 64;
+
+/// The last sample delivered to a read from each DDS writer (its GUID and sequence number),
+/// so that the read replayed on a new worker does not hand the client a sample it had
+/// (a writer that outlived the worker offers its history again to the new DDS reader).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct DeliveredMarks {
+    marks: std::collections::VecDeque<([u8; 16], i64)>,
+}
+
+impl DeliveredMarks {
+    /// Whether `writer`'s sample `sequence_number` is at or below the last one delivered.
+    pub fn already_delivered(&self, writer: &[u8; 16], sequence_number: i64) -> bool {
+        self.marks
+            .iter()
+            .any(|(w, s)| w == writer && sequence_number <= *s)
+    }
+
+    /// Records a delivery.
+    pub fn record(&mut self, writer: [u8; 16], sequence_number: i64) {
+        if let Some(m) = self.marks.iter_mut().find(|(w, _)| *w == writer) {
+            m.1 = m.1.max(sequence_number);
+            return;
+        }
+        if self.marks.len() >= MAX_MARKED_WRITERS {
+            self.marks.pop_front();
+        }
+        self.marks.push_back((writer, sequence_number));
+    }
+
+    /// Writers remembered.
+    pub fn len(&self) -> usize {
+        self.marks.len()
+    }
+
+    /// Whether no writer is remembered.
+    pub fn is_empty(&self) -> bool {
+        self.marks.is_empty()
+    }
 }
 
 /// Most objects one client may create; more get STATUS_ERR_RESOURCES (every object is a DDS
@@ -255,11 +299,30 @@ mod tests {
                 request_id: RequestId::from_u16(9),
                 spec: ReadSpecification::default(),
                 delivered: 0,
+                marks: DeliveredMarks::default(),
             },
         );
         let removed = g.remove(p.object_id);
         assert_eq!(removed, vec![r.object_id, s.object_id, p.object_id]);
         assert_eq!(g.len(), 1);
         assert_eq!(g.reads().count(), 0);
+    }
+
+    #[test]
+    fn delivered_marks_remember_the_last_sample_of_each_writer_and_forget_the_oldest() {
+        let mut m = DeliveredMarks::default();
+        let (a, b) = ([1u8; 16], [2u8; 16]);
+        m.record(a, 5);
+        m.record(a, 3);
+        m.record(b, 1);
+        assert!(m.already_delivered(&a, 5) && m.already_delivered(&a, 4));
+        assert!(!m.already_delivered(&a, 6));
+        assert!(m.already_delivered(&b, 1) && !m.already_delivered(&b, 2));
+        assert!(!m.already_delivered(&[3u8; 16], 0));
+        for w in 0..MAX_MARKED_WRITERS as u8 {
+            m.record([w + 10; 16], 1);
+        }
+        assert_eq!(m.len(), MAX_MARKED_WRITERS);
+        assert!(!m.already_delivered(&a, 1), "the oldest writer is forgotten");
     }
 }
