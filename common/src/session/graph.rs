@@ -323,6 +323,9 @@ mod tests {
             m.record([w + 10; 16], 1);
         }
         assert_eq!(m.len(), MAX_MARKED_WRITERS);
-        assert!(!m.already_delivered(&a, 1), "the oldest writer is forgotten");
+        assert!(
+            !m.already_delivered(&a, 1),
+            "the oldest writer is forgotten"
+        );
     }
 }
