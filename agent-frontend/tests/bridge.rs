@@ -1,0 +1,367 @@
+//! The bridge between a front-end's session core and the DDS worker, on real iceoryx2 shared
+//! memory, against a fake worker that answers as the real one does: what a new worker
+//! generation gets replayed (objects in creation order, reads, retained writes), and that a
+//! replayed read does not deliver a sample its client had.
+
+use std::time::{Duration, Instant};
+
+use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind};
+use xrce_common::ipc::{
+    self, IpcHeader, MessageKind, SampleIdentity, FLAG_LITTLE_ENDIAN, FLAG_REPLAY,
+};
+use xrce_common::session::agent::{Agent, AgentConfig};
+use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
+use xrce_common::wire::{
+    object_kind as k, stream_id, ClientKey, DataDeliveryControl, ObjectId, ObjectVariant,
+    ReadSpecification, Representation, VariantExtra,
+};
+use xrce_frontend::bridge::Bridge;
+
+const ADDR: u32 = 7;
+
+/// The worker's side of the IPC contract, driven by the test.
+struct FakeWorker {
+    _node: IpcNode,
+    requests: Receiver,
+    replies: Sender,
+    announce: Sender,
+    generation: u32,
+}
+
+impl FakeWorker {
+    fn start(instance: &str, generation: u32) -> Self {
+        let node = IpcNode::new(instance, "xrce-dds-worker").expect("worker node");
+        let requests = node
+            .receiver(&ipc::request_service(instance), ServiceKind::Data)
+            .expect("requests");
+        let replies = node
+            .sender(&ipc::reply_service(instance, 0), ServiceKind::Reply)
+            .expect("replies");
+        let announce = node
+            .sender(&ipc::announce_service(instance), ServiceKind::Announce)
+            .expect("announce");
+        let w = FakeWorker {
+            _node: node,
+            requests,
+            replies,
+            announce,
+            generation,
+        };
+        let mut hello = IpcHeader::new(MessageKind::WorkerHello);
+        hello.generation = generation;
+        w.announce.send(&hello, &[]).expect("announce");
+        w.announce.notify().expect("notify");
+        w
+    }
+
+    fn reply(&self, mut h: IpcHeader, body: &[u8]) {
+        h.generation = self.generation;
+        self.replies.send(&h, body).expect("reply");
+        self.replies.notify().expect("notify");
+    }
+
+    /// Every request so far; answers each as the real worker does (a WorkerHello for a
+    /// FrontendHello, STATUS OK for creations, reads, deletes), then reports progress.
+    fn serve(&self) -> Vec<(IpcHeader, Vec<u8>)> {
+        let mut got = Vec::new();
+        let _ = self.requests.drain(|m| {
+            let (h, body) = IpcHeader::decode(m).expect("IPC request");
+            got.push((h, body.to_vec()));
+        });
+        let mut last = 0;
+        for (h, _) in &got {
+            last = last.max(h.op_seq);
+            match h.kind {
+                MessageKind::FrontendHello => {
+                    let mut hello = IpcHeader::new(MessageKind::WorkerHello);
+                    hello.frontend_id = h.frontend_id;
+                    self.reply(hello, &[]);
+                }
+                MessageKind::Create | MessageKind::Delete | MessageKind::Read => self.reply(
+                    IpcHeader {
+                        kind: MessageKind::Status,
+                        ..*h
+                    },
+                    &[0, 0],
+                ),
+                _ => {}
+            }
+        }
+        if last > 0 {
+            let mut p = IpcHeader::new(MessageKind::Progress);
+            p.op_seq = last;
+            self.reply(p, &last.to_le_bytes());
+        }
+        got
+    }
+
+    /// A sample for `client`'s read of `reader`.
+    fn sample(
+        &self,
+        client: ClientKey,
+        reader: ObjectId,
+        read: ipc::IpcHeader,
+        id: SampleIdentity,
+        data: &[u8],
+    ) {
+        let mut h = IpcHeader::new(MessageKind::Sample);
+        h.client_key = client;
+        h.object_id = reader;
+        h.request_id = read.request_id;
+        h.flags = FLAG_LITTLE_ENDIAN;
+        let mut body = id.encode().to_vec();
+        body.extend_from_slice(data);
+        self.reply(h, &body);
+    }
+}
+
+/// A client, the session core and the bridge, exchanging until `done` or `d`.
+struct Rig {
+    client: Client,
+    agent: Agent<u32>,
+    bridge: Bridge,
+    events: Vec<ClientEvent>,
+}
+
+impl Rig {
+    fn new(instance: &str) -> Self {
+        Rig {
+            client: Client::new(ClientConfig::new(ClientKey([0xB2, 0, 0, 1]))),
+            agent: Agent::new(AgentConfig::default()),
+            bridge: Bridge::new(instance, 0).expect("bridge"),
+            events: Vec::new(),
+        }
+    }
+
+    /// One round: datagrams both ways, the bridge's IPC, timers.
+    fn step(&mut self, workers: &[&FakeWorker], served: &mut Vec<(IpcHeader, Vec<u8>)>) {
+        let now = Instant::now();
+        while let Some(d) = self.client.poll_transmit() {
+            self.agent.handle_datagram(now, ADDR, &d, &mut self.bridge);
+        }
+        self.bridge.pump();
+        for w in workers {
+            served.extend(w.serve());
+        }
+        self.bridge.poll_ipc(now, &mut self.agent, true, true);
+        self.bridge.pump();
+        self.agent.handle_timeout(now, &mut self.bridge);
+        while let Some(t) = self.agent.poll_transmit() {
+            self.client.handle_datagram(now, &t.data);
+        }
+        self.client.handle_timeout(now);
+        self.events
+            .extend(std::iter::from_fn(|| self.client.poll_event()));
+    }
+
+    fn run(
+        &mut self,
+        workers: &[&FakeWorker],
+        mut done: impl FnMut(&Rig, &[(IpcHeader, Vec<u8>)]) -> bool,
+    ) -> Vec<(IpcHeader, Vec<u8>)> {
+        let mut served = Vec::new();
+        let end = Instant::now() + Duration::from_secs(10);
+        while Instant::now() < end {
+            self.step(workers, &mut served);
+            if done(self, &served) {
+                return served;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        panic!(
+            "not done within 10 s; served {:?}",
+            served.iter().map(|(h, _)| h.kind).collect::<Vec<_>>()
+        );
+    }
+
+    fn create(&mut self, id: ObjectId, kind: u8, xml: &str, extra: VariantExtra) {
+        let v = ObjectVariant {
+            kind,
+            representation: Representation::Xml(xml.into()),
+            extra,
+        };
+        self.client
+            .create(Instant::now(), id, v, false, true)
+            .expect("create");
+    }
+}
+
+fn instance(tag: &str) -> String {
+    format!("b{}-{tag}", std::process::id() % 100_000)
+}
+
+#[test]
+fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_writes() {
+    let inst = instance("replay");
+    let first = FakeWorker::start(&inst, 11);
+    let mut rig = Rig::new(&inst);
+    rig.run(&[&first], |r, _| r.bridge.generation() == Some(11));
+    rig.client.connect(Instant::now());
+    rig.run(&[&first], |r, _| r.client.is_connected());
+    let p = ObjectId::new(1, k::PARTICIPANT);
+    let t = ObjectId::new(1, k::TOPIC);
+    let pb = ObjectId::new(1, k::PUBLISHER);
+    let w = ObjectId::new(1, k::DATAWRITER);
+    let sb = ObjectId::new(1, k::SUBSCRIBER);
+    let rd = ObjectId::new(1, k::DATAREADER);
+    rig.create(p, k::PARTICIPANT, "<dds/>", VariantExtra::DomainId(0));
+    rig.create(t, k::TOPIC, "<dds/>", VariantExtra::Parent(p));
+    rig.create(pb, k::PUBLISHER, "", VariantExtra::Parent(p));
+    rig.create(w, k::DATAWRITER, "<dds/>", VariantExtra::Parent(pb));
+    rig.create(sb, k::SUBSCRIBER, "", VariantExtra::Parent(p));
+    rig.create(rd, k::DATAREADER, "<dds/>", VariantExtra::Parent(sb));
+    let served = rig.run(&[&first], |_, s| {
+        s.iter()
+            .filter(|(h, _)| h.kind == MessageKind::Create)
+            .count()
+            == 6
+    });
+    assert!(served.iter().all(|(h, _)| h.flags & FLAG_REPLAY == 0));
+    let spec = ReadSpecification {
+        preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+        delivery_control: Some(DataDeliveryControl {
+            max_samples: u16::MAX,
+            ..Default::default()
+        }),
+        ..Default::default()
+    };
+    rig.client.read(Instant::now(), rd, spec).expect("read");
+    rig.client
+        .write(Instant::now(), stream_id::BUILTIN_RELIABLE, w, b"kept")
+        .expect("write");
+    rig.run(&[&first], |_, s| {
+        s.iter().any(|(h, _)| h.kind == MessageKind::Read)
+            && s.iter().any(|(h, _)| h.kind == MessageKind::Write)
+    });
+    // The worker dies; a new generation announces itself.
+    drop(first);
+    let second = FakeWorker::start(&inst, 12);
+    let replay = rig.run(&[&second], |_, s| {
+        s.iter().any(|(h, _)| h.kind == MessageKind::Write)
+    });
+    let kinds: Vec<(MessageKind, ObjectId)> =
+        replay.iter().map(|(h, _)| (h.kind, h.object_id)).collect();
+    assert_eq!(kinds[0].0, MessageKind::FrontendHello, "{kinds:?}");
+    let creates: Vec<ObjectId> = kinds
+        .iter()
+        .filter(|(kind, _)| *kind == MessageKind::Create)
+        .map(|(_, o)| *o)
+        .collect();
+    assert_eq!(creates, [p, t, pb, w, sb, rd], "creation order");
+    assert!(replay
+        .iter()
+        .filter(|(h, _)| h.kind == MessageKind::Create)
+        .all(|(h, _)| h.flags & FLAG_REPLAY != 0));
+    let pos = |kind: MessageKind| kinds.iter().position(|(k2, _)| *k2 == kind);
+    let last_create = kinds
+        .iter()
+        .rposition(|(kind, _)| *kind == MessageKind::Create)
+        .expect("creates");
+    assert!(
+        pos(MessageKind::Read).is_some_and(|r| r > last_create),
+        "{kinds:?}"
+    );
+    let write = replay
+        .iter()
+        .find(|(h, _)| h.kind == MessageKind::Write)
+        .expect("the retained write resent");
+    assert!(write.1.ends_with(b"kept"));
+    assert!(
+        pos(MessageKind::Write) > pos(MessageKind::Read),
+        "{kinds:?}"
+    );
+    assert_eq!(rig.bridge.stats().replays, 2);
+    assert!(rig.bridge.stats().writes_resent >= 1);
+    drop((rig, second));
+    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
+}
+
+#[test]
+fn a_replayed_read_does_not_deliver_a_sample_twice() {
+    let inst = instance("dedup");
+    let first = FakeWorker::start(&inst, 21);
+    let mut rig = Rig::new(&inst);
+    rig.run(&[&first], |r, _| r.bridge.generation() == Some(21));
+    rig.client.connect(Instant::now());
+    rig.run(&[&first], |r, _| r.client.is_connected());
+    let p = ObjectId::new(1, k::PARTICIPANT);
+    let sb = ObjectId::new(1, k::SUBSCRIBER);
+    let rd = ObjectId::new(1, k::DATAREADER);
+    rig.create(p, k::PARTICIPANT, "<dds/>", VariantExtra::DomainId(0));
+    rig.create(sb, k::SUBSCRIBER, "", VariantExtra::Parent(p));
+    rig.create(rd, k::DATAREADER, "<dds/>", VariantExtra::Parent(sb));
+    let spec = ReadSpecification {
+        preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+        delivery_control: Some(DataDeliveryControl {
+            max_samples: u16::MAX,
+            ..Default::default()
+        }),
+        ..Default::default()
+    };
+    rig.client.read(Instant::now(), rd, spec).expect("read");
+    let served = rig.run(&[&first], |_, s| {
+        s.iter().any(|(h, _)| h.kind == MessageKind::Read)
+    });
+    let read = served
+        .iter()
+        .find(|(h, _)| h.kind == MessageKind::Read)
+        .map(|(h, _)| *h)
+        .expect("read");
+    let writer = [0x42u8; 16];
+    let at = |n: i64| SampleIdentity {
+        writer,
+        sequence_number: n,
+    };
+    let data = |rig: &Rig| {
+        rig.events
+            .iter()
+            .filter_map(|e| match e {
+                ClientEvent::Data { data, .. } => Some(data.clone()),
+                _ => None,
+            })
+            .collect::<Vec<_>>()
+    };
+    for n in 1..=3 {
+        first.sample(rig.client.config().key, rd, read, at(n), &[n as u8]);
+    }
+    rig.run(&[&first], |r, _| data(r).len() == 3);
+    // A new worker; the writer outlived the old one and offers its history again, then a
+    // new sample.
+    drop(first);
+    let second = FakeWorker::start(&inst, 22);
+    let replay = rig.run(&[&second], |_, s| {
+        s.iter().any(|(h, _)| h.kind == MessageKind::Read)
+    });
+    let read = replay
+        .iter()
+        .find(|(h, _)| h.kind == MessageKind::Read)
+        .map(|(h, _)| *h)
+        .expect("read replayed");
+    for n in 1..=4 {
+        second.sample(rig.client.config().key, rd, read, at(n), &[n as u8]);
+    }
+    // Samples of a writer never seen, and of unknown identity, are delivered.
+    second.sample(
+        rig.client.config().key,
+        rd,
+        read,
+        SampleIdentity {
+            writer: [7; 16],
+            sequence_number: 1,
+        },
+        &[70],
+    );
+    second.sample(
+        rig.client.config().key,
+        rd,
+        read,
+        SampleIdentity::default(),
+        &[80],
+    );
+    rig.run(&[&second], |r, _| data(r).len() >= 6);
+    let got: Vec<u8> = data(&rig).iter().map(|d| d[0]).collect();
+    assert_eq!(got, [1, 2, 3, 4, 70, 80], "delivered twice or lost");
+    assert_eq!(rig.bridge.stats().samples_already_delivered, 3);
+    drop((rig, second));
+    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
+}
