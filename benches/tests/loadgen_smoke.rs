@@ -18,22 +18,19 @@ fn run_loadgen(name: &str, args: &[&str]) -> (serde_json::Value, String) {
             .is_ok_and(|s| s.success());
         assert!(ok, "building xrce-agent failed");
     }
-    // A port found free may be taken before the agent binds it (tests run in parallel):
+    // A port found free may still be taken before the agent binds it (by another test):
     // then the agent cannot start and another port is tried.
     let mut out = None;
     for _ in 0..3 {
-        let port = std::net::UdpSocket::bind("127.0.0.1:0")
-            .and_then(|s| s.local_addr())
-            .map(|a| a.port())
-            .expect("a free port");
+        let port = xrce_tests::free_port();
         let o = Command::new(loadgen)
             .args(["--port", &port.to_string(), "--duration", "60", "--json"])
             .arg(&json)
             .args(args)
             .output()
             .expect("run xrce-loadgen");
-        let retry =
-            !o.status.success() && String::from_utf8_lossy(&o.stderr).contains("cannot bind UDP");
+        let retry = !o.status.success()
+            && String::from_utf8_lossy(&o.stderr).contains("Address already in use");
         out = Some(o);
         if !retry {
             break;

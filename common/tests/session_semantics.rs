@@ -653,3 +653,75 @@ fn the_client_mtu_is_capped_to_the_transports_largest_message() {
         "beyond the transport"
     );
 }
+
+/// HEARTBEATs at the times `run` sees them, for a client that has unacknowledged output.
+fn heartbeat_times(
+    agent: &mut Agent<u32>,
+    rec: &mut Recorder,
+    t0: Instant,
+    until: Duration,
+) -> Vec<Duration> {
+    let mut times = Vec::new();
+    let mut t = Duration::ZERO;
+    while t <= until {
+        agent.handle_timeout(t0 + t, rec);
+        for p in payloads(&drain(agent)) {
+            if matches!(p, Payload::Heartbeat(_)) {
+                times.push(t);
+            }
+        }
+        t += Duration::from_millis(10);
+    }
+    times
+}
+
+#[test]
+fn heartbeats_to_a_client_that_does_not_answer_back_off_and_reset_when_it_does() {
+    let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
+    let request = BaseObjectRequest {
+        request_id: RequestId::from_u16(9),
+        object_id: ObjectId::new(1, object_kind::PARTICIPANT),
+    };
+    agent
+        .send_status(t0, KEY, request, ResultStatus::OK)
+        .expect("queued");
+    drain(&mut agent);
+    let times = heartbeat_times(&mut agent, &mut rec, t0, Duration::from_secs(20));
+    let ms: Vec<u128> = times.iter().map(|d| d.as_millis()).collect();
+    // 100, then 200, 400, 800, 1600 ms later, then every 3.2 s: 10 in 20 s, not 200.
+    assert_eq!(&ms[..5], [100, 300, 700, 1500, 3100], "{ms:?}");
+    assert!(ms.windows(2).skip(4).all(|w| w[1] - w[0] == 3200), "{ms:?}");
+    assert_eq!(ms.len(), 10, "{ms:?}");
+    // The client acknowledges nothing new but answers: the period starts again at 100 ms.
+    let ack = in_session(
+        0,
+        0,
+        Payload::Acknack(AcknackPayload {
+            first_unacked_seq_num: 0,
+            nack_bitmap: 0,
+            stream_id: stream_id::BUILTIN_RELIABLE,
+        }),
+    );
+    let t1 = t0 + Duration::from_millis(20_005);
+    agent.handle_datagram(t1, ADDR, &ack, &mut rec);
+    drain(&mut agent);
+    // Answering every HEARTBEAT at once keeps the period at 100 ms; the first unanswered one
+    // doubles it again.
+    let mut next = Vec::new();
+    let mut t = Duration::ZERO;
+    while t <= Duration::from_secs(4) && next.len() < 6 {
+        agent.handle_timeout(t1 + t, &mut rec);
+        if payloads(&drain(&mut agent))
+            .iter()
+            .any(|p| matches!(p, Payload::Heartbeat(_)))
+        {
+            next.push(t.as_millis());
+            if next.len() < 5 {
+                agent.handle_datagram(t1 + t, ADDR, &ack, &mut rec);
+                drain(&mut agent);
+            }
+        }
+        t += Duration::from_millis(10);
+    }
+    assert_eq!(next, [100, 200, 300, 400, 500, 700], "after ACKNACKs");
+}

@@ -80,20 +80,43 @@ fn ip_and_port(args: &[&str]) -> (std::net::IpAddr, u16) {
     (ip, port)
 }
 
-/// A free TCP port on 127.0.0.1.
-pub fn free_tcp_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|s| s.local_addr())
-        .map(|a| a.port())
-        .expect("free port")
+/// A port free for both TCP and UDP on 127.0.0.1, below the kernel's ephemeral range.
+///
+/// A port the kernel hands out for `bind(0)` would be fine but for one thing: between the
+/// test learning it and the agent binding it, any client socket of any test running in
+/// parallel (the load generator opens hundreds) may be given the same ephemeral port. Ports
+/// below the ephemeral range are never handed out that way, so only another test choosing
+/// the same one could race, and the candidates are spread by process id and a counter.
+pub fn free_port() -> u16 {
+    use std::sync::atomic::{AtomicU32, Ordering};
+    static NEXT: AtomicU32 = AtomicU32::new(0);
+    let ephemeral_low = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
+        .ok()
+        .and_then(|r| r.split_whitespace().next()?.parse::<u32>().ok())
+        .unwrap_or(32768);
+    let (low, high) = (10_000u32, ephemeral_low.clamp(10_001, 65_535));
+    let span = high - low;
+    let seed = std::process::id().wrapping_mul(2_654_435_761);
+    for _ in 0..span {
+        let n = NEXT.fetch_add(1, Ordering::Relaxed);
+        let port = (low + seed.wrapping_add(n.wrapping_mul(7919)) % span) as u16;
+        let udp = UdpSocket::bind(("127.0.0.1", port));
+        let tcp = std::net::TcpListener::bind(("127.0.0.1", port));
+        if udp.is_ok() && tcp.is_ok() {
+            return port;
+        }
+    }
+    panic!("no free port below the ephemeral range")
 }
 
-/// A free UDP port on 127.0.0.1.
+/// A free TCP port on 127.0.0.1 (see [`free_port`]).
+pub fn free_tcp_port() -> u16 {
+    free_port()
+}
+
+/// A free UDP port on 127.0.0.1 (see [`free_port`]).
 pub fn free_udp_port() -> u16 {
-    UdpSocket::bind("127.0.0.1:0")
-        .and_then(|s| s.local_addr())
-        .map(|a| a.port())
-        .expect("free port")
+    free_port()
 }
 
 /// A unique instance name for this test process.

@@ -108,9 +108,13 @@ fn a_client_silent_past_the_dead_time_loses_its_session_and_entities() {
         reader.wait_for("MATCHED 0", 30 * SECOND, || {}).is_some(),
         "the deleted client's writer is still matched"
     );
-    // Coming back it creates a new session.
+    // Coming back it creates a new session (logged by then or soon after: the log is read
+    // from a pipe by another thread).
+    let mark = out.len();
     let mut again = TestClient::new(agent.addr(), key);
     again.connect(10 * SECOND);
+    out.wait_for(mark, "session created", 10 * SECOND)
+        .expect("no new session for the returning client");
     assert_eq!(out.count("session created"), 2);
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -9,7 +9,8 @@
 //! room. If not, the message is dropped unacknowledged and the client sends it again later,
 //! so nothing is lost while the DDS side is unavailable.
 
-use std::collections::{HashMap, VecDeque};
+use std::cmp::Reverse;
+use std::collections::{BinaryHeap, HashMap, VecDeque};
 use std::fmt::Debug;
 use std::hash::Hash;
 use std::time::{Duration, Instant};
@@ -50,8 +51,12 @@ pub struct AgentConfig {
     pub max_early_bytes: usize,
     /// Reliable input streams a client may use (others are dropped, counted).
     pub max_input_streams: usize,
-    /// Period of HEARTBEATs while output is unacknowledged.
+    /// Period of HEARTBEATs while output is unacknowledged, at first: each HEARTBEAT that
+    /// brings no ACKNACK doubles it, up to [`Self::max_heartbeat_period`]; an ACKNACK
+    /// resets it.
     pub heartbeat_period: Duration,
+    /// Longest period between HEARTBEATs to a client that does not acknowledge.
+    pub max_heartbeat_period: Duration,
     /// Largest message reassembled from FRAGMENTs, per stream.
     pub max_reassembly: usize,
     /// MTU assumed for clients that announce none.
@@ -84,6 +89,7 @@ impl Default for AgentConfig {
             max_early_bytes: 256 << 10,
             max_input_streams: 8,
             heartbeat_period: Duration::from_millis(100),
+            max_heartbeat_period: Duration::from_millis(3200),
             default_mtu: 512,
             max_message_size: MAX_DATAGRAM,
             max_reassembly: 1 << 20,
@@ -197,6 +203,10 @@ struct ProxyClient<A> {
     best_effort_out: HashMap<u8, u16>,
     reassembly: HashMap<u8, Reassembly>,
     heartbeat_due: Option<Instant>,
+    /// The period of the next HEARTBEAT (backs off while the client does not answer).
+    heartbeat_interval: Duration,
+    /// The entry of this client in the agent's timer heap, if any.
+    timer: Option<Instant>,
     delete_requested: bool,
     /// When the session was created or its streams last reset by a CREATE_CLIENT.
     established_at: Instant,
@@ -224,6 +234,20 @@ impl<A> ProxyClient<A> {
         self.reassembly.clear();
         self.heartbeat_due = None;
         self.streams_used = false;
+    }
+
+    /// When this client's timers have something to do next: a HEARTBEAT, a liveliness
+    /// probe, or (detached: nobody to probe) the end of its dead time.
+    fn next_due(&self) -> Option<Instant> {
+        let liveliness = if self.detached {
+            self.dead_time.map(|d| self.last_heard + d)
+        } else {
+            self.liveliness_due()
+        };
+        match (self.heartbeat_due.filter(|_| !self.detached), liveliness) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
     }
 
     /// When the liveliness check of this client has something to do next.
@@ -361,7 +385,9 @@ pub struct Agent<A> {
     clients: HashMap<ClientKey, ProxyClient<A>>,
     by_addr: HashMap<A, ClientKey>,
     transmits: VecDeque<Transmit<A>>,
-    next_timeout: Option<Instant>,
+    /// Clients' next timer: (when, client); an entry is live only while it matches the
+    /// client's `timer` (later ones supersede, stale ones are skipped).
+    timers: BinaryHeap<Reverse<(Instant, ClientKey)>>,
     wall_clock: Option<(Instant, Duration)>,
     stats: AgentStats,
     /// Replies already made for the datagram being handled.
@@ -386,7 +412,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             clients: HashMap::new(),
             by_addr: HashMap::new(),
             transmits: VecDeque::new(),
-            next_timeout: None,
+            timers: BinaryHeap::new(),
             wall_clock: None,
             stats: AgentStats::default(),
             replied: Vec::new(),
@@ -420,7 +446,21 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
 
     /// When [`Self::handle_timeout`] should be called next.
     pub fn poll_timeout(&self) -> Option<Instant> {
-        self.next_timeout
+        self.timers.peek().map(|Reverse((t, _))| *t)
+    }
+
+    /// Enters a client's next timer in the heap when it is earlier than its live entry (a
+    /// later one is looked at when the live entry falls due).
+    fn schedule(&mut self, key: ClientKey) {
+        let Some(c) = self.clients.get_mut(&key) else {
+            return;
+        };
+        if let Some(due) = c.next_due() {
+            if c.timer.is_none_or(|t| due < t) {
+                c.timer = Some(due);
+                self.timers.push(Reverse((due, key)));
+            }
+        }
     }
 
     fn drop_input(&mut self, reason: &'static str, bytes: &[u8]) {
@@ -757,6 +797,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                             best_effort_out: HashMap::new(),
                             reassembly: HashMap::new(),
                             heartbeat_due: None,
+                            heartbeat_interval: self.config.heartbeat_period,
+                            timer: None,
                             delete_requested: false,
                             established_at: now,
                             streams_used: false,
@@ -773,13 +815,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     tracing::info!(client = %c.client_key, session = c.session_id, mtu, ?dialect, ?dead_time, "session created");
                 }
             }
-            if let Some(due) = self
-                .clients
-                .get(&c.client_key)
-                .and_then(ProxyClient::liveliness_due)
-            {
-                self.next_timeout = Some(self.next_timeout.map_or(due, |t| t.min(due)));
-            }
+            self.schedule(c.client_key);
         } else {
             tracing::info!(client = %c.client_key, status = result, "CREATE_CLIENT refused");
         }
@@ -837,6 +873,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 c.detached = true;
                 c.heartbeat_due = None;
                 tracing::info!(client = %key, "client's endpoint closed; session kept");
+                self.schedule(key);
                 true
             }
             _ => false,
@@ -976,7 +1013,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             Payload::Acknack(a) => {
                 // One ACKNACK per stream per datagram: more would only multiply resends.
                 if self.once(Reply::Retransmit(a.stream_id)) {
-                    self.on_acknack(key, &a);
+                    self.on_acknack(now, key, &a);
                 }
             }
             Payload::Heartbeat(h) if stream_id::is_reliable(h.stream_id) => {
@@ -1100,10 +1137,17 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         self.push_transmit(addr, b.finish());
     }
 
-    fn on_acknack(&mut self, key: ClientKey, a: &AcknackPayload) {
+    fn on_acknack(&mut self, now: Instant, key: ClientKey, a: &AcknackPayload) {
+        let base = self.config.heartbeat_period;
         let Some(c) = self.clients.get_mut(&key) else {
             return;
         };
+        // It answers: HEARTBEATs at the base period again, the next one included.
+        c.heartbeat_interval = base;
+        let sooner = c.heartbeat_due.is_some_and(|d| d > now + base);
+        if sooner {
+            c.heartbeat_due = Some(now + base);
+        }
         let addr = c.addr;
         let Some(out) = c.reliable_out.get_mut(&a.stream_id) else {
             return;
@@ -1118,6 +1162,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             self.stats.retransmissions += 1;
             self.push_transmit(addr, m);
         }
+        if sooner {
+            self.schedule(key);
+        }
     }
 
     /// Removes a client that asked for its own deletion, after its STATUS went out.
@@ -1130,7 +1177,6 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
 
     /// Moves queued reliable submessages into free window slots and sends them.
     fn flush_client(&mut self, now: Instant, key: ClientKey) {
-        let period = self.config.heartbeat_period;
         let Some(c) = self.clients.get_mut(&key) else {
             return;
         };
@@ -1154,14 +1200,17 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             return;
         }
         let unacked = c.reliable_out.values().any(|s| s.reliable.unacked() > 0);
+        let mut schedule = false;
         if unacked && c.heartbeat_due.is_none() {
-            let due = now + period;
-            c.heartbeat_due = Some(due);
-            self.next_timeout = Some(self.next_timeout.map_or(due, |t| t.min(due)));
+            c.heartbeat_due = Some(now + c.heartbeat_interval);
+            schedule = true;
         }
         let addr = c.addr;
         for m in out {
             self.push_transmit(addr, m);
+        }
+        if schedule {
+            self.schedule(key);
         }
     }
 
@@ -1325,27 +1374,35 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     }
 
     /// Sends due HEARTBEATs and liveliness probes, and deletes the sessions of clients that
-    /// stayed silent past their dead time (their objects go with them through `sink`).
+    /// stayed silent past their dead time (their objects go with them through `sink`). Only
+    /// the clients whose timer fell due are looked at.
     pub fn handle_timeout(&mut self, now: Instant, sink: &mut impl OperationSink) {
-        if self.next_timeout.is_none_or(|t| t > now) {
-            return;
-        }
-        let period = self.config.heartbeat_period;
-        let mut next: Option<Instant> = None;
+        let max_period = self.config.max_heartbeat_period;
         let mut out = Vec::new();
         let mut dead = Vec::new();
-        let mut merge = |d: Instant| next = Some(next.map_or(d, |t: Instant| t.min(d)));
-        for c in self.clients.values_mut() {
+        let mut due_clients = Vec::new();
+        while let Some(Reverse((t, key))) = self.timers.peek().copied() {
+            if t > now {
+                break;
+            }
+            self.timers.pop();
+            // Only the client's live entry counts (older ones were superseded).
+            if let Some(c) = self.clients.get_mut(&key).filter(|c| c.timer == Some(t)) {
+                c.timer = None;
+                due_clients.push(key);
+            }
+        }
+        for key in &due_clients {
+            let Some(c) = self.clients.get_mut(key) else {
+                continue;
+            };
             if let Some(dead_time) = c.dead_time {
                 let silence = now.saturating_duration_since(c.last_heard);
                 if silence >= dead_time {
                     dead.push((c.key, silence));
                     continue;
                 }
-                if c.detached {
-                    // Nobody to probe: only the dead time runs.
-                    merge(c.last_heard + dead_time);
-                } else if c.liveliness_due().is_some_and(|d| d <= now) {
+                if !c.detached && c.liveliness_due().is_some_and(|d| d <= now) {
                     // GET_INFO about the agent, as a ping: a live client answers with INFO.
                     let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
                     let probe = crate::wire::GetInfoPayload {
@@ -1359,16 +1416,10 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     out.push((c.addr, b.finish()));
                     c.last_probe = Some(now);
                 }
-                if let Some(d) = c.liveliness_due().filter(|_| !c.detached) {
-                    merge(d);
-                }
             }
-            let Some(due) = c.heartbeat_due else { continue };
             if c.detached {
                 c.heartbeat_due = None;
-                continue;
-            }
-            if due <= now {
+            } else if c.heartbeat_due.is_some_and(|d| d <= now) {
                 let mut any = false;
                 for s in c.reliable_out.values() {
                     if let Some(hb) = s.reliable.heartbeat() {
@@ -1378,13 +1429,16 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                         any = true;
                     }
                 }
-                c.heartbeat_due = any.then_some(now + period);
-            }
-            if let Some(d) = c.heartbeat_due {
-                merge(d);
+                if any {
+                    // Unanswered so far: the next one waits twice as long.
+                    c.heartbeat_interval = (c.heartbeat_interval * 2).min(max_period);
+                }
+                c.heartbeat_due = any.then_some(now + c.heartbeat_interval);
             }
         }
-        self.next_timeout = next;
+        for key in due_clients {
+            self.schedule(key);
+        }
         for (a, m) in out {
             self.push_transmit(a, m);
         }

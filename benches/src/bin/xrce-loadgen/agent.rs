@@ -27,6 +27,26 @@ impl AgentUnderTest {
     pub fn usage(&self) -> Option<ProcUsage> {
         proc_usage(self.child.id())
     }
+
+    /// Resource use once the agent has finished starting: an agent answers a ping from its
+    /// front-end while its DDS worker may still be starting (spawning, creating its
+    /// participant), so a baseline taken then would charge that start to the sessions. Waits
+    /// until the process count holds and the resident size moves by less than 256 KiB over
+    /// 300 ms, at most `limit`.
+    pub fn settled_usage(&self, limit: Duration) -> Option<ProcUsage> {
+        let end = Instant::now() + limit;
+        let mut last = self.usage()?;
+        loop {
+            std::thread::sleep(Duration::from_millis(300));
+            let now = self.usage()?;
+            let steady =
+                now.processes == last.processes && now.rss_kib.abs_diff(last.rss_kib) < 256;
+            if steady || Instant::now() >= end {
+                return Some(now);
+            }
+            last = now;
+        }
+    }
 }
 
 impl Drop for AgentUnderTest {

@@ -306,7 +306,9 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     if !ready {
         return Err(format!("no agent answers a ping on port {port}"));
     }
-    let usage_empty = agent.as_ref().and_then(AgentUnderTest::usage);
+    let usage_empty = agent
+        .as_ref()
+        .and_then(|a| a.settled_usage(Duration::from_secs(5)));
     let bodies = Bodies::new(a);
     let base = Instant::now();
     let dds = if a.dds_reader && !a.null_agent {
