@@ -197,6 +197,8 @@ pub struct BridgeStats {
     pub instance_ends_skipped: u64,
     /// Samples not delivered again to a read replayed on a new worker (the client had them).
     pub samples_already_delivered: u64,
+    /// CREATEs refused because their client had its quota of objects.
+    pub objects_over_quota: u64,
 }
 
 /// The front-end's IPC state.
@@ -228,6 +230,8 @@ pub struct Bridge {
     )>,
     dirty: bool,
     stats: BridgeStats,
+    /// Most objects per client.
+    max_objects: usize,
 }
 
 fn header(
@@ -289,7 +293,13 @@ impl Bridge {
             paused: HashMap::new(),
             dirty: false,
             stats: BridgeStats::default(),
+            max_objects: xrce_common::session::graph::MAX_OBJECTS,
         })
+    }
+
+    /// Sets the most objects one client may create (at least 1).
+    pub fn set_max_objects_per_client(&mut self, max: usize) {
+        self.max_objects = max.max(1);
     }
 
     /// Whether SIGINT/SIGTERM arrived.
@@ -846,8 +856,15 @@ impl OperationSink for Bridge {
             } => {
                 let graph = self.graphs.entry(client).or_default();
                 let id = create.base.object_id;
-                match graph.decide_create(id, &create.variant, create.reuse, create.replace) {
+                let max = self.max_objects;
+                match graph.decide_create(id, &create.variant, create.reuse, create.replace, max) {
                     CreateDecision::Reply(code) => {
+                        if code == status::ERR_RESOURCES && graph.len() >= max {
+                            self.stats.objects_over_quota += 1;
+                            if self.stats.objects_over_quota.is_power_of_two() {
+                                tracing::warn!(%client, objects = graph.len(), quota = max, refused = self.stats.objects_over_quota, "CREATE refused: the client has its quota of objects (--max-objects-per-client)");
+                            }
+                        }
                         self.replies_out
                             .push((client, create.base, ResultStatus::new(code)))
                     }

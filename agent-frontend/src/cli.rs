@@ -6,6 +6,7 @@ use std::net::{SocketAddr, TcpListener, UdpSocket};
 use std::path::PathBuf;
 use std::time::Duration;
 
+use xrce_common::session::admission::{Admission, KeyArg, RateQuota};
 use xrce_common::session::agent::AgentConfig;
 use xrce_common::wire::Dialect;
 
@@ -112,6 +113,104 @@ pub struct FrontendArgs {
     /// Clients built with hard liveliness use their own timeout.
     #[arg(long, env = "XRCE_CLIENT_DEAD_TIME", default_value_t = 0.0)]
     pub client_dead_time: f64,
+    #[command(flatten)]
+    pub admission: AdmissionArgs,
+}
+
+/// Who may hold a session and how much each client may do: options of the front-end, also
+/// taken by `xrce-agent` (which passes them on) and set per front-end in a gateway file.
+#[derive(Debug, Clone, Default, PartialEq, clap::Args)]
+pub struct AdmissionArgs {
+    /// Client keys that may create a session, comma-separated, 8 hexadecimal digits each as
+    /// the client's code writes them (e.g. 0xAAAABBBB); other keys are refused with
+    /// STATUS_ERR_DENIED. Default: every key.
+    #[arg(long = "allow-keys", value_delimiter = ',', value_name = "KEYS")]
+    pub allow_keys: Vec<KeyArg>,
+    /// Let a session follow its client to another source address or connection without a new
+    /// CREATE_CLIENT (clients behind a NAT that changes their port). Without it, messages
+    /// that name a session from an endpoint other than the session's are dropped (counted).
+    #[arg(long = "allow-roaming")]
+    pub allow_roaming: bool,
+    /// Most objects one client may create (each is a DDS entity); more get
+    /// STATUS_ERR_RESOURCES.
+    #[arg(long = "max-objects-per-client", value_name = "N", default_value_t = xrce_common::session::graph::MAX_OBJECTS, value_parser = at_least_one)]
+    pub max_objects_per_client: usize,
+    /// Most messages a second one client may send (a second's worth in a burst); beyond,
+    /// its messages are dropped: reliable ones are sent again by the client, so it is
+    /// slowed, best-effort ones are lost. 0: no bound.
+    #[arg(
+        long = "max-client-messages-per-second",
+        value_name = "N",
+        default_value_t = 0
+    )]
+    pub max_client_messages_per_second: u32,
+    /// Most bytes a second one client may send, as for messages. 0: no bound.
+    #[arg(
+        long = "max-client-bytes-per-second",
+        value_name = "N",
+        default_value_t = 0
+    )]
+    pub max_client_bytes_per_second: u64,
+}
+
+/// A count of at least 1.
+fn at_least_one(s: &str) -> Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(n) if n >= 1 => Ok(n),
+        _ => Err(format!("{s:?} is not a number of at least 1")),
+    }
+}
+
+impl AdmissionArgs {
+    /// The session core's admission settings.
+    pub fn admission(&self) -> Admission {
+        Admission {
+            allowed_keys: (!self.allow_keys.is_empty())
+                .then(|| self.allow_keys.iter().map(|k| k.0).collect()),
+            allow_roaming: self.allow_roaming,
+            rate: RateQuota {
+                messages_per_second: (self.max_client_messages_per_second > 0)
+                    .then_some(self.max_client_messages_per_second),
+                bytes_per_second: (self.max_client_bytes_per_second > 0)
+                    .then_some(self.max_client_bytes_per_second),
+            },
+        }
+    }
+
+    /// The same settings as front-end arguments (only those not at their default).
+    pub fn to_args(&self) -> Vec<String> {
+        let mut a = Vec::new();
+        if !self.allow_keys.is_empty() {
+            let keys: Vec<String> = self
+                .allow_keys
+                .iter()
+                .map(|k| format!("0x{}", k.0))
+                .collect();
+            a.extend(["--allow-keys".to_string(), keys.join(",")]);
+        }
+        if self.allow_roaming {
+            a.push("--allow-roaming".into());
+        }
+        if self.max_objects_per_client != xrce_common::session::graph::MAX_OBJECTS {
+            a.extend([
+                "--max-objects-per-client".into(),
+                self.max_objects_per_client.to_string(),
+            ]);
+        }
+        if self.max_client_messages_per_second > 0 {
+            a.extend([
+                "--max-client-messages-per-second".into(),
+                self.max_client_messages_per_second.to_string(),
+            ]);
+        }
+        if self.max_client_bytes_per_second > 0 {
+            a.extend([
+                "--max-client-bytes-per-second".into(),
+                self.max_client_bytes_per_second.to_string(),
+            ]);
+        }
+        a
+    }
 }
 
 impl FrontendArgs {
@@ -125,6 +224,7 @@ impl FrontendArgs {
         Ok(AgentConfig {
             dialect: self.dialect,
             client_dead_time: (dead > 0.0).then(|| Duration::from_secs_f64(dead.max(0.1))),
+            admission: self.admission.admission(),
             ..AgentConfig::default()
         })
     }
@@ -285,6 +385,10 @@ fn serve<T: Transport>(
         }
         None => None,
     };
-    let bridge = Bridge::new(&args.instance, args.frontend_id)?;
+    let mut bridge = Bridge::new(&args.instance, args.frontend_id)?;
+    bridge.set_max_objects_per_client(args.admission.max_objects_per_client);
+    if let Some(keys) = &config.admission.allowed_keys {
+        tracing::info!(keys = keys.len(), "only listed client keys are admitted");
+    }
     crate::event_loop::run(transport, bridge, config, discovery, on_serving)
 }

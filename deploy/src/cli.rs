@@ -112,6 +112,8 @@ pub struct Common {
     /// see one writer per group of clients.
     #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
     pub share_writers: bool,
+    #[command(flatten)]
+    pub admission: xrce_frontend::cli::AdmissionArgs,
 }
 
 /// Options of the UDP transports.

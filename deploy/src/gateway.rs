@@ -23,6 +23,11 @@
 //! max_connections = 2000           # optional, tcp
 //! client_dead_time = 0.0           # optional, seconds (any transport)
 //! dialect = "eprosima"             # optional: spec or eprosima (any transport)
+//! allow_keys = ["0xAAAABBBB"]      # optional: only these client keys (default: any)
+//! allow_roaming = false            # optional: sessions follow clients to new endpoints
+//! max_objects_per_client = 1024    # optional
+//! max_client_messages_per_second = 0  # optional, 0 = no bound
+//! max_client_bytes_per_second = 0     # optional, 0 = no bound
 //!
 //! [[frontend]]
 //! transport = "serial"
@@ -44,7 +49,8 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 use toml::Spanned;
-use xrce_frontend::cli::TransportKind;
+use xrce_common::session::admission::{parse_client_key, KeyArg};
+use xrce_frontend::cli::{AdmissionArgs, TransportKind};
 
 use crate::cli::FrontendPlan;
 
@@ -104,6 +110,11 @@ struct FrontendSection {
     flow_control: Option<Spanned<bool>>,
     client_dead_time: Option<Spanned<f64>>,
     dialect: Option<Spanned<String>>,
+    allow_keys: Option<Spanned<Vec<String>>>,
+    allow_roaming: Option<bool>,
+    max_objects_per_client: Option<Spanned<usize>>,
+    max_client_messages_per_second: Option<u32>,
+    max_client_bytes_per_second: Option<u64>,
 }
 
 /// One front-end of a checked gateway.
@@ -121,6 +132,8 @@ pub struct GatewayFrontend {
     pub client_dead_time: f64,
     /// Forced protocol dialect.
     pub dialect: Option<String>,
+    /// Allow-list, roaming and quotas of its clients.
+    pub admission: AdmissionArgs,
 }
 
 impl GatewayFrontend {
@@ -138,6 +151,7 @@ impl GatewayFrontend {
         if let Some(d) = &self.dialect {
             a.extend(["--dialect".into(), d.clone()]);
         }
+        a.extend(self.admission.to_args());
         a
     }
 }
@@ -477,6 +491,39 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
             Some(d) => Some(d.get_ref().clone()),
             None => None,
         };
+        let mut allow_keys = Vec::new();
+        if let Some(keys) = &f.allow_keys {
+            if keys.get_ref().is_empty() {
+                return Err(here(
+                    "allow_keys",
+                    keys.span(),
+                    "names no key (leave it out to admit every key)",
+                ));
+            }
+            for k in keys.get_ref() {
+                let key = parse_client_key(k)
+                    .map_err(|e| here("allow_keys", keys.span(), &e.to_string()))?;
+                allow_keys.push(KeyArg(key));
+            }
+        }
+        let max_objects_per_client = match &f.max_objects_per_client {
+            Some(m) if *m.get_ref() == 0 => {
+                return Err(here(
+                    "max_objects_per_client",
+                    m.span(),
+                    "must be at least 1",
+                ))
+            }
+            Some(m) => *m.get_ref(),
+            None => xrce_common::session::graph::MAX_OBJECTS,
+        };
+        let admission = AdmissionArgs {
+            allow_keys,
+            allow_roaming: f.allow_roaming.unwrap_or(false),
+            max_objects_per_client,
+            max_client_messages_per_second: f.max_client_messages_per_second.unwrap_or(0),
+            max_client_bytes_per_second: f.max_client_bytes_per_second.unwrap_or(0),
+        };
         frontends.push(GatewayFrontend {
             name,
             id,
@@ -484,6 +531,7 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
             discovery: f.discovery.as_ref().map(|d| *d.get_ref()),
             client_dead_time,
             dialect,
+            admission,
         });
     }
     Ok(Gateway {
@@ -529,6 +577,11 @@ port = 9999
 max_connections = 50
 client_dead_time = 30
 dialect = "spec"
+allow_keys = ["0xAAAABBBB", "dead0001"]
+allow_roaming = true
+max_objects_per_client = 64
+max_client_messages_per_second = 500
+max_client_bytes_per_second = 100000
 "#,
         )
         .expect("valid");
@@ -541,6 +594,24 @@ dialect = "spec"
         assert!(args.windows(2).any(|w| w == ["--max-connections", "50"]));
         assert!(args.windows(2).any(|w| w == ["--dialect", "spec"]));
         assert!(args.windows(2).any(|w| w == ["--client-dead-time", "30"]));
+        assert!(args
+            .windows(2)
+            .any(|w| w == ["--allow-keys", "0xAAAABBBB,0xDEAD0001"]));
+        assert!(args.iter().any(|a| a == "--allow-roaming"));
+        assert!(args
+            .windows(2)
+            .any(|w| w == ["--max-objects-per-client", "64"]));
+        assert!(args
+            .windows(2)
+            .any(|w| w == ["--max-client-messages-per-second", "500"]));
+        assert!(args
+            .windows(2)
+            .any(|w| w == ["--max-client-bytes-per-second", "100000"]));
+        // The defaults add nothing.
+        assert!(!g.frontends[0]
+            .frontend_args()
+            .iter()
+            .any(|a| a.starts_with("--allow") || a.starts_with("--max-client")));
     }
 
     fn refused(text: &str) -> ConfigError {
@@ -592,5 +663,19 @@ dialect = "spec"
         assert!(e.to_string().contains("no [[frontend]]"), "{e}");
         let e = refused("[[frontend]]\ntransport = \"udp6\"\nport = 1\nbind = \"127.0.0.1\"\n");
         assert!(e.to_string().contains("not an address of udp6"), "{e}");
+        let e = refused(
+            "[[frontend]]\ntransport = \"udp4\"\nport = 1\n\nallow_keys = [\"0xAAAABBB\"]\n",
+        );
+        assert_eq!(e.line, 5, "{e}");
+        assert!(
+            e.to_string()
+                .contains("`allow_keys` client key \"0xAAAABBB\""),
+            "{e}"
+        );
+        let e = refused("[[frontend]]\ntransport = \"udp4\"\nport = 1\nallow_keys = []\n");
+        assert!(e.to_string().contains("names no key"), "{e}");
+        let e =
+            refused("[[frontend]]\ntransport = \"udp4\"\nport = 1\nmax_objects_per_client = 0\n");
+        assert!(e.to_string().contains("at least 1"), "{e}");
     }
 }

@@ -128,6 +128,7 @@ impl Group {
         ));
         let mut args = vec!["--frontend-id".to_string(), "0".into()];
         args.extend(frontend.frontend_args());
+        args.extend(common.admission.to_args());
         if let Some(port) = common.discovery {
             if frontend.kind().is_ip() {
                 args.extend(["--discovery".into(), port.to_string()]);

@@ -10,11 +10,12 @@
 //! so nothing is lost while the DDS side is unavailable.
 
 use std::cmp::Reverse;
-use std::collections::{BinaryHeap, HashMap, VecDeque};
+use std::collections::{BinaryHeap, HashMap, HashSet, VecDeque};
 use std::fmt::Debug;
 use std::hash::Hash;
 use std::time::{Duration, Instant};
 
+use super::admission::{Admission, Metered, RateMeter};
 use super::fragment::{fragments, Reassembly};
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
 use crate::wire::cdr::CdrWriter;
@@ -72,6 +73,8 @@ pub struct AgentConfig {
     /// Dialect for every session; `None` chooses per session from the CREATE_CLIENT vendor id.
     /// Forcing [`Dialect::Spec`] also drops the ResultStatus from STATUS_AGENT.
     pub dialect: Option<Dialect>,
+    /// Who may hold a session and how much each client may send.
+    pub admission: Admission,
     /// Silence after which a client that did not ask for hard liveliness is declared dead and
     /// its session deleted; `None` keeps silent sessions (the reference agent's behaviour).
     /// Silent clients are probed with GET_INFO from a quarter of this on.
@@ -99,6 +102,7 @@ impl Default for AgentConfig {
             duplicate_create_guard: Duration::from_millis(500),
             dialect: None,
             client_dead_time: None,
+            admission: Admission::default(),
         }
     }
 }
@@ -207,6 +211,10 @@ struct ProxyClient<A> {
     heartbeat_interval: Duration,
     /// The entry of this client in the agent's timer heap, if any.
     timer: Option<Instant>,
+    /// Its input rate quota's consumption (none when unlimited).
+    meter: Option<RateMeter>,
+    /// Messages dropped because they presented this client's key from another endpoint.
+    foreign_drops: u64,
     delete_requested: bool,
     /// When the session was created or its streams last reset by a CREATE_CLIENT.
     established_at: Instant,
@@ -388,6 +396,8 @@ pub struct Agent<A> {
     /// Clients' next timer: (when, client); an entry is live only while it matches the
     /// client's `timer` (later ones supersede, stale ones are skipped).
     timers: BinaryHeap<Reverse<(Instant, ClientKey)>>,
+    /// Keys refused by the allow-list whose refusal was logged (bounded).
+    denied_logged: HashSet<ClientKey>,
     wall_clock: Option<(Instant, Duration)>,
     stats: AgentStats,
     /// Replies already made for the datagram being handled.
@@ -413,6 +423,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             by_addr: HashMap::new(),
             transmits: VecDeque::new(),
             timers: BinaryHeap::new(),
+            denied_logged: HashSet::new(),
             wall_clock: None,
             stats: AgentStats::default(),
             replied: Vec::new(),
@@ -519,15 +530,40 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         if client.session_id != header.session_id {
             return self.drop_input("wrong_session", bytes);
         }
-        client.last_heard = now;
-        client.detached = false;
         if client.addr != src {
-            // With a key in the header the client may move (e.g. a new source port).
+            // Only a key in the header names a session from another endpoint.
+            if !self.config.admission.allow_roaming {
+                // Whoever learnt the key does not take the session over: only the client's
+                // CREATE_CLIENT moves it (or roaming, when the operator allows it).
+                client.foreign_drops += 1;
+                if client.foreign_drops == 1 {
+                    tracing::warn!(client = %key, from = ?src, at = ?client.addr, "message for a session from another endpoint dropped (a client that moved must send CREATE_CLIENT again, or run the agent with --allow-roaming); further ones are counted");
+                }
+                return self.drop_input("foreign_endpoint", bytes);
+            }
+            // The client moved (e.g. a new source port after a NAT rebinding).
             if self.by_addr.get(&client.addr) == Some(&key) {
                 self.by_addr.remove(&client.addr);
             }
+            tracing::info!(client = %key, from = ?client.addr, to = ?src, "session roamed");
             client.addr = src;
             self.by_addr.insert(src, key);
+        }
+        client.last_heard = now;
+        client.detached = false;
+        if let Some(meter) = &mut client.meter {
+            match meter.admit(now, bytes.len()) {
+                Metered::Admitted => {}
+                Metered::BackWithin { dropped } => {
+                    tracing::info!(client = %key, dropped, "client back within its rate quota");
+                }
+                Metered::WentOver(hit) => {
+                    let quota = self.config.admission.rate;
+                    tracing::warn!(client = %key, bound = hit.name(), messages_per_second = ?quota.messages_per_second, bytes_per_second = ?quota.bytes_per_second, "client over its rate quota: its messages are dropped until it slows down (reliable ones are sent again by the client)");
+                    return self.drop_input("rate_quota", bytes);
+                }
+                Metered::StillOver => return self.drop_input("rate_quota", bytes),
+            }
         }
         let stream = header.stream_id;
         if stream != stream_id::NONE {
@@ -716,6 +752,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         } else if c.session_id == 0x00 || c.session_id == 0x80 || c.client_key == ClientKey::INVALID
         {
             status::ERR_INVALID_DATA
+        } else if !self.config.admission.admits(c.client_key) {
+            self.count_drop("key_not_allowed");
+            status::ERR_DENIED
         } else if !self.clients.contains_key(&c.client_key)
             && self.clients.len() >= self.config.max_clients
         {
@@ -799,6 +838,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                             heartbeat_due: None,
                             heartbeat_interval: self.config.heartbeat_period,
                             timer: None,
+                            meter: (!self.config.admission.rate.is_unlimited())
+                                .then(|| RateMeter::new(self.config.admission.rate, now)),
+                            foreign_drops: 0,
                             delete_requested: false,
                             established_at: now,
                             streams_used: false,
@@ -816,6 +858,12 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 }
             }
             self.schedule(c.client_key);
+        } else if result == status::ERR_DENIED {
+            if self.denied_logged.len() < 1024 && self.denied_logged.insert(c.client_key) {
+                tracing::warn!(client = %c.client_key, "CREATE_CLIENT refused: the key is not in --allow-keys (further attempts of this key are counted)");
+            } else {
+                tracing::debug!(client = %c.client_key, "CREATE_CLIENT refused: key not allowed");
+            }
         } else {
             tracing::info!(client = %c.client_key, status = result, "CREATE_CLIENT refused");
         }

@@ -86,8 +86,9 @@ impl DeliveredMarks {
     }
 }
 
-/// Most objects one client may create; more get STATUS_ERR_RESOURCES (every object is a DDS
-/// entity in the worker).
+/// Most objects one client may create by default; more get STATUS_ERR_RESOURCES (every
+/// object is a DDS entity in the worker). The operator sets another bound with
+/// `--max-objects-per-client`.
 pub const MAX_OBJECTS: usize = 1024;
 
 /// Objects and reads of one client.
@@ -123,16 +124,18 @@ impl ObjectGraph {
         self.reads.iter()
     }
 
-    /// Decides a CREATE per the creation-mode table.
+    /// Decides a CREATE per the creation-mode table; a new object beyond `max_objects` is
+    /// refused with STATUS_ERR_RESOURCES (replacing one is not).
     pub fn decide_create(
         &self,
         id: ObjectId,
         variant: &ObjectVariant,
         reuse: bool,
         replace: bool,
+        max_objects: usize,
     ) -> CreateDecision {
         let Some(existing) = self.get(id) else {
-            if self.objects.len() >= MAX_OBJECTS {
+            if self.objects.len() >= max_objects {
                 return CreateDecision::Reply(status::ERR_RESOURCES);
             }
             return CreateDecision::Create;
@@ -231,7 +234,7 @@ mod tests {
         let mut g = ObjectGraph::default();
         let p = obj(1, k::PARTICIPANT, None);
         assert_eq!(
-            g.decide_create(p.object_id, &p.variant, false, false),
+            g.decide_create(p.object_id, &p.variant, false, false, MAX_OBJECTS),
             CreateDecision::Create
         );
         g.insert(p.clone());
@@ -239,27 +242,27 @@ mod tests {
         other.representation = Representation::Xml("<y/>".into());
         let id = p.object_id;
         assert_eq!(
-            g.decide_create(id, &p.variant, false, false),
+            g.decide_create(id, &p.variant, false, false, MAX_OBJECTS),
             CreateDecision::Reply(status::ERR_ALREADY_EXISTS)
         );
         assert_eq!(
-            g.decide_create(id, &other, false, true),
+            g.decide_create(id, &other, false, true, MAX_OBJECTS),
             CreateDecision::Replace
         );
         assert_eq!(
-            g.decide_create(id, &p.variant, true, false),
+            g.decide_create(id, &p.variant, true, false, MAX_OBJECTS),
             CreateDecision::Reply(status::OK_MATCHED)
         );
         assert_eq!(
-            g.decide_create(id, &other, true, false),
+            g.decide_create(id, &other, true, false, MAX_OBJECTS),
             CreateDecision::Reply(status::ERR_MISMATCH)
         );
         assert_eq!(
-            g.decide_create(id, &p.variant, true, true),
+            g.decide_create(id, &p.variant, true, true, MAX_OBJECTS),
             CreateDecision::Reply(status::OK_MATCHED)
         );
         assert_eq!(
-            g.decide_create(id, &other, true, true),
+            g.decide_create(id, &other, true, true, MAX_OBJECTS),
             CreateDecision::Replace
         );
     }
@@ -272,13 +275,19 @@ mod tests {
         }
         let one_more = obj(MAX_OBJECTS as u16, k::PARTICIPANT, None);
         assert_eq!(
-            g.decide_create(one_more.object_id, &one_more.variant, false, false),
+            g.decide_create(
+                one_more.object_id,
+                &one_more.variant,
+                false,
+                false,
+                MAX_OBJECTS
+            ),
             CreateDecision::Reply(status::ERR_RESOURCES)
         );
         // Replacing an existing object is still allowed.
         let first = obj(0, k::PARTICIPANT, None);
         assert_eq!(
-            g.decide_create(first.object_id, &first.variant, false, true),
+            g.decide_create(first.object_id, &first.variant, false, true, MAX_OBJECTS),
             CreateDecision::Replace
         );
     }

@@ -1,0 +1,330 @@
+//! Who may hold a session, and how much one client may send: the operator's allow-list of
+//! client keys, whether a session may follow its client to another endpoint, and per-client
+//! input rate quotas (messages and bytes per second).
+//!
+//! Sans-IO like the rest of the session core: the caller passes the time.
+
+use std::collections::HashSet;
+use std::fmt;
+use std::str::FromStr;
+use std::time::Instant;
+
+use crate::wire::ClientKey;
+
+/// Admission settings of a front-end's sessions.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Admission {
+    /// Client keys that may create a session; `None` admits every key. Others get
+    /// STATUS_ERR_DENIED (counted as `key_not_allowed`).
+    pub allowed_keys: Option<HashSet<ClientKey>>,
+    /// Whether a message presenting a session's client key from another endpoint (a new
+    /// source address or port, another connection) moves the session there. Off, only a
+    /// CREATE_CLIENT moves a session; other messages from a foreign endpoint are dropped
+    /// (counted as `foreign_endpoint`), so nobody who learns a key takes a session over.
+    pub allow_roaming: bool,
+    /// Input rate quota of each client.
+    pub rate: RateQuota,
+}
+
+impl Admission {
+    /// Whether this key may hold a session.
+    pub fn admits(&self, key: ClientKey) -> bool {
+        self.allowed_keys.as_ref().is_none_or(|k| k.contains(&key))
+    }
+}
+
+/// Most a client may send; beyond, its messages are dropped (counted as `rate_quota`):
+/// reliable ones unacknowledged (the client sends them again later: delayed, not lost),
+/// best-effort ones for good. Each bound allows a burst of one second's worth.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct RateQuota {
+    /// Messages (datagrams, or frames on a stream transport) per second.
+    pub messages_per_second: Option<u32>,
+    /// Bytes per second (of XRCE messages, headers included).
+    pub bytes_per_second: Option<u64>,
+}
+
+impl RateQuota {
+    /// Whether no bound is set.
+    pub fn is_unlimited(&self) -> bool {
+        self.messages_per_second.is_none() && self.bytes_per_second.is_none()
+    }
+}
+
+/// A client key as an operator writes it: 8 hexadecimal digits, optionally `0x`-prefixed,
+/// in the order the client's code writes the key (`0xAAAABBBB` is the key eProsima's examples
+/// pass as `0xAAAABBBB`).
+pub fn parse_client_key(s: &str) -> Result<ClientKey, KeyParseError> {
+    let t = s.trim();
+    let digits = t
+        .strip_prefix("0x")
+        .or_else(|| t.strip_prefix("0X"))
+        .unwrap_or(t);
+    if digits.len() != 8 || !digits.bytes().all(|b| b.is_ascii_hexdigit()) {
+        return Err(KeyParseError(s.to_string()));
+    }
+    u32::from_str_radix(digits, 16)
+        .map(|v| ClientKey(v.to_be_bytes()))
+        .map_err(|_| KeyParseError(s.to_string()))
+}
+
+/// A client key that is not 8 hexadecimal digits.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct KeyParseError(pub String);
+
+impl fmt::Display for KeyParseError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "client key {:?} is not 8 hexadecimal digits (e.g. 0xAAAABBBB)",
+            self.0
+        )
+    }
+}
+
+impl std::error::Error for KeyParseError {}
+
+/// A parsed key, for command-line parsers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct KeyArg(pub ClientKey);
+
+impl FromStr for KeyArg {
+    type Err = KeyParseError;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        parse_client_key(s).map(KeyArg)
+    }
+}
+
+/// Which bound of a [`RateQuota`] a message exceeded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum QuotaHit {
+    /// `messages_per_second`.
+    Messages,
+    /// `bytes_per_second`.
+    Bytes,
+}
+
+impl QuotaHit {
+    /// The bound's name, for logs.
+    pub fn name(self) -> &'static str {
+        match self {
+            QuotaHit::Messages => "messages_per_second",
+            QuotaHit::Bytes => "bytes_per_second",
+        }
+    }
+}
+
+/// One token, in the bucket's units: a bucket refills `rate` units a nanosecond, so whole
+/// tokens are counted exactly (no drift from floating point).
+const TOKEN: i128 = 1_000_000_000;
+
+/// A token bucket: `rate` tokens a second, holding at most a second's worth; it may go into
+/// debt by a message larger than that (which then waits its time out).
+#[derive(Debug, Clone)]
+struct Bucket {
+    rate: i128,
+    tokens: i128,
+    last: Instant,
+}
+
+impl Bucket {
+    fn new(rate: u64, now: Instant) -> Self {
+        let rate = i128::from(rate);
+        Bucket {
+            rate,
+            tokens: rate * TOKEN,
+            last: now,
+        }
+    }
+
+    fn refill(&mut self, now: Instant) {
+        let elapsed = now.saturating_duration_since(self.last).as_nanos();
+        let gained = i128::try_from(elapsed).unwrap_or(i128::MAX / 2) * self.rate;
+        self.tokens = self.tokens.saturating_add(gained).min(self.rate * TOKEN);
+        self.last = now;
+    }
+
+    /// Whether `n` tokens may be taken (at most a full bucket is asked for, so that a
+    /// message larger than a second's worth can pass at all).
+    fn has(&self, n: u64) -> bool {
+        self.tokens >= i128::from(n).min(self.rate) * TOKEN
+    }
+
+    fn take(&mut self, n: u64) {
+        self.tokens -= i128::from(n) * TOKEN;
+    }
+}
+
+/// One client's consumption of its [`RateQuota`], with the episode bookkeeping that keeps
+/// the log to one line when a client goes over and one when it is back within.
+#[derive(Debug, Clone)]
+pub struct RateMeter {
+    messages: Option<Bucket>,
+    bytes: Option<Bucket>,
+    /// Messages dropped since the client went over, if it is over.
+    over: Option<u64>,
+}
+
+/// What [`RateMeter::admit`] decided.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Metered {
+    /// Within the quota.
+    Admitted,
+    /// Within the quota again after `dropped` messages were refused.
+    BackWithin {
+        /// Messages dropped while over.
+        dropped: u64,
+    },
+    /// Over the quota: the first message refused since the client was last within it.
+    WentOver(QuotaHit),
+    /// Still over the quota.
+    StillOver,
+}
+
+impl RateMeter {
+    /// A meter for `quota`, full (a second's burst available) at `now`.
+    pub fn new(quota: RateQuota, now: Instant) -> Self {
+        RateMeter {
+            messages: quota
+                .messages_per_second
+                .map(|r| Bucket::new(u64::from(r), now)),
+            bytes: quota.bytes_per_second.map(|r| Bucket::new(r, now)),
+            over: None,
+        }
+    }
+
+    /// Charges one message of `len` bytes if both bounds have room for it (neither is
+    /// charged otherwise).
+    pub fn admit(&mut self, now: Instant, len: usize) -> Metered {
+        let len = len as u64;
+        let mut hit = None;
+        if let Some(b) = &mut self.messages {
+            b.refill(now);
+            if !b.has(1) {
+                hit = Some(QuotaHit::Messages);
+            }
+        }
+        if let Some(b) = &mut self.bytes {
+            b.refill(now);
+            if hit.is_none() && !b.has(len) {
+                hit = Some(QuotaHit::Bytes);
+            }
+        }
+        match (hit, self.over) {
+            (Some(_), Some(n)) => {
+                self.over = Some(n + 1);
+                Metered::StillOver
+            }
+            (Some(h), None) => {
+                self.over = Some(1);
+                Metered::WentOver(h)
+            }
+            (None, over) => {
+                if let Some(b) = &mut self.messages {
+                    b.take(1);
+                }
+                if let Some(b) = &mut self.bytes {
+                    b.take(len);
+                }
+                self.over = None;
+                match over {
+                    Some(dropped) => Metered::BackWithin { dropped },
+                    None => Metered::Admitted,
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    #[test]
+    fn keys_parse_with_or_without_prefix_in_the_clients_order() {
+        assert_eq!(
+            parse_client_key("0xAAAABBBB"),
+            Ok(ClientKey([0xAA, 0xAA, 0xBB, 0xBB]))
+        );
+        assert_eq!(
+            parse_client_key("dead0001"),
+            Ok(ClientKey([0xDE, 0xAD, 0x00, 0x01]))
+        );
+        for bad in [
+            "",
+            "0x",
+            "AAAABBB",
+            "AAAABBBBC",
+            "0xGGGGGGGG",
+            "+AAABBBB",
+            "0x-AABBCC",
+        ] {
+            assert!(parse_client_key(bad).is_err(), "{bad:?}");
+        }
+        // The error says what is expected.
+        let e = parse_client_key("12").expect_err("too short").to_string();
+        assert!(e.contains("8 hexadecimal digits"), "{e}");
+    }
+
+    #[test]
+    fn a_second_of_burst_then_the_rate() {
+        let t0 = Instant::now();
+        let quota = RateQuota {
+            messages_per_second: Some(10),
+            bytes_per_second: None,
+        };
+        let mut m = RateMeter::new(quota, t0);
+        for _ in 0..10 {
+            assert_eq!(m.admit(t0, 100), Metered::Admitted);
+        }
+        assert_eq!(m.admit(t0, 100), Metered::WentOver(QuotaHit::Messages));
+        assert_eq!(m.admit(t0, 100), Metered::StillOver);
+        // 100 ms later one message's worth came back.
+        let t1 = t0 + Duration::from_millis(100);
+        assert_eq!(m.admit(t1, 100), Metered::BackWithin { dropped: 2 });
+        assert_eq!(m.admit(t1, 100), Metered::WentOver(QuotaHit::Messages));
+        // Over a long run the rate holds: 10 a second.
+        let mut admitted = 0;
+        for i in 1..=1000u64 {
+            let t = t1 + Duration::from_millis(i * 10);
+            if matches!(
+                m.admit(t, 1),
+                Metered::Admitted | Metered::BackWithin { .. }
+            ) {
+                admitted += 1;
+            }
+        }
+        assert_eq!(admitted, 100);
+    }
+
+    #[test]
+    fn bytes_are_charged_only_when_both_bounds_have_room() {
+        let t0 = Instant::now();
+        let quota = RateQuota {
+            messages_per_second: Some(1000),
+            bytes_per_second: Some(1000),
+        };
+        let mut m = RateMeter::new(quota, t0);
+        assert_eq!(m.admit(t0, 600), Metered::Admitted);
+        assert_eq!(m.admit(t0, 600), Metered::WentOver(QuotaHit::Bytes));
+        // The refused message cost nothing: 400 bytes are still there.
+        assert_eq!(m.admit(t0, 400), Metered::BackWithin { dropped: 1 });
+        // A message above a second's worth passes on a full bucket.
+        let mut big = RateMeter::new(quota, t0);
+        assert_eq!(big.admit(t0, 5000), Metered::Admitted);
+        assert_eq!(big.admit(t0, 1), Metered::WentOver(QuotaHit::Bytes));
+    }
+
+    #[test]
+    fn an_allow_list_admits_only_its_keys() {
+        let open = Admission::default();
+        assert!(open.admits(ClientKey([1, 2, 3, 4])));
+        let listed = Admission {
+            allowed_keys: Some([ClientKey([1, 2, 3, 4])].into_iter().collect()),
+            ..Admission::default()
+        };
+        assert!(listed.admits(ClientKey([1, 2, 3, 4])));
+        assert!(!listed.admits(ClientKey([1, 2, 3, 5])));
+    }
+}

@@ -1,0 +1,243 @@
+//! Who may hold a session and how much a client may do, end to end: the allow-list of client
+//! keys, no takeover of a session from another socket (and roaming when allowed), the quota
+//! of objects per client, the input rate quota (a client over it is slowed, loses nothing).
+
+use std::net::UdpSocket;
+use std::time::{Duration, Instant};
+
+use xrce_common::session::client::{ClientConfig, ClientEvent};
+use xrce_common::wire::*;
+use xrce_tests::{free_udp_port, hello_world, xml, AgentProcess, DdsPeer, Link, TestClient};
+
+const SECOND: Duration = Duration::from_secs(1);
+
+fn agent(tag: &str, extra: &[&str]) -> AgentProcess {
+    let port = free_udp_port().to_string();
+    let mut args = vec!["udp4", "-p", &port, "--bind", "127.0.0.1"];
+    args.extend_from_slice(extra);
+    AgentProcess::launch(tag, &args).expect("agent")
+}
+
+/// A Cyclone reader of `count` reliable HelloWorld samples in `domain`.
+fn cyclone_reader(domain: &str, count: &str) -> DdsPeer {
+    DdsPeer::start(&[
+        "read",
+        "--domain",
+        domain,
+        "--count",
+        count,
+        "--reliable",
+        "--timeout",
+        "60",
+    ])
+}
+
+/// A client that puts its key in every header (session id below 0x80), as a session that
+/// another socket could name.
+fn keyed_client(agent: &AgentProcess, key: [u8; 4]) -> TestClient {
+    let mut config = ClientConfig::new(ClientKey(key));
+    config.session_id = 0x01;
+    TestClient::with_config(agent.addr(), config)
+}
+
+#[test]
+fn only_listed_keys_get_a_session_and_the_others_are_told_denied() {
+    let agent = agent("allowkeys", &["--allow-keys", "0xAAAABBBB,0x0000CAFE"]);
+    let mut listed = TestClient::new(agent.addr(), [0xAA, 0xAA, 0xBB, 0xBB]);
+    listed.connect(10 * SECOND);
+    // An unlisted key is refused with STATUS_ERR_DENIED, however often it tries.
+    for _ in 0..3 {
+        let mut other = TestClient::new(agent.addr(), [0x11, 0x11, 0x22, 0x22]);
+        other.client.connect(Instant::now());
+        let answered = other.run_until(10 * SECOND, |c| !c.events.is_empty());
+        assert!(answered, "no answer to an unlisted key's CREATE_CLIENT");
+        assert!(!other.client.is_connected());
+        assert!(
+            matches!(
+                other.events[..],
+                [ClientEvent::SessionStatus(s)] if s.status == status::ERR_DENIED
+            ),
+            "{:?}",
+            other.events
+        );
+    }
+    // The listed client is served meanwhile.
+    let p = ObjectId::new(1, object_kind::PARTICIPANT);
+    assert_eq!(
+        listed.create(
+            p,
+            object_kind::PARTICIPANT,
+            xml::PARTICIPANT,
+            VariantExtra::DomainId(70)
+        ),
+        status::OK
+    );
+    // One warning names the refused key; repeats are only counted.
+    let out = agent.output();
+    assert_eq!(out.count("not in --allow-keys"), 1);
+    assert!(out.count("11112222") >= 1);
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn another_socket_naming_a_session_does_not_take_it_over() {
+    let agent = agent("takeover", &[]);
+    let reader = cyclone_reader("71", "10");
+    let key = [0xAB, 0xCD, 0x00, 0x71];
+    let mut c = keyed_client(&agent, key);
+    c.connect(10 * SECOND);
+    let w = c.setup_publisher(71);
+    assert!(reader
+        .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+        .is_some());
+    // Someone who learnt the key writes into the session from their own socket, at every
+    // sequence number the client will use.
+    let intruder = UdpSocket::bind("127.0.0.1:0").expect("bind");
+    intruder
+        .set_read_timeout(Some(Duration::from_millis(300)))
+        .expect("timeout");
+    for seq in 0..20u16 {
+        let mut b = MessageBuilder::new(MessageHeader::new(
+            0x01,
+            stream_id::BUILTIN_RELIABLE,
+            seq,
+            ClientKey(key),
+        ));
+        b.push(
+            &Payload::WriteData(DataPayload {
+                base: BaseObjectRequest {
+                    request_id: RequestId::from_u16(0x100 + seq),
+                    object_id: w,
+                },
+                format: data_format::DATA,
+                data: &hello_world(u32::from(seq), "intruder"),
+            }),
+            true,
+        )
+        .expect("encode");
+        intruder.send_to(&b.finish(), agent.addr()).expect("send");
+    }
+    let mut buf = [0u8; 1024];
+    assert!(
+        intruder.recv_from(&mut buf).is_err(),
+        "the agent answered a foreign socket"
+    );
+    // The client goes on undisturbed: every one of its samples, none of the intruder's
+    // (collect_deliveries checks each message).
+    for i in 0..10 {
+        c.write_reliable(w, &hello_world(i, "genuine"));
+    }
+    let got = reader.collect_deliveries(10, "genuine", 30 * SECOND, || c.step());
+    got.assert_exactly_once(0..10, "the session's own client");
+    got.assert_in_order("the session's own client");
+    assert_eq!(
+        agent
+            .output()
+            .count("message for a session from another endpoint dropped"),
+        1
+    );
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn with_roaming_allowed_a_client_that_changes_socket_keeps_its_session() {
+    let agent = agent("roaming", &["--allow-roaming"]);
+    let reader = cyclone_reader("72", "20");
+    let mut c = keyed_client(&agent, [0xAB, 0xCD, 0x00, 0x72]);
+    c.connect(10 * SECOND);
+    let w = c.setup_publisher(72);
+    assert!(reader
+        .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+        .is_some());
+    for i in 0..10 {
+        c.write_reliable(w, &hello_world(i, "roaming"));
+    }
+    // A new source port (as after a NAT rebinding), no new CREATE_CLIENT.
+    c.link = Link::udp(agent.addr());
+    for i in 10..20 {
+        c.write_reliable(w, &hello_world(i, "roaming"));
+    }
+    let got = reader.collect_deliveries(20, "roaming", 30 * SECOND, || c.step());
+    got.assert_exactly_once(0..20, "a client that moved");
+    assert_eq!(agent.output().count("session roamed"), 1);
+    assert_eq!(agent.output().count("session created"), 1);
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn objects_beyond_the_quota_are_refused_with_err_resources() {
+    let agent = agent("objquota", &["--max-objects-per-client", "3"]);
+    let mut c = TestClient::new(agent.addr(), [0xAB, 0xCD, 0x00, 0x73]);
+    c.connect(10 * SECOND);
+    let p = ObjectId::new(1, object_kind::PARTICIPANT);
+    let t = ObjectId::new(1, object_kind::TOPIC);
+    let g = ObjectId::new(1, object_kind::PUBLISHER);
+    let e = ObjectId::new(1, object_kind::DATAWRITER);
+    let steps = [
+        (
+            p,
+            object_kind::PARTICIPANT,
+            xml::PARTICIPANT,
+            VariantExtra::DomainId(73),
+            status::OK,
+        ),
+        (
+            t,
+            object_kind::TOPIC,
+            xml::TOPIC,
+            VariantExtra::Parent(p),
+            status::OK,
+        ),
+        (
+            g,
+            object_kind::PUBLISHER,
+            "",
+            VariantExtra::Parent(p),
+            status::OK,
+        ),
+        (
+            e,
+            object_kind::DATAWRITER,
+            xml::WRITER,
+            VariantExtra::Parent(g),
+            status::ERR_RESOURCES,
+        ),
+    ];
+    for (id, kind, text, extra, expected) in steps {
+        assert_eq!(c.create(id, kind, text, extra), expected, "creating {id:?}");
+    }
+    assert!(agent.output().count("quota of objects") >= 1);
+    // Deleting one makes room again.
+    let req = c
+        .client
+        .delete(Instant::now(), g)
+        .expect("delete the publisher");
+    assert_eq!(c.wait_status(req, 10 * SECOND), status::OK);
+    assert_eq!(
+        c.create(g, object_kind::PUBLISHER, "", VariantExtra::Parent(p)),
+        status::OK
+    );
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn a_client_over_its_message_quota_is_slowed_and_loses_nothing() {
+    let agent = agent("ratequota", &["--max-client-messages-per-second", "40"]);
+    let reader = cyclone_reader("74", "120");
+    let mut c = TestClient::new(agent.addr(), [0xAB, 0xCD, 0x00, 0x74]);
+    c.connect(10 * SECOND);
+    let w = c.setup_publisher(74);
+    assert!(reader
+        .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+        .is_some());
+    // 120 reliable writes as fast as the window allows: three seconds' worth of the quota.
+    for i in 0..120 {
+        c.write_reliable(w, &hello_world(i, "metered"));
+    }
+    let got = reader.collect_deliveries(120, "metered", 60 * SECOND, || c.step());
+    got.assert_exactly_once(0..120, "a client over its quota");
+    got.assert_in_order("a client over its quota");
+    let out = agent.output();
+    assert!(out.count("over its rate quota") >= 1);
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
