@@ -16,6 +16,7 @@ use std::sync::Arc;
 
 use rustdds::{DomainParticipant, Publisher, QosPolicies, Subscriber, Topic, TopicKind};
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
+use xrce_common::ipc::status::{ProcessReport, Reporter, Watchdog, WorkerStatus};
 use xrce_common::ipc::{
     self, IpcHeader, MessageKind, FLAG_DIALECT_SPEC, FLAG_LITTLE_ENDIAN, FLAG_REPLAY,
     FLAG_STATUS_REQUESTED,
@@ -347,6 +348,14 @@ pub struct Worker {
     next_census: Instant,
     /// Counters by reason of rejected or failed work.
     pub dropped: HashMap<&'static str, u64>,
+    /// Samples accepted for DDS writers (written, or held until readers match).
+    samples_written: u64,
+    /// Samples taken from DDS readers and sent to front-ends.
+    samples_taken: u64,
+    /// Writes this process's status report.
+    reporter: Reporter,
+    /// Pings systemd's watchdog when the worker is a unit of its own.
+    watchdog: Watchdog,
 }
 
 impl std::fmt::Debug for Worker {
@@ -377,6 +386,7 @@ impl Worker {
         let generation = (nanos ^ std::process::id().rotate_left(16)) | 1;
         let pool = ParticipantPool::new(config.dds.clone());
         let ros_graph = config.ros_graph;
+        let config_instance = config.instance.clone();
         let w = Worker {
             config,
             node,
@@ -398,6 +408,10 @@ impl Worker {
             orphaned: HashMap::new(),
             next_census: Instant::now() + CENSUS_PERIOD,
             dropped: HashMap::new(),
+            samples_written: 0,
+            samples_taken: 0,
+            reporter: Reporter::new(&config_instance, "worker"),
+            watchdog: Watchdog::from_env(),
         };
         let mut hello = IpcHeader::new(MessageKind::WorkerHello);
         hello.generation = w.generation;
@@ -422,13 +436,30 @@ impl Worker {
             .requests
             .take()
             .ok_or_else(|| anyhow::anyhow!("the worker runs only once"))?;
+        let result = self.serve(&requests);
+        self.reporter.remove();
+        result
+    }
+
+    fn serve(&mut self, requests: &Receiver) -> anyhow::Result<()> {
         let mut events = Events::with_capacity(256);
         loop {
             if self.node.termination_requested() {
                 tracing::info!("termination requested");
                 return Ok(());
             }
-            let timeout = self.poll_timeout();
+            let now = Instant::now();
+            if now >= self.reporter.due() {
+                let report = self.status_report();
+                self.reporter.maybe_write(now, || report);
+            }
+            self.watchdog.maybe_ping(now);
+            // At least once per report period: the report's age is the loop's heartbeat.
+            let period = xrce_common::ipc::status::REPORT_PERIOD.as_millis() as i32;
+            let timeout = match self.poll_timeout() {
+                t if t < 0 => period,
+                t => t.min(period),
+            };
             let ready = xrce_common::ipc::shm::wait_readable(
                 &[requests.raw_fd(), self.poll.as_raw_fd()],
                 timeout,
@@ -636,6 +667,41 @@ impl Worker {
                     + 1
             })
             .unwrap_or(-1)
+    }
+
+    /// This worker's status report (what it holds and did).
+    fn status_report(&self) -> ProcessReport {
+        let mut entities: std::collections::BTreeMap<String, u64> = Default::default();
+        for e in self.entities.values() {
+            let kind = match &e.kind {
+                EntityKind::Participant(..) => "participant",
+                EntityKind::Topic(_) => "topic",
+                EntityKind::Publisher(..) => "publisher",
+                EntityKind::Subscriber(..) => "subscriber",
+                EntityKind::Type(_) => "type",
+                EntityKind::Writer(..) => "writer",
+                EntityKind::Reader(..) => "reader",
+                EntityKind::Service(_) => "service",
+            };
+            *entities.entry(kind.into()).or_default() += 1;
+        }
+        ProcessReport {
+            name: "worker".into(),
+            role: "worker".into(),
+            worker: Some(WorkerStatus {
+                generation: self.generation,
+                entities,
+                frontends: self.ports.len() as u64,
+                samples_written: self.samples_written,
+                samples_taken: self.samples_taken,
+                dropped: self
+                    .dropped
+                    .iter()
+                    .map(|(k, v)| (k.to_string(), *v))
+                    .collect(),
+            }),
+            ..Default::default()
+        }
     }
 
     /// The reply port of a front-end, opened on first use.
@@ -1438,6 +1504,7 @@ impl Worker {
             };
             let data = rebased.as_deref().unwrap_or(s.data);
             self.write_one(key, h.op_seq, little_endian, data, dispose)?;
+            self.samples_written += 1;
         }
         Ok(())
     }
@@ -1822,6 +1889,7 @@ impl Worker {
             *self.dropped.entry("content_filtered").or_default() += filtered;
         }
         let sent = out.len() as u32;
+        self.samples_taken += u64::from(sent);
         for (s, flags, identity) in out {
             let mut h = IpcHeader::new(MessageKind::Sample);
             h.frontend_id = key.0;

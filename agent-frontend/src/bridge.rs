@@ -315,6 +315,11 @@ impl Bridge {
         ]
     }
 
+    /// How many XRCE objects a client has.
+    pub fn object_count(&self, client: ClientKey) -> usize {
+        self.graphs.get(&client).map_or(0, ObjectGraph::len)
+    }
+
     /// Counters.
     pub fn stats(&self) -> &BridgeStats {
         &self.stats

@@ -70,6 +70,9 @@ pub struct FrontendArgs {
     /// This front-end's id within the instance (unique per front-end).
     #[arg(long, default_value_t = 0)]
     pub frontend_id: u32,
+    /// Its name in status reports, metrics and logs (default: `frontend-<id>`).
+    #[arg(long)]
+    pub name: Option<String>,
     /// The transport served.
     #[arg(long, value_enum, default_value = "udp4")]
     pub transport: TransportKind,
@@ -390,5 +393,20 @@ fn serve<T: Transport>(
     if let Some(keys) = &config.admission.allowed_keys {
         tracing::info!(keys = keys.len(), "only listed client keys are admitted");
     }
-    crate::event_loop::run(transport, bridge, config, discovery, on_serving)
+    let who = crate::status::Identity {
+        name: args
+            .name
+            .clone()
+            .unwrap_or_else(|| format!("frontend-{}", args.frontend_id)),
+        id: args.frontend_id,
+    };
+    crate::event_loop::run(
+        &args.instance,
+        who,
+        transport,
+        bridge,
+        config,
+        discovery,
+        on_serving,
+    )
 }

@@ -13,8 +13,11 @@ use mio::unix::SourceFd;
 use mio::{Events, Interest, Poll, Token};
 use xrce_common::session::agent::{Agent, AgentConfig};
 
+use xrce_common::ipc::status::{Reporter, Watchdog};
+
 use crate::bridge::Bridge;
 use crate::report::StatsReport;
+use crate::status::Identity;
 use crate::transport::discovery::Discovery;
 use crate::transport::Transport;
 
@@ -34,13 +37,42 @@ const MAX_SLEEP: Duration = Duration::from_secs(1);
 /// Called once the front-end serves: its transport is registered and a worker answered.
 pub type OnServing = Box<dyn FnOnce()>;
 
-/// Runs a front-end over `transport` until SIGINT/SIGTERM.
+/// Runs front-end `who` of `instance` over `transport` until SIGINT/SIGTERM.
 pub fn run<T: Transport>(
+    instance: &str,
+    who: Identity,
     mut transport: T,
     mut bridge: Bridge,
     mut config: AgentConfig,
     mut discovery: Option<Discovery>,
     mut on_serving: Option<OnServing>,
+) -> anyhow::Result<()> {
+    let mut reporter = Reporter::new(instance, &format!("frontend-{}", who.id));
+    let mut watchdog = Watchdog::from_env();
+    let result = serve(
+        &who,
+        &mut reporter,
+        &mut watchdog,
+        &mut transport,
+        &mut bridge,
+        &mut config,
+        &mut discovery,
+        &mut on_serving,
+    );
+    reporter.remove();
+    result
+}
+
+#[allow(clippy::too_many_arguments)]
+fn serve<T: Transport>(
+    who: &Identity,
+    reporter: &mut Reporter,
+    watchdog: &mut Watchdog,
+    transport: &mut T,
+    bridge: &mut Bridge,
+    config: &mut AgentConfig,
+    discovery: &mut Option<Discovery>,
+    on_serving: &mut Option<OnServing>,
 ) -> anyhow::Result<()> {
     config.max_message_size = transport.max_message_size();
     let mut poll = Poll::new()?;
@@ -54,7 +86,7 @@ pub fn run<T: Transport>(
     }
     transport.register(poll.registry(), TRANSPORT_TOKENS)?;
     let name = transport.name();
-    let mut agent: Agent<T::Endpoint> = Agent::new(config);
+    let mut agent: Agent<T::Endpoint> = Agent::new(config.clone());
     let mut events = Events::with_capacity(1024);
     let mut report = StatsReport::new(Instant::now());
     let mut input_left = true;
@@ -80,7 +112,9 @@ pub fn run<T: Transport>(
                 agent.poll_timeout(),
                 bridge.poll_timeout(),
                 transport.poll_timeout(),
-                report.due(&agent, &bridge, transport.stats()),
+                report.due(&agent, bridge, transport.stats()),
+                Some(reporter.due()),
+                watchdog.due(),
             ]
             .into_iter()
             .flatten()
@@ -113,7 +147,7 @@ pub fn run<T: Transport>(
             agent.set_wall_clock(now, d);
         }
         input_left = transport.receive(now, RECV_BATCH, &mut |from, bytes| {
-            agent.handle_datagram(now, from, bytes, &mut bridge)
+            agent.handle_datagram(now, from, bytes, bridge)
         });
         while let Some(closed) = transport.poll_closed() {
             agent.endpoint_closed(closed);
@@ -127,10 +161,14 @@ pub fn run<T: Transport>(
             // A timer may have made input ready (a device reopened, accepting resumed).
             input_left = true;
         }
-        agent.handle_timeout(now, &mut bridge);
+        agent.handle_timeout(now, bridge);
         // After the timers: what they hand over (a dead client's deletion) goes out now.
         bridge.pump();
-        report.maybe_log(now, &agent, &bridge, name, transport.stats());
+        report.maybe_log(now, &agent, bridge, name, transport.stats());
+        reporter.maybe_write(now, || {
+            crate::status::report(who, now, &*transport, &agent, bridge)
+        });
+        watchdog.maybe_ping(now);
         while let Some(t) = agent.poll_transmit() {
             transport.send(t.destination, &t.data);
         }

@@ -7,7 +7,8 @@
 //! * [`event_loop`]: the one loop driving a transport, the session core and the bridge;
 //! * [`bridge`]: operations to the worker, replies back, replay after a worker restart;
 //! * [`cli`]: the front-end's settings and start-up;
-//! * [`report`]: counters in the log.
+//! * [`report`]: counters in the log;
+//! * [`status`]: the status report (sessions, counters) for `xrce-agent status` and metrics.
 #![deny(unsafe_code)]
 
 pub mod bridge;
@@ -15,4 +16,5 @@ pub mod cli;
 pub mod event_loop;
 mod owned_fd;
 pub mod report;
+pub mod status;
 pub mod transport;

@@ -9,7 +9,8 @@
 //!
 //! This crate owns no socket, no thread and no clock: callers pass bytes, sources and
 //! `Instant`s in, and take transmits, operations and timer deadlines out. The one exception
-//! is [`ipc::shm`] (feature `shm`): the iceoryx2 ports both processes use for the contract.
+//! is the process plumbing of feature `shm`: [`ipc::shm`], the iceoryx2 ports both processes
+//! use for the contract, and [`ipc::status`], the status reports each process writes.
 #![deny(unsafe_code)]
 
 pub mod framing;

@@ -52,6 +52,9 @@ pub enum Command {
     Pseudoterminal(PtyArgs),
     /// CAN FD (not supported by this agent).
     Canfd(CanfdArgs),
+    /// Show the live sessions and processes of a running agent (from its metrics endpoint
+    /// or the status reports of the agents on this machine).
+    Status(crate::status_view::StatusArgs),
     /// Internal: run the DDS worker (started by the supervisor).
     #[command(hide = true)]
     DdsWorker(xrce_dds_worker::cli::WorkerArgs),
@@ -112,6 +115,10 @@ pub struct Common {
     /// see one writer per group of clients.
     #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
     pub share_writers: bool,
+    /// Serve Prometheus metrics at http://ADDR:PORT/metrics and the live status (JSON) at
+    /// /status, e.g. 127.0.0.1:9464; off by default.
+    #[arg(long = "metrics", value_name = "ADDR:PORT")]
+    pub metrics: Option<SocketAddr>,
     #[command(flatten)]
     pub admission: xrce_frontend::cli::AdmissionArgs,
 }
@@ -444,7 +451,7 @@ pub fn plan(command: &Command) -> anyhow::Result<Option<(FrontendPlan, Common)>>
             )
             .into());
         }
-        Command::DdsWorker(_) | Command::Frontend(_) => return Ok(None),
+        Command::DdsWorker(_) | Command::Frontend(_) | Command::Status(_) => return Ok(None),
     }))
 }
 

@@ -63,7 +63,17 @@ struct File {
     #[serde(default)]
     worker: WorkerSection,
     #[serde(default)]
+    metrics: MetricsSection,
+    #[serde(default)]
     frontend: Vec<Spanned<FrontendSection>>,
+}
+
+/// `[metrics]`: the Prometheus endpoint (off unless `listen` is set).
+#[derive(Debug, Default, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MetricsSection {
+    /// Address and port of `/metrics` and `/status`, like `--metrics`.
+    listen: Option<Spanned<String>>,
 }
 
 /// `[agent]`: the group as a whole.
@@ -139,7 +149,12 @@ pub struct GatewayFrontend {
 impl GatewayFrontend {
     /// The hidden `frontend` subcommand's arguments.
     pub fn frontend_args(&self) -> Vec<String> {
-        let mut a = vec!["--frontend-id".to_string(), self.id.to_string()];
+        let mut a = vec![
+            "--frontend-id".to_string(),
+            self.id.to_string(),
+            "--name".into(),
+            self.name.clone(),
+        ];
         a.extend(self.plan.frontend_args());
         if let Some(d) = self.discovery {
             a.extend(["--discovery".into(), d.to_string()]);
@@ -167,6 +182,8 @@ pub struct Gateway {
     pub worker: WorkerSection,
     /// The front-ends, in file order.
     pub frontends: Vec<GatewayFrontend>,
+    /// `[metrics] listen`: where the metrics endpoint is served, if anywhere.
+    pub metrics: Option<SocketAddr>,
 }
 
 /// Why a gateway file is refused.
@@ -269,6 +286,18 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
         }
         worker.refs = Some(Spanned::new(r.span(), resolved));
     }
+    let metrics = match &file.metrics.listen {
+        Some(l) => Some(l.get_ref().parse::<SocketAddr>().map_err(|_| {
+            c.err(
+                l.span(),
+                format!(
+                    "metrics.listen {:?} is not an address and port (e.g. \"127.0.0.1:9464\" or \"[::1]:9464\")",
+                    l.get_ref()
+                ),
+            )
+        })?),
+        None => None,
+    };
     if file.frontend.is_empty() {
         return Err(c.err(
             0..0,
@@ -461,6 +490,14 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
                 "must be 1-48 characters of [A-Za-z0-9_-]",
             ));
         }
+        if ["worker", "metrics", "supervisor"].contains(&name.as_str()) {
+            let span = f.name.as_ref().map_or(table.clone(), Spanned::span);
+            return Err(here(
+                "name",
+                span,
+                &format!("{name:?} names another process of the agent (for --process)"),
+            ));
+        }
         if let Some(other) = names.insert(name.clone(), n) {
             let span = f.name.as_ref().map_or(table.clone(), Spanned::span);
             return Err(here(
@@ -539,6 +576,7 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
         agent: file.agent,
         worker,
         frontends,
+        metrics,
     })
 }
 

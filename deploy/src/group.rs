@@ -12,12 +12,15 @@ use xrce_frontend::cli::TransportKind;
 use crate::cli::{Common, FrontendPlan, DEFAULT_VERBOSITY};
 use crate::gateway::Gateway;
 use crate::{readiness, supervise, verbosity_filter, ChildSpec};
+use xrce_common::ipc::status;
 
 /// One front-end of the group.
 #[derive(Debug, Clone)]
 pub struct FrontendLaunch {
     /// Name for logs and readiness (and `--process`).
     pub name: String,
+    /// Its id within the instance.
+    pub id: u32,
     /// What it serves.
     pub plan: FrontendPlan,
     /// Arguments of the hidden `frontend` subcommand, the pty descriptor aside.
@@ -40,6 +43,8 @@ pub struct Group {
     pub env: Vec<(String, String)>,
     /// The front-ends.
     pub frontends: Vec<FrontendLaunch>,
+    /// Where the metrics endpoint is served, if anywhere.
+    pub metrics: Option<std::net::SocketAddr>,
 }
 
 /// The log filter: `-v` (or the file's `verbose`) first, then XRCE_LOG, then the default.
@@ -126,7 +131,12 @@ impl Group {
             "XRCE_CLIENT_DEAD_TIME".into(),
             common.client_dead_time.to_string(),
         ));
-        let mut args = vec!["--frontend-id".to_string(), "0".into()];
+        let mut args = vec![
+            "--frontend-id".to_string(),
+            "0".into(),
+            "--name".into(),
+            frontend.label(),
+        ];
         args.extend(frontend.frontend_args());
         args.extend(common.admission.to_args());
         if let Some(port) = common.discovery {
@@ -145,8 +155,10 @@ impl Group {
             stem,
             filter,
             env,
+            metrics: common.metrics,
             frontends: vec![FrontendLaunch {
                 name: frontend.label(),
+                id: 0,
                 plan: frontend,
                 args,
             }],
@@ -181,6 +193,7 @@ impl Group {
             .iter()
             .map(|f| FrontendLaunch {
                 name: f.name.clone(),
+                id: f.id,
                 plan: f.plan.clone(),
                 args: f.frontend_args(),
             })
@@ -192,6 +205,7 @@ impl Group {
             filter,
             env,
             frontends,
+            metrics: g.metrics,
         })
     }
 
@@ -225,6 +239,8 @@ impl Group {
             args: vec!["dds-worker".into()],
             env: self.env.clone(),
             fds: Vec::new(),
+            role: "worker".into(),
+            report: Some("worker".into()),
         }];
         let mut ready = Vec::new();
         // Kept open for the group's life: a restarted front-end gets the same pty.
@@ -256,6 +272,8 @@ impl Group {
                 args,
                 env,
                 fds,
+                role: "frontend".into(),
+                report: Some(format!("frontend-{}", f.id)),
             });
         }
         let plans: Vec<String> = self
@@ -269,7 +287,22 @@ impl Group {
             self.stem.clone(),
             self.explicit_instance,
         );
+        let status_dir = status::status_dir(&self.instance);
+        let dir = status_dir.clone();
         let cleanup = move |last: bool| {
+            if last {
+                let _ = std::fs::remove_dir_all(&dir);
+            } else {
+                status::remove_dead_reports(&dir);
+                if !explicit {
+                    // Status directories of earlier agents with this stem, all dead.
+                    for (name, d) in status::instance_dirs() {
+                        if name.starts_with(&stem) && status::read_reports(&d).is_empty() {
+                            let _ = std::fs::remove_dir_all(&d);
+                        }
+                    }
+                }
+            }
             if !last && !explicit {
                 // Leftovers of earlier agents with this stem that died without cleaning up.
                 for dead in xrce_common::ipc::shm::dead_instances(&stem) {
@@ -298,7 +331,15 @@ impl Group {
                 }
             });
         };
-        supervise(specs, cleanup, report_ready)?;
+        if let Some(listen) = self.metrics {
+            // Bound before the children start: a taken port fails the start, clearly.
+            crate::metrics::serve(listen, &self.instance)?;
+        }
+        let monitoring = crate::Monitoring {
+            dir: status_dir,
+            stale_after: stall_timeout()?,
+        };
+        supervise(specs, cleanup, report_ready, Some(monitoring))?;
         drop(ptys);
         Ok(())
     }
@@ -314,6 +355,12 @@ impl Group {
         }
         let exe = std::env::current_exe()
             .map_err(|e| anyhow::anyhow!("locating this executable: {e}"))?;
+        if name == "metrics" {
+            let listen = self.metrics.ok_or_else(|| {
+                anyhow::anyhow!("--process metrics needs [metrics] listen in the file")
+            })?;
+            return serve_metrics_alone(listen, &self.instance);
+        }
         let mut cmd = std::process::Command::new(exe);
         if name == "worker" {
             cmd.arg("dds-worker");
@@ -333,5 +380,40 @@ impl Group {
         cmd.envs(self.env.iter().map(|(k, v)| (k, v)));
         tracing::info!(process = name, instance = %self.instance, "starting");
         Err(anyhow::anyhow!("starting {name}: {}", cmd.exec()))
+    }
+}
+
+/// `--process metrics`: the metrics endpoint alone in the foreground, for deployments that
+/// run each process as a unit of its own (the reports are read from the shared status
+/// directory), until SIGINT or SIGTERM.
+fn serve_metrics_alone(listen: std::net::SocketAddr, instance: &str) -> anyhow::Result<()> {
+    use nix::sys::signal::{SigSet, Signal};
+    let mut set = SigSet::empty();
+    set.add(Signal::SIGINT);
+    set.add(Signal::SIGTERM);
+    set.thread_block()?;
+    crate::metrics::serve(listen, instance)?;
+    if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {
+        tracing::warn!(error = %e, "sd_notify failed");
+    }
+    let signal = set.wait()?;
+    tracing::info!(?signal, "stopping");
+    Ok(())
+}
+
+/// How long a child may go without reporting before it is killed and restarted:
+/// `XRCE_STALL_TIMEOUT` seconds (0 turns the check off), else [`status::STALE_AFTER`].
+fn stall_timeout() -> anyhow::Result<Option<Duration>> {
+    match std::env::var("XRCE_STALL_TIMEOUT") {
+        Err(_) => Ok(Some(status::STALE_AFTER)),
+        Ok(v) => match v.trim().parse::<f64>() {
+            Ok(0.0) => Ok(None),
+            Ok(s) if s.is_finite() && (2.0..=86_400.0).contains(&s) => {
+                Ok(Some(Duration::from_secs_f64(s)))
+            }
+            _ => anyhow::bail!(
+                "XRCE_STALL_TIMEOUT={v:?}: seconds from 2 to 86400, or 0 for no stall check"
+            ),
+        },
     }
 }

@@ -12,7 +12,9 @@ use std::time::{Duration, Instant};
 pub mod cli;
 pub mod gateway;
 pub mod group;
+pub mod metrics;
 pub mod readiness;
+pub mod status_view;
 #[allow(unsafe_code)]
 mod sys;
 
@@ -21,6 +23,7 @@ use sys::wait_signal;
 
 use nix::sys::signal::{kill, SigSet, Signal};
 use nix::unistd::Pid;
+use xrce_common::ipc::status::{self, ChildStatus, ProcessReport, Reporter, Watchdog};
 
 /// One child process the supervisor keeps alive.
 #[derive(Debug, Clone)]
@@ -37,6 +40,20 @@ pub struct ChildSpec {
     /// in the child). The supervisor keeps them open, so a restarted child gets them again
     /// (a pseudoterminal keeps its path across front-end restarts).
     pub fds: Vec<(Arc<OwnedFd>, RawFd)>,
+    /// `worker` or `frontend` (for status reports and metrics).
+    pub role: String,
+    /// The stem of the status report it writes (`worker`, `frontend-<id>`): a report that
+    /// stops changing means a wedged loop, and the child is killed and restarted.
+    pub report: Option<String>,
+}
+
+/// Where the supervisor reads its children's status reports and writes its own.
+#[derive(Debug, Clone)]
+pub struct Monitoring {
+    /// The instance's status directory.
+    pub dir: PathBuf,
+    /// A child whose report is older than this is killed and restarted (never: `None`).
+    pub stale_after: Option<Duration>,
 }
 
 #[derive(Debug)]
@@ -47,6 +64,54 @@ struct Supervised {
     backoff: Duration,
     restart_at: Option<Instant>,
     restarts: u64,
+    watchdog_kills: u64,
+    /// The `updated_unix_ms` of its last report, and when (on the supervisor's monotonic
+    /// clock) that value was first seen: a wall-clock step cannot make a child look wedged.
+    last_report: Option<(u64, Instant)>,
+}
+
+impl Supervised {
+    fn status(&self, now: Instant) -> ChildStatus {
+        ChildStatus {
+            name: self.spec.name.clone(),
+            role: self.spec.role.clone(),
+            pid: self.child.as_ref().map(Child::id),
+            uptime_seconds: if self.child.is_some() {
+                (now.duration_since(self.started).as_secs_f64() * 1000.0).round() / 1000.0
+            } else {
+                0.0
+            },
+            restarts: self.restarts,
+            watchdog_kills: self.watchdog_kills,
+        }
+    }
+
+    /// Whether its loop stopped reporting: its report (of this very process) has not changed
+    /// for `stale_after`. A child that never reported is left alone, as is one whose reports
+    /// cannot be written at all.
+    fn is_wedged(
+        &mut self,
+        now: Instant,
+        reports: &[ProcessReport],
+        stale_after: Duration,
+    ) -> bool {
+        let Some(child) = self.child.as_ref().filter(|_| self.spec.report.is_some()) else {
+            self.last_report = None;
+            return false;
+        };
+        let Some(r) = reports.iter().find(|r| r.pid == child.id()) else {
+            return false;
+        };
+        match self.last_report {
+            Some((updated, since)) if updated == r.updated_unix_ms => {
+                now.duration_since(since) > stale_after
+            }
+            _ => {
+                self.last_report = Some((r.updated_unix_ms, now));
+                false
+            }
+        }
+    }
 }
 
 /// Back-off after the first crash; doubles up to [`MAX_BACKOFF`].
@@ -61,8 +126,10 @@ pub const STOP_GRACE: Duration = Duration::from_secs(5);
 fn spawn(spec: &ChildSpec) -> std::io::Result<Child> {
     let mut cmd = Command::new(&spec.program);
     cmd.args(&spec.args);
-    // Readiness reaches systemd through the supervisor (NotifyAccess=main).
+    // Readiness and the watchdog reach systemd through the supervisor (NotifyAccess=main).
     cmd.env_remove("NOTIFY_SOCKET");
+    cmd.env_remove("WATCHDOG_USEC");
+    cmd.env_remove("WATCHDOG_PID");
     for (k, v) in &spec.env {
         cmd.env(k, v);
     }
@@ -78,11 +145,15 @@ fn spawn(spec: &ChildSpec) -> std::io::Result<Child> {
 /// Runs the children until SIGINT or SIGTERM; returns the signal that stopped it.
 ///
 /// `cleanup(final)` runs before the children start (`false`) and after they all stopped
-/// (`true`); `on_started` runs once they are started, with the stop signals blocked.
+/// (`true`); `on_started` runs once they are started, with the stop signals blocked. With
+/// `monitoring`, the supervisor writes its own status report (its children, their restarts)
+/// every second and restarts a child whose report went stale; it pings systemd's watchdog
+/// from its loop when the unit sets one.
 pub fn supervise(
     specs: Vec<ChildSpec>,
     cleanup: impl Fn(bool),
     on_started: impl FnOnce(),
+    monitoring: Option<Monitoring>,
 ) -> anyhow::Result<Signal> {
     let mut set = SigSet::empty();
     set.add(Signal::SIGINT);
@@ -103,24 +174,61 @@ pub fn supervise(
             backoff: MIN_BACKOFF,
             restart_at: None,
             restarts: 0,
+            watchdog_kills: 0,
+            last_report: None,
         });
     }
     // Runs with SIGINT/SIGTERM blocked, so threads it starts leave them to this loop.
     on_started();
+    let mut reporter = monitoring
+        .as_ref()
+        .map(|m| Reporter::at(m.dir.clone(), "supervisor"));
+    let mut watchdog = Watchdog::from_env();
     loop {
         let now = Instant::now();
+        if let Some(r) = reporter.as_mut() {
+            let children_now: Vec<ChildStatus> = children.iter().map(|c| c.status(now)).collect();
+            r.maybe_write(now, || ProcessReport {
+                name: "supervisor".into(),
+                role: "supervisor".into(),
+                children: children_now,
+                ..Default::default()
+            });
+        }
+        watchdog.maybe_ping(now);
         let next = children.iter().filter_map(|c| c.restart_at).min();
         let timeout = next.map_or(Duration::from_secs(1), |t| {
             t.saturating_duration_since(now)
                 .max(Duration::from_millis(1))
+                .min(Duration::from_secs(1))
         });
         if let Some(s @ (Signal::SIGINT | Signal::SIGTERM)) = wait_signal(&set, timeout) {
             tracing::info!(signal = ?s, "stopping");
             stop_all(&mut children);
+            if let Some(r) = &reporter {
+                r.remove();
+            }
             cleanup(true);
             return Ok(s);
         }
         let now = Instant::now();
+        if let Some(m) = &monitoring {
+            if let Some(after) = m.stale_after {
+                let reports = status::read_reports(&m.dir);
+                for c in &mut children {
+                    if !c.is_wedged(now, &reports, after) {
+                        continue;
+                    }
+                    if let Some(child) = &c.child {
+                        tracing::error!(name = %c.spec.name, pid = child.id(), stale_after = ?after, "child stopped reporting (its event loop is stuck); killing it to restart it");
+                        c.watchdog_kills += 1;
+                        // Once per wedge: its exit is reaped below and it is restarted.
+                        c.last_report = None;
+                        let _ = kill(Pid::from_raw(child.id() as i32), Signal::SIGKILL);
+                    }
+                }
+            }
+        }
         for c in &mut children {
             if let Some(child) = c.child.as_mut() {
                 if let Ok(Some(status)) = child.try_wait() {

@@ -57,6 +57,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         return match command {
             Command::DdsWorker(args) => xrce_dds_worker::cli::run(args),
             Command::Frontend(args) => xrce_frontend::cli::run(args),
+            Command::Status(args) => xrce_agent::status_view::run(&args),
             _ => Ok(()),
         };
     };

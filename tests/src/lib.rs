@@ -233,11 +233,16 @@ impl AgentProcess {
     /// until it reports ready (every front-end serving), up to 30 s. Its output is collected
     /// ([`Self::output`]). `None` if it exited first.
     pub fn launch(tag: &str, args: &[&str]) -> Option<Self> {
+        Self::launch_with_env(tag, args, &[])
+    }
+
+    /// [`Self::launch`] with extra environment variables.
+    pub fn launch_with_env(tag: &str, args: &[&str], env: &[(&str, &str)]) -> Option<Self> {
         let instance = unique_instance(tag);
         let mut full: Vec<&str> = args.to_vec();
         full.extend(["--dds-interface", "127.0.0.1", "--instance", &instance]);
         let (ip, port) = ip_and_port(args);
-        Self::launch_raw(&full, instance.clone(), "agent ready", ip, port)
+        Self::spawn_collected(&full, instance.clone(), "agent ready", ip, port, env)
     }
 
     /// Starts `xrce-agent <args>` exactly as given (a gateway file names its instance and
@@ -249,6 +254,17 @@ impl AgentProcess {
         ip: std::net::IpAddr,
         port: u16,
     ) -> Option<Self> {
+        Self::spawn_collected(args, instance, ready, ip, port, &[])
+    }
+
+    fn spawn_collected(
+        args: &[&str],
+        instance: String,
+        ready: &str,
+        ip: std::net::IpAddr,
+        port: u16,
+        env: &[(&str, &str)],
+    ) -> Option<Self> {
         let full: Vec<String> = args.iter().map(|a| a.to_string()).collect();
         let mut child = Command::new(binaries().join("xrce-agent"))
             .args(&full)
@@ -256,6 +272,7 @@ impl AgentProcess {
                 "XRCE_LOG",
                 std::env::var("XRCE_TEST_LOG").unwrap_or_else(|_| "info".into()),
             )
+            .envs(env.iter().copied())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
@@ -398,6 +415,11 @@ impl AgentProcess {
         self.child.id()
     }
 
+    /// The agent's instance name.
+    pub fn instance(&self) -> &str {
+        &self.instance
+    }
+
     /// The agent's address.
     pub fn addr(&self) -> SocketAddr {
         SocketAddr::new(self.ip, self.port)
@@ -455,6 +477,12 @@ impl AgentProcess {
         assert!(
             left.is_empty(),
             "stale shared-memory files after stop: {left:?}"
+        );
+        let status = xrce_common::ipc::status::status_dir(&self.instance);
+        assert!(
+            !status.exists(),
+            "status reports left after stop in {}",
+            status.display()
         );
         clean
     }

@@ -301,6 +301,16 @@ fn gateway_files_are_checked_with_the_key_and_line() {
             1,
             "`device` is required",
         ),
+        (
+            "[metrics]\nlisten = \"localhost\"\n[[frontend]]\ntransport = \"udp4\"\nport = 1\n",
+            2,
+            "metrics.listen \"localhost\" is not an address and port",
+        ),
+        (
+            "[[frontend]]\ntransport = \"udp4\"\nport = 1\nname = \"metrics\"\n",
+            4,
+            "names another process of the agent",
+        ),
     ] {
         let path = write(&dir, text);
         let (code, _, stderr) = check(&path);

@@ -76,6 +76,13 @@ pub trait Transport {
 
     /// Where clients reach it, for discovery answers (empty for serial lines).
     fn locators(&self) -> Vec<TransportLocator>;
+
+    /// What it serves, for status reports (an address and port, or devices).
+    fn serving(&self) -> String;
+
+    /// Where an endpoint is, for status reports and logs (a peer address, or a device and
+    /// serial address).
+    fn describe(&self, endpoint: Self::Endpoint) -> String;
 }
 
 /// What a transport counted.

@@ -518,4 +518,20 @@ impl Transport for SerialTransport {
     fn locators(&self) -> Vec<TransportLocator> {
         Vec::new()
     }
+
+    fn serving(&self) -> String {
+        let paths: Vec<String> = self
+            .lines
+            .iter()
+            .map(|l| l.path().display().to_string())
+            .collect();
+        paths.join(", ")
+    }
+
+    fn describe(&self, endpoint: SerialEndpoint) -> String {
+        match self.lines.get(endpoint.line as usize) {
+            Some(l) => format!("{} address {}", l.path().display(), endpoint.address),
+            None => format!("line {} address {}", endpoint.line, endpoint.address),
+        }
+    }
 }

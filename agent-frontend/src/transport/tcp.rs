@@ -592,4 +592,20 @@ impl Transport for TcpTransport {
     fn locators(&self) -> Vec<TransportLocator> {
         super::discovery::ip_locators(self.local)
     }
+
+    fn serving(&self) -> String {
+        self.local.to_string()
+    }
+
+    fn describe(&self, endpoint: TcpEndpoint) -> String {
+        match self
+            .slots
+            .get(endpoint.slot as usize)
+            .and_then(Option::as_ref)
+            .filter(|c| c.generation == endpoint.generation)
+        {
+            Some(c) => c.peer.to_string(),
+            None => "(connection closed)".into(),
+        }
+    }
 }

@@ -161,4 +161,12 @@ impl Transport for UdpTransport {
     fn locators(&self) -> Vec<TransportLocator> {
         super::discovery::ip_locators(self.local)
     }
+
+    fn serving(&self) -> String {
+        self.local.to_string()
+    }
+
+    fn describe(&self, endpoint: SocketAddr) -> String {
+        endpoint.to_string()
+    }
 }

@@ -11,6 +11,8 @@
 
 #[cfg(feature = "shm")]
 pub mod shm;
+#[cfg(feature = "shm")]
+pub mod status;
 
 use crate::wire::{ClientKey, ObjectId, RequestId};
 

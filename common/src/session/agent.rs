@@ -165,6 +165,40 @@ pub trait OperationSink {
     fn operation(&mut self, op: Operation<'_>);
 }
 
+/// What one client sent, received and lost.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ClientCounters {
+    /// Messages accepted from it (its session's endpoint).
+    pub messages_in: u64,
+    /// Samples it wrote (WRITE_DATA submessages handed to DDS).
+    pub samples_in: u64,
+    /// Samples queued for it (DATA replies).
+    pub samples_out: u64,
+    /// Its messages and replies dropped, whatever the reason.
+    pub dropped: u64,
+}
+
+/// One live session, for status reports.
+#[derive(Debug, Clone)]
+pub struct SessionInfo<A> {
+    /// The client's key.
+    pub key: ClientKey,
+    /// Its session id.
+    pub session_id: u8,
+    /// Where it is reached.
+    pub endpoint: A,
+    /// Since the session was created.
+    pub age: Duration,
+    /// Since the client was last heard.
+    pub silent_for: Duration,
+    /// Whether its endpoint closed (the session waits for it to come back).
+    pub detached: bool,
+    /// Its dialect.
+    pub dialect: Dialect,
+    /// What it sent, received and lost.
+    pub counters: ClientCounters,
+}
+
 /// Counters of what the core did and dropped.
 #[derive(Debug, Clone, Default)]
 pub struct AgentStats {
@@ -176,9 +210,21 @@ pub struct AgentStats {
     pub retransmissions: u64,
     /// Dropped inputs and outputs, by reason.
     pub dropped: HashMap<&'static str, u64>,
+    /// Every drop, whatever the reason (the sum of `dropped`).
+    pub dropped_total: u64,
+    /// WRITE_DATA submessages handed to the DDS side (client to DDS).
+    pub samples_in: u64,
+    /// DATA replies queued for clients (DDS to client).
+    pub samples_out: u64,
 }
 
 impl AgentStats {
+    /// Counts one drop for `reason`.
+    fn count(&mut self, reason: &'static str) {
+        *self.dropped.entry(reason).or_default() += 1;
+        self.dropped_total += 1;
+    }
+
     /// Total drops for a reason.
     pub fn dropped(&self, reason: &str) -> u64 {
         self.dropped.get(reason).copied().unwrap_or(0)
@@ -215,6 +261,10 @@ struct ProxyClient<A> {
     meter: Option<RateMeter>,
     /// Messages dropped because they presented this client's key from another endpoint.
     foreign_drops: u64,
+    /// What this client sent, received and lost.
+    counters: ClientCounters,
+    /// When its session was created (a CREATE_CLIENT of the same session keeps it).
+    created_at: Instant,
     delete_requested: bool,
     /// When the session was created or its streams last reset by a CREATE_CLIENT.
     established_at: Instant,
@@ -445,6 +495,20 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         self.clients.len()
     }
 
+    /// The live sessions, as of `now`.
+    pub fn sessions(&self, now: Instant) -> impl Iterator<Item = SessionInfo<A>> + '_ {
+        self.clients.values().map(move |c| SessionInfo {
+            key: c.key,
+            session_id: c.session_id,
+            endpoint: c.addr,
+            age: now.saturating_duration_since(c.created_at),
+            silent_for: now.saturating_duration_since(c.last_heard),
+            detached: c.detached,
+            dialect: c.dialect,
+            counters: c.counters,
+        })
+    }
+
     /// Whether a client has a session.
     pub fn has_client(&self, key: ClientKey) -> bool {
         self.clients.contains_key(&key)
@@ -475,13 +539,13 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     }
 
     fn drop_input(&mut self, reason: &'static str, bytes: &[u8]) {
-        *self.stats.dropped.entry(reason).or_default() += 1;
+        self.stats.count(reason);
         tracing::debug!(reason, len = bytes.len(), "dropped input");
         tracing::trace!(reason, bytes = %hex(bytes), "dropped input bytes");
     }
 
     fn count_drop(&mut self, reason: &'static str) {
-        *self.stats.dropped.entry(reason).or_default() += 1;
+        self.stats.count(reason);
     }
 
     fn push_transmit(&mut self, destination: A, data: Vec<u8>) {
@@ -551,6 +615,28 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         }
         client.last_heard = now;
         client.detached = false;
+        client.counters.messages_in += 1;
+        let dropped_before = self.stats.dropped_total;
+        self.handle_session_message(now, key, header, hlen, bytes, sink);
+        let dropped = self.stats.dropped_total - dropped_before;
+        if let Some(c) = self.clients.get_mut(&key) {
+            c.counters.dropped += dropped;
+        }
+    }
+
+    /// A message of an existing session, from its endpoint.
+    fn handle_session_message(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        header: MessageHeader,
+        hlen: usize,
+        bytes: &[u8],
+        sink: &mut impl OperationSink,
+    ) {
+        let Some(client) = self.clients.get_mut(&key) else {
+            return;
+        };
         if let Some(meter) = &mut client.meter {
             match meter.admit(now, bytes.len()) {
                 Metered::Admitted => {}
@@ -796,11 +882,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                         && now.saturating_duration_since(existing.established_at)
                             < self.config.duplicate_create_guard;
                     if stale {
-                        *self
-                            .stats
-                            .dropped
-                            .entry("duplicate_create_client")
-                            .or_default() += 1;
+                        self.stats.count("duplicate_create_client");
                     } else {
                         existing.reset_streams();
                         existing.established_at = now;
@@ -841,6 +923,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                             meter: (!self.config.admission.rate.is_unlimited())
                                 .then(|| RateMeter::new(self.config.admission.rate, now)),
                             foreign_drops: 0,
+                            counters: ClientCounters::default(),
+                            created_at: now,
                             delete_requested: false,
                             established_at: now,
                             streams_used: false,
@@ -1028,6 +1112,10 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 request: d,
             }),
             Payload::WriteData(d) => {
+                self.stats.samples_in += 1;
+                if let Some(c) = self.clients.get_mut(&key) {
+                    c.counters.samples_in += 1;
+                }
                 let dialect = self.client_dialect(key);
                 sink.operation(Operation::Write {
                     client: key,
@@ -1155,7 +1243,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         } else {
             e.reason()
         };
-        *self.stats.dropped.entry(reason).or_default() += 1;
+        self.stats.count(reason);
         tracing::debug!(reason, id, error = %e, "dropped submessage");
         tracing::trace!(bytes = %hex(payload), "dropped submessage payload");
     }
@@ -1363,6 +1451,31 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     /// Queues a DATA reply for a read request on `stream` (0 = built-in reliable), in the
     /// DataFormat the read asked for.
     pub fn send_data(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        stream: u8,
+        reply: DataReply<'_>,
+    ) -> Result<(), SendError> {
+        let dropped_before = self.stats.dropped_total;
+        let result = self.queue_data(now, key, stream, reply);
+        let dropped = self.stats.dropped_total - dropped_before;
+        let queued = result.is_ok() && dropped == 0;
+        if let Some(c) = self.clients.get_mut(&key) {
+            if queued {
+                c.counters.samples_out += 1;
+            } else {
+                // Not queued (an error is counted by the caller in its own drops).
+                c.counters.dropped += dropped.max(1);
+            }
+        }
+        if queued {
+            self.stats.samples_out += 1;
+        }
+        result
+    }
+
+    fn queue_data(
         &mut self,
         now: Instant,
         key: ClientKey,

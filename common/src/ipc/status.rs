@@ -1,0 +1,416 @@
+//! Status reports: what each process of an agent instance is doing, for `xrce-agent status`,
+//! the metrics endpoint and the watchdog.
+//!
+//! Every process rewrites its own JSON report in the instance's status directory (in shared
+//! memory, `/dev/shm/xrce-status-<instance>/`) about every [`REPORT_PERIOD`], from its event
+//! loop: written to a temporary file and renamed, so a reader never sees half a report, and a
+//! report that stops changing means a wedged loop (the supervisor restarts that process).
+//! Readers take the reports of live processes only (a process killed hard leaves its file).
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use serde::{Deserialize, Serialize};
+
+/// How often a process rewrites its report.
+pub const REPORT_PERIOD: Duration = Duration::from_secs(1);
+/// A report older than this belongs to a process whose loop is stuck.
+pub const STALE_AFTER: Duration = Duration::from_secs(30);
+/// Overrides the directory of the reports (tests, or a system without `/dev/shm`).
+pub const STATUS_DIR_ENV: &str = "XRCE_STATUS_DIR";
+/// Prefix of the per-instance directories under `/dev/shm`.
+pub const DIR_PREFIX: &str = "xrce-status-";
+
+/// One process's report.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ProcessReport {
+    /// Its name in the group: `worker`, `supervisor` or the front-end's name.
+    pub name: String,
+    /// `worker`, `frontend` or `supervisor`.
+    pub role: String,
+    /// Its process id.
+    pub pid: u32,
+    /// When it started, in milliseconds since the Unix epoch.
+    pub started_unix_ms: u64,
+    /// When it wrote this report, in milliseconds since the Unix epoch.
+    pub updated_unix_ms: u64,
+    /// User and system CPU time it used, in seconds.
+    pub cpu_seconds: f64,
+    /// Its resident memory, in bytes.
+    pub resident_bytes: u64,
+    /// What a front-end serves, if it is one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frontend: Option<FrontendStatus>,
+    /// What the worker holds, if it is the worker.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub worker: Option<WorkerStatus>,
+    /// The supervisor's children, if it is the supervisor.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub children: Vec<ChildStatus>,
+}
+
+/// A front-end's part of its report.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct FrontendStatus {
+    /// Its id within the instance.
+    pub id: u32,
+    /// The transport (`udp4`, `tcp6`, `serial`, ...).
+    pub transport: String,
+    /// What it serves: an address and port, or devices.
+    pub serving: String,
+    /// Whether a worker answers it.
+    pub connected: bool,
+    /// Counters (names as the metrics name them, without the `xrce_` prefix).
+    pub counters: BTreeMap<String, u64>,
+    /// Dropped input and output, by reason.
+    pub dropped: BTreeMap<String, u64>,
+    /// The live sessions.
+    pub sessions: Vec<SessionStatus>,
+}
+
+/// One session of a front-end.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct SessionStatus {
+    /// The client key, as the client's code writes it (`0xAAAABBBB`).
+    pub client_key: String,
+    /// The session id.
+    pub session_id: u8,
+    /// Where the client is: an address and port, or a device and serial address.
+    pub peer: String,
+    /// `spec` or `eprosima`.
+    pub dialect: String,
+    /// Seconds since the session was created.
+    pub age_seconds: f64,
+    /// Seconds since the client was last heard.
+    pub last_heard_seconds: f64,
+    /// Whether its connection or device is gone (the session waits for it).
+    pub detached: bool,
+    /// Its XRCE objects (participants, topics, publishers, writers, ...).
+    pub entities: u64,
+    /// Messages received from it.
+    pub messages_in: u64,
+    /// Samples it wrote.
+    pub samples_in: u64,
+    /// Samples delivered to it.
+    pub samples_out: u64,
+    /// Its messages and replies dropped.
+    pub dropped: u64,
+}
+
+/// The worker's part of its report.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct WorkerStatus {
+    /// Its generation id.
+    pub generation: u32,
+    /// Its DDS entities by kind (`participant`, `topic`, `writer`, ...).
+    pub entities: BTreeMap<String, u64>,
+    /// Front-ends it answers.
+    pub frontends: u64,
+    /// Samples written to DDS.
+    pub samples_written: u64,
+    /// Samples taken from DDS readers and sent to front-ends.
+    pub samples_taken: u64,
+    /// Refused or failed work, by reason.
+    pub dropped: BTreeMap<String, u64>,
+}
+
+/// A child as the supervisor sees it.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct ChildStatus {
+    /// Its name in the group.
+    pub name: String,
+    /// `worker` or `frontend`.
+    pub role: String,
+    /// Its process id, while it runs.
+    pub pid: Option<u32>,
+    /// Seconds since it was (re)started.
+    pub uptime_seconds: f64,
+    /// How often it was restarted.
+    pub restarts: u64,
+    /// How often it was killed for not reporting (a wedged loop).
+    pub watchdog_kills: u64,
+}
+
+/// Milliseconds since the Unix epoch.
+pub fn unix_ms() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0, |d| d.as_millis() as u64)
+}
+
+/// The status directory of an instance.
+pub fn status_dir(instance: &str) -> PathBuf {
+    if let Some(dir) = std::env::var_os(STATUS_DIR_ENV) {
+        return PathBuf::from(dir);
+    }
+    let shm = Path::new("/dev/shm");
+    let base = if shm.is_dir() {
+        shm.to_path_buf()
+    } else {
+        std::env::temp_dir()
+    };
+    base.join(format!("{DIR_PREFIX}{instance}"))
+}
+
+/// The status directories of every instance on this machine (under `/dev/shm`), with their
+/// instance names.
+pub fn instance_dirs() -> Vec<(String, PathBuf)> {
+    if let Some(dir) = std::env::var_os(STATUS_DIR_ENV) {
+        return vec![("".into(), PathBuf::from(dir))];
+    }
+    let Ok(entries) = std::fs::read_dir("/dev/shm") else {
+        return Vec::new();
+    };
+    let mut out: Vec<(String, PathBuf)> = entries
+        .flatten()
+        .filter_map(|e| {
+            let name = e
+                .file_name()
+                .to_str()?
+                .strip_prefix(DIR_PREFIX)?
+                .to_string();
+            Some((name, e.path()))
+        })
+        .collect();
+    out.sort();
+    out
+}
+
+/// This process's CPU time (seconds) and resident memory (bytes), when /proc tells.
+pub fn own_usage() -> (f64, u64) {
+    let Ok(me) = procfs::process::Process::myself() else {
+        return (0.0, 0);
+    };
+    let Ok(stat) = me.stat() else {
+        return (0.0, 0);
+    };
+    let ticks = procfs::ticks_per_second().max(1) as f64;
+    let cpu = (stat.utime + stat.stime) as f64 / ticks;
+    let rss = stat.rss * procfs::page_size();
+    (cpu, rss)
+}
+
+/// Whether a process is alive (its /proc entry exists and is no zombie).
+pub fn is_alive(pid: u32) -> bool {
+    match procfs::process::Process::new(pid as i32).and_then(|p| p.stat()) {
+        Ok(s) => s.state != 'Z' && s.state != 'X',
+        Err(_) => false,
+    }
+}
+
+/// Writes the report of process `file_stem` atomically into `dir` (created if missing).
+pub fn write_report(dir: &Path, file_stem: &str, report: &ProcessReport) -> std::io::Result<()> {
+    std::fs::create_dir_all(dir)?;
+    let json = serde_json::to_vec(report).map_err(std::io::Error::other)?;
+    let tmp = dir.join(format!(".{file_stem}.{}.tmp", std::process::id()));
+    let mut f = std::fs::File::create(&tmp)?;
+    f.write_all(&json)?;
+    drop(f);
+    std::fs::rename(&tmp, dir.join(format!("{file_stem}.json")))
+}
+
+/// Removes the report of process `file_stem` (on a clean exit).
+pub fn remove_report(dir: &Path, file_stem: &str) {
+    let _ = std::fs::remove_file(dir.join(format!("{file_stem}.json")));
+}
+
+/// Removes the reports in `dir` of processes that are gone (killed hard, they leave theirs).
+pub fn remove_dead_reports(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let path = e.path();
+        let dead = std::fs::read(&path)
+            .ok()
+            .and_then(|b| serde_json::from_slice::<ProcessReport>(&b).ok())
+            .is_none_or(|r| !is_alive(r.pid));
+        if dead {
+            let _ = std::fs::remove_file(&path);
+        }
+    }
+}
+
+/// The reports in `dir` of processes that are alive, sorted by name; unreadable files are
+/// skipped.
+pub fn read_reports(dir: &Path) -> Vec<ProcessReport> {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Vec::new();
+    };
+    let mut out: Vec<ProcessReport> = entries
+        .flatten()
+        .filter(|e| e.path().extension().is_some_and(|x| x == "json"))
+        .filter_map(|e| std::fs::read(e.path()).ok())
+        .filter_map(|bytes| serde_json::from_slice::<ProcessReport>(&bytes).ok())
+        .filter(|r| is_alive(r.pid))
+        .collect();
+    out.sort_by(|a, b| (role_rank(&a.role), &a.name).cmp(&(role_rank(&b.role), &b.name)));
+    out
+}
+
+fn role_rank(role: &str) -> u8 {
+    match role {
+        "supervisor" => 0,
+        "worker" => 1,
+        _ => 2,
+    }
+}
+
+/// Rewrites one process's report every [`REPORT_PERIOD`] from its loop.
+#[derive(Debug)]
+pub struct Reporter {
+    dir: PathBuf,
+    file_stem: String,
+    started_unix_ms: u64,
+    next: std::time::Instant,
+    failed: bool,
+}
+
+impl Reporter {
+    /// Reports of process `file_stem` of `instance`.
+    pub fn new(instance: &str, file_stem: &str) -> Self {
+        Self::at(status_dir(instance), file_stem)
+    }
+
+    /// Reports of process `file_stem` in directory `dir`.
+    pub fn at(dir: PathBuf, file_stem: &str) -> Self {
+        Reporter {
+            dir,
+            file_stem: file_stem.to_string(),
+            started_unix_ms: unix_ms(),
+            next: std::time::Instant::now(),
+            failed: false,
+        }
+    }
+
+    /// When the next report is due.
+    pub fn due(&self) -> std::time::Instant {
+        self.next
+    }
+
+    /// Writes a report built by `build` if one is due (the process fields are filled in
+    /// here); returns whether it wrote one.
+    pub fn maybe_write(
+        &mut self,
+        now: std::time::Instant,
+        build: impl FnOnce() -> ProcessReport,
+    ) -> bool {
+        if now < self.next {
+            return false;
+        }
+        self.next = now + REPORT_PERIOD;
+        let mut report = build();
+        report.pid = std::process::id();
+        report.started_unix_ms = self.started_unix_ms;
+        report.updated_unix_ms = unix_ms();
+        let (cpu, rss) = own_usage();
+        report.cpu_seconds = cpu;
+        report.resident_bytes = rss;
+        match write_report(&self.dir, &self.file_stem, &report) {
+            Ok(()) => {
+                if self.failed {
+                    tracing::info!(dir = %self.dir.display(), "status reports written again");
+                    self.failed = false;
+                }
+            }
+            Err(e) => {
+                if !self.failed {
+                    tracing::warn!(dir = %self.dir.display(), error = %e, "cannot write the status report; `xrce-agent status` and the metrics will miss this process");
+                    self.failed = true;
+                }
+            }
+        }
+        true
+    }
+
+    /// Removes the report (clean exit).
+    pub fn remove(&self) {
+        remove_report(&self.dir, &self.file_stem);
+    }
+}
+
+/// systemd's watchdog: when the unit sets `WatchdogSec` (and so `WATCHDOG_USEC` for this
+/// process), [`Watchdog::maybe_ping`] from the event loop sends `WATCHDOG=1` at half the
+/// period, so a loop that stops turning gets the process restarted.
+#[derive(Debug)]
+pub struct Watchdog {
+    period: Option<Duration>,
+    next: std::time::Instant,
+}
+
+impl Watchdog {
+    /// The watchdog systemd set for this process, if any.
+    pub fn from_env() -> Self {
+        let period = sd_notify::watchdog_enabled().map(|d| (d / 2).max(Duration::from_millis(10)));
+        if let Some(p) = period {
+            tracing::info!(
+                ping_every_ms = p.as_millis() as u64,
+                "systemd watchdog enabled"
+            );
+        }
+        Watchdog {
+            period,
+            next: std::time::Instant::now(),
+        }
+    }
+
+    /// When the next ping is due (never without a watchdog).
+    pub fn due(&self) -> Option<std::time::Instant> {
+        self.period.map(|_| self.next)
+    }
+
+    /// Pings if a ping is due.
+    pub fn maybe_ping(&mut self, now: std::time::Instant) {
+        let Some(period) = self.period else {
+            return;
+        };
+        if now < self.next {
+            return;
+        }
+        self.next = now + period;
+        if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Watchdog]) {
+            tracing::warn!(error = %e, "systemd watchdog ping failed");
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_report_round_trips_and_dead_processes_are_left_out() {
+        let dir = std::env::temp_dir().join(format!("xrce-status-test-{}", std::process::id()));
+        let mut r = ProcessReport {
+            name: "udp".into(),
+            role: "frontend".into(),
+            pid: std::process::id(),
+            frontend: Some(FrontendStatus {
+                id: 3,
+                transport: "udp4".into(),
+                sessions: vec![SessionStatus {
+                    client_key: "0xAAAABBBB".into(),
+                    samples_in: 7,
+                    ..Default::default()
+                }],
+                ..Default::default()
+            }),
+            ..Default::default()
+        };
+        write_report(&dir, "frontend-udp", &r).expect("write");
+        assert_eq!(read_reports(&dir), vec![r.clone()]);
+        // A process that is gone (pid 0 is never a user process).
+        r.pid = 0;
+        write_report(&dir, "frontend-udp", &r).expect("write");
+        assert!(read_reports(&dir).is_empty());
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    #[test]
+    fn own_usage_is_measured() {
+        let (_, rss) = own_usage();
+        assert!(rss > 0, "resident memory of a running process");
+    }
+}

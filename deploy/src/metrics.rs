@@ -1,0 +1,482 @@
+//! The metrics endpoint (`--metrics ADDR:PORT`, `[metrics] listen`): a small HTTP server on
+//! its own thread that serves, from the status reports every process of the instance writes
+//! ([`xrce_common::ipc::status`]):
+//!
+//! * `/metrics`: the Prometheus text exposition (format 0.0.4), encoded by
+//!   `prometheus-client` from a collector that reads the reports on each scrape;
+//! * `/status`: the same reports as one JSON document ([`AgentStatus`]), which
+//!   `xrce-agent status --metrics URL` reads.
+//!
+//! Nothing is counted here: every number is a process's own counter, so a restarted
+//! process's counters start again from zero, which Prometheus's `rate()` handles.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use prometheus_client::collector::Collector;
+use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
+use prometheus_client::metrics::counter::ConstCounter;
+use prometheus_client::metrics::gauge::ConstGauge;
+use prometheus_client::metrics::MetricType;
+use prometheus_client::registry::Registry;
+use serde::{Deserialize, Serialize};
+use xrce_common::ipc::status::{self, ProcessReport};
+
+/// Everything `/status` says: the instance and the reports of its live processes.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct AgentStatus {
+    /// The instance name.
+    pub instance: String,
+    /// Reports of its live processes (supervisor, worker, front-ends).
+    pub processes: Vec<ProcessReport>,
+}
+
+impl AgentStatus {
+    /// The reports found now in an instance's status directory.
+    pub fn read(instance: &str, dir: &std::path::Path) -> Self {
+        AgentStatus {
+            instance: instance.to_string(),
+            processes: status::read_reports(dir),
+        }
+    }
+}
+
+/// Labels of one sample.
+type Labels = Vec<(&'static str, String)>;
+
+/// A sample's value: counts stay integers in the exposition.
+#[derive(Debug, Clone, Copy)]
+enum Value {
+    Count(u64),
+    Real(f64),
+}
+
+/// One metric family being filled in.
+struct Family {
+    name: &'static str,
+    help: &'static str,
+    kind: MetricType,
+    samples: Vec<(Labels, Value)>,
+}
+
+impl Family {
+    fn new(name: &'static str, kind: MetricType, help: &'static str) -> Self {
+        Family {
+            name,
+            help,
+            kind,
+            samples: Vec::new(),
+        }
+    }
+
+    fn add(&mut self, labels: Labels, value: u64) {
+        self.samples.push((labels, Value::Count(value)));
+    }
+
+    fn add_real(&mut self, labels: Labels, value: f64) {
+        self.samples.push((labels, Value::Real(value)));
+    }
+
+    fn encode(&self, encoder: &mut DescriptorEncoder<'_>) -> Result<(), std::fmt::Error> {
+        if self.samples.is_empty() {
+            return Ok(());
+        }
+        let mut metric = encoder.encode_descriptor(self.name, self.help, None, self.kind)?;
+        for (labels, value) in &self.samples {
+            let family = metric.encode_family(labels)?;
+            match (self.kind, *value) {
+                (MetricType::Counter, Value::Count(v)) => ConstCounter::new(v).encode(family)?,
+                (MetricType::Counter, Value::Real(v)) => ConstCounter::new(v).encode(family)?,
+                (_, Value::Count(v)) => {
+                    ConstGauge::new(i64::try_from(v).unwrap_or(i64::MAX)).encode(family)?
+                }
+                (_, Value::Real(v)) => ConstGauge::new(v).encode(family)?,
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The metric families of a status snapshot. Counter names are given without `_total`,
+/// which the encoder appends.
+fn families(s: &AgentStatus) -> Vec<Family> {
+    use MetricType::{Counter, Gauge};
+    let mut sessions = Family::new("xrce_sessions", Gauge, "Live XRCE sessions of a front-end.");
+    let mut connected = Family::new(
+        "xrce_frontend_connected",
+        Gauge,
+        "1 while a DDS worker answers the front-end, else 0.",
+    );
+    let per_frontend: [(&str, &'static str, &'static str); 9] = [
+        (
+            "messages_received",
+            "xrce_messages_received",
+            "XRCE messages received from clients.",
+        ),
+        (
+            "messages_sent",
+            "xrce_messages_sent",
+            "XRCE messages sent to clients (retransmissions included).",
+        ),
+        (
+            "samples_written",
+            "xrce_samples_written",
+            "Samples clients wrote (WRITE_DATA handed to DDS).",
+        ),
+        (
+            "samples_delivered",
+            "xrce_samples_delivered",
+            "Samples from DDS queued for clients (DATA).",
+        ),
+        (
+            "retransmissions",
+            "xrce_retransmissions",
+            "Reliable messages sent again to clients.",
+        ),
+        (
+            "reads_paused",
+            "xrce_reads_paused",
+            "Times a read was paused because its client did not keep up.",
+        ),
+        (
+            "replays",
+            "xrce_replays",
+            "Object graphs replayed to a new DDS worker.",
+        ),
+        (
+            "transport_opened",
+            "xrce_transport_connections_opened",
+            "Connections accepted or devices opened.",
+        ),
+        (
+            "transport_closed",
+            "xrce_transport_connections_closed",
+            "Connections or devices closed.",
+        ),
+    ];
+    let mut counters: Vec<Family> = per_frontend
+        .iter()
+        .map(|(_, name, help)| Family::new(name, Counter, help))
+        .collect();
+    let mut dropped = Family::new(
+        "xrce_dropped",
+        Counter,
+        "Input, output and operations dropped, by process and reason.",
+    );
+    let mut worker_entities = Family::new(
+        "xrce_worker_entities",
+        Gauge,
+        "DDS-side entities the worker holds, by kind.",
+    );
+    let mut worker_written = Family::new(
+        "xrce_worker_samples_written",
+        Counter,
+        "Samples the worker accepted for DDS writers.",
+    );
+    let mut worker_taken = Family::new(
+        "xrce_worker_samples_taken",
+        Counter,
+        "Samples the worker took from DDS readers for clients.",
+    );
+    let mut worker_restarts = Family::new(
+        "xrce_worker_restarts",
+        Counter,
+        "Times the supervisor restarted the DDS worker.",
+    );
+    let mut frontend_restarts = Family::new(
+        "xrce_frontend_restarts",
+        Counter,
+        "Times the supervisor restarted a front-end.",
+    );
+    let mut watchdog_kills = Family::new(
+        "xrce_watchdog_kills",
+        Counter,
+        "Children killed (and restarted) because their event loop stopped reporting.",
+    );
+    let mut cpu = Family::new(
+        "xrce_process_cpu_seconds",
+        Counter,
+        "User and system CPU time of each process of the agent.",
+    );
+    let mut memory = Family::new(
+        "xrce_process_resident_memory_bytes",
+        Gauge,
+        "Resident memory of each process of the agent.",
+    );
+    let mut start = Family::new(
+        "xrce_process_start_time_seconds",
+        Gauge,
+        "Start time of each process of the agent, in seconds since the Unix epoch.",
+    );
+    for p in &s.processes {
+        let process: Labels = vec![("process", p.name.clone())];
+        cpu.add_real(process.clone(), p.cpu_seconds);
+        memory.add(process.clone(), p.resident_bytes);
+        start.add_real(process.clone(), p.started_unix_ms as f64 / 1000.0);
+        if let Some(f) = &p.frontend {
+            let labels: Labels = vec![
+                ("frontend", p.name.clone()),
+                ("transport", f.transport.clone()),
+            ];
+            sessions.add(labels.clone(), f.sessions.len() as u64);
+            connected.add(labels.clone(), u64::from(f.connected));
+            for ((key, _, _), family) in per_frontend.iter().zip(counters.iter_mut()) {
+                family.add(labels.clone(), f.counters.get(*key).copied().unwrap_or(0));
+            }
+            for (reason, n) in &f.dropped {
+                dropped.add(
+                    vec![("process", p.name.clone()), ("reason", reason.clone())],
+                    *n,
+                );
+            }
+        }
+        if let Some(w) = &p.worker {
+            for (kind, n) in &w.entities {
+                worker_entities.add(vec![("kind", kind.clone())], *n);
+            }
+            worker_written.add(Vec::new(), w.samples_written);
+            worker_taken.add(Vec::new(), w.samples_taken);
+            for (reason, n) in &w.dropped {
+                dropped.add(
+                    vec![("process", p.name.clone()), ("reason", reason.clone())],
+                    *n,
+                );
+            }
+        }
+        for c in &p.children {
+            let name = process_name(&c.name);
+            match c.role.as_str() {
+                "worker" => worker_restarts.add(Vec::new(), c.restarts),
+                _ => frontend_restarts.add(vec![("frontend", name.clone())], c.restarts),
+            }
+            watchdog_kills.add(vec![("process", name)], c.watchdog_kills);
+        }
+    }
+    let mut out = vec![sessions, connected];
+    out.extend(counters);
+    out.extend([
+        dropped,
+        worker_entities,
+        worker_written,
+        worker_taken,
+        worker_restarts,
+        frontend_restarts,
+        watchdog_kills,
+        cpu,
+        memory,
+        start,
+    ]);
+    out
+}
+
+/// A supervisor child's name (`xrce-dds-worker`, `xrce-frontend-<name>`) as the process
+/// reports itself (`worker`, `<name>`).
+pub fn process_name(child: &str) -> String {
+    if child == "xrce-dds-worker" {
+        return "worker".into();
+    }
+    child
+        .strip_prefix("xrce-frontend-")
+        .unwrap_or(child)
+        .to_string()
+}
+
+/// Reads the reports on each scrape.
+#[derive(Debug)]
+struct StatusCollector {
+    instance: String,
+    dir: PathBuf,
+}
+
+impl Collector for StatusCollector {
+    fn encode(&self, mut encoder: DescriptorEncoder<'_>) -> Result<(), std::fmt::Error> {
+        let snapshot = AgentStatus::read(&self.instance, &self.dir);
+        for f in families(&snapshot) {
+            f.encode(&mut encoder)?;
+        }
+        Ok(())
+    }
+}
+
+/// The Prometheus text exposition of a snapshot.
+pub fn render(snapshot: &AgentStatus) -> Result<String, std::fmt::Error> {
+    #[derive(Debug)]
+    struct Fixed(AgentStatus);
+    impl Collector for Fixed {
+        fn encode(&self, mut encoder: DescriptorEncoder<'_>) -> Result<(), std::fmt::Error> {
+            for f in families(&self.0) {
+                f.encode(&mut encoder)?;
+            }
+            Ok(())
+        }
+    }
+    let mut registry = Registry::default();
+    registry.register_collector(Box::new(Fixed(snapshot.clone())));
+    let mut out = String::new();
+    prometheus_client::encoding::prometheus_text::encode(&mut out, &registry)?;
+    Ok(out)
+}
+
+/// Serves `/metrics` and `/status` for `instance` on `listen` from a thread of its own;
+/// fails at once if the address cannot be bound.
+pub fn serve(listen: SocketAddr, instance: &str) -> anyhow::Result<std::thread::JoinHandle<()>> {
+    let server = tiny_http::Server::http(listen)
+        .map_err(|e| anyhow::anyhow!("cannot serve metrics on {listen}: {e}"))?;
+    let dir = status::status_dir(instance);
+    let mut registry = Registry::default();
+    registry.register_collector(Box::new(StatusCollector {
+        instance: instance.to_string(),
+        dir: dir.clone(),
+    }));
+    let instance = instance.to_string();
+    tracing::info!(%listen, "metrics served at /metrics, status at /status");
+    let handle = std::thread::Builder::new()
+        .name("metrics".into())
+        .spawn(move || {
+            for request in server.incoming_requests() {
+                respond(request, &registry, &instance, &dir);
+            }
+        })?;
+    Ok(handle)
+}
+
+fn respond(
+    request: tiny_http::Request,
+    registry: &Registry,
+    instance: &str,
+    dir: &std::path::Path,
+) {
+    use tiny_http::{Header, Method, Response};
+    let path = request.url().split('?').next().unwrap_or("").to_string();
+    let header = |value: &str| Header::from_bytes("Content-Type", value).ok();
+    let (code, body, content_type) = match (request.method(), path.as_str()) {
+        (Method::Get, "/metrics") => {
+            let mut out = String::new();
+            match prometheus_client::encoding::prometheus_text::encode(&mut out, registry) {
+                Ok(()) => (
+                    200,
+                    out,
+                    prometheus_client::encoding::prometheus_text::CONTENT_TYPE,
+                ),
+                Err(_) => (500, "encoding failed\n".into(), "text/plain"),
+            }
+        }
+        (Method::Get, "/status") => {
+            let snapshot = AgentStatus::read(instance, dir);
+            match serde_json::to_string_pretty(&snapshot) {
+                Ok(json) => (200, json, "application/json"),
+                Err(e) => (500, format!("{e}\n"), "text/plain"),
+            }
+        }
+        (Method::Get, "/") => (
+            200,
+            "xrce-agent: /metrics (Prometheus), /status (JSON)\n".into(),
+            "text/plain",
+        ),
+        (Method::Get, _) => (
+            404,
+            "not found: try /metrics or /status\n".into(),
+            "text/plain",
+        ),
+        _ => (405, "only GET\n".into(), "text/plain"),
+    };
+    let mut response = Response::from_string(body).with_status_code(code);
+    if let Some(h) = header(content_type) {
+        response = response.with_header(h);
+    }
+    if let Err(e) = request.respond(response) {
+        tracing::debug!(error = %e, "metrics response not sent");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::collections::BTreeMap;
+    use xrce_common::ipc::status::{ChildStatus, FrontendStatus, WorkerStatus};
+
+    fn snapshot() -> AgentStatus {
+        AgentStatus {
+            instance: "t".into(),
+            processes: vec![
+                ProcessReport {
+                    name: "supervisor".into(),
+                    role: "supervisor".into(),
+                    children: vec![
+                        ChildStatus {
+                            name: "xrce-dds-worker".into(),
+                            role: "worker".into(),
+                            restarts: 2,
+                            ..Default::default()
+                        },
+                        ChildStatus {
+                            name: "xrce-frontend-udp4-8888".into(),
+                            role: "frontend".into(),
+                            restarts: 1,
+                            ..Default::default()
+                        },
+                    ],
+                    ..Default::default()
+                },
+                ProcessReport {
+                    name: "worker".into(),
+                    role: "worker".into(),
+                    cpu_seconds: 1.5,
+                    worker: Some(WorkerStatus {
+                        entities: BTreeMap::from([("writer".to_string(), 3)]),
+                        dropped: BTreeMap::from([("frontend_gone".to_string(), 1)]),
+                        ..Default::default()
+                    }),
+                    ..Default::default()
+                },
+                ProcessReport {
+                    name: "udp4-8888".into(),
+                    role: "frontend".into(),
+                    resident_bytes: 4096,
+                    frontend: Some(FrontendStatus {
+                        transport: "udp4".into(),
+                        connected: true,
+                        counters: BTreeMap::from([("samples_written".to_string(), 42)]),
+                        dropped: BTreeMap::from([("bad_header".to_string(), 5)]),
+                        sessions: vec![Default::default(), Default::default()],
+                        ..Default::default()
+                    }),
+                    ..Default::default()
+                },
+            ],
+        }
+    }
+
+    #[test]
+    fn the_exposition_names_counters_with_total_and_labels_them() {
+        let text = render(&snapshot()).expect("render");
+        for line in [
+            "# TYPE xrce_sessions gauge",
+            "xrce_sessions{frontend=\"udp4-8888\",transport=\"udp4\"} 2",
+            "# TYPE xrce_samples_written_total counter",
+            "xrce_samples_written_total{frontend=\"udp4-8888\",transport=\"udp4\"} 42",
+            "xrce_samples_delivered_total{frontend=\"udp4-8888\",transport=\"udp4\"} 0",
+            "xrce_dropped_total{process=\"udp4-8888\",reason=\"bad_header\"} 5",
+            "xrce_dropped_total{process=\"worker\",reason=\"frontend_gone\"} 1",
+            "xrce_worker_restarts_total 2",
+            "xrce_frontend_restarts_total{frontend=\"udp4-8888\"} 1",
+            "xrce_worker_entities{kind=\"writer\"} 3",
+            "xrce_process_cpu_seconds_total{process=\"worker\"} 1.5",
+            "xrce_process_resident_memory_bytes{process=\"udp4-8888\"} 4096",
+            "xrce_frontend_connected{frontend=\"udp4-8888\",transport=\"udp4\"} 1",
+        ] {
+            assert!(
+                text.lines().any(|l| l == line),
+                "missing {line:?} in:\n{text}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_status_document_round_trips() {
+        let s = snapshot();
+        let json = serde_json::to_string(&s).expect("encode");
+        let back: AgentStatus = serde_json::from_str(&json).expect("decode");
+        assert_eq!(back, s);
+    }
+}
