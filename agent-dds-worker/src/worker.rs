@@ -1163,6 +1163,8 @@ impl Worker {
                 let endpoint = self.create_service(&desc, domain, requester, little_endian)?;
                 self.readers.insert(endpoint.token, key);
                 tracing::info!(
+                    frontend = key.0,
+                    client = %key.1,
                     service = %desc.service_name,
                     request_topic = %desc.request_topic,
                     reply_topic = %desc.reply_topic,
@@ -1273,6 +1275,8 @@ impl Worker {
         let kd = ty.clone().and_then(KeyDescriptor::new).map(Arc::new);
         if tdesc.keyed && kd.is_none() {
             tracing::warn!(
+                frontend = key.0,
+                client = %key.1,
                 topic = %tdesc.name,
                 r#type = %tdesc.type_name,
                 known = ty.is_some(),
@@ -1575,6 +1579,8 @@ impl Worker {
             }
             // Bounded: a writer that would hold more stops waiting for its readers.
             tracing::warn!(
+                frontend = key.0,
+                client = %key.1,
                 held = rematch.held.len(),
                 "writer stops waiting for readers: too many samples held"
             );
@@ -1660,7 +1666,7 @@ impl Worker {
                         w.raw.write(sample)
                     };
                     if let Err(e) = &done {
-                        tracing::warn!(error = %e, dispose, "held sample not published");
+                        tracing::warn!(frontend = key.0, client = %key.1, error = %e, dispose, "held sample not published");
                     }
                     if done.is_err() {
                         failures += 1;

@@ -351,6 +351,7 @@ impl Bridge {
             self.stats.ops_dropped += 1;
             if self.stats.ops_dropped.is_power_of_two() {
                 tracing::warn!(
+                    client = %h.client_key,
                     dropped = self.stats.ops_dropped,
                     "operation dropped: outbox full"
                 );

@@ -47,6 +47,8 @@ pub fn run<T: Transport>(
     mut discovery: Option<Discovery>,
     mut on_serving: Option<OnServing>,
 ) -> anyhow::Result<()> {
+    // Every line this front-end logs names it (a gateway's front-ends share one log).
+    let _span = tracing::info_span!("frontend", name = %who.name).entered();
     let mut reporter = Reporter::new(instance, &format!("frontend-{}", who.id));
     let mut watchdog = Watchdog::from_env();
     let result = serve(

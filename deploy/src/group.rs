@@ -48,13 +48,28 @@ pub struct Group {
 }
 
 /// The log filter: `-v` (or the file's `verbose`) first, then XRCE_LOG, then the default.
-fn log_filter(verbose: Option<u8>) -> String {
-    match verbose {
+///
+/// RustDDS 0.15's writers warn "No locators" for every discovery message to the participant's
+/// own built-in readers: a participant discovers itself ("is myself, but some reflection is
+/// good"), the proxies of its own readers get only loopback locators, which RustDDS keeps
+/// for peers it has confirmed on this host, and it never confirms itself. Nothing is lost
+/// (a participant needs no copy of its own announcements), but it is about 3,500 lines per
+/// test run, so that target is kept at `error` unless the filter names it.
+pub fn log_filter(verbose: Option<u8>) -> String {
+    let filter = match verbose {
         Some(v) => verbosity_filter(v).to_string(),
         None => std::env::var("XRCE_LOG")
             .unwrap_or_else(|_| verbosity_filter(DEFAULT_VERBOSITY).to_string()),
+    };
+    if filter.contains(RUSTDDS_WRITER) || filter.trim() == "off" {
+        filter
+    } else {
+        format!("{filter},{RUSTDDS_WRITER}=error")
     }
 }
+
+/// The tracing target of RustDDS's transient "No locators" warnings.
+const RUSTDDS_WRITER: &str = "rustdds::rtps::writer";
 
 fn init_logging(filter: &str) {
     tracing_subscriber::fmt()

@@ -306,11 +306,11 @@ impl AgentProcess {
         None
     }
 
-    /// The agent's collected output (agents started with [`Self::launch`]).
+    /// The agent's collected output.
     pub fn output(&self) -> &AgentOutput {
         self.output
             .as_ref()
-            .expect("output is collected for agents started with launch()")
+            .expect("output is collected for every agent started here")
     }
 
     /// Starts an agent on a free port.
@@ -365,22 +365,33 @@ impl AgentProcess {
             args.extend(["--instance".to_string(), i.clone()]);
         }
         args.extend(extra.iter().map(|a| a.to_string()));
-        let child = Command::new(binaries().join("xrce-agent"))
+        let mut child = Command::new(binaries().join("xrce-agent"))
             .args(&args)
             .env(
                 "XRCE_LOG",
                 std::env::var("XRCE_TEST_LOG").unwrap_or_else(|_| "info".into()),
             )
             .envs(env.iter().copied())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
             .spawn()
             .expect("start xrce-agent");
+        // Collected (and echoed into the test's captured output, shown if it fails), so a
+        // passing suite prints nothing of its agents' logs.
+        let output = AgentOutput::default();
+        if let Some(out) = child.stdout.take() {
+            output.collect(out, true);
+        }
+        if let Some(err) = child.stderr.take() {
+            output.collect(err, true);
+        }
         let instance = instance.unwrap_or_else(|| format!("udp4-{port}-{}", child.id()));
         let mut agent = AgentProcess {
             child,
             port,
             instance,
             ip: addr.ip(),
-            output: None,
+            output: Some(output),
         };
         let end = Instant::now() + Duration::from_secs(20);
         while Instant::now() < end {
