@@ -12,7 +12,7 @@
 //! * When the outbox or the retention is full, [`OperationSink::has_room`] says no: the agent
 //!   core then stops acknowledging reliable messages and clients send them again later.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
 use std::time::{Duration, Instant};
 
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
@@ -218,6 +218,10 @@ pub struct Bridge {
     /// Sent operations whose STATUS a client waits for: seq -> (client, request, kind).
     pending: HashMap<u64, (ClientKey, BaseObjectRequest, MessageKind)>,
     graphs: HashMap<ClientKey, ObjectGraph>,
+    /// Clients whose objects changed, and clients whose reads changed outside of their own
+    /// messages, since [`Bridge::take_graph_changes`] (for the session store).
+    objects_changed: HashSet<ClientKey>,
+    reads_changed: HashSet<ClientKey>,
     replies_out: Vec<(ClientKey, BaseObjectRequest, ResultStatus)>,
     /// Reads paused because their client does not keep up: (client, reader) -> stream.
     paused: HashMap<(ClientKey, ObjectId), u8>,
@@ -288,6 +292,8 @@ impl Bridge {
             retained: ByteQueue::default(),
             pending: HashMap::new(),
             graphs: HashMap::new(),
+            objects_changed: HashSet::new(),
+            reads_changed: HashSet::new(),
             replies_out: Vec::new(),
             infos_out: Vec::new(),
             paused: HashMap::new(),
@@ -313,6 +319,26 @@ impl Bridge {
             self.replies.as_ref().map_or(-1, Receiver::raw_fd),
             self.announce.raw_fd(),
         ]
+    }
+
+    /// A client's object graph.
+    pub fn graph(&self, client: ClientKey) -> Option<&ObjectGraph> {
+        self.graphs.get(&client)
+    }
+
+    /// Takes over a client's graph a predecessor stored (before the first worker is seen:
+    /// the replay to it creates the objects and restarts the reads).
+    pub fn restore_graph(&mut self, client: ClientKey, graph: ObjectGraph) {
+        self.graphs.insert(client, graph);
+    }
+
+    /// The clients whose objects changed, and those whose reads changed without a message
+    /// of theirs, since the last call; their graphs are to be stored.
+    pub fn take_graph_changes(&mut self) -> (Vec<ClientKey>, Vec<ClientKey>) {
+        (
+            self.objects_changed.drain().collect(),
+            self.reads_changed.drain().collect(),
+        )
     }
 
     /// How many XRCE objects a client has.
@@ -657,6 +683,8 @@ impl Bridge {
                 let waited = self.pending.remove(&h.op_seq);
                 if !status::is_ok(code) {
                     if let Some(g) = self.graphs.get_mut(&h.client_key) {
+                        self.objects_changed.insert(h.client_key);
+                        self.reads_changed.insert(h.client_key);
                         if waited.is_some_and(|w| w.2 == MessageKind::Create) {
                             g.remove(h.object_id);
                         } else if g
@@ -750,6 +778,7 @@ impl Bridge {
                         .any(|(r, a)| *r == h.object_id && a.request_id == h.request_id);
                     if same {
                         g.end_read(h.object_id);
+                        self.reads_changed.insert(h.client_key);
                     }
                 }
             }
@@ -844,6 +873,7 @@ impl OperationSink for Bridge {
         match op {
             Operation::ClientCreated { client } => {
                 self.graphs.insert(client, ObjectGraph::default());
+                self.objects_changed.insert(client);
             }
             Operation::ClientDeleted { client } => {
                 self.graphs.remove(&client);
@@ -860,6 +890,7 @@ impl OperationSink for Bridge {
                 create,
                 little_endian,
             } => {
+                self.objects_changed.insert(client);
                 let graph = self.graphs.entry(client).or_default();
                 let id = create.base.object_id;
                 let max = self.max_objects;
@@ -899,6 +930,7 @@ impl OperationSink for Bridge {
                     .graphs
                     .get_mut(&client)
                     .is_some_and(|g| !g.remove(request.object_id).is_empty());
+                self.objects_changed.insert(client);
                 if known {
                     self.submit(
                         header(MessageKind::Delete, fe, client, request),

@@ -17,6 +17,7 @@ use xrce_common::ipc::status::{Reporter, Watchdog};
 
 use crate::bridge::Bridge;
 use crate::report::StatsReport;
+use crate::session_store::SessionStore;
 use crate::status::Identity;
 use crate::transport::discovery::Discovery;
 use crate::transport::Transport;
@@ -51,10 +52,19 @@ pub fn run<T: Transport>(
     let _span = tracing::info_span!("frontend", name = %who.name).entered();
     let mut reporter = Reporter::new(instance, &format!("frontend-{}", who.id));
     let mut watchdog = Watchdog::from_env();
+    let mut store = match SessionStore::open(instance, who.id) {
+        Ok(s) => Some(s),
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot keep sessions for a successor: a restart of this front-end will lose them");
+            None
+        }
+    };
+    config.track_sessions = store.is_some();
     let result = serve(
         &who,
         &mut reporter,
         &mut watchdog,
+        &mut store,
         &mut transport,
         &mut bridge,
         &mut config,
@@ -70,6 +80,7 @@ fn serve<T: Transport>(
     who: &Identity,
     reporter: &mut Reporter,
     watchdog: &mut Watchdog,
+    store: &mut Option<SessionStore>,
     transport: &mut T,
     bridge: &mut Bridge,
     config: &mut AgentConfig,
@@ -93,6 +104,15 @@ fn serve<T: Transport>(
     let mut report = StatsReport::new(Instant::now());
     let mut input_left = true;
     let mut discovery_left = true;
+    if let Some(s) = store.as_mut() {
+        let taken = crate::takeover::take_over(s, Instant::now(), &mut agent, bridge, &*transport);
+        if taken > 0 {
+            tracing::info!(
+                sessions = taken,
+                "sessions taken over from the previous front-end"
+            );
+        }
+    }
     // Pick up a worker that announced itself before we started.
     bridge.poll_ipc(Instant::now(), &mut agent, true, true);
     bridge.pump();
@@ -171,6 +191,17 @@ fn serve<T: Transport>(
             crate::status::report(who, now, &*transport, &agent, bridge)
         });
         watchdog.maybe_ping(now);
+        match store.as_mut() {
+            // Before anything goes out: a successor never finds the streams behind what
+            // the clients saw.
+            Some(s) => {
+                crate::takeover::persist(s, &mut agent, bridge, &*transport);
+                s.keep_alive(now);
+            }
+            None => {
+                let _ = bridge.take_graph_changes();
+            }
+        }
         while let Some(t) = agent.poll_transmit() {
             transport.send(t.destination, &t.data);
         }

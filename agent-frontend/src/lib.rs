@@ -8,7 +8,9 @@
 //! * [`bridge`]: operations to the worker, replies back, replay after a worker restart;
 //! * [`cli`]: the front-end's settings and start-up;
 //! * [`report`]: counters in the log;
-//! * [`status`]: the status report (sessions, counters) for `xrce-agent status` and metrics.
+//! * [`status`]: the status report (sessions, counters) for `xrce-agent status` and metrics;
+//! * [`session_store`] and [`takeover`]: sessions kept for, and taken over by, the next
+//!   front-end process after a crash or an upgrade.
 #![deny(unsafe_code)]
 
 pub mod bridge;
@@ -16,5 +18,7 @@ pub mod cli;
 pub mod event_loop;
 mod owned_fd;
 pub mod report;
+pub mod session_store;
 pub mod status;
+pub mod takeover;
 pub mod transport;

@@ -304,7 +304,11 @@ impl Group {
         );
         let status_dir = status::status_dir(&self.instance);
         let dir = status_dir.clone();
+        let sessions = status::sessions_dir(&self.instance);
         let cleanup = move |last: bool| {
+            // Sessions are handed from a front-end to its restarted successor; a new agent
+            // (and a stopped one) has none.
+            let _ = std::fs::remove_dir_all(&sessions);
             if last {
                 let _ = std::fs::remove_dir_all(&dir);
             } else {
@@ -314,6 +318,7 @@ impl Group {
                     for (name, d) in status::instance_dirs() {
                         if name.starts_with(&stem) && status::read_reports(&d).is_empty() {
                             let _ = std::fs::remove_dir_all(&d);
+                            let _ = std::fs::remove_dir_all(status::sessions_dir(&name));
                         }
                     }
                 }

@@ -489,6 +489,12 @@ impl AgentProcess {
             left.is_empty(),
             "stale shared-memory files after stop: {left:?}"
         );
+        let sessions = xrce_common::ipc::status::sessions_dir(&self.instance);
+        assert!(
+            !sessions.exists(),
+            "stored sessions left after stop in {}",
+            sessions.display()
+        );
         let status = xrce_common::ipc::status::status_dir(&self.instance);
         assert!(
             !status.exists(),

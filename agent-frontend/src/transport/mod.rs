@@ -83,6 +83,14 @@ pub trait Transport {
     /// Where an endpoint is, for status reports and logs (a peer address, or a device and
     /// serial address).
     fn describe(&self, endpoint: Self::Endpoint) -> String;
+
+    /// An endpoint as bytes a successor front-end turns back into the same endpoint with
+    /// [`Self::decode_endpoint`]; empty when it would not outlive this process (a TCP
+    /// connection closes with it).
+    fn encode_endpoint(&self, endpoint: Self::Endpoint) -> Vec<u8>;
+
+    /// The endpoint [`Self::encode_endpoint`] described, if this transport serves it.
+    fn decode_endpoint(&self, bytes: &[u8]) -> Option<Self::Endpoint>;
 }
 
 /// What a transport counted.

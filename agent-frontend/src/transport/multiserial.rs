@@ -534,4 +534,16 @@ impl Transport for SerialTransport {
             None => format!("line {} address {}", endpoint.line, endpoint.address),
         }
     }
+
+    fn encode_endpoint(&self, endpoint: SerialEndpoint) -> Vec<u8> {
+        let mut out = endpoint.line.to_le_bytes().to_vec();
+        out.push(endpoint.address);
+        out
+    }
+
+    fn decode_endpoint(&self, bytes: &[u8]) -> Option<SerialEndpoint> {
+        let [a, b, address] = bytes.try_into().ok()?;
+        let line = u16::from_le_bytes([a, b]);
+        ((line as usize) < self.lines.len()).then_some(SerialEndpoint { line, address })
+    }
 }

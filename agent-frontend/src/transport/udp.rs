@@ -169,4 +169,37 @@ impl Transport for UdpTransport {
     fn describe(&self, endpoint: SocketAddr) -> String {
         endpoint.to_string()
     }
+
+    fn encode_endpoint(&self, endpoint: SocketAddr) -> Vec<u8> {
+        let mut out = Vec::with_capacity(19);
+        match endpoint.ip() {
+            std::net::IpAddr::V4(ip) => {
+                out.push(4);
+                out.extend_from_slice(&ip.octets());
+            }
+            std::net::IpAddr::V6(ip) => {
+                out.push(6);
+                out.extend_from_slice(&ip.octets());
+            }
+        }
+        out.extend_from_slice(&endpoint.port().to_le_bytes());
+        out
+    }
+
+    fn decode_endpoint(&self, bytes: &[u8]) -> Option<SocketAddr> {
+        let (ip, port): (std::net::IpAddr, &[u8]) = match bytes.split_first()? {
+            (4, rest) if rest.len() == 6 => {
+                let o: [u8; 4] = rest[..4].try_into().ok()?;
+                (o.into(), &rest[4..])
+            }
+            (6, rest) if rest.len() == 18 => {
+                let o: [u8; 16] = rest[..16].try_into().ok()?;
+                (o.into(), &rest[16..])
+            }
+            _ => return None,
+        };
+        let port = u16::from_le_bytes(port.try_into().ok()?);
+        // Only a peer this socket can reach (the family it serves).
+        (ip.is_ipv4() == self.local.is_ipv4()).then(|| SocketAddr::new(ip, port))
+    }
 }

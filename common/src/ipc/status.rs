@@ -154,6 +154,23 @@ pub fn status_dir(instance: &str) -> PathBuf {
     base.join(format!("{DIR_PREFIX}{instance}"))
 }
 
+/// Where the front-ends of an instance keep their sessions for a successor (see the
+/// front-end's session store): `/dev/shm/xrce-sessions-<instance>/` (`XRCE_SESSION_DIR`
+/// overrides the parent). The supervisor empties it when the agent starts and stops.
+pub fn sessions_dir(instance: &str) -> PathBuf {
+    let base = std::env::var_os("XRCE_SESSION_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| {
+            let shm = Path::new("/dev/shm");
+            if shm.is_dir() {
+                shm.to_path_buf()
+            } else {
+                std::env::temp_dir()
+            }
+        });
+    base.join(format!("xrce-sessions-{instance}"))
+}
+
 /// The status directories of every instance on this machine (under `/dev/shm`), with their
 /// instance names.
 pub fn instance_dirs() -> Vec<(String, PathBuf)> {

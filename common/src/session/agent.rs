@@ -17,6 +17,7 @@ use std::time::{Duration, Instant};
 
 use super::admission::{Admission, Metered, RateMeter};
 use super::fragment::{fragments, Reassembly};
+use super::snapshot::{OutputSnapshot, SessionSnapshot};
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
 use crate::wire::cdr::CdrWriter;
 use crate::wire::info::{
@@ -79,6 +80,9 @@ pub struct AgentConfig {
     /// its session deleted; `None` keeps silent sessions (the reference agent's behaviour).
     /// Silent clients are probed with GET_INFO from a quarter of this on.
     pub client_dead_time: Option<Duration>,
+    /// Keep track of the sessions whose [`SessionSnapshot`] changed, for a front-end that
+    /// stores them so that its successor takes them over ([`Agent::take_session_changes`]).
+    pub track_sessions: bool,
 }
 
 impl Default for AgentConfig {
@@ -103,6 +107,7 @@ impl Default for AgentConfig {
             dialect: None,
             client_dead_time: None,
             admission: Admission::default(),
+            track_sessions: false,
         }
     }
 }
@@ -452,6 +457,10 @@ pub struct Agent<A> {
     stats: AgentStats,
     /// Replies already made for the datagram being handled.
     replied: Vec<Reply>,
+    /// Sessions whose snapshot changed since the last [`Agent::take_session_changes`]
+    /// (with `track_sessions`), and sessions deleted since.
+    changed: HashSet<ClientKey>,
+    removed: Vec<ClientKey>,
 }
 
 /// Replies the agent makes at most once per datagram, so that one datagram packed with
@@ -477,7 +486,159 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             wall_clock: None,
             stats: AgentStats::default(),
             replied: Vec::new(),
+            changed: HashSet::new(),
+            removed: Vec::new(),
         }
+    }
+
+    fn touch(&mut self, key: ClientKey) {
+        if self.config.track_sessions {
+            self.changed.insert(key);
+        }
+    }
+
+    /// The sessions whose snapshot may have changed, and the sessions deleted, since the
+    /// last call (empty unless `track_sessions`). A front-end stores the snapshots before
+    /// it sends what the core produced, so what a client saw acknowledged or numbered is
+    /// never behind what the stored state says.
+    pub fn take_session_changes(&mut self) -> (Vec<ClientKey>, Vec<ClientKey>) {
+        let changed: Vec<ClientKey> = self.changed.drain().collect();
+        (changed, std::mem::take(&mut self.removed))
+    }
+
+    /// The state a successor front-end needs to take a session over, with its endpoint
+    /// encoded by `endpoint`.
+    pub fn snapshot(
+        &self,
+        key: ClientKey,
+        endpoint: impl Fn(A) -> Vec<u8>,
+    ) -> Option<SessionSnapshot> {
+        let c = self.clients.get(&key)?;
+        let mut reliable_in: Vec<(u8, u16)> = c
+            .reliable_in
+            .iter()
+            .map(|(s, i)| (*s, i.expected()))
+            .collect();
+        let mut best_effort_in: Vec<(u8, u16)> = c
+            .best_effort_in
+            .iter()
+            .filter_map(|(s, i)| Some((*s, i.last()?)))
+            .collect();
+        let mut reliable_out: Vec<OutputSnapshot> = c
+            .reliable_out
+            .iter()
+            .map(|(s, o)| OutputSnapshot {
+                stream_id: *s,
+                next: o.reliable.next_seq(),
+                // A stream still asking the client where it is has nothing to resend.
+                in_flight: (!o.reliable.is_resyncing()).then(|| {
+                    o.reliable
+                        .in_flight()
+                        .map(|(seq, m)| (seq, m.to_vec()))
+                        .collect()
+                }),
+            })
+            .collect();
+        reliable_out.sort_by_key(|o| o.stream_id);
+        let mut best_effort_out: Vec<(u8, u16)> =
+            c.best_effort_out.iter().map(|(s, n)| (*s, *n)).collect();
+        for list in [&mut reliable_in, &mut best_effort_in, &mut best_effort_out] {
+            list.sort_unstable();
+        }
+        Some(SessionSnapshot {
+            key,
+            session_id: c.session_id,
+            endpoint: endpoint(c.addr),
+            mtu: c.mtu,
+            dialect: c.dialect,
+            dead_time: c.dead_time,
+            reliable_in,
+            best_effort_in,
+            reliable_out,
+            best_effort_out,
+        })
+    }
+
+    /// Takes over a session a front-end that died stored (its object graph is the bridge's
+    /// business): the client goes on where it was. Its reliable output streams first ask
+    /// the client where it is (a HEARTBEAT now); a session of this key that exists already
+    /// is kept instead.
+    pub fn restore(&mut self, now: Instant, snapshot: &SessionSnapshot, endpoint: A) -> bool {
+        if self.clients.contains_key(&snapshot.key) || self.clients.len() >= self.config.max_clients
+        {
+            return false;
+        }
+        let (in_window, out_window) = (self.config.input_window, self.config.output_window);
+        let reliable_out = snapshot
+            .reliable_out
+            .iter()
+            .map(|o| {
+                let reliable = match &o.in_flight {
+                    Some(m) => ReliableOutput::restored(o.stream_id, out_window, o.next, m.clone()),
+                    None => ReliableOutput::resuming(o.stream_id, out_window, o.next),
+                };
+                (
+                    o.stream_id,
+                    OutStream {
+                        queued_bytes: 0,
+                        reliable,
+                        queue: VecDeque::new(),
+                    },
+                )
+            })
+            .collect();
+        // A HEARTBEAT now: the client says what it lacks (or, resyncing, where it is).
+        let resyncing = snapshot
+            .reliable_out
+            .iter()
+            .any(|o| o.in_flight.as_ref().is_none_or(|m| !m.is_empty()));
+        self.clients.insert(
+            snapshot.key,
+            ProxyClient {
+                key: snapshot.key,
+                session_id: snapshot.session_id,
+                addr: endpoint,
+                mtu: snapshot.mtu,
+                last_heard: now,
+                reliable_in: snapshot
+                    .reliable_in
+                    .iter()
+                    .map(|(s, e)| (*s, ReliableInput::resuming(in_window, *e)))
+                    .collect(),
+                best_effort_in: snapshot
+                    .best_effort_in
+                    .iter()
+                    .map(|(s, l)| (*s, BestEffortInput::resuming(*l)))
+                    .collect(),
+                reliable_out,
+                best_effort_out: snapshot.best_effort_out.iter().copied().collect(),
+                reassembly: HashMap::new(),
+                heartbeat_due: resyncing.then_some(now),
+                heartbeat_interval: self.config.heartbeat_period,
+                timer: None,
+                meter: (!self.config.admission.rate.is_unlimited())
+                    .then(|| RateMeter::new(self.config.admission.rate, now)),
+                foreign_drops: 0,
+                counters: ClientCounters::default(),
+                created_at: now,
+                delete_requested: false,
+                // Not a fresh session: a CREATE_CLIENT now is the client's own restart.
+                established_at: now
+                    - self
+                        .config
+                        .duplicate_create_guard
+                        .min(Duration::from_secs(1)),
+                streams_used: true,
+                dialect: snapshot.dialect,
+                dead_time: snapshot.dead_time,
+                detached: false,
+                last_probe: None,
+            },
+        );
+        self.by_addr.insert(endpoint, snapshot.key);
+        self.schedule(snapshot.key);
+        tracing::info!(client = %snapshot.key, session = snapshot.session_id, ?endpoint, "session taken over from the previous front-end");
+        true
     }
 
     /// Tells the core what Unix time corresponds to `now`, for TIMESTAMP_REPLY.
@@ -618,6 +779,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         client.counters.messages_in += 1;
         let dropped_before = self.stats.dropped_total;
         self.handle_session_message(now, key, header, hlen, bytes, sink);
+        self.touch(key);
         let dropped = self.stats.dropped_total - dropped_before;
         if let Some(c) = self.clients.get_mut(&key) {
             c.counters.dropped += dropped;
@@ -942,6 +1104,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 }
             }
             self.schedule(c.client_key);
+            self.touch(c.client_key);
         } else if result == status::ERR_DENIED {
             if self.denied_logged.len() < 1024 && self.denied_logged.insert(c.client_key) {
                 tracing::warn!(client = %c.client_key, "CREATE_CLIENT refused: the key is not in --allow-keys (further attempts of this key are counted)");
@@ -1038,6 +1201,10 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
 
     fn remove_client(&mut self, key: ClientKey, sink: &mut impl OperationSink) {
         if let Some(c) = self.clients.remove(&key) {
+            if self.config.track_sessions {
+                self.changed.remove(&key);
+                self.removed.push(key);
+            }
             if self.by_addr.get(&c.addr) == Some(&key) {
                 self.by_addr.remove(&c.addr);
             }
@@ -1313,6 +1480,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
 
     /// Moves queued reliable submessages into free window slots and sends them.
     fn flush_client(&mut self, now: Instant, key: ClientKey) {
+        self.touch(key);
         let Some(c) = self.clients.get_mut(&key) else {
             return;
         };
@@ -1459,6 +1627,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     ) -> Result<(), SendError> {
         let dropped_before = self.stats.dropped_total;
         let result = self.queue_data(now, key, stream, reply);
+        self.touch(key);
         let dropped = self.stats.dropped_total - dropped_before;
         let queued = result.is_ok() && dropped == 0;
         if let Some(c) = self.clients.get_mut(&key) {

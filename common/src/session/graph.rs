@@ -5,7 +5,8 @@
 
 use std::collections::HashMap;
 
-use crate::wire::{status, ObjectId, ObjectVariant, ReadSpecification, RequestId};
+use crate::wire::cdr::{CdrReader, CdrWriter};
+use crate::wire::{status, DecodeError, ObjectId, ObjectVariant, ReadSpecification, RequestId};
 
 /// What to do with a CREATE, given what exists.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -209,6 +210,135 @@ impl ObjectGraph {
     }
 }
 
+/// Reads little-endian fields off a byte slice (the graph's stored form).
+struct Fields<'a>(&'a [u8]);
+
+impl<'a> Fields<'a> {
+    fn take(&mut self, n: usize) -> Result<&'a [u8], DecodeError> {
+        if self.0.len() < n {
+            return Err(DecodeError::Truncated);
+        }
+        let (head, rest) = self.0.split_at(n);
+        self.0 = rest;
+        Ok(head)
+    }
+
+    fn array<const N: usize>(&mut self) -> Result<[u8; N], DecodeError> {
+        self.take(N)?.try_into().map_err(|_| DecodeError::Truncated)
+    }
+
+    fn u32(&mut self) -> Result<u32, DecodeError> {
+        Ok(u32::from_le_bytes(self.array()?))
+    }
+}
+
+/// Most objects or reads a stored graph may hold (far above any quota).
+const MAX_STORED: u32 = 1 << 16;
+
+impl ObjectGraph {
+    /// The objects in their stored form (for a successor front-end): creation order, each
+    /// with its ids, byte order and XRCE-encoded variant.
+    pub fn encode_objects(&self) -> Vec<u8> {
+        let mut out = Vec::new();
+        out.extend_from_slice(&(self.objects.len() as u32).to_le_bytes());
+        for o in &self.objects {
+            let mut variant = Vec::new();
+            o.variant.encode(&mut CdrWriter::new(&mut variant, true));
+            out.extend_from_slice(&o.object_id.0);
+            out.extend_from_slice(&o.request_id.0);
+            out.push(u8::from(o.little_endian));
+            out.extend_from_slice(&(variant.len() as u32).to_le_bytes());
+            out.extend_from_slice(&variant);
+        }
+        out
+    }
+
+    /// The active reads in their stored form: ids, delivered count, XRCE-encoded read
+    /// specification and the delivered marks.
+    pub fn encode_reads(&self) -> Vec<u8> {
+        let mut reads: Vec<(&ObjectId, &ActiveRead)> = self.reads.iter().collect();
+        reads.sort_by_key(|(id, _)| id.0);
+        let mut out = Vec::new();
+        out.extend_from_slice(&(reads.len() as u32).to_le_bytes());
+        for (id, r) in reads {
+            let mut spec = Vec::new();
+            r.spec.encode(&mut CdrWriter::new(&mut spec, true));
+            out.extend_from_slice(&id.0);
+            out.extend_from_slice(&r.request_id.0);
+            out.extend_from_slice(&r.delivered.to_le_bytes());
+            out.extend_from_slice(&(spec.len() as u32).to_le_bytes());
+            out.extend_from_slice(&spec);
+            out.extend_from_slice(&(r.marks.marks.len() as u32).to_le_bytes());
+            for (writer, seq) in &r.marks.marks {
+                out.extend_from_slice(writer);
+                out.extend_from_slice(&seq.to_le_bytes());
+            }
+        }
+        out
+    }
+
+    /// A graph from what [`Self::encode_objects`] and [`Self::encode_reads`] made.
+    pub fn decode(objects: &[u8], reads: &[u8]) -> Result<Self, DecodeError> {
+        let mut g = ObjectGraph::default();
+        let mut f = Fields(objects);
+        let n = f.u32()?;
+        if n > MAX_STORED {
+            return Err(DecodeError::TooLong("stored objects"));
+        }
+        for _ in 0..n {
+            let object_id = ObjectId(f.array()?);
+            let request_id = RequestId(f.array()?);
+            let little_endian = f.array::<1>()?[0] != 0;
+            let len = f.u32()? as usize;
+            let variant = ObjectVariant::decode(&mut CdrReader::new(f.take(len)?, true))?;
+            g.objects.push(GraphObject {
+                object_id,
+                request_id,
+                variant,
+                little_endian,
+            });
+        }
+        if !f.0.is_empty() {
+            return Err(DecodeError::InvalidValue("bytes after the stored objects"));
+        }
+        let mut f = Fields(reads);
+        let n = f.u32()?;
+        if n > MAX_STORED {
+            return Err(DecodeError::TooLong("stored reads"));
+        }
+        for _ in 0..n {
+            let reader = ObjectId(f.array()?);
+            let request_id = RequestId(f.array()?);
+            let delivered = f.u32()?;
+            let len = f.u32()? as usize;
+            let spec = ReadSpecification::decode(&mut CdrReader::new(f.take(len)?, true))?;
+            let marks = f.u32()?;
+            if marks as usize > MAX_MARKED_WRITERS {
+                return Err(DecodeError::TooLong("stored delivered marks"));
+            }
+            let mut m = DeliveredMarks::default();
+            for _ in 0..marks {
+                let writer = f.array::<16>()?;
+                let seq = i64::from_le_bytes(f.array()?);
+                m.marks.push_back((writer, seq));
+            }
+            g.reads.insert(
+                reader,
+                ActiveRead {
+                    request_id,
+                    spec,
+                    delivered,
+                    marks: m,
+                },
+            );
+        }
+        if !f.0.is_empty() {
+            return Err(DecodeError::InvalidValue("bytes after the stored reads"));
+        }
+        Ok(g)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -226,6 +356,43 @@ mod tests {
                     .unwrap_or(VariantExtra::DomainId(0)),
             },
             little_endian: true,
+        }
+    }
+
+    #[test]
+    fn a_graph_round_trips_through_its_stored_form() {
+        let mut g = ObjectGraph::default();
+        let p = obj(1, k::PARTICIPANT, None);
+        let s = obj(2, k::SUBSCRIBER, Some(p.object_id));
+        let r = obj(3, k::DATAREADER, Some(s.object_id));
+        for o in [&p, &s, &r] {
+            g.insert(o.clone());
+        }
+        let mut marks = DeliveredMarks::default();
+        marks.record([7; 16], 41);
+        marks.record([9; 16], -2);
+        g.set_read(
+            r.object_id,
+            ActiveRead {
+                request_id: RequestId::from_u16(77),
+                spec: ReadSpecification {
+                    preferred_stream_id: 0x80,
+                    data_format: 0x08,
+                    content_filter_expression: Some("x > 3".into()),
+                    delivery_control: None,
+                    delivery_control_dheader: false,
+                },
+                delivered: 12,
+                marks,
+            },
+        );
+        let back = ObjectGraph::decode(&g.encode_objects(), &g.encode_reads()).expect("decode");
+        assert_eq!(back.objects, g.objects);
+        assert_eq!(back.reads, g.reads);
+        // Damaged bytes are refused, never misread.
+        let objects = g.encode_objects();
+        for cut in 0..objects.len() {
+            assert!(ObjectGraph::decode(&objects[..cut], &g.encode_reads()).is_err());
         }
     }
 

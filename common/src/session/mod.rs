@@ -15,4 +15,5 @@ pub mod discovery;
 pub mod fragment;
 pub mod graph;
 pub mod seq;
+pub mod snapshot;
 pub mod stream;

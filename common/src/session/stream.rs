@@ -17,6 +17,9 @@ pub struct ReliableOutput {
     /// Sent and not yet acknowledged, oldest first: (sequence number, whole message).
     in_flight: VecDeque<(u16, Vec<u8>)>,
     window: usize,
+    /// Taken over from a front-end that died: what the client received is unknown until its
+    /// first ACKNACK, so nothing is sent meanwhile (see [`Self::resuming`]).
+    resyncing: bool,
 }
 
 impl ReliableOutput {
@@ -27,7 +30,47 @@ impl ReliableOutput {
             next: 0,
             in_flight: VecDeque::new(),
             window: window.max(1),
+            resyncing: false,
         }
+    }
+
+    /// A stream taken over from a front-end that died after numbering up to `next`. The
+    /// messages it had not seen acknowledged died with it, so the client may wait for
+    /// numbers nobody will send again: until the client's ACKNACK says which number it
+    /// expects, nothing is sent, and its HEARTBEAT (first `next`, last `next - 1`: nothing
+    /// to resend) asks for that ACKNACK; numbering then goes on from the client's number.
+    pub fn resuming(stream_id: u8, window: usize, next: u16) -> Self {
+        ReliableOutput {
+            next,
+            resyncing: true,
+            ..Self::new(stream_id, window)
+        }
+    }
+
+    /// A stream taken over from a front-end that died with `in_flight` (sequence number,
+    /// whole message) unacknowledged and `next` to number: the normal HEARTBEAT and
+    /// ACKNACK exchange resends what the client lacks.
+    pub fn restored(
+        stream_id: u8,
+        window: usize,
+        next: u16,
+        in_flight: Vec<(u16, Vec<u8>)>,
+    ) -> Self {
+        ReliableOutput {
+            next,
+            in_flight: in_flight.into(),
+            ..Self::new(stream_id, window)
+        }
+    }
+
+    /// The unacknowledged messages with their sequence numbers, oldest first.
+    pub fn in_flight(&self) -> impl Iterator<Item = (u16, &[u8])> {
+        self.in_flight.iter().map(|(s, m)| (*s, m.as_slice()))
+    }
+
+    /// Whether it waits for the client's ACKNACK after a takeover.
+    pub fn is_resyncing(&self) -> bool {
+        self.resyncing
     }
 
     /// The stream id.
@@ -37,7 +80,7 @@ impl ReliableOutput {
 
     /// Whether another message may be sent now.
     pub fn has_room(&self) -> bool {
-        self.in_flight.len() < self.window
+        !self.resyncing && self.in_flight.len() < self.window
     }
 
     /// Messages sent and not yet acknowledged.
@@ -58,6 +101,13 @@ impl ReliableOutput {
 
     /// Applies an ACKNACK; returns the messages to send again.
     pub fn on_acknack(&mut self, a: &AcknackPayload) -> Vec<&[u8]> {
+        if self.resyncing {
+            // The client's number is the truth: go on from it.
+            self.resyncing = false;
+            self.next = a.first_unacked_seq_num;
+            self.in_flight.clear();
+            return Vec::new();
+        }
         // Only accept acknowledgements of what was actually sent.
         if seq::lt(self.next, a.first_unacked_seq_num) {
             return Vec::new();
@@ -81,6 +131,13 @@ impl ReliableOutput {
 
     /// The HEARTBEAT to send while messages are unacknowledged.
     pub fn heartbeat(&self) -> Option<HeartbeatPayload> {
+        if self.resyncing {
+            return Some(HeartbeatPayload {
+                first_unacked_seq_num: self.next,
+                last_unacked_seq_num: self.next.wrapping_sub(1),
+                stream_id: self.stream_id,
+            });
+        }
         let (first, _) = self.in_flight.front()?;
         Some(HeartbeatPayload {
             first_unacked_seq_num: *first,
@@ -98,6 +155,7 @@ impl ReliableOutput {
     pub fn reset(&mut self) {
         self.next = 0;
         self.in_flight.clear();
+        self.resyncing = false;
     }
 }
 
@@ -131,6 +189,14 @@ impl ReliableInput {
             highest_announced: None,
             early: HashMap::new(),
             window: window.clamp(1, 16),
+        }
+    }
+
+    /// A stream taken over from a front-end that died expecting `expected` next.
+    pub fn resuming(window: u16, expected: u16) -> Self {
+        ReliableInput {
+            expected,
+            ..Self::new(window)
         }
     }
 
@@ -256,6 +322,16 @@ impl BestEffortInput {
     /// Forgets the last sequence number (RESET).
     pub fn reset(&mut self) {
         self.last = None;
+    }
+
+    /// The last sequence number delivered.
+    pub fn last(&self) -> Option<u16> {
+        self.last
+    }
+
+    /// A stream taken over from a front-end that died after delivering `last`.
+    pub fn resuming(last: u16) -> Self {
+        BestEffortInput { last: Some(last) }
     }
 }
 

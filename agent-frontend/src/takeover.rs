@@ -1,0 +1,110 @@
+//! Sessions handed from one front-end process to the next: stored as they change
+//! ([`persist`]), taken over when a front-end starts ([`take_over`]). A front-end killed
+//! hard is restarted by the supervisor on the same socket or device, takes its clients'
+//! sessions, objects and reads over, and replays the objects to the worker like after a
+//! worker restart; the clients go on without re-creating anything.
+//!
+//! A client's state record is the session core's snapshot followed by its reads (with the
+//! marks of what each read delivered, so a replayed read does not hand the client a sample
+//! twice); its objects are stored apart, only when they change.
+
+use std::time::Instant;
+
+use xrce_common::session::agent::Agent;
+use xrce_common::session::graph::ObjectGraph;
+use xrce_common::session::snapshot::SessionSnapshot;
+
+use crate::bridge::Bridge;
+use crate::session_store::SessionStore;
+use crate::transport::Transport;
+
+/// Stores what changed since the last call: the state of every client the core or the
+/// bridge touched, the objects of those whose objects changed, and forgets ended sessions.
+/// Called before the core's transmits are sent.
+pub fn persist<T: Transport>(
+    store: &mut SessionStore,
+    agent: &mut Agent<T::Endpoint>,
+    bridge: &mut Bridge,
+    transport: &T,
+) {
+    let (mut changed, removed) = agent.take_session_changes();
+    let (objects, reads) = bridge.take_graph_changes();
+    for key in removed {
+        store.remove(key);
+    }
+    changed.extend(reads);
+    changed.sort_unstable();
+    changed.dedup();
+    for key in objects {
+        if let Some(g) = bridge.graph(key) {
+            if agent.has_client(key) {
+                store.save_objects(key, &g.encode_objects());
+                if !changed.contains(&key) {
+                    changed.push(key);
+                }
+            }
+        }
+    }
+    for key in changed {
+        let Some(snapshot) = agent.snapshot(key, |e| transport.encode_endpoint(e)) else {
+            continue;
+        };
+        if snapshot.endpoint.is_empty() {
+            // Its connection dies with this process: nothing to take over.
+            continue;
+        }
+        let Some(graph) = bridge.graph(key) else {
+            continue;
+        };
+        let snap = snapshot.encode();
+        let reads = graph.encode_reads();
+        let mut record = Vec::with_capacity(4 + snap.len() + reads.len());
+        record.extend_from_slice(&(snap.len() as u32).to_le_bytes());
+        record.extend_from_slice(&snap);
+        record.extend_from_slice(&reads);
+        store.save_state(key, &record);
+    }
+}
+
+/// Takes over the sessions a predecessor stored; returns how many. Each goes to the core
+/// (its streams where they were) and its graph to the bridge, before the first worker is
+/// seen, so the replay to it recreates the objects and restarts the reads.
+pub fn take_over<T: Transport>(
+    store: &mut SessionStore,
+    now: Instant,
+    agent: &mut Agent<T::Endpoint>,
+    bridge: &mut Bridge,
+    transport: &T,
+) -> usize {
+    let mut taken = 0;
+    for stored in store.take_over() {
+        let parsed = split_record(&stored.state).and_then(|(snap, reads)| {
+            let snapshot = SessionSnapshot::decode(snap).ok()?;
+            let graph = ObjectGraph::decode(&stored.objects, reads).ok()?;
+            Some((snapshot, graph))
+        });
+        let Some((snapshot, graph)) = parsed else {
+            tracing::warn!(client = %stored.key, "stored session unreadable; the client will have to create it again");
+            store.remove(stored.key);
+            continue;
+        };
+        let endpoint = transport.decode_endpoint(&snapshot.endpoint);
+        match endpoint {
+            Some(e) if snapshot.key == stored.key && agent.restore(now, &snapshot, e) => {
+                bridge.restore_graph(snapshot.key, graph);
+                taken += 1;
+            }
+            _ => {
+                tracing::warn!(client = %stored.key, "stored session does not fit this front-end's transport; not taken over");
+                store.remove(stored.key);
+            }
+        }
+    }
+    taken
+}
+
+fn split_record(record: &[u8]) -> Option<(&[u8], &[u8])> {
+    let len = u32::from_le_bytes(record.get(..4)?.try_into().ok()?) as usize;
+    let snap = record.get(4..4 + len)?;
+    Some((snap, &record[4 + len..]))
+}

@@ -1,0 +1,127 @@
+//! Sessions outlive their front-end process: a front-end SIGKILLed mid-stream is restarted
+//! by the supervisor, takes its clients' sessions, objects and reads over, and the clients
+//! go on without re-creating anything, every sample once.
+
+use std::time::{Duration, Instant};
+
+use xrce_common::session::client::ClientEvent;
+use xrce_tests::{
+    hello_world, parse_sample_line, sigkill, AgentProcess, DdsPeer, Deliveries, TestClient,
+    DUPLICATE_GRACE,
+};
+
+const SECOND: Duration = Duration::from_secs(1);
+
+fn session_statuses(c: &TestClient) -> usize {
+    c.events
+        .iter()
+        .filter(|e| matches!(e, ClientEvent::SessionStatus(_)))
+        .count()
+}
+
+#[test]
+fn a_front_end_killed_mid_stream_is_taken_over_and_every_sample_arrives_once() {
+    const N: u32 = 300;
+    const KILL_AT: u32 = 100;
+    let agent = AgentProcess::start("fe-kill");
+    let reader = DdsPeer::start(&[
+        "read",
+        "--domain",
+        "79",
+        "--count",
+        &(10 * N).to_string(),
+        "--reliable",
+        "--timeout",
+        "120",
+    ]);
+    let mut sub = TestClient::new(agent.addr(), [0x55, 0x66, 0x77, 0x79]);
+    sub.connect(10 * SECOND);
+    sub.setup_subscriber(79);
+    let mut publ = TestClient::new(agent.addr(), [0x11, 0x22, 0x33, 0x79]);
+    publ.connect(10 * SECOND);
+    let w = publ.setup_publisher(79);
+    assert!(
+        reader
+            .wait_for("MATCHED 1", 30 * SECOND, || {
+                publ.step();
+                sub.step();
+            })
+            .is_some(),
+        "Cyclone never matched"
+    );
+    let frontend = agent
+        .child_pid_with("frontend", "udp4")
+        .expect("front-end pid");
+    let out = agent.output().clone();
+    let mark = out.len();
+
+    let mut dds = Deliveries::default();
+    let mut client = Deliveries::default();
+    let collect = |publ: &mut TestClient,
+                   sub: &mut TestClient,
+                   dds: &mut Deliveries,
+                   client: &mut Deliveries| {
+        publ.step();
+        sub.step();
+        for (i, m) in sub.take_samples() {
+            assert_eq!(m, "through a front-end crash");
+            client.record(i);
+        }
+        while let Some(l) = reader.line(Duration::ZERO) {
+            if let Some((i, m)) = parse_sample_line(&l) {
+                assert_eq!(m, "through a front-end crash");
+                dds.record(i);
+            }
+        }
+    };
+    for i in 0..N {
+        if i == KILL_AT {
+            sigkill(frontend);
+        }
+        publ.write_reliable(w, &hello_world(i, "through a front-end crash"));
+        // ~100 samples/s, so the outage falls in the middle of the stream.
+        let end = Instant::now() + Duration::from_millis(10);
+        while Instant::now() < end {
+            collect(&mut publ, &mut sub, &mut dds, &mut client);
+        }
+    }
+    let end = Instant::now() + 60 * SECOND;
+    while Instant::now() < end && (dds.distinct() < N as usize || client.distinct() < N as usize) {
+        collect(&mut publ, &mut sub, &mut dds, &mut client);
+    }
+    let grace = Instant::now() + DUPLICATE_GRACE;
+    while Instant::now() < grace {
+        collect(&mut publ, &mut sub, &mut dds, &mut client);
+    }
+    out.wait_for(
+        mark,
+        "sessions taken over from the previous front-end",
+        5 * SECOND,
+    )
+    .expect("the new front-end did not take the sessions over");
+    assert_ne!(
+        agent.child_pid_with("frontend", "udp4"),
+        Some(frontend),
+        "the front-end was not restarted"
+    );
+    dds.assert_exactly_once(0..N, "Cyclone reading a client across a front-end crash");
+    client.assert_exactly_once(0..N, "a client reading a client across a front-end crash");
+    client.assert_in_order("a client reading a client across a front-end crash");
+    // Neither client had to create its session again.
+    assert_eq!(
+        session_statuses(&publ),
+        1,
+        "the publisher re-created its session"
+    );
+    assert_eq!(
+        session_statuses(&sub),
+        1,
+        "the subscriber re-created its session"
+    );
+    assert_eq!(
+        out.count("session created"),
+        2,
+        "a session was created again"
+    );
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
