@@ -73,6 +73,10 @@ pub struct FrontendArgs {
     /// Its name in status reports, metrics and logs (default: `frontend-<id>`).
     #[arg(long)]
     pub name: Option<String>,
+    /// Keep the sessions where a restarted front-end takes them over (`true`, the default),
+    /// or not (`false`: a front-end crash ends its clients' sessions).
+    #[arg(long, env = "XRCE_KEEP_SESSIONS", default_value_t = true, action = clap::ArgAction::Set)]
+    pub keep_sessions: bool,
     /// The transport served.
     #[arg(long, value_enum, default_value = "udp4")]
     pub transport: TransportKind,
@@ -294,7 +298,8 @@ fn readiness_reporter() -> OnServing {
     })
 }
 
-/// Raises the open-file limit to the hard limit: every TCP connection is a descriptor.
+/// Raises the open-file limit to the hard limit: every TCP connection is a descriptor, and
+/// so is every stored session.
 fn raise_fd_limit() {
     use nix::sys::resource::{getrlimit, setrlimit, Resource};
     if let Ok((soft, hard)) = getrlimit(Resource::RLIMIT_NOFILE) {
@@ -316,6 +321,8 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let config = args.agent_config()?;
+    // Every TCP connection is a descriptor, and so is every stored session's state file.
+    raise_fd_limit();
     let on_serving = Some(readiness_reporter());
     match args.transport {
         TransportKind::Udp4 | TransportKind::Udp6 => {
@@ -325,7 +332,6 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
             serve(UdpTransport::new(socket)?, &args, config, on_serving)
         }
         TransportKind::Tcp4 | TransportKind::Tcp6 => {
-            raise_fd_limit();
             let addr = args.listen_addr()?;
             let listener =
                 TcpListener::bind(addr).map_err(|e| anyhow::anyhow!("binding TCP {addr}: {e}"))?;
@@ -402,6 +408,7 @@ fn serve<T: Transport>(
     };
     crate::event_loop::run(
         &args.instance,
+        args.keep_sessions,
         who,
         transport,
         bridge,

@@ -38,9 +38,11 @@ const MAX_SLEEP: Duration = Duration::from_secs(1);
 /// Called once the front-end serves: its transport is registered and a worker answered.
 pub type OnServing = Box<dyn FnOnce()>;
 
-/// Runs front-end `who` of `instance` over `transport` until SIGINT/SIGTERM.
+/// Runs front-end `who` of `instance` over `transport` until SIGINT/SIGTERM; with
+/// `keep_sessions`, its sessions are stored for a successor and a predecessor's taken over.
 pub fn run<T: Transport>(
     instance: &str,
+    keep_sessions: bool,
     who: Identity,
     mut transport: T,
     mut bridge: Bridge,
@@ -53,7 +55,8 @@ pub fn run<T: Transport>(
     let mut reporter = Reporter::new(instance, &format!("frontend-{}", who.id));
     let mut watchdog = Watchdog::from_env();
     let mut store = match SessionStore::open(instance, who.id) {
-        Ok(s) => Some(s),
+        Ok(s) if keep_sessions => Some(s),
+        Ok(_) => None,
         Err(e) => {
             tracing::warn!(error = %e, "cannot keep sessions for a successor: a restart of this front-end will lose them");
             None

@@ -4,10 +4,12 @@
 
 use std::time::{Duration, Instant};
 
+use nix::sys::signal::{kill, Signal};
+use nix::unistd::Pid;
 use xrce_common::session::client::ClientEvent;
 use xrce_tests::{
-    hello_world, parse_sample_line, sigkill, AgentProcess, DdsPeer, Deliveries, TestClient,
-    DUPLICATE_GRACE,
+    hello_world, parse_sample_line, sigkill, AgentProcess, DdsPeer, Deliveries, PtyPair,
+    TestClient, DUPLICATE_GRACE,
 };
 
 const SECOND: Duration = Duration::from_secs(1);
@@ -21,13 +23,25 @@ fn session_statuses(c: &TestClient) -> usize {
 
 #[test]
 fn a_front_end_killed_mid_stream_is_taken_over_and_every_sample_arrives_once() {
+    takeover_mid_stream("fe-kill", Signal::SIGKILL, 79);
+}
+
+/// A front-end stopped on purpose (SIGTERM: how a new binary is rolled out, one front-end
+/// at a time) hands its sessions over the same way.
+#[test]
+fn a_front_end_stopped_for_an_upgrade_hands_its_sessions_over() {
+    takeover_mid_stream("fe-term", Signal::SIGTERM, 82);
+}
+
+fn takeover_mid_stream(tag: &str, signal: Signal, domain: i16) {
     const N: u32 = 300;
     const KILL_AT: u32 = 100;
-    let agent = AgentProcess::start("fe-kill");
+    let agent = AgentProcess::start(tag);
+    let d = domain.to_string();
     let reader = DdsPeer::start(&[
         "read",
         "--domain",
-        "79",
+        &d,
         "--count",
         &(10 * N).to_string(),
         "--reliable",
@@ -36,10 +50,10 @@ fn a_front_end_killed_mid_stream_is_taken_over_and_every_sample_arrives_once() {
     ]);
     let mut sub = TestClient::new(agent.addr(), [0x55, 0x66, 0x77, 0x79]);
     sub.connect(10 * SECOND);
-    sub.setup_subscriber(79);
+    sub.setup_subscriber(domain);
     let mut publ = TestClient::new(agent.addr(), [0x11, 0x22, 0x33, 0x79]);
     publ.connect(10 * SECOND);
-    let w = publ.setup_publisher(79);
+    let w = publ.setup_publisher(domain);
     assert!(
         reader
             .wait_for("MATCHED 1", 30 * SECOND, || {
@@ -76,7 +90,7 @@ fn a_front_end_killed_mid_stream_is_taken_over_and_every_sample_arrives_once() {
     };
     for i in 0..N {
         if i == KILL_AT {
-            sigkill(frontend);
+            kill(Pid::from_raw(frontend), signal).expect("signal the front-end");
         }
         publ.write_reliable(w, &hello_world(i, "through a front-end crash"));
         // ~100 samples/s, so the outage falls in the middle of the stream.
@@ -123,5 +137,81 @@ fn a_front_end_killed_mid_stream_is_taken_over_and_every_sample_arrives_once() {
         2,
         "a session was created again"
     );
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+/// Over a serial line: the restarted front-end opens the device again and takes the
+/// session of the client on it over (its endpoint is the line and its address).
+#[test]
+fn a_serial_front_end_killed_mid_stream_is_taken_over() {
+    const N: u32 = 150;
+    const KILL_AT: u32 = 50;
+    let pty = PtyPair::open();
+    let dev = pty.slave_path.to_str().expect("utf-8 path").to_string();
+    let agent = AgentProcess::launch("fe-kill-serial", &["serial", "--dev", &dev, "-b", "921600"])
+        .expect("the serial agent did not become ready");
+    let reader = DdsPeer::start(&[
+        "read",
+        "--domain",
+        "81",
+        "--count",
+        &(10 * N).to_string(),
+        "--reliable",
+        "--timeout",
+        "120",
+    ]);
+    let mut c = TestClient::serial(pty.master, 1, [0x5E, 0x81, 0x00, 0x01]);
+    c.connect(10 * SECOND);
+    let w = c.setup_publisher(81);
+    assert!(
+        reader
+            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+            .is_some(),
+        "Cyclone never matched"
+    );
+    let frontend = agent
+        .child_pid_with("frontend", "serial")
+        .expect("front-end pid");
+    let out = agent.output().clone();
+    let mark = out.len();
+    let mut got = Deliveries::default();
+    let collect = |c: &mut TestClient, got: &mut Deliveries| {
+        c.step();
+        while let Some(l) = reader.line(Duration::ZERO) {
+            if let Some((i, m)) = parse_sample_line(&l) {
+                assert_eq!(m, "serial crash");
+                got.record(i);
+            }
+        }
+    };
+    for i in 0..N {
+        if i == KILL_AT {
+            sigkill(frontend);
+        }
+        c.write_reliable(w, &hello_world(i, "serial crash"));
+        let end = Instant::now() + Duration::from_millis(10);
+        while Instant::now() < end {
+            collect(&mut c, &mut got);
+        }
+    }
+    let end = Instant::now() + 60 * SECOND;
+    while Instant::now() < end && got.distinct() < N as usize {
+        collect(&mut c, &mut got);
+    }
+    let grace = Instant::now() + DUPLICATE_GRACE;
+    while Instant::now() < grace {
+        collect(&mut c, &mut got);
+    }
+    out.wait_for(
+        mark,
+        "sessions taken over from the previous front-end",
+        5 * SECOND,
+    )
+    .expect("the new front-end did not take the session over");
+    got.assert_exactly_once(
+        0..N,
+        "Cyclone reading a serial client across a front-end crash",
+    );
+    assert_eq!(session_statuses(&c), 1, "the client re-created its session");
     assert!(agent.stop(), "agent did not stop cleanly");
 }
