@@ -406,14 +406,11 @@ fn serve<T: Transport>(
             .unwrap_or_else(|| format!("frontend-{}", args.frontend_id)),
         id: args.frontend_id,
     };
+    let place = crate::event_loop::Placement {
+        instance: args.instance.clone(),
+        keep_sessions: args.keep_sessions,
+    };
     crate::event_loop::run(
-        &args.instance,
-        args.keep_sessions,
-        who,
-        transport,
-        bridge,
-        config,
-        discovery,
-        on_serving,
+        &place, who, transport, bridge, config, discovery, on_serving,
     )
 }

@@ -38,11 +38,18 @@ const MAX_SLEEP: Duration = Duration::from_secs(1);
 /// Called once the front-end serves: its transport is registered and a worker answered.
 pub type OnServing = Box<dyn FnOnce()>;
 
-/// Runs front-end `who` of `instance` over `transport` until SIGINT/SIGTERM; with
-/// `keep_sessions`, its sessions are stored for a successor and a predecessor's taken over.
+/// Where a front-end runs and what it keeps.
+#[derive(Debug, Clone)]
+pub struct Placement {
+    /// The agent instance.
+    pub instance: String,
+    /// Store the sessions for a successor, and take a predecessor's over.
+    pub keep_sessions: bool,
+}
+
+/// Runs front-end `who` of `place` over `transport` until SIGINT/SIGTERM.
 pub fn run<T: Transport>(
-    instance: &str,
-    keep_sessions: bool,
+    place: &Placement,
     who: Identity,
     mut transport: T,
     mut bridge: Bridge,
@@ -52,10 +59,11 @@ pub fn run<T: Transport>(
 ) -> anyhow::Result<()> {
     // Every line this front-end logs names it (a gateway's front-ends share one log).
     let _span = tracing::info_span!("frontend", name = %who.name).entered();
+    let instance = place.instance.as_str();
     let mut reporter = Reporter::new(instance, &format!("frontend-{}", who.id));
     let mut watchdog = Watchdog::from_env();
     let mut store = match SessionStore::open(instance, who.id) {
-        Ok(s) if keep_sessions => Some(s),
+        Ok(s) if place.keep_sessions => Some(s),
         Ok(_) => None,
         Err(e) => {
             tracing::warn!(error = %e, "cannot keep sessions for a successor: a restart of this front-end will lose them");
