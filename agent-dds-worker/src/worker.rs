@@ -293,6 +293,8 @@ impl Pacing {
 
 struct FrontendPort {
     sender: Sender,
+    /// The front-end process served (see [`IpcHeader::incarnation`]).
+    incarnation: u16,
     processed: u64,
     dirty: bool,
     /// Replies the front-end's full queue refused, oldest first (sent before anything new).
@@ -348,6 +350,10 @@ pub struct Worker {
     next_census: Instant,
     /// Counters by reason of rejected or failed work.
     pub dropped: HashMap<&'static str, u64>,
+    /// Restarted front-ends (id -> incarnation) whose requests wait for the end of the
+    /// drain, and those requests.
+    successors: HashMap<u32, u16>,
+    deferred: Vec<Vec<u8>>,
     /// Samples accepted for DDS writers (written, or held until readers match).
     samples_written: u64,
     /// Samples taken from DDS readers and sent to front-ends.
@@ -408,6 +414,8 @@ impl Worker {
             orphaned: HashMap::new(),
             next_census: Instant::now() + CENSUS_PERIOD,
             dropped: HashMap::new(),
+            successors: HashMap::new(),
+            deferred: Vec::new(),
             samples_written: 0,
             samples_taken: 0,
             reporter: Reporter::new(&config_instance, "worker"),
@@ -470,6 +478,7 @@ impl Worker {
                 requests.clear_events();
             }
             requests.drain(|m| self.handle_request(m))?;
+            self.serve_successors();
             // Always, not only when its descriptor polled readable: gated that way, every
             // reader stalled (measured with 3 and 100 publishers).
             self.poll.poll(&mut events, Some(Duration::ZERO))?;
@@ -716,6 +725,7 @@ impl Worker {
                 )?;
                 Ok(v.insert(FrontendPort {
                     sender,
+                    incarnation: 0,
                     processed: 0,
                     dirty: false,
                     backlog: Default::default(),
@@ -737,6 +747,10 @@ impl Worker {
     /// the front-end's queue has room), else keeps it in the front-end's backlog.
     fn reply_with(&mut self, mut h: IpcHeader, len: usize, fill: impl Fn(&mut [u8])) {
         h.generation = self.generation;
+        let incarnation = self.ports.get(&h.frontend_id).map_or(0, |p| p.incarnation);
+        if h.incarnation == 0 {
+            h.incarnation = incarnation;
+        }
         if len > ipc::MAX_BODY {
             tracing::warn!(frontend = h.frontend_id, client = %h.client_key, len, "sample too large for the front-end link; dropped");
             return self.count("sample_too_large");
@@ -795,6 +809,10 @@ impl Worker {
         self.reply(h, &[code, 0]);
     }
 
+    /// Screens a request by the front-end process that sent it: a restarted front-end's
+    /// requests wait until the queue holds nothing more of its predecessor's (whose
+    /// operations run first, on the entities they were meant for); a predecessor's request
+    /// that comes after its successor took over is dropped.
     fn handle_request(&mut self, bytes: &[u8]) {
         let (h, body) = match IpcHeader::decode(bytes) {
             Ok(v) => v,
@@ -803,11 +821,54 @@ impl Worker {
                 return self.count("bad_ipc_message");
             }
         };
+        let fe = h.frontend_id;
+        if self.successors.get(&fe) == Some(&h.incarnation) {
+            return self.deferred.push(bytes.to_vec());
+        }
+        let current = self
+            .ports
+            .get(&fe)
+            .map(|p| p.incarnation)
+            .filter(|i| *i != 0);
+        match current {
+            Some(c) if c != h.incarnation && h.kind == MessageKind::FrontendHello => {
+                self.successors.insert(fe, h.incarnation);
+                self.deferred.push(bytes.to_vec());
+            }
+            Some(c) if c != h.incarnation => self.count("predecessor_operation"),
+            _ => self.process_request(h, body),
+        }
+    }
+
+    /// Serves the requests of restarted front-ends held back by [`Self::handle_request`],
+    /// once the queue was drained of their predecessors'.
+    fn serve_successors(&mut self) {
+        if self.deferred.is_empty() {
+            return;
+        }
+        self.successors.clear();
+        for m in std::mem::take(&mut self.deferred) {
+            if let Ok((h, body)) = IpcHeader::decode(&m) {
+                self.process_request(h, body);
+            }
+        }
+    }
+
+    fn process_request(&mut self, h: IpcHeader, body: &[u8]) {
         let key = (h.frontend_id, h.client_key, h.object_id);
         match h.kind {
             MessageKind::FrontendHello => {
-                tracing::info!(frontend = h.frontend_id, "front-end (re)connected");
+                tracing::info!(
+                    frontend = h.frontend_id,
+                    incarnation = h.incarnation,
+                    "front-end (re)connected"
+                );
                 self.remove_where(|c| c.0 == h.frontend_id);
+                if let Ok(p) = self.port(h.frontend_id) {
+                    // Its operations are numbered from its hello on.
+                    p.incarnation = h.incarnation;
+                    p.processed = h.op_seq;
+                }
                 // Replies held for a previous incarnation of this front-end mean nothing now.
                 if let Some(p) = self.ports.get_mut(&h.frontend_id) {
                     p.backlog.clear();
@@ -874,7 +935,9 @@ impl Worker {
             }
         }
         if let Ok(p) = self.port(h.frontend_id) {
-            p.processed = p.processed.max(h.op_seq);
+            if p.incarnation == h.incarnation {
+                p.processed = p.processed.max(h.op_seq);
+            }
             p.dirty = true;
         }
     }
@@ -913,6 +976,7 @@ impl Worker {
                 let mut h = IpcHeader::new(MessageKind::Progress);
                 h.frontend_id = *fe;
                 h.generation = generation;
+                h.incarnation = p.incarnation;
                 h.op_seq = p.processed;
                 if let Ok(true) = p.sender.send(&h, &executed.to_le_bytes()) {
                     p.dirty = false;

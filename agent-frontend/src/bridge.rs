@@ -34,6 +34,9 @@ const INFO_CONFIGURATION: u32 = 0x01;
 
 /// Operations waiting for the window before new ones are refused (flow control).
 pub const OUTBOX_MAX: usize = 8192;
+/// Operations one client message may carry that still go to the worker at once when client
+/// operations are only accepted that way ([`Bridge::set_hand_over_at_once`]).
+pub const HAND_OVER_HEADROOM: u64 = 16;
 /// Absolute bound of the outbox (`has_room` keeps it below [`OUTBOX_MAX`] between messages).
 pub const OUTBOX_HARD_MAX: usize = 4 * OUTBOX_MAX;
 /// Bytes of queued operations before new ones are refused (flow control; samples reach 1 MiB).
@@ -199,12 +202,19 @@ pub struct BridgeStats {
     pub samples_already_delivered: u64,
     /// CREATEs refused because their client had its quota of objects.
     pub objects_over_quota: u64,
+    /// Replies meant for the front-end process this one took over from, ignored.
+    pub predecessor_replies: u64,
 }
 
 /// The front-end's IPC state.
 #[derive(Debug)]
 pub struct Bridge {
     frontend_id: u32,
+    /// This process of the front-end, stamped on every request.
+    incarnation: u16,
+    /// Accept client operations only when they can go to the worker at once (sessions
+    /// are stored for a successor: see [`Bridge::set_hand_over_at_once`]).
+    hand_over_at_once: bool,
     node: IpcNode,
     requests: Sender,
     /// Taken while replies are handled straight from shared memory.
@@ -254,8 +264,9 @@ fn header(
 }
 
 impl Bridge {
-    /// Opens the services of front-end `frontend_id` in agent instance `instance`.
-    pub fn new(instance: &str, frontend_id: u32) -> Result<Self, BridgeError> {
+    /// Opens the services of front-end `frontend_id` in agent instance `instance`, as its
+    /// process `incarnation` (nonzero, different from its predecessor's).
+    pub fn new(instance: &str, frontend_id: u32, incarnation: u16) -> Result<Self, BridgeError> {
         let node = IpcNode::new(instance, &format!("xrce-frontend-{frontend_id}"))?;
         // Another live front-end with this id would lose its clients' entities to our
         // hello: the later one refuses to start.
@@ -277,10 +288,13 @@ impl Bridge {
         // exist already, so either this probe or the worker's own announcement reaches us.
         let mut probe = IpcHeader::new(MessageKind::FrontendHello);
         probe.frontend_id = frontend_id;
+        probe.incarnation = incarnation;
         requests.send(&probe, &[])?;
         requests.notify()?;
         Ok(Bridge {
             frontend_id,
+            incarnation,
+            hand_over_at_once: false,
             node,
             requests,
             replies: Some(replies),
@@ -319,6 +333,13 @@ impl Bridge {
             self.replies.as_ref().map_or(-1, Receiver::raw_fd),
             self.announce.raw_fd(),
         ]
+    }
+
+    /// Accept client operations only when they can be handed to the worker at once, so
+    /// none waits in this process when it dies (for a front-end whose sessions a successor
+    /// takes over).
+    pub fn set_hand_over_at_once(&mut self, on: bool) {
+        self.hand_over_at_once = on;
     }
 
     /// A client's object graph.
@@ -384,6 +405,7 @@ impl Bridge {
             }
             return;
         }
+        h.incarnation = self.incarnation;
         if self.outbox.is_empty() && self.can_send_now() {
             h.op_seq = self.next_seq;
             if let Err(e) = self.requests.send(&h, body) {
@@ -447,6 +469,7 @@ impl Bridge {
                 break;
             };
             op.header.op_seq = self.next_seq;
+            op.header.incarnation = self.incarnation;
             if let Err(e) = self.requests.send(&op.header, &op.body) {
                 tracing::warn!(error = %e, "could not hand an operation to the worker; will retry");
                 self.outbox.push_front(op);
@@ -644,6 +667,12 @@ impl Bridge {
                 return tracing::warn!(error = %e, "bad reply from the worker");
             }
         };
+        if h.incarnation != 0 && h.incarnation != self.incarnation {
+            // Meant for the process this one took over from (its operation numbers mean
+            // something else here).
+            self.stats.predecessor_replies += 1;
+            return;
+        }
         if h.kind == MessageKind::WorkerHello {
             if Some(h.generation) != self.generation {
                 self.new_generation(h.generation);
@@ -862,10 +891,18 @@ impl Bridge {
 
 impl OperationSink for Bridge {
     fn has_room(&self) -> bool {
-        self.outbox.len() < OUTBOX_MAX
-            && self.outbox.bytes < OUTBOX_MAX_BYTES
-            && self.retained.len() < RETAIN_MAX
-            && self.retained.bytes < RETAIN_MAX_BYTES
+        let retained = self.retained.len() < RETAIN_MAX && self.retained.bytes < RETAIN_MAX_BYTES;
+        if self.hand_over_at_once && self.generation.is_some() {
+            // What a client sent goes to the worker now or is refused unacknowledged (the
+            // client sends it again): an operation left in this process's outbox would die
+            // with it, after its message was acknowledged and stored as taken. (Before a
+            // worker answers, and while one restarts, operations wait in the outbox as
+            // always: they are replayed to the new worker.)
+            return retained
+                && self.outbox.is_empty()
+                && self.in_flight() + HAND_OVER_HEADROOM <= IN_FLIGHT_WINDOW;
+        }
+        self.outbox.len() < OUTBOX_MAX && self.outbox.bytes < OUTBOX_MAX_BYTES && retained
     }
 
     fn operation(&mut self, op: Operation<'_>) {

@@ -394,7 +394,8 @@ fn serve<T: Transport>(
         }
         None => None,
     };
-    let mut bridge = Bridge::new(&args.instance, args.frontend_id)?;
+    let incarnation = crate::session_store::next_incarnation(&args.instance, args.frontend_id);
+    let mut bridge = Bridge::new(&args.instance, args.frontend_id, incarnation)?;
     bridge.set_max_objects_per_client(args.admission.max_objects_per_client);
     if let Some(keys) = &config.admission.allowed_keys {
         tracing::info!(keys = keys.len(), "only listed client keys are admitted");

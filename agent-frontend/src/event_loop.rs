@@ -71,6 +71,7 @@ pub fn run<T: Transport>(
         }
     };
     config.track_sessions = store.is_some();
+    bridge.set_hand_over_at_once(store.is_some());
     let result = serve(
         &who,
         &mut reporter,
@@ -180,7 +181,10 @@ fn serve<T: Transport>(
             agent.set_wall_clock(now, d);
         }
         input_left = transport.receive(now, RECV_BATCH, &mut |from, bytes| {
-            agent.handle_datagram(now, from, bytes, bridge)
+            agent.handle_datagram(now, from, bytes, bridge);
+            if let Some(s) = store.as_mut() {
+                crate::takeover::persist(s, &mut agent, bridge);
+            }
         });
         while let Some(closed) = transport.poll_closed() {
             agent.endpoint_closed(closed);
@@ -206,7 +210,7 @@ fn serve<T: Transport>(
             // Before anything goes out: a successor never finds the streams behind what
             // the clients saw.
             Some(s) => {
-                crate::takeover::persist(s, &mut agent, bridge, &*transport);
+                crate::takeover::persist(s, &mut agent, bridge);
                 s.keep_alive(now);
             }
             None => {

@@ -113,6 +113,9 @@ impl SessionStore {
         let mut names: Vec<PathBuf> = entries.flatten().map(|e| e.path()).collect();
         names.sort();
         for path in names {
+            if path.file_name().is_some_and(|n| n == "incarnation") {
+                continue;
+            }
             let is_state = path.extension().is_some_and(|x| x == "state");
             if !recent || !is_state {
                 if !recent || path.extension().is_some_and(|x| x == "tmp") {
@@ -228,6 +231,30 @@ impl SessionStore {
             Err(_) => {}
         }
     }
+}
+
+/// The incarnation number of a new process of front-end `id` of `instance`: its
+/// predecessor's plus one (kept beside its sessions), never 0; without a predecessor (or a
+/// place to keep it), one from the clock and the process id.
+pub fn next_incarnation(instance: &str, id: u32) -> u16 {
+    let dir = xrce_common::ipc::status::sessions_dir(instance).join(format!("frontend-{id}"));
+    let path = dir.join("incarnation");
+    let fresh = || {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos());
+        ((nanos ^ std::process::id().rotate_left(7)) as u16).max(1)
+    };
+    let next = match std::fs::read(&path).ok().and_then(|b| b.try_into().ok()) {
+        Some(b) => u16::from_le_bytes(b).wrapping_add(1).max(1),
+        None => fresh(),
+    };
+    let kept =
+        std::fs::create_dir_all(&dir).and_then(|()| write_atomically(&path, &next.to_le_bytes()));
+    if let Err(e) = kept {
+        tracing::debug!(error = %e, "front-end incarnation not kept");
+    }
+    next
 }
 
 fn parse_key(s: &str) -> Option<ClientKey> {

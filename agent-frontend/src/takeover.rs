@@ -16,16 +16,18 @@ use xrce_common::session::snapshot::SessionSnapshot;
 
 use crate::bridge::Bridge;
 use crate::session_store::SessionStore;
-use crate::transport::Transport;
+use crate::transport::{StoredEndpoint, Transport};
 
 /// Stores what changed since the last call: the state of every client the core or the
 /// bridge touched, the objects of those whose objects changed, and forgets ended sessions.
-/// Called before the core's transmits are sent.
-pub fn persist<T: Transport>(
+/// Called after each client message (right after its operations went to the worker: a
+/// crash in between makes the client resend one message, which the worker then executes
+/// twice) and before the core's transmits are sent (so nothing a client saw acknowledged
+/// or numbered is ahead of the stored state).
+pub fn persist<A: Copy + Eq + std::hash::Hash + std::fmt::Debug + StoredEndpoint>(
     store: &mut SessionStore,
-    agent: &mut Agent<T::Endpoint>,
+    agent: &mut Agent<A>,
     bridge: &mut Bridge,
-    transport: &T,
 ) {
     let (mut changed, removed) = agent.take_session_changes();
     let (objects, reads) = bridge.take_graph_changes();
@@ -46,7 +48,7 @@ pub fn persist<T: Transport>(
         }
     }
     for key in changed {
-        let Some(snapshot) = agent.snapshot(key, |e| transport.encode_endpoint(e)) else {
+        let Some(snapshot) = agent.snapshot(key, |e| e.stored()) else {
             continue;
         };
         if snapshot.endpoint.is_empty() {
@@ -91,6 +93,7 @@ pub fn take_over<T: Transport>(
         let endpoint = transport.decode_endpoint(&snapshot.endpoint);
         match endpoint {
             Some(e) if snapshot.key == stored.key && agent.restore(now, &snapshot, e) => {
+                tracing::debug!(client = %snapshot.key, objects = graph.len(), reads = graph.reads().count(), "stored session taken over");
                 bridge.restore_graph(snapshot.key, graph);
                 taken += 1;
             }

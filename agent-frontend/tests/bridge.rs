@@ -128,7 +128,7 @@ impl Rig {
         Rig {
             client: Client::new(ClientConfig::new(ClientKey([0xB2, 0, 0, 1]))),
             agent: Agent::new(AgentConfig::default()),
-            bridge: Bridge::new(instance, 0).expect("bridge"),
+            bridge: Bridge::new(instance, 0, 1).expect("bridge"),
             events: Vec::new(),
         }
     }

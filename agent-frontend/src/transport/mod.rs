@@ -33,7 +33,7 @@ use xrce_common::wire::info::TransportLocator;
 /// A way to reach clients, driven by the front-end's event loop.
 pub trait Transport {
     /// Identifies where a message came from and where a reply goes.
-    type Endpoint: Copy + Eq + Hash + Debug;
+    type Endpoint: Copy + Eq + Hash + Debug + StoredEndpoint;
 
     /// Name for logs and counters (`udp4`, `tcp6`, `serial`, ...).
     fn name(&self) -> &'static str;
@@ -84,13 +84,34 @@ pub trait Transport {
     /// serial address).
     fn describe(&self, endpoint: Self::Endpoint) -> String;
 
-    /// An endpoint as bytes a successor front-end turns back into the same endpoint with
-    /// [`Self::decode_endpoint`]; empty when it would not outlive this process (a TCP
-    /// connection closes with it).
-    fn encode_endpoint(&self, endpoint: Self::Endpoint) -> Vec<u8>;
-
-    /// The endpoint [`Self::encode_endpoint`] described, if this transport serves it.
+    /// The endpoint [`StoredEndpoint::stored`] described, if this transport serves it.
     fn decode_endpoint(&self, bytes: &[u8]) -> Option<Self::Endpoint>;
+}
+
+/// An endpoint as bytes a successor front-end turns back into the same endpoint with
+/// [`Transport::decode_endpoint`].
+pub trait StoredEndpoint {
+    /// Its bytes; empty when it would not outlive this process (a TCP connection closes
+    /// with it).
+    fn stored(&self) -> Vec<u8>;
+}
+
+impl StoredEndpoint for std::net::SocketAddr {
+    fn stored(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(19);
+        match self.ip() {
+            std::net::IpAddr::V4(ip) => {
+                out.push(4);
+                out.extend_from_slice(&ip.octets());
+            }
+            std::net::IpAddr::V6(ip) => {
+                out.push(6);
+                out.extend_from_slice(&ip.octets());
+            }
+        }
+        out.extend_from_slice(&self.port().to_le_bytes());
+        out
+    }
 }
 
 /// What a transport counted.

@@ -49,6 +49,14 @@ pub struct SerialEndpoint {
     pub address: u8,
 }
 
+impl super::StoredEndpoint for SerialEndpoint {
+    fn stored(&self) -> Vec<u8> {
+        let mut out = self.line.to_le_bytes().to_vec();
+        out.push(self.address);
+        out
+    }
+}
+
 /// What a line is.
 #[derive(Debug)]
 pub enum LineDevice {
@@ -533,12 +541,6 @@ impl Transport for SerialTransport {
             Some(l) => format!("{} address {}", l.path().display(), endpoint.address),
             None => format!("line {} address {}", endpoint.line, endpoint.address),
         }
-    }
-
-    fn encode_endpoint(&self, endpoint: SerialEndpoint) -> Vec<u8> {
-        let mut out = endpoint.line.to_le_bytes().to_vec();
-        out.push(endpoint.address);
-        out
     }
 
     fn decode_endpoint(&self, bytes: &[u8]) -> Option<SerialEndpoint> {

@@ -147,6 +147,13 @@ fn is_best_effort(message: &[u8]) -> bool {
     matches!(message.get(1), Some(1..=0x7F))
 }
 
+impl super::StoredEndpoint for TcpEndpoint {
+    fn stored(&self) -> Vec<u8> {
+        // The connection closes with this process: the client connects again.
+        Vec::new()
+    }
+}
+
 impl TcpTransport {
     /// Serves clients on a bound listener.
     pub fn new(listener: std::net::TcpListener, config: TcpConfig) -> std::io::Result<Self> {
@@ -607,11 +614,6 @@ impl Transport for TcpTransport {
             Some(c) => c.peer.to_string(),
             None => "(connection closed)".into(),
         }
-    }
-
-    fn encode_endpoint(&self, _: TcpEndpoint) -> Vec<u8> {
-        // The connection closes with this process: the client connects again.
-        Vec::new()
     }
 
     fn decode_endpoint(&self, _: &[u8]) -> Option<TcpEndpoint> {

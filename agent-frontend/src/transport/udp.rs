@@ -170,22 +170,6 @@ impl Transport for UdpTransport {
         endpoint.to_string()
     }
 
-    fn encode_endpoint(&self, endpoint: SocketAddr) -> Vec<u8> {
-        let mut out = Vec::with_capacity(19);
-        match endpoint.ip() {
-            std::net::IpAddr::V4(ip) => {
-                out.push(4);
-                out.extend_from_slice(&ip.octets());
-            }
-            std::net::IpAddr::V6(ip) => {
-                out.push(6);
-                out.extend_from_slice(&ip.octets());
-            }
-        }
-        out.extend_from_slice(&endpoint.port().to_le_bytes());
-        out
-    }
-
     fn decode_endpoint(&self, bytes: &[u8]) -> Option<SocketAddr> {
         let (ip, port): (std::net::IpAddr, &[u8]) = match bytes.split_first()? {
             (4, rest) if rest.len() == 6 => {

@@ -17,7 +17,7 @@ pub mod status;
 use crate::wire::{ClientKey, ObjectId, RequestId};
 
 /// Version of this contract; both sides drop (and log) messages of another version.
-pub const IPC_VERSION: u16 = 3;
+pub const IPC_VERSION: u16 = 4;
 /// Magic at the start of every message.
 pub const IPC_MAGIC: [u8; 4] = *b"XRIP";
 
@@ -170,6 +170,11 @@ pub struct IpcHeader {
     /// Write: the XRCE DataFormat of the body (the bytes after the WRITE_DATA's
     /// BaseObjectRequest); 0 = FORMAT_DATA, a bare sample.
     pub data_format: u8,
+    /// Which process of the front-end (it changes with every restart): on requests, the
+    /// sender's; on replies, the one they are for. A restarted front-end ignores replies
+    /// meant for its predecessor, and the worker finishes the predecessor's queued
+    /// operations before it serves the successor. 0 on announcements.
+    pub incarnation: u16,
 }
 
 /// Why an IPC message was rejected.
@@ -205,6 +210,7 @@ impl IpcHeader {
             request_id: RequestId::default(),
             object_id: ObjectId::INVALID,
             data_format: 0,
+            incarnation: 0,
         }
     }
 
@@ -225,7 +231,8 @@ impl IpcHeader {
         o[30..32].copy_from_slice(&self.object_id.0);
         o[32..36].copy_from_slice(&(body_len as u32).to_le_bytes());
         o[36] = self.data_format;
-        o[37..40].fill(0);
+        o[37] = 0;
+        o[38..40].copy_from_slice(&self.incarnation.to_le_bytes());
     }
 
     /// Encodes a whole message.
@@ -265,6 +272,7 @@ impl IpcHeader {
             request_id: RequestId([buf[28], buf[29]]),
             object_id: ObjectId([buf[30], buf[31]]),
             data_format: buf[36],
+            incarnation: u16::from_le_bytes([buf[38], buf[39]]),
         };
         Ok((h, body))
     }
@@ -306,6 +314,7 @@ mod tests {
             request_id: RequestId([0, 9]),
             object_id: ObjectId::new(1, 5),
             data_format: 0x0A,
+            incarnation: 0xBEEF,
         };
         let m = h.encode(b"body");
         assert_eq!(IpcHeader::decode(&m), Ok((h, &b"body"[..])));

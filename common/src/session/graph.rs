@@ -45,8 +45,9 @@ pub struct ActiveRead {
     pub marks: DeliveredMarks,
 }
 
-/// Writers whose last delivered sample a read remembers; the oldest is forgotten beyond.
-pub const MAX_MARKED_WRITERS: usize = 64;
+/// Writers whose last delivered sample a read remembers; the oldest is forgotten beyond
+/// (a topic with more writers than this can see repeats after a restart; measured with 100).
+pub const MAX_MARKED_WRITERS: usize = 256;
 
 /// The last sample delivered to a read from each DDS writer (its GUID and sequence number),
 /// so that the read replayed on a new worker does not hand the client a sample it had
@@ -495,8 +496,10 @@ mod tests {
         assert!(!m.already_delivered(&a, 6));
         assert!(m.already_delivered(&b, 1) && !m.already_delivered(&b, 2));
         assert!(!m.already_delivered(&[3u8; 16], 0));
-        for w in 0..MAX_MARKED_WRITERS as u8 {
-            m.record([w + 10; 16], 1);
+        for w in 0..MAX_MARKED_WRITERS as u32 {
+            let mut writer = [0xEE; 16];
+            writer[..4].copy_from_slice(&w.to_le_bytes());
+            m.record(writer, 1);
         }
         assert_eq!(m.len(), MAX_MARKED_WRITERS);
         assert!(

@@ -24,6 +24,12 @@ impl AgentUnderTest {
     }
 
     /// CPU seconds and summed peak RSS (KiB) of the agent and every descendant.
+    /// The agent's process id (the root of its process tree).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Resource use of the agent's process tree now.
     pub fn usage(&self) -> Option<ProcUsage> {
         proc_usage(self.child.id())
     }

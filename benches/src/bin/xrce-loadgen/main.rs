@@ -26,6 +26,7 @@ mod peer;
 mod plot;
 mod report;
 mod scenario;
+mod soak;
 
 use clap::Parser;
 
@@ -112,6 +113,16 @@ pub struct Args {
     /// Longest measured phase in seconds.
     #[arg(long, default_value_t = 60)]
     pub duration: u64,
+    /// Kill soak: SIGKILL the agent's worker or front-end this many times during the
+    /// measured phase and account for each kill (lost, duplicated, reordered, recovery).
+    #[arg(long, default_value_t = 0)]
+    pub kills: u32,
+    /// What the soak kills.
+    #[arg(long, value_enum, default_value_t = soak::KillTarget::Alternate)]
+    pub kill: soak::KillTarget,
+    /// Seconds between kills.
+    #[arg(long, default_value_t = 3.0)]
+    pub kill_every: f64,
     /// Command starting the agent under test, `{port}` replaced (run with `sh -c`); with
     /// `--transport serial`, `{devices}` (space-separated) and `{device_file}` (one a line)
     /// name the pty slaves the agent is to serve.

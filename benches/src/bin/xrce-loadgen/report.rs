@@ -57,6 +57,8 @@ pub struct Report {
     pub idle: Option<IdleUse>,
     /// The generator's own CPU in the measured phase.
     pub generator: GeneratorUse,
+    /// The kill soak's accounting (with `--kills`).
+    pub soak: Option<crate::soak::SoakReport>,
 }
 
 /// Latency percentiles, µs.
@@ -252,4 +254,7 @@ pub fn print_report(report: &Report) {
         "  generator: {:.2} CPU s, {:.0} % busy",
         report.generator.cpu_seconds, report.generator.busy_percent
     );
+    if let Some(soak) = &report.soak {
+        crate::soak::print(soak);
+    }
 }

@@ -20,6 +20,7 @@ use crate::agent::{wait_for_agent, wait_for_tcp_agent, AgentUnderTest, ProcOne, 
 use crate::dds_reader::DdsReader;
 use crate::peer::{Group, Peer};
 use crate::report::{AgentUse, DdsReport, GeneratorUse, IdleUse, Percentiles, Report};
+use crate::soak::{self, Killer, Track};
 use crate::{Args, Creation, TransportArg};
 
 /// Sequence numbers of warm-up samples start here (measured ones are below `--samples`,
@@ -184,6 +185,7 @@ impl Share {
     }
 
     /// Sends what is due by now (at most 64 per call), round robin over `pubs`.
+    #[allow(clippy::too_many_arguments)]
     fn send_due(
         &mut self,
         group: &mut Group,
@@ -192,6 +194,7 @@ impl Share {
         stream: u8,
         payload: usize,
         base: Instant,
+        track: Option<(&Track, u32)>,
     ) {
         if pubs.is_empty() {
             return;
@@ -217,6 +220,13 @@ impl Share {
             }
             tries = 0;
             group.write(i, stream, WRITER, &sample(payload, self.next, base));
+            if let Some((t, thread)) = track {
+                t.sent(
+                    self.next,
+                    (thread << 16) | i as u32,
+                    base.elapsed().as_nanos() as u64,
+                );
+            }
             self.next += self.step;
             self.sent += 1;
             burst += 1;
@@ -473,12 +483,28 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     let mut latencies = hdrhistogram::Histogram::<u64>::new_with_bounds(1, 60_000_000_000, 3)
         .map_err(|e| e.to_string())?;
     let (mut received, mut duplicates) = (0u64, 0u64);
+    // Kill soak: what was sent when and by whom, what arrived when, and the kills.
+    let track = (a.kills > 0).then(|| Track::new(samples));
+    let (mut receipts, mut repeated) = (Vec::new(), Vec::new());
     let mut seen = vec![false; samples as usize * subscribers];
     let usage_before = agent.as_ref().and_then(AgentUnderTest::usage);
     // CPU of the threads that drive the clients (not the DDS reader's nor a null agent's).
     let mut generator_cpu = 0.0;
     let t0 = Instant::now();
     let deadline = t0 + Duration::from_secs(a.duration);
+    let mut killer = match (&track, agent.as_ref()) {
+        (Some(_), Some(ag)) => Some(Killer::new(
+            a.kill,
+            a.kills,
+            Duration::from_secs_f64(a.kill_every.max(0.1)),
+            t0,
+            ag.pid(),
+        )),
+        (Some(_), None) => {
+            return Err("--kills needs an agent the generator starts (not --no-agent)".into())
+        }
+        _ => None,
+    };
     let mut last_rx = t0;
     let expected = u64::from(samples) * subscribers as u64;
     let mut shares = shares.into_iter();
@@ -486,8 +512,9 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     let (first, others) = groups.split_first_mut().ok_or("no client group")?;
     std::thread::scope(|scope| -> Result<(), String> {
         let mut handles = Vec::new();
-        for (g, mut share) in others.iter_mut().zip(shares) {
+        for (t, (g, mut share)) in others.iter_mut().zip(shares).enumerate() {
             let (stop, sent_total) = (&stop, &sent_total);
+            let track = track.as_ref().map(|k| (k, t as u32 + 1));
             handles.push(scope.spawn(move || -> Result<f64, String> {
                 let cpu = thread_cpu_seconds();
                 let mut events = Vec::new();
@@ -496,7 +523,7 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
                 // Keeps pumping after its share is sent: reliable streams still need their
                 // acknowledgements and repairs.
                 while !stop.load(Ordering::Relaxed) {
-                    share.send_due(g, 0..n, t0, stream, payload, base);
+                    share.send_due(g, 0..n, t0, stream, payload, base, track);
                     if share.sent > counted {
                         sent_total.fetch_add(share.sent - counted, Ordering::Relaxed);
                         counted = share.sent;
@@ -530,7 +557,18 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
             if sent_total.load(Ordering::Relaxed) >= samples && last_rx.elapsed() > quiet {
                 break Ok(());
             }
-            first_share.send_due(first, subscribers..n, t0, stream, payload, base);
+            first_share.send_due(
+                first,
+                subscribers..n,
+                t0,
+                stream,
+                payload,
+                base,
+                track.as_ref().map(|k| (k, 0)),
+            );
+            if let Some(k) = killer.as_mut() {
+                k.maybe_kill(Instant::now(), base);
+            }
             if first_share.sent > counted {
                 sent_total.fetch_add(first_share.sent - counted, Ordering::Relaxed);
                 counted = first_share.sent;
@@ -550,11 +588,22 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
                     continue;
                 }
                 let slot = &mut seen[i * samples as usize + seq as usize];
+                let receipt = soak::Receipt {
+                    at: now_ns,
+                    seq,
+                    subscriber: i as u32,
+                };
                 if *slot {
                     duplicates += 1;
+                    if track.is_some() {
+                        repeated.push(receipt);
+                    }
                     continue;
                 }
                 *slot = true;
+                if track.is_some() {
+                    receipts.push(receipt);
+                }
                 received += 1;
                 last_rx = Instant::now();
                 let ns = now_ns.saturating_sub(ts).max(1);
@@ -582,6 +631,10 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
         .max(Duration::from_millis(1));
     let wall = t0.elapsed().as_secs_f64();
     let usage_after = agent.as_ref().and_then(AgentUnderTest::usage);
+    let soak_after = killer.as_ref().and_then(|_| usage_after.clone());
+    if killer.as_ref().is_some_and(Killer::pending) {
+        eprintln!("soak: the run ended before every kill was done (more --samples or a lower --kill-every)");
+    }
     let dds = match dds {
         Some(d) => {
             std::thread::sleep(Duration::from_millis(300));
@@ -645,6 +698,18 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
         generator: GeneratorUse {
             cpu_seconds: generator_cpu,
             busy_percent: 100.0 * generator_cpu / (wall * threads as f64).max(1e-3),
+        },
+        soak: match (&killer, &track) {
+            (Some(k), Some(t)) => Some(soak::analyse(
+                &k.kills,
+                t,
+                &receipts,
+                &repeated,
+                subscribers as u32,
+                k.before.as_ref(),
+                soak_after.as_ref(),
+            )),
+            _ => None,
         },
     };
     drop(agent);
@@ -793,7 +858,7 @@ fn warm_up(
     let end = t0 + Duration::from_secs(a.duration);
     let mut events = Vec::new();
     while !share.done() && Instant::now() < end {
-        share.send_due(all, subscribers..n, t0, stream, payload, base);
+        share.send_due(all, subscribers..n, t0, stream, payload, base, None);
         all.pump(&mut events, share.wait(t0))?;
         events.clear();
     }
