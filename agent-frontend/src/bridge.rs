@@ -35,8 +35,10 @@ const INFO_CONFIGURATION: u32 = 0x01;
 /// Operations waiting for the window before new ones are refused (flow control).
 pub const OUTBOX_MAX: usize = 8192;
 /// Operations one client message may carry that still go to the worker at once when client
-/// operations are only accepted that way ([`Bridge::set_hand_over_at_once`]).
-pub const HAND_OVER_HEADROOM: u64 = 16;
+/// operations are only accepted that way ([`Bridge::set_hand_over_at_once`]): a 512-byte
+/// message (the eProsima client's default MTU) holds at most about 40 small WRITE_DATA.
+/// The operations of a larger message beyond this wait in the outbox.
+pub const HAND_OVER_HEADROOM: u64 = 48;
 /// Absolute bound of the outbox (`has_room` keeps it below [`OUTBOX_MAX`] between messages).
 pub const OUTBOX_HARD_MAX: usize = 4 * OUTBOX_MAX;
 /// Bytes of queued operations before new ones are refused (flow control; samples reach 1 MiB).
@@ -353,13 +355,15 @@ impl Bridge {
         self.graphs.insert(client, graph);
     }
 
-    /// The clients whose objects changed, and those whose reads changed without a message
-    /// of theirs, since the last call; their graphs are to be stored.
-    pub fn take_graph_changes(&mut self) -> (Vec<ClientKey>, Vec<ClientKey>) {
-        (
-            self.objects_changed.drain().collect(),
-            self.reads_changed.drain().collect(),
-        )
+    /// The clients whose objects changed since the last call (their objects are to be
+    /// stored).
+    pub fn take_objects_changed(&mut self) -> Vec<ClientKey> {
+        self.objects_changed.drain().collect()
+    }
+
+    /// The clients whose reads changed without a message of theirs since the last call.
+    pub fn take_reads_changed(&mut self) -> Vec<ClientKey> {
+        self.reads_changed.drain().collect()
     }
 
     /// How many XRCE objects a client has.

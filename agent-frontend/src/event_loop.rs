@@ -116,6 +116,7 @@ fn serve<T: Transport>(
     let mut report = StatsReport::new(Instant::now());
     let mut input_left = true;
     let mut discovery_left = true;
+    let mut output_stored = Instant::now();
     if let Some(s) = store.as_mut() {
         let taken = crate::takeover::take_over(s, Instant::now(), &mut agent, bridge, &*transport);
         if taken > 0 {
@@ -183,7 +184,7 @@ fn serve<T: Transport>(
         input_left = transport.receive(now, RECV_BATCH, &mut |from, bytes| {
             agent.handle_datagram(now, from, bytes, bridge);
             if let Some(s) = store.as_mut() {
-                crate::takeover::persist(s, &mut agent, bridge);
+                crate::takeover::persist(s, &mut agent, bridge, false);
             }
         });
         while let Some(closed) = transport.poll_closed() {
@@ -210,11 +211,15 @@ fn serve<T: Transport>(
             // Before anything goes out: a successor never finds the streams behind what
             // the clients saw.
             Some(s) => {
-                crate::takeover::persist(s, &mut agent, bridge);
+                let with_output = now >= output_stored + crate::takeover::OUTPUT_STORE_PERIOD;
+                if with_output {
+                    output_stored = now;
+                }
+                crate::takeover::persist(s, &mut agent, bridge, with_output);
                 s.keep_alive(now);
             }
             None => {
-                let _ = bridge.take_graph_changes();
+                let _ = (bridge.take_objects_changed(), bridge.take_reads_changed());
             }
         }
         while let Some(t) = agent.poll_transmit() {

@@ -66,6 +66,8 @@ pub struct SessionStore {
     next_alive: Instant,
     /// Whether the last write failed (logged once per failure streak).
     failing: bool,
+    /// Clients whose state was too large to store (warned once each).
+    too_large: std::collections::HashSet<ClientKey>,
 }
 
 fn key_name(key: ClientKey) -> String {
@@ -87,6 +89,7 @@ impl SessionStore {
             files: HashMap::new(),
             next_alive: Instant::now(),
             failing: false,
+            too_large: Default::default(),
         })
     }
 
@@ -118,7 +121,10 @@ impl SessionStore {
             }
             let is_state = path.extension().is_some_and(|x| x == "state");
             if !recent || !is_state {
-                if !recent || path.extension().is_some_and(|x| x == "tmp") {
+                // Objects of a client whose state was never stored (a TCP one) go too.
+                let orphan = path.extension().is_some_and(|x| x == "objects")
+                    && !path.with_extension("state").exists();
+                if !recent || orphan || path.extension().is_some_and(|x| x == "tmp") {
                     let _ = std::fs::remove_file(&path);
                 }
                 continue;
@@ -170,7 +176,9 @@ impl SessionStore {
     /// Stores a client's state record.
     pub fn save_state(&mut self, key: ClientKey, record: &[u8]) {
         if record.len() + HEADER > SLOT as usize {
-            tracing::warn!(client = %key, bytes = record.len(), "session state too large to store; a front-end restart would lose this session");
+            if self.too_large.insert(key) {
+                tracing::warn!(client = %key, bytes = record.len(), "session state too large to store; a front-end restart would lose this session");
+            }
             return;
         }
         let r = self.write_state(key, record);
@@ -212,6 +220,7 @@ impl SessionStore {
     /// Forgets a client (its session ended).
     pub fn remove(&mut self, key: ClientKey) {
         self.files.remove(&key);
+        self.too_large.remove(&key);
         for ext in ["state", "objects"] {
             let _ = std::fs::remove_file(self.dir.join(format!("{}.{ext}", key_name(key))));
         }
@@ -283,7 +292,8 @@ fn latest_record(bytes: &[u8]) -> Option<(u64, Vec<u8>)> {
         let seq = u64::from_le_bytes(h[4..12].try_into().ok()?);
         let len = u32::from_le_bytes(h[12..16].try_into().ok()?) as usize;
         let crc = u32::from_le_bytes(h[16..20].try_into().ok()?);
-        let body = bytes.get(at + HEADER..at + HEADER + len)?;
+        let start = at.checked_add(HEADER)?;
+        let body = bytes.get(start..start.checked_add(len)?)?;
         (CRC.checksum(body) == crc).then(|| (seq, body.to_vec()))
     };
     match (slot(0), slot(SLOT as usize)) {

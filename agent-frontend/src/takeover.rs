@@ -8,7 +8,13 @@
 //! marks of what each read delivered, so a replayed read does not hand the client a sample
 //! twice); its objects are stored apart, only when they change.
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
+
+/// How often output-side changes of sessions (output streams, reads' delivered marks) are
+/// stored; input positions are stored at once. Zero: before the transmits of every loop
+/// pass. (With 20 ms the short kill soak saw a repeat at the subscriber: output that left a
+/// stream's queue after the last store went out again from the restored queue.)
+pub const OUTPUT_STORE_PERIOD: Duration = Duration::ZERO;
 
 use xrce_common::session::agent::Agent;
 use xrce_common::session::graph::ObjectGraph;
@@ -18,19 +24,27 @@ use crate::bridge::Bridge;
 use crate::session_store::SessionStore;
 use crate::transport::{StoredEndpoint, Transport};
 
-/// Stores what changed since the last call: the state of every client the core or the
-/// bridge touched, the objects of those whose objects changed, and forgets ended sessions.
-/// Called after each client message (right after its operations went to the worker: a
-/// crash in between makes the client resend one message, which the worker then executes
-/// twice) and before the core's transmits are sent (so nothing a client saw acknowledged
-/// or numbered is ahead of the stored state).
+/// Stores what changed since the last call and forgets ended sessions. Sessions whose input
+/// positions moved are stored after each client message (right after its operations went
+/// to the worker: a crash in between makes the client resend one message, which the worker
+/// then executes twice) and before anything acknowledges it; `with_output` also stores the
+/// sessions whose output or reads changed (the event loop does so at most every
+/// [`OUTPUT_STORE_PERIOD`]: a successor finds output state that much behind at worst, which
+/// the clients' ACKNACKs correct). Changed objects are always stored.
 pub fn persist<A: Copy + Eq + std::hash::Hash + std::fmt::Debug + StoredEndpoint>(
     store: &mut SessionStore,
     agent: &mut Agent<A>,
     bridge: &mut Bridge,
+    with_output: bool,
 ) {
-    let (mut changed, removed) = agent.take_session_changes();
-    let (objects, reads) = bridge.take_graph_changes();
+    let (mut changed, removed) = agent.take_session_changes(with_output);
+    // Objects at once: a CREATE acknowledged must be found by a successor.
+    let objects = bridge.take_objects_changed();
+    let reads = if with_output {
+        bridge.take_reads_changed()
+    } else {
+        Vec::new()
+    };
     for key in removed {
         store.remove(key);
     }
@@ -39,7 +53,11 @@ pub fn persist<A: Copy + Eq + std::hash::Hash + std::fmt::Debug + StoredEndpoint
     changed.dedup();
     for key in objects {
         if let Some(g) = bridge.graph(key) {
-            if agent.has_client(key) {
+            // Not for a client whose connection dies with this process (TCP).
+            let storable = agent
+                .snapshot(key, |e| e.stored())
+                .is_some_and(|s| !s.endpoint.is_empty());
+            if storable {
                 store.save_objects(key, &g.encode_objects());
                 if !changed.contains(&key) {
                     changed.push(key);

@@ -352,6 +352,14 @@ impl Group {
             });
         };
         if let Some(listen) = self.metrics {
+            // The stop signals are blocked before the server's thread exists, so they reach
+            // the supervisor's loop and not that thread (whose default action would kill
+            // the process without stopping the children).
+            let mut set = nix::sys::signal::SigSet::empty();
+            set.add(nix::sys::signal::Signal::SIGINT);
+            set.add(nix::sys::signal::Signal::SIGTERM);
+            set.add(nix::sys::signal::Signal::SIGCHLD);
+            set.thread_block()?;
             // Bound before the children start: a taken port fails the start, clearly.
             crate::metrics::serve(listen, &self.instance)?;
         }

@@ -110,6 +110,11 @@ impl StoredEndpoint for std::net::SocketAddr {
             }
         }
         out.extend_from_slice(&self.port().to_le_bytes());
+        if let std::net::SocketAddr::V6(v6) = self {
+            // A link-local peer is only the same peer with its scope.
+            out.extend_from_slice(&v6.flowinfo().to_le_bytes());
+            out.extend_from_slice(&v6.scope_id().to_le_bytes());
+        }
         out
     }
 }

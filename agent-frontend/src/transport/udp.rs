@@ -171,19 +171,22 @@ impl Transport for UdpTransport {
     }
 
     fn decode_endpoint(&self, bytes: &[u8]) -> Option<SocketAddr> {
-        let (ip, port): (std::net::IpAddr, &[u8]) = match bytes.split_first()? {
+        let addr = match bytes.split_first()? {
             (4, rest) if rest.len() == 6 => {
                 let o: [u8; 4] = rest[..4].try_into().ok()?;
-                (o.into(), &rest[4..])
+                let port = u16::from_le_bytes(rest[4..6].try_into().ok()?);
+                SocketAddr::new(o.into(), port)
             }
-            (6, rest) if rest.len() == 18 => {
+            (6, rest) if rest.len() == 26 => {
                 let o: [u8; 16] = rest[..16].try_into().ok()?;
-                (o.into(), &rest[16..])
+                let port = u16::from_le_bytes(rest[16..18].try_into().ok()?);
+                let flow = u32::from_le_bytes(rest[18..22].try_into().ok()?);
+                let scope = u32::from_le_bytes(rest[22..26].try_into().ok()?);
+                std::net::SocketAddrV6::new(o.into(), port, flow, scope).into()
             }
             _ => return None,
         };
-        let port = u16::from_le_bytes(port.try_into().ok()?);
         // Only a peer this socket can reach (the family it serves).
-        (ip.is_ipv4() == self.local.is_ipv4()).then(|| SocketAddr::new(ip, port))
+        (addr.is_ipv4() == self.local.is_ipv4()).then_some(addr)
     }
 }

@@ -460,6 +460,7 @@ pub struct Agent<A> {
     /// Sessions whose snapshot changed since the last [`Agent::take_session_changes`]
     /// (with `track_sessions`), and sessions deleted since.
     changed: HashSet<ClientKey>,
+    changed_input: HashSet<ClientKey>,
     removed: Vec<ClientKey>,
 }
 
@@ -487,13 +488,22 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             stats: AgentStats::default(),
             replied: Vec::new(),
             changed: HashSet::new(),
+            changed_input: HashSet::new(),
             removed: Vec::new(),
         }
     }
 
+    /// Notes that a session's output side (or anything but its input positions) changed.
     fn touch(&mut self, key: ClientKey) {
         if self.config.track_sessions {
             self.changed.insert(key);
+        }
+    }
+
+    /// Notes that a session's input positions changed (or that it is new).
+    fn touch_input(&mut self, key: ClientKey) {
+        if self.config.track_sessions {
+            self.changed_input.insert(key);
         }
     }
 
@@ -501,9 +511,19 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     /// last call (empty unless `track_sessions`). A front-end stores the snapshots before
     /// it sends what the core produced, so what a client saw acknowledged or numbered is
     /// never behind what the stored state says.
-    pub fn take_session_changes(&mut self) -> (Vec<ClientKey>, Vec<ClientKey>) {
-        let changed: Vec<ClientKey> = self.changed.drain().collect();
-        (changed, std::mem::take(&mut self.removed))
+    ///
+    /// Sessions whose input positions changed are always returned; those where only the
+    /// output side changed only with `with_output` (a successor copes with output state a
+    /// little behind: its clients' ACKNACKs tell it where they are).
+    pub fn take_session_changes(&mut self, with_output: bool) -> (Vec<ClientKey>, Vec<ClientKey>) {
+        let mut changed: HashSet<ClientKey> = self.changed_input.drain().collect();
+        if with_output {
+            changed.extend(self.changed.drain());
+        }
+        (
+            changed.into_iter().collect(),
+            std::mem::take(&mut self.removed),
+        )
     }
 
     /// The state a successor front-end needs to take a session over, with its endpoint
@@ -537,6 +557,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                         .map(|(seq, m)| (seq, m.to_vec()))
                         .collect()
                 }),
+                queued: o.queue.iter().cloned().collect(),
             })
             .collect();
         reliable_out.sort_by_key(|o| o.stream_id);
@@ -580,9 +601,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 (
                     o.stream_id,
                     OutStream {
-                        queued_bytes: 0,
+                        queued_bytes: o.queued.iter().map(Vec::len).sum(),
                         reliable,
-                        queue: VecDeque::new(),
+                        queue: o.queued.iter().cloned().collect(),
                     },
                 )
             })
@@ -591,14 +612,14 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         let resyncing = snapshot
             .reliable_out
             .iter()
-            .any(|o| o.in_flight.as_ref().is_none_or(|m| !m.is_empty()));
+            .any(|o| o.in_flight.as_ref().is_none_or(|m| !m.is_empty()) || !o.queued.is_empty());
         self.clients.insert(
             snapshot.key,
             ProxyClient {
                 key: snapshot.key,
                 session_id: snapshot.session_id,
                 addr: endpoint,
-                mtu: snapshot.mtu,
+                mtu: snapshot.mtu.clamp(64, self.config.max_message_size.max(64)),
                 last_heard: now,
                 reliable_in: snapshot
                     .reliable_in
@@ -624,10 +645,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 delete_requested: false,
                 // Not a fresh session: a CREATE_CLIENT now is the client's own restart.
                 established_at: now
-                    - self
-                        .config
-                        .duplicate_create_guard
-                        .min(Duration::from_secs(1)),
+                    .checked_sub(self.config.duplicate_create_guard)
+                    .unwrap_or(now),
                 streams_used: true,
                 dialect: snapshot.dialect,
                 dead_time: snapshot.dead_time,
@@ -636,6 +655,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             },
         );
         self.by_addr.insert(endpoint, snapshot.key);
+        // Output that waited for window room goes out as room allows.
+        self.flush_client(now, snapshot.key);
         self.schedule(snapshot.key);
         tracing::info!(client = %snapshot.key, session = snapshot.session_id, ?endpoint, "session taken over from the previous front-end");
         true
@@ -779,7 +800,12 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         client.counters.messages_in += 1;
         let dropped_before = self.stats.dropped_total;
         self.handle_session_message(now, key, header, hlen, bytes, sink);
-        self.touch(key);
+        if stream_id::is_reliable(header.stream_id) {
+            // Its input position moved: stored before anything acknowledges it.
+            self.touch_input(key);
+        } else {
+            self.touch(key);
+        }
         let dropped = self.stats.dropped_total - dropped_before;
         if let Some(c) = self.clients.get_mut(&key) {
             c.counters.dropped += dropped;
@@ -1104,7 +1130,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 }
             }
             self.schedule(c.client_key);
-            self.touch(c.client_key);
+            self.touch_input(c.client_key);
         } else if result == status::ERR_DENIED {
             if self.denied_logged.len() < 1024 && self.denied_logged.insert(c.client_key) {
                 tracing::warn!(client = %c.client_key, "CREATE_CLIENT refused: the key is not in --allow-keys (further attempts of this key are counted)");
@@ -1203,6 +1229,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         if let Some(c) = self.clients.remove(&key) {
             if self.config.track_sessions {
                 self.changed.remove(&key);
+                self.changed_input.remove(&key);
                 self.removed.push(key);
             }
             if self.by_addr.get(&c.addr) == Some(&key) {

@@ -67,8 +67,11 @@ impl DeliveredMarks {
 
     /// Records a delivery.
     pub fn record(&mut self, writer: [u8; 16], sequence_number: i64) {
-        if let Some(m) = self.marks.iter_mut().find(|(w, _)| *w == writer) {
-            m.1 = m.1.max(sequence_number);
+        if let Some(i) = self.marks.iter().position(|(w, _)| *w == writer) {
+            // The most recently heard writer goes last: the one evicted is the least recent.
+            if let Some((w, s)) = self.marks.remove(i) {
+                self.marks.push_back((w, s.max(sequence_number)));
+            }
             return;
         }
         if self.marks.len() >= MAX_MARKED_WRITERS {

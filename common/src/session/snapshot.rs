@@ -6,9 +6,9 @@
 //! once, and what was acknowledged is not waited for again), the last number taken on each
 //! best-effort input stream, and the next number of each output stream (a best-effort one
 //! goes on from it, so the client does not drop what follows as old; a reliable one keeps
-//! its unacknowledged messages, which the client gets again if it lacks them). Early input
-//! messages and fragments being reassembled are not kept: the client resends what was not
-//! acknowledged. Output waiting for window room is not kept either.
+//! its unacknowledged messages, which the client gets again if it lacks them, and the output
+//! waiting for window room). Early input messages and fragments being reassembled are not
+//! kept: the client resends what was not acknowledged.
 //!
 //! The encoding is this crate's own (little endian, versioned); the endpoint is opaque bytes
 //! that the transport encodes and decodes.
@@ -18,11 +18,16 @@ use std::time::Duration;
 use crate::wire::{ClientKey, Dialect};
 
 /// Version of the encoding.
-const VERSION: u8 = 1;
+const VERSION: u8 = 2;
 /// Most streams of each kind a snapshot carries (the session core allows fewer).
 const MAX_STREAMS: usize = 256;
 /// Most unacknowledged messages kept per reliable output stream (windows are at most 16).
 const MAX_IN_FLIGHT: usize = 64;
+/// Most submessages waiting for window room a snapshot carries per stream.
+const MAX_QUEUED: usize = 4096;
+/// Most bytes of them it carries per stream (a client far behind keeps its oldest output;
+/// what is beyond is lost if the front-end dies).
+const MAX_QUEUED_BYTES: usize = 128 << 10;
 
 /// The state a front-end keeps of one session for its successor.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -60,6 +65,8 @@ pub struct OutputSnapshot {
     /// kept: then the client gets what it lacks again; without them, the stream asks the
     /// client where it is and goes on from there.
     pub in_flight: Option<Vec<(u16, Vec<u8>)>>,
+    /// Submessages waiting for window room (not numbered yet), oldest first.
+    pub queued: Vec<Vec<u8>>,
 }
 
 /// Why bytes are not a snapshot.
@@ -123,6 +130,21 @@ impl SessionSnapshot {
                     }
                 }
             }
+            let mut bytes = 0;
+            let q = o
+                .queued
+                .iter()
+                .take(MAX_QUEUED)
+                .take_while(|s| {
+                    bytes += s.len();
+                    bytes <= MAX_QUEUED_BYTES
+                })
+                .count();
+            out.extend_from_slice(&(q as u32).to_le_bytes());
+            for sub in &o.queued[..q] {
+                out.extend_from_slice(&(sub.len() as u32).to_le_bytes());
+                out.extend_from_slice(sub);
+            }
         }
         out
     }
@@ -183,10 +205,20 @@ impl SessionSnapshot {
                     Some(messages)
                 }
             };
+            let q = r.u32()? as usize;
+            if q > MAX_QUEUED {
+                return Err(SnapshotError::Invalid("queued submessages"));
+            }
+            let mut queued = Vec::with_capacity(q.min(64));
+            for _ in 0..q {
+                let len = r.u32()? as usize;
+                queued.push(r.take(len)?.to_vec());
+            }
             reliable_out.push(OutputSnapshot {
                 stream_id,
                 next,
                 in_flight,
+                queued,
             });
         }
         if !r.0.is_empty() {
@@ -261,11 +293,13 @@ mod tests {
                     stream_id: 0x80,
                     next: 40,
                     in_flight: Some(vec![(38, vec![1, 2, 3]), (39, vec![4])]),
+                    queued: vec![vec![9, 9], vec![8]],
                 },
                 OutputSnapshot {
                     stream_id: 0x81,
                     next: 7,
                     in_flight: None,
+                    queued: Vec::new(),
                 },
             ],
             best_effort_out: vec![],

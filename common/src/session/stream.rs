@@ -20,6 +20,8 @@ pub struct ReliableOutput {
     /// Taken over from a front-end that died: what the client received is unknown until its
     /// first ACKNACK, so nothing is sent meanwhile (see [`Self::resuming`]).
     resyncing: bool,
+    /// Taken over (restored or resuming): an ACKNACK ahead of `next` moves it there.
+    restored: bool,
 }
 
 impl ReliableOutput {
@@ -31,6 +33,7 @@ impl ReliableOutput {
             in_flight: VecDeque::new(),
             window: window.max(1),
             resyncing: false,
+            restored: false,
         }
     }
 
@@ -43,6 +46,7 @@ impl ReliableOutput {
         ReliableOutput {
             next,
             resyncing: true,
+            restored: true,
             ..Self::new(stream_id, window)
         }
     }
@@ -59,6 +63,7 @@ impl ReliableOutput {
         ReliableOutput {
             next,
             in_flight: in_flight.into(),
+            restored: true,
             ..Self::new(stream_id, window)
         }
     }
@@ -108,8 +113,13 @@ impl ReliableOutput {
             self.in_flight.clear();
             return Vec::new();
         }
-        // Only accept acknowledgements of what was actually sent.
+        // Only accept acknowledgements of what was actually sent; after a takeover from
+        // state a little behind, the client may be ahead: it is the truth then.
         if seq::lt(self.next, a.first_unacked_seq_num) {
+            if self.restored {
+                self.next = a.first_unacked_seq_num;
+                self.in_flight.clear();
+            }
             return Vec::new();
         }
         while let Some((s, _)) = self.in_flight.front() {
@@ -156,6 +166,7 @@ impl ReliableOutput {
         self.next = 0;
         self.in_flight.clear();
         self.resyncing = false;
+        self.restored = false;
     }
 }
 
