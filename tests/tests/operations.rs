@@ -194,7 +194,15 @@ fn a_front_end_whose_loop_stops_is_killed_and_restarted() {
         .child_pid_with("frontend", "udp4")
         .expect("front-end pid");
     // Wait for its first report, so the supervisor knows it reports.
-    std::thread::sleep(2 * SECOND);
+    let dir = xrce_common::ipc::status::status_dir(agent.instance());
+    let end = Instant::now() + 20 * SECOND;
+    while !xrce_common::ipc::status::read_reports(&dir)
+        .iter()
+        .any(|r| r.pid == frontend as u32)
+    {
+        assert!(Instant::now() < end, "the front-end never wrote a report");
+        std::thread::sleep(Duration::from_millis(50));
+    }
     let mark = out.len();
     // A stopped process is what a wedged loop looks like from outside: alive, silent.
     nix::sys::signal::kill(

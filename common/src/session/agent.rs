@@ -285,6 +285,47 @@ struct ProxyClient<A> {
 }
 
 impl<A> ProxyClient<A> {
+    /// A fresh session: no stream used yet.
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        key: ClientKey,
+        session_id: u8,
+        addr: A,
+        mtu: u16,
+        dialect: Dialect,
+        dead_time: Option<Duration>,
+        now: Instant,
+        config: &AgentConfig,
+    ) -> Self {
+        ProxyClient {
+            key,
+            session_id,
+            addr,
+            mtu,
+            last_heard: now,
+            reliable_in: HashMap::new(),
+            best_effort_in: HashMap::new(),
+            reliable_out: HashMap::new(),
+            best_effort_out: HashMap::new(),
+            reassembly: HashMap::new(),
+            heartbeat_due: None,
+            heartbeat_interval: config.heartbeat_period,
+            timer: None,
+            meter: (!config.admission.rate.is_unlimited())
+                .then(|| RateMeter::new(config.admission.rate, now)),
+            foreign_drops: 0,
+            counters: ClientCounters::default(),
+            created_at: now,
+            delete_requested: false,
+            established_at: now,
+            streams_used: false,
+            dialect,
+            dead_time,
+            detached: false,
+            last_probe: None,
+        }
+    }
+
     fn header(&self, stream: u8, seq: u16) -> MessageHeader {
         MessageHeader::new(self.session_id, stream, seq, self.key)
     }
@@ -613,47 +654,35 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             .reliable_out
             .iter()
             .any(|o| o.in_flight.as_ref().is_none_or(|m| !m.is_empty()) || !o.queued.is_empty());
-        self.clients.insert(
+        let mut client = ProxyClient::new(
             snapshot.key,
-            ProxyClient {
-                key: snapshot.key,
-                session_id: snapshot.session_id,
-                addr: endpoint,
-                mtu: snapshot.mtu.clamp(64, self.config.max_message_size.max(64)),
-                last_heard: now,
-                reliable_in: snapshot
-                    .reliable_in
-                    .iter()
-                    .map(|(s, e)| (*s, ReliableInput::resuming(in_window, *e)))
-                    .collect(),
-                best_effort_in: snapshot
-                    .best_effort_in
-                    .iter()
-                    .map(|(s, l)| (*s, BestEffortInput::resuming(*l)))
-                    .collect(),
-                reliable_out,
-                best_effort_out: snapshot.best_effort_out.iter().copied().collect(),
-                reassembly: HashMap::new(),
-                heartbeat_due: resyncing.then_some(now),
-                heartbeat_interval: self.config.heartbeat_period,
-                timer: None,
-                meter: (!self.config.admission.rate.is_unlimited())
-                    .then(|| RateMeter::new(self.config.admission.rate, now)),
-                foreign_drops: 0,
-                counters: ClientCounters::default(),
-                created_at: now,
-                delete_requested: false,
-                // Not a fresh session: a CREATE_CLIENT now is the client's own restart.
-                established_at: now
-                    .checked_sub(self.config.duplicate_create_guard)
-                    .unwrap_or(now),
-                streams_used: true,
-                dialect: snapshot.dialect,
-                dead_time: snapshot.dead_time,
-                detached: false,
-                last_probe: None,
-            },
+            snapshot.session_id,
+            endpoint,
+            snapshot.mtu.clamp(64, self.config.max_message_size.max(64)),
+            snapshot.dialect,
+            snapshot.dead_time,
+            now,
+            &self.config,
         );
+        client.reliable_in = snapshot
+            .reliable_in
+            .iter()
+            .map(|(s, e)| (*s, ReliableInput::resuming(in_window, *e)))
+            .collect();
+        client.best_effort_in = snapshot
+            .best_effort_in
+            .iter()
+            .map(|(s, l)| (*s, BestEffortInput::resuming(*l)))
+            .collect();
+        client.reliable_out = reliable_out;
+        client.best_effort_out = snapshot.best_effort_out.iter().copied().collect();
+        client.heartbeat_due = resyncing.then_some(now);
+        // Not a fresh session: a CREATE_CLIENT now is the client's own restart.
+        client.established_at = now
+            .checked_sub(self.config.duplicate_create_guard)
+            .unwrap_or(now);
+        client.streams_used = true;
+        self.clients.insert(snapshot.key, client);
         self.by_addr.insert(endpoint, snapshot.key);
         // Output that waited for window room goes out as room allows.
         self.flush_client(now, snapshot.key);
@@ -1094,33 +1123,16 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     }
                     self.clients.insert(
                         c.client_key,
-                        ProxyClient {
-                            key: c.client_key,
-                            session_id: c.session_id,
-                            addr: src,
+                        ProxyClient::new(
+                            c.client_key,
+                            c.session_id,
+                            src,
                             mtu,
-                            last_heard: now,
-                            reliable_in: HashMap::new(),
-                            best_effort_in: HashMap::new(),
-                            reliable_out: HashMap::new(),
-                            best_effort_out: HashMap::new(),
-                            reassembly: HashMap::new(),
-                            heartbeat_due: None,
-                            heartbeat_interval: self.config.heartbeat_period,
-                            timer: None,
-                            meter: (!self.config.admission.rate.is_unlimited())
-                                .then(|| RateMeter::new(self.config.admission.rate, now)),
-                            foreign_drops: 0,
-                            counters: ClientCounters::default(),
-                            created_at: now,
-                            delete_requested: false,
-                            established_at: now,
-                            streams_used: false,
                             dialect,
                             dead_time,
-                            last_probe: None,
-                            detached: false,
-                        },
+                            now,
+                            &self.config,
+                        ),
                     );
                     self.by_addr.insert(src, c.client_key);
                     sink.operation(Operation::ClientCreated {
