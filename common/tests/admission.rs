@@ -1,5 +1,6 @@
 //! Admission in the agent core: no session takeover from another endpoint (unless roaming is
-//! allowed), the allow-list of client keys, per-client input rate quotas.
+//! allowed), the allow-list of client keys, per-client input rate quotas, and how a client
+//! refused for lack of room is acknowledged.
 
 use std::time::{Duration, Instant};
 
@@ -12,11 +13,13 @@ use xrce_common::wire::*;
 struct Recorder {
     created: Vec<ClientKey>,
     writes: Vec<Vec<u8>>,
+    /// The DDS side has no room (flow control).
+    full: bool,
 }
 
 impl OperationSink for Recorder {
     fn has_room(&self) -> bool {
-        true
+        !self.full
     }
     fn operation(&mut self, op: Operation<'_>) {
         match op {
@@ -196,4 +199,79 @@ fn a_client_over_its_rate_quota_is_slowed_and_loses_no_reliable_message() {
         "{took:?}"
     );
     assert!(agent.stats().dropped("rate_quota") > 100);
+}
+
+/// The (first unacknowledged, nack bitmap) of every ACKNACK in `out`.
+fn acknacks(out: &[Transmit<u32>]) -> Vec<(u16, u16)> {
+    out.iter()
+        .flat_map(|t| Message::decode(&t.data).expect("decodes").submessages)
+        .filter_map(|s| match s.payload {
+            Payload::Acknack(a) => Some((a.first_unacked_seq_num, a.nack_bitmap)),
+            _ => None,
+        })
+        .collect()
+}
+
+fn heartbeat(first: u16, last: u16) -> Vec<u8> {
+    let mut b = MessageBuilder::new(MessageHeader::new(0x01, stream_id::NONE, 0, KEY));
+    b.push(
+        &Payload::Heartbeat(HeartbeatPayload {
+            first_unacked_seq_num: first,
+            last_unacked_seq_num: last,
+            stream_id: 0x80,
+        }),
+        true,
+    )
+    .expect("encode");
+    b.finish()
+}
+
+#[test]
+fn a_message_refused_for_room_is_asked_for_again_only_when_the_client_heartbeats() {
+    // The eProsima client resends its whole window on any ACKNACK that asks for a message:
+    // an ACKNACK asking for each refused message would keep a full agent busy with resends.
+    let (mut agent, mut rec, t0) = agent_with(Admission::default());
+    let ms = Duration::from_millis;
+    rec.full = true;
+    agent.handle_datagram(t0, HOME, &write(0, b"zero"), &mut rec);
+    assert_eq!(
+        acknacks(&drain(&mut agent)),
+        [(0, 0)],
+        "acknowledged, nothing asked for"
+    );
+    // Its resend, refused again: the same ACKNACK is not repeated at once.
+    agent.handle_datagram(t0 + ms(1), HOME, &write(0, b"zero"), &mut rec);
+    assert_eq!(acknacks(&drain(&mut agent)), []);
+    assert_eq!(agent.stats().dropped("backpressure"), 2);
+    // The client's HEARTBEAT is always answered, and that ACKNACK asks for message 0.
+    agent.handle_datagram(t0 + ms(2), HOME, &heartbeat(0, 0), &mut rec);
+    assert_eq!(acknacks(&drain(&mut agent)), [(0, 1)]);
+    rec.full = false;
+    agent.handle_datagram(t0 + ms(3), HOME, &write(0, b"zero"), &mut rec);
+    assert_eq!(acknacks(&drain(&mut agent)), [(1, 0)]);
+    assert_eq!(rec.writes, [b"zero".to_vec()]);
+    // A duplicate within the repeat interval gets no second, unchanged ACKNACK; one later does
+    // (our first may have been lost).
+    agent.handle_datagram(t0 + ms(4), HOME, &write(0, b"zero"), &mut rec);
+    assert_eq!(acknacks(&drain(&mut agent)), []);
+    let later = t0 + ms(3) + xrce_common::session::agent::ACKNACK_REPEAT_INTERVAL;
+    agent.handle_datagram(later, HOME, &write(0, b"zero"), &mut rec);
+    assert_eq!(acknacks(&drain(&mut agent)), [(1, 0)]);
+    // A lost message: the first later arrival asks for it, the next ones within the
+    // interval do not ask again (each would make the client resend everything again).
+    agent.handle_datagram(later, HOME, &write(2, b"two"), &mut rec);
+    assert_eq!(acknacks(&drain(&mut agent)), [(1, 1)]);
+    agent.handle_datagram(later + ms(1), HOME, &write(3, b"three"), &mut rec);
+    assert_eq!(acknacks(&drain(&mut agent)), []);
+    agent.handle_datagram(later + ms(2), HOME, &write(1, b"one"), &mut rec);
+    assert_eq!(acknacks(&drain(&mut agent)), [(4, 0)]);
+    assert_eq!(
+        rec.writes,
+        [
+            b"zero".to_vec(),
+            b"one".to_vec(),
+            b"two".to_vec(),
+            b"three".to_vec()
+        ]
+    );
 }

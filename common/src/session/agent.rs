@@ -282,6 +282,8 @@ struct ProxyClient<A> {
     detached: bool,
     /// When the last GET_INFO liveliness probe went out.
     last_probe: Option<Instant>,
+    /// The last ACKNACK sent on each reliable input stream and when (see [`AckCause`]).
+    last_acknack: HashMap<u8, (u16, u16, Instant)>,
 }
 
 impl<A> ProxyClient<A> {
@@ -323,6 +325,7 @@ impl<A> ProxyClient<A> {
             dead_time,
             detached: false,
             last_probe: None,
+            last_acknack: HashMap::new(),
         }
     }
 
@@ -338,6 +341,7 @@ impl<A> ProxyClient<A> {
         self.reassembly.clear();
         self.heartbeat_due = None;
         self.streams_used = false;
+        self.last_acknack.clear();
     }
 
     /// When this client's timers have something to do next: a HEARTBEAT, a liveliness
@@ -421,6 +425,26 @@ pub(crate) fn agent_info_message(
         true,
     );
     b.finish()
+}
+
+/// An ACKNACK not asked for by a HEARTBEAT is not repeated unchanged within this time: the
+/// eProsima client resends every unacknowledged message on each ACKNACK that asks for any,
+/// so an ACKNACK per arriving duplicate or early message would multiply its resends.
+pub const ACKNACK_REPEAT_INTERVAL: Duration = Duration::from_millis(20);
+
+/// Why a reliable input stream is acknowledged.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum AckCause {
+    /// The client's HEARTBEAT asked: always answered, asking for every missing message.
+    Heartbeat,
+    /// A message arrived (as the reference agent does, one ACKNACK per reliable message):
+    /// asks for the missing messages, not repeated unchanged within
+    /// [`ACKNACK_REPEAT_INTERVAL`].
+    Arrival,
+    /// A message was refused for lack of room (flow control): acknowledges what was taken
+    /// but asks for nothing, so the client resends only once its next HEARTBEAT is answered
+    /// instead of at once, over and over, while the agent is still full.
+    Refused,
 }
 
 /// Request id of the agent's liveliness probes (GET_INFO). Its first octet is no submessage id,
@@ -916,6 +940,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             .reliable_in
             .entry(stream)
             .or_insert_with(|| ReliableInput::new(window));
+        let mut cause = AckCause::Arrival;
         match input.classify(header.sequence_nr) {
             Arrival::Duplicate => self.count_drop("duplicate"),
             Arrival::OutOfWindow => self.drop_input("out_of_window", bytes),
@@ -941,38 +966,43 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                         input.advance();
                     }
                     self.process(now, key, bytes, hlen, sink);
-                    self.deliver_ready(now, key, stream, sink);
+                    if !self.deliver_ready(now, key, stream, sink) {
+                        cause = AckCause::Refused;
+                    }
                 } else {
                     // Flow control: not acknowledged, so the client will send it again.
                     self.count_drop("backpressure");
+                    cause = AckCause::Refused;
                 }
             }
         }
-        self.send_acknack(key, stream);
+        self.send_acknack(now, key, stream, cause);
     }
 
     /// Delivers messages that arrived early and are now next, while the sink has room. One
-    /// that finds no room is dropped unacknowledged: the next ACKNACK asks for it again.
+    /// that finds no room is dropped unacknowledged (false is returned): the ACKNACK that
+    /// answers the client's next HEARTBEAT asks for it again.
     fn deliver_ready(
         &mut self,
         now: Instant,
         key: ClientKey,
         stream: u8,
         sink: &mut impl OperationSink,
-    ) {
+    ) -> bool {
         loop {
             let Some(input) = self
                 .clients
                 .get_mut(&key)
                 .and_then(|c| c.reliable_in.get_mut(&stream))
             else {
-                return;
+                return true;
             };
             let Some(next) = input.take_ready() else {
-                return;
+                return true;
             };
             if !sink.has_room() {
-                return self.count_drop("backpressure");
+                self.count_drop("backpressure");
+                return false;
             }
             input.advance();
             let Ok((_, hlen)) = MessageHeader::decode(&next) else {
@@ -982,14 +1012,29 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         }
     }
 
-    fn send_acknack(&mut self, key: ClientKey, stream: u8) {
-        let Some(client) = self.clients.get(&key) else {
+    /// Acknowledges a reliable input stream (see [`AckCause`] for when an ACKNACK asks for
+    /// messages again and when one is left out).
+    fn send_acknack(&mut self, now: Instant, key: ClientKey, stream: u8, cause: AckCause) {
+        let Some(client) = self.clients.get_mut(&key) else {
             return;
         };
         let Some(input) = client.reliable_in.get(&stream) else {
             return;
         };
-        let ack = input.acknack(stream);
+        let mut ack = input.acknack(stream);
+        if cause == AckCause::Refused {
+            ack.nack_bitmap = 0;
+        }
+        let same = (ack.first_unacked_seq_num, ack.nack_bitmap);
+        if cause != AckCause::Heartbeat {
+            let repeated = client.last_acknack.get(&stream).is_some_and(|&(f, m, at)| {
+                (f, m) == same && now.saturating_duration_since(at) < ACKNACK_REPEAT_INTERVAL
+            });
+            if repeated {
+                return;
+            }
+        }
+        client.last_acknack.insert(stream, (same.0, same.1, now));
         let mut b = MessageBuilder::new(client.header(stream_id::NONE, 0));
         let _ = b.push(&Payload::Acknack(ack), true);
         let addr = client.addr;
@@ -1376,7 +1421,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 // Messages the sender gave up on may have unblocked buffered ones.
                 if self.once(Reply::Acknack(h.stream_id)) {
                     self.deliver_ready(now, key, h.stream_id, sink);
-                    self.send_acknack(key, h.stream_id);
+                    self.send_acknack(now, key, h.stream_id, AckCause::Heartbeat);
                 }
             }
             Payload::Heartbeat(_) => self.count_drop("heartbeat_for_best_effort_stream"),

@@ -8,6 +8,9 @@ use std::time::{Duration, Instant};
 /// The agent under test, started by the generator and stopped when dropped.
 pub struct AgentUnderTest {
     child: Child,
+    /// Where our agent writes its processes' status reports (`XRCE_STATUS_DIR`): read for
+    /// its drop counters at the end of a run. Other agents ignore the variable.
+    status_dir: std::path::PathBuf,
 }
 
 impl AgentUnderTest {
@@ -15,12 +18,54 @@ impl AgentUnderTest {
     pub fn start(cmd: &str, port: u16) -> Result<Self, String> {
         let line = cmd.replace("{port}", &port.to_string());
         eprintln!("starting agent: {line}");
+        let status_dir =
+            std::env::temp_dir().join(format!("xrce-loadgen-status-{}-{port}", std::process::id()));
         let child = Command::new("sh")
             .arg("-c")
             .arg(format!("exec {line}"))
+            .env(xrce_common::ipc::status::STATUS_DIR_ENV, &status_dir)
             .spawn()
             .map_err(|e| format!("starting {line:?}: {e}"))?;
-        Ok(AgentUnderTest { child })
+        Ok(AgentUnderTest { child, status_dir })
+    }
+
+    /// What our agent's processes counted as dropped (summed by reason over the worker and
+    /// the front-ends) and the front-ends' other counters, from status reports written after
+    /// `since_unix_ms` (waits up to 3 s for them); None for an agent that writes none.
+    pub fn counters(&self, since_unix_ms: u64) -> Option<AgentCounters> {
+        use xrce_common::ipc::status::read_reports;
+        let end = Instant::now() + Duration::from_secs(3);
+        loop {
+            let reports = read_reports(&self.status_dir);
+            let fresh = !reports.is_empty()
+                && reports
+                    .iter()
+                    .filter(|r| r.frontend.is_some() || r.worker.is_some())
+                    .all(|r| r.updated_unix_ms >= since_unix_ms);
+            if fresh || Instant::now() >= end {
+                if reports.is_empty() {
+                    return None;
+                }
+                let mut c = AgentCounters::default();
+                for r in &reports {
+                    let maps = [
+                        r.frontend.as_ref().map(|f| (&f.dropped, Some(&f.counters))),
+                        r.worker.as_ref().map(|w| (&w.dropped, None)),
+                    ];
+                    for (dropped, counters) in maps.into_iter().flatten() {
+                        for (k, v) in dropped {
+                            *c.dropped.entry(k.clone()).or_default() += v;
+                        }
+                        for (k, v) in counters.into_iter().flatten() {
+                            *c.frontend.entry(k.clone()).or_default() += v;
+                        }
+                    }
+                }
+                c.stale = !fresh;
+                return Some(c);
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
     }
 
     /// CPU seconds and summed peak RSS (KiB) of the agent and every descendant.
@@ -55,6 +100,17 @@ impl AgentUnderTest {
     }
 }
 
+/// Counters our agent reported about a run.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct AgentCounters {
+    /// Drops by reason, summed over the worker and front-ends.
+    pub dropped: std::collections::BTreeMap<String, u64>,
+    /// The front-ends' other counters, summed (retransmissions, reads paused, ...).
+    pub frontend: std::collections::BTreeMap<String, u64>,
+    /// Some report was older than the end of the run (a process stopped reporting).
+    pub stale: bool,
+}
+
 impl Drop for AgentUnderTest {
     fn drop(&mut self) {
         let pid = self.child.id() as i32;
@@ -63,14 +119,18 @@ impl Drop for AgentUnderTest {
             .args(["-INT", &pid.to_string()])
             .status();
         let end = Instant::now() + Duration::from_secs(5);
-        while Instant::now() < end {
-            if let Ok(Some(_)) = self.child.try_wait() {
-                return;
+        let mut exited = false;
+        while !exited && Instant::now() < end {
+            exited = matches!(self.child.try_wait(), Ok(Some(_)));
+            if !exited {
+                std::thread::sleep(Duration::from_millis(20));
             }
-            std::thread::sleep(Duration::from_millis(20));
         }
-        let _ = self.child.kill();
-        let _ = self.child.wait();
+        if !exited {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+        let _ = std::fs::remove_dir_all(&self.status_dir);
     }
 }
 

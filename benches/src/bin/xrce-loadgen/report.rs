@@ -124,6 +124,8 @@ pub struct AgentUse {
     pub fds: u64,
     /// Each process at the end of the measured phase, with its CPU over the phase.
     pub each: Vec<ProcOne>,
+    /// What our agent counted (drops by reason), from its status reports.
+    pub counters: Option<crate::agent::AgentCounters>,
 }
 
 /// The agent's cost with every session and entity set up and no traffic.
@@ -247,6 +249,26 @@ pub fn print_report(report: &Report) {
                 p.peak_rss_kib as f64 / 1024.0,
                 p.threads,
                 p.fds
+            );
+        }
+        if let Some(c) = &u.counters {
+            let list = |m: &std::collections::BTreeMap<String, u64>| {
+                let v: Vec<String> = m
+                    .iter()
+                    .filter(|(_, n)| **n > 0)
+                    .map(|(k, n)| format!("{k} {n}"))
+                    .collect();
+                if v.is_empty() {
+                    "none".to_string()
+                } else {
+                    v.join(", ")
+                }
+            };
+            println!(
+                "    agent drops: {}; front-end counters: {}{}",
+                list(&c.dropped),
+                list(&c.frontend),
+                if c.stale { " (some report stale)" } else { "" }
             );
         }
     }

@@ -631,6 +631,9 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
         .max(Duration::from_millis(1));
     let wall = t0.elapsed().as_secs_f64();
     let usage_after = agent.as_ref().and_then(AgentUnderTest::usage);
+    let counters = agent
+        .as_ref()
+        .and_then(|g| g.counters(xrce_common::ipc::status::unix_ms()));
     let soak_after = killer.as_ref().and_then(|_| usage_after.clone());
     if killer.as_ref().is_some_and(Killer::pending) {
         eprintln!("soak: the run ended before every kill was done (more --samples or a lower --kill-every)");
@@ -691,6 +694,7 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
                 threads: e.threads,
                 fds: e.fds,
                 each: per_process_delta(&b, &e),
+                counters,
             }),
             _ => None,
         },
@@ -788,6 +792,10 @@ fn probe(
     let end = Instant::now() + Duration::from_secs(60);
     let dds_pending = || dds.as_ref().is_some_and(|d| d.probes_heard() < publishers);
     let mut round = 0u64;
+    // A publisher probes again only after this: the agent holds writes until DDS matched
+    // their writer, and a probe every round would release thousands at once when it does.
+    let probe_every = Duration::from_millis(100);
+    let mut probed: Vec<Option<Instant>> = vec![None; publishers + 1];
     while (missing > 0 || dds_pending()) && Instant::now() < end {
         round += 1;
         // The DDS reader may still miss some: every publisher probes again now and then.
@@ -795,7 +803,9 @@ fn probe(
         for j in 1..=publishers {
             let unheard = heard.iter().any(|h| !h[j]);
             let i = subscribers + j - 1;
-            if (unheard || again) && all.peers[i].client.can_send_reliable(stream) {
+            let due = probed[j].is_none_or(|t| t.elapsed() >= probe_every);
+            if (unheard || again) && due && all.peers[i].client.can_send_reliable(stream) {
+                probed[j] = Some(Instant::now());
                 all.write(
                     i,
                     stream,
