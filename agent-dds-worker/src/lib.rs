@@ -49,6 +49,7 @@
 //! spellings), and values beyond 2³¹ s as infinite; a malformed value refuses the CREATE
 //! with `STATUS_ERR_INVALID_DATA` naming the element.
 
+pub mod acks;
 pub mod binary;
 pub mod cli;
 pub mod dds;

@@ -471,6 +471,19 @@ impl RawWriter {
         matches!(self, RawWriter::Le(_) | RawWriter::KeyedLe(..))
     }
 
+    /// Whether every matched reliable reader acknowledged everything written (true without
+    /// any, and for a best-effort writer). Does not wait.
+    pub fn all_acknowledged(&self) -> bool {
+        let zero = std::time::Duration::ZERO;
+        let r = match self {
+            RawWriter::Le(w) => w.wait_for_acknowledgments(zero),
+            RawWriter::Be(w) => w.wait_for_acknowledgments(zero),
+            RawWriter::KeyedLe(w, _) => w.wait_for_acknowledgments(zero),
+            RawWriter::KeyedBe(w, _) => w.wait_for_acknowledgments(zero),
+        };
+        matches!(r, Ok(true))
+    }
+
     /// The name of the topic it writes.
     pub fn topic_name(&self) -> String {
         use rustdds::TopicDescription;

@@ -28,6 +28,7 @@ use xrce_common::wire::{
     object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, VariantExtra,
 };
 
+use crate::acks::{AckTracker, Acknowledging, Outstanding};
 use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
 use crate::filter::Filter;
 use crate::raw::{RawReader, RawSample, RawWriter};
@@ -89,6 +90,17 @@ struct DdsWriter {
     /// When it first matched a reader (read from its status events, which only this
     /// structure consumes, so that every XRCE writer sharing it sees the match).
     matched_at: Cell<Option<Instant>>,
+    /// Front-end operations written through it that its readers may not have acknowledged.
+    outstanding: Outstanding,
+}
+
+impl Acknowledging for DdsWriter {
+    fn all_acknowledged(&self) -> bool {
+        self.raw.all_acknowledged()
+    }
+    fn outstanding(&self) -> &Outstanding {
+        &self.outstanding
+    }
 }
 
 impl DdsWriter {
@@ -339,6 +351,8 @@ pub struct Worker {
     /// Writers holding their samples until matched (kept apart so that the loop never scans
     /// every entity: with thousands of clients that scan dominated the worker's CPU).
     holding: HashSet<EntityKey>,
+    /// DDS writers with writes their readers may not have acknowledged.
+    acks: AckTracker<DdsWriter>,
     /// DDS writers shared by XRCE writers (`share_writers`), with the QoS and type they
     /// were made with; dead entries are pruned on lookup.
     shared_writers: HashMap<SharedWriterKey, Vec<SharedWriterEntry>>,
@@ -408,6 +422,7 @@ impl Worker {
             reads: HashMap::new(),
             to_pump: HashSet::new(),
             holding: HashSet::new(),
+            acks: AckTracker::new(Instant::now()),
             shared_writers: HashMap::new(),
             poll: Poll::new()?,
             graph: RosGraph::new(ros_graph),
@@ -640,6 +655,19 @@ impl Worker {
         if !self.to_pump.is_empty() {
             return 0;
         }
+        let acks = self
+            .acks
+            .due()
+            .map(|d| d.saturating_duration_since(Instant::now()).as_millis() as i32 + 1);
+        let t = self.timeout_without_acks();
+        match (acks, t) {
+            (Some(a), t) if t < 0 => a,
+            (Some(a), t) => a.min(t),
+            (None, t) => t,
+        }
+    }
+
+    fn timeout_without_acks(&self) -> i32 {
         if !self.holding.is_empty() {
             let draining = self.holding.iter().any(|k| {
                 matches!(self.entities.get(k), Some(Entity { kind: EntityKind::Writer(_, r, _), .. }) if r.draining)
@@ -947,6 +975,13 @@ impl Worker {
     fn flush(&mut self) {
         let generation = self.generation;
         let held = self.oldest_held();
+        let (moved, all) = self.acks.poll(Instant::now());
+        for (fe, p) in self.ports.iter_mut() {
+            if all || moved.contains(fe) {
+                p.dirty = true;
+            }
+        }
+        let outstanding = self.acks.oldest_outstanding();
         for (fe, p) in self.ports.iter_mut() {
             let mut sent = false;
             while let Some(m) = p.backlog.front() {
@@ -978,7 +1013,15 @@ impl Worker {
                 h.generation = generation;
                 h.incarnation = p.incarnation;
                 h.op_seq = p.processed;
-                if let Ok(true) = p.sender.send(&h, &executed.to_le_bytes()) {
+                // Acknowledged by every matched reliable reader: up to just before the
+                // oldest write still outstanding.
+                let acknowledged = outstanding
+                    .get(fe)
+                    .map_or(executed, |oldest| executed.min(oldest.saturating_sub(1)));
+                let mut body = [0u8; 16];
+                body[..8].copy_from_slice(&executed.to_le_bytes());
+                body[8..].copy_from_slice(&acknowledged.to_le_bytes());
+                if let Ok(true) = p.sender.send(&h, &body) {
                     p.dirty = false;
                     sent = true;
                 }
@@ -1143,6 +1186,7 @@ impl Worker {
                             raw,
                             shared: shared_key.clone(),
                             matched_at: Cell::new(None),
+                            outstanding: Outstanding::default(),
                         });
                         if let Some(k) = shared_key {
                             self.shared_writers
@@ -1650,19 +1694,27 @@ impl Worker {
             );
             rematch.until = None;
             rematch.draining = false;
-            for (_, s, d) in rematch.held.drain(..) {
-                let _ = if d { w.raw.dispose(&s) } else { w.raw.write(s) };
+            let now = Instant::now();
+            for (s_seq, s, d) in rematch.held.drain(..) {
+                let done = if d { w.raw.dispose(&s) } else { w.raw.write(s) };
+                if done.is_ok() && w.outstanding.record(key.0, s_seq, now) {
+                    self.acks.watch(w);
+                }
             }
         }
-        if dispose {
-            return w
-                .raw
+        let done = if dispose {
+            w.raw
                 .dispose(&sample)
-                .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS dispose: {e}")));
+                .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS dispose: {e}")))
+        } else {
+            w.raw
+                .write(sample)
+                .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
+        };
+        if done.is_ok() && w.outstanding.record(key.0, seq, Instant::now()) {
+            self.acks.watch(w);
         }
-        w.raw
-            .write(sample)
-            .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
+        done
     }
 
     /// A live shared DDS writer made with this QoS and type, if any (dead entries pruned).
@@ -1721,7 +1773,7 @@ impl Worker {
             }
             if rematch.draining {
                 for _ in 0..RELEASE_BATCH {
-                    let Some((_, sample, dispose)) = rematch.held.pop_front() else {
+                    let Some((seq, sample, dispose)) = rematch.held.pop_front() else {
                         break;
                     };
                     let done = if dispose {
@@ -1734,6 +1786,8 @@ impl Worker {
                     }
                     if done.is_err() {
                         failures += 1;
+                    } else if w.outstanding.record(key.0, seq, now) {
+                        self.acks.watch(w);
                     }
                 }
                 if rematch.held.is_empty() {

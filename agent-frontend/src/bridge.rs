@@ -44,7 +44,9 @@ pub const OUTBOX_HARD_MAX: usize = 4 * OUTBOX_MAX;
 /// Bytes of queued operations before new ones are refused (flow control; samples reach 1 MiB).
 pub const OUTBOX_MAX_BYTES: usize = 64 << 20;
 /// Reliable writes kept for a possible resend before new ones are refused (flow control);
-/// with [`SETTLE_TIME`] this caps reliable throughput near 43,000 samples/s.
+/// writes are released once acknowledged by DDS readers, at the latest after
+/// [`SETTLE_TIME`], which with readers that never acknowledge caps reliable throughput near
+/// 43,000 samples/s.
 pub const RETAIN_MAX: usize = 65_536;
 /// Bytes of retained writes before new ones are refused (flow control).
 pub const RETAIN_MAX_BYTES: usize = 64 << 20;
@@ -54,11 +56,11 @@ pub const PAUSE_READ_AT: (usize, usize) = (1024, 1 << 20);
 /// A paused read resumes when the backlog is down to this.
 pub const RESUME_READ_AT: (usize, usize) = (256, 256 << 10);
 
-/// How long an executed reliable write is kept in case the worker dies right after. A write
-/// the DDS writer has taken may still need a repair (its first datagram lost): RustDDS
-/// heartbeats unacknowledged data every 100 ms to 1 s, so a worker killed within that window
-/// could lose it. Kept 1.5 s, the resend after a crash covers the repair window (at the cost of
-/// up to 1.5 s of duplicates for the DDS readers).
+/// How long an executed reliable write is kept at most in case the worker dies right after.
+/// A write is released as soon as the worker reports that every matched reliable reader of
+/// its DDS writer acknowledged it (usually within milliseconds); this bound is for readers
+/// that do not acknowledge (RustDDS heartbeats unacknowledged data every 100 ms to 1 s):
+/// only writes still unacknowledged at a worker crash are resent to the new worker.
 pub const SETTLE_TIME: Duration = Duration::from_millis(1500);
 
 /// Why a bridge could not be opened.
@@ -202,6 +204,10 @@ pub struct BridgeStats {
     pub instance_ends_skipped: u64,
     /// Samples not delivered again to a read replayed on a new worker (the client had them).
     pub samples_already_delivered: u64,
+    /// Retained writes released because DDS readers acknowledged them.
+    pub writes_acknowledged: u64,
+    /// Retained writes released after [`SETTLE_TIME`] without an acknowledgement.
+    pub writes_settled_unacknowledged: u64,
     /// CREATEs refused because their client had its quota of objects.
     pub objects_over_quota: u64,
     /// Replies meant for the front-end process this one took over from, ignored.
@@ -225,6 +231,9 @@ pub struct Bridge {
     generation: Option<u32>,
     next_seq: u64,
     processed: u64,
+    /// Every write up to this operation was acknowledged by the readers of its DDS writer
+    /// (reported by the worker; only rises).
+    acknowledged: u64,
     outbox: ByteQueue<OwnedOp>,
     retained: ByteQueue<Retained>,
     /// Sent operations whose STATUS a client waits for: seq -> (client, request, kind).
@@ -304,6 +313,7 @@ impl Bridge {
             generation: None,
             next_seq: 1,
             processed: 0,
+            acknowledged: 0,
             outbox: ByteQueue::default(),
             retained: ByteQueue::default(),
             pending: HashMap::new(),
@@ -700,6 +710,13 @@ impl Bridge {
                     .and_then(|b| b.try_into().ok())
                     .map_or(h.op_seq, u64::from_le_bytes)
                     .min(h.op_seq);
+                if let Some(acked) = body
+                    .get(8..16)
+                    .and_then(|b| b.try_into().ok())
+                    .map(u64::from_le_bytes)
+                {
+                    self.acknowledged = self.acknowledged.max(acked.min(executed));
+                }
                 for r in self.retained.iter_mut() {
                     if r.seq > executed {
                         break;
@@ -852,12 +869,19 @@ impl Bridge {
         }
     }
 
-    /// Drops retained writes that were executed long enough ago.
+    /// Drops retained writes that every matched reliable DDS reader acknowledged, or that
+    /// were executed long enough ago (a reader that never acknowledges does not keep them).
     fn settle(&mut self, now: Instant) {
         while let Some(r) = self.retained.front() {
+            let acknowledged = r.seq <= self.acknowledged && r.executed_at.is_some();
             match r.executed_at {
+                _ if acknowledged => {
+                    self.retained.pop_front();
+                    self.stats.writes_acknowledged += 1;
+                }
                 Some(t) if now.saturating_duration_since(t) >= SETTLE_TIME => {
                     self.retained.pop_front();
+                    self.stats.writes_settled_unacknowledged += 1;
                 }
                 _ => break,
             }

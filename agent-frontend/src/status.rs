@@ -42,6 +42,11 @@ pub fn report<T: Transport>(
         ("reads_paused", b.reads_paused),
         ("replays", b.replays),
         ("writes_resent", b.writes_resent),
+        ("writes_acknowledged", b.writes_acknowledged),
+        (
+            "writes_settled_unacknowledged",
+            b.writes_settled_unacknowledged,
+        ),
         ("samples_already_delivered", b.samples_already_delivered),
         ("transport_opened", t.opened),
         ("transport_closed", t.closed),

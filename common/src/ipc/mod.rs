@@ -17,7 +17,7 @@ pub mod status;
 use crate::wire::{ClientKey, ObjectId, RequestId};
 
 /// Version of this contract; both sides drop (and log) messages of another version.
-pub const IPC_VERSION: u16 = 4;
+pub const IPC_VERSION: u16 = 5;
 /// Magic at the start of every message.
 pub const IPC_MAGIC: [u8; 4] = *b"XRIP";
 
@@ -60,9 +60,11 @@ pub enum MessageKind {
     /// Worker → front-end: a sample for an active read (body: its [`SampleIdentity`], then
     /// the serialized sample; flag LE).
     Sample = 18,
-    /// Worker → front-end: every operation up to `op_seq` has left the queue; the body (u64
-    /// LE) says up to which one they have all been executed (writes held by a writer that
-    /// waits for its readers are taken but not executed yet).
+    /// Worker → front-end: every operation up to `op_seq` has left the queue; the body (two
+    /// u64 LE) says up to which one they have all been executed (writes held by a writer that
+    /// waits for its readers are taken but not executed yet), then up to which one every
+    /// write was acknowledged by all the matched reliable readers of its DDS writer (the
+    /// front-end stops keeping those for a resend to a restarted worker).
     Progress = 19,
     /// Worker → front-end: a read finished (its delivery limits were reached).
     ReadEnded = 20,

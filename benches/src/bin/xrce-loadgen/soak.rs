@@ -164,6 +164,9 @@ pub struct KillReport {
     pub reordered: u64,
     /// From the kill until a sample sent after it reached a subscriber, ms.
     pub recovery_ms: Option<f64>,
+    /// When the lost samples were sent, ms from the kill (negative: before it): the earliest
+    /// and the latest.
+    pub lost_sent_ms: Option<(f64, f64)>,
 }
 
 /// The soak's result.
@@ -197,6 +200,7 @@ pub fn analyse(
     };
     let n = kills.len();
     let (mut lost, mut dup, mut reord) = (vec![0u64; n], vec![0u64; n], vec![0u64; n]);
+    let mut lost_span: Vec<Option<(u64, u64)>> = vec![None; n];
     let mut outside = (0u64, 0u64, 0u64);
     let mut bump = |w: Option<usize>, which: u8| {
         let slot = match (w, which) {
@@ -232,7 +236,15 @@ pub fn analyse(
         if s == 0 {
             continue;
         }
-        for _ in 0..(all & !g).count_ones() {
+        let missing = (all & !g).count_ones();
+        if missing > 0 {
+            if let Some(span) = window_of(s).and_then(|w| lost_span.get_mut(w)) {
+                let (a, b) = span.get_or_insert((s, s));
+                *a = (*a).min(s);
+                *b = (*b).max(s);
+            }
+        }
+        for _ in 0..missing {
             bump(window_of(s), 0);
         }
     }
@@ -273,6 +285,10 @@ pub fn analyse(
                 duplicated: dup[i],
                 reordered: reord[i],
                 recovery_ms: recovery,
+                lost_sent_ms: lost_span[i].map(|(a, b)| {
+                    let rel = |t: u64| (t as f64 - k.at as f64) / 1e6;
+                    (rel(a), rel(b))
+                }),
             }
         })
         .collect();
@@ -324,8 +340,11 @@ pub fn print(r: &SoakReport) {
             .iter()
             .filter(|k| k.lost + k.duplicated + k.reordered > 0)
         {
+            let span = k.lost_sent_ms.map_or(String::new(), |(a, b)| {
+                format!(" (the lost sent {a:+.0} to {b:+.0} ms from the kill)")
+            });
             println!(
-                "    at {:.1} s: lost {}, duplicated {}, reordered {}",
+                "    at {:.1} s: lost {}, duplicated {}, reordered {}{span}",
                 k.at_seconds, k.lost, k.duplicated, k.reordered
             );
         }

@@ -1,0 +1,253 @@
+//! Which front-end operations DDS readers have acknowledged.
+//!
+//! A front-end keeps each reliable write it handed over until this worker says every matched
+//! reliable DDS reader acknowledged it, so that after a worker crash it resends only the
+//! writes that may not have reached the readers (a fixed retention repeated more). Each DDS
+//! writer keeps the operations written through it and not known to be acknowledged
+//! ([`Outstanding`]); the [`AckTracker`] watches the writers that have some and tells, per
+//! front-end, the newest operation up to which everything was acknowledged.
+
+use std::cell::RefCell;
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::rc::{Rc, Weak};
+use std::time::{Duration, Instant};
+
+/// How often watched writers are asked whether their readers acknowledged everything.
+pub const ACK_POLL_PERIOD: Duration = Duration::from_millis(2);
+
+/// Writes older than this stop being waited for (a reader that never acknowledges must not
+/// keep memory or the loop busy): front-ends release them after their own settle time.
+pub const ACK_GIVE_UP: Duration = Duration::from_secs(2);
+
+/// A DDS writer whose acknowledgements can be asked for.
+pub trait Acknowledging {
+    /// Whether every matched reliable reader acknowledged everything written so far (true
+    /// with none).
+    fn all_acknowledged(&self) -> bool;
+    /// The operations written through it not known to be acknowledged.
+    fn outstanding(&self) -> &Outstanding;
+}
+
+/// Operations written through one DDS writer and not known to be acknowledged, oldest first
+/// (a front-end's operations are written in their order).
+#[derive(Debug, Default)]
+pub struct Outstanding {
+    writes: RefCell<VecDeque<(u32, u64, Instant)>>,
+    /// Writes of several front-ends are queued (a shared DDS writer).
+    mixed: std::cell::Cell<bool>,
+}
+
+impl Outstanding {
+    /// Records that front-end `frontend`'s operation `seq` was written; true if nothing was
+    /// outstanding before (the writer must be watched from now on).
+    pub fn record(&self, frontend: u32, seq: u64, now: Instant) -> bool {
+        let mut w = self.writes.borrow_mut();
+        let first = w.is_empty();
+        if w.front().is_some_and(|f| f.0 != frontend) {
+            self.mixed.set(true);
+        }
+        w.push_back((frontend, seq, now));
+        first
+    }
+
+    /// The oldest outstanding operation of each front-end, merged into `min`.
+    fn oldest(&self, min: &mut HashMap<u32, u64>) {
+        let w = self.writes.borrow();
+        let mut merge = |fe: u32, seq: u64| {
+            let m = min.entry(fe).or_insert(seq);
+            *m = (*m).min(seq);
+        };
+        if !self.mixed.get() {
+            // One front-end's writes, in its order: the first is the oldest.
+            if let Some(&(fe, seq, _)) = w.front() {
+                merge(fe, seq);
+            }
+            return;
+        }
+        let mut seen = HashSet::new();
+        for &(fe, seq, _) in w.iter() {
+            if seen.insert(fe) {
+                merge(fe, seq);
+            }
+        }
+    }
+
+    /// Forgets everything (acknowledged), noting whose operations they were.
+    fn clear(&self, frontends: &mut HashSet<u32>) {
+        frontends.extend(self.writes.borrow_mut().drain(..).map(|(fe, _, _)| fe));
+        self.mixed.set(false);
+    }
+
+    /// Forgets writes older than `limit`; whether nothing is left.
+    fn expire(&self, limit: Instant, frontends: &mut HashSet<u32>) -> bool {
+        let mut w = self.writes.borrow_mut();
+        while let Some(&(fe, _, at)) = w.front() {
+            if at >= limit {
+                break;
+            }
+            frontends.insert(fe);
+            w.pop_front();
+        }
+        if w.is_empty() {
+            self.mixed.set(false);
+        }
+        w.is_empty()
+    }
+
+    /// How many writes are outstanding.
+    pub fn len(&self) -> usize {
+        self.writes.borrow().len()
+    }
+
+    /// Whether none is.
+    pub fn is_empty(&self) -> bool {
+        self.writes.borrow().is_empty()
+    }
+}
+
+/// The writers with outstanding writes.
+#[derive(Debug)]
+pub struct AckTracker<W> {
+    watched: Vec<Weak<W>>,
+    next_poll: Instant,
+}
+
+impl<W: Acknowledging> AckTracker<W> {
+    /// Nothing watched.
+    pub fn new(now: Instant) -> Self {
+        AckTracker {
+            watched: Vec::new(),
+            next_poll: now,
+        }
+    }
+
+    /// Watches `writer` (call when [`Outstanding::record`] returned true).
+    pub fn watch(&mut self, writer: &Rc<W>) {
+        self.watched.push(Rc::downgrade(writer));
+    }
+
+    /// When the tracker wants to poll again (None: nothing watched).
+    pub fn due(&self) -> Option<Instant> {
+        (!self.watched.is_empty()).then_some(self.next_poll)
+    }
+
+    /// Asks the watched writers (at most every [`ACK_POLL_PERIOD`]); returns the front-ends
+    /// whose acknowledged frontier may have moved. A writer that was deleted has nothing
+    /// outstanding any more: its front-ends are returned too (`all` true: unknown which).
+    pub fn poll(&mut self, now: Instant) -> (HashSet<u32>, bool) {
+        let mut moved = HashSet::new();
+        let mut all = false;
+        if self.watched.is_empty() || now < self.next_poll {
+            return (moved, all);
+        }
+        self.next_poll = now + ACK_POLL_PERIOD;
+        let limit = now.checked_sub(ACK_GIVE_UP).unwrap_or(now);
+        self.watched.retain(|w| {
+            let Some(w) = w.upgrade() else {
+                all = true;
+                return false;
+            };
+            let out = w.outstanding();
+            if w.all_acknowledged() {
+                out.clear(&mut moved);
+                return false;
+            }
+            !out.expire(limit, &mut moved)
+        });
+        (moved, all)
+    }
+
+    /// For each front-end with outstanding writes, its oldest one.
+    pub fn oldest_outstanding(&self) -> HashMap<u32, u64> {
+        let mut min = HashMap::new();
+        for w in self.watched.iter().filter_map(Weak::upgrade) {
+            w.outstanding().oldest(&mut min);
+        }
+        min
+    }
+
+    /// Writes outstanding over every watched writer.
+    pub fn outstanding_writes(&self) -> usize {
+        self.watched
+            .iter()
+            .filter_map(Weak::upgrade)
+            .map(|w| w.outstanding().len())
+            .sum()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::cell::Cell;
+
+    #[derive(Default)]
+    struct FakeWriter {
+        acked: Cell<bool>,
+        out: Outstanding,
+    }
+
+    impl Acknowledging for FakeWriter {
+        fn all_acknowledged(&self) -> bool {
+            self.acked.get()
+        }
+        fn outstanding(&self) -> &Outstanding {
+            &self.out
+        }
+    }
+
+    fn write(t: &mut AckTracker<FakeWriter>, w: &Rc<FakeWriter>, fe: u32, seq: u64, now: Instant) {
+        w.acked.set(false);
+        if w.out.record(fe, seq, now) {
+            t.watch(w);
+        }
+    }
+
+    #[test]
+    fn the_oldest_unacknowledged_write_of_each_frontend_bounds_its_frontier() {
+        let t0 = Instant::now();
+        let mut t = AckTracker::new(t0);
+        let (a, b) = (
+            Rc::new(FakeWriter::default()),
+            Rc::new(FakeWriter::default()),
+        );
+        write(&mut t, &a, 1, 10, t0);
+        write(&mut t, &a, 1, 12, t0);
+        write(&mut t, &b, 1, 11, t0);
+        write(&mut t, &b, 2, 5, t0);
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 10), (2, 5)]));
+        // Nothing acknowledged: nothing moves.
+        assert_eq!(t.poll(t0).0, HashSet::new());
+        // Writer a's readers acknowledged: front-end 1 now waits only for b's 11.
+        a.acked.set(true);
+        let (moved, all) = t.poll(t0 + ACK_POLL_PERIOD);
+        assert_eq!((moved, all), (HashSet::from([1]), false));
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 11), (2, 5)]));
+        assert_eq!(t.outstanding_writes(), 2);
+        // Polls are rate-limited.
+        b.acked.set(true);
+        assert!(t.poll(t0 + ACK_POLL_PERIOD).0.is_empty());
+        let (moved, _) = t.poll(t0 + 2 * ACK_POLL_PERIOD);
+        assert_eq!(moved, HashSet::from([1, 2]));
+        assert!(t.oldest_outstanding().is_empty());
+        assert_eq!(t.due(), None);
+    }
+
+    #[test]
+    fn writes_never_acknowledged_are_given_up_and_deleted_writers_release_theirs() {
+        let t0 = Instant::now();
+        let mut t = AckTracker::new(t0);
+        let stuck = Rc::new(FakeWriter::default());
+        write(&mut t, &stuck, 3, 1, t0);
+        write(&mut t, &stuck, 3, 2, t0 + Duration::from_secs(1));
+        let (moved, _) = t.poll(t0 + ACK_GIVE_UP + Duration::from_millis(1));
+        assert_eq!(moved, HashSet::from([3]));
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(3, 2)]));
+        let gone = Rc::new(FakeWriter::default());
+        write(&mut t, &gone, 4, 7, t0 + ACK_GIVE_UP);
+        drop(gone);
+        let (_, all) = t.poll(t0 + ACK_GIVE_UP + Duration::from_millis(10));
+        assert!(all, "a deleted writer's front-ends are not known any more");
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(3, 2)]));
+    }
+}
