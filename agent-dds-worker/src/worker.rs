@@ -60,6 +60,9 @@ pub struct WorkerConfig {
 
 /// How often the worker looks for front-ends whose process is gone.
 const CENSUS_PERIOD: Duration = Duration::from_secs(1);
+/// How often every writer's matched count is looked at and, when it changed, reported to its
+/// front-end (which replays it to a restarted worker).
+const MATCH_REPORT_PERIOD: Duration = Duration::from_millis(250);
 
 type EntityKey = (u32, ClientKey, ObjectId);
 
@@ -90,6 +93,8 @@ struct DdsWriter {
     /// When it first matched a reader (read from its status events, which only this
     /// structure consumes, so that every XRCE writer sharing it sees the match).
     matched_at: Cell<Option<Instant>>,
+    /// How many readers it matches now (from the same status events).
+    matched: Cell<usize>,
     /// Front-end operations written through it that its readers may not have acknowledged.
     outstanding: Outstanding,
 }
@@ -115,6 +120,7 @@ impl DdsWriter {
                 if current.count() > 0 && self.matched_at.get().is_none() {
                     self.matched_at.set(Some(now));
                 }
+                self.matched.set(current.count().max(0) as usize);
             }
         }
         self.matched_at.get()
@@ -210,6 +216,11 @@ struct Rematch {
     /// Matched: the held samples are being written, a batch per loop pass (new writes still
     /// queue behind them, so order is kept).
     draining: bool,
+    /// Readers the writer had matched before the worker restarted (from the front-end): a
+    /// replayed writer holds until as many match again (0 or 1: the first match).
+    expected: u8,
+    /// The matched count last reported to the front-end.
+    reported: Option<u8>,
 }
 
 /// Held samples written per loop pass while a writer drains: a whole backlog at once would
@@ -319,6 +330,9 @@ struct FrontendPort {
     last_delivery: Instant,
     /// Messages were published since the front-end was last woken.
     unnotified: bool,
+    /// The front-end said FrontendHello to this worker: it knows this generation, and its
+    /// operations from then on are meant for it.
+    greeted: bool,
 }
 
 /// Most replies held for one congested front-end; beyond, the oldest are dropped (counted).
@@ -362,6 +376,8 @@ pub struct Worker {
     orphaned: HashMap<u32, Instant>,
     /// When to look for gone front-ends next.
     next_census: Instant,
+    /// When the writers' matched counts are next looked at (reported to the front-ends).
+    next_match_report: Instant,
     /// Counters by reason of rejected or failed work.
     pub dropped: HashMap<&'static str, u64>,
     /// Restarted front-ends (id -> incarnation) whose requests wait for the end of the
@@ -428,6 +444,7 @@ impl Worker {
             graph: RosGraph::new(ros_graph),
             orphaned: HashMap::new(),
             next_census: Instant::now() + CENSUS_PERIOD,
+            next_match_report: Instant::now() + MATCH_REPORT_PERIOD,
             dropped: HashMap::new(),
             successors: HashMap::new(),
             deferred: Vec::new(),
@@ -508,6 +525,7 @@ impl Worker {
             }
             self.expire_reads();
             self.release_rematched();
+            self.report_matches();
             self.publish_graph();
             self.flush();
             self.watch_frontends();
@@ -761,6 +779,7 @@ impl Worker {
                     unnotified: false,
                     deferred: HashSet::new(),
                     last_delivery: Instant::now(),
+                    greeted: false,
                 }))
             }
         }
@@ -858,12 +877,18 @@ impl Worker {
             .get(&fe)
             .map(|p| p.incarnation)
             .filter(|i| *i != 0);
+        let greeted = self.ports.get(&fe).is_some_and(|p| p.greeted);
         match current {
             Some(c) if c != h.incarnation && h.kind == MessageKind::FrontendHello => {
                 self.successors.insert(fe, h.incarnation);
                 self.deferred.push(bytes.to_vec());
             }
             Some(c) if c != h.incarnation => self.count("predecessor_operation"),
+            _ if !greeted && h.kind != MessageKind::FrontendHello => {
+                // Sent before the front-end knew this worker (to the one that died): the
+                // front-end replays and resends what matters after its hello.
+                self.count("operation_before_hello");
+            }
             _ => self.process_request(h, body),
         }
     }
@@ -896,6 +921,7 @@ impl Worker {
                     // Its operations are numbered from its hello on.
                     p.incarnation = h.incarnation;
                     p.processed = h.op_seq;
+                    p.greeted = true;
                 }
                 // Replies held for a previous incarnation of this front-end mean nothing now.
                 if let Some(p) = self.ports.get_mut(&h.frontend_id) {
@@ -916,6 +942,7 @@ impl Worker {
                     body,
                     h.flags & FLAG_REPLAY != 0,
                     h.flags & FLAG_LITTLE_ENDIAN != 0,
+                    h.readers,
                 );
                 if r.is_ok() {
                     tracing::debug!(client = %h.client_key, object = ?h.object_id, replay = h.flags & FLAG_REPLAY != 0, "created");
@@ -1079,6 +1106,7 @@ impl Worker {
         body: &[u8],
         replay: bool,
         little_endian: bool,
+        readers: u8,
     ) -> Result<(), OpError> {
         let variant = ObjectVariant::decode(&mut CdrReader::new(body, true)).map_err(|e| {
             (
@@ -1186,6 +1214,7 @@ impl Worker {
                             raw,
                             shared: shared_key.clone(),
                             matched_at: Cell::new(None),
+                            matched: Cell::new(0),
                             outstanding: Outstanding::default(),
                         });
                         if let Some(k) = shared_key {
@@ -1206,7 +1235,8 @@ impl Worker {
                 // ago writes at once.
                 let matched = w
                     .poll_matched(now)
-                    .is_some_and(|t| now >= t + REMATCH_MARGIN);
+                    .is_some_and(|t| now >= t + REMATCH_MARGIN)
+                    && w.matched.get() >= usize::from(readers);
                 let rematch = Rematch {
                     until: (!matched).then(|| {
                         now + if replay {
@@ -1215,6 +1245,7 @@ impl Worker {
                             NEW_WRITER_HOLD_MAX
                         }
                     }),
+                    expected: readers,
                     ..Default::default()
                 };
                 (Some(p), EntityKind::Writer(w, rematch, ty))
@@ -1756,7 +1787,16 @@ impl Worker {
                 continue;
             };
             if rematch.matched_at.is_none() {
-                rematch.matched_at = w.poll_matched(now);
+                // As many readers as before the restart (at least one): a writer that
+                // released when the first of several matched lost samples to the others.
+                let first = w.poll_matched(now);
+                if w.matched.get() >= usize::from(rematch.expected) {
+                    rematch.matched_at = if rematch.expected <= 1 {
+                        first
+                    } else {
+                        Some(now)
+                    };
+                }
             }
             let ready = rematch
                 .matched_at
@@ -1802,6 +1842,35 @@ impl Worker {
         }
         for _ in 0..failures {
             self.count("dds_write_failed");
+        }
+    }
+
+    /// Tells front-ends how many readers each of their data writers matches, when that
+    /// changed (every [`MATCH_REPORT_PERIOD`]).
+    fn report_matches(&mut self) {
+        let now = Instant::now();
+        if now < self.next_match_report {
+            return;
+        }
+        self.next_match_report = now + MATCH_REPORT_PERIOD;
+        let mut changed = Vec::new();
+        for (key, e) in self.entities.iter_mut() {
+            if let EntityKind::Writer(w, rematch, _) = &mut e.kind {
+                w.poll_matched(now);
+                let n = u8::try_from(w.matched.get()).unwrap_or(u8::MAX);
+                if rematch.reported != Some(n) {
+                    rematch.reported = Some(n);
+                    changed.push((*key, n));
+                }
+            }
+        }
+        for ((fe, client, object), n) in changed {
+            let mut h = IpcHeader::new(MessageKind::WriterMatched);
+            h.frontend_id = fe;
+            h.client_key = client;
+            h.object_id = object;
+            h.readers = n;
+            self.reply(h, &[]);
         }
     }
 

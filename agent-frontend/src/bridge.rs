@@ -620,6 +620,7 @@ impl Bridge {
                 };
                 let waited = awaited.get(&(*client, o.object_id)) == Some(&o.request_id);
                 let mut h = header(MessageKind::Create, self.frontend_id, *client, req);
+                h.readers = o.readers_matched;
                 if !waited {
                     h.flags |= FLAG_REPLAY;
                 }
@@ -820,6 +821,15 @@ impl Bridge {
                     self.submit(pause, &[], false, Awaited::No);
                 }
             }
+            MessageKind::WriterMatched => {
+                if let Some(o) = self
+                    .graphs
+                    .get_mut(&h.client_key)
+                    .and_then(|g| g.get_mut(h.object_id))
+                {
+                    o.readers_matched = h.readers;
+                }
+            }
             MessageKind::ReadEnded => {
                 self.paused.remove(&(h.client_key, h.object_id));
                 if let Some(g) = self.graphs.get_mut(&h.client_key) {
@@ -979,6 +989,7 @@ impl OperationSink for Bridge {
                             request_id: create.base.request_id,
                             variant: create.variant.clone(),
                             little_endian,
+                            readers_matched: 0,
                         });
                         let mut body = Vec::new();
                         create.variant.encode(&mut CdrWriter::new(&mut body, true));

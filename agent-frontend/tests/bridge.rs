@@ -1,7 +1,8 @@
 //! The bridge between a front-end's session core and the DDS worker, on real iceoryx2 shared
 //! memory, against a fake worker that answers as the real one does: what a new worker
-//! generation gets replayed (objects in creation order, reads, retained writes), and that a
-//! replayed read does not deliver a sample its client had.
+//! generation gets replayed (objects in creation order, reads, retained writes, but not the
+//! writes DDS readers acknowledged), and that a replayed read does not deliver a sample its
+//! client had.
 
 use std::time::{Duration, Instant};
 
@@ -26,6 +27,8 @@ struct FakeWorker {
     replies: Sender,
     announce: Sender,
     generation: u32,
+    /// Whether progress reports the writes as acknowledged by DDS readers.
+    acknowledge: std::cell::Cell<bool>,
 }
 
 impl FakeWorker {
@@ -46,6 +49,7 @@ impl FakeWorker {
             replies,
             announce,
             generation,
+            acknowledge: std::cell::Cell::new(false),
         };
         let mut hello = IpcHeader::new(MessageKind::WorkerHello);
         hello.generation = generation;
@@ -90,7 +94,11 @@ impl FakeWorker {
         if last > 0 {
             let mut p = IpcHeader::new(MessageKind::Progress);
             p.op_seq = last;
-            self.reply(p, &last.to_le_bytes());
+            // Executed through `last`; acknowledged through `last` or nothing.
+            let acked = if self.acknowledge.get() { last } else { 0 };
+            let mut body = last.to_le_bytes().to_vec();
+            body.extend_from_slice(&acked.to_le_bytes());
+            self.reply(p, &body);
         }
         got
     }
@@ -362,6 +370,61 @@ fn a_replayed_read_does_not_deliver_a_sample_twice() {
     let got: Vec<u8> = data(&rig).iter().map(|d| d[0]).collect();
     assert_eq!(got, [1, 2, 3, 4, 70, 80], "delivered twice or lost");
     assert_eq!(rig.bridge.stats().samples_already_delivered, 3);
+    drop((rig, second));
+    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
+}
+
+#[test]
+fn a_write_its_readers_acknowledged_is_not_resent_to_a_new_worker() {
+    let inst = instance("acked");
+    let first = FakeWorker::start(&inst, 21);
+    let mut rig = Rig::new(&inst);
+    rig.run(&[&first], |r, _| r.bridge.generation() == Some(21));
+    rig.client.connect(Instant::now());
+    rig.run(&[&first], |r, _| r.client.is_connected());
+    let p = ObjectId::new(1, k::PARTICIPANT);
+    let t = ObjectId::new(1, k::TOPIC);
+    let pb = ObjectId::new(1, k::PUBLISHER);
+    let w = ObjectId::new(1, k::DATAWRITER);
+    rig.create(p, k::PARTICIPANT, "<dds/>", VariantExtra::DomainId(0));
+    rig.create(t, k::TOPIC, "<dds/>", VariantExtra::Parent(p));
+    rig.create(pb, k::PUBLISHER, "", VariantExtra::Parent(p));
+    rig.create(w, k::DATAWRITER, "<dds/>", VariantExtra::Parent(pb));
+    rig.run(&[&first], |_, s| {
+        s.iter()
+            .filter(|(h, _)| h.kind == MessageKind::Create)
+            .count()
+            == 4
+    });
+    // Acknowledged by the readers: released at once (not after the settle time).
+    first.acknowledge.set(true);
+    rig.client
+        .write(Instant::now(), stream_id::BUILTIN_RELIABLE, w, b"acked")
+        .expect("write");
+    rig.run(&[&first], |r, _| r.bridge.stats().writes_acknowledged == 1);
+    // Executed, not acknowledged: kept.
+    first.acknowledge.set(false);
+    rig.client
+        .write(Instant::now(), stream_id::BUILTIN_RELIABLE, w, b"in flight")
+        .expect("write");
+    rig.run(&[&first], |_, s| {
+        s.iter()
+            .any(|(h, b)| h.kind == MessageKind::Write && b.ends_with(b"in flight"))
+    });
+    drop(first);
+    let second = FakeWorker::start(&inst, 22);
+    let replay = rig.run(&[&second], |_, s| {
+        s.iter().any(|(h, _)| h.kind == MessageKind::Write)
+    });
+    let writes: Vec<&Vec<u8>> = replay
+        .iter()
+        .filter(|(h, _)| h.kind == MessageKind::Write)
+        .map(|(_, b)| b)
+        .collect();
+    assert_eq!(writes.len(), 1, "only the unacknowledged write is resent");
+    assert!(writes[0].ends_with(b"in flight"));
+    assert_eq!(rig.bridge.stats().writes_acknowledged, 1);
+    assert_eq!(rig.bridge.stats().writes_resent, 1);
     drop((rig, second));
     xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }

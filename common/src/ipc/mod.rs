@@ -68,6 +68,9 @@ pub enum MessageKind {
     Progress = 19,
     /// Worker → front-end: a read finished (its delivery limits were reached).
     ReadEnded = 20,
+    /// Worker → front-end: how many DDS readers the DDS writer of this data writer matched
+    /// now (`readers`); sent when it changes.
+    WriterMatched = 21,
 }
 
 impl MessageKind {
@@ -87,6 +90,7 @@ impl MessageKind {
             18 => Sample,
             19 => Progress,
             20 => ReadEnded,
+            21 => WriterMatched,
             _ => return None,
         })
     }
@@ -177,6 +181,10 @@ pub struct IpcHeader {
     /// meant for its predecessor, and the worker finishes the predecessor's queued
     /// operations before it serves the successor. 0 on announcements.
     pub incarnation: u16,
+    /// A replayed Create of a data writer: how many DDS readers its writer had matched (the
+    /// new one holds its samples until as many match again, or a bound passes);
+    /// WriterMatched: the count now. Saturates at 255; 0 otherwise.
+    pub readers: u8,
 }
 
 /// Why an IPC message was rejected.
@@ -213,6 +221,7 @@ impl IpcHeader {
             object_id: ObjectId::INVALID,
             data_format: 0,
             incarnation: 0,
+            readers: 0,
         }
     }
 
@@ -233,7 +242,7 @@ impl IpcHeader {
         o[30..32].copy_from_slice(&self.object_id.0);
         o[32..36].copy_from_slice(&(body_len as u32).to_le_bytes());
         o[36] = self.data_format;
-        o[37] = 0;
+        o[37] = self.readers;
         o[38..40].copy_from_slice(&self.incarnation.to_le_bytes());
     }
 
@@ -275,6 +284,7 @@ impl IpcHeader {
             object_id: ObjectId([buf[30], buf[31]]),
             data_format: buf[36],
             incarnation: u16::from_le_bytes([buf[38], buf[39]]),
+            readers: buf[37],
         };
         Ok((h, body))
     }
@@ -317,6 +327,7 @@ mod tests {
             object_id: ObjectId::new(1, 5),
             data_format: 0x0A,
             incarnation: 0xBEEF,
+            readers: 3,
         };
         let m = h.encode(b"body");
         assert_eq!(IpcHeader::decode(&m), Ok((h, &b"body"[..])));

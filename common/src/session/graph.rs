@@ -30,6 +30,10 @@ pub struct GraphObject {
     pub variant: ObjectVariant,
     /// The byte order of the CREATE (a client's native one).
     pub little_endian: bool,
+    /// A data writer: how many DDS readers it matched, as the worker last reported
+    /// (saturating at 255; not stored for a successor front-end): its replay on a new worker
+    /// holds its samples until as many match again.
+    pub readers_matched: u8,
 }
 
 /// An active READ_DATA.
@@ -117,6 +121,11 @@ impl ObjectGraph {
     /// The object with this id.
     pub fn get(&self, id: ObjectId) -> Option<&GraphObject> {
         self.objects.iter().find(|o| o.object_id == id)
+    }
+
+    /// The object with this id, to change.
+    pub fn get_mut(&mut self, id: ObjectId) -> Option<&mut GraphObject> {
+        self.objects.iter_mut().find(|o| o.object_id == id)
     }
 
     /// Objects in creation order.
@@ -300,6 +309,7 @@ impl ObjectGraph {
                 request_id,
                 variant,
                 little_endian,
+                readers_matched: 0,
             });
         }
         if !f.0.is_empty() {
@@ -360,6 +370,7 @@ mod tests {
                     .unwrap_or(VariantExtra::DomainId(0)),
             },
             little_endian: true,
+            readers_matched: 0,
         }
     }
 
