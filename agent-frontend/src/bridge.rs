@@ -806,7 +806,10 @@ impl Bridge {
                     sequence_number,
                 };
                 if let Err(e) = agent.send_data(now, h.client_key, stream, reply) {
-                    self.stats.samples_dropped += 1;
+                    // A full output queue is counted by the core (output_queue_full).
+                    if e != xrce_common::session::agent::SendError::QueueFull {
+                        self.stats.samples_dropped += 1;
+                    }
                     tracing::debug!(client = %h.client_key, error = %e, "sample not delivered");
                 }
                 let congested = agent

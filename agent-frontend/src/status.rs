@@ -100,6 +100,7 @@ pub fn report<T: Transport>(
             transport: transport.name().into(),
             serving: transport.serving(),
             connected: bridge.generation().is_some(),
+            generation: bridge.generation(),
             counters,
             dropped,
             sessions,

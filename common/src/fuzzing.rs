@@ -281,3 +281,28 @@ pub fn serial_framing(data: &[u8]) {
         "an encoded frame did not decode back"
     );
 }
+
+/// Session-store oracle: the records a successor front-end reads back (a session snapshot,
+/// and a client's objects and reads) decode or fail cleanly, whatever the bytes (a record torn
+/// by a crash, a file from another build), and what decodes re-encodes to bytes that decode to
+/// the same. The whole input is tried as a snapshot; after a 2-byte little-endian length, as a
+/// client's objects (that many bytes) and reads (the rest).
+pub fn session_store(data: &[u8]) {
+    use crate::session::graph::ObjectGraph;
+    use crate::session::snapshot::SessionSnapshot;
+    if let Ok(s) = SessionSnapshot::decode(data) {
+        let again = SessionSnapshot::decode(&s.encode()).expect("re-encoded snapshot decodes");
+        assert_eq!(again, s, "snapshot changed by a round trip");
+    }
+    let Some((len, rest)) = data.split_first_chunk::<2>() else {
+        return;
+    };
+    let split = usize::from(u16::from_le_bytes(*len)).min(rest.len());
+    let (objects, reads) = rest.split_at(split);
+    if let Ok(g) = ObjectGraph::decode(objects, reads) {
+        let (o, r) = (g.encode_objects(), g.encode_reads());
+        let g2 = ObjectGraph::decode(&o, &r).expect("re-encoded graph decodes");
+        assert_eq!(g2.encode_objects(), o, "objects changed by a round trip");
+        assert_eq!(g2.encode_reads(), r, "reads changed by a round trip");
+    }
+}

@@ -87,8 +87,8 @@ impl Supervised {
     }
 
     /// Whether its loop stopped reporting: its report (of this very process) has not changed
-    /// for `stale_after`. A child that never reported is left alone, as is one whose reports
-    /// cannot be written at all.
+    /// for `stale_after`, or it never wrote one in `stale_after` since it started (stuck
+    /// before its loop ran) while reports can be written (the supervisor's own is there).
     fn is_wedged(
         &mut self,
         now: Instant,
@@ -100,7 +100,8 @@ impl Supervised {
             return false;
         };
         let Some(r) = reports.iter().find(|r| r.pid == child.id()) else {
-            return false;
+            let reports_work = reports.iter().any(|r| r.role == "supervisor");
+            return reports_work && now.duration_since(self.started) > stale_after;
         };
         match self.last_report {
             Some((updated, since)) if updated == r.updated_unix_ms => {

@@ -105,8 +105,14 @@ fn families(s: &AgentStatus) -> Vec<Family> {
     let mut connected = Family::new(
         "xrce_frontend_connected",
         Gauge,
-        "1 while a DDS worker answers the front-end, else 0.",
+        "1 while the front-end serves the running DDS worker's generation, else 0 (no worker, \
+         or it died and its successor has not been seen yet).",
     );
+    // The generation of the worker that runs now (its report is read only while it lives).
+    let live_generation = s
+        .processes
+        .iter()
+        .find_map(|p| p.worker.as_ref().map(|w| w.generation));
     let per_frontend: [(&str, &'static str, &'static str); 9] = [
         (
             "messages_received",
@@ -219,7 +225,11 @@ fn families(s: &AgentStatus) -> Vec<Family> {
                 ("transport", f.transport.clone()),
             ];
             sessions.add(labels.clone(), f.sessions.len() as u64);
-            connected.add(labels.clone(), u64::from(f.connected));
+            // Reports older than the generation field count as connected while a worker runs.
+            let serves_live = f.connected
+                && live_generation.is_some()
+                && f.generation.is_none_or(|g| Some(g) == live_generation);
+            connected.add(labels.clone(), u64::from(serves_live));
             for ((key, _, _), family) in per_frontend.iter().zip(counters.iter_mut()) {
                 family.add(labels.clone(), f.counters.get(*key).copied().unwrap_or(0));
             }
@@ -470,6 +480,38 @@ mod tests {
                 "missing {line:?} in:\n{text}"
             );
         }
+    }
+
+    #[test]
+    fn a_frontend_is_connected_only_to_the_running_workers_generation() {
+        let connected = |s: &AgentStatus| {
+            let text = render(s).expect("render");
+            let line = text
+                .lines()
+                .find(|l| l.starts_with("xrce_frontend_connected{"))
+                .map(str::to_string);
+            line.expect("connected gauge").ends_with(" 1")
+        };
+        let mut s = snapshot();
+        let set = |s: &mut AgentStatus, fe: Option<u32>, worker: u32| {
+            for p in &mut s.processes {
+                if let Some(f) = &mut p.frontend {
+                    f.generation = fe;
+                }
+                if let Some(w) = &mut p.worker {
+                    w.generation = worker;
+                }
+            }
+        };
+        set(&mut s, Some(6), 6);
+        assert!(connected(&s));
+        // The worker was restarted and the front-end has not seen the new one yet.
+        set(&mut s, Some(6), 7);
+        assert!(!connected(&s));
+        // The worker is gone (its report is read only while it lives).
+        set(&mut s, Some(6), 6);
+        s.processes.retain(|p| p.worker.is_none());
+        assert!(!connected(&s));
     }
 
     #[test]

@@ -60,8 +60,12 @@ pub struct FrontendStatus {
     pub transport: String,
     /// What it serves: an address and port, or devices.
     pub serving: String,
-    /// Whether a worker answers it.
+    /// Whether it has seen a worker generation (see `generation` for whether that worker
+    /// still runs).
     pub connected: bool,
+    /// The worker generation it serves, if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub generation: Option<u32>,
     /// Counters (names as the metrics name them, without the `xrce_` prefix).
     pub counters: BTreeMap<String, u64>,
     /// Dropped input and output, by reason.
@@ -95,7 +99,7 @@ pub struct SessionStatus {
     pub samples_in: u64,
     /// Samples delivered to it.
     pub samples_out: u64,
-    /// Its messages and replies dropped.
+    /// Its messages and replies lost (not flow-control refusals, which the client resends).
     pub dropped: u64,
 }
 
@@ -217,6 +221,30 @@ pub fn is_alive(pid: u32) -> bool {
     }
 }
 
+/// Whether the process that wrote `r` still runs: its pid is alive and started when the report
+/// says (within a few seconds: the report's start is taken when its reporter is made), so a
+/// pid the system gave to another process since does not pass for it.
+pub fn report_is_live(r: &ProcessReport) -> bool {
+    let Ok(stat) = procfs::process::Process::new(r.pid as i32).and_then(|p| p.stat()) else {
+        return false;
+    };
+    if stat.state == 'Z' || stat.state == 'X' {
+        return false;
+    }
+    let Ok(boot) = procfs::boot_time_secs() else {
+        return true;
+    };
+    if r.started_unix_ms == 0 {
+        return true;
+    }
+    let ticks = procfs::ticks_per_second().max(1);
+    let started_ms = boot * 1000 + stat.starttime * 1000 / ticks;
+    started_ms.abs_diff(r.started_unix_ms) <= SAME_START_MS
+}
+
+/// How far a report's start may be from its process's start for both to be the same process.
+const SAME_START_MS: u64 = 10_000;
+
 /// Writes the report of process `file_stem` atomically into `dir` (created if missing).
 pub fn write_report(dir: &Path, file_stem: &str, report: &ProcessReport) -> std::io::Result<()> {
     std::fs::create_dir_all(dir)?;
@@ -243,7 +271,7 @@ pub fn remove_dead_reports(dir: &Path) {
         let dead = std::fs::read(&path)
             .ok()
             .and_then(|b| serde_json::from_slice::<ProcessReport>(&b).ok())
-            .is_none_or(|r| !is_alive(r.pid));
+            .is_none_or(|r| !report_is_live(&r));
         if dead {
             let _ = std::fs::remove_file(&path);
         }
@@ -261,7 +289,7 @@ pub fn read_reports(dir: &Path) -> Vec<ProcessReport> {
         .filter(|e| e.path().extension().is_some_and(|x| x == "json"))
         .filter_map(|e| std::fs::read(e.path()).ok())
         .filter_map(|bytes| serde_json::from_slice::<ProcessReport>(&bytes).ok())
-        .filter(|r| is_alive(r.pid))
+        .filter(report_is_live)
         .collect();
     out.sort_by(|a, b| (role_rank(&a.role), &a.name).cmp(&(role_rank(&b.role), &b.name)));
     out
@@ -418,6 +446,18 @@ mod tests {
         };
         write_report(&dir, "frontend-udp", &r).expect("write");
         assert_eq!(read_reports(&dir), vec![r.clone()]);
+        // Started when this process started: it is this process.
+        r.started_unix_ms = unix_ms();
+        write_report(&dir, "frontend-udp", &r).expect("write");
+        assert_eq!(read_reports(&dir), vec![r.clone()]);
+        // A report of another process that had this pid an hour ago.
+        let mut reused = r.clone();
+        reused.started_unix_ms = unix_ms() - 3_600_000;
+        write_report(&dir, "frontend-udp", &reused).expect("write");
+        assert!(
+            read_reports(&dir).is_empty(),
+            "a reused pid passed for its old process"
+        );
         // A process that is gone (pid 0 is never a user process).
         r.pid = 0;
         write_report(&dir, "frontend-udp", &r).expect("write");

@@ -179,7 +179,8 @@ pub struct ClientCounters {
     pub samples_in: u64,
     /// Samples queued for it (DATA replies).
     pub samples_out: u64,
-    /// Its messages and replies dropped, whatever the reason.
+    /// Its messages and replies dropped and lost (flow-control refusals and duplicates, see
+    /// [`NOT_LOST`], are not counted: nothing is lost by them).
     pub dropped: u64,
 }
 
@@ -204,6 +205,10 @@ pub struct SessionInfo<A> {
     pub counters: ClientCounters,
 }
 
+/// Drop reasons that lose nothing: a reliable message refused for lack of room (flow control:
+/// not acknowledged, the client sends it again) and a copy of a message already taken.
+pub const NOT_LOST: [&str; 2] = ["backpressure", "duplicate"];
+
 /// Counters of what the core did and dropped.
 #[derive(Debug, Clone, Default)]
 pub struct AgentStats {
@@ -217,6 +222,8 @@ pub struct AgentStats {
     pub dropped: HashMap<&'static str, u64>,
     /// Every drop, whatever the reason (the sum of `dropped`).
     pub dropped_total: u64,
+    /// Drops that lost something: all but [`NOT_LOST`] (what a client's session shows).
+    pub lost_total: u64,
     /// WRITE_DATA submessages handed to the DDS side (client to DDS).
     pub samples_in: u64,
     /// DATA replies queued for clients (DDS to client).
@@ -228,6 +235,9 @@ impl AgentStats {
     fn count(&mut self, reason: &'static str) {
         *self.dropped.entry(reason).or_default() += 1;
         self.dropped_total += 1;
+        if !NOT_LOST.contains(&reason) {
+            self.lost_total += 1;
+        }
     }
 
     /// Total drops for a reason.
@@ -851,7 +861,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         client.last_heard = now;
         client.detached = false;
         client.counters.messages_in += 1;
-        let dropped_before = self.stats.dropped_total;
+        let lost_before = self.stats.lost_total;
         self.handle_session_message(now, key, header, hlen, bytes, sink);
         if stream_id::is_reliable(header.stream_id) {
             // Its input position moved: stored before anything acknowledges it.
@@ -859,9 +869,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         } else {
             self.touch(key);
         }
-        let dropped = self.stats.dropped_total - dropped_before;
+        let lost = self.stats.lost_total - lost_before;
         if let Some(c) = self.clients.get_mut(&key) {
-            c.counters.dropped += dropped;
+            c.counters.dropped += lost;
         }
     }
 
