@@ -16,7 +16,9 @@ use std::time::{Duration, Instant};
 pub const ACK_POLL_PERIOD: Duration = Duration::from_millis(2);
 
 /// Writes older than this stop being waited for (a reader that never acknowledges must not
-/// keep memory or the loop busy): front-ends release them after their own settle time.
+/// keep memory or the loop busy): the frontier reported moves past them, which front-ends
+/// count as acknowledged, though they had released them already after their own settle
+/// time (1.5 s after execution).
 pub const ACK_GIVE_UP: Duration = Duration::from_secs(2);
 
 /// A DDS writer whose acknowledgements can be asked for.
@@ -33,7 +35,8 @@ pub trait Acknowledging {
 #[derive(Debug, Default)]
 pub struct Outstanding {
     writes: RefCell<VecDeque<(u32, u64, Instant)>>,
-    /// Writes of several front-ends are queued (a shared DDS writer).
+    /// The writes are not one front-end's in increasing order (a shared DDS writer: several
+    /// front-ends, or several XRCE writers whose held samples are released in turns).
     mixed: std::cell::Cell<bool>,
 }
 
@@ -43,7 +46,9 @@ impl Outstanding {
     pub fn record(&self, frontend: u32, seq: u64, now: Instant) -> bool {
         let mut w = self.writes.borrow_mut();
         let first = w.is_empty();
-        if w.front().is_some_and(|f| f.0 != frontend) {
+        if w.back()
+            .is_some_and(|&(fe, s, _)| fe != frontend || s > seq)
+        {
             self.mixed.set(true);
         }
         w.push_back((frontend, seq, now));
@@ -64,11 +69,8 @@ impl Outstanding {
             }
             return;
         }
-        let mut seen = HashSet::new();
         for &(fe, seq, _) in w.iter() {
-            if seen.insert(fe) {
-                merge(fe, seq);
-            }
+            merge(fe, seq);
         }
     }
 
@@ -231,6 +233,28 @@ mod tests {
         assert_eq!(moved, HashSet::from([1, 2]));
         assert!(t.oldest_outstanding().is_empty());
         assert_eq!(t.due(), None);
+    }
+
+    #[test]
+    fn writes_recorded_out_of_order_bound_the_frontier_by_their_oldest() {
+        // Two XRCE writers on one shared DDS writer release their held samples in turns:
+        // one front-end's operations are not recorded in their order.
+        let t0 = Instant::now();
+        let mut t = AckTracker::new(t0);
+        let shared = Rc::new(FakeWriter::default());
+        for seq in [10, 11, 12, 5, 6, 13, 7] {
+            write(&mut t, &shared, 1, seq, t0);
+        }
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 5)]));
+        // And interleaved front-ends each get their own oldest.
+        let other = Rc::new(FakeWriter::default());
+        for (fe, seq) in [(2, 40), (3, 8), (2, 41), (3, 9)] {
+            write(&mut t, &other, fe, seq, t0);
+        }
+        assert_eq!(
+            t.oldest_outstanding(),
+            HashMap::from([(1, 5), (2, 40), (3, 8)])
+        );
     }
 
     #[test]

@@ -62,7 +62,7 @@ pub struct WorkerConfig {
 const CENSUS_PERIOD: Duration = Duration::from_secs(1);
 /// How often every writer's matched count is looked at and, when it changed, reported to its
 /// front-end (which replays it to a restarted worker).
-const MATCH_REPORT_PERIOD: Duration = Duration::from_millis(250);
+const MATCH_REPORT_PERIOD: Duration = Duration::from_secs(1);
 
 type EntityKey = (u32, ClientKey, ObjectId);
 
@@ -213,9 +213,13 @@ struct Rematch {
     matched_at: Option<Instant>,
     /// Held writes: (front-end operation sequence number, sample, is a dispose).
     held: std::collections::VecDeque<(u64, RawSample, bool)>,
+    /// Bytes of the held samples.
+    held_bytes: usize,
     /// Matched: the held samples are being written, a batch per loop pass (new writes still
     /// queue behind them, so order is kept).
     draining: bool,
+    /// When the last batch of held samples was written.
+    last_batch: Option<Instant>,
     /// Readers the writer had matched before the worker restarted (from the front-end): a
     /// replayed writer holds until as many match again (0 or 1: the first match).
     expected: u8,
@@ -223,10 +227,14 @@ struct Rematch {
     reported: Option<u8>,
 }
 
-/// Held samples written per loop pass while a writer drains: a whole backlog at once would
+/// Held samples written per batch while a writer drains: a whole backlog at once would
 /// overrun the writer's keep-last history before its reader acknowledged (RustDDS then drops
 /// the oldest), which lost samples after a worker restart.
 const RELEASE_BATCH: usize = 16;
+/// The next batch waits until the readers acknowledged the previous one, at most this long:
+/// a backlog (a second of samples at 10,000/s after a restart) written faster than readers
+/// take it overruns their keep-last history (measured: 2,700 of 3,000 lost per kill).
+const RELEASE_ACK_WAIT: Duration = Duration::from_millis(20);
 
 /// Longest hold of a replayed writer's samples when no reader matches.
 const REMATCH_MAX: Duration = Duration::from_secs(3);
@@ -236,8 +244,12 @@ const NEW_WRITER_HOLD_MAX: Duration = Duration::from_secs(1);
 /// a burst released at a replayed writer's match occasionally lost its last samples to
 /// Cyclone DDS under load; RustDDS then never repaired them).
 const REMATCH_MARGIN: Duration = Duration::from_millis(500);
-/// Most samples one holding writer keeps; beyond, writes fail with STATUS_ERR_RESOURCES.
-const REMATCH_HELD_MAX: usize = 4096;
+/// Most samples one holding writer keeps; beyond, it stops waiting for its readers and
+/// writes what it holds (logged). (4,096 was too few: 10,000 samples/s fill it in 0.4 s, and the writer then wrote all of
+/// them before its readers matched: 3,000 lost per worker kill.)
+const REMATCH_HELD_MAX: usize = 65_536;
+/// Most bytes one holding writer keeps (the same rule).
+const REMATCH_HELD_MAX_BYTES: usize = 32 << 20;
 
 struct ActiveRead {
     request_id: xrce_common::wire::RequestId,
@@ -330,9 +342,6 @@ struct FrontendPort {
     last_delivery: Instant,
     /// Messages were published since the front-end was last woken.
     unnotified: bool,
-    /// The front-end said FrontendHello to this worker: it knows this generation, and its
-    /// operations from then on are meant for it.
-    greeted: bool,
 }
 
 /// Most replies held for one congested front-end; beyond, the oldest are dropped (counted).
@@ -378,6 +387,10 @@ pub struct Worker {
     next_census: Instant,
     /// When the writers' matched counts are next looked at (reported to the front-ends).
     next_match_report: Instant,
+    /// Front-end processes (id, incarnation) that said FrontendHello to this worker: they
+    /// know this generation, and their operations are meant for it (kept apart from the
+    /// reply ports, which the census may drop and recreate).
+    greeted: HashSet<(u32, u16)>,
     /// Counters by reason of rejected or failed work.
     pub dropped: HashMap<&'static str, u64>,
     /// Restarted front-ends (id -> incarnation) whose requests wait for the end of the
@@ -445,6 +458,7 @@ impl Worker {
             orphaned: HashMap::new(),
             next_census: Instant::now() + CENSUS_PERIOD,
             next_match_report: Instant::now() + MATCH_REPORT_PERIOD,
+            greeted: HashSet::new(),
             dropped: HashMap::new(),
             successors: HashMap::new(),
             deferred: Vec::new(),
@@ -690,7 +704,7 @@ impl Worker {
             let draining = self.holding.iter().any(|k| {
                 matches!(self.entities.get(k), Some(Entity { kind: EntityKind::Writer(_, r, _), .. }) if r.draining)
             });
-            return if draining { 2 } else { 20 };
+            return if draining { 1 } else { 20 };
         }
         let waiting = self
             .ports
@@ -779,7 +793,6 @@ impl Worker {
                     unnotified: false,
                     deferred: HashSet::new(),
                     last_delivery: Instant::now(),
-                    greeted: false,
                 }))
             }
         }
@@ -877,7 +890,7 @@ impl Worker {
             .get(&fe)
             .map(|p| p.incarnation)
             .filter(|i| *i != 0);
-        let greeted = self.ports.get(&fe).is_some_and(|p| p.greeted);
+        let greeted = self.greeted.contains(&(fe, h.incarnation));
         match current {
             Some(c) if c != h.incarnation && h.kind == MessageKind::FrontendHello => {
                 self.successors.insert(fe, h.incarnation);
@@ -916,12 +929,13 @@ impl Worker {
                     incarnation = h.incarnation,
                     "front-end (re)connected"
                 );
+                self.greeted.retain(|(fe, _)| *fe != h.frontend_id);
+                self.greeted.insert((h.frontend_id, h.incarnation));
                 self.remove_where(|c| c.0 == h.frontend_id);
                 if let Ok(p) = self.port(h.frontend_id) {
                     // Its operations are numbered from its hello on.
                     p.incarnation = h.incarnation;
                     p.processed = h.op_seq;
-                    p.greeted = true;
                 }
                 // Replies held for a previous incarnation of this front-end mean nothing now.
                 if let Some(p) = self.ports.get_mut(&h.frontend_id) {
@@ -1008,7 +1022,16 @@ impl Worker {
                 p.dirty = true;
             }
         }
-        let outstanding = self.acks.oldest_outstanding();
+        // Only when some front-end gets a progress message (the loop runs per sample).
+        let progress_due = self
+            .ports
+            .iter()
+            .any(|(fe, p)| (p.dirty || held.contains_key(fe)) && p.backlog.is_empty());
+        let outstanding = if progress_due {
+            self.acks.oldest_outstanding()
+        } else {
+            HashMap::new()
+        };
         for (fe, p) in self.ports.iter_mut() {
             let mut sent = false;
             while let Some(m) = p.backlog.front() {
@@ -1712,7 +1735,10 @@ impl Worker {
             }
         }
         if rematch.until.is_some() {
-            if rematch.held.len() < REMATCH_HELD_MAX {
+            if rematch.held.len() < REMATCH_HELD_MAX
+                && rematch.held_bytes + sample.body.len() <= REMATCH_HELD_MAX_BYTES
+            {
+                rematch.held_bytes += sample.body.len();
                 rematch.held.push_back((seq, sample, dispose));
                 return Ok(());
             }
@@ -1726,6 +1752,7 @@ impl Worker {
             rematch.until = None;
             rematch.draining = false;
             let now = Instant::now();
+            rematch.held_bytes = 0;
             for (s_seq, s, d) in rematch.held.drain(..) {
                 let done = if d { w.raw.dispose(&s) } else { w.raw.write(s) };
                 if done.is_ok() && w.outstanding.record(key.0, s_seq, now) {
@@ -1811,11 +1838,16 @@ impl Worker {
                 );
                 rematch.draining = true;
             }
-            if rematch.draining {
+            let paced = rematch.last_batch.is_some_and(|t| {
+                now.saturating_duration_since(t) < RELEASE_ACK_WAIT && !w.raw.all_acknowledged()
+            });
+            if rematch.draining && !paced {
+                rematch.last_batch = Some(now);
                 for _ in 0..RELEASE_BATCH {
                     let Some((seq, sample, dispose)) = rematch.held.pop_front() else {
                         break;
                     };
+                    rematch.held_bytes = rematch.held_bytes.saturating_sub(sample.body.len());
                     let done = if dispose {
                         w.raw.dispose(&sample)
                     } else {

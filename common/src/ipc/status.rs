@@ -34,6 +34,10 @@ pub struct ProcessReport {
     pub pid: u32,
     /// When it started, in milliseconds since the Unix epoch.
     pub started_unix_ms: u64,
+    /// When it started, in clock ticks after boot as /proc says (0: unknown): tells this
+    /// process from a later one the system gave the same pid, whatever the wall clock did.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub start_ticks: u64,
     /// When it wrote this report, in milliseconds since the Unix epoch.
     pub updated_unix_ms: u64,
     /// User and system CPU time it used, in seconds.
@@ -99,7 +103,7 @@ pub struct SessionStatus {
     pub samples_in: u64,
     /// Samples delivered to it.
     pub samples_out: u64,
-    /// Its messages and replies lost (not flow-control refusals, which the client resends).
+    /// Its messages and replies lost (not refusals for room, which the client resends).
     pub dropped: u64,
 }
 
@@ -221,9 +225,9 @@ pub fn is_alive(pid: u32) -> bool {
     }
 }
 
-/// Whether the process that wrote `r` still runs: its pid is alive and started when the report
-/// says (within a few seconds: the report's start is taken when its reporter is made), so a
-/// pid the system gave to another process since does not pass for it.
+/// Whether the process that wrote `r` still runs: its pid is alive, no zombie, and started at
+/// the clock tick the report says (a pid the system gave to another process since does not
+/// pass for it; ticks after boot do not move with the wall clock).
 pub fn report_is_live(r: &ProcessReport) -> bool {
     let Ok(stat) = procfs::process::Process::new(r.pid as i32).and_then(|p| p.stat()) else {
         return false;
@@ -231,19 +235,19 @@ pub fn report_is_live(r: &ProcessReport) -> bool {
     if stat.state == 'Z' || stat.state == 'X' {
         return false;
     }
-    let Ok(boot) = procfs::boot_time_secs() else {
-        return true;
-    };
-    if r.started_unix_ms == 0 {
-        return true;
-    }
-    let ticks = procfs::ticks_per_second().max(1);
-    let started_ms = boot * 1000 + stat.starttime * 1000 / ticks;
-    started_ms.abs_diff(r.started_unix_ms) <= SAME_START_MS
+    r.start_ticks == 0 || stat.starttime == r.start_ticks
 }
 
-/// How far a report's start may be from its process's start for both to be the same process.
-const SAME_START_MS: u64 = 10_000;
+/// This process's start, in clock ticks after boot (0 when /proc does not tell).
+pub fn own_start_ticks() -> u64 {
+    procfs::process::Process::myself()
+        .and_then(|p| p.stat())
+        .map_or(0, |s| s.starttime)
+}
+
+fn is_zero(v: &u64) -> bool {
+    *v == 0
+}
 
 /// Writes the report of process `file_stem` atomically into `dir` (created if missing).
 pub fn write_report(dir: &Path, file_stem: &str, report: &ProcessReport) -> std::io::Result<()> {
@@ -349,6 +353,7 @@ impl Reporter {
         let mut report = build();
         report.pid = std::process::id();
         report.started_unix_ms = self.started_unix_ms;
+        report.start_ticks = own_start_ticks();
         report.updated_unix_ms = unix_ms();
         let (cpu, rss) = own_usage();
         report.cpu_seconds = cpu;
@@ -446,13 +451,14 @@ mod tests {
         };
         write_report(&dir, "frontend-udp", &r).expect("write");
         assert_eq!(read_reports(&dir), vec![r.clone()]);
-        // Started when this process started: it is this process.
-        r.started_unix_ms = unix_ms();
+        // Started at this process's start: it is this process.
+        r.start_ticks = own_start_ticks();
+        assert!(r.start_ticks > 0, "/proc tells a process's start");
         write_report(&dir, "frontend-udp", &r).expect("write");
         assert_eq!(read_reports(&dir), vec![r.clone()]);
-        // A report of another process that had this pid an hour ago.
+        // A report of another process that had this pid before.
         let mut reused = r.clone();
-        reused.started_unix_ms = unix_ms() - 3_600_000;
+        reused.start_ticks -= 1;
         write_report(&dir, "frontend-udp", &reused).expect("write");
         assert!(
             read_reports(&dir).is_empty(),

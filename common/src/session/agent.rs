@@ -179,7 +179,7 @@ pub struct ClientCounters {
     pub samples_in: u64,
     /// Samples queued for it (DATA replies).
     pub samples_out: u64,
-    /// Its messages and replies dropped and lost (flow-control refusals and duplicates, see
+    /// Its messages and replies dropped and lost (refusals for room and duplicates, see
     /// [`NOT_LOST`], are not counted: nothing is lost by them).
     pub dropped: u64,
 }
@@ -205,9 +205,11 @@ pub struct SessionInfo<A> {
     pub counters: ClientCounters,
 }
 
-/// Drop reasons that lose nothing: a reliable message refused for lack of room (flow control:
-/// not acknowledged, the client sends it again) and a copy of a message already taken.
-pub const NOT_LOST: [&str; 2] = ["backpressure", "duplicate"];
+/// Drop reasons that lose nothing: a reliable message refused for lack of room in the agent
+/// or among the messages held for a gap (not acknowledged: the client sends it again), and a
+/// copy of a message already taken. (A rate-quota refusal is counted: on a best-effort
+/// stream it is lost.)
+pub const NOT_LOST: [&str; 3] = ["backpressure", "early_buffer_full", "duplicate"];
 
 /// Counters of what the core did and dropped.
 #[derive(Debug, Clone, Default)]
