@@ -30,8 +30,8 @@ pub trait Acknowledging {
     fn outstanding(&self) -> &Outstanding;
 }
 
-/// Operations written through one DDS writer and not known to be acknowledged, oldest first
-/// (a front-end's operations are written in their order).
+/// Operations written through one DDS writer and not known to be acknowledged, in the order
+/// they were written (one front-end's in increasing order unless the writer is shared).
 #[derive(Debug, Default)]
 pub struct Outstanding {
     writes: RefCell<VecDeque<(u32, u64, Instant)>>,
