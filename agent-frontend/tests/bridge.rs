@@ -182,6 +182,30 @@ impl Rig {
         );
     }
 
+    /// A rig whose bridge sees `worker` (generation `generation`) and whose client is
+    /// connected.
+    fn connected(instance: &str, worker: &FakeWorker, generation: u32) -> Self {
+        let mut rig = Rig::new(instance);
+        rig.run(&[worker], |r, _| r.bridge.generation() == Some(generation));
+        rig.client.connect(Instant::now());
+        rig.run(&[worker], |r, _| r.client.is_connected());
+        rig
+    }
+
+    /// Creates a participant, a topic, a publisher and a data writer (their ids, in that
+    /// order).
+    fn create_writer(&mut self) -> [ObjectId; 4] {
+        let p = ObjectId::new(1, k::PARTICIPANT);
+        let t = ObjectId::new(1, k::TOPIC);
+        let pb = ObjectId::new(1, k::PUBLISHER);
+        let w = ObjectId::new(1, k::DATAWRITER);
+        self.create(p, k::PARTICIPANT, "<dds/>", VariantExtra::DomainId(0));
+        self.create(t, k::TOPIC, "<dds/>", VariantExtra::Parent(p));
+        self.create(pb, k::PUBLISHER, "", VariantExtra::Parent(p));
+        self.create(w, k::DATAWRITER, "<dds/>", VariantExtra::Parent(pb));
+        [p, t, pb, w]
+    }
+
     fn create(&mut self, id: ObjectId, kind: u8, xml: &str, extra: VariantExtra) {
         let v = ObjectVariant {
             kind,
@@ -202,20 +226,10 @@ fn instance(tag: &str) -> String {
 fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_writes() {
     let inst = instance("replay");
     let first = FakeWorker::start(&inst, 11);
-    let mut rig = Rig::new(&inst);
-    rig.run(&[&first], |r, _| r.bridge.generation() == Some(11));
-    rig.client.connect(Instant::now());
-    rig.run(&[&first], |r, _| r.client.is_connected());
-    let p = ObjectId::new(1, k::PARTICIPANT);
-    let t = ObjectId::new(1, k::TOPIC);
-    let pb = ObjectId::new(1, k::PUBLISHER);
-    let w = ObjectId::new(1, k::DATAWRITER);
+    let mut rig = Rig::connected(&inst, &first, 11);
+    let [p, t, pb, w] = rig.create_writer();
     let sb = ObjectId::new(1, k::SUBSCRIBER);
     let rd = ObjectId::new(1, k::DATAREADER);
-    rig.create(p, k::PARTICIPANT, "<dds/>", VariantExtra::DomainId(0));
-    rig.create(t, k::TOPIC, "<dds/>", VariantExtra::Parent(p));
-    rig.create(pb, k::PUBLISHER, "", VariantExtra::Parent(p));
-    rig.create(w, k::DATAWRITER, "<dds/>", VariantExtra::Parent(pb));
     rig.create(sb, k::SUBSCRIBER, "", VariantExtra::Parent(p));
     rig.create(rd, k::DATAREADER, "<dds/>", VariantExtra::Parent(sb));
     let served = rig.run(&[&first], |_, s| {
@@ -288,10 +302,7 @@ fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_write
 fn a_replayed_read_does_not_deliver_a_sample_twice() {
     let inst = instance("dedup");
     let first = FakeWorker::start(&inst, 21);
-    let mut rig = Rig::new(&inst);
-    rig.run(&[&first], |r, _| r.bridge.generation() == Some(21));
-    rig.client.connect(Instant::now());
-    rig.run(&[&first], |r, _| r.client.is_connected());
+    let mut rig = Rig::connected(&inst, &first, 21);
     let p = ObjectId::new(1, k::PARTICIPANT);
     let sb = ObjectId::new(1, k::SUBSCRIBER);
     let rd = ObjectId::new(1, k::DATAREADER);
@@ -378,18 +389,8 @@ fn a_replayed_read_does_not_deliver_a_sample_twice() {
 fn a_write_its_readers_acknowledged_is_not_resent_to_a_new_worker() {
     let inst = instance("acked");
     let first = FakeWorker::start(&inst, 21);
-    let mut rig = Rig::new(&inst);
-    rig.run(&[&first], |r, _| r.bridge.generation() == Some(21));
-    rig.client.connect(Instant::now());
-    rig.run(&[&first], |r, _| r.client.is_connected());
-    let p = ObjectId::new(1, k::PARTICIPANT);
-    let t = ObjectId::new(1, k::TOPIC);
-    let pb = ObjectId::new(1, k::PUBLISHER);
-    let w = ObjectId::new(1, k::DATAWRITER);
-    rig.create(p, k::PARTICIPANT, "<dds/>", VariantExtra::DomainId(0));
-    rig.create(t, k::TOPIC, "<dds/>", VariantExtra::Parent(p));
-    rig.create(pb, k::PUBLISHER, "", VariantExtra::Parent(p));
-    rig.create(w, k::DATAWRITER, "<dds/>", VariantExtra::Parent(pb));
+    let mut rig = Rig::connected(&inst, &first, 21);
+    let [_, _, _, w] = rig.create_writer();
     rig.run(&[&first], |_, s| {
         s.iter()
             .filter(|(h, _)| h.kind == MessageKind::Create)

@@ -12,9 +12,11 @@ use common::run_loadgen;
 /// A front-end's successor takes its sessions over: DDS gets every sample once; the
 /// subscribing client gets nothing twice but may miss the few samples the worker had
 /// already taken for it when its front-end died (measured: 0 or 1 of the 500 around a
-/// kill; issue 11). A new worker loses nothing, but gets again the reliable writes the
-/// front-end retained for 1.5 s (issue 11: a retained write is released after a fixed
-/// time, not when DDS readers acknowledged it), so repeats are bounded by that window.
+/// kill; issue 11). A new worker loses nothing and repeats only the writes DDS readers had
+/// not acknowledged when the worker died (the front-end keeps a write until they did):
+/// readers acknowledge within milliseconds here (0 or 1 repeat per kill measured in this
+/// debug build), so the bound, a quarter of a second of writes, leaves room for a loaded
+/// machine.
 #[test]
 fn a_short_kill_soak_recovers_from_every_kill() {
     let rate = 200.0;
@@ -55,7 +57,7 @@ fn a_short_kill_soak_recovers_from_every_kill() {
             Some("worker") => {
                 assert_eq!(k["lost"], 0, "{stdout}");
                 assert!(
-                    k["duplicated"].as_f64().is_some_and(|d| d <= 2.0 * rate),
+                    k["duplicated"].as_f64().is_some_and(|d| d <= 0.25 * rate),
                     "{stdout}"
                 );
             }

@@ -306,3 +306,149 @@ pub fn session_store(data: &[u8]) {
         assert_eq!(g2.encode_reads(), r, "reads changed by a round trip");
     }
 }
+
+/// A representative session snapshot (every kind of stream, unacknowledged and queued output,
+/// a dead time): the fuzz seeds' and the snapshot unit tests' example.
+pub fn example_snapshot() -> crate::session::snapshot::SessionSnapshot {
+    use crate::session::snapshot::{OutputSnapshot, SessionSnapshot};
+    SessionSnapshot {
+        key: ClientKey([0xAA, 0xAA, 0xBB, 0xBB]),
+        session_id: 0x81,
+        endpoint: vec![4, 127, 0, 0, 1, 0x22, 0xB8],
+        mtu: 512,
+        dialect: Dialect::Eprosima,
+        dead_time: Some(Duration::from_millis(2500)),
+        reliable_in: vec![(0x80, 17), (0x81, 0xFFFF)],
+        best_effort_in: vec![(0x01, 3)],
+        reliable_out: vec![
+            OutputSnapshot {
+                stream_id: 0x80,
+                next: 40,
+                in_flight: Some(vec![(38, vec![1, 2, 3]), (39, vec![4])]),
+                queued: vec![vec![9, 9], vec![8]],
+            },
+            OutputSnapshot {
+                stream_id: 0x81,
+                next: 7,
+                in_flight: None,
+                queued: Vec::new(),
+            },
+        ],
+        best_effort_out: vec![(0x01, 9)],
+    }
+}
+
+/// The session_store target's seeds, by file name: snapshots, and a client's objects and
+/// reads as [`session_store`] takes them (2-byte length of the objects first).
+pub fn session_store_seeds() -> Vec<(String, Vec<u8>)> {
+    use crate::session::graph::{ActiveRead, DeliveredMarks, GraphObject, ObjectGraph};
+    use crate::session::snapshot::SessionSnapshot;
+    use crate::wire::{
+        object_kind, stream_id, DataDeliveryControl, ObjectId, ObjectVariant, ReadSpecification,
+        Representation, RequestId, VariantExtra,
+    };
+    let mut seeds = Vec::new();
+    let base = example_snapshot();
+    let snapshots = [
+        base.clone(),
+        SessionSnapshot {
+            dialect: Dialect::Spec,
+            dead_time: None,
+            endpoint: vec![6; 19],
+            ..base.clone()
+        },
+        SessionSnapshot {
+            reliable_out: Vec::new(),
+            reliable_in: Vec::new(),
+            best_effort_in: Vec::new(),
+            best_effort_out: Vec::new(),
+            ..base.clone()
+        },
+    ];
+    for (i, s) in snapshots.iter().enumerate() {
+        seeds.push((format!("snapshot-{i}"), s.encode()));
+    }
+    let xml = |kind: u8, text: &str, extra: VariantExtra| ObjectVariant {
+        kind,
+        representation: Representation::Xml(text.into()),
+        extra,
+    };
+    let p = ObjectId::new(1, object_kind::PARTICIPANT);
+    let t = ObjectId::new(1, object_kind::TOPIC);
+    let sb = ObjectId::new(1, object_kind::SUBSCRIBER);
+    let rd = ObjectId::new(1, object_kind::DATAREADER);
+    let objects = [
+        (
+            p,
+            xml(
+                object_kind::PARTICIPANT,
+                "<dds/>",
+                VariantExtra::DomainId(7),
+            ),
+        ),
+        (
+            t,
+            xml(
+                object_kind::TOPIC,
+                "<dds><topic/></dds>",
+                VariantExtra::Parent(p),
+            ),
+        ),
+        (
+            sb,
+            ObjectVariant {
+                kind: object_kind::SUBSCRIBER,
+                representation: Representation::Reference("sub".into()),
+                extra: VariantExtra::Parent(p),
+            },
+        ),
+        (
+            rd,
+            xml(object_kind::DATAREADER, "<dds/>", VariantExtra::Parent(sb)),
+        ),
+    ];
+    let mut graphs = vec![ObjectGraph::default()];
+    let mut g = ObjectGraph::default();
+    for (i, (id, variant)) in objects.into_iter().enumerate() {
+        g.insert(GraphObject {
+            object_id: id,
+            request_id: RequestId::from_u16(10 + i as u16),
+            variant,
+            little_endian: i % 2 == 0,
+            readers_matched: 0,
+        });
+        graphs.push(g.clone());
+    }
+    let mut marks = DeliveredMarks::default();
+    marks.record([7; 16], 41);
+    marks.record([9; 16], 3);
+    g.set_read(
+        rd,
+        ActiveRead {
+            request_id: RequestId::from_u16(99),
+            spec: ReadSpecification {
+                preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+                content_filter_expression: Some("index > 3".into()),
+                delivery_control: Some(DataDeliveryControl {
+                    max_samples: 100,
+                    ..Default::default()
+                }),
+                ..Default::default()
+            },
+            delivered: 12,
+            marks,
+        },
+    );
+    graphs.push(g);
+    for (i, g) in graphs.iter().enumerate() {
+        let (o, r) = (g.encode_objects(), g.encode_reads());
+        let mut seed = u16::try_from(o.len())
+            .unwrap_or(u16::MAX)
+            .to_le_bytes()
+            .to_vec();
+        seed.extend_from_slice(&o);
+        seed.extend_from_slice(&r);
+        seeds.push((format!("graph-{i}"), seed));
+    }
+    seeds
+}

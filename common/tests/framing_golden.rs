@@ -17,7 +17,7 @@ fn trace(name: &str) -> PathBuf {
 }
 
 /// The serial hexdump as two byte streams (client to agent, agent to client), with the
-/// chunk boundaries socat saw.
+/// chunk boundaries of the recording (each read the capture logged).
 fn serial_streams() -> (Vec<Vec<u8>>, Vec<Vec<u8>>) {
     let text = std::fs::read_to_string(trace("serial-ping-and-ref-creation.hexdump.txt"))
         .expect("serial trace");

@@ -279,31 +279,7 @@ mod tests {
     use super::*;
 
     fn sample() -> SessionSnapshot {
-        SessionSnapshot {
-            key: ClientKey([0xAA, 0xAA, 0xBB, 0xBB]),
-            session_id: 0x81,
-            endpoint: vec![4, 127, 0, 0, 1, 0x22, 0xB8],
-            mtu: 512,
-            dialect: Dialect::Eprosima,
-            dead_time: Some(Duration::from_millis(2500)),
-            reliable_in: vec![(0x80, 17), (0x81, 0xFFFF)],
-            best_effort_in: vec![(0x01, 3)],
-            reliable_out: vec![
-                OutputSnapshot {
-                    stream_id: 0x80,
-                    next: 40,
-                    in_flight: Some(vec![(38, vec![1, 2, 3]), (39, vec![4])]),
-                    queued: vec![vec![9, 9], vec![8]],
-                },
-                OutputSnapshot {
-                    stream_id: 0x81,
-                    next: 7,
-                    in_flight: None,
-                    queued: Vec::new(),
-                },
-            ],
-            best_effort_out: vec![],
-        }
+        crate::fuzzing::example_snapshot()
     }
 
     #[test]
