@@ -50,6 +50,7 @@
 //! with `STATUS_ERR_INVALID_DATA` naming the element.
 
 pub mod acks;
+pub mod adoption;
 pub mod binary;
 pub mod cli;
 pub mod dds;

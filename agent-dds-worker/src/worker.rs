@@ -29,6 +29,7 @@ use xrce_common::wire::{
 };
 
 use crate::acks::{AckTracker, Acknowledging, Outstanding};
+use crate::adoption::{Adoption, Origin};
 use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
 use crate::filter::Filter;
 use crate::raw::{RawReader, RawSample, RawWriter};
@@ -199,6 +200,8 @@ struct ServiceEndpoint {
 struct Entity {
     parent: Option<ObjectId>,
     kind: EntityKind,
+    /// What it was created from (a restarted front-end's replay of the same adopts it).
+    origin: Origin,
 }
 
 /// A new writer holds its writes until it has matched readers: volatile readers only get
@@ -391,6 +394,8 @@ pub struct Worker {
     /// know this generation, and their operations are meant for it (kept apart from the
     /// reply ports, which the census may drop and recreate).
     greeted: HashSet<(u32, u16)>,
+    /// Entities of front-ends that said hello again, for their replay to take back.
+    adoption: Adoption,
     /// Counters by reason of rejected or failed work.
     pub dropped: HashMap<&'static str, u64>,
     /// Restarted front-ends (id -> incarnation) whose requests wait for the end of the
@@ -459,6 +464,7 @@ impl Worker {
             next_census: Instant::now() + CENSUS_PERIOD,
             next_match_report: Instant::now() + MATCH_REPORT_PERIOD,
             greeted: HashSet::new(),
+            adoption: Adoption::default(),
             dropped: HashMap::new(),
             successors: HashMap::new(),
             deferred: Vec::new(),
@@ -586,6 +592,7 @@ impl Worker {
                     "front-end did not come back; deleting its clients' entities"
                 );
                 self.remove_where(|c| c.0 == fe);
+                self.adoption.forget(fe);
                 self.ports.remove(&fe);
                 self.greeted.retain(|(f, _)| *f != fe);
                 self.orphaned.remove(&fe);
@@ -932,7 +939,7 @@ impl Worker {
                 );
                 self.greeted.retain(|(fe, _)| *fe != h.frontend_id);
                 self.greeted.insert((h.frontend_id, h.incarnation));
-                self.remove_where(|c| c.0 == h.frontend_id);
+                self.offer_entities(h.frontend_id);
                 if let Ok(p) = self.port(h.frontend_id) {
                     // Its operations are numbered from its hello on.
                     p.incarnation = h.incarnation;
@@ -948,6 +955,7 @@ impl Worker {
                 hello.frontend_id = h.frontend_id;
                 self.reply(hello, &[]);
             }
+            MessageKind::ReplayDone => self.end_adoption(h.frontend_id),
             MessageKind::DeleteClient => {
                 self.remove_where(|c| c.0 == h.frontend_id && c.1 == h.client_key)
             }
@@ -1118,6 +1126,63 @@ impl Worker {
         None
     }
 
+    /// A front-end said hello (it started, or took over from a predecessor): the entities
+    /// held for it wait for its replay to take them back, and their reads stop (the replay
+    /// starts those the client still has; samples wait in the DDS readers meanwhile).
+    fn offer_entities(&mut self, fe: u32) {
+        let keys: Vec<EntityKey> = self
+            .by_client
+            .iter()
+            .filter(|(c, _)| c.0 == fe)
+            .flat_map(|(c, ids)| ids.iter().map(move |id| (c.0, c.1, *id)))
+            .collect();
+        if !keys.is_empty() {
+            tracing::info!(
+                frontend = fe,
+                entities = keys.len(),
+                "front-end came back; its entities are kept for its replay to take back"
+            );
+        }
+        self.reads.retain(|k, _| k.0 != fe);
+        self.to_pump.retain(|k| k.0 != fe);
+        self.adoption.offer(fe, keys);
+    }
+
+    /// The replay of front-end `fe` is complete: what it did not take back goes.
+    fn end_adoption(&mut self, fe: u32) {
+        let (left, adopted) = self.adoption.finish(fe);
+        let mut removed = 0;
+        for k in left {
+            if self.entities.contains_key(&k) {
+                self.remove_subtree(k);
+                removed += 1;
+            }
+        }
+        if adopted + removed > 0 {
+            tracing::info!(frontend = fe, adopted, removed, "front-end replay complete");
+        }
+    }
+
+    /// Takes entity `key` back for a replay of its CREATE (`body`, `little_endian`), if it
+    /// was created from the same; whether it was.
+    fn adopt(&mut self, key: EntityKey, body: &[u8], little_endian: bool) -> bool {
+        let Some(e) = self.entities.get_mut(&key) else {
+            return false;
+        };
+        if e.origin != Origin::new(body, little_endian) {
+            return false;
+        }
+        if let EntityKind::Writer(_, rematch, _) = &mut e.kind {
+            // Samples it still holds were numbered by the predecessor: as old as any.
+            for h in rematch.held.iter_mut() {
+                h.0 = 0;
+            }
+        }
+        self.adoption.adopted(key.0);
+        tracing::debug!(client = %key.1, object = ?key.2, "entity taken back");
+        true
+    }
+
     fn create(
         &mut self,
         key: EntityKey,
@@ -1137,6 +1202,9 @@ impl Worker {
                 status::ERR_INVALID_DATA,
                 "object id kind differs from the representation kind".into(),
             ));
+        }
+        if self.adoption.claim(&key) && self.adopt(key, body, little_endian) {
+            return Ok(());
         }
         if self.entities.contains_key(&key) {
             // The front-end decides creation modes; here an existing object is replaced.
@@ -1377,7 +1445,15 @@ impl Worker {
                 | EntityKind::Reader(..)
                 | EntityKind::Service(..)
         );
-        self.entities.insert(key, Entity { parent, kind });
+        let origin = Origin::new(body, little_endian);
+        self.entities.insert(
+            key,
+            Entity {
+                parent,
+                kind,
+                origin,
+            },
+        );
         self.by_client
             .entry((key.0, key.1))
             .or_default()

@@ -651,6 +651,16 @@ impl Bridge {
                 });
             }
         }
+        // A worker that kept this front-end's entities (this process took over from a
+        // predecessor) removes those the replay did not take back.
+        let mut done = IpcHeader::new(MessageKind::ReplayDone);
+        done.frontend_id = self.frontend_id;
+        self.outbox.push_back(OwnedOp {
+            header: done,
+            body: Vec::new(),
+            retain: false,
+            awaited: Awaited::No,
+        });
         for r in self.retained.take() {
             self.stats.writes_resent += 1;
             let waited = awaited_writes.remove(&r.seq).is_some();

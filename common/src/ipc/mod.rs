@@ -17,7 +17,7 @@ pub mod status;
 use crate::wire::{ClientKey, ObjectId, RequestId};
 
 /// Version of this contract; both sides drop (and log) messages of another version.
-pub const IPC_VERSION: u16 = 5;
+pub const IPC_VERSION: u16 = 6;
 /// Magic at the start of every message.
 pub const IPC_MAGIC: [u8; 4] = *b"XRIP";
 
@@ -36,7 +36,8 @@ pub const IN_FLIGHT_WINDOW: u64 = 192;
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[repr(u8)]
 pub enum MessageKind {
-    /// Front-end → worker: I (re)started; forget every entity you hold for me.
+    /// Front-end → worker: I (re)started; the entities you hold for me are mine to take back
+    /// by replaying their CREATEs (see [`MessageKind::ReplayDone`]).
     FrontendHello = 1,
     /// Front-end → worker: create an object (body: XRCE ObjectVariant, LE).
     Create = 2,
@@ -53,6 +54,9 @@ pub enum MessageKind {
     PauseRead = 7,
     /// Front-end → worker: deliver the read's samples again.
     ResumeRead = 8,
+    /// Front-end → worker: the replay that follows my hello is complete; entities of mine
+    /// it did not take back can go.
+    ReplayDone = 9,
     /// Worker → all: a new worker generation is serving.
     WorkerHello = 16,
     /// Worker → front-end: the result of a Create, Delete, Write or Read (body: status, detail).
@@ -85,6 +89,7 @@ impl MessageKind {
             6 => DeleteClient,
             7 => PauseRead,
             8 => ResumeRead,
+            9 => ReplayDone,
             16 => WorkerHello,
             17 => Status,
             18 => Sample,
