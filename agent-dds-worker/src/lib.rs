@@ -57,6 +57,7 @@ pub mod dds;
 pub mod filter;
 pub mod fuzzing;
 pub mod raw;
+pub mod recent;
 pub mod references;
 pub mod representation;
 pub mod ros_graph;

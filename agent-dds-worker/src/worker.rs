@@ -33,6 +33,7 @@ use crate::adoption::{Adoption, Origin};
 use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
 use crate::filter::Filter;
 use crate::raw::{RawReader, RawSample, RawWriter};
+use crate::recent::RecentSamples;
 use crate::representation::{
     check_plain, describe_endpoint, describe_service, describe_topic, participant_name,
 };
@@ -396,6 +397,8 @@ pub struct Worker {
     greeted: HashSet<(u32, u16)>,
     /// Entities of front-ends that said hello again, for their replay to take back.
     adoption: Adoption,
+    /// The last samples handed to each front-end, for a successor's replayed reads.
+    recent: HashMap<u32, RecentSamples>,
     /// Counters by reason of rejected or failed work.
     pub dropped: HashMap<&'static str, u64>,
     /// Restarted front-ends (id -> incarnation) whose requests wait for the end of the
@@ -465,6 +468,7 @@ impl Worker {
             next_match_report: Instant::now() + MATCH_REPORT_PERIOD,
             greeted: HashSet::new(),
             adoption: Adoption::default(),
+            recent: HashMap::new(),
             dropped: HashMap::new(),
             successors: HashMap::new(),
             deferred: Vec::new(),
@@ -593,6 +597,7 @@ impl Worker {
                 );
                 self.remove_where(|c| c.0 == fe);
                 self.adoption.forget(fe);
+                self.recent.remove(&fe);
                 self.ports.remove(&fe);
                 self.greeted.retain(|(f, _)| *f != fe);
                 self.orphaned.remove(&fe);
@@ -2062,7 +2067,37 @@ impl Worker {
             },
         };
         self.reads.insert(key, read);
+        if h.flags & FLAG_REPLAY != 0 {
+            self.offer_recent(key, h.request_id);
+        } else if let Some(r) = self.recent.get_mut(&key.0) {
+            // The client has no record of what an earlier read on this reader delivered.
+            r.forget(&key);
+        }
         Ok(())
+    }
+
+    /// Sends a replayed read the samples last handed to its front-end for it: a successor
+    /// of a front-end that died gets those its predecessor may not have delivered (it drops
+    /// the others by their identity).
+    fn offer_recent(&mut self, key: EntityKey, request_id: xrce_common::wire::RequestId) {
+        let samples = self
+            .recent
+            .get(&key.0)
+            .map(|r| r.of(&key))
+            .unwrap_or_default();
+        if samples.is_empty() {
+            return;
+        }
+        tracing::debug!(client = %key.1, reader = ?key.2, samples = samples.len(), "recent samples offered again to a replayed read");
+        for (flags, body) in &samples {
+            let mut h = IpcHeader::new(MessageKind::Sample);
+            h.frontend_id = key.0;
+            h.client_key = key.1;
+            h.object_id = key.2;
+            h.request_id = request_id;
+            h.flags = *flags;
+            self.reply(h, body);
+        }
     }
 
     /// Takes samples of a reader with an active read and sends them to its front-end.
@@ -2199,10 +2234,15 @@ impl Worker {
                     0
                 };
             let id = identity.encode();
+            let flags = h.flags;
             self.reply_with(h, ipc::SAMPLE_IDENTITY_LEN + s.body.len(), |b| {
                 b[..ipc::SAMPLE_IDENTITY_LEN].copy_from_slice(&id);
                 b[ipc::SAMPLE_IDENTITY_LEN..].copy_from_slice(&s.body);
             });
+            self.recent
+                .entry(key.0)
+                .or_default()
+                .record(key, flags, [&id, &s.body]);
         }
         let ended = match self.reads.get_mut(&key) {
             Some(r) => {
@@ -2288,6 +2328,9 @@ impl Worker {
             self.graph.touch(d, Instant::now());
         }
         self.holding.remove(&key);
+        if let Some(r) = self.recent.get_mut(&key.0) {
+            r.forget(&key);
+        }
         if let Some(ids) = self.by_client.get_mut(&(key.0, key.1)) {
             ids.remove(&key.2);
             if ids.is_empty() {

@@ -1,0 +1,148 @@
+//! Samples recently handed to a front-end, for its successor.
+//!
+//! A sample the worker took from a DDS reader and published to a front-end is gone from the
+//! reader. If that front-end process dies before it delivered the sample to its client (the
+//! sample still in its queue, or not yet sent because its queue was full), the successor
+//! that takes the session over would never see it. So the worker keeps the last samples it
+//! handed to each front-end, and when a successor replays a read it sends that read's again;
+//! the front-end drops those its predecessor had delivered (it stores the identity of the
+//! last sample delivered from each writer before it transmits). At most [`RECENT_MAX`]
+//! samples and [`RECENT_MAX_BYTES`] are kept per front-end: more than its reply queue holds
+//! ([`xrce_common::ipc::CHANNEL_DEPTH`]), which bounds what can be in flight to it.
+
+use std::collections::VecDeque;
+
+use crate::adoption::EntityKey;
+
+/// Most samples kept per front-end.
+pub const RECENT_MAX: usize = 2 * xrce_common::ipc::CHANNEL_DEPTH;
+/// Most bytes of samples kept per front-end.
+pub const RECENT_MAX_BYTES: usize = 4 << 20;
+
+/// One sample as it was handed over.
+#[derive(Debug)]
+struct Recent {
+    key: EntityKey,
+    flags: u8,
+    /// The Sample message's body: the sample's identity, then the sample.
+    body: Vec<u8>,
+}
+
+/// The last samples handed to one front-end, oldest first.
+#[derive(Debug, Default)]
+pub struct RecentSamples {
+    entries: VecDeque<Recent>,
+    bytes: usize,
+}
+
+impl RecentSamples {
+    /// Keeps a sample of reader `key` (its Sample `flags`, and its body as `parts` joined),
+    /// forgetting the oldest beyond the bounds; a sample larger than the byte bound is not
+    /// kept.
+    pub fn record(&mut self, key: EntityKey, flags: u8, parts: [&[u8]; 2]) {
+        let len = parts[0].len() + parts[1].len();
+        if len > RECENT_MAX_BYTES {
+            return;
+        }
+        let mut reused = None;
+        while self.entries.len() >= RECENT_MAX || self.bytes + len > RECENT_MAX_BYTES {
+            let Some(old) = self.entries.pop_front() else {
+                break;
+            };
+            self.bytes -= old.body.len();
+            reused = Some(old.body);
+        }
+        // The evicted sample's buffer holds the new one (no allocation per sample once full).
+        let mut body = reused.unwrap_or_default();
+        body.clear();
+        body.extend_from_slice(parts[0]);
+        body.extend_from_slice(parts[1]);
+        self.bytes += body.len();
+        self.entries.push_back(Recent { key, flags, body });
+    }
+
+    /// The kept samples of reader `key`, oldest first: (flags, body).
+    pub fn of(&self, key: &EntityKey) -> Vec<(u8, Vec<u8>)> {
+        self.entries
+            .iter()
+            .filter(|r| r.key == *key)
+            .map(|r| (r.flags, r.body.clone()))
+            .collect()
+    }
+
+    /// Forgets the samples of reader `key` (it was deleted, or a new read starts on it whose
+    /// client has no record of them).
+    pub fn forget(&mut self, key: &EntityKey) {
+        let mut bytes = self.bytes;
+        self.entries.retain(|r| {
+            let keep = r.key != *key;
+            if !keep {
+                bytes -= r.body.len();
+            }
+            keep
+        });
+        self.bytes = bytes;
+    }
+
+    /// How many samples are kept.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// Whether none is.
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// Bytes kept.
+    pub fn bytes(&self) -> usize {
+        self.bytes
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use xrce_common::wire::{ClientKey, ObjectId};
+
+    fn key(n: u16) -> EntityKey {
+        (0, ClientKey([1, 2, 3, 4]), ObjectId::new(n, 6))
+    }
+
+    #[test]
+    fn the_samples_of_a_reader_come_back_in_order() {
+        let mut r = RecentSamples::default();
+        r.record(key(1), 1, [b"id", b"a"]);
+        r.record(key(2), 0, [b"id", b"b"]);
+        r.record(key(1), 3, [b"id", b"c"]);
+        assert_eq!(
+            r.of(&key(1)),
+            vec![(1, b"ida".to_vec()), (3, b"idc".to_vec())]
+        );
+        r.forget(&key(1));
+        assert!(r.of(&key(1)).is_empty());
+        assert_eq!(r.len(), 1);
+        assert_eq!(r.bytes(), 3);
+    }
+
+    #[test]
+    fn the_oldest_go_beyond_the_count_and_the_byte_bounds() {
+        let mut r = RecentSamples::default();
+        for i in 0..RECENT_MAX + 10 {
+            r.record(key(1), 0, [&(i as u32).to_le_bytes(), b""]);
+        }
+        assert_eq!(r.len(), RECENT_MAX);
+        let first = r.of(&key(1))[0].1.clone();
+        assert_eq!(first, 10u32.to_le_bytes().to_vec());
+        let big = vec![7u8; RECENT_MAX_BYTES / 2 + 1];
+        r.record(key(2), 0, [&big, b""]);
+        r.record(key(2), 0, [&big, b""]);
+        assert!(r.bytes() <= RECENT_MAX_BYTES);
+        assert_eq!(r.of(&key(2)).len(), 1, "the older large sample went");
+        r.record(key(3), 0, [&vec![0u8; RECENT_MAX_BYTES + 1], b""]);
+        assert!(
+            r.of(&key(3)).is_empty(),
+            "a sample above the bound is not kept"
+        );
+    }
+}
