@@ -96,6 +96,11 @@ impl Outstanding {
         w.is_empty()
     }
 
+    /// Forgets front-end `frontend`'s writes.
+    fn forget(&self, frontend: u32) {
+        self.writes.borrow_mut().retain(|w| w.0 != frontend);
+    }
+
     /// How many writes are outstanding.
     pub fn len(&self) -> usize {
         self.writes.borrow().len()
@@ -157,6 +162,15 @@ impl<W: Acknowledging> AckTracker<W> {
             !out.expire(limit, &mut moved)
         });
         (moved, all)
+    }
+
+    /// Forgets the outstanding writes of front-end `frontend` on every watched writer: the
+    /// process that kept them for a resend is gone, and its successor numbers its operations
+    /// from 1 again (left, the old numbers would hold its acknowledged frontier back).
+    pub fn forget_frontend(&mut self, frontend: u32) {
+        for w in self.watched.iter().filter_map(Weak::upgrade) {
+            w.outstanding().forget(frontend);
+        }
     }
 
     /// For each front-end with outstanding writes, its oldest one.
@@ -232,6 +246,26 @@ mod tests {
         let (moved, _) = t.poll(t0 + 2 * ACK_POLL_PERIOD);
         assert_eq!(moved, HashSet::from([1, 2]));
         assert!(t.oldest_outstanding().is_empty());
+        assert_eq!(t.due(), None);
+    }
+
+    #[test]
+    fn a_departed_frontends_writes_are_forgotten() {
+        let t0 = Instant::now();
+        let mut t = AckTracker::new(t0);
+        let w = Rc::new(FakeWriter::default());
+        write(&mut t, &w, 1, 3, t0);
+        write(&mut t, &w, 2, 40, t0);
+        t.forget_frontend(1);
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(2, 40)]));
+        // The successor numbers from 1 again: its writes are not held back by 3.
+        write(&mut t, &w, 1, 1, t0);
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 1), (2, 40)]));
+        t.forget_frontend(1);
+        t.forget_frontend(2);
+        assert_eq!(t.outstanding_writes(), 0);
+        // An empty writer is let go on the next poll.
+        let _ = t.poll(t0 + ACK_GIVE_UP + ACK_POLL_PERIOD);
         assert_eq!(t.due(), None);
     }
 

@@ -4,13 +4,17 @@
 //! reader. If that front-end process dies before it delivered the sample to its client (the
 //! sample still in its queue, or not yet sent because its queue was full), the successor
 //! that takes the session over would never see it. So the worker keeps the last samples it
-//! handed to each front-end, and when a successor replays a read it sends that read's again;
-//! the front-end drops those its predecessor had delivered (it stores the identity of the
-//! last sample delivered from each writer before it transmits). At most [`RECENT_MAX`]
-//! samples and [`RECENT_MAX_BYTES`] are kept per front-end: more than its reply queue holds
-//! ([`xrce_common::ipc::CHANNEL_DEPTH`]), which bounds what can be in flight to it.
+//! handed to each front-end, and when a successor replays a read it sends that read's again
+//! (the samples taken for the same read request, so a read the client started afresh gets
+//! none of an earlier one's); the front-end drops those its predecessor had delivered (it
+//! stores the identity of the last sample delivered from each writer before it transmits).
+//! At most [`RECENT_MAX`] samples and [`RECENT_MAX_BYTES`] are kept per front-end: more than
+//! its reply queue holds ([`xrce_common::ipc::CHANNEL_DEPTH`]) for samples up to 16 KiB;
+//! of larger samples fewer than can be in flight are kept (the newest).
 
 use std::collections::VecDeque;
+
+use xrce_common::wire::RequestId;
 
 use crate::adoption::EntityKey;
 
@@ -23,6 +27,8 @@ pub const RECENT_MAX_BYTES: usize = 4 << 20;
 #[derive(Debug)]
 struct Recent {
     key: EntityKey,
+    /// The read request it was taken for.
+    request: RequestId,
     flags: u8,
     /// The Sample message's body: the sample's identity, then the sample.
     body: Vec<u8>,
@@ -36,10 +42,10 @@ pub struct RecentSamples {
 }
 
 impl RecentSamples {
-    /// Keeps a sample of reader `key` (its Sample `flags`, and its body as `parts` joined),
-    /// forgetting the oldest beyond the bounds; a sample larger than the byte bound is not
-    /// kept.
-    pub fn record(&mut self, key: EntityKey, flags: u8, parts: [&[u8]; 2]) {
+    /// Keeps a sample of reader `key` taken for read `request` (its Sample `flags`, and its
+    /// body as `parts` joined), forgetting the oldest beyond the bounds; a sample larger than
+    /// the byte bound is not kept.
+    pub fn record(&mut self, key: EntityKey, request: RequestId, flags: u8, parts: [&[u8]; 2]) {
         let len = parts[0].len() + parts[1].len();
         if len > RECENT_MAX_BYTES {
             return;
@@ -52,20 +58,30 @@ impl RecentSamples {
             self.bytes -= old.body.len();
             reused = Some(old.body);
         }
-        // The evicted sample's buffer holds the new one (no allocation per sample once full).
-        let mut body = reused.unwrap_or_default();
+        // The evicted sample's buffer holds the new one (no allocation per sample once full),
+        // unless it is much larger: a large sample's buffer would otherwise circulate under
+        // small ones, and the memory held would grow past what `bytes` counts.
+        let mut body = reused
+            .filter(|b| b.capacity() <= 2 * len.max(64))
+            .unwrap_or_default();
         body.clear();
         body.extend_from_slice(parts[0]);
         body.extend_from_slice(parts[1]);
         self.bytes += body.len();
-        self.entries.push_back(Recent { key, flags, body });
+        self.entries.push_back(Recent {
+            key,
+            request,
+            flags,
+            body,
+        });
     }
 
-    /// The kept samples of reader `key`, oldest first: (flags, body).
-    pub fn of(&self, key: &EntityKey) -> Vec<(u8, Vec<u8>)> {
+    /// The kept samples of reader `key` taken for read `request`, oldest first: (flags,
+    /// body).
+    pub fn of(&self, key: &EntityKey, request: RequestId) -> Vec<(u8, Vec<u8>)> {
         self.entries
             .iter()
-            .filter(|r| r.key == *key)
+            .filter(|r| r.key == *key && r.request == request)
             .map(|r| (r.flags, r.body.clone()))
             .collect()
     }
@@ -109,18 +125,24 @@ mod tests {
         (0, ClientKey([1, 2, 3, 4]), ObjectId::new(n, 6))
     }
 
+    const READ: RequestId = RequestId([0, 7]);
+
     #[test]
     fn the_samples_of_a_reader_come_back_in_order() {
         let mut r = RecentSamples::default();
-        r.record(key(1), 1, [b"id", b"a"]);
-        r.record(key(2), 0, [b"id", b"b"]);
-        r.record(key(1), 3, [b"id", b"c"]);
+        r.record(key(1), READ, 1, [b"id", b"a"]);
+        r.record(key(2), READ, 0, [b"id", b"b"]);
+        r.record(key(1), READ, 3, [b"id", b"c"]);
         assert_eq!(
-            r.of(&key(1)),
+            r.of(&key(1), READ),
             vec![(1, b"ida".to_vec()), (3, b"idc".to_vec())]
         );
+        assert!(
+            r.of(&key(1), RequestId([0, 8])).is_empty(),
+            "another read request gets none"
+        );
         r.forget(&key(1));
-        assert!(r.of(&key(1)).is_empty());
+        assert!(r.of(&key(1), READ).is_empty());
         assert_eq!(r.len(), 1);
         assert_eq!(r.bytes(), 3);
     }
@@ -129,20 +151,34 @@ mod tests {
     fn the_oldest_go_beyond_the_count_and_the_byte_bounds() {
         let mut r = RecentSamples::default();
         for i in 0..RECENT_MAX + 10 {
-            r.record(key(1), 0, [&(i as u32).to_le_bytes(), b""]);
+            r.record(key(1), READ, 0, [&(i as u32).to_le_bytes(), b""]);
         }
         assert_eq!(r.len(), RECENT_MAX);
-        let first = r.of(&key(1))[0].1.clone();
+        let first = r.of(&key(1), READ)[0].1.clone();
         assert_eq!(first, 10u32.to_le_bytes().to_vec());
         let big = vec![7u8; RECENT_MAX_BYTES / 2 + 1];
-        r.record(key(2), 0, [&big, b""]);
-        r.record(key(2), 0, [&big, b""]);
+        r.record(key(2), READ, 0, [&big, b""]);
+        r.record(key(2), READ, 0, [&big, b""]);
         assert!(r.bytes() <= RECENT_MAX_BYTES);
-        assert_eq!(r.of(&key(2)).len(), 1, "the older large sample went");
-        r.record(key(3), 0, [&vec![0u8; RECENT_MAX_BYTES + 1], b""]);
+        assert_eq!(r.of(&key(2), READ).len(), 1, "the older large sample went");
+        r.record(key(3), READ, 0, [&vec![0u8; RECENT_MAX_BYTES + 1], b""]);
         assert!(
-            r.of(&key(3)).is_empty(),
+            r.of(&key(3), READ).is_empty(),
             "a sample above the bound is not kept"
+        );
+    }
+
+    #[test]
+    fn a_large_buffer_is_not_reused_for_small_samples() {
+        let mut r = RecentSamples::default();
+        r.record(key(1), READ, 0, [&vec![1u8; 1 << 20], b""]);
+        for _ in 0..RECENT_MAX {
+            r.record(key(1), READ, 0, [b"small", b""]);
+        }
+        let held: usize = r.entries.iter().map(|e| e.body.capacity()).sum();
+        assert!(
+            held < 256 * RECENT_MAX,
+            "{held} bytes held for small samples"
         );
     }
 }

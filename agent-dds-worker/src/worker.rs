@@ -1150,6 +1150,7 @@ impl Worker {
         }
         self.reads.retain(|k, _| k.0 != fe);
         self.to_pump.retain(|k| k.0 != fe);
+        self.acks.forget_frontend(fe);
         self.adoption.offer(fe, keys);
     }
 
@@ -2079,16 +2080,37 @@ impl Worker {
     /// Sends a replayed read the samples last handed to its front-end for it: a successor
     /// of a front-end that died gets those its predecessor may not have delivered (it drops
     /// the others by their identity).
+    ///
+    /// The read's limits count them: a one-shot read gets the newest and ends (the front-end
+    /// drops it if its predecessor delivered it, and the read is over either way), a read of
+    /// at most so many samples counts them all as delivered (it may end short by those the
+    /// front-end drops, never beyond its limit).
     fn offer_recent(&mut self, key: EntityKey, request_id: xrce_common::wire::RequestId) {
-        let samples = self
+        let mut samples = self
             .recent
             .get(&key.0)
-            .map(|r| r.of(&key))
+            .map(|r| r.of(&key, request_id))
             .unwrap_or_default();
         if samples.is_empty() {
             return;
         }
-        tracing::debug!(client = %key.1, reader = ?key.2, samples = samples.len(), "recent samples offered again to a replayed read");
+        let ended = match self.reads.get_mut(&key) {
+            Some(r) if r.one_shot => {
+                samples.drain(..samples.len() - 1);
+                true
+            }
+            Some(r) => match r.remaining.as_mut() {
+                Some(rem) => {
+                    let n = (*rem as usize).min(samples.len());
+                    samples.drain(..samples.len() - n);
+                    *rem -= n as u32;
+                    *rem == 0
+                }
+                None => false,
+            },
+            None => false,
+        };
+        tracing::info!(client = %key.1, reader = ?key.2, samples = samples.len(), "recent samples offered again to a replayed read");
         for (flags, body) in &samples {
             let mut h = IpcHeader::new(MessageKind::Sample);
             h.frontend_id = key.0;
@@ -2097,6 +2119,9 @@ impl Worker {
             h.request_id = request_id;
             h.flags = *flags;
             self.reply(h, body);
+        }
+        if ended {
+            self.end_read(key);
         }
     }
 
@@ -2235,14 +2260,21 @@ impl Worker {
                 };
             let id = identity.encode();
             let flags = h.flags;
-            self.reply_with(h, ipc::SAMPLE_IDENTITY_LEN + s.body.len(), |b| {
+            let len = ipc::SAMPLE_IDENTITY_LEN + s.body.len();
+            self.reply_with(h, len, |b| {
                 b[..ipc::SAMPLE_IDENTITY_LEN].copy_from_slice(&id);
                 b[ipc::SAMPLE_IDENTITY_LEN..].copy_from_slice(&s.body);
             });
-            self.recent
-                .entry(key.0)
-                .or_default()
-                .record(key, flags, [&id, &s.body]);
+            // Kept for a successor only if it went (or waits) to the front-end, and can be
+            // told from what the front-end delivered already.
+            if len <= ipc::MAX_BODY && identity.is_known() {
+                self.recent.entry(key.0).or_default().record(
+                    key,
+                    request_id,
+                    flags,
+                    [&id, &s.body],
+                );
+            }
         }
         let ended = match self.reads.get_mut(&key) {
             Some(r) => {

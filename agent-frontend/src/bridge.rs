@@ -582,9 +582,14 @@ impl Bridge {
             }
         }
         let mut writes = Vec::new();
+        // Sessions that ended before this worker was seen: a worker that kept their entities
+        // for this front-end (it took over from a predecessor) must not hand them to a
+        // session created again with the same key.
+        let mut deletes = Vec::new();
         for op in old_outbox {
             match (op.header.kind, op.awaited) {
                 (MessageKind::Write, _) => writes.push(op),
+                (MessageKind::DeleteClient, _) => deletes.push(op),
                 (MessageKind::Create, Awaited::Yes) => {
                     awaited.insert(
                         (op.header.client_key, op.header.object_id),
@@ -610,6 +615,7 @@ impl Bridge {
             retain: false,
             awaited: Awaited::No,
         });
+        self.outbox.extend(deletes);
         for (client, graph) in &self.graphs {
             for o in graph.objects() {
                 let mut body = Vec::new();
