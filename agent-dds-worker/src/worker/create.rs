@@ -1,0 +1,452 @@
+//! Creation of entities from their XRCE descriptions: participants, topics, publishers and
+//! subscribers, data writers and readers, types.
+
+use super::*;
+
+/// What a data reader's content filters need.
+pub(super) struct ReaderInfo {
+    /// The topic's name.
+    pub(super) topic: String,
+    /// The topic's type, if known.
+    pub(super) ty: Option<Arc<StructDef>>,
+    /// The reader's own filter (XML `<content_filter>` or the binary `contentbased_filter`).
+    pub(super) filter: Option<Filter>,
+}
+
+/// Every endpoint's topic: the RustDDS topic, its description, its type and its key.
+pub(super) type EndpointTopic = (
+    Topic,
+    TopicDesc,
+    Option<Arc<StructDef>>,
+    Option<Arc<KeyDescriptor>>,
+);
+
+/// Compiles a content filter against a reader's type (which it needs).
+pub(super) fn compile_filter(
+    expression: &str,
+    ty: Option<&Arc<StructDef>>,
+    type_name: &str,
+) -> Result<Filter, OpError> {
+    let ty = ty.ok_or_else(|| {
+        (
+            status::ERR_INCOMPATIBLE,
+            format!(
+                "a content filter needs the type of {type_name}: define it in <types>, by a \
+                 TYPE object or in the references file"
+            ),
+        )
+    })?;
+    Filter::compile(expression, ty.clone()).map_err(|e| {
+        (
+            status::ERR_INVALID_DATA,
+            format!("content filter {expression:?}: {e}"),
+        )
+    })
+}
+
+impl Worker {
+    pub(super) fn create(
+        &mut self,
+        key: EntityKey,
+        body: &[u8],
+        replay: bool,
+        little_endian: bool,
+        readers: u8,
+    ) -> Result<(), OpError> {
+        let variant = ObjectVariant::decode(&mut CdrReader::new(body, true)).map_err(|e| {
+            (
+                status::ERR_INVALID_DATA,
+                format!("object representation: {e}"),
+            )
+        })?;
+        if variant.kind != key.2.kind() {
+            return Err((
+                status::ERR_INVALID_DATA,
+                "object id kind differs from the representation kind".into(),
+            ));
+        }
+        if self.adoption.claim(&key) && self.adopt(key, body, little_endian) {
+            return Ok(());
+        }
+        if self.entities.contains_key(&key) {
+            // The front-end decides creation modes; here an existing object is replaced.
+            self.remove_subtree(key);
+        }
+        let repr = &variant.representation;
+        let dds_err =
+            |what: &str, e: &dyn std::fmt::Debug| (status::ERR_DDS_ERROR, format!("{what}: {e:?}"));
+        let (parent, kind) = match (variant.kind, variant.extra) {
+            (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
+                check_plain(repr, variant.kind, &self.config.references, little_endian)?;
+                let domain = effective_domain(d).map_err(|e| (status::ERR_INVALID_DATA, e))?;
+                let node = participant_name(repr, &self.config.references, little_endian)
+                    .as_deref()
+                    .and_then(crate::ros_graph::node_name);
+                (None, EntityKind::Participant(domain, node))
+            }
+            (object_kind::TOPIC, VariantExtra::Parent(p)) => {
+                self.parent_entity(key, p, object_kind::PARTICIPANT)?;
+                let desc = describe_topic(repr, &self.config.references, little_endian)?;
+                (Some(p), EntityKind::Topic(desc))
+            }
+            (
+                kind @ (object_kind::PUBLISHER | object_kind::SUBSCRIBER),
+                VariantExtra::Parent(p),
+            ) => {
+                self.parent_entity(key, p, object_kind::PARTICIPANT)?;
+                check_plain(repr, kind, &self.config.references, little_endian)?;
+                let (_, domain) = self
+                    .participant_of(key, p)
+                    .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let role = if kind == object_kind::PUBLISHER {
+                    Role::Publish
+                } else {
+                    Role::Subscribe
+                };
+                let dp = self
+                    .pool
+                    .get(domain, role)
+                    .map_err(|e| (status::ERR_DDS_ERROR, e))?;
+                let entity = if role == Role::Publish {
+                    let publisher = dp
+                        .create_publisher(&QosPolicies::qos_none())
+                        .map_err(|e| dds_err("create publisher", &e))?;
+                    EntityKind::Publisher(publisher, dp)
+                } else {
+                    let subscriber = dp
+                        .create_subscriber(&QosPolicies::qos_none())
+                        .map_err(|e| dds_err("create subscriber", &e))?;
+                    EntityKind::Subscriber(subscriber, dp)
+                };
+                (Some(p), entity)
+            }
+            (object_kind::DATAWRITER, VariantExtra::Parent(p)) => {
+                let (publisher, dp) =
+                    match &self.parent_entity(key, p, object_kind::PUBLISHER)?.kind {
+                        EntityKind::Publisher(x, dp) => (x.clone(), dp.clone()),
+                        _ => {
+                            return Err((
+                                status::ERR_UNKNOWN_REFERENCE,
+                                "parent is not a publisher".into(),
+                            ))
+                        }
+                    };
+                let desc = describe_endpoint(repr, true, &self.config.references, little_endian)?;
+                let (topic, tdesc, ty, kd) = self.endpoint_topic(key, p, &dp, &desc)?;
+                let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
+                let domain = self.participant_of(key, p).map_or(0, |(_, d)| d);
+                let shared_key: Option<SharedWriterKey> =
+                    (self.config.share_writers && shareable(&qos)).then(|| {
+                        (
+                            domain,
+                            tdesc.name.clone(),
+                            tdesc.type_name.clone(),
+                            little_endian,
+                        )
+                    });
+                let existing = shared_key
+                    .as_ref()
+                    .and_then(|k| self.shared_writer(k, &qos, ty.as_ref()));
+                let w = match existing {
+                    Some(w) => w,
+                    None => {
+                        let dds_qos = if shared_key.is_some() {
+                            shared_history(&qos)
+                        } else {
+                            qos.clone()
+                        };
+                        // A client writes in its native byte order, the one of its CREATE.
+                        let raw = RawWriter::create(&publisher, &topic, dds_qos, little_endian, kd)
+                            .map_err(|e| dds_err("create data writer", &e))?;
+                        let w = Rc::new(DdsWriter {
+                            raw,
+                            shared: shared_key.clone(),
+                            matched_at: Cell::new(None),
+                            matched: Cell::new(0),
+                            outstanding: Outstanding::default(),
+                        });
+                        if let Some(k) = shared_key {
+                            self.shared_writers
+                                .entry(k)
+                                .or_default()
+                                .push(SharedWriterEntry {
+                                    qos,
+                                    ty: ty.clone(),
+                                    writer: Rc::downgrade(&w),
+                                });
+                        }
+                        w
+                    }
+                };
+                let now = Instant::now();
+                // A writer joining a shared DDS writer that matched its readers long enough
+                // ago writes at once.
+                let matched = w
+                    .poll_matched(now)
+                    .is_some_and(|t| now >= t + REMATCH_MARGIN)
+                    && w.matched.get() >= usize::from(readers);
+                let rematch = Rematch {
+                    until: (!matched).then(|| {
+                        now + if replay {
+                            REMATCH_MAX
+                        } else {
+                            NEW_WRITER_HOLD_MAX
+                        }
+                    }),
+                    expected: readers,
+                    ..Default::default()
+                };
+                (Some(p), EntityKind::Writer(w, rematch, ty))
+            }
+            (object_kind::DATAREADER, VariantExtra::Parent(p)) => {
+                let (subscriber, dp) =
+                    match &self.parent_entity(key, p, object_kind::SUBSCRIBER)?.kind {
+                        EntityKind::Subscriber(x, dp) => (x.clone(), dp.clone()),
+                        _ => {
+                            return Err((
+                                status::ERR_UNKNOWN_REFERENCE,
+                                "parent is not a subscriber".into(),
+                            ))
+                        }
+                    };
+                let desc = describe_endpoint(repr, false, &self.config.references, little_endian)?;
+                let (topic, tdesc, ty, kd) = self.endpoint_topic(key, p, &dp, &desc)?;
+                let filter = desc
+                    .content_filter
+                    .as_deref()
+                    .map(|f| compile_filter(f, ty.as_ref(), &tdesc.type_name))
+                    .transpose()?;
+                let qos = endpoint_qos(EndpointSide::Reader, &tdesc.qos, &desc.qos);
+                let mut r = RawReader::create(&subscriber, &topic, qos, kd)
+                    .map_err(|e| dds_err("create data reader", &e))?;
+                let token = Token(self.next_token);
+                self.next_token += 1;
+                self.poll
+                    .registry()
+                    .register(&mut r, token, Interest::READABLE)
+                    .map_err(|e| dds_err("register reader", &e))?;
+                self.readers.insert(token, key);
+                (
+                    Some(p),
+                    EntityKind::Reader(
+                        Box::new(r),
+                        token,
+                        ReaderInfo {
+                            topic: tdesc.name.clone(),
+                            ty,
+                            filter,
+                        },
+                    ),
+                )
+            }
+            (kind @ (object_kind::REQUESTER | object_kind::REPLIER), VariantExtra::Parent(p)) => {
+                self.parent_entity(key, p, object_kind::PARTICIPANT)?;
+                let requester = kind == object_kind::REQUESTER;
+                let desc =
+                    describe_service(repr, requester, &self.config.references, little_endian)?;
+                let (_, domain) = self
+                    .participant_of(key, p)
+                    .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                let endpoint = self.create_service(&desc, domain, requester, little_endian)?;
+                self.readers.insert(endpoint.token, key);
+                tracing::info!(
+                    frontend = key.0,
+                    client = %key.1,
+                    service = %desc.service_name,
+                    request_topic = %desc.request_topic,
+                    reply_topic = %desc.reply_topic,
+                    requester,
+                    "service endpoint created"
+                );
+                (Some(p), EntityKind::Service(Box::new(endpoint)))
+            }
+            (object_kind::TYPE, _) => {
+                let set = match repr {
+                    xrce_common::wire::Representation::Xml(x) => {
+                        TypeSet::parse(x).map_err(|e| (status::ERR_INVALID_DATA, e.to_string()))?
+                    }
+                    xrce_common::wire::Representation::Reference(r) => {
+                        let t = self.config.references.types().get(r).ok_or_else(|| {
+                            (
+                                status::ERR_UNKNOWN_REFERENCE,
+                                format!("type {r:?} is not in the references file"),
+                            )
+                        })?;
+                        TypeSet::single(t)
+                    }
+                    xrce_common::wire::Representation::Binary(_) => {
+                        return Err((
+                            status::ERR_INVALID_DATA,
+                            "a TYPE object is described by XML or by reference".into(),
+                        ))
+                    }
+                };
+                if set.is_empty() {
+                    return Err((
+                        status::ERR_INVALID_DATA,
+                        "the TYPE representation defines no structure".into(),
+                    ));
+                }
+                tracing::info!(main = ?set.main(), "types registered");
+                (None, EntityKind::Type(Arc::new(set)))
+            }
+            (k, _) => {
+                return Err((
+                    status::ERR_INVALID_DATA,
+                    format!("object kind {k:#04x} is not supported yet"),
+                ))
+            }
+        };
+        if matches!(&kind, EntityKind::Writer(_, r, _) if r.until.is_some()) {
+            self.holding.insert(key);
+        }
+        let graph_change = matches!(
+            &kind,
+            EntityKind::Participant(_, Some(_))
+                | EntityKind::Writer(..)
+                | EntityKind::Reader(..)
+                | EntityKind::Service(..)
+        );
+        let origin = Origin::new(body, little_endian);
+        self.entities.insert(
+            key,
+            Entity {
+                parent,
+                kind,
+                origin,
+            },
+        );
+        self.by_client
+            .entry((key.0, key.1))
+            .or_default()
+            .insert(key.2);
+        if graph_change {
+            if let Some(d) = self.domain_of(key) {
+                self.graph.touch(d, Instant::now());
+            }
+        }
+        Ok(())
+    }
+
+    pub(super) fn make_topic(
+        dp: &DomainParticipant,
+        desc: &TopicDesc,
+        keyed: bool,
+    ) -> Result<Topic, rustdds::dds::CreateError> {
+        dp.create_topic(
+            desc.name.clone(),
+            desc.type_name.clone(),
+            &QosPolicies::qos_none(),
+            if keyed {
+                TopicKind::WithKey
+            } else {
+                TopicKind::NoKey
+            },
+        )
+    }
+
+    /// A type by name: from the client's TYPE objects, else the references file.
+    pub(super) fn type_named(&self, key: EntityKey, name: &str) -> Option<Arc<StructDef>> {
+        // The client's TYPE object with the lowest id wins when several define the name.
+        self.entities
+            .iter()
+            .filter(|(k, _)| k.0 == key.0 && k.1 == key.1)
+            .filter_map(|(k, e)| match &e.kind {
+                EntityKind::Type(set) => Some((k.2 .0, set.get(name)?)),
+                _ => None,
+            })
+            .min_by_key(|(id, _)| *id)
+            .map(|(_, t)| t)
+            .or_else(|| self.config.references.types().get(name))
+    }
+
+    /// A topic's type and key, when its type is known.
+    pub(super) fn topic_type(
+        &self,
+        key: EntityKey,
+        tdesc: &TopicDesc,
+    ) -> (Option<Arc<StructDef>>, Option<Arc<KeyDescriptor>>) {
+        let ty = self.type_named(key, &tdesc.type_name);
+        let kd = ty.clone().and_then(KeyDescriptor::new).map(Arc::new);
+        if tdesc.keyed && kd.is_none() {
+            tracing::warn!(
+                frontend = key.0,
+                client = %key.1,
+                topic = %tdesc.name,
+                r#type = %tdesc.type_name,
+                known = ty.is_some(),
+                "WITH_KEY topic carried without a key: its type is unknown or has no key member \
+                 (define it in <types>, by a TYPE object or in the references file)"
+            );
+        }
+        (ty, kd)
+    }
+
+    /// The topic an endpoint names (inline, or a topic object of the same participant),
+    /// made on the DDS participant `dp` the endpoint lives on.
+    pub(super) fn endpoint_topic(
+        &self,
+        key: EntityKey,
+        parent: ObjectId,
+        dp: &DomainParticipant,
+        desc: &xml::EndpointDesc,
+    ) -> Result<EndpointTopic, OpError> {
+        let (pid, _) = self
+            .participant_of(key, parent)
+            .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+        // A topic object created by the client with the same name carries its QoS.
+        if let Some(id) = desc.topic_id {
+            let d = match self.entities.get(&(key.0, key.1, id)) {
+                Some(Entity {
+                    kind: EntityKind::Topic(d),
+                    ..
+                }) => d.clone(),
+                _ => {
+                    return Err((
+                        status::ERR_UNKNOWN_REFERENCE,
+                        format!("topic {id:?} does not exist"),
+                    ))
+                }
+            };
+            let (ty, kd) = self.topic_type(key, &d);
+            let t = Self::make_topic(dp, &d, kd.is_some())
+                .map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
+            return Ok((t, d, ty, kd));
+        }
+        let wanted = desc
+            .topic
+            .as_ref()
+            .map(|t| t.name.as_str())
+            .or(desc.topic_ref.as_deref())
+            .unwrap_or_default();
+        let existing = self.entities.iter().find_map(|(k, e)| match &e.kind {
+            EntityKind::Topic(d)
+                if k.0 == key.0 && k.1 == key.1 && e.parent == Some(pid) && d.name == wanted =>
+            {
+                Some(d.clone())
+            }
+            _ => None,
+        });
+        let tdesc = match (&desc.topic, existing) {
+            (Some(inline), Some(d)) if inline.type_name != d.type_name => {
+                return Err((
+                    status::ERR_MISMATCH,
+                    format!("topic {wanted} exists with type {}", d.type_name),
+                ))
+            }
+            (Some(inline), Some(found)) => found.refined_by(inline),
+            (None, Some(found)) => found,
+            (Some(inline), None) => inline.clone(),
+            (None, None) => {
+                return Err((
+                    status::ERR_UNKNOWN_REFERENCE,
+                    format!("topic {wanted} is unknown"),
+                ))
+            }
+        };
+        let (ty, kd) = self.topic_type(key, &tdesc);
+        let t = Self::make_topic(dp, &tdesc, kd.is_some())
+            .map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
+        Ok((t, tdesc, ty, kd))
+    }
+}

@@ -1,0 +1,152 @@
+//! The entity tree: every entity by (front-end, client, object id), its parent, and the
+//! removal of a subtree or of a client's entities.
+
+use super::*;
+
+pub(super) enum EntityKind {
+    /// A logical XRCE participant in a DDS domain, and the ROS node its name stands for.
+    Participant(u16, Option<ros2_client::NodeName>),
+    /// A topic description; RustDDS topics are made per DDS participant when endpoints are.
+    Topic(TopicDesc),
+    Publisher(Publisher, DomainParticipant),
+    Subscriber(Subscriber, DomainParticipant),
+    /// A type definition (`<types>`) the client's topics can use.
+    Type(Arc<TypeSet>),
+    /// A data writer (its DDS writer, possibly shared), its hold state, and its topic's type
+    /// if known.
+    Writer(Rc<DdsWriter>, Rematch, Option<Arc<StructDef>>),
+    /// A data reader, its poll token, and what its content filters need.
+    Reader(Box<RawReader>, Token, ReaderInfo),
+    /// A requester (publishes requests, reads the replies to them) or a replier (reads
+    /// requests, publishes replies).
+    Service(Box<ServiceEndpoint>),
+}
+
+pub(super) struct Entity {
+    pub(super) parent: Option<ObjectId>,
+    pub(super) kind: EntityKind,
+    /// What it was created from (a restarted front-end's replay of the same adopts it).
+    pub(super) origin: Origin,
+}
+
+impl Worker {
+    /// The domain an entity lives in, if it is part of a participant.
+    pub(super) fn domain_of(&self, key: EntityKey) -> Option<u16> {
+        match &self.entities.get(&key)?.kind {
+            EntityKind::Participant(d, _) => Some(*d),
+            _ => self
+                .participant_of(key, self.entities.get(&key)?.parent?)
+                .map(|(_, d)| d),
+        }
+    }
+
+    pub(super) fn parent_entity(
+        &self,
+        key: EntityKey,
+        parent: ObjectId,
+        kind: u8,
+    ) -> Result<&Entity, OpError> {
+        let e = self.entities.get(&(key.0, key.1, parent)).ok_or((
+            status::ERR_UNKNOWN_REFERENCE,
+            format!("parent {parent:?} does not exist"),
+        ))?;
+        if parent.kind() != kind {
+            return Err((
+                status::ERR_UNKNOWN_REFERENCE,
+                format!("parent {parent:?} is not of kind {kind}"),
+            ));
+        }
+        Ok(e)
+    }
+
+    /// The participant entity an object hangs under, and its domain.
+    pub(super) fn participant_of(
+        &self,
+        key: EntityKey,
+        mut id: ObjectId,
+    ) -> Option<(ObjectId, u16)> {
+        for _ in 0..8 {
+            let e = self.entities.get(&(key.0, key.1, id))?;
+            match &e.kind {
+                EntityKind::Participant(domain, _) => return Some((id, *domain)),
+                _ => id = e.parent?,
+            }
+        }
+        None
+    }
+
+    /// Removes the entities of the clients `pred` selects (by front-end and client key).
+    pub(super) fn remove_where(&mut self, pred: impl Fn(&(u32, ClientKey)) -> bool) {
+        let keys: Vec<EntityKey> = self
+            .by_client
+            .iter()
+            .filter(|(c, _)| pred(c))
+            .flat_map(|(c, ids)| ids.iter().map(|id| (c.0, c.1, *id)))
+            .collect();
+        for k in keys {
+            // Already gone with its parent's subtree, or still there.
+            if self.entities.contains_key(&k) {
+                self.remove_subtree(k);
+            }
+        }
+    }
+
+    /// Removes an entity and its descendants, endpoints before their parents.
+    pub(super) fn remove_subtree(&mut self, key: EntityKey) {
+        let children: Vec<EntityKey> = self
+            .by_client
+            .get(&(key.0, key.1))
+            .into_iter()
+            .flatten()
+            .map(|id| (key.0, key.1, *id))
+            .filter(|k| {
+                self.entities
+                    .get(k)
+                    .is_some_and(|e| e.parent == Some(key.2))
+            })
+            .collect();
+        for c in children {
+            self.remove_subtree(c);
+        }
+        if let Some(d) = self.domain_of(key) {
+            self.graph.touch(d, Instant::now());
+        }
+        self.holding.remove(&key);
+        if let Some(r) = self.recent.get_mut(&key.0) {
+            r.forget(&key);
+        }
+        if let Some(ids) = self.by_client.get_mut(&(key.0, key.1)) {
+            ids.remove(&key.2);
+            if ids.is_empty() {
+                self.by_client.remove(&(key.0, key.1));
+            }
+        }
+        if let Some(e) = self.entities.remove(&key) {
+            match e.kind {
+                EntityKind::Writer(w, _, _) => {
+                    // The last XRCE writer of a shared DDS writer: forget the entry.
+                    if let Some(k) = w.shared.clone() {
+                        drop(w);
+                        if let Some(entries) = self.shared_writers.get_mut(&k) {
+                            entries.retain(|e| e.writer.strong_count() > 0);
+                            if entries.is_empty() {
+                                self.shared_writers.remove(&k);
+                            }
+                        }
+                    }
+                }
+                EntityKind::Reader(mut r, token, _) => {
+                    let _ = self.poll.registry().deregister(&mut *r);
+                    self.readers.remove(&token);
+                }
+                EntityKind::Service(mut s) => {
+                    let _ = self.poll.registry().deregister(&mut s.reader);
+                    self.readers.remove(&s.token);
+                }
+                _ => {}
+            }
+            self.reads.remove(&key);
+            self.to_pump.remove(&key);
+        }
+    }
+}

@@ -1,0 +1,85 @@
+//! The ROS 2 graph: the nodes of each domain, published on `ros_discovery_info`.
+
+use super::*;
+
+impl Worker {
+    /// Publishes the ROS graph of every domain that changed, when its update is due.
+    pub(super) fn publish_graph(&mut self) {
+        let now = Instant::now();
+        for domain in self.graph.due(now) {
+            let nodes = self.domain_nodes(domain);
+            if nodes.nodes.is_empty() && !self.graph.has_writer(domain) {
+                // No node ever: no graph writer (nor DDS participant) for this domain.
+                continue;
+            }
+            let published = self
+                .pool
+                .get(domain, Role::Publish)
+                .and_then(|dp| self.graph.publish(domain, &dp, nodes));
+            if let Err(e) = published {
+                tracing::warn!(domain, error = %e, "ROS graph not published; retrying");
+                self.graph.touch(domain, now);
+            }
+        }
+    }
+
+    /// The ROS nodes of `domain`: participants with a node name, with the GUIDs of the
+    /// writers and readers below them (requesters and repliers included).
+    pub(super) fn domain_nodes(&self, domain: u16) -> DomainNodes {
+        let mut nodes: std::collections::BTreeMap<
+            EntityKey,
+            (
+                ros2_client::NodeName,
+                Vec<rustdds::GUID>,
+                Vec<rustdds::GUID>,
+            ),
+        > = Default::default();
+        for (k, e) in &self.entities {
+            if let EntityKind::Participant(d, Some(name)) = &e.kind {
+                if *d == domain {
+                    nodes.insert(*k, (name.clone(), Vec::new(), Vec::new()));
+                }
+            }
+        }
+        // A participant is announced as a ROS node once it has an endpoint on a ROS topic
+        // (`rt/`, `rq/`, `rr/`, as micro-ROS names them): plain XRCE applications, whose
+        // participants are named too, stay out of the ROS graph.
+        let mut ros = std::collections::BTreeSet::new();
+        let is_ros = |t: &str| ["rt/", "rq/", "rr/"].iter().any(|p| t.starts_with(p));
+        for (k, e) in &self.entities {
+            let (writer, reader, ros_topic) = match &e.kind {
+                EntityKind::Writer(w, _, _) => {
+                    (Some(w.raw.guid()), None, is_ros(&w.raw.topic_name()))
+                }
+                EntityKind::Reader(r, _, info) => (None, Some(r.guid()), is_ros(&info.topic)),
+                EntityKind::Service(s) => (
+                    Some(s.writer.guid()),
+                    Some(s.reader.guid()),
+                    is_ros(&s.writer.topic_name()),
+                ),
+                _ => continue,
+            };
+            let Some((pid, _)) = e.parent.and_then(|p| self.participant_of(*k, p)) else {
+                continue;
+            };
+            if let Some(n) = nodes.get_mut(&(k.0, k.1, pid)) {
+                n.1.extend(writer);
+                n.2.extend(reader);
+                if ros_topic {
+                    ros.insert((k.0, k.1, pid));
+                }
+            }
+        }
+        DomainNodes {
+            nodes: nodes
+                .into_iter()
+                .filter(|(k, _)| ros.contains(k))
+                .map(|(_, (n, mut w, mut r))| {
+                    w.sort();
+                    r.sort();
+                    (n, w, r)
+                })
+                .collect(),
+        }
+    }
+}

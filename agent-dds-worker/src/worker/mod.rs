@@ -1,0 +1,379 @@
+//! The worker's event loop: executes the front-ends' operations on DDS entities and streams
+//! samples of active reads back.
+//!
+//! Entities are keyed by (front-end id, client key, object id). The worker keeps nothing a
+//! front-end cannot rebuild: after a restart it announces a new generation and the front-ends
+//! replay their clients' object graphs.
+//!
+//! This module is the loop and the worker's state; each job is a module of its own: the
+//! dispatch of requests ([`requests`]), the reply ports ([`ports`]), the entity tree
+//! ([`entities`]), creation ([`create`]), writes and held samples ([`writes`]), reads
+//! ([`reads`]), requesters and repliers ([`services`]) and the ROS 2 graph ([`graph`]).
+
+use std::cell::Cell;
+use std::collections::{HashMap, HashSet};
+use std::os::fd::AsRawFd;
+use std::time::{Duration, Instant};
+
+use rustdds::mio1::{Events, Interest, Poll, Token};
+use std::rc::Rc;
+use std::sync::Arc;
+
+use rustdds::{DomainParticipant, Publisher, QosPolicies, Subscriber, Topic, TopicKind};
+use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
+use xrce_common::ipc::status::{ProcessReport, Reporter, Watchdog, WorkerStatus};
+use xrce_common::ipc::{
+    self, IpcHeader, MessageKind, FLAG_DIALECT_SPEC, FLAG_LITTLE_ENDIAN, FLAG_REPLAY,
+    FLAG_STATUS_REQUESTED,
+};
+use xrce_common::wire::cdr::CdrReader;
+use xrce_common::wire::sample::{decode_samples, sample_state};
+use xrce_common::wire::Dialect;
+use xrce_common::wire::{
+    object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, VariantExtra,
+};
+
+use crate::acks::{AckTracker, Acknowledging, Outstanding};
+use crate::adoption::{Adoption, Origin};
+use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
+use crate::filter::Filter;
+use crate::raw::{RawReader, RawSample, RawWriter};
+use crate::recent::RecentSamples;
+use crate::representation::{
+    check_plain, describe_endpoint, describe_service, describe_topic, participant_name,
+};
+use crate::ros_graph::{DomainNodes, RosGraph};
+use crate::types::{sample_len, KeyDescriptor, StructDef, Ty, TypeSet};
+use crate::xml::{self, TopicDesc};
+
+mod create;
+mod entities;
+mod graph;
+mod ports;
+mod reads;
+mod requests;
+mod services;
+mod writes;
+
+use create::*;
+use entities::*;
+use ports::*;
+use reads::*;
+use services::*;
+use writes::*;
+
+/// Worker settings.
+#[derive(Debug, Clone)]
+pub struct WorkerConfig {
+    /// Agent instance name (prefix of every shared-memory resource).
+    pub instance: String,
+    /// DDS settings.
+    pub dds: DdsConfig,
+    /// Profiles clients may create by reference (`-r`).
+    pub references: crate::references::References,
+    /// Announce ROS 2 nodes on `ros_discovery_info`.
+    pub ros_graph: bool,
+    /// Map XRCE data writers of one domain, topic, type, byte order and QoS onto one shared
+    /// DDS writer (volatile, shared-ownership writers only).
+    pub share_writers: bool,
+    /// How long the entities of a front-end whose process is gone are kept for it to come
+    /// back (restarted by its supervisor) before they are deleted.
+    pub frontend_grace: Duration,
+}
+
+/// How often the worker looks for front-ends whose process is gone.
+const CENSUS_PERIOD: Duration = Duration::from_secs(1);
+/// How often every writer's matched count is looked at and, when it changed, reported to its
+/// front-end (which replays it to a restarted worker).
+const MATCH_REPORT_PERIOD: Duration = Duration::from_secs(1);
+
+type EntityKey = (u32, ClientKey, ObjectId);
+
+use crate::representation::OpError;
+
+/// The DDS worker.
+pub struct Worker {
+    config: WorkerConfig,
+    node: IpcNode,
+    generation: u32,
+    /// Taken by [`Worker::run`] so requests can be handled straight from shared memory.
+    requests: Option<Receiver>,
+    announce: Sender,
+    ports: HashMap<u32, FrontendPort>,
+    pool: ParticipantPool,
+    entities: HashMap<EntityKey, Entity>,
+    /// The object ids of each client's entities (per front-end), so that finding a client's
+    /// objects or an entity's children never scans every client's entities.
+    by_client: HashMap<(u32, ClientKey), HashSet<ObjectId>>,
+    readers: HashMap<Token, EntityKey>,
+    next_token: usize,
+    reads: HashMap<EntityKey, ActiveRead>,
+    to_pump: HashSet<EntityKey>,
+    /// Writers holding their samples until matched (kept apart so that the loop never scans
+    /// every entity: with thousands of clients that scan dominated the worker's CPU).
+    holding: HashSet<EntityKey>,
+    /// DDS writers with writes their readers may not have acknowledged.
+    acks: AckTracker<DdsWriter>,
+    /// DDS writers shared by XRCE writers (`share_writers`), with the QoS and type they
+    /// were made with; dead entries are pruned on lookup.
+    shared_writers: HashMap<SharedWriterKey, Vec<SharedWriterEntry>>,
+    poll: Poll,
+    graph: RosGraph,
+    /// Front-ends with entities whose process is gone, and since when.
+    orphaned: HashMap<u32, Instant>,
+    /// When to look for gone front-ends next.
+    next_census: Instant,
+    /// When the writers' matched counts are next looked at (reported to the front-ends).
+    next_match_report: Instant,
+    /// Front-end processes (id, incarnation) that said FrontendHello to this worker: they
+    /// know this generation, and their operations are meant for it (kept apart from the
+    /// reply ports, which the census may drop and recreate).
+    greeted: HashSet<(u32, u16)>,
+    /// Entities of front-ends that said hello again, for their replay to take back.
+    adoption: Adoption,
+    /// The last samples handed to each front-end, for a successor's replayed reads.
+    recent: HashMap<u32, RecentSamples>,
+    /// Counters by reason of rejected or failed work.
+    pub dropped: HashMap<&'static str, u64>,
+    /// Restarted front-ends (id -> incarnation) whose requests wait for the end of the
+    /// drain, and those requests.
+    successors: HashMap<u32, u16>,
+    deferred: Vec<Vec<u8>>,
+    /// Samples accepted for DDS writers (written, or held until readers match).
+    samples_written: u64,
+    /// Samples taken from DDS readers and sent to front-ends.
+    samples_taken: u64,
+    /// Writes this process's status report.
+    reporter: Reporter,
+    /// Pings systemd's watchdog when the worker is a unit of its own.
+    watchdog: Watchdog,
+}
+
+impl std::fmt::Debug for Worker {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Worker")
+            .field("generation", &self.generation)
+            .field("entities", &self.entities.len())
+            .finish()
+    }
+}
+
+impl Worker {
+    /// Opens the IPC services, then announces a new generation.
+    pub fn new(config: WorkerConfig) -> anyhow::Result<Self> {
+        let node = IpcNode::new(&config.instance, "xrce-dds-worker")?;
+        let requests = node.receiver(&ipc::request_service(&config.instance), ServiceKind::Data)?;
+        let announce = node.sender(
+            &ipc::announce_service(&config.instance),
+            ServiceKind::Announce,
+        )?;
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.subsec_nanos())
+            .unwrap_or(0);
+        let generation = (nanos ^ std::process::id().rotate_left(16)) | 1;
+        let pool = ParticipantPool::new(config.dds.clone());
+        let ros_graph = config.ros_graph;
+        let config_instance = config.instance.clone();
+        let w = Worker {
+            config,
+            node,
+            generation,
+            requests: Some(requests),
+            announce,
+            ports: HashMap::new(),
+            pool,
+            entities: HashMap::new(),
+            by_client: HashMap::new(),
+            readers: HashMap::new(),
+            next_token: 1,
+            reads: HashMap::new(),
+            to_pump: HashSet::new(),
+            holding: HashSet::new(),
+            acks: AckTracker::new(Instant::now()),
+            shared_writers: HashMap::new(),
+            poll: Poll::new()?,
+            graph: RosGraph::new(ros_graph),
+            orphaned: HashMap::new(),
+            next_census: Instant::now() + CENSUS_PERIOD,
+            next_match_report: Instant::now() + MATCH_REPORT_PERIOD,
+            greeted: HashSet::new(),
+            adoption: Adoption::default(),
+            recent: HashMap::new(),
+            dropped: HashMap::new(),
+            successors: HashMap::new(),
+            deferred: Vec::new(),
+            samples_written: 0,
+            samples_taken: 0,
+            reporter: Reporter::new(&config_instance, "worker"),
+            watchdog: Watchdog::from_env(),
+        };
+        let mut hello = IpcHeader::new(MessageKind::WorkerHello);
+        hello.generation = w.generation;
+        w.announce.send(&hello, &[])?;
+        w.announce.notify()?;
+        tracing::info!(generation = w.generation, instance = %w.config.instance, "worker serving");
+        Ok(w)
+    }
+
+    /// This worker's generation id.
+    pub fn generation(&self) -> u32 {
+        self.generation
+    }
+
+    fn count(&mut self, reason: &'static str) {
+        *self.dropped.entry(reason).or_default() += 1;
+    }
+
+    /// Runs until SIGINT or SIGTERM.
+    pub fn run(&mut self) -> anyhow::Result<()> {
+        let requests = self
+            .requests
+            .take()
+            .ok_or_else(|| anyhow::anyhow!("the worker runs only once"))?;
+        let result = self.serve(&requests);
+        self.reporter.remove();
+        result
+    }
+
+    fn serve(&mut self, requests: &Receiver) -> anyhow::Result<()> {
+        let mut events = Events::with_capacity(256);
+        loop {
+            if self.node.termination_requested() {
+                tracing::info!("termination requested");
+                return Ok(());
+            }
+            let now = Instant::now();
+            if now >= self.reporter.due() {
+                let report = self.status_report();
+                self.reporter.maybe_write(now, || report);
+            }
+            self.watchdog.maybe_ping(now);
+            // At least once per report period: the report's age is the loop's heartbeat.
+            let period = xrce_common::ipc::status::REPORT_PERIOD.as_millis() as i32;
+            let timeout = match self.poll_timeout() {
+                t if t < 0 => period,
+                t => t.min(period),
+            };
+            let ready = xrce_common::ipc::shm::wait_readable(
+                &[requests.raw_fd(), self.poll.as_raw_fd()],
+                timeout,
+            )?;
+            // Wake-ups are consumed only when there are some (a system call each time, and
+            // the loop runs per sample under load); the queue itself is read every time.
+            if ready & 1 != 0 {
+                requests.clear_events();
+            }
+            requests.drain(|m| self.handle_request(m))?;
+            self.serve_successors();
+            // Always, not only when its descriptor polled readable: gated that way, every
+            // reader stalled (measured with 3 and 100 publishers).
+            self.poll.poll(&mut events, Some(Duration::ZERO))?;
+            for e in events.iter() {
+                if let Some(k) = self.readers.get(&e.token()) {
+                    self.to_pump.insert(*k);
+                }
+            }
+            let pump: Vec<EntityKey> = self.to_pump.drain().collect();
+            for k in pump {
+                self.pump(k);
+            }
+            self.expire_reads();
+            self.release_rematched();
+            self.report_matches();
+            self.publish_graph();
+            self.flush();
+            self.watch_frontends();
+        }
+    }
+
+    fn poll_timeout(&self) -> i32 {
+        if !self.to_pump.is_empty() {
+            return 0;
+        }
+        let acks = self
+            .acks
+            .due()
+            .map(|d| d.saturating_duration_since(Instant::now()).as_millis() as i32 + 1);
+        let t = self.timeout_without_acks();
+        match (acks, t) {
+            (Some(a), t) if t < 0 => a,
+            (Some(a), t) => a.min(t),
+            (None, t) => t,
+        }
+    }
+
+    fn timeout_without_acks(&self) -> i32 {
+        if !self.holding.is_empty() {
+            let draining = self.holding.iter().any(|k| {
+                matches!(self.entities.get(k), Some(Entity { kind: EntityKind::Writer(_, r, _), .. }) if r.draining)
+            });
+            return if draining { 1 } else { 20 };
+        }
+        let waiting = self
+            .ports
+            .values()
+            .filter(|p| !p.backlog.is_empty() || p.dirty || p.unnotified);
+        if let Some(newest) = waiting.map(|p| p.last_delivery).max() {
+            // A congested front-end does not signal when it drained: try again shortly, and
+            // rarely once it has taken nothing for a while (it may be gone).
+            return if newest.elapsed() < Duration::from_secs(1) {
+                1
+            } else {
+                100
+            };
+        }
+        let now = Instant::now();
+        let census =
+            (!self.by_client.is_empty() || !self.orphaned.is_empty()).then_some(self.next_census);
+        self.reads
+            .values()
+            .flat_map(|r| [r.deadline, r.pacing.next_at])
+            .flatten()
+            .chain(self.graph.deadline())
+            .chain(census)
+            .min()
+            .map(|d| {
+                d.saturating_duration_since(now)
+                    .as_millis()
+                    .min(i32::MAX as u128) as i32
+                    + 1
+            })
+            .unwrap_or(-1)
+    }
+
+    /// This worker's status report (what it holds and did).
+    fn status_report(&self) -> ProcessReport {
+        let mut entities: std::collections::BTreeMap<String, u64> = Default::default();
+        for e in self.entities.values() {
+            let kind = match &e.kind {
+                EntityKind::Participant(..) => "participant",
+                EntityKind::Topic(_) => "topic",
+                EntityKind::Publisher(..) => "publisher",
+                EntityKind::Subscriber(..) => "subscriber",
+                EntityKind::Type(_) => "type",
+                EntityKind::Writer(..) => "writer",
+                EntityKind::Reader(..) => "reader",
+                EntityKind::Service(_) => "service",
+            };
+            *entities.entry(kind.into()).or_default() += 1;
+        }
+        ProcessReport {
+            name: "worker".into(),
+            role: "worker".into(),
+            worker: Some(WorkerStatus {
+                generation: self.generation,
+                entities,
+                frontends: self.ports.len() as u64,
+                samples_written: self.samples_written,
+                samples_taken: self.samples_taken,
+                dropped: self
+                    .dropped
+                    .iter()
+                    .map(|(k, v)| (k.to_string(), *v))
+                    .collect(),
+            }),
+            ..Default::default()
+        }
+    }
+}

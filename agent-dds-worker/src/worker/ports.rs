@@ -1,0 +1,253 @@
+//! The reply ports: what goes back to each front-end (replies, samples, progress), the
+//! backlog of a congested one, and front-ends whose process is gone.
+
+use super::*;
+
+pub(super) struct FrontendPort {
+    pub(super) sender: Sender,
+    /// The front-end process served (see [`IpcHeader::incarnation`]).
+    pub(super) incarnation: u16,
+    pub(super) processed: u64,
+    pub(super) dirty: bool,
+    /// Replies the front-end's full queue refused, oldest first (sent before anything new).
+    pub(super) backlog: std::collections::VecDeque<Vec<u8>>,
+    /// Bytes in `backlog`.
+    pub(super) backlog_bytes: usize,
+    /// Readers not drained while the front-end is congested; pumped once it has room.
+    pub(super) deferred: HashSet<EntityKey>,
+    /// When the front-end last took a message (a dead one takes none: back off).
+    pub(super) last_delivery: Instant,
+    /// Messages were published since the front-end was last woken.
+    pub(super) unnotified: bool,
+}
+
+/// Most replies held for one congested front-end; beyond, the oldest are dropped (counted).
+/// Samples stop being taken from DDS readers while a front-end is congested, so this only
+/// fills if a front-end stops reading altogether.
+pub(super) const BACKLOG_MAX: usize = 4096;
+
+/// Bytes of refused replies kept per front-end (samples reach 1 MiB each).
+pub(super) const BACKLOG_MAX_BYTES: usize = 64 << 20;
+
+impl Worker {
+    /// Deletes the entities of front-ends whose process has been gone for the grace period
+    /// (a gateway front-end stopped for good); a restarted one says hello within it and
+    /// takes over, as before. Dead nodes' shared-memory resources are removed on the way.
+    pub(super) fn watch_frontends(&mut self) {
+        let now = Instant::now();
+        if now < self.next_census {
+            return;
+        }
+        self.next_census = now + CENSUS_PERIOD;
+        let served: HashSet<u32> = self.by_client.keys().map(|(fe, _)| *fe).collect();
+        if served.is_empty() && self.orphaned.is_empty() {
+            return;
+        }
+        let census = self.node.nodes();
+        self.orphaned.retain(|fe, _| served.contains(fe));
+        for fe in served {
+            let name = format!("xrce-frontend-{fe}");
+            if census.alive.contains(&name) {
+                if self.orphaned.remove(&fe).is_some() {
+                    tracing::info!(frontend = fe, "front-end is back");
+                }
+                continue;
+            }
+            let grace = self.config.frontend_grace;
+            let since = *self.orphaned.entry(fe).or_insert_with(|| {
+                tracing::warn!(
+                    frontend = fe,
+                    grace_s = grace.as_secs_f64(),
+                    "front-end process gone; its clients' entities are kept for it to come back"
+                );
+                now
+            });
+            if now.saturating_duration_since(since) >= grace {
+                let clients = self.by_client.keys().filter(|(f, _)| *f == fe).count();
+                tracing::warn!(
+                    frontend = fe,
+                    clients,
+                    "front-end did not come back; deleting its clients' entities"
+                );
+                self.remove_where(|c| c.0 == fe);
+                self.adoption.forget(fe);
+                self.recent.remove(&fe);
+                self.ports.remove(&fe);
+                self.greeted.retain(|(f, _)| *f != fe);
+                self.orphaned.remove(&fe);
+                self.count("frontend_gone");
+            }
+        }
+    }
+
+    /// The reply port of a front-end, opened on first use.
+    pub(super) fn port(&mut self, frontend: u32) -> Result<&mut FrontendPort, ShmError> {
+        use std::collections::hash_map::Entry;
+        match self.ports.entry(frontend) {
+            Entry::Occupied(e) => Ok(e.into_mut()),
+            Entry::Vacant(v) => {
+                let sender = self.node.sender(
+                    &ipc::reply_service(&self.config.instance, frontend),
+                    ServiceKind::Reply,
+                )?;
+                Ok(v.insert(FrontendPort {
+                    sender,
+                    incarnation: 0,
+                    processed: 0,
+                    dirty: false,
+                    backlog: Default::default(),
+                    backlog_bytes: 0,
+                    unnotified: false,
+                    deferred: HashSet::new(),
+                    last_delivery: Instant::now(),
+                }))
+            }
+        }
+    }
+
+    /// Sends a reply to its front-end, or queues it behind earlier refused ones.
+    pub(super) fn reply(&mut self, h: IpcHeader, body: &[u8]) {
+        self.reply_with(h, body.len(), |b| b.copy_from_slice(body));
+    }
+
+    /// Sends a reply of `len` body bytes that `fill` writes (in place in shared memory when
+    /// the front-end's queue has room), else keeps it in the front-end's backlog.
+    pub(super) fn reply_with(&mut self, mut h: IpcHeader, len: usize, fill: impl Fn(&mut [u8])) {
+        h.generation = self.generation;
+        let incarnation = self.ports.get(&h.frontend_id).map_or(0, |p| p.incarnation);
+        if h.incarnation == 0 {
+            h.incarnation = incarnation;
+        }
+        if len > ipc::MAX_BODY {
+            tracing::warn!(frontend = h.frontend_id, client = %h.client_key, len, "sample too large for the front-end link; dropped");
+            return self.count("sample_too_large");
+        }
+        let port = match self.port(h.frontend_id) {
+            Ok(p) => p,
+            Err(e) => {
+                tracing::warn!(frontend = h.frontend_id, error = %e, "reply lost");
+                return self.count("reply_send_failed");
+            }
+        };
+        port.dirty = true;
+        if port.backlog.is_empty() {
+            match port.sender.send_with(&h, len, &fill) {
+                Ok(true) => {
+                    port.last_delivery = Instant::now();
+                    port.unnotified = true;
+                    return;
+                }
+                Ok(false) => {}
+                Err(e) => tracing::debug!(error = %e, "reply send failed; queued"),
+            }
+        }
+        let mut m = vec![0u8; IpcHeader::LEN + len];
+        h.write(&mut m, len);
+        fill(&mut m[IpcHeader::LEN..]);
+        let mut overflow = false;
+        while !port.backlog.is_empty()
+            && (port.backlog.len() >= BACKLOG_MAX
+                || port.backlog_bytes + m.len() > BACKLOG_MAX_BYTES)
+        {
+            if let Some(old) = port.backlog.pop_front() {
+                port.backlog_bytes -= old.len();
+            }
+            overflow = true;
+        }
+        port.backlog_bytes += m.len();
+        port.backlog.push_back(m);
+        if overflow {
+            self.count("reply_backlog_overflow");
+        }
+    }
+
+    pub(super) fn status(&mut self, req: &IpcHeader, result: Result<(), OpError>) {
+        let code = match &result {
+            Ok(()) => status::OK,
+            Err((code, why)) => {
+                tracing::warn!(client = %req.client_key, object = ?req.object_id, kind = ?req.kind, status = code, "{why}");
+                *code
+            }
+        };
+        let h = IpcHeader {
+            kind: MessageKind::Status,
+            ..*req
+        };
+        self.reply(h, &[code, 0]);
+    }
+
+    /// Sends refused replies again, then progress; wakes every front-end that got something.
+    /// Failures are logged and retried on the next pass; they never stop the worker.
+    pub(super) fn flush(&mut self) {
+        let generation = self.generation;
+        let held = self.oldest_held();
+        let (moved, all) = self.acks.poll(Instant::now());
+        for (fe, p) in self.ports.iter_mut() {
+            if all || moved.contains(fe) {
+                p.dirty = true;
+            }
+        }
+        // Computed once, and only when a progress message goes out (the loop runs per sample).
+        let acks = &self.acks;
+        let mut outstanding: Option<HashMap<u32, u64>> = None;
+        for (fe, p) in self.ports.iter_mut() {
+            let mut sent = false;
+            while let Some(m) = p.backlog.front() {
+                match p.sender.send_encoded(m) {
+                    Ok(true) => {}
+                    Ok(false) => break,
+                    Err(e) => {
+                        // Not deliverable at all (it cannot happen for messages within
+                        // MAX_BODY): drop it rather than block the front-end for ever.
+                        tracing::warn!(frontend = fe, error = %e, "reply dropped");
+                    }
+                }
+                if let Some(m) = p.backlog.pop_front() {
+                    p.backlog_bytes -= m.len();
+                }
+                sent = true;
+            }
+            if p.backlog.is_empty() {
+                self.to_pump.extend(p.deferred.drain());
+            }
+            // Held writes left the queue but are not executed yet: execution stops just
+            // before the oldest.
+            let executed = held.get(fe).map_or(p.processed, |oldest| {
+                p.processed.min(oldest.saturating_sub(1))
+            });
+            if (p.dirty || held.contains_key(fe)) && p.backlog.is_empty() {
+                let mut h = IpcHeader::new(MessageKind::Progress);
+                h.frontend_id = *fe;
+                h.generation = generation;
+                h.incarnation = p.incarnation;
+                h.op_seq = p.processed;
+                // Acknowledged by every matched reliable reader: up to just before the
+                // oldest write still outstanding.
+                let acknowledged = outstanding
+                    .get_or_insert_with(|| acks.oldest_outstanding())
+                    .get(fe)
+                    .map_or(executed, |oldest| executed.min(oldest.saturating_sub(1)));
+                let mut body = [0u8; 16];
+                body[..8].copy_from_slice(&executed.to_le_bytes());
+                body[8..].copy_from_slice(&acknowledged.to_le_bytes());
+                if let Ok(true) = p.sender.send(&h, &body) {
+                    p.dirty = false;
+                    sent = true;
+                }
+            }
+            if sent {
+                p.last_delivery = Instant::now();
+            }
+            // Also when only replies sent directly went out (a full queue may have refused
+            // the progress message): a front-end that is not woken does not read them.
+            if sent || p.unnotified {
+                p.unnotified = false;
+                if let Err(e) = p.sender.notify() {
+                    // Tried again on the next pass.
+                    p.unnotified = true;
+                    tracing::debug!(frontend = fe, error = %e, "front-end wake-up failed");
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,415 @@
+//! Reads: the active reads of the front-ends' clients, their delivery limits and pacing,
+//! and the samples taken from DDS readers for them.
+
+use super::*;
+
+pub(super) struct ActiveRead {
+    pub(super) request_id: xrce_common::wire::RequestId,
+    /// Samples still to deliver (None = unlimited).
+    pub(super) remaining: Option<u32>,
+    /// When the read ends by time.
+    pub(super) deadline: Option<Instant>,
+    /// No delivery control: deliver what is there, or the first sample to come, then end.
+    pub(super) one_shot: bool,
+    /// The front-end asked to hold samples back (its client is not keeping up).
+    pub(super) paused: bool,
+    /// DataDeliveryControl pacing; samples wait in the DDS reader meanwhile.
+    pub(super) pacing: Pacing,
+    /// The read's content filter.
+    pub(super) filter: Option<Filter>,
+    /// The DataFormat the client asked for: without a SampleInfo (DATA, DATA_SEQ) a
+    /// dispose cannot be told from a sample, so those reads get no instance ends.
+    pub(super) data_format: u8,
+}
+
+/// DataDeliveryControl's `min_pace_period` and `max_bytes_per_second`.
+#[derive(Debug, Default)]
+pub(super) struct Pacing {
+    /// At least this long between two samples (one DATA each).
+    pub(super) min_pace: Option<Duration>,
+    /// At most this many sample bytes per one-second window.
+    pub(super) bytes_per_second: Option<u64>,
+    /// No delivery before this.
+    pub(super) next_at: Option<Instant>,
+    pub(super) window_start: Option<Instant>,
+    pub(super) window_bytes: u64,
+}
+
+impl Pacing {
+    pub(super) fn new(d: &xrce_common::wire::DataDeliveryControl) -> Self {
+        Pacing {
+            min_pace: (d.min_pace_period > 0)
+                .then(|| Duration::from_millis(u64::from(d.min_pace_period))),
+            bytes_per_second: (d.max_bytes_per_second > 0)
+                .then_some(u64::from(d.max_bytes_per_second)),
+            ..Pacing::default()
+        }
+    }
+
+    pub(super) fn limited(&self) -> bool {
+        self.min_pace.is_some() || self.bytes_per_second.is_some()
+    }
+
+    /// Whether a sample may go now; if not, `next_at` says when to try again.
+    pub(super) fn may_send(&mut self, now: Instant) -> bool {
+        if self.next_at.is_some_and(|t| now < t) {
+            return false;
+        }
+        self.next_at = None;
+        if let Some(limit) = self.bytes_per_second {
+            let start = *self.window_start.get_or_insert(now);
+            if now >= start + Duration::from_secs(1) {
+                self.window_start = Some(now);
+                self.window_bytes = 0;
+            } else if self.window_bytes >= limit {
+                self.next_at = Some(start + Duration::from_secs(1));
+                return false;
+            }
+        }
+        true
+    }
+
+    /// Accounts a delivered sample of `len` bytes.
+    pub(super) fn sent(&mut self, now: Instant, len: usize) {
+        self.window_bytes += len as u64;
+        if let Some(p) = self.min_pace {
+            self.next_at = Some(now + p);
+        }
+    }
+}
+
+/// Samples taken from one reader per wake-up before others get a turn.
+pub(super) const PUMP_BATCH: usize = 256;
+
+impl Worker {
+    pub(super) fn start_read(
+        &mut self,
+        key: EntityKey,
+        h: &IpcHeader,
+        body: &[u8],
+    ) -> Result<(), OpError> {
+        let reader_type = match self.entities.get(&key) {
+            Some(Entity {
+                kind: EntityKind::Reader(_, _, info),
+                ..
+            }) => Some(info.ty.clone()),
+            Some(Entity {
+                kind: EntityKind::Service(..),
+                ..
+            }) => None,
+            _ => {
+                return Err((
+                    status::ERR_UNKNOWN_REFERENCE,
+                    "read from an unknown data reader, requester or replier".into(),
+                ))
+            }
+        };
+        let spec = ReadSpecification::decode(&mut CdrReader::new(body, true))
+            .map_err(|e| (status::ERR_INVALID_DATA, format!("read specification: {e}")))?;
+        // The front-end puts each sample in the requested format.
+        if !xrce_common::wire::sample::is_defined_format(spec.data_format) {
+            return Err((
+                status::ERR_INVALID_DATA,
+                format!("undefined data format {:#04x}", spec.data_format),
+            ));
+        }
+        let filter = match (spec.content_filter_expression.as_deref(), reader_type) {
+            (None, _) => None,
+            (Some(f), _) if f.trim().is_empty() => None,
+            (Some(f), Some(ty)) => Some(compile_filter(f, ty.as_ref(), "the reader's topic")?),
+            (Some(_), None) => {
+                return Err((
+                    status::ERR_INCOMPATIBLE,
+                    "content filters apply to data readers, not requesters or repliers".into(),
+                ))
+            }
+        };
+        // A new read starts unpaused (the front-end forgets its pause too).
+        let paused = false;
+        let read = match spec.delivery_control {
+            Some(d) if d.max_samples == 0 => {
+                self.reads.remove(&key);
+                return Ok(());
+            }
+            Some(d) => ActiveRead {
+                request_id: h.request_id,
+                remaining: (d.max_samples != u16::MAX).then_some(d.max_samples as u32),
+                deadline: (d.max_elapsed_time != 0)
+                    .then(|| Instant::now() + Duration::from_secs(d.max_elapsed_time as u64)),
+                one_shot: false,
+                paused,
+                pacing: Pacing::new(&d),
+                filter,
+                data_format: spec.data_format,
+            },
+            None => ActiveRead {
+                request_id: h.request_id,
+                remaining: None,
+                deadline: None,
+                one_shot: true,
+                paused,
+                pacing: Pacing::default(),
+                filter,
+                data_format: spec.data_format,
+            },
+        };
+        self.reads.insert(key, read);
+        if h.flags & FLAG_REPLAY != 0 {
+            self.offer_recent(key, h.request_id);
+        } else if let Some(r) = self.recent.get_mut(&key.0) {
+            // The client has no record of what an earlier read on this reader delivered.
+            r.forget(&key);
+        }
+        Ok(())
+    }
+
+    /// Sends a replayed read the samples last handed to its front-end for it: a successor
+    /// of a front-end that died gets those its predecessor may not have delivered (it drops
+    /// the others by their identity).
+    ///
+    /// The read's limits count them: a one-shot read gets the newest and ends (the front-end
+    /// drops it if its predecessor delivered it, and the read is over either way), a read of
+    /// at most so many samples counts them all as delivered (it may end short by those the
+    /// front-end drops, never beyond its limit).
+    pub(super) fn offer_recent(
+        &mut self,
+        key: EntityKey,
+        request_id: xrce_common::wire::RequestId,
+    ) {
+        let mut samples = self
+            .recent
+            .get(&key.0)
+            .map(|r| r.of(&key, request_id))
+            .unwrap_or_default();
+        if samples.is_empty() {
+            return;
+        }
+        let ended = match self.reads.get_mut(&key) {
+            Some(r) if r.one_shot => {
+                samples.drain(..samples.len() - 1);
+                true
+            }
+            Some(r) => match r.remaining.as_mut() {
+                Some(rem) => {
+                    let n = (*rem as usize).min(samples.len());
+                    samples.drain(..samples.len() - n);
+                    *rem -= n as u32;
+                    *rem == 0
+                }
+                None => false,
+            },
+            None => false,
+        };
+        tracing::info!(client = %key.1, reader = ?key.2, samples = samples.len(), "recent samples offered again to a replayed read");
+        for (flags, body) in &samples {
+            let mut h = IpcHeader::new(MessageKind::Sample);
+            h.frontend_id = key.0;
+            h.client_key = key.1;
+            h.object_id = key.2;
+            h.request_id = request_id;
+            h.flags = *flags;
+            self.reply(h, body);
+        }
+        if ended {
+            self.end_read(key);
+        }
+    }
+
+    /// Takes samples of a reader with an active read and sends them to its front-end.
+    pub(super) fn pump(&mut self, key: EntityKey) {
+        let Some(read) = self.reads.get_mut(&key).filter(|r| !r.paused) else {
+            return;
+        };
+        if let Some(p) = self.ports.get_mut(&key.0).filter(|p| !p.backlog.is_empty()) {
+            // The front-end is congested: leave the samples in the DDS reader for now.
+            p.deferred.insert(key);
+            return;
+        }
+        let request_id = read.request_id;
+        let (reader, mut service, reader_filter) = match self.entities.get_mut(&key) {
+            Some(Entity {
+                kind: EntityKind::Reader(reader, _, info),
+                ..
+            }) => (&mut **reader, None, info.filter.as_ref()),
+            Some(Entity {
+                kind: EntityKind::Service(s),
+                ..
+            }) => {
+                let s = &mut **s;
+                (
+                    &mut s.reader,
+                    Some((s.requester, &s.writer, &mut s.pending)),
+                    None,
+                )
+            }
+            _ => return,
+        };
+        let mut out = Vec::new();
+        let mut more = false;
+        let mut limit = read.remaining.unwrap_or(u32::MAX).min(PUMP_BATCH as u32);
+        let one_shot = read.one_shot;
+        let mut errors = 0u64;
+        let mut filtered = 0u64;
+        let now = Instant::now();
+        while limit > 0 {
+            if read.pacing.limited() && !read.pacing.may_send(now) {
+                // Paced: the rest waits in the DDS reader until `next_at`.
+                break;
+            }
+            match reader.take_next() {
+                Ok(Some(taken)) => {
+                    let info = taken.info;
+                    let mut s = taken.sample;
+                    if let Some((requester, writer, pending)) = service.as_mut() {
+                        match service_sample(*requester, writer, pending, &info, key.2, s) {
+                            Some(wrapped) => s = wrapped,
+                            // A reply to another requester.
+                            None => continue,
+                        }
+                    }
+                    let ends = taken.disposed || taken.unregistered;
+                    if ends
+                        && matches!(
+                            read.data_format,
+                            xrce_common::wire::data_format::DATA
+                                | xrce_common::wire::data_format::DATA_SEQ
+                        )
+                    {
+                        // Taken, not delivered, not counted against max_samples.
+                        continue;
+                    }
+                    // A filter sees samples; instance ends (key fields only) pass.
+                    let passes = |f: Option<&Filter>| {
+                        f.is_none_or(|f| {
+                            f.matches(&s.body, s.little_endian(), crate::raw::is_xcdr2(s.encoding))
+                        })
+                    };
+                    let selected = ends || (passes(reader_filter) && passes(read.filter.as_ref()));
+                    if !selected {
+                        // Taken and dropped; it does not count against max_samples, but it
+                        // counts against the batch so a flood cannot starve the loop.
+                        filtered += 1;
+                        if filtered > 4 * PUMP_BATCH as u64 {
+                            more = true;
+                            break;
+                        }
+                        continue;
+                    }
+                    let mut flags = 0;
+                    if taken.disposed {
+                        flags |= ipc::FLAG_DISPOSED;
+                    }
+                    if taken.unregistered {
+                        flags |= ipc::FLAG_UNREGISTERED;
+                    }
+                    read.pacing.sent(now, s.body.len());
+                    let id = info.sample_identity();
+                    let identity = ipc::SampleIdentity {
+                        writer: id.writer_guid.to_bytes(),
+                        sequence_number: i64::from(id.sequence_number),
+                    };
+                    out.push((s, flags, identity));
+                    limit -= 1;
+                    if one_shot {
+                        break;
+                    }
+                }
+                Ok(None) => break,
+                Err(e) => {
+                    // Counted against the batch, so a flood of them cannot starve the loop.
+                    errors += 1;
+                    limit -= 1;
+                    tracing::debug!(error = ?e, "undecodable DDS sample skipped");
+                }
+            }
+            if limit == 0 {
+                // The batch is used up (by samples or by undecodable ones): come back.
+                more = true;
+            }
+        }
+        for _ in 0..errors {
+            self.count("dds_sample_undecodable");
+        }
+        if filtered > 0 {
+            // Not a fault: counted so a filter's effect can be seen.
+            *self.dropped.entry("content_filtered").or_default() += filtered;
+        }
+        let sent = out.len() as u32;
+        self.samples_taken += u64::from(sent);
+        for (s, flags, identity) in out {
+            let mut h = IpcHeader::new(MessageKind::Sample);
+            h.frontend_id = key.0;
+            h.client_key = key.1;
+            h.object_id = key.2;
+            h.request_id = request_id;
+            h.flags = flags
+                | if s.little_endian() {
+                    FLAG_LITTLE_ENDIAN
+                } else {
+                    0
+                };
+            let id = identity.encode();
+            let flags = h.flags;
+            let len = ipc::SAMPLE_IDENTITY_LEN + s.body.len();
+            self.reply_with(h, len, |b| {
+                b[..ipc::SAMPLE_IDENTITY_LEN].copy_from_slice(&id);
+                b[ipc::SAMPLE_IDENTITY_LEN..].copy_from_slice(&s.body);
+            });
+            // Kept for a successor only if it went (or waits) to the front-end, and can be
+            // told from what the front-end delivered already.
+            if len <= ipc::MAX_BODY && identity.is_known() {
+                self.recent.entry(key.0).or_default().record(
+                    key,
+                    request_id,
+                    flags,
+                    [&id, &s.body],
+                );
+            }
+        }
+        let ended = match self.reads.get_mut(&key) {
+            Some(r) => {
+                if let Some(rem) = r.remaining.as_mut() {
+                    *rem = rem.saturating_sub(sent);
+                }
+                r.remaining == Some(0) || (r.one_shot && sent > 0)
+            }
+            None => false,
+        };
+        if ended {
+            self.end_read(key);
+        } else if more {
+            self.to_pump.insert(key);
+        }
+    }
+
+    pub(super) fn end_read(&mut self, key: EntityKey) {
+        if let Some(r) = self.reads.remove(&key) {
+            let mut h = IpcHeader::new(MessageKind::ReadEnded);
+            h.frontend_id = key.0;
+            h.client_key = key.1;
+            h.object_id = key.2;
+            h.request_id = r.request_id;
+            self.reply(h, &[]);
+        }
+    }
+
+    pub(super) fn expire_reads(&mut self) {
+        let now = Instant::now();
+        // Paced reads whose wait is over take their next samples.
+        for (k, r) in self.reads.iter_mut() {
+            if r.pacing.next_at.is_some_and(|t| t <= now) {
+                r.pacing.next_at = None;
+                self.to_pump.insert(*k);
+            }
+        }
+        let expired: Vec<EntityKey> = self
+            .reads
+            .iter()
+            .filter(|(_, r)| r.deadline.is_some_and(|d| d <= now))
+            .map(|(k, _)| *k)
+            .collect();
+        for k in expired {
+            self.end_read(k);
+        }
+    }
+}

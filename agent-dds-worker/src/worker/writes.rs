@@ -1,0 +1,469 @@
+//! Writes: the DDS writers of XRCE data writers (shared ones included), the samples a new
+//! or replayed writer holds until its readers match, and what is reported about matches.
+
+use super::*;
+
+/// The DDS writer behind one XRCE data writer, or behind several with `share_writers`.
+pub(super) struct DdsWriter {
+    pub(super) raw: RawWriter,
+    /// Its place among the shared writers, if it is one.
+    pub(super) shared: Option<SharedWriterKey>,
+    /// When it first matched a reader (read from its status events, which only this
+    /// structure consumes, so that every XRCE writer sharing it sees the match).
+    pub(super) matched_at: Cell<Option<Instant>>,
+    /// How many readers it matches now (from the same status events).
+    pub(super) matched: Cell<usize>,
+    /// Front-end operations written through it that its readers may not have acknowledged.
+    pub(super) outstanding: Outstanding,
+}
+
+impl Acknowledging for DdsWriter {
+    fn all_acknowledged(&self) -> bool {
+        self.raw.all_acknowledged()
+    }
+    fn outstanding(&self) -> &Outstanding {
+        &self.outstanding
+    }
+}
+
+impl DdsWriter {
+    /// Reads the writer's pending status events; returns when it first matched a reader.
+    pub(super) fn poll_matched(&self, now: Instant) -> Option<Instant> {
+        while let Some(st) = self.raw.try_recv_status() {
+            if let rustdds::dds::statusevents::DataWriterStatus::PublicationMatched {
+                current,
+                ..
+            } = st
+            {
+                if current.count() > 0 && self.matched_at.get().is_none() {
+                    self.matched_at.set(Some(now));
+                }
+                self.matched.set(current.count().max(0) as usize);
+            }
+        }
+        self.matched_at.get()
+    }
+}
+
+/// A shared DDS writer, with the QoS and key type it was made with.
+pub(super) struct SharedWriterEntry {
+    pub(super) qos: QosPolicies,
+    pub(super) ty: Option<Arc<StructDef>>,
+    pub(super) writer: std::rc::Weak<DdsWriter>,
+}
+
+/// Whether XRCE writers with this QoS may share a DDS writer without changing what DDS
+/// readers get beyond the writer's identity: a volatile writer keeps no history for late
+/// joiners (a shared transient one would keep its depth over all clients together), and
+/// exclusive ownership picks one writer per instance (sharing would merge the contenders).
+pub(super) fn shareable(qos: &QosPolicies) -> bool {
+    use rustdds::policy::{Durability, Ownership};
+    matches!(qos.durability(), None | Some(Durability::Volatile))
+        && matches!(qos.ownership(), None | Some(Ownership::Shared))
+}
+
+/// Most XRCE writers on one shared DDS writer. The shared writer keeps this many times the
+/// history depth the clients asked for, so that every client keeps the resend window of a
+/// writer of its own (a reliable writer overwrites samples beyond its depth, acknowledged
+/// or not), and its memory stays within what that many writers of their own would hold.
+pub(super) const SHARE_GROUP: usize = 32;
+
+/// The QoS of a shared DDS writer: the clients' own, with [`SHARE_GROUP`] times their
+/// keep-last depth.
+pub(super) fn shared_history(qos: &QosPolicies) -> QosPolicies {
+    match qos.history() {
+        Some(rustdds::policy::History::KeepLast { depth }) => {
+            let deeper = depth.saturating_mul(SHARE_GROUP as i32);
+            qos.modify_by(
+                &rustdds::QosPolicyBuilder::new()
+                    .history(rustdds::policy::History::KeepLast { depth: deeper })
+                    .build(),
+            )
+        }
+        _ => qos.clone(),
+    }
+}
+
+/// What makes two XRCE data writers able to share one DDS writer, besides equal QoS and
+/// type: the domain, topic name, type name and byte order.
+pub(super) type SharedWriterKey = (u16, String, String, bool);
+
+/// A new writer holds its writes until it has matched readers: volatile readers only get
+/// samples written after they matched a writer, and DDS discovery takes 0.1–0.4 s here.
+/// Without this, a client's first samples (the reference agent delivers them inside one Fast
+/// DDS process) and the samples resent after a worker restart would reach nobody.
+#[derive(Default)]
+pub(super) struct Rematch {
+    /// Until when writes are held at most (None = not holding).
+    pub(super) until: Option<Instant>,
+    /// When the writer first matched a reader again.
+    pub(super) matched_at: Option<Instant>,
+    /// Held writes: (front-end operation sequence number, sample, is a dispose).
+    pub(super) held: std::collections::VecDeque<(u64, RawSample, bool)>,
+    /// Bytes of the held samples.
+    pub(super) held_bytes: usize,
+    /// Matched: the held samples are being written in batches (new writes still queue behind
+    /// them, so order is kept).
+    pub(super) draining: bool,
+    /// When the last batch of held samples was written.
+    pub(super) last_batch: Option<Instant>,
+    /// Readers the writer had matched before the worker restarted (from the front-end): a
+    /// replayed writer holds until as many match again (0 or 1: the first match).
+    pub(super) expected: u8,
+    /// The matched count last reported to the front-end.
+    pub(super) reported: Option<u8>,
+}
+
+/// Held samples written per batch while a writer drains: a whole backlog at once would
+/// overrun the writer's keep-last history before its reader acknowledged (RustDDS then drops
+/// the oldest), which lost samples after a worker restart.
+pub(super) const RELEASE_BATCH: usize = 16;
+
+/// The next batch waits until the readers acknowledged the previous one, at most this long
+/// (the loop's pace while draining, so readers that acknowledge only on heartbeats do not
+/// slow the drain below 8,000 samples/s per writer).
+pub(super) const RELEASE_ACK_WAIT: Duration = Duration::from_millis(2);
+
+/// Longest hold of a replayed writer's samples when no reader matches.
+pub(super) const REMATCH_MAX: Duration = Duration::from_secs(3);
+
+/// Longest hold of a new writer's first samples when no reader matches (there may be none).
+pub(super) const NEW_WRITER_HOLD_MAX: Duration = Duration::from_secs(1);
+
+/// Margin after the writer's match so the reader has matched the writer too (with 200 ms,
+/// a burst released at a replayed writer's match occasionally lost its last samples to
+/// Cyclone DDS under load; RustDDS then never repaired them).
+pub(super) const REMATCH_MARGIN: Duration = Duration::from_millis(500);
+
+/// Most samples one holding writer keeps; beyond, it stops waiting for its readers and
+/// writes what it holds (logged). (4,096 was too few: 10,000 samples/s fill it in 0.4 s, and the writer then wrote all of
+/// them before its readers matched: 3,000 lost per worker kill.)
+pub(super) const REMATCH_HELD_MAX: usize = 65_536;
+
+/// Most bytes one holding writer keeps (the same rule).
+pub(super) const REMATCH_HELD_MAX_BYTES: usize = 32 << 20;
+
+impl Worker {
+    /// Publishes the samples of one WRITE_DATA (one, or several in the sequence formats).
+    pub(super) fn write(
+        &mut self,
+        key: EntityKey,
+        h: &IpcHeader,
+        body: &[u8],
+    ) -> Result<(), OpError> {
+        let little_endian = h.flags & FLAG_LITTLE_ENDIAN != 0;
+        let dialect = if h.flags & FLAG_DIALECT_SPEC != 0 {
+            Dialect::Spec
+        } else {
+            Dialect::Eprosima
+        };
+        // Without a type description the end of a sample is the end of the submessage, so
+        // a sequence can be split only when it holds one sample; with it, the type says
+        // where each sample ends.
+        let ty = match self.entities.get(&key) {
+            Some(Entity {
+                kind: EntityKind::Writer(_, _, ty),
+                ..
+            }) => ty.clone().map(Ty::Struct),
+            _ => None,
+        };
+        let sizer_ty = ty.clone();
+        let sizer =
+            ty.map(|t| move |b: &[u8], origin: usize| sample_len(&t, b, origin, little_endian));
+        let sizer_ref = sizer
+            .as_ref()
+            .map(|f| f as &dyn Fn(&[u8], usize) -> Option<usize>);
+        let samples = decode_samples(h.data_format, body, little_endian, dialect, sizer_ref)
+            .map_err(|e| (status::ERR_INVALID_DATA, format!("WRITE_DATA: {e}")))?;
+        let ends_instance = |s: &xrce_common::wire::sample::SampleRef<'_>| {
+            s.info.is_some_and(|i| {
+                i.state & (sample_state::INSTANCE_DISPOSED | sample_state::INSTANCE_UNREGISTERED)
+                    != 0
+            })
+        };
+        if let Some(Entity {
+            kind: EntityKind::Service(svc),
+            ..
+        }) = self.entities.get_mut(&key)
+        {
+            if samples.iter().any(ends_instance) {
+                return Err((
+                    status::ERR_INCOMPATIBLE,
+                    "a requester or replier cannot dispose or unregister".into(),
+                ));
+            }
+            for s in samples {
+                service_write(svc, h.request_id, little_endian, s.data)?;
+            }
+            return Ok(());
+        }
+        let several = samples.len() > 1;
+        for s in samples {
+            let dispose = ends_instance(&s);
+            // A sample split out of a sequence aligns from the WRITE_DATA's payload; DDS
+            // wants it aligned from its own start.
+            let offset = (s.data.as_ptr() as usize).saturating_sub(body.as_ptr() as usize);
+            let rebased = match (&sizer_ty, several && offset % 8 != 0) {
+                (Some(t), true) => Some(
+                    crate::types::rebase(t, s.data, offset, little_endian).map_err(|e| {
+                        (status::ERR_INVALID_DATA, format!("WRITE_DATA sample: {e}"))
+                    })?,
+                ),
+                _ => None,
+            };
+            let data = rebased.as_deref().unwrap_or(s.data);
+            self.write_one(key, h.op_seq, little_endian, data, dispose)?;
+            self.samples_written += 1;
+        }
+        Ok(())
+    }
+
+    pub(super) fn write_one(
+        &mut self,
+        key: EntityKey,
+        seq: u64,
+        little_endian: bool,
+        body: &[u8],
+        dispose: bool,
+    ) -> Result<(), OpError> {
+        let Some(Entity {
+            kind: EntityKind::Writer(w, rematch, _),
+            ..
+        }) = self.entities.get_mut(&key)
+        else {
+            return Err((
+                status::ERR_UNKNOWN_REFERENCE,
+                "write to an unknown data writer".into(),
+            ));
+        };
+        if little_endian != w.raw.little_endian() {
+            // Without the type the bytes cannot be swapped.
+            return Err((
+                status::ERR_INVALID_DATA,
+                format!(
+                    "a {}-endian sample for a data writer created {}-endian",
+                    if little_endian { "little" } else { "big" },
+                    if w.raw.little_endian() {
+                        "little"
+                    } else {
+                        "big"
+                    },
+                ),
+            ));
+        }
+        let sample = RawSample {
+            encoding: if little_endian {
+                rustdds::RepresentationIdentifier::CDR_LE
+            } else {
+                rustdds::RepresentationIdentifier::CDR_BE
+            },
+            body: rustdds::bytes::Bytes::copy_from_slice(body),
+        };
+        if dispose && w.raw.key().is_none() {
+            // DDS has no instances on a topic without a key.
+            return Err((
+                status::ERR_INCOMPATIBLE,
+                "dispose or unregister on a topic without a key (or whose type is unknown)".into(),
+            ));
+        }
+        if let Some(k) = w.raw.key() {
+            // Checked now, so a held sample cannot fail later, unreported.
+            let whole = k.of_sample(body, little_endian, false);
+            if whole.is_err() && !(dispose && k.of_key_payload(body, little_endian, false).is_ok())
+            {
+                return Err((
+                    status::ERR_INVALID_DATA,
+                    format!("a sample that is not a {}", k.ty().name),
+                ));
+            }
+        }
+        if rematch.until.is_some() {
+            if rematch.held.len() < REMATCH_HELD_MAX
+                && rematch.held_bytes + sample.body.len() <= REMATCH_HELD_MAX_BYTES
+            {
+                rematch.held_bytes += sample.body.len();
+                rematch.held.push_back((seq, sample, dispose));
+                return Ok(());
+            }
+            // Bounded: a writer that would hold more stops waiting for its readers.
+            tracing::warn!(
+                frontend = key.0,
+                client = %key.1,
+                held = rematch.held.len(),
+                "writer stops waiting for readers: too many samples held"
+            );
+            rematch.until = None;
+            rematch.draining = false;
+            let now = Instant::now();
+            rematch.held_bytes = 0;
+            for (s_seq, s, d) in rematch.held.drain(..) {
+                let done = if d { w.raw.dispose(&s) } else { w.raw.write(s) };
+                if done.is_ok() && w.outstanding.record(key.0, s_seq, now) {
+                    self.acks.watch(w);
+                }
+            }
+        }
+        let done = if dispose {
+            w.raw
+                .dispose(&sample)
+                .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS dispose: {e}")))
+        } else {
+            w.raw
+                .write(sample)
+                .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
+        };
+        if done.is_ok() && w.outstanding.record(key.0, seq, Instant::now()) {
+            self.acks.watch(w);
+        }
+        done
+    }
+
+    /// A live shared DDS writer made with this QoS and type, if any (dead entries pruned).
+    pub(super) fn shared_writer(
+        &mut self,
+        key: &SharedWriterKey,
+        qos: &QosPolicies,
+        ty: Option<&Arc<StructDef>>,
+    ) -> Option<Rc<DdsWriter>> {
+        let entries = self.shared_writers.get_mut(key)?;
+        entries.retain(|e| e.writer.strong_count() > 0);
+        let found = entries
+            .iter()
+            .filter(|e| e.writer.strong_count() < SHARE_GROUP)
+            .find(|e| &e.qos == qos && e.ty.as_deref() == ty.map(|t| &**t))
+            .and_then(|e| e.writer.upgrade());
+        if entries.is_empty() {
+            self.shared_writers.remove(key);
+        }
+        found
+    }
+
+    /// Releases the samples of replayed writers that matched again (or waited long enough).
+    pub(super) fn release_rematched(&mut self) {
+        let now = Instant::now();
+        let mut failures = 0u64;
+        let mut done = Vec::new();
+        for key in &self.holding {
+            let Some(Entity {
+                kind: EntityKind::Writer(w, rematch, _),
+                ..
+            }) = self.entities.get_mut(key)
+            else {
+                done.push(*key);
+                continue;
+            };
+            let Some(until) = rematch.until else {
+                done.push(*key);
+                continue;
+            };
+            if rematch.matched_at.is_none() {
+                // As many readers as before the restart (at least one): a writer that
+                // released when the first of several matched lost samples to the others.
+                let first = w.poll_matched(now);
+                if w.matched.get() >= usize::from(rematch.expected) {
+                    rematch.matched_at = if rematch.expected <= 1 {
+                        first
+                    } else {
+                        Some(now)
+                    };
+                }
+            }
+            let ready = rematch
+                .matched_at
+                .is_some_and(|t| now >= t + REMATCH_MARGIN)
+                || now >= until;
+            if ready && !rematch.draining {
+                // Debug: with many clients every new writer passes here once.
+                tracing::debug!(
+                    held = rematch.held.len(),
+                    matched = rematch.matched_at.is_some(),
+                    "holding writer resumes"
+                );
+                rematch.draining = true;
+            }
+            let paced = rematch.last_batch.is_some_and(|t| {
+                now.saturating_duration_since(t) < RELEASE_ACK_WAIT && !w.raw.all_acknowledged()
+            });
+            if rematch.draining && !paced {
+                rematch.last_batch = Some(now);
+                for _ in 0..RELEASE_BATCH {
+                    let Some((seq, sample, dispose)) = rematch.held.pop_front() else {
+                        break;
+                    };
+                    rematch.held_bytes = rematch.held_bytes.saturating_sub(sample.body.len());
+                    let done = if dispose {
+                        w.raw.dispose(&sample)
+                    } else {
+                        w.raw.write(sample)
+                    };
+                    if let Err(e) = &done {
+                        tracing::warn!(frontend = key.0, client = %key.1, error = %e, dispose, "held sample not published");
+                    }
+                    if done.is_err() {
+                        failures += 1;
+                    } else if w.outstanding.record(key.0, seq, now) {
+                        self.acks.watch(w);
+                    }
+                }
+                if rematch.held.is_empty() {
+                    rematch.until = None;
+                    rematch.draining = false;
+                    done.push(*key);
+                }
+            }
+        }
+        for k in done {
+            self.holding.remove(&k);
+        }
+        for _ in 0..failures {
+            self.count("dds_write_failed");
+        }
+    }
+
+    /// Tells front-ends how many readers each of their data writers matches, when that
+    /// changed (every [`MATCH_REPORT_PERIOD`]).
+    pub(super) fn report_matches(&mut self) {
+        let now = Instant::now();
+        if now < self.next_match_report {
+            return;
+        }
+        self.next_match_report = now + MATCH_REPORT_PERIOD;
+        let mut changed = Vec::new();
+        for (key, e) in self.entities.iter_mut() {
+            if let EntityKind::Writer(w, rematch, _) = &mut e.kind {
+                w.poll_matched(now);
+                let n = u8::try_from(w.matched.get()).unwrap_or(u8::MAX);
+                if rematch.reported != Some(n) {
+                    rematch.reported = Some(n);
+                    changed.push((*key, n));
+                }
+            }
+        }
+        for ((fe, client, object), n) in changed {
+            let mut h = IpcHeader::new(MessageKind::WriterMatched);
+            h.frontend_id = fe;
+            h.client_key = client;
+            h.object_id = object;
+            h.readers = n;
+            self.reply(h, &[]);
+        }
+    }
+
+    /// The oldest operation held by a replayed writer, per front-end.
+    pub(super) fn oldest_held(&self) -> HashMap<u32, u64> {
+        let mut m: HashMap<u32, u64> = HashMap::new();
+        for (k, e) in self
+            .holding
+            .iter()
+            .filter_map(|k| Some((k, self.entities.get(k)?)))
+        {
+            if let EntityKind::Writer(_, r, _) = &e.kind {
+                if let Some((seq, _, _)) = r.held.front() {
+                    let v = m.entry(k.0).or_insert(*seq);
+                    *v = (*v).min(*seq);
+                }
+            }
+        }
+        m
+    }
+}
