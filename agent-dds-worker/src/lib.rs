@@ -61,6 +61,7 @@ pub mod recent;
 pub mod references;
 pub mod representation;
 pub mod ros_graph;
+pub mod tree;
 pub mod types;
 pub mod worker;
 pub mod xml;

@@ -308,18 +308,7 @@ impl Worker {
                 | EntityKind::Service(..)
         );
         let origin = Origin::new(body, little_endian);
-        self.entities.insert(
-            key,
-            Entity {
-                parent,
-                kind,
-                origin,
-            },
-        );
-        self.by_client
-            .entry((key.0, key.1))
-            .or_default()
-            .insert(key.2);
+        self.entities.insert(key, parent, Entity { kind, origin });
         if graph_change {
             if let Some(d) = self.domain_of(key) {
                 self.graph.touch(d, Instant::now());
@@ -396,7 +385,7 @@ impl Worker {
             .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
         // A topic object created by the client with the same name carries its QoS.
         if let Some(id) = desc.topic_id {
-            let d = match self.entities.get(&(key.0, key.1, id)) {
+            let d = match self.entities.value(&(key.0, key.1, id)) {
                 Some(Entity {
                     kind: EntityKind::Topic(d),
                     ..

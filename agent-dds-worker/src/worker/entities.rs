@@ -22,8 +22,8 @@ pub(super) enum EntityKind {
     Service(Box<ServiceEndpoint>),
 }
 
+/// What the worker holds for an entity (its parent is kept by the tree).
 pub(super) struct Entity {
-    pub(super) parent: Option<ObjectId>,
     pub(super) kind: EntityKind,
     /// What it was created from (a restarted front-end's replay of the same adopts it).
     pub(super) origin: Origin,
@@ -60,30 +60,19 @@ impl Worker {
     }
 
     /// The participant entity an object hangs under, and its domain.
-    pub(super) fn participant_of(
-        &self,
-        key: EntityKey,
-        mut id: ObjectId,
-    ) -> Option<(ObjectId, u16)> {
-        for _ in 0..8 {
-            let e = self.entities.get(&(key.0, key.1, id))?;
-            match &e.kind {
-                EntityKind::Participant(domain, _) => return Some((id, *domain)),
-                _ => id = e.parent?,
-            }
+    pub(super) fn participant_of(&self, key: EntityKey, id: ObjectId) -> Option<(ObjectId, u16)> {
+        let (id, e) = self
+            .entities
+            .ancestor(key, id, |e| matches!(e.kind, EntityKind::Participant(..)))?;
+        match e.kind {
+            EntityKind::Participant(domain, _) => Some((id, domain)),
+            _ => None,
         }
-        None
     }
 
     /// Removes the entities of the clients `pred` selects (by front-end and client key).
     pub(super) fn remove_where(&mut self, pred: impl Fn(&(u32, ClientKey)) -> bool) {
-        let keys: Vec<EntityKey> = self
-            .by_client
-            .iter()
-            .filter(|(c, _)| pred(c))
-            .flat_map(|(c, ids)| ids.iter().map(|id| (c.0, c.1, *id)))
-            .collect();
-        for k in keys {
+        for k in self.entities.keys_of(pred) {
             // Already gone with its parent's subtree, or still there.
             if self.entities.contains_key(&k) {
                 self.remove_subtree(k);
@@ -93,60 +82,45 @@ impl Worker {
 
     /// Removes an entity and its descendants, endpoints before their parents.
     pub(super) fn remove_subtree(&mut self, key: EntityKey) {
-        let children: Vec<EntityKey> = self
-            .by_client
-            .get(&(key.0, key.1))
-            .into_iter()
-            .flatten()
-            .map(|id| (key.0, key.1, *id))
-            .filter(|k| {
-                self.entities
-                    .get(k)
-                    .is_some_and(|e| e.parent == Some(key.2))
-            })
-            .collect();
-        for c in children {
-            self.remove_subtree(c);
-        }
+        // Every entity of a subtree lives in the domain of its root.
         if let Some(d) = self.domain_of(key) {
             self.graph.touch(d, Instant::now());
         }
+        for (key, e) in self.entities.remove_subtree(key) {
+            self.forget_entity(key, e);
+        }
+    }
+
+    /// What the worker keeps about an entity besides the tree, dropped with it.
+    fn forget_entity(&mut self, key: EntityKey, e: Entity) {
         self.holding.remove(&key);
         if let Some(r) = self.recent.get_mut(&key.0) {
             r.forget(&key);
         }
-        if let Some(ids) = self.by_client.get_mut(&(key.0, key.1)) {
-            ids.remove(&key.2);
-            if ids.is_empty() {
-                self.by_client.remove(&(key.0, key.1));
-            }
-        }
-        if let Some(e) = self.entities.remove(&key) {
-            match e.kind {
-                EntityKind::Writer(w, _, _) => {
-                    // The last XRCE writer of a shared DDS writer: forget the entry.
-                    if let Some(k) = w.shared.clone() {
-                        drop(w);
-                        if let Some(entries) = self.shared_writers.get_mut(&k) {
-                            entries.retain(|e| e.writer.strong_count() > 0);
-                            if entries.is_empty() {
-                                self.shared_writers.remove(&k);
-                            }
+        match e.kind {
+            EntityKind::Writer(w, _, _) => {
+                // The last XRCE writer of a shared DDS writer: forget the entry.
+                if let Some(k) = w.shared.clone() {
+                    drop(w);
+                    if let Some(entries) = self.shared_writers.get_mut(&k) {
+                        entries.retain(|e| e.writer.strong_count() > 0);
+                        if entries.is_empty() {
+                            self.shared_writers.remove(&k);
                         }
                     }
                 }
-                EntityKind::Reader(mut r, token, _) => {
-                    let _ = self.poll.registry().deregister(&mut *r);
-                    self.readers.remove(&token);
-                }
-                EntityKind::Service(mut s) => {
-                    let _ = self.poll.registry().deregister(&mut s.reader);
-                    self.readers.remove(&s.token);
-                }
-                _ => {}
             }
-            self.reads.remove(&key);
-            self.to_pump.remove(&key);
+            EntityKind::Reader(mut r, token, _) => {
+                let _ = self.poll.registry().deregister(&mut *r);
+                self.readers.remove(&token);
+            }
+            EntityKind::Service(mut s) => {
+                let _ = self.poll.registry().deregister(&mut s.reader);
+                self.readers.remove(&s.token);
+            }
+            _ => {}
         }
+        self.reads.remove(&key);
+        self.to_pump.remove(&key);
     }
 }

@@ -34,7 +34,7 @@ impl Worker {
                 Vec<rustdds::GUID>,
             ),
         > = Default::default();
-        for (k, e) in &self.entities {
+        for (k, e) in self.entities.iter() {
             if let EntityKind::Participant(d, Some(name)) = &e.kind {
                 if *d == domain {
                     nodes.insert(*k, (name.clone(), Vec::new(), Vec::new()));
@@ -46,7 +46,7 @@ impl Worker {
         // participants are named too, stay out of the ROS graph.
         let mut ros = std::collections::BTreeSet::new();
         let is_ros = |t: &str| ["rt/", "rq/", "rr/"].iter().any(|p| t.starts_with(p));
-        for (k, e) in &self.entities {
+        for (k, e) in self.entities.iter() {
             let (writer, reader, ros_topic) = match &e.kind {
                 EntityKind::Writer(w, _, _) => {
                     (Some(w.raw.guid()), None, is_ros(&w.raw.topic_name()))

@@ -43,6 +43,7 @@ use crate::representation::{
     check_plain, describe_endpoint, describe_service, describe_topic, participant_name,
 };
 use crate::ros_graph::{DomainNodes, RosGraph};
+use crate::tree::EntityTree;
 use crate::types::{sample_len, KeyDescriptor, StructDef, Ty, TypeSet};
 use crate::xml::{self, TopicDesc};
 
@@ -101,10 +102,8 @@ pub struct Worker {
     announce: Sender,
     ports: HashMap<u32, FrontendPort>,
     pool: ParticipantPool,
-    entities: HashMap<EntityKey, Entity>,
-    /// The object ids of each client's entities (per front-end), so that finding a client's
-    /// objects or an entity's children never scans every client's entities.
-    by_client: HashMap<(u32, ClientKey), HashSet<ObjectId>>,
+    /// Every entity, with its parent and an index by client.
+    entities: EntityTree<Entity>,
     readers: HashMap<Token, EntityKey>,
     next_token: usize,
     reads: HashMap<EntityKey, ActiveRead>,
@@ -183,8 +182,7 @@ impl Worker {
             announce,
             ports: HashMap::new(),
             pool,
-            entities: HashMap::new(),
-            by_client: HashMap::new(),
+            entities: EntityTree::default(),
             readers: HashMap::new(),
             next_token: 1,
             reads: HashMap::new(),
@@ -306,7 +304,7 @@ impl Worker {
     fn timeout_without_acks(&self) -> i32 {
         if !self.holding.is_empty() {
             let draining = self.holding.iter().any(|k| {
-                matches!(self.entities.get(k), Some(Entity { kind: EntityKind::Writer(_, r, _), .. }) if r.draining)
+                matches!(self.entities.value(k), Some(Entity { kind: EntityKind::Writer(_, r, _), .. }) if r.draining)
             });
             return if draining { 1 } else { 20 };
         }
@@ -325,7 +323,7 @@ impl Worker {
         }
         let now = Instant::now();
         let census =
-            (!self.by_client.is_empty() || !self.orphaned.is_empty()).then_some(self.next_census);
+            (!self.entities.is_empty() || !self.orphaned.is_empty()).then_some(self.next_census);
         self.reads
             .values()
             .flat_map(|r| [r.deadline, r.pacing.next_at])

@@ -39,7 +39,7 @@ impl Worker {
             return;
         }
         self.next_census = now + CENSUS_PERIOD;
-        let served: HashSet<u32> = self.by_client.keys().map(|(fe, _)| *fe).collect();
+        let served: HashSet<u32> = self.entities.clients().map(|(fe, _)| *fe).collect();
         if served.is_empty() && self.orphaned.is_empty() {
             return;
         }
@@ -63,7 +63,7 @@ impl Worker {
                 now
             });
             if now.saturating_duration_since(since) >= grace {
-                let clients = self.by_client.keys().filter(|(f, _)| *f == fe).count();
+                let clients = self.entities.clients().filter(|(f, _)| *f == fe).count();
                 tracing::warn!(
                     frontend = fe,
                     clients,

@@ -88,7 +88,7 @@ impl Worker {
         h: &IpcHeader,
         body: &[u8],
     ) -> Result<(), OpError> {
-        let reader_type = match self.entities.get(&key) {
+        let reader_type = match self.entities.value(&key) {
             Some(Entity {
                 kind: EntityKind::Reader(_, _, info),
                 ..
@@ -226,7 +226,7 @@ impl Worker {
             return;
         }
         let request_id = read.request_id;
-        let (reader, mut service, reader_filter) = match self.entities.get_mut(&key) {
+        let (reader, mut service, reader_filter) = match self.entities.value_mut(&key) {
             Some(Entity {
                 kind: EntityKind::Reader(reader, _, info),
                 ..

@@ -151,12 +151,7 @@ impl Worker {
     /// held for it wait for its replay to take them back, and their reads stop (the replay
     /// starts those the client still has; samples wait in the DDS readers meanwhile).
     pub(super) fn offer_entities(&mut self, fe: u32) {
-        let keys: Vec<EntityKey> = self
-            .by_client
-            .iter()
-            .filter(|(c, _)| c.0 == fe)
-            .flat_map(|(c, ids)| ids.iter().map(move |id| (c.0, c.1, *id)))
-            .collect();
+        let keys = self.entities.keys_of(|c| c.0 == fe);
         if !keys.is_empty() {
             tracing::info!(
                 frontend = fe,

@@ -160,7 +160,7 @@ impl Worker {
         // Without a type description the end of a sample is the end of the submessage, so
         // a sequence can be split only when it holds one sample; with it, the type says
         // where each sample ends.
-        let ty = match self.entities.get(&key) {
+        let ty = match self.entities.value(&key) {
             Some(Entity {
                 kind: EntityKind::Writer(_, _, ty),
                 ..
@@ -184,7 +184,7 @@ impl Worker {
         if let Some(Entity {
             kind: EntityKind::Service(svc),
             ..
-        }) = self.entities.get_mut(&key)
+        }) = self.entities.value_mut(&key)
         {
             if samples.iter().any(ends_instance) {
                 return Err((
@@ -229,7 +229,7 @@ impl Worker {
         let Some(Entity {
             kind: EntityKind::Writer(w, rematch, _),
             ..
-        }) = self.entities.get_mut(&key)
+        }) = self.entities.value_mut(&key)
         else {
             return Err((
                 status::ERR_UNKNOWN_REFERENCE,
@@ -347,7 +347,7 @@ impl Worker {
             let Some(Entity {
                 kind: EntityKind::Writer(w, rematch, _),
                 ..
-            }) = self.entities.get_mut(key)
+            }) = self.entities.value_mut(key)
             else {
                 done.push(*key);
                 continue;
