@@ -11,8 +11,8 @@ use xrce_common::wire::{ClientKey, ObjectId};
 
 use crate::adoption::EntityKey;
 
-/// How deep a tree can be (participant, publisher, writer: 3; the bound stops a walk up a
-/// malformed chain).
+/// How far a walk up from an entity goes (participant, publisher, writer: 3 levels; the
+/// bound stops a walk up a chain that loops).
 const MAX_DEPTH: usize = 8;
 
 /// One entity and its parent (an object id of the same client).
@@ -111,7 +111,7 @@ impl<T> EntityTree<T> {
         self.nodes.iter_mut()
     }
 
-    /// What every entity holds.
+    /// Every entity (its parent and what it holds).
     pub fn values(&self) -> impl Iterator<Item = &Node<T>> {
         self.nodes.values()
     }
@@ -130,16 +130,16 @@ impl<T> EntityTree<T> {
             .collect()
     }
 
-    /// The nearest entity at or above object `id` of `key`'s client whose value `is` says
-    /// yes to (the participant an endpoint hangs under), with its object id.
+    /// The nearest entity at or above object `id` of `client` (front-end, client key) whose
+    /// value `is` says yes to (the participant an endpoint hangs under), with its object id.
     pub fn ancestor(
         &self,
-        key: EntityKey,
+        client: (u32, ClientKey),
         mut id: ObjectId,
         is: impl Fn(&T) -> bool,
     ) -> Option<(ObjectId, &T)> {
         for _ in 0..MAX_DEPTH {
-            let n = self.nodes.get(&(key.0, key.1, id))?;
+            let n = self.nodes.get(&(client.0, client.1, id))?;
             if is(&n.value) {
                 return Some((id, &n.value));
             }
@@ -148,52 +148,42 @@ impl<T> EntityTree<T> {
         None
     }
 
-    /// Removes entity `key` and its descendants; returns them, each after its own
-    /// descendants (endpoints before their parents). Nothing if `key` does not exist.
+    /// Removes entity `key` and its descendants, however deep; returns them, each after its
+    /// own descendants (endpoints before their parents). Nothing if `key` does not exist.
     pub fn remove_subtree(&mut self, key: EntityKey) -> Vec<(EntityKey, T)> {
-        let mut out = Vec::new();
-        self.remove_into(key, 0, &mut out);
-        out
-    }
-
-    fn remove_into(&mut self, key: EntityKey, depth: usize, out: &mut Vec<(EntityKey, T)>) {
         if !self.nodes.contains_key(&key) {
-            return;
+            return Vec::new();
         }
-        if depth < MAX_DEPTH {
-            let children: Vec<EntityKey> = self
-                .by_client
-                .get(&(key.0, key.1))
-                .into_iter()
-                .flatten()
-                .map(|id| (key.0, key.1, *id))
-                .filter(|k| *k != key && self.nodes.get(k).is_some_and(|n| n.parent == Some(key.2)))
-                .collect();
-            for c in children {
-                self.remove_into(c, depth + 1, out);
+        // Depth first, each entity once (a parent chain that loops ends the descent).
+        let mut order = Vec::new();
+        let mut seen = HashSet::from([key]);
+        let mut stack = vec![(key, false)];
+        while let Some((k, expanded)) = stack.pop() {
+            if expanded {
+                order.push(k);
+                continue;
+            }
+            stack.push((k, true));
+            let ids = self.by_client.get(&(k.0, k.1)).into_iter().flatten();
+            for id in ids {
+                let c = (k.0, k.1, *id);
+                let child = self.nodes.get(&c).is_some_and(|n| n.parent == Some(k.2));
+                if child && seen.insert(c) {
+                    stack.push((c, false));
+                }
             }
         }
-        if let Some(ids) = self.by_client.get_mut(&(key.0, key.1)) {
-            ids.remove(&key.2);
-            if ids.is_empty() {
-                self.by_client.remove(&(key.0, key.1));
+        let mut out = Vec::with_capacity(order.len());
+        for k in order {
+            if let Some(ids) = self.by_client.get_mut(&(k.0, k.1)) {
+                ids.remove(&k.2);
+                if ids.is_empty() {
+                    self.by_client.remove(&(k.0, k.1));
+                }
             }
-        }
-        if let Some(n) = self.nodes.remove(&key) {
-            out.push((key, n.value));
-        }
-    }
-
-    /// Removes every entity of the clients `pred` selects; returns them as
-    /// [`EntityTree::remove_subtree`] does.
-    pub fn remove_clients(
-        &mut self,
-        pred: impl Fn(&(u32, ClientKey)) -> bool,
-    ) -> Vec<(EntityKey, T)> {
-        let mut out = Vec::new();
-        for k in self.keys_of(pred) {
-            // Already gone with its parent's subtree, or still there.
-            self.remove_into(k, 0, &mut out);
+            if let Some(n) = self.nodes.remove(&k) {
+                out.push((k, n.value));
+            }
         }
         out
     }
@@ -242,13 +232,24 @@ mod tests {
         assert_eq!(t.keys_of(|c| c.1 == A), vec![]);
     }
 
+    fn remove_clients(
+        t: &mut EntityTree<&'static str>,
+        pred: impl Fn(&(u32, ClientKey)) -> bool,
+    ) -> Vec<(EntityKey, &'static str)> {
+        let mut gone = Vec::new();
+        for k in t.keys_of(pred) {
+            gone.extend(t.remove_subtree(k));
+        }
+        gone
+    }
+
     #[test]
     fn clients_are_removed_by_front_end_or_key() {
         let mut t = EntityTree::default();
         client(&mut t, 0, A);
         client(&mut t, 1, A);
         client(&mut t, 1, B);
-        let gone = t.remove_clients(|c| c.0 == 1);
+        let gone = remove_clients(&mut t, |c| c.0 == 1);
         assert_eq!(gone.len(), 10);
         // Every entity after its descendants: a client's participant last of its five.
         for c in [A, B] {
@@ -264,7 +265,7 @@ mod tests {
         }
         assert_eq!(t.len(), 5);
         assert_eq!(t.clients().collect::<Vec<_>>(), vec![&(0, A)]);
-        assert_eq!(t.remove_clients(|c| *c == (0, A)).len(), 5);
+        assert_eq!(remove_clients(&mut t, |c| *c == (0, A)).len(), 5);
         assert!(t.is_empty());
     }
 
@@ -272,18 +273,36 @@ mod tests {
     fn the_participant_above_an_endpoint_is_found() {
         let mut t = EntityTree::default();
         client(&mut t, 0, A);
-        let key = (0, A, id(1, 5));
-        let found = t.ancestor(key, id(1, 5), |v| *v == "participant");
+        let found = t.ancestor((0, A), id(1, 5), |v| *v == "participant");
         assert_eq!(found, Some((id(1, 1), &"participant")));
-        assert_eq!(t.ancestor(key, id(9, 5), |v| *v == "participant"), None);
+        assert_eq!(t.ancestor((0, A), id(9, 5), |v| *v == "participant"), None);
         // A chain that loops is walked a bounded number of steps.
         t.insert((0, B, id(1, 3)), Some(id(2, 3)), "publisher");
         t.insert((0, B, id(2, 3)), Some(id(1, 3)), "publisher");
-        assert_eq!(
-            t.ancestor((0, B, id(1, 3)), id(1, 3), |v| *v == "participant"),
-            None
-        );
+        assert_eq!(t.ancestor((0, B), id(1, 3), |v| *v == "participant"), None);
         assert_eq!(t.remove_subtree((0, B, id(1, 3))).len(), 2);
+    }
+
+    #[test]
+    fn a_deep_chain_goes_whole() {
+        let mut t = EntityTree::default();
+        t.insert((0, A, id(0, 1)), None, "root");
+        for n in 1..20 {
+            t.insert(
+                (0, A, id(n, 3)),
+                Some(id(n - 1, if n == 1 { 1 } else { 3 })),
+                "link",
+            );
+        }
+        let gone = t.remove_subtree((0, A, id(0, 1)));
+        assert_eq!(gone.len(), 20);
+        assert_eq!(
+            gone.first().map(|g| g.0 .2),
+            Some(id(19, 3)),
+            "the deepest first"
+        );
+        assert!(t.is_empty());
+        assert_eq!(t.clients().count(), 0);
     }
 
     #[test]
@@ -296,8 +315,20 @@ mod tests {
         );
         assert_eq!(t.len(), 5);
         assert_eq!(t.get(&(0, A, id(1, 5))).map(|n| n.value), Some("writer 2"));
-        assert_eq!(t.keys_of(|c| c.1 == A).len(), 5);
-        assert_eq!(t.remove_clients(|_| true).len(), 5);
+        // A parent replaced keeps its children; one moved under another parent is found
+        // there.
+        t.insert((0, A, id(1, 3)), Some(id(1, 1)), "publisher 2");
+        assert!(t.contains_key(&(0, A, id(1, 5))));
+        t.insert((0, A, id(2, 1)), None, "participant 2");
+        t.insert((0, A, id(1, 4)), Some(id(2, 1)), "subscriber");
+        assert_eq!(
+            t.ancestor((0, A), id(1, 6), |v| v.starts_with("participant")),
+            Some((id(2, 1), &"participant 2"))
+        );
+        let gone = t.remove_subtree((0, A, id(1, 1)));
+        let names: Vec<&str> = gone.iter().map(|(_, v)| *v).collect();
+        assert_eq!(names, ["writer 2", "publisher 2", "participant"]);
+        assert_eq!(remove_clients(&mut t, |_| true).len(), 3);
         assert_eq!(t.clients().count(), 0);
     }
 }

@@ -1,5 +1,6 @@
-//! The entity tree: every entity by (front-end, client, object id), its parent, and the
-//! removal of a subtree or of a client's entities.
+//! What the worker holds for an entity (its DDS endpoints), how the tree of them is walked
+//! up to a participant, and what goes with an entity when its subtree or its client is
+//! removed (the tree itself is [`crate::tree`]).
 
 use super::*;
 
@@ -61,9 +62,9 @@ impl Worker {
 
     /// The participant entity an object hangs under, and its domain.
     pub(super) fn participant_of(&self, key: EntityKey, id: ObjectId) -> Option<(ObjectId, u16)> {
-        let (id, e) = self
-            .entities
-            .ancestor(key, id, |e| matches!(e.kind, EntityKind::Participant(..)))?;
+        let (id, e) = self.entities.ancestor((key.0, key.1), id, |e| {
+            matches!(e.kind, EntityKind::Participant(..))
+        })?;
         match e.kind {
             EntityKind::Participant(domain, _) => Some((id, domain)),
             _ => None,

@@ -6,9 +6,10 @@
 //! replay their clients' object graphs.
 //!
 //! This module is the loop and the worker's state; each job is a module of its own: the
-//! dispatch of requests ([`requests`]), the reply ports ([`ports`]), the entity tree
-//! ([`entities`]), creation ([`create`]), writes and held samples ([`writes`]), reads
-//! ([`reads`]), requesters and repliers ([`services`]) and the ROS 2 graph ([`graph`]).
+//! dispatch of requests (`requests`), the reply ports (`ports`), the DDS side of each
+//! entity (`entities`; the tree itself is [`crate::tree`]), creation (`create`), writes
+//! and held samples (`writes`), reads (`reads`), requesters and repliers (`services`)
+//! and the ROS 2 graph (`graph`).
 
 use std::cell::Cell;
 use std::collections::{HashMap, HashSet};
