@@ -621,6 +621,19 @@ pub mod xml {
     pub const READER: &str = "<dds><data_reader><topic><kind>NO_KEY</kind><name>HelloWorldTopic</name><dataType>HelloWorld</dataType></topic><qos><reliability><kind>RELIABLE</kind></reliability></qos></data_reader></dds>";
 }
 
+/// An unlimited READ_DATA on the built-in reliable stream, samples as plain data.
+pub fn unlimited_reliable_read() -> ReadSpecification {
+    ReadSpecification {
+        preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+        data_format: 0,
+        delivery_control: Some(DataDeliveryControl {
+            max_samples: u16::MAX,
+            ..Default::default()
+        }),
+        ..Default::default()
+    }
+}
+
 /// A Rust XRCE client over a [`Link`] (UDP, TCP or a serial line), driving `xrce_common`'s
 /// client state machine.
 #[derive(Debug)]
@@ -796,16 +809,7 @@ impl TestClient {
     /// Creates participant, topic, subscriber and reader of the HelloWorld example and
     /// starts an unlimited READ_DATA on the reliable stream; returns the reader id.
     pub fn setup_subscriber(&mut self, domain: i16) -> ObjectId {
-        let spec = ReadSpecification {
-            preferred_stream_id: stream_id::BUILTIN_RELIABLE,
-            data_format: 0,
-            delivery_control: Some(DataDeliveryControl {
-                max_samples: u16::MAX,
-                ..Default::default()
-            }),
-            ..Default::default()
-        };
-        self.setup_subscriber_with(domain, spec)
+        self.setup_subscriber_with(domain, unlimited_reliable_read())
     }
 
     /// Participant, topic, subscriber and HelloWorld reader in `domain`, then READ_DATA with

@@ -8,10 +8,11 @@ use std::time::{Duration, Instant};
 use nix::sys::signal::{kill, Signal};
 use nix::unistd::Pid;
 use xrce_common::session::client::ClientEvent;
-use xrce_common::wire::{object_kind, stream_id, DataDeliveryControl, ReadSpecification};
+use xrce_common::wire::object_kind;
 use xrce_tests::{
-    free_tcp_port, hello_world, parse_sample_line, parse_sample_writer, sigkill, AgentProcess,
-    DdsPeer, Deliveries, PtyPair, TestClient, DUPLICATE_GRACE,
+    free_tcp_port, hello_world, parse_sample_line, parse_sample_writer, sigkill,
+    unlimited_reliable_read, AgentProcess, DdsPeer, Deliveries, PtyPair, TestClient,
+    DUPLICATE_GRACE,
 };
 
 const SECOND: Duration = Duration::from_secs(1);
@@ -342,16 +343,9 @@ fn read_through_takeover(tag: &str, signal: Signal, domain: i16) {
         object_kind::DATAREADER,
         reader_xml,
     );
-    let spec = ReadSpecification {
-        preferred_stream_id: stream_id::BUILTIN_RELIABLE,
-        data_format: 0,
-        delivery_control: Some(DataDeliveryControl {
-            max_samples: u16::MAX,
-            ..Default::default()
-        }),
-        ..Default::default()
-    };
-    sub.client.read(Instant::now(), r, spec).expect("read");
+    sub.client
+        .read(Instant::now(), r, unlimited_reliable_read())
+        .expect("read");
     let writer = DdsPeer::start(&[
         "write",
         "--domain",
