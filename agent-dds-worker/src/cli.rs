@@ -2,7 +2,7 @@
 
 use std::net::IpAddr;
 
-use crate::dds::DdsConfig;
+use crate::backend::DdsConfig;
 use crate::worker::{Worker, WorkerConfig};
 
 /// Settings of a DDS worker process.

@@ -1,8 +1,9 @@
-//! The DDS worker of the XRCE agent: it owns every DDS entity (RustDDS) on behalf of the
-//! front-ends, executes their operations, and streams samples of active reads back.
+//! The DDS worker of the XRCE agent: it owns every DDS entity on behalf of the front-ends,
+//! executes their operations, and streams samples of active reads back.
 //!
 //! It is not an XRCE endpoint: it never sees client datagrams, only the IPC contract of
-//! `xrce_common::ipc`. Samples pass through as serialized bytes ([`raw`]).
+//! `xrce_common::ipc`. Samples pass through as serialized bytes. The DDS implementation sits
+//! behind [`backend`] (RustDDS today, [`backend::rustdds`]).
 //!
 //! # QoS mapping
 //!
@@ -51,12 +52,11 @@
 
 pub mod acks;
 pub mod adoption;
+pub mod backend;
 pub mod binary;
 pub mod cli;
-pub mod dds;
 pub mod filter;
 pub mod fuzzing;
-pub mod raw;
 pub mod recent;
 pub mod references;
 pub mod representation;

@@ -15,9 +15,8 @@ use std::time::{Duration, Instant};
 use ros2_client::builtin_topics::ros_discovery;
 use ros2_client::entities_info::{NodeEntitiesInfo, ParticipantEntitiesInfo};
 use ros2_client::{Gid, NodeName};
-use rustdds::no_key::DataWriter;
-use rustdds::{CDRSerializerAdapter, RTPSEntity};
-use rustdds::{DomainParticipant, TopicKind};
+
+use crate::backend::{DdsBackend, DdsGroup, DdsWriter, EndpointQos, Guid, Sample, TopicSpec};
 
 /// Shortest time between two updates of one domain's graph message.
 pub const REFRESH: Duration = Duration::from_millis(100);
@@ -39,16 +38,22 @@ pub fn node_name(participant_name: &str) -> Option<NodeName> {
 #[derive(Debug, Default, Clone, PartialEq, Eq)]
 pub struct DomainNodes {
     /// (node, writer GUIDs, reader GUIDs), in a stable order.
-    pub nodes: Vec<(NodeName, Vec<rustdds::GUID>, Vec<rustdds::GUID>)>,
+    pub nodes: Vec<(NodeName, Vec<Guid>, Vec<Guid>)>,
 }
 
-type GraphWriter =
-    DataWriter<ParticipantEntitiesInfo, CDRSerializerAdapter<ParticipantEntitiesInfo>>;
+/// A domain's graph writer (with its publisher), its participant's GUID, and what it last
+/// published.
+struct GraphWriter {
+    writer: Box<dyn DdsWriter>,
+    _group: Box<dyn DdsGroup>,
+    participant: Guid,
+    last: DomainNodes,
+}
 
 /// The `ros_discovery_info` writers and what changed.
 pub struct RosGraph {
     enabled: bool,
-    writers: HashMap<u16, (GraphWriter, rustdds::GUID, DomainNodes)>,
+    writers: HashMap<u16, GraphWriter>,
     dirty: HashSet<u16>,
     next_at: Option<Instant>,
 }
@@ -105,72 +110,76 @@ impl RosGraph {
         }
     }
 
-    fn make_writer(dp: &DomainParticipant) -> Result<GraphWriter, String> {
-        let topic = dp
-            .create_topic(
-                ros_discovery::TOPIC_NAME.to_string(),
-                ros_discovery::TYPE_NAME.to_string(),
-                &ros_discovery::QOS_PUB,
-                TopicKind::NoKey,
-            )
-            .map_err(|e| format!("ros_discovery_info topic: {e:?}"))?;
-        let publisher = dp
-            .create_publisher(&ros_discovery::QOS_PUB)
-            .map_err(|e| format!("ros_discovery_info publisher: {e:?}"))?;
-        publisher
-            .create_datawriter_no_key_cdr::<ParticipantEntitiesInfo>(
-                &topic,
-                Some(ros_discovery::QOS_PUB.clone()),
-            )
-            .map_err(|e| format!("ros_discovery_info writer: {e:?}"))
+    fn make_writer(backend: &mut dyn DdsBackend, domain: u16) -> Result<GraphWriter, String> {
+        let participant = backend.participant_guid(domain)?;
+        let group = backend.create_group(domain, true)?;
+        let topic = TopicSpec {
+            name: ros_discovery::TOPIC_NAME.to_string(),
+            type_name: ros_discovery::TYPE_NAME.to_string(),
+            key: None,
+        };
+        let writer = backend
+            .create_writer(&*group, &topic, &EndpointQos::ros_discovery_writer(), true)
+            .map_err(|e| format!("ros_discovery_info writer: {e}"))?;
+        Ok(GraphWriter {
+            writer,
+            _group: group,
+            participant,
+            last: DomainNodes { nodes: vec![] },
+        })
     }
 
-    /// Publishes `nodes` for `domain` on `dp` (its publishing participant), unless the
-    /// message would not change. The writer is made on first use; a domain that never had a
-    /// node gets none.
+    /// Publishes `nodes` for `domain` through `backend` (on the domain's publishing
+    /// participant), unless the message would not change. The writer is made on first use;
+    /// a domain that never had a node gets none.
     pub fn publish(
         &mut self,
         domain: u16,
-        dp: &DomainParticipant,
+        backend: &mut dyn DdsBackend,
         nodes: DomainNodes,
     ) -> Result<(), String> {
         use std::collections::hash_map::Entry;
-        let (w, participant, last) = match self.writers.entry(domain) {
+        let w = match self.writers.entry(domain) {
             Entry::Occupied(e) => e.into_mut(),
             Entry::Vacant(v) => {
                 if nodes.nodes.is_empty() {
                     return Ok(());
                 }
-                let w = Self::make_writer(dp)?;
-                v.insert((w, dp.guid(), DomainNodes { nodes: vec![] }))
+                v.insert(Self::make_writer(backend, domain)?)
             }
         };
-        if *last == nodes {
+        if w.last == nodes {
             return Ok(());
         }
-        let infos = nodes
-            .nodes
-            .iter()
-            .map(|(name, writers, readers)| {
-                let mut n = NodeEntitiesInfo::new(name.clone());
-                for g in writers {
-                    n.add_writer(Gid::from(*g));
-                }
-                for g in readers {
-                    n.add_reader(Gid::from(*g));
-                }
-                n
-            })
-            .collect();
-        w.write(
-            ParticipantEntitiesInfo::new(Gid::from(*participant), infos),
-            None,
-        )
-        .map_err(|e| format!("ros_discovery_info write: {e}"))?;
+        let body = encode(w.participant, &nodes)?;
+        w.writer
+            .write(Sample::cdr(true, &body))
+            .map_err(|e| format!("ros_discovery_info write: {e}"))?;
         tracing::info!(domain, nodes = nodes.nodes.len(), "ROS graph published");
-        *last = nodes;
+        w.last = nodes;
         Ok(())
     }
+}
+
+/// The `ParticipantEntitiesInfo` of a participant and its nodes, in little-endian CDR.
+pub fn encode(participant: Guid, nodes: &DomainNodes) -> Result<Vec<u8>, String> {
+    let infos = nodes
+        .nodes
+        .iter()
+        .map(|(name, writers, readers)| {
+            let mut n = NodeEntitiesInfo::new(name.clone());
+            for g in writers {
+                n.add_writer(Gid::from(*g));
+            }
+            for g in readers {
+                n.add_reader(Gid::from(*g));
+            }
+            n
+        })
+        .collect();
+    let info = ParticipantEntitiesInfo::new(Gid::from(participant), infos);
+    cdr_encoding::to_vec::<_, byteorder::LittleEndian>(&info)
+        .map_err(|e| format!("ros_discovery_info encoding: {e}"))
 }
 
 #[cfg(test)]
@@ -188,6 +197,37 @@ mod tests {
         for bad in ["", "9lives", "has space", "a//b", "node-name"] {
             assert!(node_name(bad).is_none(), "{bad:?}");
         }
+    }
+
+    #[test]
+    fn the_graph_message_is_laid_out_as_rmw_dds_common_defines_it() {
+        // ParticipantEntitiesInfo: Gid gid, NodeEntitiesInfo[] (node_namespace, node_name,
+        // reader_gid_seq, writer_gid_seq); a Gid is GID_LENGTH octets.
+        let n = ros2_client::gid::GID_LENGTH;
+        let gid = |b: u8| {
+            let mut g = vec![b; 16];
+            g.resize(n, 0);
+            g
+        };
+        let nodes = DomainNodes {
+            nodes: vec![(
+                node_name("talker").expect("name"),
+                vec![[1; 16], [2; 16]],
+                vec![[3; 16]],
+            )],
+        };
+        let mut expected = gid(9);
+        expected.extend(1u32.to_le_bytes());
+        expected.extend(2u32.to_le_bytes());
+        expected.extend(b"/\0\0\0");
+        expected.extend(7u32.to_le_bytes());
+        expected.extend(b"talker\0\0");
+        expected.extend(1u32.to_le_bytes());
+        expected.extend(gid(3));
+        expected.extend(2u32.to_le_bytes());
+        expected.extend(gid(1));
+        expected.extend(gid(2));
+        assert_eq!(encode([9; 16], &nodes).expect("encoded"), expected);
     }
 
     #[test]

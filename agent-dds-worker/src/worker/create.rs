@@ -13,13 +13,18 @@ pub(super) struct ReaderInfo {
     pub(super) filter: Option<Filter>,
 }
 
-/// Every endpoint's topic: the RustDDS topic, its description, its type and its key.
-pub(super) type EndpointTopic = (
-    Topic,
-    TopicDesc,
-    Option<Arc<StructDef>>,
-    Option<Arc<KeyDescriptor>>,
-);
+/// Every endpoint's topic: as the backend makes it (with its key), its description, and
+/// its type.
+pub(super) type EndpointTopic = (TopicSpec, TopicDesc, Option<Arc<StructDef>>);
+
+/// A described topic as the backend makes it.
+fn topic_spec(desc: &TopicDesc, key: Option<Arc<KeyDescriptor>>) -> TopicSpec {
+    TopicSpec {
+        name: desc.name.clone(),
+        type_name: desc.type_name.clone(),
+        key,
+    }
+}
 
 /// Compiles a content filter against a reader's type (which it needs).
 pub(super) fn compile_filter(
@@ -73,8 +78,7 @@ impl Worker {
             self.remove_subtree(key);
         }
         let repr = &variant.representation;
-        let dds_err =
-            |what: &str, e: &dyn std::fmt::Debug| (status::ERR_DDS_ERROR, format!("{what}: {e:?}"));
+        let dds_err = |e: String| (status::ERR_DDS_ERROR, e);
         let (parent, kind) = match (variant.kind, variant.extra) {
             (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
                 check_plain(repr, variant.kind, &self.config.references, little_endian)?;
@@ -98,45 +102,32 @@ impl Worker {
                 let (_, domain) = self
                     .participant_of(key, p)
                     .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
-                let role = if kind == object_kind::PUBLISHER {
-                    Role::Publish
+                let publish = kind == object_kind::PUBLISHER;
+                let group: Rc<dyn DdsGroup> =
+                    Rc::from(self.dds.create_group(domain, publish).map_err(dds_err)?);
+                let entity = if publish {
+                    EntityKind::Publisher(group)
                 } else {
-                    Role::Subscribe
-                };
-                let dp = self
-                    .pool
-                    .get(domain, role)
-                    .map_err(|e| (status::ERR_DDS_ERROR, e))?;
-                let entity = if role == Role::Publish {
-                    let publisher = dp
-                        .create_publisher(&QosPolicies::qos_none())
-                        .map_err(|e| dds_err("create publisher", &e))?;
-                    EntityKind::Publisher(publisher, dp)
-                } else {
-                    let subscriber = dp
-                        .create_subscriber(&QosPolicies::qos_none())
-                        .map_err(|e| dds_err("create subscriber", &e))?;
-                    EntityKind::Subscriber(subscriber, dp)
+                    EntityKind::Subscriber(group)
                 };
                 (Some(p), entity)
             }
             (object_kind::DATAWRITER, VariantExtra::Parent(p)) => {
-                let (publisher, dp) =
-                    match &self.parent_entity(key, p, object_kind::PUBLISHER)?.kind {
-                        EntityKind::Publisher(x, dp) => (x.clone(), dp.clone()),
-                        _ => {
-                            return Err((
-                                status::ERR_UNKNOWN_REFERENCE,
-                                "parent is not a publisher".into(),
-                            ))
-                        }
-                    };
+                let publisher = match &self.parent_entity(key, p, object_kind::PUBLISHER)?.kind {
+                    EntityKind::Publisher(g) => g.clone(),
+                    _ => {
+                        return Err((
+                            status::ERR_UNKNOWN_REFERENCE,
+                            "parent is not a publisher".into(),
+                        ))
+                    }
+                };
                 let desc = describe_endpoint(repr, true, &self.config.references, little_endian)?;
-                let (topic, tdesc, ty, kd) = self.endpoint_topic(key, p, &dp, &desc)?;
-                let qos = endpoint_qos(EndpointSide::Writer, &tdesc.qos, &desc.qos);
-                let domain = self.participant_of(key, p).map_or(0, |(_, d)| d);
+                let (topic, tdesc, ty) = self.endpoint_topic(key, p, &desc)?;
+                let qos = EndpointQos::resolve(EndpointSide::Writer, &tdesc.qos, &desc.qos);
+                let domain = publisher.domain();
                 let shared_key: Option<SharedWriterKey> =
-                    (self.config.share_writers && shareable(&qos)).then(|| {
+                    (self.config.share_writers && qos.shareable()).then(|| {
                         (
                             domain,
                             tdesc.name.clone(),
@@ -151,13 +142,15 @@ impl Worker {
                     Some(w) => w,
                     None => {
                         let dds_qos = if shared_key.is_some() {
-                            shared_history(&qos)
+                            qos.deeper(SHARE_GROUP)
                         } else {
-                            qos.clone()
+                            qos
                         };
                         // A client writes in its native byte order, the one of its CREATE.
-                        let raw = RawWriter::create(&publisher, &topic, dds_qos, little_endian, kd)
-                            .map_err(|e| dds_err("create data writer", &e))?;
+                        let raw = self
+                            .dds
+                            .create_writer(&*publisher, &topic, &dds_qos, little_endian)
+                            .map_err(dds_err)?;
                         let w = Rc::new(DdsWriter {
                             raw,
                             shared: shared_key.clone(),
@@ -199,37 +192,34 @@ impl Worker {
                 (Some(p), EntityKind::Writer(w, rematch, ty))
             }
             (object_kind::DATAREADER, VariantExtra::Parent(p)) => {
-                let (subscriber, dp) =
-                    match &self.parent_entity(key, p, object_kind::SUBSCRIBER)?.kind {
-                        EntityKind::Subscriber(x, dp) => (x.clone(), dp.clone()),
-                        _ => {
-                            return Err((
-                                status::ERR_UNKNOWN_REFERENCE,
-                                "parent is not a subscriber".into(),
-                            ))
-                        }
-                    };
+                let subscriber = match &self.parent_entity(key, p, object_kind::SUBSCRIBER)?.kind {
+                    EntityKind::Subscriber(g) => g.clone(),
+                    _ => {
+                        return Err((
+                            status::ERR_UNKNOWN_REFERENCE,
+                            "parent is not a subscriber".into(),
+                        ))
+                    }
+                };
                 let desc = describe_endpoint(repr, false, &self.config.references, little_endian)?;
-                let (topic, tdesc, ty, kd) = self.endpoint_topic(key, p, &dp, &desc)?;
+                let (topic, tdesc, ty) = self.endpoint_topic(key, p, &desc)?;
                 let filter = desc
                     .content_filter
                     .as_deref()
                     .map(|f| compile_filter(f, ty.as_ref(), &tdesc.type_name))
                     .transpose()?;
-                let qos = endpoint_qos(EndpointSide::Reader, &tdesc.qos, &desc.qos);
-                let mut r = RawReader::create(&subscriber, &topic, qos, kd)
-                    .map_err(|e| dds_err("create data reader", &e))?;
-                let token = Token(self.next_token);
+                let qos = EndpointQos::resolve(EndpointSide::Reader, &tdesc.qos, &desc.qos);
+                let token = self.next_token;
                 self.next_token += 1;
-                self.poll
-                    .registry()
-                    .register(&mut r, token, Interest::READABLE)
-                    .map_err(|e| dds_err("register reader", &e))?;
+                let r = self
+                    .dds
+                    .create_reader(&*subscriber, &topic, &qos, token)
+                    .map_err(dds_err)?;
                 self.readers.insert(token, key);
                 (
                     Some(p),
                     EntityKind::Reader(
-                        Box::new(r),
+                        r,
                         token,
                         ReaderInfo {
                             topic: tdesc.name.clone(),
@@ -317,23 +307,6 @@ impl Worker {
         Ok(())
     }
 
-    pub(super) fn make_topic(
-        dp: &DomainParticipant,
-        desc: &TopicDesc,
-        keyed: bool,
-    ) -> Result<Topic, rustdds::dds::CreateError> {
-        dp.create_topic(
-            desc.name.clone(),
-            desc.type_name.clone(),
-            &QosPolicies::qos_none(),
-            if keyed {
-                TopicKind::WithKey
-            } else {
-                TopicKind::NoKey
-            },
-        )
-    }
-
     /// A type by name: from the client's TYPE objects, else the references file.
     pub(super) fn type_named(&self, key: EntityKey, name: &str) -> Option<Arc<StructDef>> {
         // The client's TYPE object with the lowest id wins when several define the name.
@@ -371,13 +344,11 @@ impl Worker {
         (ty, kd)
     }
 
-    /// The topic an endpoint names (inline, or a topic object of the same participant),
-    /// made on the DDS participant `dp` the endpoint lives on.
+    /// The topic an endpoint names (inline, or a topic object of the same participant).
     pub(super) fn endpoint_topic(
         &self,
         key: EntityKey,
         parent: ObjectId,
-        dp: &DomainParticipant,
         desc: &xml::EndpointDesc,
     ) -> Result<EndpointTopic, OpError> {
         let (pid, _) = self
@@ -398,9 +369,7 @@ impl Worker {
                 }
             };
             let (ty, kd) = self.topic_type(key, &d);
-            let t = Self::make_topic(dp, &d, kd.is_some())
-                .map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
-            return Ok((t, d, ty, kd));
+            return Ok((topic_spec(&d, kd), d, ty));
         }
         let wanted = desc
             .topic
@@ -434,8 +403,6 @@ impl Worker {
             }
         };
         let (ty, kd) = self.topic_type(key, &tdesc);
-        let t = Self::make_topic(dp, &tdesc, kd.is_some())
-            .map_err(|e| (status::ERR_DDS_ERROR, format!("create topic: {e:?}")))?;
-        Ok((t, tdesc, ty, kd))
+        Ok((topic_spec(&tdesc, kd), tdesc, ty))
     }
 }

@@ -7,17 +7,19 @@ use super::*;
 pub(super) enum EntityKind {
     /// A logical XRCE participant in a DDS domain, and the ROS node its name stands for.
     Participant(u16, Option<ros2_client::NodeName>),
-    /// A topic description; RustDDS topics are made per DDS participant when endpoints are.
+    /// A topic description; DDS topics are made by the backend when endpoints are.
     Topic(TopicDesc),
-    Publisher(Publisher, DomainParticipant),
-    Subscriber(Subscriber, DomainParticipant),
+    /// A DDS publisher.
+    Publisher(Rc<dyn DdsGroup>),
+    /// A DDS subscriber.
+    Subscriber(Rc<dyn DdsGroup>),
     /// A type definition (`<types>`) the client's topics can use.
     Type(Arc<TypeSet>),
     /// A data writer (its DDS writer, possibly shared), its hold state, and its topic's type
     /// if known.
     Writer(Rc<DdsWriter>, Rematch, Option<Arc<StructDef>>),
-    /// A data reader, its poll token, and what its content filters need.
-    Reader(Box<RawReader>, Token, ReaderInfo),
+    /// A data reader, its wake-up token, and what its content filters need.
+    Reader(Box<dyn DdsReader>, ReaderToken, ReaderInfo),
     /// A requester (publishes requests, reads the replies to them) or a replier (reads
     /// requests, publishes replies).
     Service(Box<ServiceEndpoint>),
@@ -111,12 +113,11 @@ impl Worker {
                     }
                 }
             }
-            EntityKind::Reader(mut r, token, _) => {
-                let _ = self.poll.registry().deregister(&mut *r);
+            // Dropped here, the backend's endpoints are deleted and wake nobody any more.
+            EntityKind::Reader(_, token, _) => {
                 self.readers.remove(&token);
             }
-            EntityKind::Service(mut s) => {
-                let _ = self.poll.registry().deregister(&mut s.reader);
+            EntityKind::Service(s) => {
                 self.readers.remove(&s.token);
             }
             _ => {}

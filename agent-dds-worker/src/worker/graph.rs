@@ -12,10 +12,7 @@ impl Worker {
                 // No node ever: no graph writer (nor DDS participant) for this domain.
                 continue;
             }
-            let published = self
-                .pool
-                .get(domain, Role::Publish)
-                .and_then(|dp| self.graph.publish(domain, &dp, nodes));
+            let published = self.graph.publish(domain, &mut *self.dds, nodes);
             if let Err(e) = published {
                 tracing::warn!(domain, error = %e, "ROS graph not published; retrying");
                 self.graph.touch(domain, now);
@@ -30,8 +27,8 @@ impl Worker {
             EntityKey,
             (
                 ros2_client::NodeName,
-                Vec<rustdds::GUID>,
-                Vec<rustdds::GUID>,
+                Vec<backend::Guid>,
+                Vec<backend::Guid>,
             ),
         > = Default::default();
         for (k, e) in self.entities.iter() {
@@ -49,13 +46,13 @@ impl Worker {
         for (k, e) in self.entities.iter() {
             let (writer, reader, ros_topic) = match &e.kind {
                 EntityKind::Writer(w, _, _) => {
-                    (Some(w.raw.guid()), None, is_ros(&w.raw.topic_name()))
+                    (Some(w.raw.guid()), None, is_ros(w.raw.topic_name()))
                 }
                 EntityKind::Reader(r, _, info) => (None, Some(r.guid()), is_ros(&info.topic)),
                 EntityKind::Service(s) => (
                     Some(s.writer.guid()),
                     Some(s.reader.guid()),
-                    is_ros(&s.writer.topic_name()),
+                    is_ros(s.writer.topic_name()),
                 ),
                 _ => continue,
             };

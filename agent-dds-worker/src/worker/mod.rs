@@ -13,14 +13,11 @@
 
 use std::cell::Cell;
 use std::collections::{HashMap, HashSet};
-use std::os::fd::AsRawFd;
 use std::time::{Duration, Instant};
 
-use rustdds::mio1::{Events, Interest, Poll, Token};
 use std::rc::Rc;
 use std::sync::Arc;
 
-use rustdds::{DomainParticipant, Publisher, QosPolicies, Subscriber, Topic, TopicKind};
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
 use xrce_common::ipc::status::{ProcessReport, Reporter, Watchdog, WorkerStatus};
 use xrce_common::ipc::{
@@ -36,9 +33,11 @@ use xrce_common::wire::{
 
 use crate::acks::{AckTracker, Acknowledging, Outstanding};
 use crate::adoption::{Adoption, Origin};
-use crate::dds::{effective_domain, endpoint_qos, DdsConfig, EndpointSide, ParticipantPool, Role};
+use crate::backend::{
+    self, effective_domain, DdsBackend, DdsConfig, DdsGroup, DdsReader, EndpointQos, EndpointSide,
+    ReaderToken, Sample, TopicSpec,
+};
 use crate::filter::Filter;
-use crate::raw::{RawReader, RawSample, RawWriter};
 use crate::recent::RecentSamples;
 use crate::representation::{
     check_plain, describe_endpoint, describe_service, describe_topic, participant_name,
@@ -55,6 +54,8 @@ mod ports;
 mod reads;
 mod requests;
 mod services;
+#[cfg(test)]
+mod tests;
 mod writes;
 
 use create::*;
@@ -102,11 +103,15 @@ pub struct Worker {
     requests: Option<Receiver>,
     announce: Sender,
     ports: HashMap<u32, FrontendPort>,
-    pool: ParticipantPool,
+    /// The DDS implementation.
+    dds: Box<dyn DdsBackend>,
     /// Every entity, with its parent and an index by client.
     entities: EntityTree<Entity>,
-    readers: HashMap<Token, EntityKey>,
-    next_token: usize,
+    /// The entity behind each reader's wake-up token.
+    readers: HashMap<ReaderToken, EntityKey>,
+    next_token: ReaderToken,
+    /// Tokens of readers the backend said may have data (kept to reuse its memory).
+    ready: Vec<ReaderToken>,
     reads: HashMap<EntityKey, ActiveRead>,
     to_pump: HashSet<EntityKey>,
     /// Writers holding their samples until matched (kept apart so that the loop never scans
@@ -117,7 +122,6 @@ pub struct Worker {
     /// DDS writers shared by XRCE writers (`share_writers`), with the QoS and type they
     /// were made with; dead entries are pruned on lookup.
     shared_writers: HashMap<SharedWriterKey, Vec<SharedWriterEntry>>,
-    poll: Poll,
     graph: RosGraph,
     /// Front-ends with entities whose process is gone, and since when.
     orphaned: HashMap<u32, Instant>,
@@ -159,8 +163,15 @@ impl std::fmt::Debug for Worker {
 }
 
 impl Worker {
-    /// Opens the IPC services, then announces a new generation.
+    /// Opens the IPC services, then announces a new generation; DDS through RustDDS.
     pub fn new(config: WorkerConfig) -> anyhow::Result<Self> {
+        let dds = backend::rustdds::RustDds::new(config.dds.clone())?;
+        Self::with_backend(config, Box::new(dds))
+    }
+
+    /// Opens the IPC services, then announces a new generation; DDS through `dds`.
+    pub fn with_backend(config: WorkerConfig, dds: Box<dyn DdsBackend>) -> anyhow::Result<Self> {
+        tracing::info!(backend = dds.name(), "DDS backend");
         let node = IpcNode::new(&config.instance, "xrce-dds-worker")?;
         let requests = node.receiver(&ipc::request_service(&config.instance), ServiceKind::Data)?;
         let announce = node.sender(
@@ -172,7 +183,6 @@ impl Worker {
             .map(|d| d.subsec_nanos())
             .unwrap_or(0);
         let generation = (nanos ^ std::process::id().rotate_left(16)) | 1;
-        let pool = ParticipantPool::new(config.dds.clone());
         let ros_graph = config.ros_graph;
         let config_instance = config.instance.clone();
         let w = Worker {
@@ -182,16 +192,16 @@ impl Worker {
             requests: Some(requests),
             announce,
             ports: HashMap::new(),
-            pool,
+            dds,
             entities: EntityTree::default(),
             readers: HashMap::new(),
             next_token: 1,
+            ready: Vec::new(),
             reads: HashMap::new(),
             to_pump: HashSet::new(),
             holding: HashSet::new(),
             acks: AckTracker::new(Instant::now()),
             shared_writers: HashMap::new(),
-            poll: Poll::new()?,
             graph: RosGraph::new(ros_graph),
             orphaned: HashMap::new(),
             next_census: Instant::now() + CENSUS_PERIOD,
@@ -236,7 +246,6 @@ impl Worker {
     }
 
     fn serve(&mut self, requests: &Receiver) -> anyhow::Result<()> {
-        let mut events = Events::with_capacity(256);
         loop {
             if self.node.termination_requested() {
                 tracing::info!("termination requested");
@@ -255,7 +264,7 @@ impl Worker {
                 t => t.min(period),
             };
             let ready = xrce_common::ipc::shm::wait_readable(
-                &[requests.raw_fd(), self.poll.as_raw_fd()],
+                &[requests.raw_fd(), self.dds.readiness_fd()],
                 timeout,
             )?;
             // Wake-ups are consumed only when there are some (a system call each time, and
@@ -267,9 +276,9 @@ impl Worker {
             self.serve_successors();
             // Always, not only when its descriptor polled readable: gated that way, every
             // reader stalled (measured with 3 and 100 publishers).
-            self.poll.poll(&mut events, Some(Duration::ZERO))?;
-            for e in events.iter() {
-                if let Some(k) = self.readers.get(&e.token()) {
+            self.dds.ready_readers(&mut self.ready)?;
+            for t in self.ready.drain(..) {
+                if let Some(k) = self.readers.get(&t) {
                     self.to_pump.insert(*k);
                 }
             }

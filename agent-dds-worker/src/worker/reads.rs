@@ -237,8 +237,8 @@ impl Worker {
             }) => {
                 let s = &mut **s;
                 (
-                    &mut s.reader,
-                    Some((s.requester, &s.writer, &mut s.pending)),
+                    &mut *s.reader,
+                    Some((s.requester, &*s.writer, &mut s.pending)),
                     None,
                 )
             }
@@ -258,10 +258,9 @@ impl Worker {
             }
             match reader.take_next() {
                 Ok(Some(taken)) => {
-                    let info = taken.info;
-                    let mut s = taken.sample;
+                    let mut s = taken.sample.clone();
                     if let Some((requester, writer, pending)) = service.as_mut() {
-                        match service_sample(*requester, writer, pending, &info, key.2, s) {
+                        match service_sample(*requester, *writer, pending, &taken, key.2, s) {
                             Some(wrapped) => s = wrapped,
                             // A reply to another requester.
                             None => continue,
@@ -281,7 +280,7 @@ impl Worker {
                     // A filter sees samples; instance ends (key fields only) pass.
                     let passes = |f: Option<&Filter>| {
                         f.is_none_or(|f| {
-                            f.matches(&s.body, s.little_endian(), crate::raw::is_xcdr2(s.encoding))
+                            f.matches(&s.body, s.little_endian(), s.encoding.is_xcdr2())
                         })
                     };
                     let selected = ends || (passes(reader_filter) && passes(read.filter.as_ref()));
@@ -303,12 +302,7 @@ impl Worker {
                         flags |= ipc::FLAG_UNREGISTERED;
                     }
                     read.pacing.sent(now, s.body.len());
-                    let id = info.sample_identity();
-                    let identity = ipc::SampleIdentity {
-                        writer: id.writer_guid.to_bytes(),
-                        sequence_number: i64::from(id.sequence_number),
-                    };
-                    out.push((s, flags, identity));
+                    out.push((s, flags, taken.identity));
                     limit -= 1;
                     if one_shot {
                         break;

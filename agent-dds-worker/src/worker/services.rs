@@ -9,14 +9,14 @@ pub(super) const PENDING_REQUESTS_MAX: usize = 4096;
 /// The DDS side of an XRCE requester or replier.
 pub(super) struct ServiceEndpoint {
     pub(super) requester: bool,
-    pub(super) writer: RawWriter,
-    pub(super) reader: RawReader,
-    pub(super) token: Token,
+    pub(super) writer: Box<dyn backend::DdsWriter>,
+    pub(super) reader: Box<dyn DdsReader>,
+    pub(super) token: ReaderToken,
     /// Requester: the sequence number of each published request -> its XRCE request id.
     pub(super) pending: HashMap<i64, xrce_common::wire::RequestId>,
     pub(super) pending_order: std::collections::VecDeque<i64>,
-    pub(super) _publisher: Publisher,
-    pub(super) _subscriber: Subscriber,
+    pub(super) _publisher: Box<dyn DdsGroup>,
+    pub(super) _subscriber: Box<dyn DdsGroup>,
 }
 
 /// What a requester or replier client gets for a DDS sample: a replier the request's
@@ -25,32 +25,29 @@ pub(super) struct ServiceEndpoint {
 /// requests (`None` for the others), as eProsima's agent does.
 pub(super) fn service_sample(
     requester: bool,
-    writer: &RawWriter,
+    writer: &dyn backend::DdsWriter,
     pending: &mut HashMap<i64, xrce_common::wire::RequestId>,
-    info: &rustdds::SampleInfo,
+    taken: &backend::Taken,
     object: ObjectId,
-    s: RawSample,
-) -> Option<RawSample> {
+    s: Sample,
+) -> Option<Sample> {
     let le = s.little_endian();
     let mut body = Vec::with_capacity(24 + s.body.len());
     if requester {
-        let related = info.related_sample_identity()?;
-        if related.writer_guid != writer.guid() {
+        let related = taken.related?;
+        if related.writer != writer.guid() {
             return None;
         }
-        let request_id = pending.remove(&i64::from(related.sequence_number))?;
+        let request_id = pending.remove(&related.sequence_number)?;
         body.extend_from_slice(&request_id.0);
         body.extend_from_slice(&object.0);
     } else {
-        body.extend_from_slice(&crate::raw::encode_sample_identity(
-            &info.sample_identity(),
-            le,
-        ));
+        body.extend_from_slice(&backend::encode_sample_identity(&taken.identity, le));
     }
     body.extend_from_slice(&s.body);
-    Some(RawSample {
+    Some(Sample {
         encoding: s.encoding,
-        body: rustdds::bytes::Bytes::from(body),
+        body: bytes::Bytes::from(body),
     })
 }
 
@@ -68,19 +65,11 @@ pub(super) fn service_write(
             "a sample in another byte order than the client's CREATE".into(),
         ));
     }
-    let encoding = if little_endian {
-        rustdds::RepresentationIdentifier::CDR_LE
-    } else {
-        rustdds::RepresentationIdentifier::CDR_BE
-    };
     let dds = |e: String| (status::ERR_DDS_ERROR, format!("DDS write: {e}"));
     if svc.requester {
-        let sample = RawSample {
-            encoding,
-            body: rustdds::bytes::Bytes::copy_from_slice(data),
-        };
+        let sample = Sample::cdr(little_endian, data);
         let id = svc.writer.write_identified(sample, None).map_err(dds)?;
-        let seq = i64::from(id.sequence_number);
+        let seq = id.sequence_number;
         svc.pending.insert(seq, request_id);
         svc.pending_order.push_back(seq);
         while svc.pending_order.len() > PENDING_REQUESTS_MAX {
@@ -90,14 +79,11 @@ pub(super) fn service_write(
         }
         Ok(())
     } else {
-        let related = crate::raw::decode_sample_identity(data, little_endian).ok_or((
+        let related = backend::decode_sample_identity(data, little_endian).ok_or((
             status::ERR_INVALID_DATA,
             "a reply without the request's SampleIdentity".to_string(),
         ))?;
-        let sample = RawSample {
-            encoding,
-            body: rustdds::bytes::Bytes::copy_from_slice(data.get(24..).unwrap_or_default()),
-        };
+        let sample = Sample::cdr(little_endian, data.get(24..).unwrap_or_default());
         svc.writer
             .write_identified(sample, Some(related))
             .map(drop)
@@ -116,16 +102,7 @@ impl Worker {
         requester: bool,
         little_endian: bool,
     ) -> Result<ServiceEndpoint, OpError> {
-        let dds_err =
-            |what: &str, e: &dyn std::fmt::Debug| (status::ERR_DDS_ERROR, format!("{what}: {e:?}"));
-        let pub_dp = self
-            .pool
-            .get(domain, Role::Publish)
-            .map_err(|e| (status::ERR_DDS_ERROR, e))?;
-        let sub_dp = self
-            .pool
-            .get(domain, Role::Subscribe)
-            .map_err(|e| (status::ERR_DDS_ERROR, e))?;
+        let dds_err = |e: String| (status::ERR_DDS_ERROR, e);
         let (out_topic, out_type, in_topic, in_type) = if requester {
             (
                 &desc.request_topic,
@@ -141,48 +118,33 @@ impl Worker {
                 &desc.request_type,
             )
         };
-        let qos_desc = crate::xml::QosDesc {
-            reliability: Some(crate::xml::Reliability::Reliable),
-            durability: Some(crate::xml::Durability::Volatile),
-            ..Default::default()
+        let spec = |name: &str, type_name: &str| TopicSpec {
+            name: name.to_string(),
+            type_name: type_name.to_string(),
+            key: None,
         };
-        let make = |dp: &DomainParticipant, name: &str, type_name: &str| {
-            dp.create_topic(
-                name.to_string(),
-                type_name.to_string(),
-                &QosPolicies::qos_none(),
-                TopicKind::NoKey,
+        let publisher = self.dds.create_group(domain, true).map_err(dds_err)?;
+        let subscriber = self.dds.create_group(domain, false).map_err(dds_err)?;
+        let writer = self
+            .dds
+            .create_writer(
+                &*publisher,
+                &spec(out_topic, out_type),
+                &EndpointQos::service(EndpointSide::Writer),
+                little_endian,
             )
-            .map_err(|e| dds_err("create topic", &e))
-        };
-        let publisher = pub_dp
-            .create_publisher(&QosPolicies::qos_none())
-            .map_err(|e| dds_err("create publisher", &e))?;
-        let subscriber = sub_dp
-            .create_subscriber(&QosPolicies::qos_none())
-            .map_err(|e| dds_err("create subscriber", &e))?;
-        let wt = make(&pub_dp, out_topic, out_type)?;
-        let rt = make(&sub_dp, in_topic, in_type)?;
-        let wq = endpoint_qos(
-            EndpointSide::Writer,
-            &qos_desc,
-            &crate::xml::QosDesc::default(),
-        );
-        let rq = endpoint_qos(
-            EndpointSide::Reader,
-            &qos_desc,
-            &crate::xml::QosDesc::default(),
-        );
-        let writer = RawWriter::create(&publisher, &wt, wq, little_endian, None)
-            .map_err(|e| dds_err("create data writer", &e))?;
-        let mut reader = RawReader::create(&subscriber, &rt, rq, None)
-            .map_err(|e| dds_err("create data reader", &e))?;
-        let token = Token(self.next_token);
+            .map_err(dds_err)?;
+        let token = self.next_token;
         self.next_token += 1;
-        self.poll
-            .registry()
-            .register(&mut reader, token, Interest::READABLE)
-            .map_err(|e| dds_err("register reader", &e))?;
+        let reader = self
+            .dds
+            .create_reader(
+                &*subscriber,
+                &spec(in_topic, in_type),
+                &EndpointQos::service(EndpointSide::Reader),
+                token,
+            )
+            .map_err(dds_err)?;
         Ok(ServiceEndpoint {
             requester,
             writer,

@@ -5,13 +5,13 @@ use super::*;
 
 /// The DDS writer behind one XRCE data writer, or behind several with `share_writers`.
 pub(super) struct DdsWriter {
-    pub(super) raw: RawWriter,
+    pub(super) raw: Box<dyn backend::DdsWriter>,
     /// Its place among the shared writers, if it is one.
     pub(super) shared: Option<SharedWriterKey>,
-    /// When it first matched a reader (read from its status events, which only this
-    /// structure consumes, so that every XRCE writer sharing it sees the match).
+    /// When it was first seen matching a reader (kept here, so that every XRCE writer
+    /// sharing it sees the match).
     pub(super) matched_at: Cell<Option<Instant>>,
-    /// How many readers it matches now (from the same status events).
+    /// How many readers it matched when last looked at.
     pub(super) matched: Cell<usize>,
     /// Front-end operations written through it that its readers may not have acknowledged.
     pub(super) outstanding: Outstanding,
@@ -27,62 +27,30 @@ impl Acknowledging for DdsWriter {
 }
 
 impl DdsWriter {
-    /// Reads the writer's pending status events; returns when it first matched a reader.
+    /// Looks at the writer's matched readers; returns when it first matched one.
     pub(super) fn poll_matched(&self, now: Instant) -> Option<Instant> {
-        while let Some(st) = self.raw.try_recv_status() {
-            if let rustdds::dds::statusevents::DataWriterStatus::PublicationMatched {
-                current,
-                ..
-            } = st
-            {
-                if current.count() > 0 && self.matched_at.get().is_none() {
-                    self.matched_at.set(Some(now));
-                }
-                self.matched.set(current.count().max(0) as usize);
-            }
+        let n = self.raw.matched_readers();
+        if n > 0 && self.matched_at.get().is_none() {
+            self.matched_at.set(Some(now));
         }
+        self.matched.set(n);
         self.matched_at.get()
     }
 }
 
 /// A shared DDS writer, with the QoS and key type it was made with.
 pub(super) struct SharedWriterEntry {
-    pub(super) qos: QosPolicies,
+    pub(super) qos: EndpointQos,
     pub(super) ty: Option<Arc<StructDef>>,
     pub(super) writer: std::rc::Weak<DdsWriter>,
 }
 
-/// Whether XRCE writers with this QoS may share a DDS writer without changing what DDS
-/// readers get beyond the writer's identity: a volatile writer keeps no history for late
-/// joiners (a shared transient one would keep its depth over all clients together), and
-/// exclusive ownership picks one writer per instance (sharing would merge the contenders).
-pub(super) fn shareable(qos: &QosPolicies) -> bool {
-    use rustdds::policy::{Durability, Ownership};
-    matches!(qos.durability(), None | Some(Durability::Volatile))
-        && matches!(qos.ownership(), None | Some(Ownership::Shared))
-}
-
 /// Most XRCE writers on one shared DDS writer. The shared writer keeps this many times the
-/// history depth the clients asked for, so that every client keeps the resend window of a
-/// writer of its own (a reliable writer overwrites samples beyond its depth, acknowledged
-/// or not), and its memory stays within what that many writers of their own would hold.
+/// history depth the clients asked for ([`EndpointQos::deeper`]), so that every client keeps
+/// the resend window of a writer of its own (a reliable writer overwrites samples beyond its
+/// depth, acknowledged or not), and its memory stays within what that many writers of their
+/// own would hold.
 pub(super) const SHARE_GROUP: usize = 32;
-
-/// The QoS of a shared DDS writer: the clients' own, with [`SHARE_GROUP`] times their
-/// keep-last depth.
-pub(super) fn shared_history(qos: &QosPolicies) -> QosPolicies {
-    match qos.history() {
-        Some(rustdds::policy::History::KeepLast { depth }) => {
-            let deeper = depth.saturating_mul(SHARE_GROUP as i32);
-            qos.modify_by(
-                &rustdds::QosPolicyBuilder::new()
-                    .history(rustdds::policy::History::KeepLast { depth: deeper })
-                    .build(),
-            )
-        }
-        _ => qos.clone(),
-    }
-}
 
 /// What makes two XRCE data writers able to share one DDS writer, besides equal QoS and
 /// type: the domain, topic name, type name and byte order.
@@ -99,7 +67,7 @@ pub(super) struct Rematch {
     /// When the writer first matched a reader again.
     pub(super) matched_at: Option<Instant>,
     /// Held writes: (front-end operation sequence number, sample, is a dispose).
-    pub(super) held: std::collections::VecDeque<(u64, RawSample, bool)>,
+    pub(super) held: std::collections::VecDeque<(u64, Sample, bool)>,
     /// Bytes of the held samples.
     pub(super) held_bytes: usize,
     /// Matched: the held samples are being written in batches (new writes still queue behind
@@ -251,14 +219,7 @@ impl Worker {
                 ),
             ));
         }
-        let sample = RawSample {
-            encoding: if little_endian {
-                rustdds::RepresentationIdentifier::CDR_LE
-            } else {
-                rustdds::RepresentationIdentifier::CDR_BE
-            },
-            body: rustdds::bytes::Bytes::copy_from_slice(body),
-        };
+        let sample = Sample::cdr(little_endian, body);
         if dispose && w.raw.key().is_none() {
             // DDS has no instances on a topic without a key.
             return Err((
@@ -322,7 +283,7 @@ impl Worker {
     pub(super) fn shared_writer(
         &mut self,
         key: &SharedWriterKey,
-        qos: &QosPolicies,
+        qos: &EndpointQos,
         ty: Option<&Arc<StructDef>>,
     ) -> Option<Rc<DdsWriter>> {
         let entries = self.shared_writers.get_mut(key)?;

@@ -5,6 +5,7 @@ use rustdds::bytes::Bytes;
 use rustdds::no_key::{Decode, DefaultDecoder, DeserializerAdapter, SerializerAdapter};
 use rustdds::RepresentationIdentifier;
 
+use crate::backend::{Encoding, Sample};
 use crate::types::KeyDescriptor;
 
 /// A serialized sample body (no encapsulation header) and its encoding.
@@ -14,6 +15,25 @@ pub struct RawSample {
     pub encoding: RepresentationIdentifier,
     /// The serialized body.
     pub body: Bytes,
+}
+
+impl From<Sample> for RawSample {
+    fn from(s: Sample) -> Self {
+        RawSample {
+            encoding: RepresentationIdentifier::from_bytes(&s.encoding.0)
+                .unwrap_or(RepresentationIdentifier::CDR_LE),
+            body: s.body,
+        }
+    }
+}
+
+impl From<RawSample> for Sample {
+    fn from(s: RawSample) -> Self {
+        Sample {
+            encoding: Encoding(s.encoding.to_bytes()),
+            body: s.body,
+        }
+    }
 }
 
 impl RawSample {
@@ -189,8 +209,8 @@ thread_local! {
 }
 
 /// Whether an encoding is XCDR version 2.
-pub fn is_xcdr2(encoding: RepresentationIdentifier) -> bool {
-    encoding == RepresentationIdentifier::XCDR2_LE || encoding == RepresentationIdentifier::XCDR2_BE
+fn is_xcdr2(encoding: RepresentationIdentifier) -> bool {
+    Encoding(encoding.to_bytes()).is_xcdr2()
 }
 
 fn key_of(
@@ -598,57 +618,5 @@ impl RawWriter {
             RawWriter::KeyedLe(w, _) => w.try_recv_status(),
             RawWriter::KeyedBe(w, _) => w.try_recv_status(),
         }
-    }
-}
-
-/// A `SampleIdentity` as eProsima's client carries it in front of request and reply data:
-/// the writer GUID's 16 octets, then the sequence number as `int32 high`, `uint32 low` in the
-/// given byte order (24 bytes).
-pub fn encode_sample_identity(id: &rustdds::SampleIdentity, little_endian: bool) -> [u8; 24] {
-    let mut out = [0u8; 24];
-    out[..16].copy_from_slice(&id.writer_guid.to_bytes());
-    let (high, low) = (id.sequence_number.high(), id.sequence_number.low());
-    let (h, l) = if little_endian {
-        (high.to_le_bytes(), low.to_le_bytes())
-    } else {
-        (high.to_be_bytes(), low.to_be_bytes())
-    };
-    out[16..20].copy_from_slice(&h);
-    out[20..24].copy_from_slice(&l);
-    out
-}
-
-/// Reads the 24-byte identity [`encode_sample_identity`] writes; `None` if too short.
-pub fn decode_sample_identity(b: &[u8], little_endian: bool) -> Option<rustdds::SampleIdentity> {
-    let guid: [u8; 16] = b.get(..16)?.try_into().ok()?;
-    let h: [u8; 4] = b.get(16..20)?.try_into().ok()?;
-    let l: [u8; 4] = b.get(20..24)?.try_into().ok()?;
-    let (high, low) = if little_endian {
-        (i32::from_le_bytes(h), u32::from_le_bytes(l))
-    } else {
-        (i32::from_be_bytes(h), u32::from_be_bytes(l))
-    };
-    Some(rustdds::SampleIdentity {
-        writer_guid: rustdds::GUID::from_bytes(guid),
-        sequence_number: rustdds::SequenceNumber::from_high_low(high, low),
-    })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn sample_identities_round_trip_in_both_byte_orders() {
-        let id = rustdds::SampleIdentity {
-            writer_guid: rustdds::GUID::from_bytes([7; 16]),
-            sequence_number: rustdds::SequenceNumber::from_high_low(1, 0x0102_0304),
-        };
-        for le in [true, false] {
-            let b = encode_sample_identity(&id, le);
-            assert_eq!(decode_sample_identity(&b, le), Some(id));
-        }
-        assert_eq!(&encode_sample_identity(&id, true)[20..], &[4, 3, 2, 1]);
-        assert_eq!(decode_sample_identity(&[0; 23], true), None);
     }
 }

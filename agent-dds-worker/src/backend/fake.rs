@@ -1,0 +1,351 @@
+//! An in-memory backend for the worker's unit tests: a writer delivers each sample at once
+//! to every live reader of the same domain and topic name, and the test inspects what was
+//! made, written and deleted through a [`FakeBus`] handle.
+
+use std::cell::{Cell, RefCell};
+use std::collections::VecDeque;
+use std::os::fd::{AsRawFd, RawFd};
+use std::os::unix::net::UnixStream;
+use std::rc::Rc;
+use std::sync::Arc;
+
+use super::{
+    DdsBackend, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken, Sample,
+    SampleIdentity, Taken, TopicSpec,
+};
+use crate::types::KeyDescriptor;
+
+/// What a fake writer did.
+#[derive(Debug, Clone)]
+pub struct Written {
+    /// The writer's GUID.
+    pub writer: Guid,
+    /// Its topic.
+    pub topic: String,
+    /// The sample (for a dispose, what was given).
+    pub sample: Sample,
+    /// A dispose rather than a write.
+    pub dispose: bool,
+}
+
+#[derive(Debug)]
+struct ReaderSlot {
+    id: u32,
+    domain: u16,
+    topic: String,
+    token: ReaderToken,
+    queue: Rc<RefCell<VecDeque<Taken>>>,
+}
+
+/// The shared state of a fake backend, which tests look into.
+#[derive(Debug, Default)]
+pub struct FakeBus {
+    next_id: Cell<u32>,
+    readers: RefCell<Vec<ReaderSlot>>,
+    live_writers: RefCell<Vec<(u32, u16, String)>>,
+    /// Everything written, in order.
+    pub written: RefCell<Vec<Written>>,
+    /// Writers made so far (deleted ones included).
+    pub writers_made: Cell<usize>,
+    /// Readers made so far (deleted ones included).
+    pub readers_made: Cell<usize>,
+    ready: RefCell<Vec<ReaderToken>>,
+    /// What `all_acknowledged` answers.
+    pub acknowledged: Cell<bool>,
+    /// Participants made, by domain.
+    pub domains: RefCell<Vec<u16>>,
+}
+
+impl FakeBus {
+    fn next(&self) -> u32 {
+        let id = self.next_id.get() + 1;
+        self.next_id.set(id);
+        id
+    }
+
+    fn guid(id: u32) -> Guid {
+        let mut g = [0xfa; 16];
+        g[12..].copy_from_slice(&id.to_be_bytes());
+        g
+    }
+
+    /// Live readers of a topic (in any domain).
+    pub fn readers_of(&self, topic: &str) -> usize {
+        self.readers
+            .borrow()
+            .iter()
+            .filter(|r| r.topic == topic)
+            .count()
+    }
+
+    /// Live writers of a topic (in any domain).
+    pub fn writers_of(&self, topic: &str) -> usize {
+        self.live_writers
+            .borrow()
+            .iter()
+            .filter(|w| w.2 == topic)
+            .count()
+    }
+
+    /// The samples written on `topic`, in order (disposes excluded).
+    pub fn samples_on(&self, topic: &str) -> Vec<Vec<u8>> {
+        self.written
+            .borrow()
+            .iter()
+            .filter(|w| w.topic == topic && !w.dispose)
+            .map(|w| w.sample.body.to_vec())
+            .collect()
+    }
+
+    /// Delivers a sample from outside the agent (another DDS application) to the readers
+    /// of `topic` in `domain`.
+    pub fn inject(&self, domain: u16, topic: &str, taken: impl Fn() -> Taken) {
+        for r in self.readers.borrow().iter() {
+            if r.domain == domain && r.topic == topic {
+                r.queue.borrow_mut().push_back(taken());
+                self.ready.borrow_mut().push(r.token);
+            }
+        }
+    }
+}
+
+/// The fake backend.
+#[derive(Debug)]
+pub struct Fake {
+    bus: Rc<FakeBus>,
+    /// Never written: the worker's loop is not run over the fake.
+    wake: (UnixStream, UnixStream),
+}
+
+impl Fake {
+    /// A fake backend and the handle tests inspect it with.
+    pub fn new() -> std::io::Result<(Self, Rc<FakeBus>)> {
+        let bus = Rc::new(FakeBus {
+            acknowledged: Cell::new(true),
+            ..FakeBus::default()
+        });
+        Ok((
+            Fake {
+                bus: bus.clone(),
+                wake: UnixStream::pair()?,
+            },
+            bus,
+        ))
+    }
+}
+
+struct Group {
+    domain: u16,
+    publish: bool,
+}
+
+impl DdsGroup for Group {
+    fn domain(&self) -> u16 {
+        self.domain
+    }
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+}
+
+struct Writer {
+    bus: Rc<FakeBus>,
+    id: u32,
+    domain: u16,
+    topic: String,
+    little_endian: bool,
+    key: Option<Arc<KeyDescriptor>>,
+    seq: Cell<i64>,
+}
+
+impl Drop for Writer {
+    fn drop(&mut self) {
+        self.bus
+            .live_writers
+            .borrow_mut()
+            .retain(|w| w.0 != self.id);
+    }
+}
+
+impl Writer {
+    fn publish(
+        &self,
+        sample: Sample,
+        dispose: bool,
+        related: Option<SampleIdentity>,
+    ) -> SampleIdentity {
+        let seq = self.seq.get() + 1;
+        self.seq.set(seq);
+        let identity = SampleIdentity {
+            writer: FakeBus::guid(self.id),
+            sequence_number: seq,
+        };
+        self.bus.written.borrow_mut().push(Written {
+            writer: identity.writer,
+            topic: self.topic.clone(),
+            sample: sample.clone(),
+            dispose,
+        });
+        self.bus.inject(self.domain, &self.topic, || Taken {
+            sample: sample.clone(),
+            identity,
+            related,
+            disposed: dispose,
+            unregistered: false,
+        });
+        identity
+    }
+}
+
+impl DdsWriter for Writer {
+    fn guid(&self) -> Guid {
+        FakeBus::guid(self.id)
+    }
+    fn topic_name(&self) -> &str {
+        &self.topic
+    }
+    fn little_endian(&self) -> bool {
+        self.little_endian
+    }
+    fn key(&self) -> Option<&Arc<KeyDescriptor>> {
+        self.key.as_ref()
+    }
+    fn write(&self, sample: Sample) -> Result<(), String> {
+        self.publish(sample, false, None);
+        Ok(())
+    }
+    fn dispose(&self, sample: &Sample) -> Result<(), String> {
+        if self.key.is_none() {
+            return Err("dispose on a topic without a key".into());
+        }
+        self.publish(sample.clone(), true, None);
+        Ok(())
+    }
+    fn write_identified(
+        &self,
+        sample: Sample,
+        related: Option<SampleIdentity>,
+    ) -> Result<SampleIdentity, String> {
+        Ok(self.publish(sample, false, related))
+    }
+    fn all_acknowledged(&self) -> bool {
+        self.bus.acknowledged.get()
+    }
+    fn matched_readers(&self) -> usize {
+        self.bus
+            .readers
+            .borrow()
+            .iter()
+            .filter(|r| r.domain == self.domain && r.topic == self.topic)
+            .count()
+    }
+}
+
+struct Reader {
+    bus: Rc<FakeBus>,
+    id: u32,
+    queue: Rc<RefCell<VecDeque<Taken>>>,
+}
+
+impl Drop for Reader {
+    fn drop(&mut self) {
+        self.bus.readers.borrow_mut().retain(|r| r.id != self.id);
+    }
+}
+
+impl DdsReader for Reader {
+    fn guid(&self) -> Guid {
+        FakeBus::guid(self.id)
+    }
+    fn take_next(&mut self) -> Result<Option<Taken>, String> {
+        Ok(self.queue.borrow_mut().pop_front())
+    }
+}
+
+impl DdsBackend for Fake {
+    fn name(&self) -> &'static str {
+        "fake"
+    }
+
+    fn create_group(&mut self, domain: u16, publish: bool) -> Result<Box<dyn DdsGroup>, String> {
+        if !self.bus.domains.borrow().contains(&domain) {
+            self.bus.domains.borrow_mut().push(domain);
+        }
+        Ok(Box::new(Group { domain, publish }))
+    }
+
+    fn create_writer(
+        &mut self,
+        group: &dyn DdsGroup,
+        topic: &TopicSpec,
+        _qos: &EndpointQos,
+        little_endian: bool,
+    ) -> Result<Box<dyn DdsWriter>, String> {
+        match group.as_any().downcast_ref::<Group>() {
+            Some(g) if g.publish => {}
+            _ => return Err("a data writer needs a fake publisher".into()),
+        }
+        let id = self.bus.next();
+        self.bus
+            .live_writers
+            .borrow_mut()
+            .push((id, group.domain(), topic.name.clone()));
+        self.bus.writers_made.set(self.bus.writers_made.get() + 1);
+        Ok(Box::new(Writer {
+            bus: self.bus.clone(),
+            id,
+            domain: group.domain(),
+            topic: topic.name.clone(),
+            little_endian,
+            key: topic.key.clone(),
+            seq: Cell::new(0),
+        }))
+    }
+
+    fn create_reader(
+        &mut self,
+        group: &dyn DdsGroup,
+        topic: &TopicSpec,
+        _qos: &EndpointQos,
+        token: ReaderToken,
+    ) -> Result<Box<dyn DdsReader>, String> {
+        match group.as_any().downcast_ref::<Group>() {
+            Some(g) if !g.publish => {}
+            _ => return Err("a data reader needs a fake subscriber".into()),
+        }
+        let id = self.bus.next();
+        let queue = Rc::new(RefCell::new(VecDeque::new()));
+        self.bus.readers.borrow_mut().push(ReaderSlot {
+            id,
+            domain: group.domain(),
+            topic: topic.name.clone(),
+            token,
+            queue: queue.clone(),
+        });
+        self.bus.readers_made.set(self.bus.readers_made.get() + 1);
+        Ok(Box::new(Reader {
+            bus: self.bus.clone(),
+            id,
+            queue,
+        }))
+    }
+
+    fn participant_guid(&mut self, domain: u16) -> Result<Guid, String> {
+        let mut g = [0xfb; 16];
+        g[14..].copy_from_slice(&domain.to_be_bytes());
+        Ok(g)
+    }
+
+    fn readiness_fd(&self) -> RawFd {
+        self.wake.0.as_raw_fd()
+    }
+
+    fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()> {
+        out.append(&mut self.bus.ready.borrow_mut());
+        Ok(())
+    }
+
+    fn participants(&self) -> usize {
+        self.bus.domains.borrow().len()
+    }
+}

@@ -1,0 +1,312 @@
+//! The seam between the worker and a DDS implementation.
+//!
+//! The worker decides what exists (the XRCE entity tree, holds, reads, pacing, filters) and
+//! a backend makes it exist in DDS: participants per domain, data writers and readers of
+//! raw serialized samples (the client's CDR goes to the wire as it is, and received samples
+//! come back as bytes with their identity), matched counts, acknowledgement status, and one
+//! descriptor the worker's loop waits on for readers with data. Nothing outside this module
+//! and its implementations names a DDS implementation.
+//!
+//! Implementations: [`rustdds`] (the default, RustDDS) and, for the worker's unit tests, a
+//! fake that delivers between its own writers and readers in memory.
+
+use std::net::IpAddr;
+use std::os::fd::RawFd;
+use std::sync::Arc;
+
+use bytes::Bytes;
+pub use xrce_common::ipc::SampleIdentity;
+
+use crate::types::KeyDescriptor;
+
+pub mod qos;
+pub mod rustdds;
+
+#[cfg(test)]
+pub mod fake;
+
+pub use qos::{EndpointQos, EndpointSide};
+
+/// Where DDS may talk.
+#[derive(Debug, Clone, Default)]
+pub struct DdsConfig {
+    /// Restrict DDS to these local addresses (empty = every interface, like any DDS app).
+    pub interfaces: Vec<IpAddr>,
+}
+
+/// The domain id XRCE clients use to mean "the agent's default" (reference agent behaviour).
+pub const DOMAIN_ID_DEFAULT_MARKER: i16 = 255;
+
+/// Maps the domain id a client asked for to the DDS domain used.
+pub fn effective_domain(requested: i16) -> Result<u16, String> {
+    if requested == DOMAIN_ID_DEFAULT_MARKER {
+        for var in ["XRCE_DOMAIN_ID_OVERRIDE", "ROS_DOMAIN_ID"] {
+            if let Ok(v) = std::env::var(var) {
+                return v
+                    .trim()
+                    .parse::<u16>()
+                    .map_err(|_| format!("{var}={v:?} is not a domain id"));
+            }
+        }
+        return Ok(0);
+    }
+    u16::try_from(requested)
+        .ok()
+        .filter(|d| *d <= 232)
+        .ok_or_else(|| format!("domain id {requested} out of range"))
+}
+
+/// A DDS GUID (participant prefix and entity id), as on the wire.
+pub type Guid = [u8; 16];
+
+/// How a sample body is serialized: the two bytes of its RTPS representation identifier.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct Encoding(pub [u8; 2]);
+
+impl Encoding {
+    /// Plain CDR (XCDR1), big endian.
+    pub const CDR_BE: Encoding = Encoding([0, 0]);
+    /// Plain CDR (XCDR1), little endian.
+    pub const CDR_LE: Encoding = Encoding([0, 1]);
+    /// Plain XCDR2, big endian.
+    pub const XCDR2_BE: Encoding = Encoding([0, 0x10]);
+    /// Plain XCDR2, little endian.
+    pub const XCDR2_LE: Encoding = Encoding([0, 0x11]);
+
+    /// Plain CDR in the given byte order (what a client's samples are).
+    pub fn cdr(little_endian: bool) -> Self {
+        if little_endian {
+            Self::CDR_LE
+        } else {
+            Self::CDR_BE
+        }
+    }
+
+    /// Whether the body is little endian (every representation identifier ends in 1 then).
+    pub fn little_endian(self) -> bool {
+        self.0[1] & 1 == 1
+    }
+
+    /// Whether it is XCDR version 2.
+    pub fn is_xcdr2(self) -> bool {
+        self == Self::XCDR2_LE || self == Self::XCDR2_BE
+    }
+}
+
+/// A serialized sample body (no encapsulation header) and its encoding.
+#[derive(Debug, Clone)]
+pub struct Sample {
+    /// CDR_LE, CDR_BE, ...
+    pub encoding: Encoding,
+    /// The serialized body.
+    pub body: Bytes,
+}
+
+impl Sample {
+    /// A client's sample: plain CDR in its byte order, copied.
+    pub fn cdr(little_endian: bool, body: &[u8]) -> Self {
+        Sample {
+            encoding: Encoding::cdr(little_endian),
+            body: Bytes::copy_from_slice(body),
+        }
+    }
+
+    /// Whether the body is little endian.
+    pub fn little_endian(&self) -> bool {
+        self.encoding.little_endian()
+    }
+}
+
+/// A sample taken from a [`DdsReader`].
+#[derive(Debug)]
+pub struct Taken {
+    /// The sample; for a dispose or unregister, the key-only payload.
+    pub sample: Sample,
+    /// Which writer wrote it, and its sequence number there.
+    pub identity: SampleIdentity,
+    /// The request it answers, for a reply (RPC over DDS).
+    pub related: Option<SampleIdentity>,
+    /// The instance was disposed (no data).
+    pub disposed: bool,
+    /// The instance has no writers any more (no data).
+    pub unregistered: bool,
+}
+
+/// A topic as a backend makes it: name, type name and whether it has a key.
+#[derive(Debug, Clone)]
+pub struct TopicSpec {
+    /// The DDS topic name.
+    pub name: String,
+    /// The DDS type name.
+    pub type_name: String,
+    /// Its type and key, for a WITH_KEY topic whose type is known (the backend extracts
+    /// each sample's key with it); `None` makes a NO_KEY topic.
+    pub key: Option<Arc<KeyDescriptor>>,
+}
+
+/// Which readers a worker's loop wakes up for: a number the worker chooses per reader.
+pub type ReaderToken = u64;
+
+/// A group of endpoints (a DDS publisher or subscriber) on the participant of a domain.
+pub trait DdsGroup {
+    /// The domain it is in.
+    fn domain(&self) -> u16;
+    /// For the backend that made it, to find its own type again.
+    fn as_any(&self) -> &dyn std::any::Any;
+}
+
+/// A data writer of raw samples in one byte order (the client's).
+pub trait DdsWriter {
+    /// Its GUID (announced in the ROS graph; replies name it).
+    fn guid(&self) -> Guid;
+    /// The name of the topic it writes.
+    fn topic_name(&self) -> &str;
+    /// Whether it publishes little-endian samples.
+    fn little_endian(&self) -> bool;
+    /// The key description of a keyed writer.
+    fn key(&self) -> Option<&Arc<KeyDescriptor>>;
+    /// Publishes a sample (already in the writer's byte order).
+    fn write(&self, sample: Sample) -> Result<(), String>;
+    /// Disposes the instance of `sample` (a whole sample, or its key fields alone).
+    fn dispose(&self, sample: &Sample) -> Result<(), String>;
+    /// Publishes a sample, optionally as the reply to `related`; returns its identity.
+    fn write_identified(
+        &self,
+        sample: Sample,
+        related: Option<SampleIdentity>,
+    ) -> Result<SampleIdentity, String>;
+    /// Whether every matched reliable reader acknowledged everything written (true without
+    /// any, and for a best-effort writer). Never waits.
+    fn all_acknowledged(&self) -> bool;
+    /// How many readers it matches now.
+    fn matched_readers(&self) -> usize;
+}
+
+/// A data reader of raw samples, keyed or not. Dropping it deletes it and stops its
+/// wake-ups.
+pub trait DdsReader {
+    /// Its GUID.
+    fn guid(&self) -> Guid;
+    /// Takes the next sample, if any; an error is one sample that could not be taken
+    /// (undecodable), the next call goes on.
+    fn take_next(&mut self) -> Result<Option<Taken>, String>;
+}
+
+/// A DDS implementation as the worker uses it.
+pub trait DdsBackend {
+    /// Its name in logs and on the command line.
+    fn name(&self) -> &'static str;
+    /// A publisher (`publish`) or subscriber in `domain`, making the domain's participant
+    /// on first use.
+    fn create_group(&mut self, domain: u16, publish: bool) -> Result<Box<dyn DdsGroup>, String>;
+    /// A data writer in `group` (a publisher of this backend) publishing in the given byte
+    /// order.
+    fn create_writer(
+        &mut self,
+        group: &dyn DdsGroup,
+        topic: &TopicSpec,
+        qos: &EndpointQos,
+        little_endian: bool,
+    ) -> Result<Box<dyn DdsWriter>, String>;
+    /// A data reader in `group` (a subscriber of this backend), whose data wakes the loop
+    /// with `token`.
+    fn create_reader(
+        &mut self,
+        group: &dyn DdsGroup,
+        topic: &TopicSpec,
+        qos: &EndpointQos,
+        token: ReaderToken,
+    ) -> Result<Box<dyn DdsReader>, String>;
+    /// The GUID of the participant the domain's writers live on (the ROS graph names it).
+    fn participant_guid(&mut self, domain: u16) -> Result<Guid, String>;
+    /// A descriptor that polls readable when some reader may have data.
+    fn readiness_fd(&self) -> RawFd;
+    /// Adds the tokens of readers that may have data since the last call (never blocks;
+    /// a reader may be named without data, and the worker takes from it until empty).
+    fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()>;
+    /// How many DDS participants it made.
+    fn participants(&self) -> usize;
+}
+
+/// A `SampleIdentity` as eProsima's client carries it in front of request and reply data:
+/// the writer GUID's 16 octets, then the sequence number as `int32 high`, `uint32 low` in the
+/// given byte order (24 bytes).
+pub fn encode_sample_identity(id: &SampleIdentity, little_endian: bool) -> [u8; 24] {
+    let mut out = [0u8; 24];
+    out[..16].copy_from_slice(&id.writer);
+    let (high, low) = ((id.sequence_number >> 32) as i32, id.sequence_number as u32);
+    let (h, l) = if little_endian {
+        (high.to_le_bytes(), low.to_le_bytes())
+    } else {
+        (high.to_be_bytes(), low.to_be_bytes())
+    };
+    out[16..20].copy_from_slice(&h);
+    out[20..24].copy_from_slice(&l);
+    out
+}
+
+/// Reads the 24-byte identity [`encode_sample_identity`] writes; `None` if too short.
+pub fn decode_sample_identity(b: &[u8], little_endian: bool) -> Option<SampleIdentity> {
+    let writer: [u8; 16] = b.get(..16)?.try_into().ok()?;
+    let h: [u8; 4] = b.get(16..20)?.try_into().ok()?;
+    let l: [u8; 4] = b.get(20..24)?.try_into().ok()?;
+    let (high, low) = if little_endian {
+        (i32::from_le_bytes(h), u32::from_le_bytes(l))
+    } else {
+        (i32::from_be_bytes(h), u32::from_be_bytes(l))
+    };
+    Some(SampleIdentity {
+        writer,
+        sequence_number: (i64::from(high) << 32) | i64::from(low),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sample_identities_round_trip_in_both_byte_orders() {
+        let id = SampleIdentity {
+            writer: [7; 16],
+            sequence_number: (1 << 32) | 0x0102_0304,
+        };
+        for le in [true, false] {
+            let b = encode_sample_identity(&id, le);
+            assert_eq!(decode_sample_identity(&b, le), Some(id));
+        }
+        assert_eq!(
+            &encode_sample_identity(&id, true)[16..],
+            &[1, 0, 0, 0, 4, 3, 2, 1]
+        );
+        assert_eq!(
+            &encode_sample_identity(&id, false)[16..],
+            &[0, 0, 0, 1, 1, 2, 3, 4]
+        );
+        let negative = SampleIdentity {
+            writer: [1; 16],
+            sequence_number: -2,
+        };
+        assert_eq!(
+            decode_sample_identity(&encode_sample_identity(&negative, true), true),
+            Some(negative)
+        );
+        assert_eq!(decode_sample_identity(&[0; 23], true), None);
+    }
+
+    #[test]
+    fn encodings_say_their_byte_order_and_version() {
+        assert!(Encoding::CDR_LE.little_endian() && !Encoding::CDR_LE.is_xcdr2());
+        assert!(!Encoding::CDR_BE.little_endian());
+        assert!(Encoding::XCDR2_LE.little_endian() && Encoding::XCDR2_LE.is_xcdr2());
+        assert!(!Encoding::XCDR2_BE.little_endian() && Encoding::XCDR2_BE.is_xcdr2());
+        assert_eq!(Encoding::cdr(false), Encoding::CDR_BE);
+    }
+
+    #[test]
+    fn domain_ids() {
+        assert_eq!(effective_domain(7), Ok(7));
+        assert!(effective_domain(-1).is_err());
+        assert!(effective_domain(300).is_err());
+    }
+}

@@ -1,0 +1,304 @@
+//! The RustDDS backend: two participants per domain (one for writers, one for readers),
+//! raw pass-through writers and readers ([`raw`]), and a mio poll of every reader as the
+//! worker's readiness descriptor.
+//!
+//! Writers and readers live on different RustDDS participants: pinned to loopback, a RustDDS
+//! participant cannot deliver from its own writer to its own reader (its proxies of itself
+//! get no locators), so two XRCE clients in one domain would not hear each other.
+
+use std::cell::Cell;
+use std::collections::HashMap;
+use std::os::fd::{AsRawFd, RawFd};
+use std::sync::Arc;
+use std::time::Duration;
+
+use rustdds::mio1::{Events, Interest, Poll, Registry, Token};
+use rustdds::{DomainParticipant, DomainParticipantBuilder, QosPolicies, RTPSEntity, TopicKind};
+
+use super::{
+    DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken, Sample,
+    SampleIdentity, Taken, TopicSpec,
+};
+use crate::types::KeyDescriptor;
+
+pub mod qos;
+pub mod raw;
+
+use raw::{RawReader, RawSample, RawWriter};
+
+/// Which participant of a domain an entity lives on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum Role {
+    /// Publishers and data writers.
+    Publish,
+    /// Subscribers and data readers.
+    Subscribe,
+}
+
+/// DDS through RustDDS.
+pub struct RustDds {
+    config: DdsConfig,
+    participants: HashMap<(u16, Role), DomainParticipant>,
+    poll: Poll,
+    events: Events,
+}
+
+impl std::fmt::Debug for RustDds {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("RustDds")
+            .field("participants", &self.participants.len())
+            .finish()
+    }
+}
+
+impl RustDds {
+    /// A backend with no participant yet.
+    pub fn new(config: DdsConfig) -> std::io::Result<Self> {
+        Ok(RustDds {
+            config,
+            participants: HashMap::new(),
+            poll: Poll::new()?,
+            events: Events::with_capacity(256),
+        })
+    }
+
+    /// The participant of `domain` for `role`, created on first use.
+    fn participant(&mut self, domain: u16, role: Role) -> Result<DomainParticipant, String> {
+        if let Some(p) = self.participants.get(&(domain, role)) {
+            return Ok(p.clone());
+        }
+        let mut b = DomainParticipantBuilder::new(domain);
+        if !self.config.interfaces.is_empty() {
+            b = b.with_only_networks(self.config.interfaces.clone());
+        }
+        let p = b
+            .build()
+            .map_err(|e| format!("creating DDS participant in domain {domain}: {e:?}"))?;
+        tracing::info!(domain, ?role, "DDS participant created");
+        self.participants.insert((domain, role), p.clone());
+        Ok(p)
+    }
+}
+
+/// A RustDDS topic on `dp` (RustDDS makes topics per participant).
+fn topic(dp: &DomainParticipant, spec: &TopicSpec) -> Result<rustdds::Topic, String> {
+    dp.create_topic(
+        spec.name.clone(),
+        spec.type_name.clone(),
+        &QosPolicies::qos_none(),
+        if spec.key.is_some() {
+            TopicKind::WithKey
+        } else {
+            TopicKind::NoKey
+        },
+    )
+    .map_err(|e| format!("create topic: {e:?}"))
+}
+
+/// A RustDDS publisher or subscriber.
+enum Group {
+    Publisher(rustdds::Publisher, DomainParticipant, u16),
+    Subscriber(rustdds::Subscriber, DomainParticipant, u16),
+}
+
+impl DdsGroup for Group {
+    fn domain(&self) -> u16 {
+        match self {
+            Group::Publisher(_, _, d) | Group::Subscriber(_, _, d) => *d,
+        }
+    }
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+}
+
+/// A RustDDS data writer and what its status events said.
+struct Writer {
+    raw: RawWriter,
+    topic_name: String,
+    /// How many readers it matches (from its status events, read on demand).
+    matched: Cell<usize>,
+}
+
+impl DdsWriter for Writer {
+    fn guid(&self) -> Guid {
+        self.raw.guid().to_bytes()
+    }
+    fn topic_name(&self) -> &str {
+        &self.topic_name
+    }
+    fn little_endian(&self) -> bool {
+        self.raw.little_endian()
+    }
+    fn key(&self) -> Option<&Arc<KeyDescriptor>> {
+        self.raw.key()
+    }
+    fn write(&self, sample: Sample) -> Result<(), String> {
+        self.raw.write(RawSample::from(sample))
+    }
+    fn dispose(&self, sample: &Sample) -> Result<(), String> {
+        self.raw.dispose(&RawSample::from(sample.clone()))
+    }
+    fn write_identified(
+        &self,
+        sample: Sample,
+        related: Option<SampleIdentity>,
+    ) -> Result<SampleIdentity, String> {
+        self.raw
+            .write_identified(RawSample::from(sample), related.map(to_rustdds_identity))
+            .map(from_rustdds_identity)
+    }
+    fn all_acknowledged(&self) -> bool {
+        self.raw.all_acknowledged()
+    }
+    fn matched_readers(&self) -> usize {
+        while let Some(st) = self.raw.try_recv_status() {
+            if let rustdds::dds::statusevents::DataWriterStatus::PublicationMatched {
+                current,
+                ..
+            } = st
+            {
+                self.matched.set(current.count().max(0) as usize);
+            }
+        }
+        self.matched.get()
+    }
+}
+
+/// A RustDDS data reader registered with the backend's poll (deregistered when dropped).
+struct Reader {
+    raw: RawReader,
+    registry: Registry,
+}
+
+impl Drop for Reader {
+    fn drop(&mut self) {
+        let _ = self.registry.deregister(&mut self.raw);
+    }
+}
+
+impl DdsReader for Reader {
+    fn guid(&self) -> Guid {
+        self.raw.guid().to_bytes()
+    }
+    fn take_next(&mut self) -> Result<Option<Taken>, String> {
+        let Some(t) = self.raw.take_next().map_err(|e| format!("{e:?}"))? else {
+            return Ok(None);
+        };
+        Ok(Some(Taken {
+            sample: t.sample.into(),
+            identity: from_rustdds_identity(t.info.sample_identity()),
+            related: t.info.related_sample_identity().map(from_rustdds_identity),
+            disposed: t.disposed,
+            unregistered: t.unregistered,
+        }))
+    }
+}
+
+fn from_rustdds_identity(id: rustdds::SampleIdentity) -> SampleIdentity {
+    SampleIdentity {
+        writer: id.writer_guid.to_bytes(),
+        sequence_number: i64::from(id.sequence_number),
+    }
+}
+
+fn to_rustdds_identity(id: SampleIdentity) -> rustdds::SampleIdentity {
+    rustdds::SampleIdentity {
+        writer_guid: rustdds::GUID::from_bytes(id.writer),
+        sequence_number: rustdds::SequenceNumber::from(id.sequence_number),
+    }
+}
+
+impl DdsBackend for RustDds {
+    fn name(&self) -> &'static str {
+        "rustdds"
+    }
+
+    fn create_group(&mut self, domain: u16, publish: bool) -> Result<Box<dyn DdsGroup>, String> {
+        let none = QosPolicies::qos_none();
+        Ok(Box::new(if publish {
+            let dp = self.participant(domain, Role::Publish)?;
+            let p = dp
+                .create_publisher(&none)
+                .map_err(|e| format!("create publisher: {e:?}"))?;
+            Group::Publisher(p, dp, domain)
+        } else {
+            let dp = self.participant(domain, Role::Subscribe)?;
+            let s = dp
+                .create_subscriber(&none)
+                .map_err(|e| format!("create subscriber: {e:?}"))?;
+            Group::Subscriber(s, dp, domain)
+        }))
+    }
+
+    fn create_writer(
+        &mut self,
+        group: &dyn DdsGroup,
+        spec: &TopicSpec,
+        qos: &EndpointQos,
+        little_endian: bool,
+    ) -> Result<Box<dyn DdsWriter>, String> {
+        let Some(Group::Publisher(publisher, dp, _)) = group.as_any().downcast_ref::<Group>()
+        else {
+            return Err("a data writer needs a RustDDS publisher".into());
+        };
+        let t = topic(dp, spec)?;
+        let raw = RawWriter::create(
+            publisher,
+            &t,
+            qos::to_rustdds(qos),
+            little_endian,
+            spec.key.clone(),
+        )
+        .map_err(|e| format!("create data writer: {e:?}"))?;
+        Ok(Box::new(Writer {
+            raw,
+            topic_name: spec.name.clone(),
+            matched: Cell::new(0),
+        }))
+    }
+
+    fn create_reader(
+        &mut self,
+        group: &dyn DdsGroup,
+        spec: &TopicSpec,
+        qos: &EndpointQos,
+        token: ReaderToken,
+    ) -> Result<Box<dyn DdsReader>, String> {
+        let Some(Group::Subscriber(subscriber, dp, _)) = group.as_any().downcast_ref::<Group>()
+        else {
+            return Err("a data reader needs a RustDDS subscriber".into());
+        };
+        let t = topic(dp, spec)?;
+        let mut raw = RawReader::create(subscriber, &t, qos::to_rustdds(qos), spec.key.clone())
+            .map_err(|e| format!("create data reader: {e:?}"))?;
+        let registry = self
+            .poll
+            .registry()
+            .try_clone()
+            .map_err(|e| format!("register reader: {e}"))?;
+        let token = usize::try_from(token).map_err(|_| "reader token out of range")?;
+        registry
+            .register(&mut raw, Token(token), Interest::READABLE)
+            .map_err(|e| format!("register reader: {e}"))?;
+        Ok(Box::new(Reader { raw, registry }))
+    }
+
+    fn participant_guid(&mut self, domain: u16) -> Result<Guid, String> {
+        Ok(self.participant(domain, Role::Publish)?.guid().to_bytes())
+    }
+
+    fn readiness_fd(&self) -> RawFd {
+        self.poll.as_raw_fd()
+    }
+
+    fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()> {
+        self.poll.poll(&mut self.events, Some(Duration::ZERO))?;
+        out.extend(self.events.iter().map(|e| e.token().0 as ReaderToken));
+        Ok(())
+    }
+
+    fn participants(&self) -> usize {
+        self.participants.len()
+    }
+}
