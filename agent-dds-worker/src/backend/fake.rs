@@ -54,6 +54,8 @@ pub struct FakeBus {
     pub acknowledged: Cell<bool>,
     /// Participants made, by domain.
     pub domains: RefCell<Vec<u16>>,
+    /// Every endpoint made: its topic and the QoS it was given.
+    pub endpoints: RefCell<Vec<(String, EndpointQos)>>,
 }
 
 impl FakeBus {
@@ -278,9 +280,13 @@ impl DdsBackend for Fake {
         &mut self,
         group: &dyn DdsGroup,
         topic: &TopicSpec,
-        _qos: &EndpointQos,
+        qos: &EndpointQos,
         little_endian: bool,
     ) -> Result<Box<dyn DdsWriter>, String> {
+        self.bus
+            .endpoints
+            .borrow_mut()
+            .push((topic.name.clone(), *qos));
         match group.as_any().downcast_ref::<Group>() {
             Some(g) if g.publish => {}
             _ => return Err("a data writer needs a fake publisher".into()),
@@ -306,9 +312,13 @@ impl DdsBackend for Fake {
         &mut self,
         group: &dyn DdsGroup,
         topic: &TopicSpec,
-        _qos: &EndpointQos,
+        qos: &EndpointQos,
         token: ReaderToken,
     ) -> Result<Box<dyn DdsReader>, String> {
+        self.bus
+            .endpoints
+            .borrow_mut()
+            .push((topic.name.clone(), *qos));
         match group.as_any().downcast_ref::<Group>() {
             Some(g) if !g.publish => {}
             _ => return Err("a data reader needs a fake subscriber".into()),

@@ -4,8 +4,8 @@
 //! a backend makes it exist in DDS: participants per domain, data writers and readers of
 //! raw serialized samples (the client's CDR goes to the wire as it is, and received samples
 //! come back as bytes with their identity), matched counts, acknowledgement status, and one
-//! descriptor the worker's loop waits on for readers with data. Nothing outside this module
-//! and its implementations names a DDS implementation.
+//! descriptor the worker's loop waits on for readers with data. The worker's modules use only
+//! these traits and types (`Worker::new` picks RustDDS, `Worker::with_backend` any other).
 //!
 //! Implementations: [`rustdds`] (the default, RustDDS) and, for the worker's unit tests, a
 //! fake that delivers between its own writers and readers in memory.
@@ -68,10 +68,11 @@ impl Encoding {
     pub const CDR_BE: Encoding = Encoding([0, 0]);
     /// Plain CDR (XCDR1), little endian.
     pub const CDR_LE: Encoding = Encoding([0, 1]);
-    /// Plain XCDR2, big endian.
-    pub const XCDR2_BE: Encoding = Encoding([0, 0x10]);
-    /// Plain XCDR2, little endian.
-    pub const XCDR2_LE: Encoding = Encoding([0, 0x11]);
+    /// Plain XCDR2, big endian: 0x0006, what DDS implementations send (RustDDS, Cyclone
+    /// DDS and Fast DDS alike; XTypes 1.3's table says 0x0010, its erratum 0x0006).
+    pub const XCDR2_BE: Encoding = Encoding([0, 0x06]);
+    /// Plain XCDR2, little endian (0x0007).
+    pub const XCDR2_LE: Encoding = Encoding([0, 0x07]);
 
     /// Plain CDR in the given byte order (what a client's samples are).
     pub fn cdr(little_endian: bool) -> Self {
@@ -194,7 +195,7 @@ pub trait DdsReader {
 
 /// A DDS implementation as the worker uses it.
 pub trait DdsBackend {
-    /// Its name in logs and on the command line.
+    /// Its name in logs.
     fn name(&self) -> &'static str;
     /// A publisher (`publish`) or subscriber in `domain`, making the domain's participant
     /// on first use.

@@ -2,6 +2,8 @@
 //! backend maps it onto its own policies: the topic's settings overridden by the endpoint's,
 //! and the defaults of the reference agent (Fast DDS) for what neither gives.
 
+use std::time::Duration;
+
 use crate::xml::{Durability, History, OwnershipKind, QosDesc, Reliability, ResourceLimitsDesc};
 
 /// Which side an endpoint is on; defaults follow the reference agent (Fast DDS): writers
@@ -17,6 +19,9 @@ pub enum EndpointSide {
 /// Samples a KEEP_ALL data reader keeps when the client gives no resource limits (RustDDS's
 /// own default is 64). Bounded, so that a reader that is not drained cannot exhaust memory.
 pub const KEEP_ALL_READER_SAMPLES: i32 = 1000;
+
+/// How long a reliable write may block on a full resend window, unless said otherwise.
+pub const MAX_BLOCKING: Duration = Duration::from_millis(100);
 
 /// Depth of a keep-last history when none is described. Deeper than Fast DDS's keep-last 1:
 /// the worker drains readers promptly, but bursts between two drains must not be cut to one
@@ -36,15 +41,19 @@ pub struct EndpointQos {
     pub history: History,
     /// Resource limits (a KEEP_ALL reader gets [`KEEP_ALL_READER_SAMPLES`] without any).
     pub resource_limits: Option<ResourceLimitsDesc>,
+    /// How long a reliable write may block on a full resend window.
+    pub max_blocking: Duration,
     /// The other policies as described (the topic's, overridden by the endpoint's); absent
-    /// ones keep the DDS default.
+    /// ones keep the DDS default. Normalised, so that equal QoS compares equal: the policies
+    /// resolved above are cleared here, and so is an ownership strength without exclusive
+    /// ownership (it means nothing then).
     pub described: QosDesc,
 }
 
 impl EndpointQos {
     /// Resolves an endpoint's QoS from its topic's and its own descriptions (its own win).
     pub fn resolve(side: EndpointSide, topic: &QosDesc, endpoint: &QosDesc) -> Self {
-        let described = topic.overridden_by(*endpoint);
+        let mut described = topic.overridden_by(*endpoint);
         let reliability = described.reliability.unwrap_or(match side {
             EndpointSide::Writer => Reliability::Reliable,
             EndpointSide::Reader => Reliability::BestEffort,
@@ -67,12 +76,20 @@ impl EndpointQos {
                 },
             )
         });
+        described.reliability = None;
+        described.durability = None;
+        described.history = None;
+        described.resource_limits = None;
+        if described.ownership != Some(OwnershipKind::Exclusive) {
+            described.ownership_strength = None;
+        }
         EndpointQos {
             side,
             reliability,
             durability,
             history,
             resource_limits,
+            max_blocking: MAX_BLOCKING,
             described,
         }
     }
@@ -88,7 +105,7 @@ impl EndpointQos {
     }
 
     /// The writer of `ros_discovery_info`, as ROS 2 makes it: reliable, transient-local,
-    /// keep-last 1, shared ownership.
+    /// keep-last 1, shared ownership, a write never blocks (the worker's loop would stall).
     pub fn ros_discovery_writer() -> Self {
         let graph = QosDesc {
             reliability: Some(Reliability::Reliable),
@@ -97,7 +114,10 @@ impl EndpointQos {
             ownership: Some(OwnershipKind::Shared),
             ..QosDesc::default()
         };
-        Self::resolve(EndpointSide::Writer, &graph, &QosDesc::default())
+        EndpointQos {
+            max_blocking: Duration::ZERO,
+            ..Self::resolve(EndpointSide::Writer, &graph, &QosDesc::default())
+        }
     }
 
     /// Whether XRCE writers with this QoS may share a DDS writer without changing what DDS
@@ -161,7 +181,47 @@ mod tests {
         let q = EndpointQos::resolve(EndpointSide::Writer, &topic, &endpoint);
         assert_eq!(q.reliability, Reliability::Reliable);
         assert_eq!(q.history, History::KeepLast(3));
+        // A strength without exclusive ownership means nothing.
+        assert_eq!(q.described.ownership_strength, None);
+        let exclusive = QosDesc {
+            ownership: Some(OwnershipKind::Exclusive),
+            ..endpoint
+        };
+        let q = EndpointQos::resolve(EndpointSide::Writer, &topic, &exclusive);
         assert_eq!(q.described.ownership_strength, Some(4));
+    }
+
+    #[test]
+    fn equal_qos_compares_equal_however_it_was_spelt() {
+        // What shared writers are matched by: an explicit default is the default.
+        let none = QosDesc::default();
+        let explicit = QosDesc {
+            reliability: Some(Reliability::Reliable),
+            durability: Some(Durability::TransientLocal),
+            history: Some(History::KeepLast(DEFAULT_DEPTH)),
+            ownership_strength: Some(3),
+            ..QosDesc::default()
+        };
+        assert_eq!(
+            EndpointQos::resolve(EndpointSide::Writer, &none, &none),
+            EndpointQos::resolve(EndpointSide::Writer, &none, &explicit)
+        );
+        let deeper = QosDesc {
+            history: Some(History::KeepLast(5)),
+            ..QosDesc::default()
+        };
+        assert_ne!(
+            EndpointQos::resolve(EndpointSide::Writer, &none, &none),
+            EndpointQos::resolve(EndpointSide::Writer, &none, &deeper)
+        );
+        assert_eq!(
+            EndpointQos::ros_discovery_writer().max_blocking,
+            Duration::ZERO
+        );
+        assert_eq!(
+            EndpointQos::resolve(EndpointSide::Writer, &none, &none).max_blocking,
+            MAX_BLOCKING
+        );
     }
 
     #[test]

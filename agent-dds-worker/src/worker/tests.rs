@@ -355,6 +355,13 @@ fn shared_writers_share_one_backend_writer_per_qos_and_byte_order() {
     t.writer(CLIENT, WRITER, &volatile).expect("first");
     t.writer(OTHER, WRITER, &volatile).expect("second");
     assert_eq!(t.bus.writers_made.get(), 1);
+    // The shared DDS writer keeps every client's resend window.
+    let (topic, qos) = t.bus.endpoints.borrow()[0].clone();
+    assert_eq!(topic, TOPIC);
+    assert_eq!(
+        qos.history,
+        crate::xml::History::KeepLast(crate::backend::qos::DEFAULT_DEPTH * SHARE_GROUP as i32)
+    );
     // Transient-local writers keep history for late joiners: never shared.
     let transient = writer_xml(TOPIC, "NO_KEY", "TRANSIENT_LOCAL");
     t.writer(
@@ -465,6 +472,16 @@ fn a_reply_reaches_the_requester_that_asked_and_no_other() {
         .expect("service endpoint");
         t.read(client, id);
     }
+    // Both sides of RPC over DDS are reliable and volatile.
+    for (topic, qos) in t.bus.endpoints.borrow().iter() {
+        assert!(
+            topic.starts_with("rq/") || topic.starts_with("rr/"),
+            "{topic}"
+        );
+        assert_eq!(qos.reliability, crate::xml::Reliability::Reliable);
+        assert_eq!(qos.durability, crate::xml::Durability::Volatile);
+    }
+    assert_eq!(t.bus.endpoints.borrow().len(), 4);
     t.write(CLIENT, requester, [0, 0x41], &[1, 0, 0, 0, 2, 0, 0, 0]);
     t.pump_ready();
     // The replier gets the request behind its SampleIdentity (in the sample's byte order).

@@ -9,6 +9,7 @@
 use std::cell::Cell;
 use std::collections::HashMap;
 use std::os::fd::{AsRawFd, RawFd};
+use std::rc::Rc;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -40,6 +41,8 @@ pub struct RustDds {
     config: DdsConfig,
     participants: HashMap<(u16, Role), DomainParticipant>,
     poll: Poll,
+    /// The poll's registry, shared by every reader for its deregistration (one descriptor).
+    registry: Rc<Registry>,
     events: Events,
 }
 
@@ -54,10 +57,13 @@ impl std::fmt::Debug for RustDds {
 impl RustDds {
     /// A backend with no participant yet.
     pub fn new(config: DdsConfig) -> std::io::Result<Self> {
+        let poll = Poll::new()?;
+        let registry = Rc::new(poll.registry().try_clone()?);
         Ok(RustDds {
             config,
             participants: HashMap::new(),
-            poll: Poll::new()?,
+            poll,
+            registry,
             events: Events::with_capacity(256),
         })
     }
@@ -168,7 +174,7 @@ impl DdsWriter for Writer {
 /// A RustDDS data reader registered with the backend's poll (deregistered when dropped).
 struct Reader {
     raw: RawReader,
-    registry: Registry,
+    registry: Rc<Registry>,
 }
 
 impl Drop for Reader {
@@ -272,16 +278,14 @@ impl DdsBackend for RustDds {
         let t = topic(dp, spec)?;
         let mut raw = RawReader::create(subscriber, &t, qos::to_rustdds(qos), spec.key.clone())
             .map_err(|e| format!("create data reader: {e:?}"))?;
-        let registry = self
-            .poll
-            .registry()
-            .try_clone()
-            .map_err(|e| format!("register reader: {e}"))?;
         let token = usize::try_from(token).map_err(|_| "reader token out of range")?;
-        registry
+        self.registry
             .register(&mut raw, Token(token), Interest::READABLE)
             .map_err(|e| format!("register reader: {e}"))?;
-        Ok(Box::new(Reader { raw, registry }))
+        Ok(Box::new(Reader {
+            raw,
+            registry: self.registry.clone(),
+        }))
     }
 
     fn participant_guid(&mut self, domain: u16) -> Result<Guid, String> {

@@ -15,7 +15,7 @@ pub fn to_rustdds(qos: &EndpointQos) -> QosPolicies {
     let (reliability, durability, history) = (qos.reliability, qos.durability, qos.history);
     let mut b = QosPolicyBuilder::new();
     b = match reliability {
-        Reliability::Reliable => b.reliable(rustdds::Duration::from_millis(100)),
+        Reliability::Reliable => b.reliable(rustdds::Duration::from_std(qos.max_blocking)),
         Reliability::BestEffort => b.best_effort(),
     };
     b = b.durability(match durability {

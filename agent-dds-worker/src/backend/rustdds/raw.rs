@@ -620,3 +620,31 @@ impl RawWriter {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rustdds_encodings_keep_their_byte_order_and_version_through_the_seam() {
+        for (rep, le, xcdr2) in [
+            (RepresentationIdentifier::CDR_LE, true, false),
+            (RepresentationIdentifier::CDR_BE, false, false),
+            (RepresentationIdentifier::XCDR2_LE, true, true),
+            (RepresentationIdentifier::XCDR2_BE, false, true),
+        ] {
+            assert!(ACCEPTED.contains(&rep));
+            let sample = Sample::from(RawSample {
+                encoding: rep,
+                body: Bytes::from_static(&[1, 2]),
+            });
+            assert_eq!(
+                (sample.little_endian(), sample.encoding.is_xcdr2()),
+                (le, xcdr2),
+                "{rep:?}"
+            );
+            assert_eq!(is_xcdr2(rep), xcdr2);
+            assert_eq!(RawSample::from(sample).encoding, rep);
+        }
+    }
+}
