@@ -38,12 +38,15 @@ pub fn parse_topic(body: &[u8], le: bool) -> Result<TopicDesc, DecodeError> {
     })
 }
 
-/// Reads a publisher or subscriber body; returns whether it names partitions.
-pub fn parse_publisher_or_subscriber(body: &[u8], le: bool) -> Result<bool, DecodeError> {
+/// Reads a publisher or subscriber body; returns the partitions it names (non-empty ones).
+pub fn parse_publisher_or_subscriber(body: &[u8], le: bool) -> Result<Vec<String>, DecodeError> {
     let g = GroupBinary::decode(body, le)?;
     Ok(g.qos
         .and_then(|q| q.partitions)
-        .is_some_and(|p| p.iter().any(|n| !n.is_empty())))
+        .unwrap_or_default()
+        .into_iter()
+        .filter(|n| !n.is_empty())
+        .collect())
 }
 
 /// Reads a data writer or data reader body.

@@ -2,7 +2,7 @@
 
 use std::net::IpAddr;
 
-use crate::backend::DdsConfig;
+use crate::backend::{BackendKind, DdsConfig};
 use crate::worker::{Worker, WorkerConfig};
 
 /// Settings of a DDS worker process.
@@ -18,6 +18,10 @@ pub struct WorkerArgs {
         value_delimiter = ','
     )]
     pub dds_interfaces: Vec<IpAddr>,
+    /// The DDS implementation: `rustdds`, or `cyclone` (Cyclone DDS, in builds with the
+    /// `cyclone` feature).
+    #[arg(long = "dds-backend", env = "XRCE_DDS_BACKEND", value_enum, default_value_t = BackendKind::Rustdds)]
+    pub dds_backend: BackendKind,
     /// References file: Fast DDS XML profiles that clients may create by reference.
     #[arg(short = 'r', long = "refs", env = "XRCE_REFS")]
     pub refs: Option<std::path::PathBuf>,
@@ -66,6 +70,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         instance: args.instance,
         dds: DdsConfig {
             interfaces: args.dds_interfaces,
+            backend: args.dds_backend,
         },
         references,
         ros_graph: args.ros_graph,

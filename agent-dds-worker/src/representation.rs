@@ -39,13 +39,14 @@ fn as_xml<'a>(
 
 /// Checks the representation of a participant, publisher or subscriber (whose settings the
 /// worker takes from elsewhere: publishers and subscribers from their endpoints, and the
-/// reference client sends them an empty string).
+/// reference client sends them an empty string); returns the partitions a publisher or
+/// subscriber names (none for a participant, or the default partition).
 pub fn check_plain(
     repr: &Representation,
     kind: u8,
     refs: &References,
     little_endian: bool,
-) -> Result<(), OpError> {
+) -> Result<Vec<String>, OpError> {
     let participant = kind == object_kind::PARTICIPANT;
     let element = if participant {
         "participant"
@@ -55,17 +56,21 @@ pub fn check_plain(
         "subscriber"
     };
     match (as_xml(repr, refs, element)?, repr) {
-        (Some(x), _) if participant => xml::parse_participant(x).map(drop).map_err(invalid_xml),
-        // The reference client sends publishers and subscribers an empty string; anything
-        // that parses is checked for partitions, the one group policy that matters here.
-        (Some(x), _) => no_partitions(xml::group_has_partitions(x, element).unwrap_or(false)),
+        (Some(x), _) if participant => xml::parse_participant(x)
+            .map(|_| Vec::new())
+            .map_err(invalid_xml),
+        // The reference client sends publishers and subscribers an empty string; what parses
+        // is read for partitions, the one group policy that matters here.
+        (Some(x), _) => Ok(xml::group_partitions(x, element).unwrap_or_default()),
         (None, Representation::Binary(b)) if participant => {
-            binary::parse_participant(b, little_endian).map_err(invalid_binary)
+            binary::parse_participant(b, little_endian)
+                .map(|_| Vec::new())
+                .map_err(invalid_binary)
         }
-        (None, Representation::Binary(b)) => no_partitions(
-            binary::parse_publisher_or_subscriber(b, little_endian).map_err(invalid_binary)?,
-        ),
-        (None, _) => Ok(()),
+        (None, Representation::Binary(b)) => {
+            binary::parse_publisher_or_subscriber(b, little_endian).map_err(invalid_binary)
+        }
+        (None, _) => Ok(Vec::new()),
     }
 }
 
@@ -85,19 +90,6 @@ pub fn participant_name(
         _ => xml::parse_participant(as_xml(repr, refs, "participant").ok()??).ok()?,
     };
     name.filter(|n| !n.trim().is_empty())
-}
-
-/// Partitions cannot be honoured (RustDDS has none): refuse, rather than let the entity's
-/// data reach readers outside the partitions the client asked for.
-fn no_partitions(has_partitions: bool) -> Result<(), OpError> {
-    if has_partitions {
-        Err((
-            status::ERR_INCOMPATIBLE,
-            "the PARTITION QoS is not supported (RustDDS has no partitions)".into(),
-        ))
-    } else {
-        Ok(())
-    }
 }
 
 /// Reads a topic representation.
@@ -136,7 +128,16 @@ pub fn describe_endpoint(
             "empty endpoint representation".into(),
         )),
     }?;
-    no_partitions(desc.qos.partitions)?;
+    if desc.qos.partitions {
+        // A partition is a publisher's or subscriber's policy in DDS; an endpoint's own
+        // would need a group of its own, which the worker does not make.
+        return Err((
+            status::ERR_INCOMPATIBLE,
+            "the PARTITION QoS is a publisher's or subscriber's: give it there, not on a data \
+             writer or reader"
+                .into(),
+        ));
+    }
     Ok(desc)
 }
 

@@ -112,7 +112,7 @@ impl RosGraph {
 
     fn make_writer(backend: &mut dyn DdsBackend, domain: u16) -> Result<GraphWriter, String> {
         let participant = backend.participant_guid(domain)?;
-        let group = backend.create_group(domain, true)?;
+        let group = backend.create_group(domain, true, &[])?;
         let topic = TopicSpec {
             name: ros_discovery::TOPIC_NAME.to_string(),
             type_name: ros_discovery::TYPE_NAME.to_string(),

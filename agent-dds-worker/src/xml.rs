@@ -441,23 +441,38 @@ fn parse_more_qos(h: Node<'_, '_>, q: &mut QosDesc) -> Result<(), XmlError> {
         });
     }
     if let Some(p) = child(h, "partition") {
-        let names = child(p, "names").unwrap_or(p);
-        q.partitions = names
-            .children()
-            .filter(|c| c.is_element() && c.tag_name().name() == "name")
-            .any(|c| c.text().is_some_and(|t| !t.trim().is_empty()));
+        q.partitions = !partition_names(p).is_empty();
     }
     Ok(())
 }
 
-/// Whether a publisher or subscriber representation names partitions.
-pub fn group_has_partitions(xml: &str, element: &str) -> Result<bool, XmlError> {
+/// The non-empty names of a `<partition>` (under `<names>` as Fast DDS writes them, or
+/// directly).
+fn partition_names(p: Node<'_, '_>) -> Vec<String> {
+    let names = child(p, "names").unwrap_or(p);
+    names
+        .children()
+        .filter(|c| c.is_element() && c.tag_name().name() == "name")
+        .filter_map(|c| c.text().map(|t| t.trim().to_string()))
+        .filter(|t| !t.is_empty())
+        .collect()
+}
+
+/// The partitions a publisher or subscriber representation names (none: the default
+/// partition).
+pub fn group_partitions(xml: &str, element: &str) -> Result<Vec<String>, XmlError> {
     let mut fixed = None;
     let doc = parse_lenient(xml, &mut fixed)?;
     let Some(g) = find(&doc, element) else {
-        return Ok(false);
+        return Ok(Vec::new());
     };
-    Ok(parse_qos(g)?.partitions)
+    // Checked like any QoS (a malformed policy is an error), then the names are read.
+    parse_qos(g)?;
+    let holders = std::iter::once(g).chain(child(g, "qos"));
+    Ok(holders
+        .filter_map(|h| child(h, "partition"))
+        .flat_map(partition_names)
+        .collect())
 }
 
 fn parse_qos(n: Node<'_, '_>) -> Result<QosDesc, XmlError> {
@@ -835,15 +850,15 @@ mod tests {
     #[test]
     fn partitions_are_detected() {
         assert_eq!(
-            group_has_partitions(
-                "<dds><publisher><qos><partition><names><name>A</name></names></partition></qos></publisher></dds>",
+            group_partitions(
+                "<dds><publisher><qos><partition><names><name>A</name><name> </name><name>B*</name></names></partition></qos></publisher></dds>",
                 "publisher"
             ),
-            Ok(true)
+            Ok(vec!["A".to_string(), "B*".to_string()])
         );
         assert_eq!(
-            group_has_partitions("<dds><publisher/></dds>", "publisher"),
-            Ok(false)
+            group_partitions("<dds><publisher/></dds>", "publisher"),
+            Ok(Vec::new())
         );
     }
 

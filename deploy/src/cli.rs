@@ -115,6 +115,10 @@ pub struct Common {
     /// see one writer per group of clients.
     #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
     pub share_writers: bool,
+    /// The DDS implementation of the worker: `rustdds` (default) or `cyclone` (Cyclone DDS,
+    /// in builds with the `cyclone` feature).
+    #[arg(long = "dds-backend", env = "XRCE_DDS_BACKEND", value_enum)]
+    pub dds_backend: Option<xrce_dds_worker::backend::BackendKind>,
     /// Serve Prometheus metrics at http://ADDR:PORT/metrics and the live status (JSON) at
     /// /status, e.g. 127.0.0.1:9464; off by default.
     #[arg(long = "metrics", value_name = "ADDR:PORT")]

@@ -11,6 +11,7 @@
 //! dds_interfaces = ["127.0.0.1"]   # optional, like --dds-interface
 //! ros_graph = true                 # optional
 //! share_writers = false            # optional
+//! dds_backend = "rustdds"           # optional, like --dds-backend (rustdds or cyclone)
 //! frontend_grace = 30              # optional: seconds a gone front-end's clients are kept
 //!
 //! [[frontend]]
@@ -99,6 +100,8 @@ pub struct WorkerSection {
     pub ros_graph: Option<bool>,
     /// Map many clients' writers onto shared DDS writers (default false).
     pub share_writers: Option<bool>,
+    /// The DDS implementation, like `--dds-backend` (`rustdds` or `cyclone`).
+    pub dds_backend: Option<xrce_dds_worker::backend::BackendKind>,
     /// Seconds a gone front-end's entities are kept for it to come back (default 30).
     pub frontend_grace: Option<f64>,
 }

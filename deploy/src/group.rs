@@ -6,6 +6,7 @@
 use std::net::IpAddr;
 use std::sync::Arc;
 use std::time::Duration;
+use xrce_dds_worker::backend::BackendKind;
 
 use xrce_frontend::cli::TransportKind;
 
@@ -86,8 +87,20 @@ fn worker_env(
     dds_interfaces: &[IpAddr],
     ros_graph: bool,
     share_writers: bool,
+    dds_backend: Option<BackendKind>,
 ) -> anyhow::Result<Vec<(String, String)>> {
     let mut env = Vec::new();
+    if let Some(b) = dds_backend {
+        // Refused here, with a clear message, rather than in a worker crash loop.
+        if !b.is_built() {
+            anyhow::bail!(
+                "this build has no {} DDS backend: build xrce-agent with `--features cyclone` \
+                 (needs cmake and libclang), or use --dds-backend rustdds",
+                b.as_str()
+            );
+        }
+        env.push(("XRCE_DDS_BACKEND".into(), b.as_str().into()));
+    }
     if let Some(path) = refs {
         // Refuse a bad file here, with a clear message, rather than in a worker crash loop.
         let refs = xrce_dds_worker::references::References::load(path)?;
@@ -133,6 +146,7 @@ impl Group {
             &common.dds_interfaces,
             common.ros_graph,
             common.share_writers,
+            common.dds_backend,
         )?);
         if let Some(d) = common.dialect {
             let name = if d == xrce_common::wire::Dialect::Spec {
@@ -199,6 +213,7 @@ impl Group {
             &g.worker.dds_interfaces,
             g.worker.ros_graph.unwrap_or(true),
             g.worker.share_writers.unwrap_or(false),
+            g.worker.dds_backend,
         )?);
         if let Some(grace) = g.worker.frontend_grace {
             env.push(("XRCE_FRONTEND_GRACE".into(), grace.to_string()));

@@ -59,6 +59,11 @@ pub fn binaries() -> &'static Path {
         if release {
             cmd.arg("--release");
         }
+        // XRCE_DDS_BACKEND=cyclone runs the suite against the Cyclone DDS backend (the agents
+        // inherit the variable); its binaries need the feature.
+        if std::env::var("XRCE_DDS_BACKEND").is_ok_and(|b| b == "cyclone") {
+            cmd.args(["--features", "xrce-dds-worker/cyclone,xrce-agent/cyclone"]);
+        }
         let st = cmd.status().expect("run cargo build");
         assert!(st.success(), "building the agent binaries failed");
         target_dir().join(if release { "release" } else { "debug" })

@@ -269,7 +269,12 @@ impl DdsBackend for Fake {
         "fake"
     }
 
-    fn create_group(&mut self, domain: u16, publish: bool) -> Result<Box<dyn DdsGroup>, String> {
+    fn create_group(
+        &mut self,
+        domain: u16,
+        publish: bool,
+        _partitions: &[String],
+    ) -> Result<Box<dyn DdsGroup>, String> {
         if !self.bus.domains.borrow().contains(&domain) {
             self.bus.domains.borrow_mut().push(domain);
         }

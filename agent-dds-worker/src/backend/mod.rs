@@ -7,8 +7,9 @@
 //! descriptor the worker's loop waits on for readers with data. The worker's modules use only
 //! these traits and types (`Worker::new` picks RustDDS, `Worker::with_backend` any other).
 //!
-//! Implementations: [`rustdds`] (the default, RustDDS) and, for the worker's unit tests, a
-//! fake that delivers between its own writers and readers in memory.
+//! Implementations: [`rustdds`] (the default, RustDDS), `cyclone` (Cyclone DDS, with the
+//! `cyclone` feature) and, for the worker's unit tests, a fake that delivers between its own
+//! writers and readers in memory.
 
 use std::net::IpAddr;
 use std::os::fd::RawFd;
@@ -19,6 +20,8 @@ pub use xrce_common::ipc::SampleIdentity;
 
 use crate::types::KeyDescriptor;
 
+#[cfg(feature = "cyclone")]
+pub mod cyclone;
 pub mod qos;
 pub mod rustdds;
 
@@ -27,11 +30,56 @@ pub mod fake;
 
 pub use qos::{EndpointQos, EndpointSide};
 
-/// Where DDS may talk.
+/// Where DDS may talk, and through which implementation.
 #[derive(Debug, Clone, Default)]
 pub struct DdsConfig {
     /// Restrict DDS to these local addresses (empty = every interface, like any DDS app).
     pub interfaces: Vec<IpAddr>,
+    /// The DDS implementation.
+    pub backend: BackendKind,
+}
+
+/// The DDS implementations a worker can use.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BackendKind {
+    /// RustDDS (always built).
+    #[default]
+    Rustdds,
+    /// Cyclone DDS (built with the `cyclone` feature).
+    Cyclone,
+}
+
+impl BackendKind {
+    /// Its name on the command line.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            BackendKind::Rustdds => "rustdds",
+            BackendKind::Cyclone => "cyclone",
+        }
+    }
+
+    /// Whether this build has it.
+    pub fn is_built(self) -> bool {
+        match self {
+            BackendKind::Rustdds => true,
+            BackendKind::Cyclone => cfg!(feature = "cyclone"),
+        }
+    }
+}
+
+/// The backend `config` names.
+pub fn create(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
+    match config.backend {
+        BackendKind::Rustdds => Ok(Box::new(rustdds::RustDds::new(config.clone())?)),
+        #[cfg(feature = "cyclone")]
+        BackendKind::Cyclone => Ok(Box::new(cyclone::Cyclone::new(config.clone())?)),
+        #[cfg(not(feature = "cyclone"))]
+        BackendKind::Cyclone => anyhow::bail!(
+            "this build has no Cyclone DDS backend: build it with `--features cyclone` \
+             (needs cmake and libclang), or use --dds-backend rustdds"
+        ),
+    }
 }
 
 /// The domain id XRCE clients use to mean "the agent's default" (reference agent behaviour).
@@ -197,9 +245,19 @@ pub trait DdsReader {
 pub trait DdsBackend {
     /// Its name in logs.
     fn name(&self) -> &'static str;
-    /// A publisher (`publish`) or subscriber in `domain`, making the domain's participant
-    /// on first use.
-    fn create_group(&mut self, domain: u16, publish: bool) -> Result<Box<dyn DdsGroup>, String>;
+    /// A publisher (`publish`) or subscriber in `domain` with the given partitions (empty:
+    /// the default partition; only asked of a backend that [supports
+    /// them](DdsBackend::supports_partitions)), making the domain's participant on first use.
+    fn create_group(
+        &mut self,
+        domain: u16,
+        publish: bool,
+        partitions: &[String],
+    ) -> Result<Box<dyn DdsGroup>, String>;
+    /// Whether its groups can have partitions.
+    fn supports_partitions(&self) -> bool {
+        false
+    }
     /// A data writer in `group` (a publisher of this backend) publishing in the given byte
     /// order.
     fn create_writer(

@@ -98,13 +98,28 @@ impl Worker {
                 VariantExtra::Parent(p),
             ) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
-                check_plain(repr, kind, &self.config.references, little_endian)?;
+                let partitions = check_plain(repr, kind, &self.config.references, little_endian)?;
+                if !partitions.is_empty() && !self.dds.supports_partitions() {
+                    // Refused rather than let the entity's data reach readers outside the
+                    // partitions the client asked for.
+                    return Err((
+                        status::ERR_INCOMPATIBLE,
+                        format!(
+                            "the PARTITION QoS is not supported by the {} DDS backend \
+                             (--dds-backend cyclone has partitions)",
+                            self.dds.name()
+                        ),
+                    ));
+                }
                 let (_, domain) = self
                     .participant_of(key, p)
                     .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
                 let publish = kind == object_kind::PUBLISHER;
-                let group: Rc<dyn DdsGroup> =
-                    Rc::from(self.dds.create_group(domain, publish).map_err(dds_err)?);
+                let group: Rc<dyn DdsGroup> = Rc::from(
+                    self.dds
+                        .create_group(domain, publish, &partitions)
+                        .map_err(dds_err)?,
+                );
                 let entity = if publish {
                     EntityKind::Publisher(group)
                 } else {

@@ -163,10 +163,11 @@ impl std::fmt::Debug for Worker {
 }
 
 impl Worker {
-    /// Opens the IPC services, then announces a new generation; DDS through RustDDS.
+    /// Opens the IPC services, then announces a new generation; DDS through the backend
+    /// `config.dds` names.
     pub fn new(config: WorkerConfig) -> anyhow::Result<Self> {
-        let dds = backend::rustdds::RustDds::new(config.dds.clone())?;
-        Self::with_backend(config, Box::new(dds))
+        let dds = backend::create(&config.dds)?;
+        Self::with_backend(config, dds)
     }
 
     /// Opens the IPC services, then announces a new generation; DDS through `dds`.

@@ -123,8 +123,8 @@ impl Worker {
             type_name: type_name.to_string(),
             key: None,
         };
-        let publisher = self.dds.create_group(domain, true).map_err(dds_err)?;
-        let subscriber = self.dds.create_group(domain, false).map_err(dds_err)?;
+        let publisher = self.dds.create_group(domain, true, &[]).map_err(dds_err)?;
+        let subscriber = self.dds.create_group(domain, false, &[]).map_err(dds_err)?;
         let writer = self
             .dds
             .create_writer(

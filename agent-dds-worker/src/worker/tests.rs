@@ -525,3 +525,42 @@ fn a_reply_reaches_the_requester_that_asked_and_no_other() {
     assert_eq!(body[2..4], requester.0);
     assert_eq!(&body[4..], &[3, 0, 0, 0]);
 }
+
+#[test]
+fn partitions_are_refused_by_a_backend_without_them_and_on_endpoints() {
+    let mut h = Harness::new(false);
+    h.participant(CLIENT);
+    let with_partition = variant(
+        object_kind::PUBLISHER,
+        "<dds><publisher><qos><partition><names><name>robot_a</name></names></partition>\
+         </qos></publisher></dds>",
+        VariantExtra::Parent(PARTICIPANT),
+    );
+    let err = h
+        .create(
+            CLIENT,
+            ObjectId::new(9, object_kind::PUBLISHER),
+            &with_partition,
+        )
+        .expect_err("partitions refused");
+    assert_eq!(err.0, status::ERR_INCOMPATIBLE);
+    assert!(err.1.contains("PARTITION"), "{}", err.1);
+    // An empty partition list is the default partition: accepted.
+    let empty = variant(
+        object_kind::PUBLISHER,
+        "<dds><publisher><qos><partition><names/></partition></qos></publisher></dds>",
+        VariantExtra::Parent(PARTICIPANT),
+    );
+    h.create(CLIENT, ObjectId::new(10, object_kind::PUBLISHER), &empty)
+        .expect("default partition");
+    let err = h
+        .writer(
+            CLIENT,
+            ObjectId::new(11, object_kind::DATAWRITER),
+            "<dds><data_writer><topic><kind>NO_KEY</kind><name>t</name><dataType>Keyed</dataType>\
+             </topic><qos><partition><names><name>x</name></names></partition></qos>\
+             </data_writer></dds>",
+        )
+        .expect_err("endpoint partitions refused");
+    assert_eq!(err.0, status::ERR_INCOMPATIBLE);
+}

@@ -220,7 +220,12 @@ impl DdsBackend for RustDds {
         "rustdds"
     }
 
-    fn create_group(&mut self, domain: u16, publish: bool) -> Result<Box<dyn DdsGroup>, String> {
+    fn create_group(
+        &mut self,
+        domain: u16,
+        publish: bool,
+        _partitions: &[String],
+    ) -> Result<Box<dyn DdsGroup>, String> {
         let none = QosPolicies::qos_none();
         Ok(Box::new(if publish {
             let dp = self.participant(domain, Role::Publish)?;

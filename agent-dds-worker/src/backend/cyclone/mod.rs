@@ -1,0 +1,641 @@
+//! The Cyclone DDS backend (feature `cyclone`): one participant per domain, which delivers
+//! between the agent's own writers and readers inside the process; topics of raw samples
+//! with the worker's own key extraction ([`ffi`]'s sertype), so keyed topics keep their
+//! instances; readiness through reader listeners and a socket pair.
+//!
+//! What it cannot do (docs/dds-backends.md): requesters and repliers (no related sample
+//! identity can be put on a write through Cyclone's C API), and sample identities of samples
+//! delivered inside the process (Cyclone hands those over without their sequence number:
+//! they are reported unknown, so the front-end's replay marks do not apply to them).
+
+use std::collections::{HashMap, VecDeque};
+use std::fmt::Write as _;
+use std::net::IpAddr;
+use std::os::fd::RawFd;
+use std::rc::{Rc, Weak};
+use std::sync::Arc;
+
+use bytes::Bytes;
+
+use super::{
+    DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, Encoding, EndpointQos, Guid,
+    ReaderToken, Sample, SampleIdentity, Taken, TopicSpec,
+};
+use crate::types::KeyDescriptor;
+
+#[allow(unsafe_code)]
+mod ffi;
+pub mod qos;
+
+/// DDS through Cyclone DDS.
+pub struct Cyclone {
+    config: DdsConfig,
+    participants: HashMap<u16, Rc<ffi::Participant>>,
+    /// Topics by (domain, name, type name, keyed), shared by their endpoints and deleted
+    /// with the last of them.
+    topics: HashMap<(u16, String, String, bool), Weak<ffi::Entity>>,
+    readiness: ffi::Readiness,
+}
+
+impl std::fmt::Debug for Cyclone {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Cyclone")
+            .field("participants", &self.participants.len())
+            .field("topics", &self.topics.len())
+            .finish()
+    }
+}
+
+/// Cyclone's configuration for DDS restricted to `interfaces` (`None`: Cyclone's defaults,
+/// or `CYCLONEDDS_URI`). On loopback alone there is no multicast, so discovery goes by
+/// unicast to the well-known ports of the first participant indices on the same addresses
+/// (which is also how RustDDS and a loopback-pinned Cyclone find each other).
+pub fn config_xml(interfaces: &[IpAddr]) -> Result<Option<String>, String> {
+    if interfaces.is_empty() {
+        return Ok(None);
+    }
+    let v6 = interfaces.iter().filter(|a| a.is_ipv6()).count();
+    if v6 != 0 && v6 != interfaces.len() {
+        return Err("Cyclone DDS uses either IPv4 or IPv6 addresses in a domain, not both".into());
+    }
+    let loopback = interfaces.iter().all(|a| a.is_loopback());
+    let mut s = String::from("<CycloneDDS><Domain id=\"any\"><General><Interfaces>");
+    for a in interfaces {
+        let _ = write!(s, "<NetworkInterface address=\"{a}\"/>");
+    }
+    s.push_str("</Interfaces>");
+    if v6 != 0 {
+        s.push_str("<Transport>udp6</Transport>");
+    }
+    if loopback {
+        s.push_str("<AllowMulticast>false</AllowMulticast>");
+    }
+    s.push_str("</General>");
+    if loopback {
+        s.push_str(
+            "<Discovery><ParticipantIndex>auto</ParticipantIndex>\
+             <MaxAutoParticipantIndex>50</MaxAutoParticipantIndex><Peers>",
+        );
+        for a in interfaces {
+            match a {
+                IpAddr::V4(a) => {
+                    let _ = write!(s, "<Peer address=\"{a}\"/>");
+                }
+                IpAddr::V6(a) => {
+                    let _ = write!(s, "<Peer address=\"[{a}]\"/>");
+                }
+            }
+        }
+        s.push_str("</Peers></Discovery>");
+    }
+    s.push_str("</Domain></CycloneDDS>");
+    Ok(Some(s))
+}
+
+impl Cyclone {
+    /// A backend with no participant yet.
+    pub fn new(config: DdsConfig) -> std::io::Result<Self> {
+        Ok(Cyclone {
+            config,
+            participants: HashMap::new(),
+            topics: HashMap::new(),
+            readiness: ffi::Readiness::new()?,
+        })
+    }
+
+    fn participant(&mut self, domain: u16) -> Result<Rc<ffi::Participant>, String> {
+        if let Some(p) = self.participants.get(&domain) {
+            return Ok(p.clone());
+        }
+        let xml = config_xml(&self.config.interfaces)?;
+        let p = Rc::new(ffi::Participant::new(u32::from(domain), xml.as_deref())?);
+        tracing::info!(domain, "Cyclone DDS participant created");
+        self.participants.insert(domain, p.clone());
+        Ok(p)
+    }
+
+    fn topic(&mut self, group: &Group, spec: &TopicSpec) -> Result<Rc<ffi::Entity>, String> {
+        let id = (
+            group.domain,
+            spec.name.clone(),
+            spec.type_name.clone(),
+            spec.key.is_some(),
+        );
+        if let Some(t) = self.topics.get(&id).and_then(Weak::upgrade) {
+            return Ok(t);
+        }
+        self.topics.retain(|_, t| t.strong_count() > 0);
+        let t = Rc::new(group.participant.create_topic(
+            &spec.name,
+            &spec.type_name,
+            spec.key.clone(),
+        )?);
+        self.topics.insert(id, Rc::downgrade(&t));
+        Ok(t)
+    }
+}
+
+/// A publisher or subscriber.
+struct Group {
+    entity: ffi::Entity,
+    participant: Rc<ffi::Participant>,
+    domain: u16,
+    publish: bool,
+}
+
+impl DdsGroup for Group {
+    fn domain(&self) -> u16 {
+        self.domain
+    }
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+}
+
+struct Writer {
+    // Declared before the topic: deleted first.
+    raw: ffi::Writer,
+    _topic: Rc<ffi::Entity>,
+    guid: Guid,
+    topic_name: String,
+    little_endian: bool,
+    key: Option<Arc<KeyDescriptor>>,
+}
+
+impl DdsWriter for Writer {
+    fn guid(&self) -> Guid {
+        self.guid
+    }
+    fn topic_name(&self) -> &str {
+        &self.topic_name
+    }
+    fn little_endian(&self) -> bool {
+        self.little_endian
+    }
+    fn key(&self) -> Option<&Arc<KeyDescriptor>> {
+        self.key.as_ref()
+    }
+    fn write(&self, sample: Sample) -> Result<(), String> {
+        self.raw.write(sample.encoding.0, &sample.body, false)
+    }
+    fn dispose(&self, sample: &Sample) -> Result<(), String> {
+        let Some(k) = &self.key else {
+            return Err("dispose on a topic without a key".into());
+        };
+        let (le, xcdr2) = (sample.little_endian(), sample.encoding.is_xcdr2());
+        let key = k
+            .of_sample(&sample.body, le, xcdr2)
+            .or_else(|_| k.of_key_payload(&sample.body, le, xcdr2))
+            .map_err(|e| format!("key of a {} sample: {e}", k.ty().name))?;
+        self.raw.write(Encoding::cdr(le).0, &key.payload, true)
+    }
+    fn write_identified(
+        &self,
+        _sample: Sample,
+        _related: Option<SampleIdentity>,
+    ) -> Result<SampleIdentity, String> {
+        Err(
+            "requesters and repliers are not supported by the Cyclone DDS backend (its C API \
+             cannot tell a written sample's identity nor send a related one); use \
+             --dds-backend rustdds"
+                .into(),
+        )
+    }
+    fn all_acknowledged(&self) -> bool {
+        self.raw.all_acknowledged()
+    }
+    fn matched_readers(&self) -> usize {
+        self.raw.matched()
+    }
+}
+
+struct Reader {
+    // Declared before the topic: deleted first.
+    raw: ffi::Reader,
+    _topic: Rc<ffi::Entity>,
+    guid: Guid,
+    key: Option<Arc<KeyDescriptor>>,
+    pending: VecDeque<Taken>,
+    batch: Vec<ffi::TakenRaw>,
+    /// The disposal already reported per instance (its disposed-generation count).
+    announced: HashMap<u64, u32>,
+}
+
+/// An identity nobody has: what the front-end treats as unknown.
+const UNKNOWN: SampleIdentity = SampleIdentity {
+    writer: [0; 16],
+    sequence_number: 0,
+};
+
+/// Instances whose reported disposal is remembered (beyond, the memory starts again).
+const ANNOUNCED_INSTANCES: usize = 4096;
+
+impl Reader {
+    /// Takes a batch from Cyclone and turns it into what the worker expects of a DDS
+    /// reader: every sample, and a dispose as a sample of its own (key fields only, little
+    /// endian) after the instance's last sample. Cyclone folds a dispose into the instance
+    /// state of an unread sample instead of queueing it (it makes an invalid sample only
+    /// when everything of the instance was read), so both forms are reported once per
+    /// disposal. An instance left by its writers is not a sample (as with RustDDS).
+    fn refill(&mut self) -> Result<(), String> {
+        self.batch.clear();
+        self.raw.take(&mut self.batch)?;
+        for i in 0..self.batch.len() {
+            let t = &self.batch[i];
+            let last_of_instance = !self.batch[i + 1..].iter().any(|u| u.instance == t.instance);
+            if t.valid {
+                let identity = match t.writer {
+                    Some(writer) if t.sequence > 0 => SampleIdentity {
+                        writer,
+                        sequence_number: t.sequence,
+                    },
+                    _ => UNKNOWN,
+                };
+                self.pending.push_back(Taken {
+                    sample: Sample {
+                        encoding: Encoding(t.encoding),
+                        body: Bytes::copy_from_slice(&t.body),
+                    },
+                    identity,
+                    related: None,
+                    disposed: false,
+                    unregistered: false,
+                });
+            }
+            if !(t.disposed && last_of_instance) {
+                continue;
+            }
+            if self.announced.get(&t.instance) == Some(&t.disposed_generation) {
+                continue;
+            }
+            if self.announced.len() >= ANNOUNCED_INSTANCES {
+                self.announced.clear();
+            }
+            self.announced.insert(t.instance, t.disposed_generation);
+            let enc = Encoding(t.encoding);
+            let payload = self.key.as_ref().and_then(|k| {
+                k.of_received(&t.body, enc.little_endian(), enc.is_xcdr2(), !t.valid)
+                    .ok()
+            });
+            let identity = match t.writer {
+                Some(writer) if !t.valid && t.sequence > 0 => SampleIdentity {
+                    writer,
+                    sequence_number: t.sequence,
+                },
+                _ => UNKNOWN,
+            };
+            self.pending.push_back(Taken {
+                sample: Sample {
+                    encoding: Encoding::CDR_LE,
+                    body: payload.map(|k| Bytes::from(k.payload)).unwrap_or_default(),
+                },
+                identity,
+                related: None,
+                disposed: true,
+                unregistered: false,
+            });
+        }
+        Ok(())
+    }
+}
+
+impl DdsReader for Reader {
+    fn guid(&self) -> Guid {
+        self.guid
+    }
+    fn take_next(&mut self) -> Result<Option<Taken>, String> {
+        if self.pending.is_empty() {
+            self.refill()?;
+        }
+        Ok(self.pending.pop_front())
+    }
+}
+
+impl DdsBackend for Cyclone {
+    fn name(&self) -> &'static str {
+        "cyclone"
+    }
+
+    fn create_group(
+        &mut self,
+        domain: u16,
+        publish: bool,
+        partitions: &[String],
+    ) -> Result<Box<dyn DdsGroup>, String> {
+        let participant = self.participant(domain)?;
+        let entity = participant.create_group(publish, partitions)?;
+        Ok(Box::new(Group {
+            entity,
+            participant,
+            domain,
+            publish,
+        }))
+    }
+
+    fn create_writer(
+        &mut self,
+        group: &dyn DdsGroup,
+        spec: &TopicSpec,
+        qos: &EndpointQos,
+        little_endian: bool,
+    ) -> Result<Box<dyn DdsWriter>, String> {
+        let Some(g) = group.as_any().downcast_ref::<Group>().filter(|g| g.publish) else {
+            return Err("a data writer needs a Cyclone DDS publisher".into());
+        };
+        let topic = self.topic(g, spec)?;
+        let raw = ffi::Writer::new(g.entity.handle(), &topic, &qos::to_cyclone(qos)?)?;
+        Ok(Box::new(Writer {
+            guid: raw.guid()?,
+            raw,
+            _topic: topic,
+            topic_name: spec.name.clone(),
+            little_endian,
+            key: spec.key.clone(),
+        }))
+    }
+
+    fn create_reader(
+        &mut self,
+        group: &dyn DdsGroup,
+        spec: &TopicSpec,
+        qos: &EndpointQos,
+        token: ReaderToken,
+    ) -> Result<Box<dyn DdsReader>, String> {
+        let Some(g) = group
+            .as_any()
+            .downcast_ref::<Group>()
+            .filter(|g| !g.publish)
+        else {
+            return Err("a data reader needs a Cyclone DDS subscriber".into());
+        };
+        let topic = self.topic(g, spec)?;
+        let raw = ffi::Reader::new(
+            g.entity.handle(),
+            &topic,
+            &qos::to_cyclone(qos)?,
+            &self.readiness,
+            token,
+        )?;
+        Ok(Box::new(Reader {
+            guid: raw.guid()?,
+            raw,
+            _topic: topic,
+            key: spec.key.clone(),
+            pending: VecDeque::new(),
+            batch: Vec::new(),
+            announced: HashMap::new(),
+        }))
+    }
+
+    fn supports_partitions(&self) -> bool {
+        true
+    }
+
+    fn participant_guid(&mut self, domain: u16) -> Result<Guid, String> {
+        self.participant(domain)?.guid()
+    }
+
+    fn readiness_fd(&self) -> RawFd {
+        self.readiness.fd()
+    }
+
+    fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()> {
+        self.readiness.drain(out);
+        Ok(())
+    }
+
+    fn participants(&self) -> usize {
+        self.participants.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::backend::EndpointSide;
+    use crate::xml::{History, QosDesc, Reliability};
+    use std::time::{Duration, Instant};
+
+    fn addr(a: &str) -> IpAddr {
+        a.parse().expect("address")
+    }
+
+    const KEYED: &str = r#"<dds><types><struct name="Keyed">
+        <member name="id" key="true" type="int32"/>
+        <member name="value" type="int32"/>
+      </struct></types></dds>"#;
+
+    fn keyed(id: i32, value: i32) -> Vec<u8> {
+        [id.to_le_bytes(), value.to_le_bytes()].concat()
+    }
+
+    /// Takes until `n` samples came or 5 s passed, waiting on the readiness descriptor.
+    fn take(dds: &mut Cyclone, r: &mut dyn DdsReader, n: usize) -> Vec<Taken> {
+        let deadline = Instant::now() + Duration::from_secs(5);
+        let mut got = Vec::new();
+        let mut tokens = Vec::new();
+        while got.len() < n && Instant::now() < deadline {
+            while let Some(t) = r.take_next().expect("take") {
+                got.push(t);
+            }
+            if got.len() >= n {
+                break;
+            }
+            if woken(dds.readiness_fd()) {
+                dds.ready_readers(&mut tokens).expect("ready");
+            }
+        }
+        got
+    }
+
+    /// Whether the readiness socket holds a wake-up, waiting up to 50 ms for one.
+    fn woken(fd: RawFd) -> bool {
+        use nix::sys::socket::{recv, MsgFlags};
+        let mut b = [0u8; 1];
+        for _ in 0..10 {
+            if recv(fd, &mut b, MsgFlags::MSG_PEEK | MsgFlags::MSG_DONTWAIT).unwrap_or(0) > 0 {
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        false
+    }
+
+    #[test]
+    fn local_writers_reach_local_readers_with_keys_disposes_and_wake_ups() {
+        let mut dds = Cyclone::new(DdsConfig {
+            interfaces: vec![addr("127.0.0.1")],
+            backend: crate::backend::BackendKind::Cyclone,
+        })
+        .expect("backend");
+        let ty = crate::types::TypeSet::parse(KEYED).expect("type");
+        let key = Arc::new(KeyDescriptor::new(ty.get("Keyed").expect("Keyed")).expect("key"));
+        let spec = TopicSpec {
+            name: "cyclone_unit_keyed".into(),
+            type_name: "Keyed".into(),
+            key: Some(key),
+        };
+        let keep_last_1 = QosDesc {
+            reliability: Some(Reliability::Reliable),
+            history: Some(History::KeepLast(1)),
+            ..QosDesc::default()
+        };
+        let wq = EndpointQos::resolve(EndpointSide::Writer, &keep_last_1, &QosDesc::default());
+        let rq = EndpointQos::resolve(EndpointSide::Reader, &keep_last_1, &QosDesc::default());
+        let publisher = dds.create_group(89, true, &[]).expect("publisher");
+        let subscriber = dds.create_group(89, false, &[]).expect("subscriber");
+        let mut reader = dds
+            .create_reader(subscriber.as_ref(), &spec, &rq, 7)
+            .expect("reader");
+        let writer = dds
+            .create_writer(publisher.as_ref(), &spec, &wq, true)
+            .expect("writer");
+        assert_eq!(dds.participants(), 1, "one participant per domain");
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while writer.matched_readers() == 0 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        assert_eq!(writer.matched_readers(), 1);
+        // Two instances, two samples each: keep-last 1 per instance keeps the newest of each.
+        for (id, v) in [(1, 10), (2, 20), (1, 11), (2, 21)] {
+            writer
+                .write(Sample::cdr(true, &keyed(id, v)))
+                .expect("write");
+        }
+        let mut tokens = Vec::new();
+        assert!(woken(dds.readiness_fd()), "the descriptor polls readable");
+        dds.ready_readers(&mut tokens).expect("ready");
+        assert_eq!(tokens, vec![7], "the reader's data woke the loop once");
+        assert!(!woken(dds.readiness_fd()), "drained");
+        let got = take(&mut dds, reader.as_mut(), 2);
+        let bodies: Vec<_> = got.iter().map(|t| t.sample.body.to_vec()).collect();
+        assert_eq!(bodies, vec![keyed(1, 11), keyed(2, 21)]);
+        assert!(got.iter().all(|t| t.sample.encoding == Encoding::CDR_LE));
+        assert!(got.iter().all(|t| !t.disposed && !t.unregistered));
+        // Delivered inside the process: no sequence number, so the identity is unknown.
+        assert!(got.iter().all(|t| t.identity == UNKNOWN));
+        assert!(writer.all_acknowledged());
+        writer
+            .dispose(&Sample::cdr(true, &keyed(2, 0)))
+            .expect("dispose");
+        let got = take(&mut dds, reader.as_mut(), 1);
+        assert_eq!(got.len(), 1);
+        assert!(got[0].disposed, "{:?}", got[0]);
+        assert_eq!(
+            &got[0].sample.body[..4],
+            &2i32.to_le_bytes(),
+            "the key payload"
+        );
+        // A dispose of an instance whose sample is unread yet: Cyclone folds it into the
+        // instance state; the reader still reports it, once, after the sample.
+        writer
+            .write(Sample::cdr(true, &keyed(1, 12)))
+            .expect("write");
+        writer
+            .dispose(&Sample::cdr(true, &keyed(1, 0)))
+            .expect("dispose");
+        let got = take(&mut dds, reader.as_mut(), 2);
+        assert_eq!(got.len(), 2, "{got:?}");
+        assert!(!got[0].disposed && got[0].sample.body.to_vec() == keyed(1, 12));
+        assert!(got[1].disposed && got[1].sample.body.to_vec() == 1i32.to_le_bytes());
+        assert!(reader.take_next().expect("take").is_none(), "reported once");
+        assert!(writer
+            .write_identified(Sample::cdr(true, &[0; 8]), None)
+            .is_err());
+        drop(reader);
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while writer.matched_readers() != 0 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        assert_eq!(writer.matched_readers(), 0, "the reader was deleted");
+    }
+
+    #[test]
+    fn loopback_configuration_discovers_by_unicast_and_others_keep_multicast() {
+        assert_eq!(config_xml(&[]), Ok(None));
+        let lo = config_xml(&[addr("127.0.0.1")])
+            .expect("valid")
+            .expect("some");
+        assert!(
+            lo.contains("<NetworkInterface address=\"127.0.0.1\"/>"),
+            "{lo}"
+        );
+        assert!(
+            lo.contains("<AllowMulticast>false</AllowMulticast>"),
+            "{lo}"
+        );
+        assert!(lo.contains("<Peer address=\"127.0.0.1\"/>"), "{lo}");
+        let v6 = config_xml(&[addr("::1")]).expect("valid").expect("some");
+        assert!(
+            v6.contains("<Transport>udp6</Transport>") && v6.contains("[::1]"),
+            "{v6}"
+        );
+        let lan = config_xml(&[addr("192.0.2.7")])
+            .expect("valid")
+            .expect("some");
+        assert!(
+            !lan.contains("AllowMulticast") && !lan.contains("<Peers>"),
+            "{lan}"
+        );
+        assert!(config_xml(&[addr("127.0.0.1"), addr("::1")]).is_err());
+    }
+
+    #[test]
+    fn partitions_separate_writers_from_readers_of_other_partitions() {
+        let mut dds = Cyclone::new(DdsConfig {
+            interfaces: vec![addr("127.0.0.1")],
+            backend: crate::backend::BackendKind::Cyclone,
+        })
+        .expect("backend");
+        assert!(dds.supports_partitions());
+        let spec = TopicSpec {
+            name: "cyclone_unit_partitions".into(),
+            type_name: "Plain".into(),
+            key: None,
+        };
+        let wq = EndpointQos::resolve(
+            EndpointSide::Writer,
+            &QosDesc::default(),
+            &QosDesc::default(),
+        );
+        let rq = EndpointQos::resolve(
+            EndpointSide::Reader,
+            &QosDesc::default(),
+            &QosDesc::default(),
+        );
+        let a = ["robot_a".to_string()];
+        let publisher = dds.create_group(90, true, &a).expect("publisher");
+        let elsewhere = dds
+            .create_group(90, false, &["robot_b".to_string()])
+            .expect("subscriber");
+        let same = dds
+            .create_group(90, false, &["robot_*".to_string()])
+            .expect("subscriber");
+        let mut other = dds
+            .create_reader(elsewhere.as_ref(), &spec, &rq, 1)
+            .expect("reader");
+        let mut mine = dds
+            .create_reader(same.as_ref(), &spec, &rq, 2)
+            .expect("reader");
+        let writer = dds
+            .create_writer(publisher.as_ref(), &spec, &wq, true)
+            .expect("writer");
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while writer.matched_readers() == 0 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        std::thread::sleep(Duration::from_millis(100));
+        assert_eq!(
+            writer.matched_readers(),
+            1,
+            "only the reader of a matching partition"
+        );
+        writer
+            .write(Sample::cdr(true, &[1, 2, 3, 4]))
+            .expect("write");
+        let got = take(&mut dds, mine.as_mut(), 1);
+        assert_eq!(got.len(), 1);
+        assert_eq!(got[0].sample.body.to_vec(), vec![1, 2, 3, 4]);
+        assert!(other.take_next().expect("take").is_none());
+    }
+}

@@ -1,0 +1,83 @@
+//! Cyclone DDS policies for an endpoint's resolved QoS.
+
+use super::ffi::{self, Qos, INFINITY};
+use crate::backend::EndpointQos;
+use crate::xml::{
+    AccessScope, DestinationOrderKind, Durability, History, LivelinessKind, OwnershipKind, Period,
+    Reliability,
+};
+
+/// Nanoseconds of a period (infinite beyond `i64`).
+fn ns(p: Period) -> i64 {
+    match p {
+        Period::Finite(d) => i64::try_from(d.as_nanos()).unwrap_or(INFINITY),
+        _ => INFINITY,
+    }
+}
+
+/// The Cyclone policies of an endpoint.
+pub fn to_cyclone(qos: &EndpointQos) -> Result<Qos, String> {
+    let mut q = Qos::new()?;
+    let d = qos.described;
+    q.reliability(match qos.reliability {
+        Reliability::Reliable => ffi::ReliabilityKind::Reliable(
+            i64::try_from(qos.max_blocking.as_nanos()).unwrap_or(INFINITY),
+        ),
+        Reliability::BestEffort => ffi::ReliabilityKind::BestEffort,
+    });
+    q.durability(match qos.durability {
+        Durability::Volatile => ffi::DurabilityKind::Volatile,
+        Durability::TransientLocal => ffi::DurabilityKind::TransientLocal,
+        Durability::Transient => ffi::DurabilityKind::Transient,
+        Durability::Persistent => ffi::DurabilityKind::Persistent,
+    });
+    q.history(match qos.history {
+        History::KeepLast(depth) => Some(depth.max(1)),
+        History::KeepAll => None,
+    });
+    if let Some(p) = d.deadline {
+        q.deadline(ns(p));
+    }
+    if let Some(p) = d.lifespan {
+        q.lifespan(ns(p));
+    }
+    if let Some(p) = d.latency_budget {
+        q.latency_budget(ns(p));
+    }
+    if let Some(p) = d.time_based_filter {
+        q.time_based_filter(ns(p));
+    }
+    if let Some((kind, lease)) = d.liveliness {
+        q.liveliness(
+            match kind {
+                LivelinessKind::Automatic => ffi::LivelinessKind::Automatic,
+                LivelinessKind::ManualByParticipant => ffi::LivelinessKind::ManualByParticipant,
+                LivelinessKind::ManualByTopic => ffi::LivelinessKind::ManualByTopic,
+            },
+            ns(lease),
+        );
+    }
+    match d.ownership {
+        Some(OwnershipKind::Exclusive) => q.ownership(Some(d.ownership_strength.unwrap_or(0))),
+        Some(OwnershipKind::Shared) => q.ownership(None),
+        None => {}
+    }
+    if let Some(o) = d.destination_order {
+        q.destination_order(matches!(o, DestinationOrderKind::BySource));
+    }
+    if let Some(r) = qos.resource_limits {
+        q.resource_limits(r.max_samples, r.max_instances, r.max_samples_per_instance);
+    }
+    if let Some(p) = d.presentation {
+        q.presentation(
+            match p.access_scope {
+                AccessScope::Instance => ffi::AccessScope::Instance,
+                AccessScope::Topic => ffi::AccessScope::Topic,
+                AccessScope::Group => ffi::AccessScope::Group,
+            },
+            p.coherent_access,
+            p.ordered_access,
+        );
+    }
+    Ok(q)
+}
