@@ -23,36 +23,56 @@ pub const ACK_GIVE_UP: Duration = Duration::from_secs(2);
 
 /// A DDS writer whose acknowledgements can be asked for.
 pub trait Acknowledging {
-    /// Whether every matched reliable reader acknowledged everything written so far (true
-    /// with none).
-    fn all_acknowledged(&self) -> bool;
+    /// How many of its writes, counted from its creation, every matched reliable reader
+    /// acknowledged (all with none): the writes recorded with an ordinal up to it are done.
+    fn acknowledged_writes(&self) -> u64;
     /// The operations written through it not known to be acknowledged.
     fn outstanding(&self) -> &Outstanding;
 }
 
 /// Operations written through one DDS writer and not known to be acknowledged, in the order
-/// they were written (one front-end's in increasing order unless the writer is shared).
+/// they were written (one front-end's in increasing order unless the writer is shared), each
+/// with its ordinal among the writer's writes.
 #[derive(Debug, Default)]
 pub struct Outstanding {
-    writes: RefCell<VecDeque<(u32, u64, Instant)>>,
+    /// (front-end, operation, when, the writer's write count after it).
+    writes: RefCell<VecDeque<(u32, u64, Instant, u64)>>,
     /// The writes are not one front-end's in increasing order (a shared DDS writer: several
     /// front-ends, or several XRCE writers whose held samples are released in turns).
     mixed: std::cell::Cell<bool>,
 }
 
 impl Outstanding {
-    /// Records that front-end `frontend`'s operation `seq` was written; true if nothing was
-    /// outstanding before (the writer must be watched from now on).
-    pub fn record(&self, frontend: u32, seq: u64, now: Instant) -> bool {
+    /// Records that front-end `frontend`'s operation `seq` was written as the writer's
+    /// `ordinal`-th write; true if nothing was outstanding before (the writer must be watched
+    /// from now on).
+    pub fn record(&self, frontend: u32, seq: u64, now: Instant, ordinal: u64) -> bool {
         let mut w = self.writes.borrow_mut();
         let first = w.is_empty();
         if w.back()
-            .is_some_and(|&(fe, s, _)| fe != frontend || s > seq)
+            .is_some_and(|&(fe, s, _, _)| fe != frontend || s > seq)
         {
             self.mixed.set(true);
         }
-        w.push_back((frontend, seq, now));
+        w.push_back((frontend, seq, now, ordinal));
         first
+    }
+
+    /// Forgets the writes among the writer's first `acknowledged` (ordinals grow in the
+    /// order of the queue), noting whose they were; whether nothing is left.
+    fn release_through(&self, acknowledged: u64, frontends: &mut HashSet<u32>) -> bool {
+        let mut w = self.writes.borrow_mut();
+        while let Some(&(fe, _, _, ordinal)) = w.front() {
+            if ordinal > acknowledged {
+                break;
+            }
+            frontends.insert(fe);
+            w.pop_front();
+        }
+        if w.is_empty() {
+            self.mixed.set(false);
+        }
+        w.is_empty()
     }
 
     /// The oldest outstanding operation of each front-end, merged into `min`.
@@ -64,26 +84,20 @@ impl Outstanding {
         };
         if !self.mixed.get() {
             // One front-end's writes, in its order: the first is the oldest.
-            if let Some(&(fe, seq, _)) = w.front() {
+            if let Some(&(fe, seq, _, _)) = w.front() {
                 merge(fe, seq);
             }
             return;
         }
-        for &(fe, seq, _) in w.iter() {
+        for &(fe, seq, _, _) in w.iter() {
             merge(fe, seq);
         }
-    }
-
-    /// Forgets everything (acknowledged), noting whose operations they were.
-    fn clear(&self, frontends: &mut HashSet<u32>) {
-        frontends.extend(self.writes.borrow_mut().drain(..).map(|(fe, _, _)| fe));
-        self.mixed.set(false);
     }
 
     /// Forgets writes older than `limit`; whether nothing is left.
     fn expire(&self, limit: Instant, frontends: &mut HashSet<u32>) -> bool {
         let mut w = self.writes.borrow_mut();
-        while let Some(&(fe, _, at)) = w.front() {
+        while let Some(&(fe, _, at, _)) = w.front() {
             if at >= limit {
                 break;
             }
@@ -155,8 +169,7 @@ impl<W: Acknowledging> AckTracker<W> {
                 return false;
             };
             let out = w.outstanding();
-            if w.all_acknowledged() {
-                out.clear(&mut moved);
+            if out.release_through(w.acknowledged_writes(), &mut moved) {
                 return false;
             }
             !out.expire(limit, &mut moved)
@@ -199,12 +212,20 @@ mod tests {
 
     #[derive(Default)]
     struct FakeWriter {
-        acked: Cell<bool>,
+        written: Cell<u64>,
+        acked: Cell<u64>,
         out: Outstanding,
     }
 
+    impl FakeWriter {
+        /// Its readers acknowledged everything written so far.
+        fn ack_all(&self) {
+            self.acked.set(self.written.get());
+        }
+    }
+
     impl Acknowledging for FakeWriter {
-        fn all_acknowledged(&self) -> bool {
+        fn acknowledged_writes(&self) -> u64 {
             self.acked.get()
         }
         fn outstanding(&self) -> &Outstanding {
@@ -213,8 +234,8 @@ mod tests {
     }
 
     fn write(t: &mut AckTracker<FakeWriter>, w: &Rc<FakeWriter>, fe: u32, seq: u64, now: Instant) {
-        w.acked.set(false);
-        if w.out.record(fe, seq, now) {
+        w.written.set(w.written.get() + 1);
+        if w.out.record(fe, seq, now, w.written.get()) {
             t.watch(w);
         }
     }
@@ -235,13 +256,13 @@ mod tests {
         // Nothing acknowledged: nothing moves.
         assert_eq!(t.poll(t0).0, HashSet::new());
         // Writer a's readers acknowledged: front-end 1 now waits only for b's 11.
-        a.acked.set(true);
+        a.ack_all();
         let (moved, all) = t.poll(t0 + ACK_POLL_PERIOD);
         assert_eq!((moved, all), (HashSet::from([1]), false));
         assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 11), (2, 5)]));
         assert_eq!(t.outstanding_writes(), 2);
         // Polls are rate-limited.
-        b.acked.set(true);
+        b.ack_all();
         assert!(t.poll(t0 + ACK_POLL_PERIOD).0.is_empty());
         let (moved, _) = t.poll(t0 + 2 * ACK_POLL_PERIOD);
         assert_eq!(moved, HashSet::from([1, 2]));
@@ -307,5 +328,29 @@ mod tests {
         let (_, all) = t.poll(t0 + ACK_GIVE_UP + Duration::from_millis(10));
         assert!(all, "a deleted writer's front-ends are not known any more");
         assert_eq!(t.oldest_outstanding(), HashMap::from([(3, 2)]));
+    }
+
+    #[test]
+    fn readers_acknowledging_part_of_a_stream_release_that_part() {
+        // Readers that acknowledge only every so often (Cyclone DDS): while writes go on,
+        // "everything acknowledged" is never true, but the acknowledged ones are let go.
+        let t0 = Instant::now();
+        let mut t = AckTracker::new(t0);
+        let w = Rc::new(FakeWriter::default());
+        for seq in 1..=5 {
+            write(&mut t, &w, 1, seq, t0);
+        }
+        w.acked.set(3);
+        let (moved, _) = t.poll(t0);
+        assert_eq!(moved, HashSet::from([1]));
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 4)]));
+        write(&mut t, &w, 1, 6, t0);
+        w.acked.set(5);
+        let _ = t.poll(t0 + ACK_POLL_PERIOD);
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 6)]));
+        w.ack_all();
+        let _ = t.poll(t0 + 2 * ACK_POLL_PERIOD);
+        assert!(t.oldest_outstanding().is_empty());
+        assert_eq!(t.due(), None);
     }
 }

@@ -39,6 +39,11 @@ fn target_dir() -> PathBuf {
     workspace().join("target")
 }
 
+/// The DDS backend the agents under test use (`XRCE_DDS_BACKEND`, default `rustdds`).
+pub fn dds_backend() -> String {
+    std::env::var("XRCE_DDS_BACKEND").unwrap_or_else(|_| "rustdds".into())
+}
+
 /// Builds the agent's binaries once per test process; returns their directory.
 pub fn binaries() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();

@@ -157,7 +157,10 @@ struct Writer {
     topic: String,
     little_endian: bool,
     key: Option<Arc<KeyDescriptor>>,
+    /// Writes made (the last sequence number).
     seq: Cell<i64>,
+    /// Writes known acknowledged.
+    acked: Cell<u64>,
 }
 
 impl Drop for Writer {
@@ -232,6 +235,15 @@ impl DdsWriter for Writer {
     }
     fn all_acknowledged(&self) -> bool {
         self.bus.acknowledged.get()
+    }
+    fn writes(&self) -> u64 {
+        self.seq.get() as u64
+    }
+    fn acknowledged_writes(&self) -> u64 {
+        if self.bus.acknowledged.get() {
+            self.acked.set(self.seq.get() as u64);
+        }
+        self.acked.get()
     }
     fn matched_readers(&self) -> usize {
         self.bus
@@ -310,6 +322,7 @@ impl DdsBackend for Fake {
             little_endian,
             key: topic.key.clone(),
             seq: Cell::new(0),
+            acked: Cell::new(0),
         }))
     }
 

@@ -227,6 +227,12 @@ pub trait DdsWriter {
     /// Whether every matched reliable reader acknowledged everything written (true without
     /// any, and for a best-effort writer). Never waits.
     fn all_acknowledged(&self) -> bool;
+    /// How many writes (samples and disposes that succeeded) it made since its creation.
+    fn writes(&self) -> u64;
+    /// How many of its first [`writes`](DdsWriter::writes) every matched reliable reader
+    /// acknowledged (all of them without any, and for a best-effort writer). Never waits;
+    /// may lag behind the readers, never run ahead of them.
+    fn acknowledged_writes(&self) -> u64;
     /// How many readers it matches now.
     fn matched_readers(&self) -> usize;
 }
@@ -257,6 +263,11 @@ pub trait DdsBackend {
     /// Whether its groups can have partitions.
     fn supports_partitions(&self) -> bool {
         false
+    }
+    /// Whether it can serve requesters and repliers ([`DdsWriter::write_identified`] with a
+    /// related identity, and readers that report one).
+    fn supports_services(&self) -> bool {
+        true
     }
     /// A data writer in `group` (a publisher of this backend) publishing in the given byte
     /// order.

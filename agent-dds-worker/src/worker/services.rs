@@ -103,6 +103,16 @@ impl Worker {
         little_endian: bool,
     ) -> Result<ServiceEndpoint, OpError> {
         let dds_err = |e: String| (status::ERR_DDS_ERROR, e);
+        if !self.dds.supports_services() {
+            return Err((
+                status::ERR_INCOMPATIBLE,
+                format!(
+                    "requesters and repliers are not supported by the {} DDS backend (it \
+                     cannot send a related sample identity); use --dds-backend rustdds",
+                    self.dds.name()
+                ),
+            ));
+        }
         let (out_topic, out_type, in_topic, in_type) = if requester {
             (
                 &desc.request_topic,

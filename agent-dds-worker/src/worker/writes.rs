@@ -18,8 +18,8 @@ pub(super) struct DdsWriter {
 }
 
 impl Acknowledging for DdsWriter {
-    fn all_acknowledged(&self) -> bool {
-        self.raw.all_acknowledged()
+    fn acknowledged_writes(&self) -> u64 {
+        self.raw.acknowledged_writes()
     }
     fn outstanding(&self) -> &Outstanding {
         &self.outstanding
@@ -259,7 +259,7 @@ impl Worker {
             rematch.held_bytes = 0;
             for (s_seq, s, d) in rematch.held.drain(..) {
                 let done = if d { w.raw.dispose(&s) } else { w.raw.write(s) };
-                if done.is_ok() && w.outstanding.record(key.0, s_seq, now) {
+                if done.is_ok() && w.outstanding.record(key.0, s_seq, now, w.raw.writes()) {
                     self.acks.watch(w);
                 }
             }
@@ -273,7 +273,10 @@ impl Worker {
                 .write(sample)
                 .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
         };
-        if done.is_ok() && w.outstanding.record(key.0, seq, Instant::now()) {
+        if done.is_ok()
+            && w.outstanding
+                .record(key.0, seq, Instant::now(), w.raw.writes())
+        {
             self.acks.watch(w);
         }
         done
@@ -362,7 +365,7 @@ impl Worker {
                     }
                     if done.is_err() {
                         failures += 1;
-                    } else if w.outstanding.record(key.0, seq, now) {
+                    } else if w.outstanding.record(key.0, seq, now, w.raw.writes()) {
                         self.acks.watch(w);
                     }
                 }

@@ -449,9 +449,7 @@ impl Writer {
     /// Writes a sample with representation identifier `encoding` and body `body`; with
     /// `dispose`, disposes the instance whose key payload `body` is instead.
     pub fn write(&self, encoding: [u8; 2], body: &[u8], dispose: bool) -> Result<(), String> {
-        let mut data = Vec::with_capacity(4 + body.len());
-        data.extend_from_slice(&[encoding[0], encoding[1], 0, 0]);
-        data.extend_from_slice(body);
+        let data = encapsulate(encoding, body);
         let kind = if dispose {
             c::ddsi_serdata_kind_SDK_KEY
         } else {
@@ -476,8 +474,12 @@ impl Writer {
 
     /// Whether every matched reliable reader acknowledged everything (never waits).
     pub fn all_acknowledged(&self) -> bool {
-        // SAFETY: a handle number; a zero timeout returns at once.
-        unsafe { c::dds_wait_for_acks(self.entity.handle(), 0) == 0 }
+        wait_for_acks(self.entity.handle(), 0)
+    }
+
+    /// Its handle (for [`wait_for_acks`] from another thread).
+    pub fn handle(&self) -> Handle {
+        self.entity.handle()
     }
 
     /// How many readers it matches.
@@ -494,6 +496,14 @@ impl Writer {
 }
 
 const DDSI_STATUSINFO_DISPOSE: u32 = 1;
+
+/// Waits up to `timeout_ns` until every matched reliable reader of `writer` acknowledged
+/// every sample written before the call; whether they did. A handle is a number, so this may
+/// be called from any thread, also for a writer deleted meanwhile (false).
+pub fn wait_for_acks(writer: Handle, timeout_ns: i64) -> bool {
+    // SAFETY: no pointers; Cyclone looks the handle up and pins the writer while it waits.
+    unsafe { c::dds_wait_for_acks(writer, timeout_ns) == 0 }
+}
 
 /// A sample taken from a [`Reader`].
 #[derive(Debug)]
@@ -597,11 +607,7 @@ impl Reader {
                 continue;
             };
             let writer = self.writer_guid(info.publication_handle);
-            let (encoding, body) = if data.len() >= 4 {
-                ([data[0], data[1]], data[4..].to_vec())
-            } else {
-                ([0, 1], Vec::new())
-            };
+            let (encoding, body) = decapsulate(&data);
             out.push(TakenRaw {
                 encoding,
                 body,
@@ -1164,13 +1170,8 @@ unsafe extern "C" fn serdata_to_untyped(sd: *const c::ddsi_serdata) -> *mut c::d
         } else {
             key_payload(tp, &s.data).unwrap_or_default()
         };
-        let u = new_serdata(
-            tp,
-            c::ddsi_serdata_kind_SDK_KEY,
-            data,
-            s.keyhash,
-            s.sequence,
-        );
+        // No sequence number: an untyped key stands for its instance, not for a sample.
+        let u = new_serdata(tp, c::ddsi_serdata_kind_SDK_KEY, data, s.keyhash, 0);
         (*u).type_ = std::ptr::null();
         (*u).hash = (*sd).hash;
         (*u).timestamp.v = i64::MIN;
@@ -1191,9 +1192,30 @@ unsafe fn key_payload(tp: *const c::ddsi_sertype, data: &[u8]) -> Option<Vec<u8>
     let le = data[1] & 1 == 1;
     let xcdr2 = matches!(data[1], 6 | 7);
     let k = key.of_received(&data[4..], le, xcdr2, false).ok()?;
-    let mut out = vec![0, 1, 0, 0];
-    out.extend_from_slice(&k.payload);
-    Some(out)
+    Some(encapsulate(super::Encoding::CDR_LE.0, &k.payload))
+}
+
+/// A serialized sample as DDS carries it: the encapsulation header, the body, and zeros up to
+/// a multiple of 4 octets, their count in the options' two low bits (XTypes 1.3 §7.6.3.1.2).
+/// Cyclone DDS drops DATA whose payload is not so padded as malformed, and XRCE clients send
+/// unpadded bodies (a 34-octet HelloWorld, say).
+fn encapsulate(encoding: [u8; 2], body: &[u8]) -> Vec<u8> {
+    let pad = (4 - body.len() % 4) % 4;
+    let mut data = Vec::with_capacity(4 + body.len() + pad);
+    data.extend_from_slice(&[encoding[0], encoding[1], 0, pad as u8]);
+    data.extend_from_slice(body);
+    data.resize(data.len() + pad, 0);
+    data
+}
+
+/// The representation identifier and body of an encapsulated sample, without its padding.
+fn decapsulate(data: &[u8]) -> ([u8; 2], Vec<u8>) {
+    if data.len() < 4 {
+        return ([0, 1], Vec::new());
+    }
+    let pad = usize::from(data[3] & 3);
+    let end = data.len().saturating_sub(pad).max(4);
+    ([data[0], data[1]], data[4..end].to_vec())
 }
 
 unsafe extern "C" fn serdata_free(sd: *mut c::ddsi_serdata) {
@@ -1227,4 +1249,23 @@ unsafe extern "C" fn serdata_get_keyhash(
 ) {
     // SAFETY: ours; buf is a live key hash.
     unsafe { (*buf).value = ours(sd).keyhash };
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn samples_are_padded_to_four_octets_and_unpadded_again() {
+        for n in 0..9 {
+            let body: Vec<u8> = (1..=n).collect();
+            let data = encapsulate([0, 1], &body);
+            assert_eq!(data.len() % 4, 0, "{n}");
+            assert_eq!(usize::from(data[3]), (4 - n as usize % 4) % 4);
+            assert_eq!(decapsulate(&data), ([0, 1], body));
+        }
+        assert_eq!(decapsulate(&[0, 1]), ([0, 1], Vec::new()));
+        // A padding count beyond the body never underflows.
+        assert_eq!(decapsulate(&[0, 1, 0, 3]), ([0, 1], Vec::new()));
+    }
 }

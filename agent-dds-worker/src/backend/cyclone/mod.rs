@@ -13,7 +13,9 @@ use std::fmt::Write as _;
 use std::net::IpAddr;
 use std::os::fd::RawFd;
 use std::rc::{Rc, Weak};
-use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::Duration;
 
 use bytes::Bytes;
 
@@ -29,6 +31,8 @@ pub mod qos;
 
 /// DDS through Cyclone DDS.
 pub struct Cyclone {
+    // Declared first: its thread stops before any entity is deleted.
+    acks: AckWatcher,
     config: DdsConfig,
     participants: HashMap<u16, Rc<ffi::Participant>>,
     /// Topics by (domain, name, type name, keyed), shared by their endpoints and deleted
@@ -46,50 +50,64 @@ impl std::fmt::Debug for Cyclone {
     }
 }
 
-/// Cyclone's configuration for DDS restricted to `interfaces` (`None`: Cyclone's defaults,
-/// or `CYCLONEDDS_URI`). On loopback alone there is no multicast, so discovery goes by
-/// unicast to the well-known ports of the first participant indices on the same addresses
-/// (which is also how RustDDS and a loopback-pinned Cyclone find each other).
-pub fn config_xml(interfaces: &[IpAddr]) -> Result<Option<String>, String> {
-    if interfaces.is_empty() {
-        return Ok(None);
-    }
+/// The agent's own Cyclone settings: heartbeats every 10 ms (at least 5 ms apart) while a
+/// writer has unacknowledged samples, instead of every 100 ms, so that readers acknowledge
+/// within tens of milliseconds and the front-ends can let go of their retained writes that
+/// soon (what is unacknowledged at a worker crash is resent, so this bounds the repeats).
+const AGENT_SETTINGS: &str =
+    "<Internal><HeartbeatInterval minsched=\"5ms\">10ms</HeartbeatInterval></Internal>";
+
+/// Cyclone's configuration: `CYCLONEDDS_URI`'s (`uri`), then the agent's settings and, with
+/// `interfaces`, DDS restricted to them (later settings win). On loopback alone there is no
+/// multicast, so discovery goes by unicast to the well-known ports of the first participant
+/// indices on the same addresses (which is also how RustDDS and a loopback-pinned Cyclone
+/// find each other).
+pub fn config_xml(interfaces: &[IpAddr], uri: Option<&str>) -> Result<String, String> {
     let v6 = interfaces.iter().filter(|a| a.is_ipv6()).count();
     if v6 != 0 && v6 != interfaces.len() {
         return Err("Cyclone DDS uses either IPv4 or IPv6 addresses in a domain, not both".into());
     }
-    let loopback = interfaces.iter().all(|a| a.is_loopback());
-    let mut s = String::from("<CycloneDDS><Domain id=\"any\"><General><Interfaces>");
-    for a in interfaces {
-        let _ = write!(s, "<NetworkInterface address=\"{a}\"/>");
+    let mut s = String::new();
+    if let Some(u) = uri.map(str::trim).filter(|u| !u.is_empty()) {
+        s.push_str(u);
+        s.push(',');
     }
-    s.push_str("</Interfaces>");
-    if v6 != 0 {
-        s.push_str("<Transport>udp6</Transport>");
-    }
-    if loopback {
-        s.push_str("<AllowMulticast>false</AllowMulticast>");
-    }
-    s.push_str("</General>");
-    if loopback {
-        s.push_str(
-            "<Discovery><ParticipantIndex>auto</ParticipantIndex>\
-             <MaxAutoParticipantIndex>50</MaxAutoParticipantIndex><Peers>",
-        );
+    s.push_str("<CycloneDDS><Domain id=\"any\">");
+    s.push_str(AGENT_SETTINGS);
+    if !interfaces.is_empty() {
+        let loopback = interfaces.iter().all(|a| a.is_loopback());
+        s.push_str("<General><Interfaces>");
         for a in interfaces {
-            match a {
-                IpAddr::V4(a) => {
-                    let _ = write!(s, "<Peer address=\"{a}\"/>");
-                }
-                IpAddr::V6(a) => {
-                    let _ = write!(s, "<Peer address=\"[{a}]\"/>");
+            let _ = write!(s, "<NetworkInterface address=\"{a}\"/>");
+        }
+        s.push_str("</Interfaces>");
+        if v6 != 0 {
+            s.push_str("<Transport>udp6</Transport>");
+        }
+        if loopback {
+            s.push_str("<AllowMulticast>false</AllowMulticast>");
+        }
+        s.push_str("</General>");
+        if loopback {
+            s.push_str(
+                "<Discovery><ParticipantIndex>auto</ParticipantIndex>\
+                 <MaxAutoParticipantIndex>50</MaxAutoParticipantIndex><Peers>",
+            );
+            for a in interfaces {
+                match a {
+                    IpAddr::V4(a) => {
+                        let _ = write!(s, "<Peer address=\"{a}\"/>");
+                    }
+                    IpAddr::V6(a) => {
+                        let _ = write!(s, "<Peer address=\"[{a}]\"/>");
+                    }
                 }
             }
+            s.push_str("</Peers></Discovery>");
         }
-        s.push_str("</Peers></Discovery>");
     }
     s.push_str("</Domain></CycloneDDS>");
-    Ok(Some(s))
+    Ok(s)
 }
 
 impl Cyclone {
@@ -100,6 +118,7 @@ impl Cyclone {
             participants: HashMap::new(),
             topics: HashMap::new(),
             readiness: ffi::Readiness::new()?,
+            acks: AckWatcher::start()?,
         })
     }
 
@@ -107,8 +126,9 @@ impl Cyclone {
         if let Some(p) = self.participants.get(&domain) {
             return Ok(p.clone());
         }
-        let xml = config_xml(&self.config.interfaces)?;
-        let p = Rc::new(ffi::Participant::new(u32::from(domain), xml.as_deref())?);
+        let uri = std::env::var("CYCLONEDDS_URI").ok();
+        let xml = config_xml(&self.config.interfaces, uri.as_deref())?;
+        let p = Rc::new(ffi::Participant::new(u32::from(domain), Some(&xml))?);
         tracing::info!(domain, "Cyclone DDS participant created");
         self.participants.insert(domain, p.clone());
         Ok(p)
@@ -132,6 +152,129 @@ impl Cyclone {
         )?);
         self.topics.insert(id, Rc::downgrade(&t));
         Ok(t)
+    }
+}
+
+/// How long the acknowledgement thread waits for one writer's readers per turn.
+const ACK_WAIT: Duration = Duration::from_millis(25);
+
+/// Counts, per writer, how many of its writes its readers acknowledged, on a thread of its
+/// own. Cyclone's readers acknowledge when the writer's heartbeats ask (every few tens of
+/// milliseconds), so while a writer writes every few milliseconds "everything acknowledged"
+/// is almost never true; but `dds_wait_for_acks` waits for the writes made before it was
+/// called, so a waiting call, which the worker's loop cannot make, tells that those are
+/// acknowledged even while more are written.
+struct AckWatcher {
+    shared: Arc<AckShared>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+struct AckShared {
+    writers: Mutex<HashMap<ffi::Handle, Arc<WriterAcks>>>,
+    wake: Condvar,
+    /// The thread waits for writes (set under the lock; a writer that clears it notifies).
+    sleeping: AtomicBool,
+    stop: AtomicBool,
+}
+
+/// One writer's counts.
+#[derive(Default)]
+struct WriterAcks {
+    written: AtomicU64,
+    acked: AtomicU64,
+}
+
+impl AckWatcher {
+    fn start() -> std::io::Result<Self> {
+        let shared = Arc::new(AckShared {
+            writers: Mutex::new(HashMap::new()),
+            wake: Condvar::new(),
+            sleeping: AtomicBool::new(false),
+            stop: AtomicBool::new(false),
+        });
+        let s = shared.clone();
+        let thread = std::thread::Builder::new()
+            .name("cyclone-acks".into())
+            .spawn(move || s.run())?;
+        Ok(AckWatcher {
+            shared,
+            thread: Some(thread),
+        })
+    }
+
+    fn watch(&self, writer: ffi::Handle) -> Arc<WriterAcks> {
+        let acks = Arc::new(WriterAcks::default());
+        lock(&self.shared.writers).insert(writer, acks.clone());
+        acks
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+impl AckShared {
+    fn run(&self) {
+        let wait_ns = i64::try_from(ACK_WAIT.as_nanos()).unwrap_or(i64::MAX);
+        loop {
+            let pending: Vec<(ffi::Handle, Arc<WriterAcks>)> = {
+                let mut writers = lock(&self.writers);
+                loop {
+                    if self.stop.load(Ordering::SeqCst) {
+                        return;
+                    }
+                    self.sleeping.store(true, Ordering::SeqCst);
+                    let p: Vec<_> = writers
+                        .iter()
+                        .filter(|(_, a)| {
+                            a.acked.load(Ordering::SeqCst) < a.written.load(Ordering::SeqCst)
+                        })
+                        .map(|(h, a)| (*h, a.clone()))
+                        .collect();
+                    if !p.is_empty() {
+                        self.sleeping.store(false, Ordering::SeqCst);
+                        break p;
+                    }
+                    writers = self
+                        .wake
+                        .wait_timeout(writers, Duration::from_millis(200))
+                        .unwrap_or_else(std::sync::PoisonError::into_inner)
+                        .0;
+                }
+            };
+            for (h, a) in pending {
+                if self.stop.load(Ordering::SeqCst) {
+                    return;
+                }
+                // Read before the wait, which covers every write made before it.
+                let n = a.written.load(Ordering::SeqCst);
+                if ffi::wait_for_acks(h, wait_ns) {
+                    a.acked.fetch_max(n, Ordering::SeqCst);
+                }
+            }
+        }
+    }
+
+    /// A write was made: wake the thread if it waits.
+    fn wrote(&self, acks: &WriterAcks) {
+        acks.written.fetch_add(1, Ordering::SeqCst);
+        if self.sleeping.swap(false, Ordering::SeqCst) {
+            let _held = lock(&self.writers);
+            self.wake.notify_one();
+        }
+    }
+}
+
+impl Drop for AckWatcher {
+    fn drop(&mut self) {
+        self.shared.stop.store(true, Ordering::SeqCst);
+        {
+            let _held = lock(&self.shared.writers);
+            self.shared.wake.notify_one();
+        }
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
     }
 }
 
@@ -160,6 +303,24 @@ struct Writer {
     topic_name: String,
     little_endian: bool,
     key: Option<Arc<KeyDescriptor>>,
+    acks: Arc<WriterAcks>,
+    watcher: Arc<AckShared>,
+}
+
+impl Writer {
+    /// Counts a write that succeeded.
+    fn count(&self, done: Result<(), String>) -> Result<(), String> {
+        if done.is_ok() {
+            self.watcher.wrote(&self.acks);
+        }
+        done
+    }
+}
+
+impl Drop for Writer {
+    fn drop(&mut self) {
+        lock(&self.watcher.writers).remove(&self.raw.handle());
+    }
 }
 
 impl DdsWriter for Writer {
@@ -176,7 +337,7 @@ impl DdsWriter for Writer {
         self.key.as_ref()
     }
     fn write(&self, sample: Sample) -> Result<(), String> {
-        self.raw.write(sample.encoding.0, &sample.body, false)
+        self.count(self.raw.write(sample.encoding.0, &sample.body, false))
     }
     fn dispose(&self, sample: &Sample) -> Result<(), String> {
         let Some(k) = &self.key else {
@@ -187,7 +348,7 @@ impl DdsWriter for Writer {
             .of_sample(&sample.body, le, xcdr2)
             .or_else(|_| k.of_key_payload(&sample.body, le, xcdr2))
             .map_err(|e| format!("key of a {} sample: {e}", k.ty().name))?;
-        self.raw.write(Encoding::cdr(le).0, &key.payload, true)
+        self.count(self.raw.write(Encoding::cdr(le).0, &key.payload, true))
     }
     fn write_identified(
         &self,
@@ -203,6 +364,12 @@ impl DdsWriter for Writer {
     }
     fn all_acknowledged(&self) -> bool {
         self.raw.all_acknowledged()
+    }
+    fn writes(&self) -> u64 {
+        self.acks.written.load(Ordering::SeqCst)
+    }
+    fn acknowledged_writes(&self) -> u64 {
+        self.acks.acked.load(Ordering::SeqCst)
     }
     fn matched_readers(&self) -> usize {
         self.raw.matched()
@@ -277,22 +444,17 @@ impl Reader {
                 k.of_received(&t.body, enc.little_endian(), enc.is_xcdr2(), !t.valid)
                     .ok()
             });
-            let identity = match t.writer {
-                Some(writer) if !t.valid && t.sequence > 0 => SampleIdentity {
-                    writer,
-                    sequence_number: t.sequence,
-                },
-                _ => UNKNOWN,
-            };
+            // Cyclone builds an invalid sample from the instance's key, not from the dispose
+            // message: no sequence number of the dispose to tell.
             self.pending.push_back(Taken {
                 sample: Sample {
                     encoding: Encoding::CDR_LE,
                     body: payload.map(|k| Bytes::from(k.payload)).unwrap_or_default(),
                 },
-                identity,
                 related: None,
                 disposed: true,
                 unregistered: false,
+                identity: UNKNOWN,
             });
         }
         Ok(())
@@ -345,6 +507,8 @@ impl DdsBackend for Cyclone {
         let topic = self.topic(g, spec)?;
         let raw = ffi::Writer::new(g.entity.handle(), &topic, &qos::to_cyclone(qos)?)?;
         Ok(Box::new(Writer {
+            acks: self.acks.watch(raw.handle()),
+            watcher: self.acks.shared.clone(),
             guid: raw.guid()?,
             raw,
             _topic: topic,
@@ -389,6 +553,10 @@ impl DdsBackend for Cyclone {
 
     fn supports_partitions(&self) -> bool {
         true
+    }
+
+    fn supports_services(&self) -> bool {
+        false
     }
 
     fn participant_guid(&mut self, domain: u16) -> Result<Guid, String> {
@@ -515,6 +683,16 @@ mod tests {
         // Delivered inside the process: no sequence number, so the identity is unknown.
         assert!(got.iter().all(|t| t.identity == UNKNOWN));
         assert!(writer.all_acknowledged());
+        assert_eq!(writer.writes(), 4);
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while writer.acknowledged_writes() < 4 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert_eq!(
+            writer.acknowledged_writes(),
+            4,
+            "counted by the acknowledgement thread"
+        );
         writer
             .dispose(&Sample::cdr(true, &keyed(2, 0)))
             .expect("dispose");
@@ -552,10 +730,12 @@ mod tests {
 
     #[test]
     fn loopback_configuration_discovers_by_unicast_and_others_keep_multicast() {
-        assert_eq!(config_xml(&[]), Ok(None));
-        let lo = config_xml(&[addr("127.0.0.1")])
-            .expect("valid")
-            .expect("some");
+        let none = config_xml(&[], None).expect("valid");
+        assert!(
+            none.contains("HeartbeatInterval") && !none.contains("Interfaces"),
+            "{none}"
+        );
+        let lo = config_xml(&[addr("127.0.0.1")], None).expect("valid");
         assert!(
             lo.contains("<NetworkInterface address=\"127.0.0.1\"/>"),
             "{lo}"
@@ -565,19 +745,23 @@ mod tests {
             "{lo}"
         );
         assert!(lo.contains("<Peer address=\"127.0.0.1\"/>"), "{lo}");
-        let v6 = config_xml(&[addr("::1")]).expect("valid").expect("some");
+        let v6 = config_xml(&[addr("::1")], None).expect("valid");
         assert!(
             v6.contains("<Transport>udp6</Transport>") && v6.contains("[::1]"),
             "{v6}"
         );
-        let lan = config_xml(&[addr("192.0.2.7")])
-            .expect("valid")
-            .expect("some");
+        let lan = config_xml(&[addr("192.0.2.7")], None).expect("valid");
         assert!(
             !lan.contains("AllowMulticast") && !lan.contains("<Peers>"),
             "{lan}"
         );
-        assert!(config_xml(&[addr("127.0.0.1"), addr("::1")]).is_err());
+        assert!(config_xml(&[addr("127.0.0.1"), addr("::1")], None).is_err());
+        // The user's file first, so that the agent's settings and --dds-interface win.
+        let with_uri = config_xml(&[], Some("file:///etc/cyclone.xml")).expect("valid");
+        assert!(
+            with_uri.starts_with("file:///etc/cyclone.xml,<CycloneDDS>"),
+            "{with_uri}"
+        );
     }
 
     #[test]
@@ -631,11 +815,11 @@ mod tests {
             "only the reader of a matching partition"
         );
         writer
-            .write(Sample::cdr(true, &[1, 2, 3, 4]))
+            .write(Sample::cdr(true, &[1, 2, 3, 4, 5]))
             .expect("write");
         let got = take(&mut dds, mine.as_mut(), 1);
         assert_eq!(got.len(), 1);
-        assert_eq!(got[0].sample.body.to_vec(), vec![1, 2, 3, 4]);
+        assert_eq!(got[0].sample.body.to_vec(), vec![1, 2, 3, 4, 5]);
         assert!(other.take_next().expect("take").is_none());
     }
 }

@@ -124,6 +124,19 @@ struct Writer {
     topic_name: String,
     /// How many readers it matches (from its status events, read on demand).
     matched: Cell<usize>,
+    /// Writes made, and how many of them are known acknowledged.
+    written: Cell<u64>,
+    acked: Cell<u64>,
+}
+
+impl Writer {
+    /// Counts a write that succeeded.
+    fn count<T>(&self, done: Result<T, String>) -> Result<T, String> {
+        if done.is_ok() {
+            self.written.set(self.written.get() + 1);
+        }
+        done
+    }
 }
 
 impl DdsWriter for Writer {
@@ -140,22 +153,35 @@ impl DdsWriter for Writer {
         self.raw.key()
     }
     fn write(&self, sample: Sample) -> Result<(), String> {
-        self.raw.write(RawSample::from(sample))
+        self.count(self.raw.write(RawSample::from(sample)))
     }
     fn dispose(&self, sample: &Sample) -> Result<(), String> {
-        self.raw.dispose(&RawSample::from(sample.clone()))
+        self.count(self.raw.dispose(&RawSample::from(sample.clone())))
     }
     fn write_identified(
         &self,
         sample: Sample,
         related: Option<SampleIdentity>,
     ) -> Result<SampleIdentity, String> {
-        self.raw
-            .write_identified(RawSample::from(sample), related.map(to_rustdds_identity))
-            .map(from_rustdds_identity)
+        self.count(
+            self.raw
+                .write_identified(RawSample::from(sample), related.map(to_rustdds_identity))
+                .map(from_rustdds_identity),
+        )
     }
     fn all_acknowledged(&self) -> bool {
         self.raw.all_acknowledged()
+    }
+    fn writes(&self) -> u64 {
+        self.written.get()
+    }
+    fn acknowledged_writes(&self) -> u64 {
+        // RustDDS tells only "everything": its readers acknowledge each heartbeat at once,
+        // which its writer sends with every sample, so that is true between most writes.
+        if self.raw.all_acknowledged() {
+            self.acked.set(self.written.get());
+        }
+        self.acked.get()
     }
     fn matched_readers(&self) -> usize {
         while let Some(st) = self.raw.try_recv_status() {
@@ -266,6 +292,8 @@ impl DdsBackend for RustDds {
             raw,
             topic_name: spec.name.clone(),
             matched: Cell::new(0),
+            written: Cell::new(0),
+            acked: Cell::new(0),
         }))
     }
 
