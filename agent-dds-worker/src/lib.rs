@@ -25,7 +25,7 @@
 //! | Time-based filter | `timeBasedFilter` / `time_based_filter` `/minimum_separation` | `timebasedfilter_msec` | `TimeBasedFilter` | 0 |
 //! | Latency budget | `latencyBudget` / `latency_budget` `/duration` | — | `LatencyBudget` | 0 |
 //! | Presentation | `presentation`: `access_scope`, `coherent_access`, `ordered_access` | — | `Presentation` | instance, false, false |
-//! | Partition | `partition/names/name` (publisher, subscriber, endpoint) | publisher/subscriber `partitions` | **none**: the CREATE is refused with `STATUS_ERR_INCOMPATIBLE` and a log line | — |
+//! | Partition | `partition/names/name` (publisher, subscriber) | publisher/subscriber `partitions` | Cyclone DDS: the publisher's or subscriber's `Partition`; RustDDS has none: the CREATE is refused with `STATUS_ERR_INCOMPATIBLE` (so is a partition on a data writer or reader, with either backend) | default partition |
 //! | User / group / topic data | ignored | `user_data`, `group_data` ignored | not set | — |
 //! | Content filter | `data_reader/content_filter/expression` | `contentbased_filter` | none: evaluated by the worker ([`filter`]) on the topic's type | no filter |
 //!
