@@ -38,15 +38,16 @@ pub fn parse_topic(body: &[u8], le: bool) -> Result<TopicDesc, DecodeError> {
     })
 }
 
-/// Reads a publisher or subscriber body; returns the partitions it names (non-empty ones).
+/// Reads a publisher or subscriber body; returns the partitions it names (none if every
+/// name is empty: the default partition alone).
 pub fn parse_publisher_or_subscriber(body: &[u8], le: bool) -> Result<Vec<String>, DecodeError> {
     let g = GroupBinary::decode(body, le)?;
-    Ok(g.qos
-        .and_then(|q| q.partitions)
-        .unwrap_or_default()
-        .into_iter()
-        .filter(|n| !n.is_empty())
-        .collect())
+    let names = g.qos.and_then(|q| q.partitions).unwrap_or_default();
+    Ok(if names.iter().all(String::is_empty) {
+        Vec::new()
+    } else {
+        names
+    })
 }
 
 /// Reads a data writer or data reader body.

@@ -446,16 +446,21 @@ fn parse_more_qos(h: Node<'_, '_>, q: &mut QosDesc) -> Result<(), XmlError> {
     Ok(())
 }
 
-/// The non-empty names of a `<partition>` (under `<names>` as Fast DDS writes them, or
-/// directly).
+/// The names of a `<partition>` (under `<names>` as Fast DDS writes them, or directly); none
+/// if every name is empty (an empty name is the default partition, which alone is no
+/// partition at all, and beside others keeps the default partition among them).
 fn partition_names(p: Node<'_, '_>) -> Vec<String> {
     let names = child(p, "names").unwrap_or(p);
-    names
+    let names: Vec<String> = names
         .children()
         .filter(|c| c.is_element() && c.tag_name().name() == "name")
-        .filter_map(|c| c.text().map(|t| t.trim().to_string()))
-        .filter(|t| !t.is_empty())
-        .collect()
+        .map(|c| c.text().unwrap_or("").trim().to_string())
+        .collect();
+    if names.iter().all(String::is_empty) {
+        Vec::new()
+    } else {
+        names
+    }
 }
 
 /// The partitions a publisher or subscriber representation names (none: the default
@@ -854,7 +859,7 @@ mod tests {
                 "<dds><publisher><qos><partition><names><name>A</name><name> </name><name>B*</name></names></partition></qos></publisher></dds>",
                 "publisher"
             ),
-            Ok(vec!["A".to_string(), "B*".to_string()])
+            Ok(vec!["A".to_string(), String::new(), "B*".to_string()])
         );
         assert_eq!(
             group_partitions("<dds><publisher/></dds>", "publisher"),

@@ -193,6 +193,10 @@ impl Participant {
             // SAFETY: an all-zero ddsi_sertype is what ddsi_sertype_init_flags expects to
             // fill in (plain data and null pointers).
             common: unsafe { std::mem::zeroed() },
+            tag: fnv1a(
+                fnv1a(0x811c_9dc5, type_name.as_bytes()),
+                &[u8::from(key.is_some())],
+            ),
             key,
         });
         let st = Box::into_raw(st);
@@ -455,8 +459,8 @@ impl Writer {
         } else {
             c::ddsi_serdata_kind_SDK_DATA
         };
-        // SAFETY: self.sertype is one of ours (checked at creation) and lives while the
-        // writer does.
+        // SAFETY: self.sertype is one of ours (checked at creation); Cyclone keeps it while
+        // the writer's topic exists, and the backend writes only through live writers.
         let keyhash = unsafe { key_of(self.sertype, kind, &data) };
         // SAFETY: a fresh serdata with one reference, which the write consumes.
         unsafe {
@@ -506,7 +510,7 @@ pub fn wait_for_acks(writer: Handle, timeout_ns: i64) -> bool {
 }
 
 /// A sample taken from a [`Reader`].
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 pub struct TakenRaw {
     /// The representation identifier of the sample.
     pub encoding: [u8; 2],
@@ -536,7 +540,7 @@ pub struct Reader {
 }
 
 /// Samples taken per call.
-const TAKE_BATCH: usize = 32;
+pub const TAKE_BATCH: usize = 32;
 
 impl Reader {
     /// A reader in `subscriber` on `topic` whose data signals `token` on `readiness`.
@@ -752,6 +756,9 @@ unsafe extern "C" fn on_data_available(_reader: c::dds_entity_t, arg: *mut c_voi
 struct Sertype {
     common: c::ddsi_sertype,
     key: Option<Arc<KeyDescriptor>>,
+    /// Tells this type's instances from other types' in Cyclone's domain-wide instance map,
+    /// which compares only serdata operations (the same for every type of ours) and keys.
+    tag: u32,
 }
 
 /// A sample (or key) as Cyclone holds it: the encapsulation header and body as received or
@@ -759,6 +766,8 @@ struct Sertype {
 #[repr(C)]
 struct Serdata {
     common: c::ddsi_serdata,
+    /// Its type's [`Sertype::tag`] (kept by untyped copies, which have no type).
+    tag: u32,
     keyhash: [u8; 16],
     sequence: i64,
     data: Vec<u8>,
@@ -848,9 +857,12 @@ unsafe fn new_serdata(
     keyhash: [u8; 16],
     sequence: i64,
 ) -> *mut c::ddsi_serdata {
+    // SAFETY: tp is ours (caller's contract).
+    let tag = unsafe { (*(tp as *const Sertype)).tag };
     let sd = Box::into_raw(Box::new(Serdata {
         // SAFETY: filled in by ddsi_serdata_init below.
         common: unsafe { std::mem::zeroed() },
+        tag,
         keyhash,
         sequence,
         data,
@@ -858,10 +870,23 @@ unsafe fn new_serdata(
     // SAFETY: sd is live; tp is a live sertype.
     unsafe {
         c::ddsi_serdata_init(&mut (*sd).common, tp, kind);
-        (*sd).common.hash = u32::from_le_bytes([keyhash[0], keyhash[1], keyhash[2], keyhash[3]])
-            ^ u32::from_le_bytes([keyhash[12], keyhash[13], keyhash[14], keyhash[15]]);
+        (*sd).common.hash = instance_hash(tag, &keyhash);
     }
     sd as *mut c::ddsi_serdata
+}
+
+/// FNV-1a over `bytes`, from `h`.
+fn fnv1a(h: u32, bytes: &[u8]) -> u32 {
+    bytes
+        .iter()
+        .fold(h, |h, b| (h ^ u32::from(*b)).wrapping_mul(0x0100_0193))
+}
+
+/// The hash Cyclone files an instance under: every octet of the key hash, and the type (its
+/// instance map is a hopscotch table: more than 32 live instances of one hash would make it
+/// grow without end, so the hash must not ignore any part of the key).
+fn instance_hash(tag: u32, keyhash: &[u8; 16]) -> u32 {
+    fnv1a(tag, keyhash)
 }
 
 /// The data and sequence number of a serdata, if it is one of ours.
@@ -940,8 +965,12 @@ unsafe extern "C" fn sertype_hash(tp: *const c::ddsi_sertype) -> u32 {
 }
 
 unsafe extern "C" fn serdata_eqkey(a: *const c::ddsi_serdata, b: *const c::ddsi_serdata) -> bool {
-    // SAFETY: Cyclone compares serdata of one type: ours.
-    unsafe { ours(a).keyhash == ours(b).keyhash }
+    // SAFETY: Cyclone compares serdata with the same operations: ours. Its instance map is
+    // shared by every topic of the domain, hence the type tag.
+    unsafe {
+        let (a, b) = (ours(a), ours(b));
+        a.tag == b.tag && a.keyhash == b.keyhash
+    }
 }
 
 unsafe extern "C" fn serdata_size(sd: *const c::ddsi_serdata) -> u32 {
@@ -1007,22 +1036,17 @@ unsafe fn sequence_of(rd: *const Rdata) -> i64 {
         if id != SMID_DATA && id != SMID_DATA_FRAG {
             return 0;
         }
-        // The header's flags say the submessage's byte order; writerSN is at offset 16
-        // (header 4, extraFlags 2, octetsToInlineQos 2, readerId 4, writerId 4).
-        // Its end (24) is below the payload's offset, so it lies in the packet.
+        // writerSN is at offset 16 (header 4, extraFlags 2, octetsToInlineQos 2, readerId 4,
+        // writerId 4); its end (24) is below the payload's offset, so it lies in the packet.
         if usize::from(rd.payload_zoff) < usize::from(rd.submsg_zoff) + 24 {
             return 0;
         }
-        let le = *sm.add(1) & 1 == 1;
+        // In this host's byte order whatever the flags say: Cyclone's validate_Data /
+        // validate_DataFrag swap it in place (and leave the flags) before making the rdata.
         let mut b = [0u8; 8];
         std::ptr::copy_nonoverlapping(sm.add(16), b.as_mut_ptr(), 8);
         let (h, l): ([u8; 4], [u8; 4]) = ([b[0], b[1], b[2], b[3]], [b[4], b[5], b[6], b[7]]);
-        let (high, low) = if le {
-            (i32::from_le_bytes(h), u32::from_le_bytes(l))
-        } else {
-            (i32::from_be_bytes(h), u32::from_be_bytes(l))
-        };
-        (i64::from(high) << 32) | i64::from(low)
+        (i64::from(i32::from_ne_bytes(h)) << 32) | i64::from(u32::from_ne_bytes(l))
     }
 }
 
@@ -1267,5 +1291,18 @@ mod tests {
         assert_eq!(decapsulate(&[0, 1]), ([0, 1], Vec::new()));
         // A padding count beyond the body never underflows.
         assert_eq!(decapsulate(&[0, 1, 0, 3]), ([0, 1], Vec::new()));
+    }
+
+    #[test]
+    fn instance_hashes_use_every_octet_of_the_key_and_the_type() {
+        // Keys that differ only in the middle octets (an int64 below 2^32, say) must not
+        // share a hash: Cyclone's instance map cannot hold more than 32 of one hash.
+        let mut seen = std::collections::HashSet::new();
+        for i in 0..64u8 {
+            let mut kh = [0u8; 16];
+            kh[7] = i;
+            assert!(seen.insert(instance_hash(1, &kh)), "{i}");
+        }
+        assert_ne!(instance_hash(1, &[0; 16]), instance_hash(2, &[0; 16]));
     }
 }

@@ -54,8 +54,11 @@ impl std::fmt::Debug for Cyclone {
 /// writer has unacknowledged samples, instead of every 100 ms, so that readers acknowledge
 /// within tens of milliseconds and the front-ends can let go of their retained writes that
 /// soon (what is unacknowledged at a worker crash is resent, so this bounds the repeats).
+/// A deleted writer does not linger for unacknowledged samples (Cyclone's default is up to
+/// 1 s, during which the deleting call, the worker's loop, would wait), as with RustDDS.
 const AGENT_SETTINGS: &str =
-    "<Internal><HeartbeatInterval minsched=\"5ms\">10ms</HeartbeatInterval></Internal>";
+    "<Internal><HeartbeatInterval minsched=\"5ms\">10ms</HeartbeatInterval>\
+     <WriterLingerDuration>0 s</WriterLingerDuration></Internal>";
 
 /// Cyclone's configuration: `CYCLONEDDS_URI`'s (`uri`), then the agent's settings and, with
 /// `interfaces`, DDS restricted to them (later settings win). On loopback alone there is no
@@ -386,6 +389,8 @@ struct Reader {
     batch: Vec<ffi::TakenRaw>,
     /// The disposal already reported per instance (its disposed-generation count).
     announced: HashMap<u64, u32>,
+    /// Disposed instances whose last sample ended a full batch (see `refill`).
+    carried: Vec<ffi::TakenRaw>,
 }
 
 /// An identity nobody has: what the front-end treats as unknown.
@@ -405,59 +410,86 @@ impl Reader {
     /// when everything of the instance was read), so both forms are reported once per
     /// disposal. An instance left by its writers is not a sample (as with RustDDS).
     fn refill(&mut self) -> Result<(), String> {
-        self.batch.clear();
-        self.raw.take(&mut self.batch)?;
-        for i in 0..self.batch.len() {
-            let t = &self.batch[i];
-            let last_of_instance = !self.batch[i + 1..].iter().any(|u| u.instance == t.instance);
-            if t.valid {
-                let identity = match t.writer {
-                    Some(writer) if t.sequence > 0 => SampleIdentity {
-                        writer,
-                        sequence_number: t.sequence,
-                    },
-                    _ => UNKNOWN,
-                };
-                self.pending.push_back(Taken {
-                    sample: Sample {
-                        encoding: Encoding(t.encoding),
-                        body: Bytes::copy_from_slice(&t.body),
-                    },
-                    identity,
-                    related: None,
-                    disposed: false,
-                    unregistered: false,
-                });
+        loop {
+            self.batch.clear();
+            let n = self.raw.take(&mut self.batch)?;
+            // A full batch may have left samples of its instances in Cyclone: their disposes
+            // wait for the next batch, which either has more of the instance (and decides)
+            // or not (then they are reported first thing, still after the instance's last
+            // sample).
+            let full = n >= ffi::TAKE_BATCH;
+            for c in std::mem::take(&mut self.carried) {
+                if !self.batch.iter().any(|u| u.instance == c.instance) {
+                    self.report_dispose(&c);
+                }
             }
-            if !(t.disposed && last_of_instance) {
-                continue;
+            for i in 0..self.batch.len() {
+                let t = &self.batch[i];
+                if t.valid {
+                    let identity = match t.writer {
+                        Some(writer) if t.sequence > 0 => SampleIdentity {
+                            writer,
+                            sequence_number: t.sequence,
+                        },
+                        _ => UNKNOWN,
+                    };
+                    self.pending.push_back(Taken {
+                        sample: Sample {
+                            encoding: Encoding(t.encoding),
+                            body: Bytes::copy_from_slice(&t.body),
+                        },
+                        identity,
+                        related: None,
+                        disposed: false,
+                        unregistered: false,
+                    });
+                }
+                let last_of_instance =
+                    !self.batch[i + 1..].iter().any(|u| u.instance == t.instance);
+                if !(t.disposed && last_of_instance) {
+                    continue;
+                }
+                if full && t.valid {
+                    self.carried.push(t.clone());
+                } else {
+                    let t = t.clone();
+                    self.report_dispose(&t);
+                }
             }
-            if self.announced.get(&t.instance) == Some(&t.disposed_generation) {
-                continue;
+            // Everything taken was left out (instances left by their writers, say) while
+            // more may wait: take again rather than report "empty".
+            if !self.pending.is_empty() || !full {
+                return Ok(());
             }
-            if self.announced.len() >= ANNOUNCED_INSTANCES {
-                self.announced.clear();
-            }
-            self.announced.insert(t.instance, t.disposed_generation);
-            let enc = Encoding(t.encoding);
-            let payload = self.key.as_ref().and_then(|k| {
-                k.of_received(&t.body, enc.little_endian(), enc.is_xcdr2(), !t.valid)
-                    .ok()
-            });
-            // Cyclone builds an invalid sample from the instance's key, not from the dispose
-            // message: no sequence number of the dispose to tell.
-            self.pending.push_back(Taken {
-                sample: Sample {
-                    encoding: Encoding::CDR_LE,
-                    body: payload.map(|k| Bytes::from(k.payload)).unwrap_or_default(),
-                },
-                related: None,
-                disposed: true,
-                unregistered: false,
-                identity: UNKNOWN,
-            });
         }
-        Ok(())
+    }
+
+    /// Reports the disposal of `t`'s instance, once per disposal.
+    fn report_dispose(&mut self, t: &ffi::TakenRaw) {
+        if self.announced.get(&t.instance) == Some(&t.disposed_generation) {
+            return;
+        }
+        if self.announced.len() >= ANNOUNCED_INSTANCES {
+            self.announced.clear();
+        }
+        self.announced.insert(t.instance, t.disposed_generation);
+        let enc = Encoding(t.encoding);
+        let payload = self.key.as_ref().and_then(|k| {
+            k.of_received(&t.body, enc.little_endian(), enc.is_xcdr2(), !t.valid)
+                .ok()
+        });
+        // Cyclone builds an invalid sample from the instance's key, not from the dispose
+        // message: there is no sequence number of the dispose to tell.
+        self.pending.push_back(Taken {
+            sample: Sample {
+                encoding: Encoding::CDR_LE,
+                body: payload.map(|k| Bytes::from(k.payload)).unwrap_or_default(),
+            },
+            identity: UNKNOWN,
+            related: None,
+            disposed: true,
+            unregistered: false,
+        });
     }
 }
 
@@ -548,6 +580,7 @@ impl DdsBackend for Cyclone {
             pending: VecDeque::new(),
             batch: Vec::new(),
             announced: HashMap::new(),
+            carried: Vec::new(),
         }))
     }
 
@@ -717,6 +750,28 @@ mod tests {
         assert!(!got[0].disposed && got[0].sample.body.to_vec() == keyed(1, 12));
         assert!(got[1].disposed && got[1].sample.body.to_vec() == 1i32.to_le_bytes());
         assert!(reader.take_next().expect("take").is_none(), "reported once");
+        // A keyless topic of the same domain: its one instance (key hash zero) is not the
+        // keyed topic's instance of key 0 (Cyclone's instance map is shared by the domain).
+        let plain = TopicSpec {
+            name: "cyclone_unit_plain".into(),
+            type_name: "Plain".into(),
+            key: None,
+        };
+        let plain_writer = dds
+            .create_writer(publisher.as_ref(), &plain, &wq, true)
+            .expect("writer");
+        plain_writer
+            .write(Sample::cdr(true, &[9; 8]))
+            .expect("write");
+        writer
+            .write(Sample::cdr(true, &keyed(0, 5)))
+            .expect("write");
+        writer
+            .dispose(&Sample::cdr(true, &keyed(0, 0)))
+            .expect("dispose");
+        let got = take(&mut dds, reader.as_mut(), 2);
+        assert_eq!(got.len(), 2, "{got:?}");
+        assert!(got[1].disposed && got[1].sample.body.to_vec() == 0i32.to_le_bytes());
         assert!(writer
             .write_identified(Sample::cdr(true, &[0; 8]), None)
             .is_err());
@@ -821,5 +876,67 @@ mod tests {
         assert_eq!(got.len(), 1);
         assert_eq!(got[0].sample.body.to_vec(), vec![1, 2, 3, 4, 5]);
         assert!(other.take_next().expect("take").is_none());
+    }
+
+    #[test]
+    fn a_dispose_after_more_samples_than_one_take_comes_after_the_last_of_them() {
+        let mut dds = Cyclone::new(DdsConfig {
+            interfaces: vec![addr("127.0.0.1")],
+            backend: crate::backend::BackendKind::Cyclone,
+        })
+        .expect("backend");
+        let ty = crate::types::TypeSet::parse(KEYED).expect("type");
+        let key = Arc::new(KeyDescriptor::new(ty.get("Keyed").expect("Keyed")).expect("key"));
+        let spec = TopicSpec {
+            name: "cyclone_unit_batches".into(),
+            type_name: "Keyed".into(),
+            key: Some(key),
+        };
+        let all = QosDesc {
+            reliability: Some(Reliability::Reliable),
+            history: Some(History::KeepAll),
+            ..QosDesc::default()
+        };
+        let wq = EndpointQos::resolve(EndpointSide::Writer, &all, &QosDesc::default());
+        let rq = EndpointQos::resolve(EndpointSide::Reader, &all, &QosDesc::default());
+        let publisher = dds.create_group(91, true, &[]).expect("publisher");
+        let subscriber = dds.create_group(91, false, &[]).expect("subscriber");
+        let mut reader = dds
+            .create_reader(subscriber.as_ref(), &spec, &rq, 3)
+            .expect("reader");
+        let writer = dds
+            .create_writer(publisher.as_ref(), &spec, &wq, true)
+            .expect("writer");
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while writer.matched_readers() == 0 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let n = 2 * ffi::TAKE_BATCH as i32 + 5;
+        for v in 0..n {
+            writer
+                .write(Sample::cdr(true, &keyed(v % 2, v)))
+                .expect("write");
+        }
+        writer
+            .dispose(&Sample::cdr(true, &keyed(0, 0)))
+            .expect("dispose");
+        writer
+            .dispose(&Sample::cdr(true, &keyed(1, 0)))
+            .expect("dispose");
+        let got = take(&mut dds, reader.as_mut(), n as usize + 2);
+        assert_eq!(got.len(), n as usize + 2);
+        for id in [0, 1] {
+            let of_id: Vec<_> = got
+                .iter()
+                .filter(|t| t.sample.body[..4] == i32::to_le_bytes(id))
+                .collect();
+            let disposes = of_id.iter().filter(|t| t.disposed).count();
+            assert_eq!(disposes, 1, "key {id}: one dispose");
+            assert!(
+                of_id.last().is_some_and(|t| t.disposed),
+                "key {id}: the dispose last"
+            );
+        }
+        assert!(reader.take_next().expect("take").is_none());
     }
 }
