@@ -61,6 +61,8 @@ def parse_args(argv):
                         help="TRANSIENT_LOCAL durability (default VOLATILE)")
     common.add_argument("--timeout", type=float, default=30.0,
                         help="seconds before giving up (default 30)")
+    common.add_argument("--partition", default="",
+                        help="read or write in this partition (default: the default partition)")
     common.add_argument("--keyed", action="store_true",
                         help="keyed ShapeType samples instead of HelloWorld")
     common.add_argument("--history", type=int, default=0,
@@ -157,7 +159,12 @@ def main(argv=None):
                   # Accept both XCDR1 and XCDR2 writers.
                   Policy.DataRepresentation(use_cdrv0_representation=True,
                                             use_xcdrv2_representation=True))
-        reader = DataReader(dp, topic, qos=qos)
+        if args.partition:
+            from cyclonedds.sub import Subscriber
+            sub = Subscriber(dp, qos=Qos(Policy.Partition(partitions=[args.partition])))
+            reader = DataReader(sub, topic, qos=qos)
+        else:
+            reader = DataReader(dp, topic, qos=qos)
         # The reader entity itself is a status condition triggered by the masked statuses.
         reader.set_status_mask(DDSStatus.SubscriptionMatched)
         cond = ReadCondition(reader, SampleState.Any | ViewState.Any | InstanceState.Any)
