@@ -425,6 +425,12 @@ impl Drop for Qos {
 pub struct Writer {
     entity: Entity,
     sertype: *const c::ddsi_sertype,
+    /// The sequence number of its last write attempt, as Cyclone numbers them (it counts
+    /// every write from 1 and this writer is only written here), put in the samples it
+    /// delivers inside the process, which carry none otherwise. One per attempt, so the
+    /// numbers a reader sees of this writer only grow, also if a write failed after Cyclone
+    /// numbered it (then they lag behind Cyclone's).
+    sequence: std::cell::Cell<i64>,
 }
 
 impl Writer {
@@ -442,7 +448,11 @@ impl Writer {
         if sertype.is_null() || !is_ours(sertype) {
             return Err("the topic's type is not a raw-sample type".into());
         }
-        Ok(Writer { entity, sertype })
+        Ok(Writer {
+            entity,
+            sertype,
+            sequence: std::cell::Cell::new(0),
+        })
     }
 
     /// Its GUID.
@@ -462,9 +472,11 @@ impl Writer {
         // SAFETY: self.sertype is one of ours (checked at creation); Cyclone keeps it while
         // the writer's topic exists, and the backend writes only through live writers.
         let keyhash = unsafe { key_of(self.sertype, kind, &data) };
+        let sequence = self.sequence.get() + 1;
+        self.sequence.set(sequence);
         // SAFETY: a fresh serdata with one reference, which the write consumes.
         unsafe {
-            let sd = new_serdata(self.sertype, kind, data, keyhash, 0);
+            let sd = new_serdata(self.sertype, kind, data, keyhash, sequence);
             let r = if dispose {
                 (*sd).statusinfo = DDSI_STATUSINFO_DISPOSE;
                 (*sd).timestamp.v = c::dds_time();

@@ -3,10 +3,12 @@
 //! with the worker's own key extraction ([`ffi`]'s sertype), so keyed topics keep their
 //! instances; readiness through reader listeners and a socket pair.
 //!
+//! Sample identities: the writer's GUID and sequence number, read off the DATA submessage for
+//! samples from other processes, and numbered by the writer itself for samples delivered
+//! inside the process (Cyclone numbers its writes the same way, from 1).
+//!
 //! What it cannot do (docs/dds-backends.md): requesters and repliers (no related sample
-//! identity can be put on a write through Cyclone's C API), and sample identities of samples
-//! delivered inside the process (Cyclone hands those over without their sequence number:
-//! they are reported unknown, so the front-end's replay marks do not apply to them).
+//! identity can be put on a write through Cyclone's C API).
 
 use std::collections::{HashMap, VecDeque};
 use std::fmt::Write as _;
@@ -713,8 +715,23 @@ mod tests {
         assert_eq!(bodies, vec![keyed(1, 11), keyed(2, 21)]);
         assert!(got.iter().all(|t| t.sample.encoding == Encoding::CDR_LE));
         assert!(got.iter().all(|t| !t.disposed && !t.unregistered));
-        // Delivered inside the process: no sequence number, so the identity is unknown.
-        assert!(got.iter().all(|t| t.identity == UNKNOWN));
+        // Delivered inside the process: the writer's GUID and its own numbering of writes
+        // (as Cyclone numbers them on the wire).
+        let ids: Vec<_> = got.iter().map(|t| t.identity).collect();
+        let guid = writer.guid();
+        assert_eq!(
+            ids,
+            vec![
+                SampleIdentity {
+                    writer: guid,
+                    sequence_number: 3
+                },
+                SampleIdentity {
+                    writer: guid,
+                    sequence_number: 4
+                }
+            ]
+        );
         assert!(writer.all_acknowledged());
         assert_eq!(writer.writes(), 4);
         let deadline = Instant::now() + Duration::from_secs(5);
