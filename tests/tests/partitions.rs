@@ -68,6 +68,18 @@ fn a_publishers_partition_reaches_only_readers_of_that_partition() {
     };
     let inside = peer("robot_a");
     let outside = peer("robot_b");
+    // The default partition: where a writer that lost its partition would publish.
+    let default = peer("");
+    for (name, p) in [
+        ("robot_a", &inside),
+        ("robot_b", &outside),
+        ("default", &default),
+    ] {
+        assert!(
+            p.wait_for("READY", 30 * SECOND, || c.step()).is_some(),
+            "the reader in {name} never started"
+        );
+    }
     assert_eq!(
         c.create(w, k::DATAWRITER, xml::WRITER, VariantExtra::Parent(g)),
         0
@@ -91,12 +103,14 @@ fn a_publishers_partition_reaches_only_readers_of_that_partition() {
         while let Some(l) = inside.line(Duration::ZERO) {
             got.extend(parse_sample_line(&l).map(|(i, _)| i));
         }
-        while let Some(l) = outside.line(Duration::ZERO) {
-            assert!(
-                !l.starts_with("MATCHED 1"),
-                "robot_b matched robot_a's writer: {l}"
-            );
-            elsewhere.extend(parse_sample_line(&l).map(|(i, _)| i));
+        for p in [&outside, &default] {
+            while let Some(l) = p.line(Duration::ZERO) {
+                assert!(
+                    !l.starts_with("MATCHED 1"),
+                    "a reader outside robot_a matched: {l}"
+                );
+                elsewhere.extend(parse_sample_line(&l).map(|(i, _)| i));
+            }
         }
         if complete_at.is_none() && got.len() >= N as usize {
             complete_at = Some(Instant::now());
@@ -106,7 +120,7 @@ fn a_publishers_partition_reaches_only_readers_of_that_partition() {
     assert_eq!(got, (0..N).collect::<Vec<_>>(), "the reader in robot_a");
     assert!(
         elsewhere.is_empty(),
-        "the reader in robot_b got {elsewhere:?}"
+        "readers outside robot_a got {elsewhere:?}"
     );
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -428,8 +428,8 @@ pub struct Writer {
     /// The sequence number of its last write attempt, as Cyclone numbers them (it counts
     /// every write from 1 and this writer is only written here), put in the samples it
     /// delivers inside the process, which carry none otherwise. One per attempt, so the
-    /// numbers a reader sees of this writer only grow, also if a write failed after Cyclone
-    /// numbered it (then they lag behind Cyclone's).
+    /// numbers a reader sees of this writer only grow; a write that fails (most fail before
+    /// Cyclone numbers them: a throttled write that times out) puts ours ahead of Cyclone's.
     sequence: std::cell::Cell<i64>,
 }
 

@@ -393,6 +393,8 @@ struct Reader {
     announced: HashMap<u64, u32>,
     /// Disposed instances whose last sample ended a full batch (see `refill`).
     carried: Vec<ffi::TakenRaw>,
+    /// The disposed-generation count of each instance's last valid sample.
+    seen: HashMap<u64, u32>,
 }
 
 /// An identity nobody has: what the front-end treats as unknown.
@@ -415,19 +417,21 @@ impl Reader {
         loop {
             self.batch.clear();
             let n = self.raw.take(&mut self.batch)?;
-            // A full batch may have left samples of its instances in Cyclone: their disposes
-            // wait for the next batch, which either has more of the instance (and decides)
-            // or not (then they are reported first thing, still after the instance's last
-            // sample).
+            // Cyclone takes instance by instance: after a full batch, its last instance may
+            // have samples left in Cyclone, so that instance's dispose waits for the next
+            // batch, which either has more of the instance (and decides) or not (then it is
+            // reported first thing, still after the instance's last sample).
             let full = n >= ffi::TAKE_BATCH;
+            let last_instance = self.batch.last().map(|t| t.instance);
             for c in std::mem::take(&mut self.carried) {
                 if !self.batch.iter().any(|u| u.instance == c.instance) {
-                    self.report_dispose(&c);
+                    self.report_dispose(&c, c.disposed_generation);
                 }
             }
             for i in 0..self.batch.len() {
-                let t = &self.batch[i];
+                let t = self.batch[i].clone();
                 if t.valid {
+                    self.saw_valid(&t);
                     let identity = match t.writer {
                         Some(writer) if t.sequence > 0 => SampleIdentity {
                             writer,
@@ -438,7 +442,7 @@ impl Reader {
                     self.pending.push_back(Taken {
                         sample: Sample {
                             encoding: Encoding(t.encoding),
-                            body: Bytes::copy_from_slice(&t.body),
+                            body: Bytes::from(t.body.clone()),
                         },
                         identity,
                         related: None,
@@ -451,11 +455,10 @@ impl Reader {
                 if !(t.disposed && last_of_instance) {
                     continue;
                 }
-                if full && t.valid {
-                    self.carried.push(t.clone());
+                if full && t.valid && Some(t.instance) == last_instance {
+                    self.carried.push(t);
                 } else {
-                    let t = t.clone();
-                    self.report_dispose(&t);
+                    self.report_dispose(&t, t.disposed_generation);
                 }
             }
             // Everything taken was left out (instances left by their writers, say) while
@@ -466,15 +469,40 @@ impl Reader {
         }
     }
 
-    /// Reports the disposal of `t`'s instance, once per disposal.
-    fn report_dispose(&mut self, t: &ffi::TakenRaw) {
-        if self.announced.get(&t.instance) == Some(&t.disposed_generation) {
+    /// Before valid sample `t` is reported: an instance disposed and written again between
+    /// two looks shows only its new generation, so a disposal not seen yet is reported now,
+    /// before the sample that revived it; and a handle Cyclone gave a new instance (the
+    /// generation starts again) forgets the old one's reported disposal.
+    fn saw_valid(&mut self, t: &ffi::TakenRaw) {
+        if let Some(&g) = self.seen.get(&t.instance) {
+            if t.disposed_generation > g {
+                self.report_dispose(t, g);
+            }
+        }
+        // Samples of a reported generation all came before its report (later ones belong to
+        // a newer generation), so one at or below it is of a new instance under the handle.
+        if self
+            .announced
+            .get(&t.instance)
+            .is_some_and(|&a| t.disposed_generation <= a)
+        {
+            self.announced.remove(&t.instance);
+        }
+        if self.seen.len() >= ANNOUNCED_INSTANCES {
+            self.seen.clear();
+        }
+        self.seen.insert(t.instance, t.disposed_generation);
+    }
+
+    /// Reports the disposal of `t`'s instance that ended its `generation`, once.
+    fn report_dispose(&mut self, t: &ffi::TakenRaw, generation: u32) {
+        if self.announced.get(&t.instance) == Some(&generation) {
             return;
         }
         if self.announced.len() >= ANNOUNCED_INSTANCES {
             self.announced.clear();
         }
-        self.announced.insert(t.instance, t.disposed_generation);
+        self.announced.insert(t.instance, generation);
         let enc = Encoding(t.encoding);
         let payload = self.key.as_ref().and_then(|k| {
             k.of_received(&t.body, enc.little_endian(), enc.is_xcdr2(), !t.valid)
@@ -583,6 +611,7 @@ impl DdsBackend for Cyclone {
             batch: Vec::new(),
             announced: HashMap::new(),
             carried: Vec::new(),
+            seen: HashMap::new(),
         }))
     }
 
@@ -783,12 +812,32 @@ mod tests {
         writer
             .write(Sample::cdr(true, &keyed(0, 5)))
             .expect("write");
+        // Taken before the dispose, so that Cyclone builds the dispose's invalid sample from
+        // the instance it keeps for the key (the keyless topic's, were they merged).
+        let got = take(&mut dds, reader.as_mut(), 1);
+        assert_eq!(got.len(), 1, "{got:?}");
         writer
             .dispose(&Sample::cdr(true, &keyed(0, 0)))
             .expect("dispose");
+        let got = take(&mut dds, reader.as_mut(), 1);
+        assert_eq!(got.len(), 1, "{got:?}");
+        assert!(got[0].disposed && got[0].sample.body.to_vec() == 0i32.to_le_bytes());
+        // Disposed and written again before the reader looks: the disposal is reported
+        // before the sample that revived the instance.
+        writer
+            .write(Sample::cdr(true, &keyed(7, 1)))
+            .expect("write");
+        assert_eq!(take(&mut dds, reader.as_mut(), 1).len(), 1);
+        writer
+            .dispose(&Sample::cdr(true, &keyed(7, 0)))
+            .expect("dispose");
+        writer
+            .write(Sample::cdr(true, &keyed(7, 2)))
+            .expect("write");
         let got = take(&mut dds, reader.as_mut(), 2);
         assert_eq!(got.len(), 2, "{got:?}");
-        assert!(got[1].disposed && got[1].sample.body.to_vec() == 0i32.to_le_bytes());
+        assert!(got[0].disposed && got[0].sample.body.to_vec() == 7i32.to_le_bytes());
+        assert!(!got[1].disposed && got[1].sample.body.to_vec() == keyed(7, 2));
         assert!(writer
             .write_identified(Sample::cdr(true, &[0; 8]), None)
             .is_err());
