@@ -61,12 +61,19 @@ impl Outstanding {
     /// Forgets the writes among the writer's first `acknowledged` (ordinals grow in the
     /// order of the queue), noting whose they were; whether nothing is left.
     fn release_through(&self, acknowledged: u64, frontends: &mut HashSet<u32>) -> bool {
+        self.release_while(|&(_, _, _, ordinal)| ordinal <= acknowledged, frontends)
+    }
+
+    /// Forgets the oldest writes while `done` says so, noting whose they were; whether
+    /// nothing is left.
+    fn release_while(
+        &self,
+        done: impl Fn(&(u32, u64, Instant, u64)) -> bool,
+        frontends: &mut HashSet<u32>,
+    ) -> bool {
         let mut w = self.writes.borrow_mut();
-        while let Some(&(fe, _, _, ordinal)) = w.front() {
-            if ordinal > acknowledged {
-                break;
-            }
-            frontends.insert(fe);
+        while let Some(front) = w.front().filter(|f| done(f)) {
+            frontends.insert(front.0);
             w.pop_front();
         }
         if w.is_empty() {
@@ -96,18 +103,7 @@ impl Outstanding {
 
     /// Forgets writes older than `limit`; whether nothing is left.
     fn expire(&self, limit: Instant, frontends: &mut HashSet<u32>) -> bool {
-        let mut w = self.writes.borrow_mut();
-        while let Some(&(fe, _, at, _)) = w.front() {
-            if at >= limit {
-                break;
-            }
-            frontends.insert(fe);
-            w.pop_front();
-        }
-        if w.is_empty() {
-            self.mixed.set(false);
-        }
-        w.is_empty()
+        self.release_while(|&(_, _, at, _)| at < limit, frontends)
     }
 
     /// Forgets front-end `frontend`'s writes.

@@ -661,6 +661,35 @@ mod tests {
         [id.to_le_bytes(), value.to_le_bytes()].concat()
     }
 
+    /// A backend pinned to loopback.
+    fn loopback() -> Cyclone {
+        Cyclone::new(DdsConfig {
+            interfaces: vec![addr("127.0.0.1")],
+            backend: crate::backend::BackendKind::Cyclone,
+        })
+        .expect("backend")
+    }
+
+    /// A topic of the keyed test type.
+    fn keyed_spec(name: &str) -> TopicSpec {
+        let ty = crate::types::TypeSet::parse(KEYED).expect("type");
+        let key = Arc::new(KeyDescriptor::new(ty.get("Keyed").expect("Keyed")).expect("key"));
+        TopicSpec {
+            name: name.into(),
+            type_name: "Keyed".into(),
+            key: Some(key),
+        }
+    }
+
+    /// Waits up to 5 s for `done` (discovery and acknowledgements run on Cyclone's
+    /// threads); the caller asserts what it waited for.
+    fn wait_until(mut done: impl FnMut() -> bool) {
+        let deadline = Instant::now() + Duration::from_secs(5);
+        while !done() && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+
     /// Takes until `n` samples came or 5 s passed, waiting on the readiness descriptor.
     fn take(dds: &mut Cyclone, r: &mut dyn DdsReader, n: usize) -> Vec<Taken> {
         let deadline = Instant::now() + Duration::from_secs(5);
@@ -695,18 +724,8 @@ mod tests {
 
     #[test]
     fn local_writers_reach_local_readers_with_keys_disposes_and_wake_ups() {
-        let mut dds = Cyclone::new(DdsConfig {
-            interfaces: vec![addr("127.0.0.1")],
-            backend: crate::backend::BackendKind::Cyclone,
-        })
-        .expect("backend");
-        let ty = crate::types::TypeSet::parse(KEYED).expect("type");
-        let key = Arc::new(KeyDescriptor::new(ty.get("Keyed").expect("Keyed")).expect("key"));
-        let spec = TopicSpec {
-            name: "cyclone_unit_keyed".into(),
-            type_name: "Keyed".into(),
-            key: Some(key),
-        };
+        let mut dds = loopback();
+        let spec = keyed_spec("cyclone_unit_keyed");
         let keep_last_1 = QosDesc {
             reliability: Some(Reliability::Reliable),
             history: Some(History::KeepLast(1)),
@@ -723,10 +742,7 @@ mod tests {
             .create_writer(publisher.as_ref(), &spec, &wq, true)
             .expect("writer");
         assert_eq!(dds.participants(), 1, "one participant per domain");
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while writer.matched_readers() == 0 && Instant::now() < deadline {
-            std::thread::sleep(Duration::from_millis(10));
-        }
+        wait_until(|| writer.matched_readers() > 0);
         assert_eq!(writer.matched_readers(), 1);
         // Two instances, two samples each: keep-last 1 per instance keeps the newest of each.
         for (id, v) in [(1, 10), (2, 20), (1, 11), (2, 21)] {
@@ -763,10 +779,7 @@ mod tests {
         );
         assert!(writer.all_acknowledged());
         assert_eq!(writer.writes(), 4);
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while writer.acknowledged_writes() < 4 && Instant::now() < deadline {
-            std::thread::sleep(Duration::from_millis(5));
-        }
+        wait_until(|| writer.acknowledged_writes() >= 4);
         assert_eq!(
             writer.acknowledged_writes(),
             4,
@@ -842,10 +855,7 @@ mod tests {
             .write_identified(Sample::cdr(true, &[0; 8]), None)
             .is_err());
         drop(reader);
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while writer.matched_readers() != 0 && Instant::now() < deadline {
-            std::thread::sleep(Duration::from_millis(10));
-        }
+        wait_until(|| writer.matched_readers() == 0);
         assert_eq!(writer.matched_readers(), 0, "the reader was deleted");
     }
 
@@ -887,11 +897,7 @@ mod tests {
 
     #[test]
     fn partitions_separate_writers_from_readers_of_other_partitions() {
-        let mut dds = Cyclone::new(DdsConfig {
-            interfaces: vec![addr("127.0.0.1")],
-            backend: crate::backend::BackendKind::Cyclone,
-        })
-        .expect("backend");
+        let mut dds = loopback();
         assert!(dds.supports_partitions());
         let spec = TopicSpec {
             name: "cyclone_unit_partitions".into(),
@@ -925,10 +931,7 @@ mod tests {
         let writer = dds
             .create_writer(publisher.as_ref(), &spec, &wq, true)
             .expect("writer");
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while writer.matched_readers() == 0 && Instant::now() < deadline {
-            std::thread::sleep(Duration::from_millis(10));
-        }
+        wait_until(|| writer.matched_readers() > 0);
         std::thread::sleep(Duration::from_millis(100));
         assert_eq!(
             writer.matched_readers(),
@@ -946,18 +949,8 @@ mod tests {
 
     #[test]
     fn a_dispose_after_more_samples_than_one_take_comes_after_the_last_of_them() {
-        let mut dds = Cyclone::new(DdsConfig {
-            interfaces: vec![addr("127.0.0.1")],
-            backend: crate::backend::BackendKind::Cyclone,
-        })
-        .expect("backend");
-        let ty = crate::types::TypeSet::parse(KEYED).expect("type");
-        let key = Arc::new(KeyDescriptor::new(ty.get("Keyed").expect("Keyed")).expect("key"));
-        let spec = TopicSpec {
-            name: "cyclone_unit_batches".into(),
-            type_name: "Keyed".into(),
-            key: Some(key),
-        };
+        let mut dds = loopback();
+        let spec = keyed_spec("cyclone_unit_batches");
         let all = QosDesc {
             reliability: Some(Reliability::Reliable),
             history: Some(History::KeepAll),
@@ -973,10 +966,7 @@ mod tests {
         let writer = dds
             .create_writer(publisher.as_ref(), &spec, &wq, true)
             .expect("writer");
-        let deadline = Instant::now() + Duration::from_secs(5);
-        while writer.matched_readers() == 0 && Instant::now() < deadline {
-            std::thread::sleep(Duration::from_millis(10));
-        }
+        wait_until(|| writer.matched_readers() > 0);
         let n = 2 * ffi::TAKE_BATCH as i32 + 5;
         for v in 0..n {
             writer
