@@ -49,7 +49,7 @@
 //! Durations accept `<sec>` and `<nanosec>`, `DURATION_INFINITY` (and its `DURATION_INFINITE_*`
 //! spellings), and values beyond 2³¹ s as infinite; a malformed value refuses the CREATE
 //! with `STATUS_ERR_INVALID_DATA` naming the element.
-#![deny(unsafe_code)] // the one exception: backend::cyclone::ffi (feature `cyclone`)
+#![deny(unsafe_code)] // the exceptions: backend::cyclone::ffi (feature `cyclone`), and one function of backend::confine
 
 pub mod acks;
 pub mod adoption;

@@ -20,6 +20,7 @@ pub use xrce_common::ipc::SampleIdentity;
 
 use crate::types::KeyDescriptor;
 
+pub mod confine;
 #[cfg(feature = "cyclone")]
 pub mod cyclone;
 pub mod qos;
@@ -78,6 +79,37 @@ pub fn create(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
         BackendKind::Cyclone => anyhow::bail!(
             "this build has no Cyclone DDS backend: build it with `--features cyclone` \
              (needs cmake and libclang), or use --dds-backend rustdds"
+        ),
+    }
+}
+
+/// A backend for requesters and repliers, beside one that cannot serve them
+/// ([`DdsBackend::supports_services`] false): RustDDS, which puts a reply's related sample
+/// identity on the wire (Fast DDS's convention, what eProsima's client and agent use) and
+/// reports it, in the same domains and on the same interfaces.
+pub fn for_services(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
+    let config = DdsConfig {
+        backend: BackendKind::Rustdds,
+        ..config.clone()
+    };
+    Ok(Box::new(rustdds::RustDds::new(config)?))
+}
+
+/// Confines the UDP sockets a backend's new participant bound to the wildcard address to
+/// the configured interfaces ([`confine`]); a failure is logged (DDS then works, but listens
+/// wider than it was told) rather than refusing the participant.
+pub(crate) fn confine_new_sockets(config: &DdsConfig) {
+    match confine::confine_udp_sockets(&config.interfaces) {
+        Ok(0) => {}
+        Ok(n) => tracing::debug!(
+            sockets = n,
+            interfaces = ?config.interfaces,
+            "DDS sockets bound to the wildcard address confined to the DDS interfaces"
+        ),
+        Err(e) => tracing::error!(
+            interfaces = ?config.interfaces,
+            "could not confine DDS to its interfaces, it takes datagrams sent to any \
+             address of this host: {e}"
         ),
     }
 }

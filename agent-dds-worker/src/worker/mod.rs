@@ -105,6 +105,9 @@ pub struct Worker {
     ports: HashMap<u32, FrontendPort>,
     /// The DDS implementation.
     dds: Box<dyn DdsBackend>,
+    /// Where requesters and repliers live when `dds` cannot serve them (made on the first
+    /// one): a backend that can, beside it in the same domains.
+    services_dds: Option<Box<dyn DdsBackend>>,
     /// Every entity, with its parent and an index by client.
     entities: EntityTree<Entity>,
     /// The entity behind each reader's wake-up token.
@@ -194,6 +197,7 @@ impl Worker {
             announce,
             ports: HashMap::new(),
             dds,
+            services_dds: None,
             entities: EntityTree::default(),
             readers: HashMap::new(),
             next_token: 1,
@@ -264,10 +268,12 @@ impl Worker {
                 t if t < 0 => period,
                 t => t.min(period),
             };
-            let ready = xrce_common::ipc::shm::wait_readable(
-                &[requests.raw_fd(), self.dds.readiness_fd()],
-                timeout,
-            )?;
+            let mut fds = [requests.raw_fd(), self.dds.readiness_fd(), -1];
+            if let Some(s) = &self.services_dds {
+                fds[2] = s.readiness_fd();
+            }
+            let watched = if self.services_dds.is_some() { 3 } else { 2 };
+            let ready = xrce_common::ipc::shm::wait_readable(&fds[..watched], timeout)?;
             // Wake-ups are consumed only when there are some (a system call each time, and
             // the loop runs per sample under load); the queue itself is read every time.
             if ready & 1 != 0 {
@@ -278,6 +284,9 @@ impl Worker {
             // Always, not only when its descriptor polled readable: gated that way, every
             // reader stalled (measured with 3 and 100 publishers).
             self.dds.ready_readers(&mut self.ready)?;
+            if let Some(s) = &mut self.services_dds {
+                s.ready_readers(&mut self.ready)?;
+            }
             for t in self.ready.drain(..) {
                 if let Some(k) = self.readers.get(&t) {
                     self.to_pump.insert(*k);

@@ -103,16 +103,9 @@ impl Worker {
         little_endian: bool,
     ) -> Result<ServiceEndpoint, OpError> {
         let dds_err = |e: String| (status::ERR_DDS_ERROR, e);
-        if !self.dds.supports_services() {
-            return Err((
-                status::ERR_INCOMPATIBLE,
-                format!(
-                    "requesters and repliers are not supported by the {} DDS backend (it \
-                     cannot send a related sample identity); use --dds-backend rustdds",
-                    self.dds.name()
-                ),
-            ));
-        }
+        let token = self.next_token;
+        self.next_token += 1;
+        let dds = self.services_backend()?;
         let (out_topic, out_type, in_topic, in_type) = if requester {
             (
                 &desc.request_topic,
@@ -133,10 +126,9 @@ impl Worker {
             type_name: type_name.to_string(),
             key: None,
         };
-        let publisher = self.dds.create_group(domain, true, &[]).map_err(dds_err)?;
-        let subscriber = self.dds.create_group(domain, false, &[]).map_err(dds_err)?;
-        let writer = self
-            .dds
+        let publisher = dds.create_group(domain, true, &[]).map_err(dds_err)?;
+        let subscriber = dds.create_group(domain, false, &[]).map_err(dds_err)?;
+        let writer = dds
             .create_writer(
                 &*publisher,
                 &spec(out_topic, out_type),
@@ -144,10 +136,7 @@ impl Worker {
                 little_endian,
             )
             .map_err(dds_err)?;
-        let token = self.next_token;
-        self.next_token += 1;
-        let reader = self
-            .dds
+        let reader = dds
             .create_reader(
                 &*subscriber,
                 &spec(in_topic, in_type),
@@ -165,5 +154,31 @@ impl Worker {
             _publisher: publisher,
             _subscriber: subscriber,
         })
+    }
+
+    /// The backend requesters and repliers go through: the worker's own if it can serve
+    /// them, otherwise the one [`backend::for_services`] makes beside it (once).
+    fn services_backend(&mut self) -> Result<&mut dyn DdsBackend, OpError> {
+        if self.dds.supports_services() {
+            return Ok(&mut *self.dds);
+        }
+        if self.services_dds.is_none() {
+            let beside = backend::for_services(&self.config.dds).map_err(|e| {
+                (
+                    status::ERR_DDS_ERROR,
+                    format!("no DDS backend for requesters and repliers: {e:#}"),
+                )
+            })?;
+            tracing::info!(
+                backend = beside.name(),
+                beside = self.dds.name(),
+                "requesters and repliers go through a backend of their own"
+            );
+            self.services_dds = Some(beside);
+        }
+        match self.services_dds.as_deref_mut() {
+            Some(dds) => Ok(dds),
+            None => Err((status::ERR_DDS_ERROR, "no DDS backend for services".into())),
+        }
     }
 }

@@ -135,6 +135,7 @@ impl Cyclone {
         let xml = config_xml(&self.config.interfaces, uri.as_deref())?;
         let p = Rc::new(ffi::Participant::new(u32::from(domain), Some(&xml))?);
         tracing::info!(domain, "Cyclone DDS participant created");
+        super::confine_new_sockets(&self.config);
         self.participants.insert(domain, p.clone());
         Ok(p)
     }
@@ -362,8 +363,8 @@ impl DdsWriter for Writer {
     ) -> Result<SampleIdentity, String> {
         Err(
             "requesters and repliers are not supported by the Cyclone DDS backend (its C API \
-             cannot tell a written sample's identity nor send a related one); use \
-             --dds-backend rustdds"
+             cannot tell a written sample's identity nor send a related one); the worker \
+             serves them through the backend `backend::for_services` makes"
                 .into(),
         )
     }

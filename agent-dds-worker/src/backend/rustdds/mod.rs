@@ -81,6 +81,7 @@ impl RustDds {
             .build()
             .map_err(|e| format!("creating DDS participant in domain {domain}: {e:?}"))?;
         tracing::info!(domain, ?role, "DDS participant created");
+        super::confine_new_sockets(&self.config);
         self.participants.insert((domain, role), p.clone());
         Ok(p)
     }

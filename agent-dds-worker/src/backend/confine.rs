@@ -1,0 +1,497 @@
+//! Keeps DDS to the addresses it was told (`--dds-interface`), whatever its library binds.
+//!
+//! RustDDS 0.15.1 and Cyclone DDS 11.0.1 announce and send from the configured addresses
+//! only, but bind their receiving sockets to the wildcard address (RustDDS: every listener
+//! and its sender, in `src/dds/participant.rs` and `src/network/udp_sender.rs`; Cyclone: every
+//! receiving socket, `ddsi_udp_create_conn` in `src/core/ddsi/src/ddsi_udp.c`), and neither
+//! has a setting for it. So RTPS sent to any other address of the host, through any
+//! interface, would reach them: a gateway that restricts DDS to its robot-side interface
+//! would still take discovery and data from every other network.
+//!
+//! After a backend made a participant, [`confine_udp_sockets`] finds every UDP socket of the
+//! process bound to a wildcard address and attaches a socket filter to it (classic BPF,
+//! `SO_ATTACH_FILTER`) that lets a datagram in only if its destination is one of the
+//! configured addresses, or a multicast group and it arrived through an interface that holds
+//! one of them (SPDP's multicast discovery). The kernel drops what the filter refuses before
+//! the library reads it, and counts it in the socket's drops (`/proc/net/udp`). Sockets bound
+//! to one address (Cyclone's senders) and other sockets (iceoryx2's unix sockets) are left
+//! alone. A filter replaces an earlier one, so confining again after the next participant is
+//! harmless.
+//!
+//! The filter program is built by [`Program::allowing`] (pure, unit-tested with an
+//! interpreter of the instructions it uses); the one `unsafe` block borrows a descriptor the
+//! DDS library owns (see [`with_socket`]).
+
+use std::net::{IpAddr, SocketAddr};
+use std::os::fd::{BorrowedFd, RawFd};
+
+use socket2::{SockFilter, SockRef, Type};
+
+/// Classic BPF: the instruction classes, sizes, modes and operations the program uses
+/// (`linux/bpf_common.h`).
+mod op {
+    pub const LD: u16 = 0x00;
+    pub const ALU: u16 = 0x04;
+    pub const JMP: u16 = 0x05;
+    pub const RET: u16 = 0x06;
+    pub const W: u16 = 0x00;
+    pub const B: u16 = 0x10;
+    pub const ABS: u16 = 0x20;
+    pub const AND: u16 = 0x50;
+    pub const RSH: u16 = 0x70;
+    pub const JA: u16 = 0x00;
+    pub const JEQ: u16 = 0x10;
+    pub const K: u16 = 0x00;
+}
+
+/// Where a load with a negative offset reads (`linux/filter.h`): the network header, and the
+/// ancillary data (the receiving interface's index).
+const SKF_NET_OFF: i32 = -0x0010_0000;
+const SKF_AD_OFF: i32 = -0x1000;
+const SKF_AD_IFINDEX: i32 = 8;
+
+/// What a filter returns to keep a datagram whole, or to drop it.
+const ACCEPT: u32 = u32::MAX;
+const DROP: u32 = 0;
+
+/// Most addresses and interfaces one program names (jump offsets are one octet).
+pub const MAX_NAMED: usize = 16;
+
+/// One classic BPF instruction.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Insn {
+    /// Class, size, mode and operation.
+    pub code: u16,
+    /// Instructions skipped when a comparison holds.
+    pub jt: u8,
+    /// Instructions skipped when it does not.
+    pub jf: u8,
+    /// The constant.
+    pub k: u32,
+}
+
+/// A socket filter program.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Program(pub Vec<Insn>);
+
+/// A jump target while the program is assembled.
+#[derive(Debug, Clone, Copy)]
+enum To {
+    Next,
+    Label(usize),
+}
+
+/// Labels are resolved when the program is finished (every jump goes forward).
+#[derive(Default)]
+struct Assembler {
+    insns: Vec<(u16, To, To, u32)>,
+    labels: Vec<Option<usize>>,
+}
+
+impl Assembler {
+    fn label(&mut self) -> usize {
+        self.labels.push(None);
+        self.labels.len() - 1
+    }
+    fn here(&mut self, label: usize) {
+        self.labels[label] = Some(self.insns.len());
+    }
+    fn put(&mut self, code: u16, k: u32) {
+        self.insns.push((code, To::Next, To::Next, k));
+    }
+    fn load_net(&mut self, size: u16, offset: i32) {
+        self.put(op::LD | size | op::ABS, (SKF_NET_OFF + offset) as u32);
+    }
+    fn jeq(&mut self, k: u32, jt: To, jf: To) {
+        self.insns.push((op::JMP | op::JEQ | op::K, jt, jf, k));
+    }
+    fn jump(&mut self, to: usize) {
+        self.insns
+            .push((op::JMP | op::JA, To::Next, To::Next, to as u32 | 1 << 31));
+    }
+    fn finish(self) -> Result<Program, String> {
+        let at = |i: usize, to: To| -> Result<u32, String> {
+            let target = match to {
+                To::Next => return Ok(0),
+                To::Label(l) => self.labels[l].ok_or("an unplaced label")?,
+            };
+            target
+                .checked_sub(i + 1)
+                .map(|d| d as u32)
+                .ok_or_else(|| "a backward jump".to_string())
+        };
+        let mut out = Vec::with_capacity(self.insns.len());
+        for (i, &(code, jt, jf, k)) in self.insns.iter().enumerate() {
+            let short = |d: u32| u8::try_from(d).map_err(|_| "a jump too far".to_string());
+            let (jt, jf, k) = if code == op::JMP | op::JA && k & 1 << 31 != 0 {
+                // An unconditional jump to a label (marked in `k` while assembling).
+                (0, 0, at(i, To::Label((k & !(1 << 31)) as usize))?)
+            } else {
+                (short(at(i, jt)?)?, short(at(i, jf)?)?, k)
+            };
+            out.push(Insn { code, jt, jf, k });
+        }
+        Ok(Program(out))
+    }
+}
+
+impl Program {
+    /// The filter that accepts a datagram sent to one of `addresses`, or to a multicast
+    /// group through one of the interfaces `interfaces` (their indices), and drops the rest.
+    /// The same program serves IPv4 sockets and IPv6 ones (which may take IPv4 datagrams
+    /// too): it looks at the IP version first.
+    pub fn allowing(addresses: &[IpAddr], interfaces: &[u32]) -> Result<Program, String> {
+        if addresses.len() > MAX_NAMED || interfaces.len() > MAX_NAMED {
+            return Err(format!(
+                "at most {MAX_NAMED} DDS interface addresses can be confined to"
+            ));
+        }
+        let mut a = Assembler::default();
+        let (v6, multicast, drop, accept) = (a.label(), a.label(), a.label(), a.label());
+        // IP version: the high nibble of the first octet.
+        a.load_net(op::B, 0);
+        a.put(op::ALU | op::RSH | op::K, 4);
+        a.jeq(6, To::Label(v6), To::Next);
+        // IPv4: the destination address is at octet 16.
+        a.load_net(op::W, 16);
+        for ip in addresses {
+            if let IpAddr::V4(v4) = ip {
+                a.jeq(u32::from(*v4), To::Label(accept), To::Next);
+            }
+        }
+        a.put(op::ALU | op::AND | op::K, 0xf000_0000);
+        a.jeq(0xe000_0000, To::Label(multicast), To::Label(drop));
+        // IPv6: the destination address is at octets 24..40, compared a word at a time.
+        a.here(v6);
+        for ip in addresses {
+            if let IpAddr::V6(v6) = ip {
+                let next = a.label();
+                let octets = v6.octets();
+                for (i, word) in octets.chunks_exact(4).enumerate() {
+                    let word = u32::from_be_bytes([word[0], word[1], word[2], word[3]]);
+                    a.load_net(op::W, 24 + 4 * i as i32);
+                    let on_match = if i == 3 { To::Label(accept) } else { To::Next };
+                    a.jeq(word, on_match, To::Label(next));
+                }
+                a.here(next);
+            }
+        }
+        a.load_net(op::B, 24);
+        a.jeq(0xff, To::Label(multicast), To::Label(drop));
+        // A multicast group: only through the interfaces of the configured addresses.
+        a.here(multicast);
+        a.put(
+            op::LD | op::W | op::ABS,
+            (SKF_AD_OFF + SKF_AD_IFINDEX) as u32,
+        );
+        for index in interfaces {
+            a.jeq(*index, To::Label(accept), To::Next);
+        }
+        a.jump(drop);
+        a.here(drop);
+        a.put(op::RET | op::K, DROP);
+        a.here(accept);
+        a.put(op::RET | op::K, ACCEPT);
+        a.finish()
+    }
+
+    fn to_socket2(&self) -> Vec<SockFilter> {
+        self.0
+            .iter()
+            .map(|i| SockFilter::new(i.code, i.jt, i.jf, i.k))
+            .collect()
+    }
+}
+
+/// The indices of the interfaces that hold `addresses`.
+pub fn interface_indices(addresses: &[IpAddr]) -> Vec<u32> {
+    let mut out = Vec::new();
+    let Ok(ifaddrs) = nix::ifaddrs::getifaddrs() else {
+        return out;
+    };
+    for ifa in ifaddrs {
+        let ip = ifa.address.as_ref().and_then(|a| {
+            a.as_sockaddr_in()
+                .map(|s| IpAddr::V4(s.ip()))
+                .or_else(|| a.as_sockaddr_in6().map(|s| IpAddr::V6(s.ip())))
+        });
+        if ip.is_some_and(|ip| addresses.contains(&ip)) {
+            if let Ok(index) = nix::net::if_::if_nametoindex(ifa.interface_name.as_str()) {
+                if !out.contains(&index) {
+                    out.push(index);
+                }
+            }
+        }
+    }
+    out
+}
+
+/// Attaches the filter of `addresses` to every UDP socket of this process bound to a
+/// wildcard address; returns how many it confined. Does nothing without addresses (DDS on
+/// every interface). Call it from the thread that creates and deletes the DDS participants,
+/// right after creating one (see [`with_socket`] for why).
+pub fn confine_udp_sockets(addresses: &[IpAddr]) -> Result<usize, String> {
+    if addresses.is_empty() {
+        return Ok(0);
+    }
+    let program = Program::allowing(addresses, &interface_indices(addresses))?.to_socket2();
+    let dir = std::fs::read_dir("/proc/self/fd").map_err(|e| format!("/proc/self/fd: {e}"))?;
+    let mut confined = 0;
+    for entry in dir.flatten() {
+        let Some(fd) = entry
+            .file_name()
+            .to_str()
+            .and_then(|n| n.parse::<RawFd>().ok())
+        else {
+            continue;
+        };
+        let is_socket = std::fs::read_link(entry.path())
+            .is_ok_and(|t| t.to_string_lossy().starts_with("socket:"));
+        if !is_socket {
+            continue;
+        }
+        let result = confine_socket(fd, &program);
+        match result {
+            Ok(true) => confined += 1,
+            Ok(false) => {}
+            // Closed meanwhile (a descriptor of another thread's): nothing to confine.
+            Err(e) if e.raw_os_error() == Some(libc_ebadf()) => {}
+            Err(e) => return Err(format!("confining UDP socket {fd}: {e}")),
+        }
+    }
+    Ok(confined)
+}
+
+fn libc_ebadf() -> i32 {
+    nix::errno::Errno::EBADF as i32
+}
+
+/// Attaches `program` to the socket behind `fd` if it is a datagram socket bound to a
+/// wildcard address; says whether it did.
+fn confine_socket(fd: RawFd, program: &[SockFilter]) -> std::io::Result<bool> {
+    with_socket(fd, |s| {
+        if s.r#type()? != Type::DGRAM {
+            return Ok(false);
+        }
+        let wildcard = s
+            .local_addr()?
+            .as_socket()
+            .is_some_and(|a: SocketAddr| a.ip().is_unspecified());
+        if wildcard {
+            s.attach_filter(program)?;
+        }
+        Ok(wildcard)
+    })
+}
+
+/// Runs `f` on the socket behind descriptor `fd`, which this module does not own.
+///
+/// Invariant (why the borrow is sound): `fd` was listed in `/proc/self/fd` just before and
+/// is used only for the duration of `f`, on the thread that creates and deletes the DDS
+/// participants; the DDS libraries close their sockets only when a participant is deleted,
+/// so none of theirs closes meanwhile. A descriptor of another kind that another thread
+/// closes meanwhile makes the calls fail with EBADF (or, if its number was reused at once,
+/// be read by `getsockopt`/`getsockname`, which change nothing); only a datagram socket bound
+/// to a wildcard address ever gets a filter.
+#[allow(unsafe_code)]
+fn with_socket<R>(fd: RawFd, f: impl FnOnce(SockRef<'_>) -> R) -> R {
+    // SAFETY: see the invariant above; the borrow does not outlive this call.
+    let borrowed = unsafe { BorrowedFd::borrow_raw(fd) };
+    f(SockRef::from(&borrowed))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::net::{Ipv4Addr, Ipv6Addr};
+
+    /// Runs a program the way the kernel does, over a datagram's network header and the index
+    /// of the interface it came through (only the instructions [`Program::allowing`] emits).
+    fn run(p: &Program, header: &[u8], ifindex: u32) -> u32 {
+        let (mut a, mut pc) = (0u32, 0usize);
+        let load = |k: u32, size: usize| -> Option<u32> {
+            let k = k as i32;
+            if k == SKF_AD_OFF + SKF_AD_IFINDEX {
+                return Some(ifindex);
+            }
+            let at = usize::try_from(k - SKF_NET_OFF).ok()?;
+            let b = header.get(at..at + size)?;
+            Some(b.iter().fold(0u32, |acc, x| acc << 8 | u32::from(*x)))
+        };
+        loop {
+            let i = p.0[pc];
+            pc += 1;
+            match i.code {
+                c if c == op::LD | op::W | op::ABS => match load(i.k, 4) {
+                    Some(v) => a = v,
+                    None => return 0,
+                },
+                c if c == op::LD | op::B | op::ABS => match load(i.k, 1) {
+                    Some(v) => a = v,
+                    None => return 0,
+                },
+                c if c == op::ALU | op::RSH | op::K => a >>= i.k,
+                c if c == op::ALU | op::AND | op::K => a &= i.k,
+                c if c == op::JMP | op::JEQ | op::K => {
+                    pc += usize::from(if a == i.k { i.jt } else { i.jf })
+                }
+                c if c == op::JMP | op::JA => pc += i.k as usize,
+                c if c == op::RET | op::K => return i.k,
+                other => panic!("an instruction the interpreter does not know: {other:#x}"),
+            }
+        }
+    }
+
+    fn v4_header(dst: Ipv4Addr) -> Vec<u8> {
+        let mut h = vec![0u8; 20];
+        h[0] = 0x45;
+        h[16..20].copy_from_slice(&dst.octets());
+        h
+    }
+
+    fn v6_header(dst: Ipv6Addr) -> Vec<u8> {
+        let mut h = vec![0u8; 40];
+        h[0] = 0x60;
+        h[24..40].copy_from_slice(&dst.octets());
+        h
+    }
+
+    const LO: u32 = 1;
+    const ETH: u32 = 2;
+
+    #[test]
+    fn only_the_configured_ipv4_address_and_multicast_through_its_interface_pass() {
+        let p = Program::allowing(&["192.168.1.10".parse().expect("an address")], &[ETH])
+            .expect("a program");
+        let to = |a: &str, i| run(&p, &v4_header(a.parse().expect("an address")), i);
+        assert_eq!(to("192.168.1.10", ETH), ACCEPT);
+        assert_eq!(to("192.168.1.10", LO), ACCEPT, "sent from this host");
+        assert_eq!(to("10.0.0.5", ETH), DROP, "another address of the host");
+        assert_eq!(to("127.0.0.1", LO), DROP);
+        assert_eq!(to("192.168.1.11", ETH), DROP);
+        assert_eq!(to("239.255.0.1", ETH), ACCEPT, "SPDP through the interface");
+        assert_eq!(to("239.255.0.1", 3), DROP, "SPDP through another interface");
+        assert_eq!(
+            run(&p, &v6_header("::1".parse().expect("an address")), LO),
+            DROP,
+            "no IPv6 address was configured"
+        );
+    }
+
+    #[test]
+    fn ipv6_addresses_are_compared_whole() {
+        let a: Ipv6Addr = "fd00::1:2:3:4".parse().expect("an address");
+        let p = Program::allowing(
+            &[IpAddr::V6(a), "::1".parse().expect("an address")],
+            &[ETH, LO],
+        )
+        .expect("a program");
+        let to = |a: Ipv6Addr, i| run(&p, &v6_header(a), i);
+        assert_eq!(to(a, ETH), ACCEPT);
+        assert_eq!(to(Ipv6Addr::LOCALHOST, LO), ACCEPT);
+        for differs_in in [0, 5, 11, 15] {
+            let mut o = a.octets();
+            o[differs_in] ^= 1;
+            assert_eq!(
+                to(Ipv6Addr::from(o), ETH),
+                DROP,
+                "octet {differs_in} differs"
+            );
+        }
+        assert_eq!(to("ff02::1".parse().expect("an address"), LO), ACCEPT);
+        assert_eq!(to("ff02::1".parse().expect("an address"), 7), DROP);
+        assert_eq!(run(&p, &v4_header(Ipv4Addr::LOCALHOST), LO), DROP);
+    }
+
+    #[test]
+    fn a_dual_stack_socket_checks_ipv4_datagrams_against_the_ipv4_addresses() {
+        let p = Program::allowing(
+            &[
+                IpAddr::V4(Ipv4Addr::LOCALHOST),
+                IpAddr::V6(Ipv6Addr::LOCALHOST),
+            ],
+            &[LO],
+        )
+        .expect("a program");
+        assert_eq!(run(&p, &v4_header(Ipv4Addr::LOCALHOST), LO), ACCEPT);
+        assert_eq!(run(&p, &v6_header(Ipv6Addr::LOCALHOST), LO), ACCEPT);
+        assert_eq!(run(&p, &v4_header(Ipv4Addr::new(127, 0, 0, 2)), LO), DROP);
+        assert_eq!(run(&p, &v4_header(Ipv4Addr::new(224, 0, 0, 1)), LO), ACCEPT);
+    }
+
+    #[test]
+    fn too_many_addresses_are_refused_not_truncated() {
+        let many: Vec<IpAddr> = (0..=MAX_NAMED as u8)
+            .map(|i| IpAddr::V4(Ipv4Addr::new(10, 0, 0, i)))
+            .collect();
+        assert!(Program::allowing(&many, &[]).is_err());
+        let p = Program::allowing(&many[..MAX_NAMED], &[1; MAX_NAMED]).expect("socket");
+        assert_eq!(
+            run(&p, &v4_header(Ipv4Addr::new(10, 0, 0, 15)), 9),
+            ACCEPT,
+            "the last of the most addresses is reachable (jump offsets fit)"
+        );
+    }
+
+    #[test]
+    fn a_wildcard_socket_is_confined_and_one_bound_to_an_address_left_alone() {
+        use std::os::fd::AsRawFd;
+        // The wildcard socket under test drops everything from before its bind (a filter
+        // that refuses all), so it never takes a datagram from beyond loopback; confining
+        // replaces that filter with the one of the configured address, ::1.
+        let wild = socket2::Socket::new(socket2::Domain::IPV4, Type::DGRAM, None).expect("socket");
+        wild.attach_filter(&[SockFilter::new(op::RET | op::K, 0, 0, DROP)])
+            .expect("socket");
+        wild.bind(&SocketAddr::from(([0, 0, 0, 0], 0)).into())
+            .expect("socket");
+        let bound = std::net::UdpSocket::bind("127.0.0.1:0").expect("socket");
+        let program = Program::allowing(&[IpAddr::V6(Ipv6Addr::LOCALHOST)], &[])
+            .expect("a program")
+            .to_socket2();
+        assert!(confine_socket(wild.as_raw_fd(), &program).expect("socket"));
+        assert!(!confine_socket(bound.as_raw_fd(), &program).expect("socket"));
+        let tcp = std::net::TcpListener::bind("127.0.0.1:0").expect("socket");
+        assert!(
+            !confine_socket(tcp.as_raw_fd(), &program).expect("socket"),
+            "not UDP"
+        );
+
+        // The bound socket takes a datagram to 127.0.0.1; the confined one refuses it (not
+        // a configured address), though it would take it without a filter.
+        let port = wild
+            .local_addr()
+            .expect("socket")
+            .as_socket()
+            .expect("socket")
+            .port();
+        let sender = std::net::UdpSocket::bind("127.0.0.1:0").expect("socket");
+        sender.send_to(b"x", ("127.0.0.1", port)).expect("socket");
+        sender
+            .send_to(b"y", bound.local_addr().expect("socket"))
+            .expect("socket");
+        bound
+            .set_read_timeout(Some(std::time::Duration::from_secs(2)))
+            .expect("socket");
+        let mut buf = [0u8; 4];
+        assert_eq!(bound.recv(&mut buf).expect("socket"), 1);
+        std::thread::sleep(std::time::Duration::from_millis(50));
+        let wild = std::net::UdpSocket::from(wild);
+        wild.set_nonblocking(true).expect("socket");
+        assert!(
+            wild.recv(&mut buf).is_err(),
+            "the filtered datagram arrived"
+        );
+
+        // Confined to 127.0.0.1 instead, the same socket takes the same datagram.
+        let program = Program::allowing(&[IpAddr::V4(Ipv4Addr::LOCALHOST)], &[])
+            .expect("a program")
+            .to_socket2();
+        assert!(confine_socket(wild.as_raw_fd(), &program).expect("socket"));
+        sender.send_to(b"z", ("127.0.0.1", port)).expect("socket");
+        wild.set_nonblocking(false).expect("socket");
+        wild.set_read_timeout(Some(std::time::Duration::from_secs(2)))
+            .expect("socket");
+        assert_eq!(wild.recv(&mut buf).expect("socket"), 1);
+        assert_eq!(buf[0], b'z');
+    }
+}
