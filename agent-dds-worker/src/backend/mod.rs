@@ -326,6 +326,13 @@ pub trait DdsBackend {
     /// Adds the tokens of readers that may have data since the last call (never blocks;
     /// a reader may be named without data, and the worker takes from it until empty).
     fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()>;
+    /// Whether readers wait to be named by [`ready_readers`](DdsBackend::ready_readers)
+    /// without the descriptor announcing them (a backend that delivers the loop's own writes
+    /// inside the process may queue those readers without a wake-up); the loop then does
+    /// not block.
+    fn readers_queued(&self) -> bool {
+        false
+    }
     /// How many DDS participants it made.
     fn participants(&self) -> usize;
 }

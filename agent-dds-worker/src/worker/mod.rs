@@ -306,7 +306,7 @@ impl Worker {
     }
 
     fn poll_timeout(&self) -> i32 {
-        if !self.to_pump.is_empty() {
+        if !self.to_pump.is_empty() || self.dds.readers_queued() {
             return 0;
         }
         let acks = self

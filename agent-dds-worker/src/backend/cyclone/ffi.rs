@@ -687,6 +687,11 @@ struct ReadyShared {
     /// A byte is on its way through the socket pair (set by listeners, cleared by the taker).
     armed: AtomicBool,
     tx: UnixStream,
+    /// The thread that takes the tokens (the worker's loop). A listener called on it (a
+    /// sample one of the agent's own writers delivered inside the process, synchronously in
+    /// `dds_writecdr`) only queues the token: the loop takes the queue after every pass, so
+    /// it needs no wake-up, and two system calls per sample are saved.
+    taker: std::thread::ThreadId,
 }
 
 #[derive(Debug)]
@@ -708,6 +713,7 @@ impl Readiness {
                 queued: Mutex::new(Vec::new()),
                 armed: AtomicBool::new(false),
                 tx,
+                taker: std::thread::current().id(),
             }),
             rx,
         })
@@ -718,14 +724,34 @@ impl Readiness {
         self.rx.as_raw_fd()
     }
 
+    /// Whether tokens wait in the queue (some were queued on the taking thread, which the
+    /// descriptor does not announce).
+    pub fn has_queued(&self) -> bool {
+        match self.shared.queued.lock() {
+            Ok(q) => !q.is_empty(),
+            Err(p) => !p.into_inner().is_empty(),
+        }
+    }
+
     /// Moves the signalled readers' tokens to `out`. A reader is signalled again only
-    /// after its token was handed out here, so callers take from it until empty.
+    /// after its token was handed out here, so callers take from it until empty. Call it
+    /// from the thread that made the queue, after every pass of its loop.
     pub fn drain(&self, out: &mut Vec<u64>) {
-        self.shared.armed.store(false, Ordering::SeqCst);
-        let mut buf = [0u8; 64];
-        while let Ok(n) = (&self.rx).read(&mut buf) {
-            if n < buf.len() {
-                break;
+        // The socket is read only when a listener armed it (no system call otherwise). A
+        // listener arms it before it writes: if the byte is not there yet, the queue stays
+        // armed, so the byte is read once it came (the descriptor polls readable until
+        // then) and no listener writes another meanwhile.
+        if self.shared.armed.swap(false, Ordering::SeqCst) {
+            let mut buf = [0u8; 64];
+            let mut got = 0;
+            while let Ok(n) = (&self.rx).read(&mut buf) {
+                got += n;
+                if n < buf.len() {
+                    break;
+                }
+            }
+            if got == 0 {
+                self.shared.armed.store(true, Ordering::SeqCst);
             }
         }
         let tokens = match self.shared.queued.lock() {
@@ -743,6 +769,9 @@ impl ReaderSignal {
                 Ok(mut q) => q.push(self.token),
                 Err(p) => p.into_inner().push(self.token),
             }
+        }
+        if std::thread::current().id() == self.shared.taker {
+            return;
         }
         if !self.shared.armed.swap(true, Ordering::SeqCst) {
             // A full socket already holds a wake-up: nothing lost.
@@ -1316,5 +1345,61 @@ mod tests {
             assert!(seen.insert(instance_hash(1, &kh)), "{i}");
         }
         assert_ne!(instance_hash(1, &[0; 16]), instance_hash(2, &[0; 16]));
+    }
+
+    /// Whether the readiness socket holds a wake-up, waiting up to 100 ms for one.
+    fn woken(r: &Readiness) -> bool {
+        let mut fds = [nix::poll::PollFd::new(
+            std::os::fd::AsFd::as_fd(&r.rx),
+            nix::poll::PollFlags::POLLIN,
+        )];
+        nix::poll::poll(&mut fds, 100u16).unwrap_or(0) > 0
+    }
+
+    fn signal(r: &Readiness, token: u64) -> Arc<ReaderSignal> {
+        Arc::new(ReaderSignal {
+            token,
+            queued: AtomicBool::new(false),
+            shared: r.shared.clone(),
+        })
+    }
+
+    #[test]
+    fn listeners_on_other_threads_wake_the_loop_once_and_its_own_thread_does_not() {
+        let r = Readiness::new().expect("readiness");
+        let (a, b) = (signal(&r, 1), signal(&r, 2));
+        let mut out = Vec::new();
+        // On the taking thread (a local writer's sample, delivered inside dds_writecdr):
+        // queued, no wake-up.
+        a.notify();
+        assert!(!woken(&r), "no byte through the socket pair");
+        r.drain(&mut out);
+        assert_eq!(out, vec![1]);
+        a.queued.store(false, Ordering::SeqCst);
+        // On Cyclone's threads: one wake-up for any number of notifications until drained.
+        out.clear();
+        let (a2, b2) = (a.clone(), b.clone());
+        std::thread::spawn(move || {
+            for _ in 0..3 {
+                a2.notify();
+                b2.notify();
+            }
+        })
+        .join()
+        .expect("listener thread");
+        assert!(woken(&r), "the descriptor polls readable");
+        r.drain(&mut out);
+        assert_eq!(out, vec![1, 2], "each reader once");
+        assert!(!woken(&r), "drained: nothing left in the socket pair");
+        // Armed but the byte not there yet (the listener is between arming and writing):
+        // the drain keeps it armed and reads the byte once it came.
+        r.shared.armed.store(true, Ordering::SeqCst);
+        r.drain(&mut out);
+        assert!(r.shared.armed.load(Ordering::SeqCst), "still armed");
+        (&r.shared.tx).write_all(&[1]).expect("write");
+        assert!(woken(&r));
+        r.drain(&mut out);
+        assert!(!woken(&r), "the late byte was read");
+        assert!(!r.shared.armed.load(Ordering::SeqCst));
     }
 }
