@@ -18,9 +18,9 @@ pub struct WorkerArgs {
         value_delimiter = ','
     )]
     pub dds_interfaces: Vec<IpAddr>,
-    /// The DDS implementation: `rustdds`, or `cyclone` (Cyclone DDS, in builds with the
-    /// `cyclone` feature).
-    #[arg(long = "dds-backend", env = "XRCE_DDS_BACKEND", value_enum, default_value_t = BackendKind::Rustdds)]
+    /// The DDS implementation: `cyclone` (Cyclone DDS, the default in builds with the
+    /// `cyclone` feature) or `rustdds` (the default without it).
+    #[arg(long = "dds-backend", env = "XRCE_DDS_BACKEND", value_enum, default_value_t = BackendKind::default())]
     pub dds_backend: BackendKind,
     /// References file: Fast DDS XML profiles that clients may create by reference.
     #[arg(short = 'r', long = "refs", env = "XRCE_REFS")]

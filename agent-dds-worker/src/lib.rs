@@ -3,7 +3,7 @@
 //!
 //! It is not an XRCE endpoint: it never sees client datagrams, only the IPC contract of
 //! `xrce_common::ipc`. Samples pass through as serialized bytes. The DDS implementation sits
-//! behind [`backend`] (RustDDS today, [`backend::rustdds`]).
+//! behind [`backend`] (Cyclone DDS by default, `backend::cyclone`, and [`backend::rustdds`]).
 //!
 //! # QoS mapping
 //!

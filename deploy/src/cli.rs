@@ -115,8 +115,8 @@ pub struct Common {
     /// see one writer per group of clients.
     #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
     pub share_writers: bool,
-    /// The DDS implementation of the worker: `rustdds` (default) or `cyclone` (Cyclone DDS,
-    /// in builds with the `cyclone` feature).
+    /// The DDS implementation of the worker: `cyclone` (Cyclone DDS, the default in builds
+    /// with the `cyclone` feature, which is on by default) or `rustdds`.
     #[arg(long = "dds-backend", env = "XRCE_DDS_BACKEND", value_enum)]
     pub dds_backend: Option<xrce_dds_worker::backend::BackendKind>,
     /// Serve Prometheus metrics at http://ADDR:PORT/metrics and the live status (JSON) at

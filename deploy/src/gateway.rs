@@ -11,7 +11,7 @@
 //! dds_interfaces = ["127.0.0.1"]   # optional, like --dds-interface
 //! ros_graph = true                 # optional
 //! share_writers = false            # optional
-//! dds_backend = "rustdds"           # optional, like --dds-backend (rustdds or cyclone)
+//! dds_backend = "cyclone"          # optional, like --dds-backend (cyclone, the default, or rustdds)
 //! frontend_grace = 30              # optional: seconds a gone front-end's clients are kept
 //!
 //! [[frontend]]

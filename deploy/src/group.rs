@@ -94,8 +94,8 @@ fn worker_env(
         // Refused here, with a clear message, rather than in a worker crash loop.
         if !b.is_built() {
             anyhow::bail!(
-                "this build has no {} DDS backend: build xrce-agent with `--features cyclone` \
-                 (needs cmake and libclang), or use --dds-backend rustdds",
+                "this build has no {} DDS backend: build xrce-agent with its default features \
+                 (needs cmake and libclang: deploy/build-deps), or use --dds-backend rustdds",
                 b.as_str()
             );
         }

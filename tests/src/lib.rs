@@ -39,9 +39,10 @@ fn target_dir() -> PathBuf {
     workspace().join("target")
 }
 
-/// The DDS backend the agents under test use (`XRCE_DDS_BACKEND`, default `rustdds`).
+/// The DDS backend the agents under test use (`XRCE_DDS_BACKEND`, default `cyclone`, the
+/// agent's own default).
 pub fn dds_backend() -> String {
-    std::env::var("XRCE_DDS_BACKEND").unwrap_or_else(|_| "rustdds".into())
+    std::env::var("XRCE_DDS_BACKEND").unwrap_or_else(|_| "cyclone".into())
 }
 
 /// Builds the agent's binaries once per test process; returns their directory.
@@ -64,11 +65,8 @@ pub fn binaries() -> &'static Path {
         if release {
             cmd.arg("--release");
         }
-        // XRCE_DDS_BACKEND=cyclone runs the suite against the Cyclone DDS backend (the agents
-        // inherit the variable); its binaries need the feature.
-        if std::env::var("XRCE_DDS_BACKEND").is_ok_and(|b| b == "cyclone") {
-            cmd.args(["--features", "xrce-dds-worker/cyclone,xrce-agent/cyclone"]);
-        }
+        // Built with their default features: both DDS backends. XRCE_DDS_BACKEND=rustdds runs
+        // the suite against RustDDS (the agents inherit the variable).
         let st = cmd.status().expect("run cargo build");
         assert!(st.success(), "building the agent binaries failed");
         target_dir().join(if release { "release" } else { "debug" })

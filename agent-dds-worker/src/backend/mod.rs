@@ -40,14 +40,16 @@ pub struct DdsConfig {
     pub backend: BackendKind,
 }
 
-/// The DDS implementations a worker can use.
+/// The DDS implementations a worker can use. The default is Cyclone DDS when the build has
+/// it (the `cyclone` feature, on by default), RustDDS otherwise.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, clap::ValueEnum, serde::Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum BackendKind {
     /// RustDDS (always built).
-    #[default]
+    #[cfg_attr(not(feature = "cyclone"), default)]
     Rustdds,
     /// Cyclone DDS (built with the `cyclone` feature).
+    #[cfg_attr(feature = "cyclone", default)]
     Cyclone,
 }
 
@@ -77,8 +79,9 @@ pub fn create(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
         BackendKind::Cyclone => Ok(Box::new(cyclone::Cyclone::new(config.clone())?)),
         #[cfg(not(feature = "cyclone"))]
         BackendKind::Cyclone => anyhow::bail!(
-            "this build has no Cyclone DDS backend: build it with `--features cyclone` \
-             (needs cmake and libclang), or use --dds-backend rustdds"
+            "this build has no Cyclone DDS backend: build it with the `cyclone` feature \
+             (on by default; needs cmake and libclang: deploy/build-deps), or use \
+             --dds-backend rustdds"
         ),
     }
 }
