@@ -1074,6 +1074,17 @@ impl OperationSink for Bridge {
                 if !reliable && !self.has_room() {
                     // Best-effort data is not held back by flow control: drop it, counted.
                     self.stats.ops_dropped += 1;
+                    if self.stats.ops_dropped.is_power_of_two() {
+                        tracing::warn!(
+                            client = %client,
+                            dropped = self.stats.ops_dropped,
+                            in_flight = self.in_flight(),
+                            outbox = self.outbox.len(),
+                            retained = self.retained.len(),
+                            "best-effort write dropped: the worker has not taken the \
+                             operations sent before it (further drops are counted)"
+                        );
+                    }
                     return;
                 }
                 self.submit(h, data.data, reliable, awaited);

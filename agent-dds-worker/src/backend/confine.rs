@@ -15,12 +15,19 @@
 //! one of them (SPDP's multicast discovery). The kernel drops what the filter refuses before
 //! the library reads it, and counts it in the socket's drops (`/proc/net/udp`). Sockets bound
 //! to one address (Cyclone's senders) and other sockets (iceoryx2's unix sockets) are left
-//! alone. A filter replaces an earlier one, so confining again after the next participant is
-//! harmless.
+//! alone, and so are sockets that carry a filter already (confined after an earlier
+//! participant, or by someone else). An unspecified address among the configured ones means
+//! every interface: nothing is confined then.
+//!
+//! Limits: datagrams a socket queued between the library's bind and the filter (a few
+//! milliseconds at participant creation) are not filtered; multicast is accepted through the
+//! interfaces that held a configured address when the filter was attached (an interface
+//! re-created later, a USB adapter plugged again, gets a new index and its multicast is
+//! dropped until the worker restarts).
 //!
 //! The filter program is built by [`Program::allowing`] (pure, unit-tested with an
-//! interpreter of the instructions it uses); the one `unsafe` block borrows a descriptor the
-//! DDS library owns (see [`with_socket`]).
+//! interpreter of the instructions it uses); the `unsafe` code, borrowing a descriptor the
+//! DDS library owns, is in [`sys`].
 
 use std::net::{IpAddr, SocketAddr};
 use std::os::fd::{BorrowedFd, RawFd};
@@ -141,9 +148,14 @@ impl Program {
     /// The same program serves IPv4 sockets and IPv6 ones (which may take IPv4 datagrams
     /// too): it looks at the IP version first.
     pub fn allowing(addresses: &[IpAddr], interfaces: &[u32]) -> Result<Program, String> {
-        if addresses.len() > MAX_NAMED || interfaces.len() > MAX_NAMED {
+        if addresses.len() > MAX_NAMED {
             return Err(format!(
                 "at most {MAX_NAMED} DDS interface addresses can be confined to"
+            ));
+        }
+        if interfaces.len() > MAX_NAMED {
+            return Err(format!(
+                "the DDS interface addresses are on more than {MAX_NAMED} interfaces"
             ));
         }
         let mut a = Assembler::default();
@@ -152,11 +164,16 @@ impl Program {
         a.load_net(op::B, 0);
         a.put(op::ALU | op::RSH | op::K, 4);
         a.jeq(6, To::Label(v6), To::Next);
-        // IPv4: the destination address is at octet 16.
+        // IPv4: the destination address is at octet 16. An IPv4-mapped IPv6 address is the
+        // IPv4 address a dual-stack socket receives.
         a.load_net(op::W, 16);
         for ip in addresses {
-            if let IpAddr::V4(v4) = ip {
-                a.jeq(u32::from(*v4), To::Label(accept), To::Next);
+            let v4 = match ip {
+                IpAddr::V4(v4) => Some(*v4),
+                IpAddr::V6(v6) => v6.to_ipv4_mapped(),
+            };
+            if let Some(v4) = v4 {
+                a.jeq(u32::from(v4), To::Label(accept), To::Next);
             }
         }
         a.put(op::ALU | op::AND | op::K, 0xf000_0000);
@@ -231,12 +248,20 @@ pub fn interface_indices(addresses: &[IpAddr]) -> Vec<u32> {
 /// every interface). Call it from the thread that creates and deletes the DDS participants,
 /// right after creating one (see [`with_socket`] for why).
 pub fn confine_udp_sockets(addresses: &[IpAddr]) -> Result<usize, String> {
-    if addresses.is_empty() {
+    if addresses.is_empty() || addresses.iter().any(IpAddr::is_unspecified) {
         return Ok(0);
     }
-    let program = Program::allowing(addresses, &interface_indices(addresses))?.to_socket2();
+    let interfaces = interface_indices(addresses);
+    if interfaces.is_empty() {
+        tracing::warn!(
+            ?addresses,
+            "no interface holds the DDS interface addresses: DDS takes no multicast (SPDP)"
+        );
+    }
+    let program = Program::allowing(addresses, &interfaces)?.to_socket2();
     let dir = std::fs::read_dir("/proc/self/fd").map_err(|e| format!("/proc/self/fd: {e}"))?;
     let mut confined = 0;
+    let mut failures = Vec::new();
     for entry in dir.flatten() {
         let Some(fd) = entry
             .file_name()
@@ -250,26 +275,39 @@ pub fn confine_udp_sockets(addresses: &[IpAddr]) -> Result<usize, String> {
         if !is_socket {
             continue;
         }
-        let result = confine_socket(fd, &program);
-        match result {
+        if sys::has_filter(fd) {
+            continue;
+        }
+        match confine_socket(fd, &program) {
             Ok(true) => confined += 1,
             Ok(false) => {}
-            // Closed meanwhile (a descriptor of another thread's): nothing to confine.
-            Err(e) if e.raw_os_error() == Some(libc_ebadf()) => {}
-            Err(e) => return Err(format!("confining UDP socket {fd}: {e}")),
+            // Closed, or its number reused for a file, meanwhile (another thread's
+            // descriptor): nothing to confine.
+            Err(e) if gone(&e) => {}
+            Err(e) => failures.push(format!("socket {fd}: {e}")),
         }
     }
-    Ok(confined)
+    if failures.is_empty() {
+        Ok(confined)
+    } else {
+        Err(format!(
+            "{confined} confined, failed for {}",
+            failures.join(", ")
+        ))
+    }
 }
 
-fn libc_ebadf() -> i32 {
-    nix::errno::Errno::EBADF as i32
+/// An error that means the descriptor is no longer the socket it was.
+fn gone(e: &std::io::Error) -> bool {
+    [nix::errno::Errno::EBADF, nix::errno::Errno::ENOTSOCK]
+        .iter()
+        .any(|n| e.raw_os_error() == Some(*n as i32))
 }
 
 /// Attaches `program` to the socket behind `fd` if it is a datagram socket bound to a
 /// wildcard address; says whether it did.
 fn confine_socket(fd: RawFd, program: &[SockFilter]) -> std::io::Result<bool> {
-    with_socket(fd, |s| {
+    sys::with_socket(fd, |s| {
         if s.r#type()? != Type::DGRAM {
             return Ok(false);
         }
@@ -284,20 +322,45 @@ fn confine_socket(fd: RawFd, program: &[SockFilter]) -> std::io::Result<bool> {
     })
 }
 
-/// Runs `f` on the socket behind descriptor `fd`, which this module does not own.
+/// The module's `unsafe` code: system calls on descriptors it does not own.
 ///
-/// Invariant (why the borrow is sound): `fd` was listed in `/proc/self/fd` just before and
-/// is used only for the duration of `f`, on the thread that creates and deletes the DDS
-/// participants; the DDS libraries close their sockets only when a participant is deleted,
-/// so none of theirs closes meanwhile. A descriptor of another kind that another thread
-/// closes meanwhile makes the calls fail with EBADF (or, if its number was reused at once,
-/// be read by `getsockopt`/`getsockname`, which change nothing); only a datagram socket bound
-/// to a wildcard address ever gets a filter.
+/// Invariant (why using them is sound): a descriptor was listed in `/proc/self/fd` just
+/// before and is used only for the duration of one call here, on the thread that creates and
+/// deletes the DDS participants; the DDS libraries close their sockets only when a
+/// participant is deleted, so none of theirs closes meanwhile. A descriptor of another kind
+/// that another thread closes meanwhile (in the worker: iceoryx2's; in a unit-test binary:
+/// other tests' sockets) makes the calls fail with EBADF or ENOTSOCK, or, if its number was
+/// reused at once, be read by `getsockopt`/`getsockname`, which change nothing; only a
+/// datagram socket bound to a wildcard address and without a filter ever gets one. Nothing
+/// here touches memory but the locals passed to the calls.
 #[allow(unsafe_code)]
-fn with_socket<R>(fd: RawFd, f: impl FnOnce(SockRef<'_>) -> R) -> R {
-    // SAFETY: see the invariant above; the borrow does not outlive this call.
-    let borrowed = unsafe { BorrowedFd::borrow_raw(fd) };
-    f(SockRef::from(&borrowed))
+mod sys {
+    use super::*;
+
+    /// Runs `f` on the socket behind descriptor `fd`.
+    pub(super) fn with_socket<R>(fd: RawFd, f: impl FnOnce(SockRef<'_>) -> R) -> R {
+        // SAFETY: see the module's invariant; the borrow does not outlive this call.
+        let borrowed = unsafe { BorrowedFd::borrow_raw(fd) };
+        f(SockRef::from(&borrowed))
+    }
+
+    /// Whether the socket behind `fd` has a socket filter (SO_GET_FILTER with no buffer
+    /// answers the number of instructions); false on any error.
+    pub(super) fn has_filter(fd: RawFd) -> bool {
+        let mut len: libc::socklen_t = 0;
+        // SAFETY: a null buffer with a zero length asks only for the count, written to
+        // `len`, a live local; see the module's invariant for `fd`.
+        let rc = unsafe {
+            libc::getsockopt(
+                fd,
+                libc::SOL_SOCKET,
+                libc::SO_GET_FILTER,
+                std::ptr::null_mut(),
+                &mut len,
+            )
+        };
+        rc == 0 && len > 0
+    }
 }
 
 #[cfg(test)]
@@ -420,6 +483,20 @@ mod tests {
     }
 
     #[test]
+    fn an_ipv4_mapped_address_is_checked_against_ipv4_datagrams() {
+        let p = Program::allowing(&["::ffff:10.0.0.1".parse().expect("an address")], &[])
+            .expect("a program");
+        assert_eq!(run(&p, &v4_header(Ipv4Addr::new(10, 0, 0, 1)), ETH), ACCEPT);
+        assert_eq!(run(&p, &v4_header(Ipv4Addr::new(10, 0, 0, 2)), ETH), DROP);
+    }
+
+    #[test]
+    fn an_unspecified_address_means_every_interface() {
+        assert_eq!(confine_udp_sockets(&[IpAddr::V4(Ipv4Addr::UNSPECIFIED)]), Ok(0));
+        assert_eq!(confine_udp_sockets(&[]), Ok(0));
+    }
+
+    #[test]
     fn too_many_addresses_are_refused_not_truncated() {
         let many: Vec<IpAddr> = (0..=MAX_NAMED as u8)
             .map(|i| IpAddr::V4(Ipv4Addr::new(10, 0, 0, i)))
@@ -448,8 +525,10 @@ mod tests {
         let program = Program::allowing(&[IpAddr::V6(Ipv6Addr::LOCALHOST)], &[])
             .expect("a program")
             .to_socket2();
+        assert!(sys::has_filter(wild.as_raw_fd()), "the refuse-all filter");
         assert!(confine_socket(wild.as_raw_fd(), &program).expect("socket"));
         assert!(!confine_socket(bound.as_raw_fd(), &program).expect("socket"));
+        assert!(!sys::has_filter(bound.as_raw_fd()), "left alone");
         let tcp = std::net::TcpListener::bind("127.0.0.1:0").expect("socket");
         assert!(
             !confine_socket(tcp.as_raw_fd(), &program).expect("socket"),

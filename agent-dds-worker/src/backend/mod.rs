@@ -5,11 +5,14 @@
 //! raw serialized samples (the client's CDR goes to the wire as it is, and received samples
 //! come back as bytes with their identity), matched counts, acknowledgement status, and one
 //! descriptor the worker's loop waits on for readers with data. The worker's modules use only
-//! these traits and types (`Worker::new` picks RustDDS, `Worker::with_backend` any other).
+//! these traits and types (`Worker::new` picks the one the configuration names,
+//! `Worker::with_backend` any other).
 //!
-//! Implementations: [`rustdds`] (the default, RustDDS), `cyclone` (Cyclone DDS, with the
-//! `cyclone` feature) and, for the worker's unit tests, a fake that delivers between its own
-//! writers and readers in memory.
+//! Implementations: `cyclone` (Cyclone DDS, the default, with the `cyclone` feature, on by
+//! default), [`rustdds`] (RustDDS, always built; it also serves requesters and repliers
+//! beside a backend that cannot, [`for_services`]) and, for the worker's unit tests, a fake
+//! that delivers between its own writers and readers in memory. [`confine`] keeps either's
+//! sockets to the configured interfaces.
 
 use std::net::IpAddr;
 use std::os::fd::RawFd;

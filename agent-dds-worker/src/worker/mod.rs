@@ -84,6 +84,12 @@ pub struct WorkerConfig {
     pub frontend_grace: Duration,
 }
 
+/// A loop pass longer than this is logged (front-ends' operations wait meanwhile, and a
+/// front-end drops best-effort writes once its window to the worker is full).
+const SLOW_PASS: Duration = Duration::from_millis(50);
+/// At most one such line in this period (with the count of slow passes so far).
+const SLOW_PASS_LOG_PERIOD: Duration = Duration::from_secs(10);
+
 /// How often the worker looks for front-ends whose process is gone.
 const CENSUS_PERIOD: Duration = Duration::from_secs(1);
 /// How often every writer's matched count is looked at and, when it changed, reported to its
@@ -150,6 +156,9 @@ pub struct Worker {
     samples_written: u64,
     /// Samples taken from DDS readers and sent to front-ends.
     samples_taken: u64,
+    /// Loop passes that took [`SLOW_PASS`] or longer, and when one was last logged.
+    slow_passes: u64,
+    slow_logged: Option<Instant>,
     /// Writes this process's status report.
     reporter: Reporter,
     /// Pings systemd's watchdog when the worker is a unit of its own.
@@ -219,6 +228,8 @@ impl Worker {
             deferred: Vec::new(),
             samples_written: 0,
             samples_taken: 0,
+            slow_passes: 0,
+            slow_logged: None,
             reporter: Reporter::new(&config_instance, "worker"),
             watchdog: Watchdog::from_env(),
         };
@@ -274,12 +285,14 @@ impl Worker {
             }
             let watched = if self.services_dds.is_some() { 3 } else { 2 };
             let ready = xrce_common::ipc::shm::wait_readable(&fds[..watched], timeout)?;
+            let pass = Instant::now();
             // Wake-ups are consumed only when there are some (a system call each time, and
             // the loop runs per sample under load); the queue itself is read every time.
             if ready & 1 != 0 {
                 requests.clear_events();
             }
-            requests.drain(|m| self.handle_request(m))?;
+            let taken = requests.drain(|m| self.handle_request(m))?;
+            let after_requests = pass.elapsed();
             self.serve_successors();
             // Always, not only when its descriptor polled readable: gated that way, every
             // reader stalled (measured with 3 and 100 publishers).
@@ -293,15 +306,37 @@ impl Worker {
                 }
             }
             let pump: Vec<EntityKey> = self.to_pump.drain().collect();
+            let pumped = pump.len();
             for k in pump {
                 self.pump(k);
             }
+            let after_reads = pass.elapsed();
             self.expire_reads();
             self.release_rematched();
             self.report_matches();
             self.publish_graph();
             self.flush();
             self.watch_frontends();
+            let took = pass.elapsed();
+            if took >= SLOW_PASS {
+                self.slow_passes += 1;
+                let quiet = self
+                    .slow_logged
+                    .is_some_and(|t| t.elapsed() < SLOW_PASS_LOG_PERIOD);
+                if quiet {
+                    continue;
+                }
+                self.slow_logged = Some(Instant::now());
+                tracing::warn!(
+                    took_ms = took.as_millis() as u64,
+                    slow_passes = self.slow_passes,
+                    requests_ms = after_requests.as_millis() as u64,
+                    reads_ms = (after_reads - after_requests).as_millis() as u64,
+                    requests = taken,
+                    readers = pumped,
+                    "a worker loop pass took long; front-ends' operations waited meanwhile"
+                );
+            }
         }
     }
 

@@ -40,7 +40,7 @@ use std::ffi::{c_char, c_void, CStr, CString};
 use std::io::{Read, Write};
 use std::os::fd::{AsRawFd, RawFd};
 use std::os::unix::net::UnixStream;
-use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use cyclors as c;
@@ -679,13 +679,18 @@ impl Drop for Reader {
 pub struct Readiness {
     shared: Arc<ReadyShared>,
     rx: UnixStream,
+    /// Bytes read from the socket pair so far (compared with `ReadyShared::written`).
+    read: std::cell::Cell<u64>,
 }
 
 #[derive(Debug)]
 struct ReadyShared {
     queued: Mutex<Vec<u64>>,
-    /// A byte is on its way through the socket pair (set by listeners, cleared by the taker).
+    /// A byte is on its way through the socket pair (set by listeners, cleared by the taker
+    /// after it read what was written).
     armed: AtomicBool,
+    /// Bytes listeners wrote to the socket pair so far (counted after each write).
+    written: AtomicU64,
     tx: UnixStream,
     /// The thread that takes the tokens (the worker's loop). A listener called on it (a
     /// sample one of the agent's own writers delivered inside the process, synchronously in
@@ -712,10 +717,12 @@ impl Readiness {
             shared: Arc::new(ReadyShared {
                 queued: Mutex::new(Vec::new()),
                 armed: AtomicBool::new(false),
+                written: AtomicU64::new(0),
                 tx,
                 taker: std::thread::current().id(),
             }),
             rx,
+            read: std::cell::Cell::new(0),
         })
     }
 
@@ -737,23 +744,21 @@ impl Readiness {
     /// after its token was handed out here, so callers take from it until empty. Call it
     /// from the thread that made the queue, after every pass of its loop.
     pub fn drain(&self, out: &mut Vec<u64>) {
-        // The socket is read only when a listener armed it (no system call otherwise). A
-        // listener arms it before it writes: if the byte is not there yet, the queue stays
-        // armed, so the byte is read once it came (the descriptor polls readable until
-        // then) and no listener writes another meanwhile.
-        if self.shared.armed.swap(false, Ordering::SeqCst) {
+        // The socket is read only when listeners wrote more than was read (no system call
+        // otherwise), and before `armed` is cleared: a listener that armed before the clear
+        // has written its byte, which was read here or makes the descriptor poll readable
+        // for the next pass; one that arms after the clear writes a byte of its own. So a
+        // queued token always has a byte on its way or is taken below.
+        if self.shared.written.load(Ordering::SeqCst) != self.read.get() {
             let mut buf = [0u8; 64];
-            let mut got = 0;
             while let Ok(n) = (&self.rx).read(&mut buf) {
-                got += n;
+                self.read.set(self.read.get().wrapping_add(n as u64));
                 if n < buf.len() {
                     break;
                 }
             }
-            if got == 0 {
-                self.shared.armed.store(true, Ordering::SeqCst);
-            }
         }
+        self.shared.armed.store(false, Ordering::SeqCst);
         let tokens = match self.shared.queued.lock() {
             Ok(mut q) => std::mem::take(&mut *q),
             Err(p) => std::mem::take(&mut *p.into_inner()),
@@ -775,7 +780,9 @@ impl ReaderSignal {
         }
         if !self.shared.armed.swap(true, Ordering::SeqCst) {
             // A full socket already holds a wake-up: nothing lost.
-            let _ = (&self.shared.tx).write(&[1]);
+            if let Ok(n) = (&self.shared.tx).write(&[1]) {
+                self.shared.written.fetch_add(n as u64, Ordering::SeqCst);
+            }
         }
     }
 }
@@ -1391,13 +1398,27 @@ mod tests {
         r.drain(&mut out);
         assert_eq!(out, vec![1, 2], "each reader once");
         assert!(!woken(&r), "drained: nothing left in the socket pair");
-        // Armed but the byte not there yet (the listener is between arming and writing):
-        // the drain keeps it armed and reads the byte once it came.
+        assert!(
+            !r.shared.armed.load(Ordering::SeqCst),
+            "disarmed after the bytes were read"
+        );
+        // A listener after that drain writes again (a queue left armed with no byte on its
+        // way would swallow every later wake-up).
+        a.queued.store(false, Ordering::SeqCst);
+        let a3 = a.clone();
+        std::thread::spawn(move || a3.notify())
+            .join()
+            .expect("listener thread");
+        assert!(woken(&r), "woken again");
+        r.drain(&mut out);
+        assert!(!woken(&r));
+        // Armed but the byte not written yet (the listener is between arming and writing):
+        // the drain reads nothing, and the byte, once written, wakes the next pass.
         r.shared.armed.store(true, Ordering::SeqCst);
         r.drain(&mut out);
-        assert!(r.shared.armed.load(Ordering::SeqCst), "still armed");
         (&r.shared.tx).write_all(&[1]).expect("write");
-        assert!(woken(&r));
+        r.shared.written.fetch_add(1, Ordering::SeqCst);
+        assert!(woken(&r), "the late byte wakes the loop");
         r.drain(&mut out);
         assert!(!woken(&r), "the late byte was read");
         assert!(!r.shared.armed.load(Ordering::SeqCst));
