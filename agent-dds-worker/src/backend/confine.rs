@@ -492,7 +492,10 @@ mod tests {
 
     #[test]
     fn an_unspecified_address_means_every_interface() {
-        assert_eq!(confine_udp_sockets(&[IpAddr::V4(Ipv4Addr::UNSPECIFIED)]), Ok(0));
+        assert_eq!(
+            confine_udp_sockets(&[IpAddr::V4(Ipv4Addr::UNSPECIFIED)]),
+            Ok(0)
+        );
         assert_eq!(confine_udp_sockets(&[]), Ok(0));
     }
 
