@@ -100,14 +100,18 @@ fn multicast_discovery_answers_with_the_agents_locator() {
         }]],
         "one answer naming where the agent serves"
     );
-    // Unicast to the discovery port is not discovery (it may be DDS traffic on 7400).
-    assert!(
+    // A request sent straight to the agent's address on the discovery port (the eProsima
+    // client's uxr_discovery_agents with a list of agents) is answered the same way.
+    assert_eq!(
         discover(
             SocketAddr::from(([127, 0, 0, 1], disc)),
-            Duration::from_millis(500)
-        )
-        .is_empty(),
-        "answered a unicast datagram on the discovery port"
+            Duration::from_secs(10)
+        ),
+        vec![vec![TransportLocator::Medium {
+            address: [127, 0, 0, 1],
+            port
+        }]],
+        "one answer to a request sent to 127.0.0.1 on the discovery port"
     );
     assert!(agent.stop(), "agent did not stop cleanly");
 }

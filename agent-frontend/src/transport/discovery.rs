@@ -2,10 +2,16 @@
 //! to 239.255.0.2 on the discovery port (7400 by default) and every agent answers, to the
 //! sender, with INFO listing the locators where it serves clients.
 //!
-//! The socket is bound to the group address itself, so it receives only datagrams sent to
-//! that group: port 7400 is also DDS domain 0's discovery port, and DDS traffic to it (other
-//! groups, unicast) never reaches this socket. It joins the group on the front-end's
-//! interface, or on every IPv4 interface when the front-end serves all of them.
+//! The multicast socket is bound to the group address itself, so it receives only datagrams
+//! sent to that group: port 7400 is also DDS domain 0's discovery port, and DDS traffic to
+//! other groups never reaches it. It joins the group on the front-end's interface, or on
+//! every IPv4 interface when the front-end serves all of them.
+//!
+//! A second socket takes the requests a client sends straight to an agent's address on the
+//! discovery port (the eProsima client's `uxr_discovery_agents` with a list of agents; the
+//! reference agent answers those too): bound to the front-end's address (every address when
+//! it serves all), taking no multicast. A datagram there that is not a discovery request
+//! (DDS sends no unicast to port 7400 by default) is dropped, counted.
 
 use std::net::{IpAddr, Ipv4Addr, SocketAddr, SocketAddrV4};
 
@@ -24,6 +30,9 @@ const BATCH: usize = 64;
 #[derive(Debug)]
 pub struct Discovery {
     socket: mio::net::UdpSocket,
+    /// Requests sent to the front-end's address on the discovery port (none if that port
+    /// could not be bound there).
+    unicast: Option<mio::net::UdpSocket>,
     /// Answers go out from here (a socket bound to a group address cannot send from it).
     reply: std::net::UdpSocket,
     port: u16,
@@ -74,9 +83,17 @@ impl Discovery {
         };
         let reply = std::net::UdpSocket::bind((reply_from, 0))?;
         reply.set_nonblocking(true)?;
-        tracing::info!(group = %DISCOVERY_GROUP, port, ?interfaces, ?locators, "discovery server listening");
+        let unicast = match unicast_socket(reply_from, port) {
+            Ok(s) => Some(s),
+            Err(e) => {
+                tracing::warn!(address = %reply_from, port, error = %e, "discovery requests sent to the agent's address are not answered: the port is taken there");
+                None
+            }
+        };
+        tracing::info!(group = %DISCOVERY_GROUP, port, ?interfaces, ?locators, unicast = unicast.is_some(), "discovery server listening");
         Ok(Discovery {
             socket: mio::net::UdpSocket::from_std(socket.into()),
+            unicast,
             reply,
             port,
             vendor_id,
@@ -92,9 +109,13 @@ impl Discovery {
         self.port
     }
 
-    /// Registers the socket with `token`.
+    /// Registers the sockets with `token`.
     pub fn register(&mut self, registry: &Registry, token: Token) -> std::io::Result<()> {
-        registry.register(&mut self.socket, token, Interest::READABLE)
+        registry.register(&mut self.socket, token, Interest::READABLE)?;
+        if let Some(u) = self.unicast.as_mut() {
+            registry.register(u, token, Interest::READABLE)?;
+        }
+        Ok(())
     }
 
     /// Records readiness.
@@ -109,12 +130,23 @@ impl Discovery {
         if !self.readable {
             return false;
         }
-        for _ in 0..BATCH {
-            let (n, from) = match self.socket.recv_from(&mut self.buf) {
+        let mut drained = [false, self.unicast.is_none()];
+        for i in 0..BATCH {
+            if drained.iter().all(|d| *d) {
+                self.readable = false;
+                return false;
+            }
+            // Both sockets in turn, each until it has nothing.
+            let which = if drained[i % 2] { (i + 1) % 2 } else { i % 2 };
+            let received = match (which, self.unicast.as_ref()) {
+                (1, Some(u)) => u.recv_from(&mut self.buf),
+                _ => self.socket.recv_from(&mut self.buf),
+            };
+            let (n, from) = match received {
                 Ok(r) => r,
                 Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
-                    self.readable = false;
-                    return false;
+                    drained[which] = true;
+                    continue;
                 }
                 Err(e) => {
                     tracing::debug!(error = %e, "discovery recv_from");
@@ -146,6 +178,18 @@ impl Discovery {
     pub fn stats(&self) -> &TransportStats {
         &self.stats
     }
+}
+
+/// The socket for discovery requests sent to `address` (every address if unspecified) on
+/// `port`: shared with other agents and with DDS's own socket on that port (SO_REUSEADDR),
+/// and taking no multicast (those come through the group's socket).
+fn unicast_socket(address: Ipv4Addr, port: u16) -> std::io::Result<mio::net::UdpSocket> {
+    let socket = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
+    socket.set_reuse_address(true)?;
+    socket.set_multicast_all_v4(false)?;
+    socket.bind(&SocketAddr::V4(SocketAddrV4::new(address, port)).into())?;
+    socket.set_nonblocking(true)?;
+    Ok(mio::net::UdpSocket::from_std(socket.into()))
 }
 
 /// Every IPv4 address of the machine's interfaces that are up, loopback included.
