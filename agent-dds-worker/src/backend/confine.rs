@@ -248,6 +248,9 @@ pub fn interface_indices(addresses: &[IpAddr]) -> Vec<u32> {
 /// every interface). Call it from the thread that creates and deletes the DDS participants,
 /// right after creating one (see [`with_socket`] for why).
 pub fn confine_udp_sockets(addresses: &[IpAddr]) -> Result<usize, String> {
+    // An IPv4-mapped IPv6 address is the IPv4 address (interfaces, the unspecified check).
+    let canonical: Vec<IpAddr> = addresses.iter().map(IpAddr::to_canonical).collect();
+    let addresses = &canonical[..];
     if addresses.is_empty() || addresses.iter().any(IpAddr::is_unspecified) {
         return Ok(0);
     }
@@ -345,7 +348,8 @@ mod sys {
     }
 
     /// Whether the socket behind `fd` has a socket filter (SO_GET_FILTER with no buffer
-    /// answers the number of instructions); false on any error.
+    /// answers the number of instructions; an eBPF filter, which it cannot show, answers
+    /// EACCES); false on any other error.
     pub(super) fn has_filter(fd: RawFd) -> bool {
         let mut len: libc::socklen_t = 0;
         // SAFETY: a null buffer with a zero length asks only for the count, written to
@@ -359,7 +363,8 @@ mod sys {
                 &mut len,
             )
         };
-        rc == 0 && len > 0
+        (rc == 0 && len > 0)
+            || (rc != 0 && std::io::Error::last_os_error().raw_os_error() == Some(libc::EACCES))
     }
 }
 
@@ -497,6 +502,10 @@ mod tests {
             Ok(0)
         );
         assert_eq!(confine_udp_sockets(&[]), Ok(0));
+        assert_eq!(
+            confine_udp_sockets(&["::ffff:0.0.0.0".parse().expect("an address")]),
+            Ok(0)
+        );
     }
 
     #[test]

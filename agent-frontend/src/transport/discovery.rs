@@ -7,11 +7,15 @@
 //! other groups never reaches it. It joins the group on the front-end's interface, or on
 //! every IPv4 interface when the front-end serves all of them.
 //!
-//! A second socket takes the requests a client sends straight to an agent's address on the
+//! Other sockets take the requests a client sends straight to an agent's address on the
 //! discovery port (the eProsima client's `uxr_discovery_agents` with a list of agents; the
-//! reference agent answers those too): bound to the front-end's address (every address when
-//! it serves all), taking no multicast. A datagram there that is not a discovery request
-//! (DDS sends no unicast to port 7400 by default) is dropped, counted.
+//! reference agent answers those too): one bound to each address the front-end serves (each
+//! IPv4 address of the machine when it serves all), never to the wildcard, so that a DDS
+//! participant's socket on port 7400, bound to the wildcard, does not take them (Linux gives
+//! a unicast datagram to one socket, the most specific). On a shared address the agent takes
+//! unicast datagrams to that port from DDS (which sends none there by default: they are
+//! dropped, counted), and two agents on one address share its requests. They take no
+//! multicast.
 
 use std::net::{IpAddr, Ipv4Addr, SocketAddr, SocketAddrV4};
 
@@ -30,9 +34,9 @@ const BATCH: usize = 64;
 #[derive(Debug)]
 pub struct Discovery {
     socket: mio::net::UdpSocket,
-    /// Requests sent to the front-end's address on the discovery port (none if that port
-    /// could not be bound there).
-    unicast: Option<mio::net::UdpSocket>,
+    /// Requests sent to the front-end's addresses on the discovery port (one socket per
+    /// address where that port could be bound).
+    unicast: Vec<mio::net::UdpSocket>,
     /// Answers go out from here (a socket bound to a group address cannot send from it).
     reply: std::net::UdpSocket,
     port: u16,
@@ -83,14 +87,16 @@ impl Discovery {
         };
         let reply = std::net::UdpSocket::bind((reply_from, 0))?;
         reply.set_nonblocking(true)?;
-        let unicast = match unicast_socket(reply_from, port) {
-            Ok(s) => Some(s),
-            Err(e) => {
-                tracing::warn!(address = %reply_from, port, error = %e, "discovery requests sent to the agent's address are not answered: the port is taken there");
-                None
+        let mut unicast = Vec::new();
+        for address in &interfaces {
+            match unicast_socket(*address, port) {
+                Ok(s) => unicast.push(s),
+                Err(e) => {
+                    tracing::warn!(%address, port, error = %e, "discovery requests sent to this address are not answered: the port is taken there")
+                }
             }
-        };
-        tracing::info!(group = %DISCOVERY_GROUP, port, ?interfaces, ?locators, unicast = unicast.is_some(), "discovery server listening");
+        }
+        tracing::info!(group = %DISCOVERY_GROUP, port, ?interfaces, ?locators, unicast = unicast.len(), "discovery server listening");
         Ok(Discovery {
             socket: mio::net::UdpSocket::from_std(socket.into()),
             unicast,
@@ -112,7 +118,7 @@ impl Discovery {
     /// Registers the sockets with `token`.
     pub fn register(&mut self, registry: &Registry, token: Token) -> std::io::Result<()> {
         registry.register(&mut self.socket, token, Interest::READABLE)?;
-        if let Some(u) = self.unicast.as_mut() {
+        for u in self.unicast.iter_mut() {
             registry.register(u, token, Interest::READABLE)?;
         }
         Ok(())
@@ -130,17 +136,22 @@ impl Discovery {
         if !self.readable {
             return false;
         }
-        let mut drained = [false, self.unicast.is_none()];
-        for i in 0..BATCH {
-            if drained.iter().all(|d| *d) {
+        // The group's socket (0) and the unicast ones (1..) in turn, each until it has nothing.
+        let sockets = 1 + self.unicast.len();
+        let mut drained = vec![false; sockets];
+        let mut next = 0;
+        for _ in 0..BATCH {
+            let Some(which) = (0..sockets)
+                .map(|k| (next + k) % sockets)
+                .find(|w| !drained[*w])
+            else {
                 self.readable = false;
                 return false;
-            }
-            // Both sockets in turn, each until it has nothing.
-            let which = if drained[i % 2] { (i + 1) % 2 } else { i % 2 };
-            let received = match (which, self.unicast.as_ref()) {
-                (1, Some(u)) => u.recv_from(&mut self.buf),
-                _ => self.socket.recv_from(&mut self.buf),
+            };
+            next = which + 1;
+            let received = match which {
+                0 => self.socket.recv_from(&mut self.buf),
+                w => self.unicast[w - 1].recv_from(&mut self.buf),
             };
             let (n, from) = match received {
                 Ok(r) => r,
@@ -180,9 +191,9 @@ impl Discovery {
     }
 }
 
-/// The socket for discovery requests sent to `address` (every address if unspecified) on
-/// `port`: shared with other agents and with DDS's own socket on that port (SO_REUSEADDR),
-/// and taking no multicast (those come through the group's socket).
+/// The socket for discovery requests sent to `address` on `port` (SO_REUSEADDR: DDS's own
+/// socket on that port, bound to the wildcard, and other agents' may be there too), taking
+/// no multicast (those come through the group's socket).
 fn unicast_socket(address: Ipv4Addr, port: u16) -> std::io::Result<mio::net::UdpSocket> {
     let socket = Socket::new(Domain::IPV4, Type::DGRAM, Some(Protocol::UDP))?;
     socket.set_reuse_address(true)?;

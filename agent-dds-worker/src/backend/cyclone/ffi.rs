@@ -315,6 +315,25 @@ impl Qos {
         unsafe { c::dds_qset_durability(self.0, k) };
     }
 
+    /// What a transient-local (or stronger) writer keeps for late-joining readers:
+    /// keep-last `depth` or keep-all (`None`) per instance, within the limits (-1:
+    /// unlimited). Cyclone's default keeps the last sample only.
+    pub fn durability_service(
+        &mut self,
+        depth: Option<i32>,
+        samples: i32,
+        instances: i32,
+        per_instance: i32,
+    ) {
+        let (kind, depth) = match depth {
+            Some(d) => (c::dds_history_kind_DDS_HISTORY_KEEP_LAST, d),
+            None => (c::dds_history_kind_DDS_HISTORY_KEEP_ALL, -1),
+        };
+        unsafe {
+            c::dds_qset_durability_service(self.0, 0, kind, depth, samples, instances, per_instance)
+        };
+    }
+
     /// History: keep-last `depth`, or keep-all (`None`).
     pub fn history(&mut self, depth: Option<i32>) {
         match depth {
@@ -744,11 +763,11 @@ impl Readiness {
     /// after its token was handed out here, so callers take from it until empty. Call it
     /// from the thread that made the queue, after every pass of its loop.
     pub fn drain(&self, out: &mut Vec<u64>) {
-        // The socket is read only when listeners wrote more than was read (no system call
-        // otherwise), and before `armed` is cleared: a listener that armed before the clear
-        // has written its byte, which was read here or makes the descriptor poll readable
-        // for the next pass; one that arms after the clear writes a byte of its own. So a
-        // queued token always has a byte on its way or is taken below.
+        // The socket is read only when listeners counted more bytes than were read (no
+        // system call otherwise), and before `armed` is cleared. A listener that armed before
+        // the clear pushed its token before arming, so the take below gets it (its byte, if
+        // not read here, makes one spurious wake-up); one that arms after the clear writes a
+        // byte of its own. So a queued token always has a byte on its way or is taken here.
         if self.shared.written.load(Ordering::SeqCst) != self.read.get() {
             let mut buf = [0u8; 64];
             while let Ok(n) = (&self.rx).read(&mut buf) {
@@ -779,9 +798,21 @@ impl ReaderSignal {
             return;
         }
         if !self.shared.armed.swap(true, Ordering::SeqCst) {
-            // A full socket already holds a wake-up: nothing lost.
-            if let Ok(n) = (&self.shared.tx).write(&[1]) {
-                self.shared.written.fetch_add(n as u64, Ordering::SeqCst);
+            // Counted before it is written, so a byte the loop polls readable is always one
+            // the drain reads (counted and not there yet costs one empty read).
+            self.shared.written.fetch_add(1, Ordering::SeqCst);
+            match (&self.shared.tx).write(&[1]) {
+                Ok(_) => {}
+                // A full socket already holds a wake-up: nothing lost.
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                    self.shared.written.fetch_sub(1, Ordering::SeqCst);
+                }
+                Err(_) => {
+                    // No byte on its way: disarmed, so the next listener writes one (the
+                    // token is queued; the loop's own timeout takes it at the latest).
+                    self.shared.written.fetch_sub(1, Ordering::SeqCst);
+                    self.shared.armed.store(false, Ordering::SeqCst);
+                }
             }
         }
     }
@@ -1416,8 +1447,8 @@ mod tests {
         // the drain reads nothing, and the byte, once written, wakes the next pass.
         r.shared.armed.store(true, Ordering::SeqCst);
         r.drain(&mut out);
-        (&r.shared.tx).write_all(&[1]).expect("write");
         r.shared.written.fetch_add(1, Ordering::SeqCst);
+        (&r.shared.tx).write_all(&[1]).expect("write");
         assert!(woken(&r), "the late byte wakes the loop");
         r.drain(&mut out);
         assert!(!woken(&r), "the late byte was read");

@@ -31,10 +31,20 @@ pub fn to_cyclone(qos: &EndpointQos) -> Result<Qos, String> {
         Durability::Transient => ffi::DurabilityKind::Transient,
         Durability::Persistent => ffi::DurabilityKind::Persistent,
     });
-    q.history(match qos.history {
+    let history = match qos.history {
         History::KeepLast(depth) => Some(depth.max(1)),
         History::KeepAll => None,
-    });
+    };
+    q.history(history);
+    if qos.durability != Durability::Volatile {
+        // Late joiners get the writer's history, as with Fast DDS and RustDDS (Cyclone
+        // would keep only the last sample of each instance for them: found when a
+        // transient-local reader joining after the hold got 1 of 8 samples).
+        let (samples, instances, per_instance) = qos.resource_limits.map_or((-1, -1, -1), |r| {
+            (r.max_samples, r.max_instances, r.max_samples_per_instance)
+        });
+        q.durability_service(history, samples, instances, per_instance);
+    }
     if let Some(p) = d.deadline {
         q.deadline(ns(p));
     }
