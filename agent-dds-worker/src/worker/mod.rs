@@ -331,7 +331,7 @@ impl Worker {
                     took_ms = took.as_millis() as u64,
                     slow_passes = self.slow_passes,
                     requests_ms = after_requests.as_millis() as u64,
-                    reads_ms = (after_reads - after_requests).as_millis() as u64,
+                    reads_ms = after_reads.saturating_sub(after_requests).as_millis() as u64,
                     requests = taken,
                     readers = pumped,
                     "a worker loop pass took long; front-ends' operations waited meanwhile"
@@ -341,7 +341,12 @@ impl Worker {
     }
 
     fn poll_timeout(&self) -> i32 {
-        if !self.to_pump.is_empty() || self.dds.readers_queued() {
+        let queued = self.dds.readers_queued()
+            || self
+                .services_dds
+                .as_ref()
+                .is_some_and(|s| s.readers_queued());
+        if !self.to_pump.is_empty() || queued {
             return 0;
         }
         let acks = self
