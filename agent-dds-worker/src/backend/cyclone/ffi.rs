@@ -708,7 +708,8 @@ struct ReadyShared {
     /// A byte is on its way through the socket pair (set by listeners, cleared by the taker
     /// after it read what was written).
     armed: AtomicBool,
-    /// Bytes listeners wrote to the socket pair so far (counted after each write).
+    /// Bytes listeners wrote to the socket pair so far (counted just before each write,
+    /// taken back if it failed).
     written: AtomicU64,
     tx: UnixStream,
     /// The thread that takes the tokens (the worker's loop). A listener called on it (a
