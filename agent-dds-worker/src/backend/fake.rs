@@ -377,3 +377,25 @@ impl DdsBackend for Fake {
         self.bus.domains.borrow().len()
     }
 }
+
+/// A keyed test type: `id` (int32, the key) and `value` (int32).
+pub const KEYED: &str = r#"<dds><types><struct name="Keyed">
+    <member name="id" key="true" type="int32"/>
+    <member name="value" type="int32"/>
+  </struct></types></dds>"#;
+
+/// A sample body of [`KEYED`], little endian.
+pub fn keyed(id: i32, value: i32) -> Vec<u8> {
+    [id.to_le_bytes(), value.to_le_bytes()].concat()
+}
+
+/// A topic of [`KEYED`] named `name`.
+pub fn keyed_spec(name: &str) -> TopicSpec {
+    let ty = crate::types::TypeSet::parse(KEYED).expect("type");
+    let key = Arc::new(KeyDescriptor::new(ty.get("Keyed").expect("Keyed")).expect("key"));
+    TopicSpec {
+        name: name.into(),
+        type_name: "Keyed".into(),
+        key: Some(key),
+    }
+}

@@ -12,7 +12,9 @@
 //! default), [`rustdds`] (RustDDS, always built; it also serves requesters and repliers
 //! beside a backend that cannot, [`for_services`]) and, for the worker's unit tests, a fake
 //! that delivers between its own writers and readers in memory. [`confine`] keeps either's
-//! sockets to the configured interfaces.
+//! sockets to the configured interfaces; [`local`] delivers between the worker's own writers
+//! and readers inside the process for RustDDS, which would send those samples through UDP
+//! loopback.
 
 use std::net::IpAddr;
 use std::os::fd::RawFd;
@@ -26,6 +28,7 @@ use crate::types::KeyDescriptor;
 pub mod confine;
 #[cfg(feature = "cyclone")]
 pub mod cyclone;
+pub mod local;
 pub mod qos;
 pub mod rustdds;
 
@@ -77,7 +80,7 @@ impl BackendKind {
 /// The backend `config` names.
 pub fn create(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
     match config.backend {
-        BackendKind::Rustdds => Ok(Box::new(rustdds::RustDds::new(config.clone())?)),
+        BackendKind::Rustdds => rustdds_delivering_locally(config.clone()),
         #[cfg(feature = "cyclone")]
         BackendKind::Cyclone => Ok(Box::new(cyclone::Cyclone::new(config.clone())?)),
         #[cfg(not(feature = "cyclone"))]
@@ -98,7 +101,21 @@ pub fn for_services(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
         backend: BackendKind::Rustdds,
         ..config.clone()
     };
-    Ok(Box::new(rustdds::RustDds::new(config)?))
+    rustdds_delivering_locally(config)
+}
+
+/// The RustDDS backend, which sends samples between its own writers and readers through
+/// UDP loopback, wrapped so that they are delivered inside the process ([`local`]), unless
+/// the environment says `XRCE_LOCAL_DELIVERY=off` (to measure the difference, or to rule the
+/// wrapper out when looking for a fault).
+fn rustdds_delivering_locally(config: DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
+    let rustdds = Box::new(rustdds::RustDds::new(config)?);
+    let off = std::env::var("XRCE_LOCAL_DELIVERY").is_ok_and(|v| v == "off" || v == "0");
+    if off {
+        tracing::info!("XRCE_LOCAL_DELIVERY=off: RustDDS delivers the agent's own samples");
+        return Ok(rustdds);
+    }
+    Ok(Box::new(local::LocalDelivery::new(rustdds)))
 }
 
 /// Confines the UDP sockets a backend's new participant bound to the wildcard address to

@@ -674,21 +674,13 @@ impl DdsBackend for Cyclone {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::backend::fake::{keyed, keyed_spec};
     use crate::backend::EndpointSide;
     use crate::xml::{History, QosDesc, Reliability};
     use std::time::{Duration, Instant};
 
     fn addr(a: &str) -> IpAddr {
         a.parse().expect("address")
-    }
-
-    const KEYED: &str = r#"<dds><types><struct name="Keyed">
-        <member name="id" key="true" type="int32"/>
-        <member name="value" type="int32"/>
-      </struct></types></dds>"#;
-
-    fn keyed(id: i32, value: i32) -> Vec<u8> {
-        [id.to_le_bytes(), value.to_le_bytes()].concat()
     }
 
     /// A backend pinned to loopback.
@@ -698,17 +690,6 @@ mod tests {
             backend: crate::backend::BackendKind::Cyclone,
         })
         .expect("backend")
-    }
-
-    /// A topic of the keyed test type.
-    fn keyed_spec(name: &str) -> TopicSpec {
-        let ty = crate::types::TypeSet::parse(KEYED).expect("type");
-        let key = Arc::new(KeyDescriptor::new(ty.get("Keyed").expect("Keyed")).expect("key"));
-        TopicSpec {
-            name: name.into(),
-            type_name: "Keyed".into(),
-            key: Some(key),
-        }
     }
 
     /// Waits up to 5 s for `done` (discovery and acknowledgements run on Cyclone's

@@ -1,0 +1,1065 @@
+//! Delivery inside the process between the worker's own writers and readers, for a backend
+//! that would send it through the network instead.
+//!
+//! RustDDS delivers a sample from one of the worker's writers to one of its readers over UDP
+//! loopback (between two participants, see [`super::rustdds`]): two system calls, two thread
+//! hand-overs and the RTPS encoding each way, for what never leaves the process. Cyclone DDS
+//! delivers such samples itself and needs none of this. [`LocalDelivery`] wraps a backend:
+//! when a writer and a reader of the worker match (same domain, partition, topic, type and
+//! key kind, and QoS that match in the simple cases it models), each sample written is also
+//! put at once into a queue of the reader, and the copy the backend delivers through the
+//! network later is dropped by the reader (by its writer's GUID). Every sample reaches the
+//! reader once, in the writer's order, with the identity the network copy has (sequence
+//! numbers count each write and dispose of a writer from 1, RTPS 2.5 §8.2.4; the wrapper
+//! follows them).
+//!
+//! What it does not model it leaves to the backend, unpaired: exclusive ownership, a
+//! lifespan, a time-based filter, presentation, liveliness, partitions with wildcards, and a
+//! transient-local reader joining a writer that already wrote (its history comes through the
+//! network, and the writer's later samples must not overtake it).
+//!
+//! The reader's queue keeps the reader's history: KEEP_LAST n per instance (the oldest of an
+//! instance goes), KEEP_ALL up to its resource limits (beyond, a sample is refused, counted
+//! and logged, as a full DDS reader cache would refuse it).
+
+use std::cell::{Cell, RefCell};
+use std::collections::{HashMap, VecDeque};
+use std::os::fd::RawFd;
+use std::rc::Rc;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use super::{
+    DdsBackend, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken, Sample,
+    SampleIdentity, Taken, TopicSpec,
+};
+use crate::types::KeyDescriptor;
+use crate::xml::{Durability, History, OwnershipKind, Period, Reliability};
+
+/// Most samples a reader's local queue keeps when its resource limits set none.
+pub const LOCAL_QUEUE_MAX: usize = 65_536;
+
+/// How long a reader keeps dropping the network copies of a deleted writer's samples: they
+/// may still be on their way through loopback, or wait in the reader's cache.
+const TWIN_GRACE: Duration = Duration::from_secs(5);
+
+/// Most deleted writers a reader remembers (the oldest are forgotten first).
+const TWINS_MAX: usize = 4096;
+
+/// A backend, and delivery inside the process between its writers and readers.
+pub struct LocalDelivery {
+    inner: Box<dyn DdsBackend>,
+    hub: Rc<Hub>,
+}
+
+impl std::fmt::Debug for LocalDelivery {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LocalDelivery")
+            .field("inner", &self.inner.name())
+            .field("pairs", &self.pairs())
+            .finish()
+    }
+}
+
+impl LocalDelivery {
+    /// Wraps `inner`, which must deliver between its own writers and readers by itself too
+    /// (those copies are dropped) and report each sample's writer GUID and sequence number.
+    pub fn new(inner: Box<dyn DdsBackend>) -> Self {
+        LocalDelivery {
+            inner,
+            hub: Rc::new(Hub::default()),
+        }
+    }
+
+    /// Writer-reader pairs delivered inside the process now.
+    pub fn pairs(&self) -> usize {
+        self.hub
+            .writers
+            .borrow()
+            .values()
+            .map(|w| w.paired.borrow().len())
+            .sum()
+    }
+
+    /// Samples a full local reader queue refused since the start.
+    pub fn refused(&self) -> u64 {
+        self.hub.refused.get()
+    }
+}
+
+/// What a writer or reader is, for matching.
+#[derive(Debug, Clone)]
+struct Endpoint {
+    domain: u16,
+    partitions: Vec<String>,
+    topic: String,
+    type_name: String,
+    keyed: bool,
+    qos: EndpointQos,
+}
+
+impl Endpoint {
+    fn new(group: &LocalGroup, spec: &TopicSpec, qos: &EndpointQos) -> Self {
+        Endpoint {
+            domain: group.inner.domain(),
+            partitions: group.partitions.clone(),
+            topic: spec.name.clone(),
+            type_name: spec.type_name.clone(),
+            keyed: spec.key.is_some(),
+            qos: *qos,
+        }
+    }
+}
+
+/// The state writers, readers and the backend share.
+#[derive(Default)]
+struct Hub {
+    next_id: Cell<u64>,
+    writers: RefCell<HashMap<u64, WriterSlot>>,
+    readers: RefCell<HashMap<u64, Rc<LocalReaderState>>>,
+    /// Readers given samples since the backend last named its ready readers.
+    pending: RefCell<Vec<Rc<LocalReaderState>>>,
+    refused: Cell<u64>,
+}
+
+/// A live writer as the hub sees it.
+struct WriterSlot {
+    endpoint: Endpoint,
+    guid: Guid,
+    /// Whether it wrote anything yet (a transient-local reader then is not paired with it).
+    wrote: Rc<Cell<bool>>,
+    /// The readers its samples go to inside the process.
+    paired: Rc<RefCell<Vec<Rc<LocalReaderState>>>>,
+}
+
+impl Hub {
+    fn next_id(&self) -> u64 {
+        let id = self.next_id.get() + 1;
+        self.next_id.set(id);
+        id
+    }
+
+    /// Pairs a new writer with the live readers it matches.
+    fn add_writer(&self, id: u64, slot: WriterSlot) {
+        for r in self.readers.borrow().values() {
+            if pairs(&slot.endpoint, &r.endpoint, slot.wrote.get()) {
+                r.twin(slot.guid);
+                slot.paired.borrow_mut().push(r.clone());
+            }
+        }
+        self.writers.borrow_mut().insert(id, slot);
+    }
+
+    /// Pairs a new reader with the live writers it matches.
+    fn add_reader(&self, id: u64, reader: Rc<LocalReaderState>) {
+        for w in self.writers.borrow().values() {
+            if pairs(&w.endpoint, &reader.endpoint, w.wrote.get()) {
+                reader.twin(w.guid);
+                w.paired.borrow_mut().push(reader.clone());
+            }
+        }
+        self.readers.borrow_mut().insert(id, reader);
+    }
+
+    fn remove_writer(&self, id: u64) {
+        let Some(slot) = self.writers.borrow_mut().remove(&id) else {
+            return;
+        };
+        let now = Instant::now();
+        for r in slot.paired.borrow().iter() {
+            r.twin_deleted(slot.guid, now);
+        }
+    }
+
+    fn remove_reader(&self, id: u64) {
+        self.readers.borrow_mut().remove(&id);
+        for w in self.writers.borrow().values() {
+            w.paired.borrow_mut().retain(|r| r.id != id);
+        }
+    }
+
+    /// Puts `taken` into every reader of `paired`.
+    fn deliver(&self, paired: &[Rc<LocalReaderState>], taken: &Taken, dispose_key: Option<Key>) {
+        for r in paired {
+            let instance = match (&r.key, dispose_key) {
+                (None, _) => Key::default(),
+                (Some(_), Some(k)) => k,
+                (Some(k), None) => instance_of(k, &taken.sample),
+            };
+            let copy = Taken {
+                sample: taken.sample.clone(),
+                identity: taken.identity,
+                related: taken.related,
+                disposed: taken.disposed,
+                unregistered: false,
+            };
+            if r.queue.borrow_mut().push(instance, copy) {
+                if !r.signalled.replace(true) {
+                    self.pending.borrow_mut().push(r.clone());
+                }
+            } else {
+                let n = self.refused.get() + 1;
+                self.refused.set(n);
+                if n.is_power_of_two() {
+                    tracing::warn!(
+                        topic = %r.endpoint.topic,
+                        refused = n,
+                        "a reader's queue is full (its resource limits): a sample from a \
+                         writer of this agent was refused"
+                    );
+                }
+            }
+        }
+    }
+}
+
+/// Whether samples of writer `w` go to reader `r` inside the process (`wrote`: the writer
+/// wrote before).
+fn pairs(w: &Endpoint, r: &Endpoint, wrote: bool) -> bool {
+    w.domain == r.domain
+        && w.topic == r.topic
+        && w.type_name == r.type_name
+        && w.keyed == r.keyed
+        && partitions_meet(&w.partitions, &r.partitions)
+        && qos_match(&w.qos, &r.qos)
+        // Its history comes through the network; the writer's next samples must not
+        // overtake it.
+        && !(wrote && r.qos.durability != Durability::Volatile)
+}
+
+/// Whether two groups' partitions meet; a wildcard is not modelled (no pair).
+fn partitions_meet(a: &[String], b: &[String]) -> bool {
+    let wild = |p: &String| p.contains(['*', '?', '[', '\\']);
+    if a.iter().chain(b).any(wild) {
+        return false;
+    }
+    let default = [String::new()];
+    let a = if a.is_empty() { &default[..] } else { a };
+    let b = if b.is_empty() { &default[..] } else { b };
+    a.iter().any(|p| b.contains(p))
+}
+
+/// Whether a writer's QoS offers what a reader requests, in the cases modelled here; what
+/// is not modelled does not match (the backend then delivers alone).
+fn qos_match(w: &EndpointQos, r: &EndpointQos) -> bool {
+    let rank = |d: Durability| match d {
+        Durability::Volatile => 0,
+        Durability::TransientLocal => 1,
+        Durability::Transient => 2,
+        Durability::Persistent => 3,
+    };
+    // A period offered (`a`) no longer than the one requested (`b`); absent is infinite.
+    let within = |a: Option<Period>, b: Option<Period>| match (a, b) {
+        (_, None | Some(Period::Infinite)) => true,
+        (Some(Period::Finite(a)), Some(Period::Finite(b))) => a <= b,
+        _ => false,
+    };
+    let (wd, rd) = (&w.described, &r.described);
+    let exclusive = |o: Option<OwnershipKind>| o == Some(OwnershipKind::Exclusive);
+    !(w.reliability == Reliability::BestEffort && r.reliability == Reliability::Reliable)
+        && rank(w.durability) >= rank(r.durability)
+        && within(wd.deadline, rd.deadline)
+        && within(wd.latency_budget, rd.latency_budget)
+        && wd.destination_order == rd.destination_order
+        && !exclusive(wd.ownership)
+        && !exclusive(rd.ownership)
+        && wd.lifespan.is_none()
+        && rd.time_based_filter.is_none()
+        && wd.liveliness.is_none()
+        && rd.liveliness.is_none()
+        && wd.presentation.is_none()
+        && rd.presentation.is_none()
+        && !wd.partitions
+        && !rd.partitions
+}
+
+/// An instance: its KeyHash (all zeros without a key).
+type Key = [u8; 16];
+
+/// The instance of a whole sample; one of its own when the key cannot be read (the writer
+/// already refused such a sample, so this is not reached in practice).
+fn instance_of(k: &KeyDescriptor, sample: &Sample) -> Key {
+    k.of_sample(
+        &sample.body,
+        sample.little_endian(),
+        sample.encoding.is_xcdr2(),
+    )
+    .map(|k| k.hash)
+    .unwrap_or([0xff; 16])
+}
+
+/// A reader as the hub sees it, shared with the reader.
+struct LocalReaderState {
+    id: u64,
+    endpoint: Endpoint,
+    token: ReaderToken,
+    key: Option<Arc<KeyDescriptor>>,
+    queue: RefCell<LocalQueue>,
+    /// Whether its token waits in the hub's pending list.
+    signalled: Cell<bool>,
+    /// Writers whose samples it gets inside the process, so it drops their network copies:
+    /// live (None) or deleted when.
+    twins: RefCell<HashMap<Guid, Option<Instant>>>,
+}
+
+impl LocalReaderState {
+    fn twin(&self, guid: Guid) {
+        self.twins.borrow_mut().insert(guid, None);
+    }
+
+    fn twin_deleted(&self, guid: Guid, at: Instant) {
+        let mut twins = self.twins.borrow_mut();
+        twins.insert(guid, Some(at));
+        if twins.len() > TWINS_MAX {
+            // Forget the writer deleted first.
+            let oldest = twins
+                .iter()
+                .filter_map(|(g, t)| t.map(|t| (t, *g)))
+                .min()
+                .map(|(_, g)| g);
+            if let Some(g) = oldest {
+                twins.remove(&g);
+            }
+        }
+    }
+
+    /// Whether a sample the backend delivered is the network copy of one delivered here.
+    /// Unregistrations (a writer went away) are the backend's alone and pass.
+    fn is_twin(&self, t: &Taken) -> bool {
+        !t.unregistered && self.twins.borrow().contains_key(&t.identity.writer)
+    }
+
+    /// Forgets writers deleted long enough ago (called when the backend's reader is empty).
+    fn prune(&self, now: Instant) {
+        self.twins
+            .borrow_mut()
+            .retain(|_, t| t.is_none_or(|t| now.duration_since(t) < TWIN_GRACE));
+    }
+}
+
+/// A reader's queue of samples delivered inside the process, with the reader's history.
+#[derive(Debug)]
+struct LocalQueue {
+    samples: VecDeque<(Key, Taken)>,
+    per_instance: HashMap<Key, usize>,
+    /// KEEP_LAST depth (None: KEEP_ALL).
+    depth: Option<usize>,
+    max_samples: usize,
+    max_per_instance: usize,
+    max_instances: usize,
+}
+
+impl LocalQueue {
+    fn new(qos: &EndpointQos) -> Self {
+        let limit = |n: Option<i32>| {
+            n.and_then(|n| usize::try_from(n).ok())
+                .filter(|n| *n > 0)
+                .unwrap_or(LOCAL_QUEUE_MAX)
+                .min(LOCAL_QUEUE_MAX)
+        };
+        let rl = qos.resource_limits;
+        LocalQueue {
+            samples: VecDeque::new(),
+            per_instance: HashMap::new(),
+            depth: match qos.history {
+                History::KeepLast(n) => Some(usize::try_from(n).unwrap_or(1).max(1)),
+                History::KeepAll => None,
+            },
+            max_samples: limit(rl.map(|r| r.max_samples)),
+            max_per_instance: limit(rl.map(|r| r.max_samples_per_instance)),
+            max_instances: limit(rl.map(|r| r.max_instances)),
+        }
+    }
+
+    /// Adds a sample of `instance`; false if the reader's limits refuse it.
+    fn push(&mut self, instance: Key, taken: Taken) -> bool {
+        let held = self.per_instance.get(&instance).copied().unwrap_or(0);
+        if self.depth.is_some_and(|d| held >= d) {
+            // KEEP_LAST: the instance's oldest sample makes room.
+            if let Some(i) = self.samples.iter().position(|(k, _)| *k == instance) {
+                self.samples.remove(i);
+                self.per_instance.insert(instance, held - 1);
+            }
+        } else if held >= self.max_per_instance
+            || self.samples.len() >= self.max_samples
+            || (held == 0 && self.per_instance.len() >= self.max_instances)
+        {
+            return false;
+        }
+        if self.samples.len() >= self.max_samples {
+            return false;
+        }
+        *self.per_instance.entry(instance).or_default() += 1;
+        self.samples.push_back((instance, taken));
+        true
+    }
+
+    fn pop(&mut self) -> Option<Taken> {
+        let (k, t) = self.samples.pop_front()?;
+        if let Some(n) = self.per_instance.get_mut(&k) {
+            *n -= 1;
+            if *n == 0 {
+                self.per_instance.remove(&k);
+            }
+        }
+        Some(t)
+    }
+}
+
+/// A group of the inner backend, with its partitions.
+struct LocalGroup {
+    inner: Box<dyn DdsGroup>,
+    partitions: Vec<String>,
+}
+
+impl DdsGroup for LocalGroup {
+    fn domain(&self) -> u16 {
+        self.inner.domain()
+    }
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+}
+
+/// A writer of the inner backend that also delivers inside the process.
+struct LocalWriter {
+    inner: Box<dyn DdsWriter>,
+    hub: Rc<Hub>,
+    id: u64,
+    /// The sequence number of its last write or dispose.
+    last_seq: Cell<i64>,
+    wrote: Rc<Cell<bool>>,
+    paired: Rc<RefCell<Vec<Rc<LocalReaderState>>>>,
+}
+
+impl Drop for LocalWriter {
+    fn drop(&mut self) {
+        self.hub.remove_writer(self.id);
+    }
+}
+
+impl DdsWriter for LocalWriter {
+    fn guid(&self) -> Guid {
+        self.inner.guid()
+    }
+    fn topic_name(&self) -> &str {
+        self.inner.topic_name()
+    }
+    fn little_endian(&self) -> bool {
+        self.inner.little_endian()
+    }
+    fn key(&self) -> Option<&Arc<KeyDescriptor>> {
+        self.inner.key()
+    }
+    fn write(&self, sample: Sample) -> Result<(), String> {
+        self.write_identified(sample, None).map(|_| ())
+    }
+    fn dispose(&self, sample: &Sample) -> Result<(), String> {
+        self.inner.dispose(sample)?;
+        let seq = self.last_seq.get() + 1;
+        self.last_seq.set(seq);
+        self.wrote.set(true);
+        let paired = self.paired.borrow();
+        if paired.is_empty() {
+            return Ok(());
+        }
+        // The readers get the key fields alone, little endian, as from the network.
+        let Some(k) = self.inner.key() else {
+            return Ok(());
+        };
+        let (le, xcdr2) = (sample.little_endian(), sample.encoding.is_xcdr2());
+        let Ok(key) = k
+            .of_received(&sample.body, le, xcdr2, false)
+            .or_else(|_| k.of_received(&sample.body, le, xcdr2, true))
+        else {
+            return Ok(());
+        };
+        let taken = Taken {
+            sample: Sample {
+                encoding: super::Encoding::CDR_LE,
+                body: key.payload.into(),
+            },
+            identity: SampleIdentity {
+                writer: self.inner.guid(),
+                sequence_number: seq,
+            },
+            related: None,
+            disposed: true,
+            unregistered: false,
+        };
+        self.hub.deliver(&paired, &taken, Some(key.hash));
+        Ok(())
+    }
+    fn write_identified(
+        &self,
+        sample: Sample,
+        related: Option<SampleIdentity>,
+    ) -> Result<SampleIdentity, String> {
+        let paired = self.paired.borrow();
+        let local = (!paired.is_empty()).then(|| sample.clone());
+        let identity = self.inner.write_identified(sample, related)?;
+        self.last_seq.set(identity.sequence_number);
+        self.wrote.set(true);
+        if let Some(sample) = local {
+            let taken = Taken {
+                sample,
+                identity,
+                related,
+                disposed: false,
+                unregistered: false,
+            };
+            self.hub.deliver(&paired, &taken, None);
+        }
+        Ok(identity)
+    }
+    fn all_acknowledged(&self) -> bool {
+        self.inner.all_acknowledged()
+    }
+    fn writes(&self) -> u64 {
+        self.inner.writes()
+    }
+    fn acknowledged_writes(&self) -> u64 {
+        self.inner.acknowledged_writes()
+    }
+    fn matched_readers(&self) -> usize {
+        self.inner.matched_readers()
+    }
+}
+
+/// A reader of the inner backend that also takes what was delivered inside the process.
+struct LocalReader {
+    inner: Box<dyn DdsReader>,
+    hub: Rc<Hub>,
+    state: Rc<LocalReaderState>,
+    /// Which source the next take tries first (alternating, so neither starves the other).
+    local_first: bool,
+}
+
+impl Drop for LocalReader {
+    fn drop(&mut self) {
+        self.hub.remove_reader(self.state.id);
+    }
+}
+
+impl LocalReader {
+    fn take_inner(&mut self) -> Result<Option<Taken>, String> {
+        loop {
+            match self.inner.take_next()? {
+                None => {
+                    self.state.prune(Instant::now());
+                    return Ok(None);
+                }
+                Some(t) if self.state.is_twin(&t) => continue,
+                Some(t) => return Ok(Some(t)),
+            }
+        }
+    }
+}
+
+impl DdsReader for LocalReader {
+    fn guid(&self) -> Guid {
+        self.inner.guid()
+    }
+    fn take_next(&mut self) -> Result<Option<Taken>, String> {
+        self.local_first = !self.local_first;
+        if self.local_first {
+            if let Some(t) = self.state.queue.borrow_mut().pop() {
+                return Ok(Some(t));
+            }
+            return self.take_inner();
+        }
+        match self.take_inner()? {
+            Some(t) => Ok(Some(t)),
+            None => Ok(self.state.queue.borrow_mut().pop()),
+        }
+    }
+}
+
+impl DdsBackend for LocalDelivery {
+    fn name(&self) -> &'static str {
+        self.inner.name()
+    }
+
+    fn create_group(
+        &mut self,
+        domain: u16,
+        publish: bool,
+        partitions: &[String],
+    ) -> Result<Box<dyn DdsGroup>, String> {
+        Ok(Box::new(LocalGroup {
+            inner: self.inner.create_group(domain, publish, partitions)?,
+            partitions: partitions.to_vec(),
+        }))
+    }
+
+    fn supports_partitions(&self) -> bool {
+        self.inner.supports_partitions()
+    }
+
+    fn supports_services(&self) -> bool {
+        self.inner.supports_services()
+    }
+
+    fn create_writer(
+        &mut self,
+        group: &dyn DdsGroup,
+        topic: &TopicSpec,
+        qos: &EndpointQos,
+        little_endian: bool,
+    ) -> Result<Box<dyn DdsWriter>, String> {
+        let Some(g) = group.as_any().downcast_ref::<LocalGroup>() else {
+            return Err("a data writer needs a publisher of this backend".into());
+        };
+        let inner = self
+            .inner
+            .create_writer(&*g.inner, topic, qos, little_endian)?;
+        let id = self.hub.next_id();
+        let slot = WriterSlot {
+            endpoint: Endpoint::new(g, topic, qos),
+            guid: inner.guid(),
+            wrote: Rc::new(Cell::new(inner.writes() > 0)),
+            paired: Rc::default(),
+        };
+        let writer = LocalWriter {
+            inner,
+            hub: self.hub.clone(),
+            id,
+            last_seq: Cell::new(0),
+            wrote: slot.wrote.clone(),
+            paired: slot.paired.clone(),
+        };
+        self.hub.add_writer(id, slot);
+        Ok(Box::new(writer))
+    }
+
+    fn create_reader(
+        &mut self,
+        group: &dyn DdsGroup,
+        topic: &TopicSpec,
+        qos: &EndpointQos,
+        token: ReaderToken,
+    ) -> Result<Box<dyn DdsReader>, String> {
+        let Some(g) = group.as_any().downcast_ref::<LocalGroup>() else {
+            return Err("a data reader needs a subscriber of this backend".into());
+        };
+        let inner = self.inner.create_reader(&*g.inner, topic, qos, token)?;
+        let id = self.hub.next_id();
+        let state = Rc::new(LocalReaderState {
+            id,
+            endpoint: Endpoint::new(g, topic, qos),
+            token,
+            key: topic.key.clone(),
+            queue: RefCell::new(LocalQueue::new(qos)),
+            signalled: Cell::new(false),
+            twins: RefCell::default(),
+        });
+        self.hub.add_reader(id, state.clone());
+        Ok(Box::new(LocalReader {
+            inner,
+            hub: self.hub.clone(),
+            state,
+            local_first: false,
+        }))
+    }
+
+    fn participant_guid(&mut self, domain: u16) -> Result<Guid, String> {
+        self.inner.participant_guid(domain)
+    }
+
+    fn readiness_fd(&self) -> RawFd {
+        self.inner.readiness_fd()
+    }
+
+    fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()> {
+        self.inner.ready_readers(out)?;
+        for r in self.hub.pending.borrow_mut().drain(..) {
+            r.signalled.set(false);
+            out.push(r.token);
+        }
+        Ok(())
+    }
+
+    fn readers_queued(&self) -> bool {
+        self.inner.readers_queued() || !self.hub.pending.borrow().is_empty()
+    }
+
+    fn participants(&self) -> usize {
+        self.inner.participants()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::backend::fake::{self, keyed_spec, Fake};
+    use crate::backend::{DdsConfig, EndpointSide};
+    use crate::xml::{QosDesc, ResourceLimitsDesc};
+
+    fn spec(name: &str) -> TopicSpec {
+        TopicSpec {
+            name: name.into(),
+            type_name: "T".into(),
+            key: None,
+        }
+    }
+
+    fn qos(side: EndpointSide, set: impl FnOnce(&mut QosDesc)) -> EndpointQos {
+        let mut d = QosDesc::default();
+        set(&mut d);
+        EndpointQos::resolve(side, &d, &QosDesc::default())
+    }
+
+    fn writer_qos() -> EndpointQos {
+        qos(EndpointSide::Writer, |_| {})
+    }
+
+    fn reader_qos() -> EndpointQos {
+        qos(EndpointSide::Reader, |_| {})
+    }
+
+    fn sample(n: u8) -> Sample {
+        Sample::cdr(true, &[n, 0, 0, 0])
+    }
+
+    fn keyed(id: i32, value: i32) -> Sample {
+        Sample::cdr(true, &fake::keyed(id, value))
+    }
+
+    fn drain(r: &mut dyn DdsReader) -> Vec<Taken> {
+        std::iter::from_fn(|| r.take_next().expect("take")).collect()
+    }
+
+    fn seqs(taken: &[Taken]) -> Vec<i64> {
+        taken.iter().map(|t| t.identity.sequence_number).collect()
+    }
+
+    /// A wrapped fake: the fake delivers every sample to every reader of its topic as
+    /// well, as RustDDS does through loopback.
+    fn fake() -> (LocalDelivery, Rc<crate::backend::fake::FakeBus>) {
+        let (fake, bus) = Fake::new().expect("fake");
+        (LocalDelivery::new(Box::new(fake)), bus)
+    }
+
+    struct Groups {
+        publisher: Box<dyn DdsGroup>,
+        subscriber: Box<dyn DdsGroup>,
+    }
+
+    fn groups(b: &mut LocalDelivery, domain: u16) -> Groups {
+        Groups {
+            publisher: b.create_group(domain, true, &[]).expect("publisher"),
+            subscriber: b.create_group(domain, false, &[]).expect("subscriber"),
+        }
+    }
+
+    /// A reader (made first) and a writer of `topic` in domain 0 of `b`.
+    fn reader_then_writer(
+        b: &mut LocalDelivery,
+        topic: &TopicSpec,
+        reader: &EndpointQos,
+        token: ReaderToken,
+    ) -> (Box<dyn DdsReader>, Box<dyn DdsWriter>) {
+        let g = groups(b, 0);
+        let r = b
+            .create_reader(&*g.subscriber, topic, reader, token)
+            .expect("reader");
+        let w = b
+            .create_writer(&*g.publisher, topic, &writer_qos(), true)
+            .expect("writer");
+        (r, w)
+    }
+
+    #[test]
+    fn own_samples_arrive_once_in_order_with_their_identities() {
+        let (mut b, _bus) = fake();
+        let (mut r, w) = reader_then_writer(&mut b, &spec("t"), &reader_qos(), 7);
+        assert_eq!(b.pairs(), 1);
+        for n in 1..=3 {
+            w.write(sample(n)).expect("write");
+        }
+        assert!(
+            b.readers_queued(),
+            "the loop must not block on the descriptor"
+        );
+        let mut ready = Vec::new();
+        b.ready_readers(&mut ready).expect("ready");
+        assert!(ready.contains(&7));
+        assert!(!b.readers_queued());
+        let got = drain(&mut *r);
+        assert_eq!(seqs(&got), vec![1, 2, 3], "each once, in order");
+        assert!(got.iter().all(|t| t.identity.writer == w.guid()));
+        let bodies: Vec<u8> = got.iter().map(|t| t.sample.body[0]).collect();
+        assert_eq!(bodies, vec![1, 2, 3]);
+    }
+
+    #[test]
+    fn samples_of_other_writers_still_arrive_and_neither_source_starves() {
+        let (mut b, bus) = fake();
+        let (mut r, w) = reader_then_writer(&mut b, &spec("t"), &reader_qos(), 1);
+        for n in 0..3 {
+            bus.inject(0, "t", || Taken {
+                sample: sample(100 + n),
+                identity: SampleIdentity {
+                    writer: [9; 16],
+                    sequence_number: i64::from(n) + 1,
+                },
+                related: None,
+                disposed: false,
+                unregistered: false,
+            });
+        }
+        for n in 1..=3 {
+            w.write(sample(n)).expect("write");
+        }
+        let got = drain(&mut *r);
+        let bodies: Vec<u8> = got.iter().map(|t| t.sample.body[0]).collect();
+        assert_eq!(got.len(), 6, "{bodies:?}");
+        assert!(
+            bodies[..2].contains(&100) && bodies[..2].contains(&1),
+            "the two sources alternate: {bodies:?}"
+        );
+        let remote: Vec<u8> = bodies.iter().copied().filter(|b| *b >= 100).collect();
+        assert_eq!(remote, vec![100, 101, 102]);
+    }
+
+    #[test]
+    fn what_is_not_modelled_is_left_to_the_backend() {
+        let (mut b, _bus) = fake();
+        let g = groups(&mut b, 0);
+        // A best-effort writer cannot serve a reliable reader.
+        let _r = b
+            .create_reader(
+                &*g.subscriber,
+                &spec("a"),
+                &qos(EndpointSide::Reader, |d| {
+                    d.reliability = Some(Reliability::Reliable)
+                }),
+                1,
+            )
+            .expect("reader");
+        let _w = b
+            .create_writer(
+                &*g.publisher,
+                &spec("a"),
+                &qos(EndpointSide::Writer, |d| {
+                    d.reliability = Some(Reliability::BestEffort)
+                }),
+                true,
+            )
+            .expect("writer");
+        assert_eq!(b.pairs(), 0);
+        // Exclusive ownership, another type, another domain: no pair.
+        let _x = b
+            .create_reader(
+                &*g.subscriber,
+                &spec("b"),
+                &qos(EndpointSide::Reader, |d| {
+                    d.ownership = Some(OwnershipKind::Exclusive)
+                }),
+                2,
+            )
+            .expect("reader");
+        let other_type = TopicSpec {
+            type_name: "U".into(),
+            ..spec("b")
+        };
+        let _y = b
+            .create_reader(&*g.subscriber, &other_type, &reader_qos(), 3)
+            .expect("reader");
+        let g1 = groups(&mut b, 1);
+        let _z = b
+            .create_reader(&*g1.subscriber, &spec("b"), &reader_qos(), 4)
+            .expect("reader");
+        let _wb = b
+            .create_writer(&*g.publisher, &spec("b"), &writer_qos(), true)
+            .expect("writer");
+        assert_eq!(b.pairs(), 0);
+        // Partitions that do not meet, and wildcards: no pair; equal names: a pair.
+        let pa = b.create_group(0, true, &["x".into()]).expect("group");
+        let sb = b.create_group(0, false, &["y".into()]).expect("group");
+        let sw = b.create_group(0, false, &["x*".into()]).expect("group");
+        let sx = b
+            .create_group(0, false, &["y".into(), "x".into()])
+            .expect("group");
+        let _wp = b
+            .create_writer(&*pa, &spec("p"), &writer_qos(), true)
+            .expect("writer");
+        for (g, token) in [(&sb, 5), (&sw, 6)] {
+            let _r = b
+                .create_reader(&**g, &spec("p"), &reader_qos(), token)
+                .expect("reader");
+            assert_eq!(b.pairs(), 0);
+        }
+        let _rx = b
+            .create_reader(&*sx, &spec("p"), &reader_qos(), 7)
+            .expect("reader");
+        assert_eq!(b.pairs(), 1);
+    }
+
+    #[test]
+    fn a_transient_local_reader_takes_a_writers_history_from_the_backend() {
+        let (mut b, bus) = fake();
+        let g = groups(&mut b, 0);
+        let w = b
+            .create_writer(&*g.publisher, &spec("t"), &writer_qos(), true)
+            .expect("writer");
+        w.write(sample(1)).expect("write");
+        let tl = qos(EndpointSide::Reader, |d| {
+            d.durability = Some(Durability::TransientLocal)
+        });
+        let mut late = b
+            .create_reader(&*g.subscriber, &spec("t"), &tl, 1)
+            .expect("reader");
+        assert_eq!(b.pairs(), 0, "its history comes from the backend");
+        let mut volatile = b
+            .create_reader(&*g.subscriber, &spec("t"), &reader_qos(), 2)
+            .expect("reader");
+        assert_eq!(b.pairs(), 1);
+        w.write(sample(2)).expect("write");
+        assert_eq!(bus.samples_on("t").len(), 2);
+        assert_eq!(
+            seqs(&drain(&mut *late)),
+            vec![2],
+            "the fake delivers only new ones"
+        );
+        assert_eq!(seqs(&drain(&mut *volatile)), vec![2]);
+    }
+
+    #[test]
+    fn a_deleted_writers_network_copies_stay_dropped() {
+        let (mut b, _bus) = fake();
+        let (mut r, w) = reader_then_writer(&mut b, &spec("t"), &reader_qos(), 1);
+        w.write(sample(1)).expect("write");
+        w.write(sample(2)).expect("write");
+        drop(w);
+        assert_eq!(b.pairs(), 0);
+        assert_eq!(seqs(&drain(&mut *r)), vec![1, 2]);
+        drop(r);
+        assert!(b.hub.readers.borrow().is_empty());
+    }
+
+    #[test]
+    fn the_queue_keeps_the_readers_history_per_instance_and_disposes_arrive_as_keys() {
+        let (mut b, _bus) = fake();
+        let g = groups(&mut b, 0);
+        let last2 = qos(EndpointSide::Reader, |d| {
+            d.history = Some(History::KeepLast(2))
+        });
+        let mut r = b
+            .create_reader(&*g.subscriber, &keyed_spec("k"), &last2, 1)
+            .expect("reader");
+        let w = b
+            .create_writer(&*g.publisher, &keyed_spec("k"), &writer_qos(), true)
+            .expect("writer");
+        for v in 1..=4 {
+            w.write(keyed(1, v)).expect("write");
+        }
+        w.write(keyed(2, 9)).expect("write");
+        w.dispose(&keyed(2, 9)).expect("dispose");
+        let got = drain(&mut *r);
+        assert_eq!(
+            seqs(&got),
+            vec![3, 4, 5, 6],
+            "the oldest of instance 1 went"
+        );
+        let last = got.last().expect("dispose");
+        assert!(last.disposed && !last.unregistered);
+        assert_eq!(&last.sample.body[..], &2i32.to_le_bytes(), "the key alone");
+        assert_eq!(last.sample.encoding, super::super::Encoding::CDR_LE);
+    }
+
+    #[test]
+    fn a_full_keep_all_reader_refuses_and_counts() {
+        let (mut b, _bus) = fake();
+        let g = groups(&mut b, 0);
+        let all3 = qos(EndpointSide::Reader, |d| {
+            d.history = Some(History::KeepAll);
+            d.resource_limits = Some(ResourceLimitsDesc {
+                max_samples: 3,
+                max_instances: -1,
+                max_samples_per_instance: -1,
+            });
+        });
+        let mut r = b
+            .create_reader(&*g.subscriber, &spec("t"), &all3, 1)
+            .expect("reader");
+        let w = b
+            .create_writer(&*g.publisher, &spec("t"), &writer_qos(), true)
+            .expect("writer");
+        for n in 1..=5 {
+            w.write(sample(n)).expect("write");
+        }
+        assert_eq!(seqs(&drain(&mut *r)), vec![1, 2, 3]);
+        assert_eq!(b.refused(), 2);
+    }
+
+    /// Through RustDDS on loopback: the reader gets each sample once, at once, with the
+    /// identity RustDDS gives the copy it sends (writes and a dispose), and the copies that
+    /// come through the network are dropped.
+    #[test]
+    fn through_rustdds_identities_agree_and_network_copies_are_dropped() {
+        let config = DdsConfig {
+            interfaces: vec!["127.0.0.1".parse().expect("address")],
+            backend: crate::backend::BackendKind::Rustdds,
+        };
+        let domain = 100 + (std::process::id() % 100) as u16;
+        let rustdds =
+            || Box::new(crate::backend::rustdds::RustDds::new(config.clone()).expect("backend"));
+        let mut b = LocalDelivery::new(rustdds());
+        let mut witness = rustdds();
+        let g = groups(&mut b, domain);
+        let reliable = qos(EndpointSide::Reader, |d| {
+            d.reliability = Some(Reliability::Reliable)
+        });
+        let topic = keyed_spec("local_delivery_test");
+        let mut r = b
+            .create_reader(&*g.subscriber, &topic, &reliable, 1)
+            .expect("reader");
+        let ws = witness
+            .create_group(domain, false, &[])
+            .expect("subscriber");
+        let mut seen = witness
+            .create_reader(&*ws, &topic, &reliable, 1)
+            .expect("witness");
+        let w = b
+            .create_writer(&*g.publisher, &topic, &writer_qos(), true)
+            .expect("writer");
+        assert_eq!(b.pairs(), 1);
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while w.matched_readers() < 2 && Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        assert_eq!(w.matched_readers(), 2, "discovery on loopback");
+        for v in 1..=3 {
+            w.write(keyed(1, v)).expect("write");
+        }
+        w.dispose(&keyed(1, 0)).expect("dispose");
+        w.write(keyed(1, 4)).expect("write");
+        let local: Vec<(i64, bool)> = drain(&mut *r)
+            .iter()
+            .map(|t| (t.identity.sequence_number, t.disposed))
+            .collect();
+        assert_eq!(
+            local,
+            vec![(1, false), (2, false), (3, false), (4, true), (5, false)],
+            "delivered inside the process, before any network copy"
+        );
+        let mut network = Vec::new();
+        while network.len() < 5 && Instant::now() < deadline {
+            network.extend(drain(&mut *seen));
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        let network: Vec<(i64, bool)> = network
+            .iter()
+            .map(|t| {
+                assert_eq!(t.identity.writer, w.guid());
+                (t.identity.sequence_number, t.disposed)
+            })
+            .collect();
+        assert_eq!(network, local, "the identities RustDDS sent");
+        // The reader's own network copies arrived by now too (the witness got its own):
+        // give them a moment more; none comes out.
+        std::thread::sleep(Duration::from_millis(300));
+        assert!(drain(&mut *r).is_empty(), "network copies are dropped");
+    }
+}
