@@ -173,7 +173,8 @@ impl Harness {
             .expect("read");
     }
 
-    /// Lets a holding writer's readers have matched long enough, then releases.
+    /// Lets a holding writer's readers have matched long enough, then releases (twice: the
+    /// first sample goes alone).
     fn matched_long_ago(&mut self, client: ClientKey, id: ObjectId) {
         self.worker.release_rematched();
         if let Some(Entity {
@@ -183,6 +184,8 @@ impl Harness {
         {
             r.matched_at = r.matched_at.and_then(|t| t.checked_sub(REMATCH_MARGIN));
         }
+        // The first sample alone, then (acknowledged) the next batch.
+        self.worker.release_rematched();
         self.worker.release_rematched();
     }
 
@@ -202,14 +205,68 @@ impl Harness {
     }
 }
 
-#[test]
-fn a_writer_holds_until_matched_then_its_samples_reach_a_reader_in_order() {
+/// A client's participant with a reader and a new volatile writer of one topic.
+fn reader_and_new_writer() -> Harness {
     let mut t = Harness::new(false);
     t.participant(CLIENT);
     t.reader(CLIENT, READER, &reader_xml(TOPIC, "NO_KEY"))
         .expect("reader");
     t.writer(CLIENT, WRITER, &writer_xml(TOPIC, "NO_KEY", "VOLATILE"))
         .expect("writer");
+    t
+}
+
+/// A new writer that held `n` samples, matched long enough ago and released, with its
+/// readers not acknowledging.
+fn released_unacknowledged(n: u64) -> Harness {
+    let mut t = reader_and_new_writer();
+    for i in 0..n {
+        t.worker
+            .write_one((FE, CLIENT, WRITER), i, true, &keyed(i as i32, 0), false)
+            .expect("write");
+    }
+    assert!(t.bus.written.borrow().is_empty());
+    t.bus.acknowledged.set(false);
+    t.matched_long_ago(CLIENT, WRITER);
+    t
+}
+
+/// Released held samples: the first alone, the rest only once it was acknowledged (or
+/// after a while), so every remote reader has seen a heartbeat before a burst.
+#[test]
+fn a_released_writer_sends_one_sample_first_and_the_rest_once_it_was_acknowledged() {
+    let mut t = released_unacknowledged(40);
+    assert_eq!(t.bus.samples_on(TOPIC), vec![keyed(0, 0)]);
+    // Not acknowledged yet: the rest waits.
+    t.worker.release_rematched();
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 1);
+    // Acknowledged: the rest goes, in batches, in order.
+    t.bus.acknowledged.set(true);
+    t.worker.release_rematched();
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 1 + RELEASE_BATCH);
+    while !t.worker.holding.is_empty() {
+        t.worker.release_rematched();
+    }
+    assert_eq!(
+        t.bus.samples_on(TOPIC),
+        (0..40).map(|i| keyed(i, 0)).collect::<Vec<_>>()
+    );
+}
+
+/// A reader that never acknowledges holds the release up only so long.
+#[test]
+fn an_unacknowledged_first_sample_holds_the_rest_back_only_briefly() {
+    let mut t = released_unacknowledged(3);
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 1);
+    std::thread::sleep(RELEASE_FIRST_ACK_WAIT);
+    t.worker.release_rematched();
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 3);
+    assert!(t.worker.holding.is_empty());
+}
+
+#[test]
+fn a_writer_holds_until_matched_then_its_samples_reach_a_reader_in_order() {
+    let mut t = reader_and_new_writer();
     assert_eq!(t.bus.domains.borrow().as_slice(), &[3]);
     t.read(CLIENT, READER);
     for i in 0..3 {

@@ -73,6 +73,8 @@ pub(super) struct Rematch {
     /// Matched: the held samples are being written in batches (new writes still queue behind
     /// them, so order is kept).
     pub(super) draining: bool,
+    /// Whether the first held sample went out, alone (see [`RELEASE_FIRST_ACK_WAIT`]).
+    pub(super) probed: bool,
     /// When the last batch of held samples was written.
     pub(super) last_batch: Option<Instant>,
     /// Readers the writer had matched before the worker restarted (from the front-end): a
@@ -92,6 +94,17 @@ pub(super) const RELEASE_BATCH: usize = 16;
 /// slow the drain below 8,000 samples/s per writer).
 pub(super) const RELEASE_ACK_WAIT: Duration = Duration::from_millis(2);
 
+/// The first held sample goes alone, and the rest waits until the readers acknowledged it,
+/// at most this long. A volatile Cyclone DDS reader takes the first HEARTBEAT it sees from
+/// a writer as where its stream starts: whatever that heartbeat announces and the reader did
+/// not have yet is given up, not requested. RustDDS coalesces a burst into datagrams of
+/// several DATA with one trailing HEARTBEAT that announces the writer's newest sample, which
+/// the worker may have written after the datagram was packed; a remote reader whose first
+/// heartbeat came that way lost the tail of the first released batch for good (samples
+/// 12-15 of 16, in about one run in three of the front-end takeover tests). Once every
+/// reader acknowledged one sample, each has seen a heartbeat, and later gaps are repaired.
+pub(super) const RELEASE_FIRST_ACK_WAIT: Duration = Duration::from_millis(100);
+
 /// Longest hold of a replayed writer's samples when no reader matches.
 pub(super) const REMATCH_MAX: Duration = Duration::from_secs(3);
 
@@ -100,7 +113,7 @@ pub(super) const NEW_WRITER_HOLD_MAX: Duration = Duration::from_secs(1);
 
 /// Margin after the writer's match so the reader has matched the writer too (with 200 ms,
 /// a burst released at a replayed writer's match occasionally lost its last samples to
-/// Cyclone DDS under load; RustDDS then never repaired them).
+/// Cyclone DDS under load: the first-heartbeat rule of [`RELEASE_FIRST_ACK_WAIT`]).
 pub(super) const REMATCH_MARGIN: Duration = Duration::from_millis(500);
 
 /// Most samples one holding writer keeps; beyond, it stops waiting for its readers and
@@ -345,12 +358,24 @@ impl Worker {
                 );
                 rematch.draining = true;
             }
+            // The first batch is one sample; the second waits longer for its acknowledgement.
+            let wait = if rematch.probed {
+                RELEASE_ACK_WAIT
+            } else {
+                RELEASE_FIRST_ACK_WAIT
+            };
             let paced = rematch.last_batch.is_some_and(|t| {
-                now.saturating_duration_since(t) < RELEASE_ACK_WAIT && !w.raw.all_acknowledged()
+                now.saturating_duration_since(t) < wait && !w.raw.all_acknowledged()
             });
             if rematch.draining && !paced {
+                let batch = if rematch.last_batch.is_none() {
+                    1
+                } else {
+                    rematch.probed = true;
+                    RELEASE_BATCH
+                };
                 rematch.last_batch = Some(now);
-                for _ in 0..RELEASE_BATCH {
+                for _ in 0..batch {
                     let Some((seq, sample, dispose)) = rematch.held.pop_front() else {
                         break;
                     };
