@@ -20,7 +20,15 @@
 //!
 //! The reader's queue keeps the reader's history: KEEP_LAST n per instance (the oldest of an
 //! instance goes), KEEP_ALL up to its resource limits (beyond, a sample is refused, counted
-//! and logged, as a full DDS reader cache would refuse it).
+//! and logged, as a full DDS reader cache would refuse it), and never more than
+//! [`LOCAL_QUEUE_MAX_BYTES`] of sample bytes. A refused sample is not let through from the
+//! network instead: it would overtake the samples of its writer still queued here, and the
+//! front-end, which keeps the highest sequence number delivered per writer, would then drop
+//! those as delivered already.
+//!
+//! A volatile reader created after a transient-local writer wrote is paired at once: RustDDS
+//! sends such a reader the writer's history (it looks at the writer's durability alone), and
+//! those copies are dropped here as a volatile reader should never have had them.
 
 use std::cell::{Cell, RefCell};
 use std::collections::{HashMap, VecDeque};
@@ -38,6 +46,9 @@ use crate::xml::{Durability, History, OwnershipKind, Period, Reliability};
 
 /// Most samples a reader's local queue keeps when its resource limits set none.
 pub const LOCAL_QUEUE_MAX: usize = 65_536;
+
+/// Most sample bytes a reader's local queue keeps, whatever its limits (64 MiB).
+pub const LOCAL_QUEUE_MAX_BYTES: usize = 64 << 20;
 
 /// How long a reader keeps dropping the network copies of a deleted writer's samples: they
 /// may still be on their way through loopback, or wait in the reader's cache.
@@ -347,6 +358,8 @@ struct LocalQueue {
     max_samples: usize,
     max_per_instance: usize,
     max_instances: usize,
+    /// Sample bytes held (at most [`LOCAL_QUEUE_MAX_BYTES`]).
+    bytes: usize,
 }
 
 impl LocalQueue {
@@ -368,6 +381,7 @@ impl LocalQueue {
             max_samples: limit(rl.map(|r| r.max_samples)),
             max_per_instance: limit(rl.map(|r| r.max_samples_per_instance)),
             max_instances: limit(rl.map(|r| r.max_instances)),
+            bytes: 0,
         }
     }
 
@@ -377,7 +391,9 @@ impl LocalQueue {
         if self.depth.is_some_and(|d| held >= d) {
             // KEEP_LAST: the instance's oldest sample makes room.
             if let Some(i) = self.samples.iter().position(|(k, _)| *k == instance) {
-                self.samples.remove(i);
+                if let Some((_, old)) = self.samples.remove(i) {
+                    self.bytes -= old.sample.body.len();
+                }
                 self.per_instance.insert(instance, held - 1);
             }
         } else if held >= self.max_per_instance
@@ -386,16 +402,19 @@ impl LocalQueue {
         {
             return false;
         }
-        if self.samples.len() >= self.max_samples {
+        let len = taken.sample.body.len();
+        if self.samples.len() >= self.max_samples || self.bytes + len > LOCAL_QUEUE_MAX_BYTES {
             return false;
         }
         *self.per_instance.entry(instance).or_default() += 1;
+        self.bytes += len;
         self.samples.push_back((instance, taken));
         true
     }
 
     fn pop(&mut self) -> Option<Taken> {
         let (k, t) = self.samples.pop_front()?;
+        self.bytes -= t.sample.body.len();
         if let Some(n) = self.per_instance.get_mut(&k) {
             *n -= 1;
             if *n == 0 {
@@ -463,15 +482,27 @@ impl DdsWriter for LocalWriter {
         if paired.is_empty() {
             return Ok(());
         }
-        // The readers get the key fields alone, little endian, as from the network.
-        let Some(k) = self.inner.key() else {
-            return Ok(());
+        let identity = SampleIdentity {
+            writer: self.inner.guid(),
+            sequence_number: seq,
         };
+        // The readers get the key fields alone, little endian, as from the network.
         let (le, xcdr2) = (sample.little_endian(), sample.encoding.is_xcdr2());
-        let Ok(key) = k
-            .of_received(&sample.body, le, xcdr2, false)
-            .or_else(|_| k.of_received(&sample.body, le, xcdr2, true))
-        else {
+        let key = self.inner.key().and_then(|k| {
+            k.of_received(&sample.body, le, xcdr2, false)
+                .or_else(|_| k.of_received(&sample.body, le, xcdr2, true))
+                .ok()
+        });
+        let Some(key) = key else {
+            // Not reached: the worker checked the key before the write. Letting the network
+            // copy through instead could overtake queued samples of this writer.
+            self.hub
+                .refused
+                .set(self.hub.refused.get() + paired.len() as u64);
+            tracing::warn!(
+                topic = %self.inner.topic_name(),
+                "a dispose whose key cannot be read was not delivered inside the process"
+            );
             return Ok(());
         };
         let taken = Taken {
@@ -479,10 +510,7 @@ impl DdsWriter for LocalWriter {
                 encoding: super::Encoding::CDR_LE,
                 body: key.payload.into(),
             },
-            identity: SampleIdentity {
-                writer: self.inner.guid(),
-                sequence_number: seq,
-            },
+            identity,
             related: None,
             disposed: true,
             unregistered: false,
@@ -966,6 +994,36 @@ mod tests {
         assert!(last.disposed && !last.unregistered);
         assert_eq!(&last.sample.body[..], &2i32.to_le_bytes(), "the key alone");
         assert_eq!(last.sample.encoding, super::super::Encoding::CDR_LE);
+    }
+
+    #[test]
+    fn a_reader_queue_holds_at_most_its_byte_cap() {
+        let mut q = LocalQueue::new(&qos(EndpointSide::Reader, |d| {
+            d.history = Some(History::KeepAll);
+        }));
+        // One buffer shared by every copy: the cap counts sample bytes, not allocations.
+        let mib = bytes::Bytes::from(vec![0u8; 1 << 20]);
+        let taken = |n: i64| Taken {
+            sample: Sample {
+                encoding: super::super::Encoding::CDR_LE,
+                body: mib.clone(),
+            },
+            identity: SampleIdentity {
+                writer: Guid::default(),
+                sequence_number: n,
+            },
+            related: None,
+            disposed: false,
+            unregistered: false,
+        };
+        let fits = LOCAL_QUEUE_MAX_BYTES >> 20;
+        for n in 0..fits {
+            assert!(q.push(Key::default(), taken(n as i64)), "sample {n}");
+        }
+        assert!(!q.push(Key::default(), taken(-1)), "beyond the cap");
+        assert!(q.pop().is_some());
+        assert!(q.push(Key::default(), taken(-2)), "room again");
+        assert_eq!(q.bytes, LOCAL_QUEUE_MAX_BYTES);
     }
 
     #[test]
