@@ -714,6 +714,14 @@ impl DdsBackend for LocalDelivery {
     fn participants(&self) -> usize {
         self.inner.participants()
     }
+
+    fn dropped(&self) -> Vec<(&'static str, u64)> {
+        let mut d = self.inner.dropped();
+        if self.refused() > 0 {
+            d.push(("local_queue_refused", self.refused()));
+        }
+        d
+    }
 }
 
 #[cfg(test)]
@@ -1049,6 +1057,8 @@ mod tests {
         }
         assert_eq!(seqs(&drain(&mut *r)), vec![1, 2, 3]);
         assert_eq!(b.refused(), 2);
+        // The worker's status shows them.
+        assert_eq!(b.dropped(), vec![("local_queue_refused", 2)]);
     }
 
     /// Through RustDDS on loopback: the reader gets each sample once, at once, with the

@@ -358,6 +358,10 @@ pub trait DdsBackend {
     }
     /// How many DDS participants it made.
     fn participants(&self) -> usize;
+    /// Samples it dropped, by reason, since it started (for the worker's status).
+    fn dropped(&self) -> Vec<(&'static str, u64)> {
+        Vec::new()
+    }
 }
 
 /// A `SampleIdentity` as eProsima's client carries it in front of request and reply data:

@@ -425,11 +425,19 @@ impl Worker {
                 frontends: self.ports.len() as u64,
                 samples_written: self.samples_written,
                 samples_taken: self.samples_taken,
-                dropped: self
-                    .dropped
-                    .iter()
-                    .map(|(k, v)| (k.to_string(), *v))
-                    .collect(),
+                dropped: {
+                    let mut d: std::collections::BTreeMap<String, u64> = self
+                        .dropped
+                        .iter()
+                        .map(|(k, v)| (k.to_string(), *v))
+                        .collect();
+                    // The backends' own drops (a full local reader queue, ...).
+                    let backends = std::iter::once(&self.dds).chain(self.services_dds.as_ref());
+                    for (k, v) in backends.flat_map(|b| b.dropped()) {
+                        *d.entry(k.to_string()).or_default() += v;
+                    }
+                    d
+                },
             }),
             ..Default::default()
         }
