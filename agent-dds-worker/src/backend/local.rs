@@ -209,17 +209,23 @@ impl Hub {
                     self.pending.borrow_mut().push(r.clone());
                 }
             } else {
-                let n = self.refused.get() + 1;
-                self.refused.set(n);
-                if n.is_power_of_two() {
-                    tracing::warn!(
-                        topic = %r.endpoint.topic,
-                        refused = n,
-                        "a reader's queue is full (its resource limits): a sample from a \
-                         writer of this agent was refused"
-                    );
-                }
+                self.refuse(
+                    &r.endpoint.topic,
+                    1,
+                    "a reader's queue is full (its resource limits): a sample from a writer \
+                     of this agent was refused",
+                );
             }
+        }
+    }
+
+    /// Counts `n` samples not delivered inside the process; logged at powers of two.
+    fn refuse(&self, topic: &str, n: u64, why: &str) {
+        let before = self.refused.get();
+        let after = before + n;
+        self.refused.set(after);
+        if after.is_power_of_two() || (after.ilog2() > before.max(1).ilog2()) {
+            tracing::warn!(%topic, refused = after, "{why}");
         }
     }
 }
@@ -496,12 +502,10 @@ impl DdsWriter for LocalWriter {
         let Some(key) = key else {
             // Not reached: the worker checked the key before the write. Letting the network
             // copy through instead could overtake queued samples of this writer.
-            self.hub
-                .refused
-                .set(self.hub.refused.get() + paired.len() as u64);
-            tracing::warn!(
-                topic = %self.inner.topic_name(),
-                "a dispose whose key cannot be read was not delivered inside the process"
+            self.hub.refuse(
+                self.inner.topic_name(),
+                paired.len() as u64,
+                "a dispose whose key cannot be read was not delivered inside the process",
             );
             return Ok(());
         };
