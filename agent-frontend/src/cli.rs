@@ -279,7 +279,7 @@ fn readiness_reporter() -> OnServing {
     let pipe = std::env::var("XRCE_READY_FD")
         .ok()
         .and_then(|v| v.parse::<i32>().ok())
-        .and_then(|fd| match crate::owned_fd::inherited(fd) {
+        .and_then(|fd| match crate::sys::owned_fd::inherited(fd) {
             Ok(f) => Some(f),
             Err(e) => {
                 tracing::warn!(error = %e, "XRCE_READY_FD");
@@ -357,7 +357,7 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
         TransportKind::Pseudoterminal => {
             let (master, slave_path) = match args.pty_fd {
                 Some(fd) => {
-                    let master = crate::owned_fd::inherited(fd)?;
+                    let master = crate::sys::owned_fd::inherited(fd)?;
                     crate::transport::serial::set_nonblocking(&master)?;
                     (master, args.pty_path.clone().unwrap_or_default())
                 }

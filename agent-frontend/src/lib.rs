@@ -16,9 +16,9 @@
 pub mod bridge;
 pub mod cli;
 pub mod event_loop;
-mod owned_fd;
 pub mod report;
 pub mod session_store;
 pub mod status;
+mod sys;
 pub mod takeover;
 pub mod transport;

@@ -74,7 +74,7 @@ pub fn open(config: &TtyConfig) -> Result<File, OpenError> {
         .flow_control(flow)
         .open_native()
         .map_err(|e| classify(&e))?;
-    let file = crate::owned_fd::from_serial_port(port);
+    let file = crate::sys::owned_fd::from_serial_port(port);
     set_nonblocking(&file).map_err(|e| OpenError::Other(e.to_string()))?;
     Ok(file)
 }

@@ -1,19 +1,30 @@
 //! UDP over IPv4 or IPv6: one socket, one XRCE message per datagram, clients known by their
 //! source address. A datagram goes from the socket buffer to the session core without a copy.
+//!
+//! Datagrams are read [`RECV_BATCH`] at a time with one `recvmmsg(2)`: under load that is one
+//! system call for many clients' messages, and a batch that comes back short says the socket
+//! is empty, so the loop does not make the extra read that would only find it so (mio's
+//! readiness is edge-triggered, and every datagram that arrives later raises a new edge).
 
+use std::io::IoSliceMut;
 use std::net::SocketAddr;
+use std::os::fd::AsRawFd;
 use std::time::Instant;
 
 use mio::event::Event;
 use mio::{Interest, Registry, Token};
+use nix::sys::socket::{recvmmsg, MsgFlags, MultiHeaders, SockaddrStorage};
 use xrce_common::session::agent::MAX_DATAGRAM;
 use xrce_common::wire::info::TransportLocator;
 
 use super::{Transport, TransportStats};
 
-/// Largest datagram received (larger ones are truncated by the kernel and then dropped by
-/// the decoder as malformed).
+/// Largest datagram received (larger ones are truncated by the kernel, then counted and
+/// dropped as `truncated`).
 const RECV_BUFFER: usize = 65_536;
+/// Datagrams read by one system call. The buffers take `RECV_BATCH` times [`RECV_BUFFER`] of
+/// address space, but only the pages datagrams were written to take memory.
+const RECV_BATCH: usize = 32;
 /// Socket buffer size requested for each direction: bursts (hundreds of clients starting at
 /// once) overflow the default, and a lost datagram costs a retransmission round.
 const SOCKET_BUFFER: usize = 4 << 20;
@@ -23,7 +34,12 @@ const SOCKET_BUFFER: usize = 4 << 20;
 pub struct UdpTransport {
     socket: mio::net::UdpSocket,
     local: SocketAddr,
-    buf: Vec<u8>,
+    /// [`RECV_BATCH`] receive buffers of [`RECV_BUFFER`] bytes, back to back.
+    bufs: Vec<u8>,
+    /// The kernel's message headers for `recvmmsg`, kept between calls.
+    headers: MultiHeaders<SockaddrStorage>,
+    /// What the last batch read: length and source of each datagram.
+    got: Vec<(usize, Option<SocketAddr>)>,
     readable: bool,
     stats: TransportStats,
 }
@@ -46,7 +62,9 @@ impl UdpTransport {
         Ok(UdpTransport {
             socket: mio::net::UdpSocket::from_std(socket),
             local,
-            buf: vec![0; RECV_BUFFER],
+            bufs: vec![0; RECV_BATCH * RECV_BUFFER],
+            headers: MultiHeaders::preallocate(RECV_BATCH, None),
+            got: Vec::with_capacity(RECV_BATCH),
             // Datagrams may have arrived before registration: look once.
             readable: true,
             stats: TransportStats::default(),
@@ -57,6 +75,43 @@ impl UdpTransport {
     pub fn local_addr(&self) -> SocketAddr {
         self.local
     }
+
+    /// Reads up to `want` (at most [`RECV_BATCH`]) datagrams into the buffers; for each,
+    /// its length and source (`None`: truncated or from no IP address, to be dropped).
+    fn recv_batch(
+        &mut self,
+        want: usize,
+        got: &mut Vec<(usize, Option<SocketAddr>)>,
+    ) -> nix::Result<()> {
+        got.clear();
+        let mut slices: Vec<[IoSliceMut<'_>; 1]> = self
+            .bufs
+            .chunks_mut(RECV_BUFFER)
+            .take(want.min(RECV_BATCH))
+            .map(|b| [IoSliceMut::new(b)])
+            .collect();
+        let results = recvmmsg(
+            self.socket.as_raw_fd(),
+            &mut self.headers,
+            slices.iter_mut(),
+            MsgFlags::MSG_DONTWAIT,
+            None,
+        )?;
+        for m in results {
+            let truncated = m.flags.contains(MsgFlags::MSG_TRUNC);
+            let src = m.address.as_ref().and_then(socket_addr);
+            got.push((m.bytes, src.filter(|_| !truncated)));
+        }
+        Ok(())
+    }
+}
+
+/// The IP address and port of a datagram's source.
+fn socket_addr(a: &SockaddrStorage) -> Option<SocketAddr> {
+    if let Some(v4) = a.as_sockaddr_in() {
+        return Some(SocketAddr::V4((*v4).into()));
+    }
+    a.as_sockaddr_in6().map(|v6| SocketAddr::V6((*v6).into()))
 }
 
 impl Transport for UdpTransport {
@@ -96,33 +151,50 @@ impl Transport for UdpTransport {
             return false;
         }
         let mut errors = 0;
-        for _ in 0..budget {
-            match self.socket.recv_from(&mut self.buf) {
-                Ok((n, src)) => {
+        let mut handled = 0;
+        let mut got = std::mem::take(&mut self.got);
+        while handled < budget {
+            let want = (budget - handled).min(RECV_BATCH);
+            match self.recv_batch(want, &mut got) {
+                Ok(()) => {
                     errors = 0;
-                    self.stats.messages_in += 1;
-                    deliver(src, &self.buf[..n]);
+                    for (i, &(n, src)) in got.iter().enumerate() {
+                        handled += 1;
+                        let Some(src) = src else {
+                            self.stats.drop("truncated");
+                            continue;
+                        };
+                        self.stats.messages_in += 1;
+                        let at = i * RECV_BUFFER;
+                        deliver(src, &self.bufs[at..at + n.min(RECV_BUFFER)]);
+                    }
+                    if got.len() < want {
+                        // Short: the socket is empty now (an empty batch is EAGAIN).
+                        self.readable = false;
+                        break;
+                    }
                 }
-                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {
+                Err(nix::errno::Errno::EAGAIN) => {
                     self.readable = false;
-                    return false;
+                    break;
                 }
-                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(nix::errno::Errno::EINTR) => {}
                 Err(e) => {
                     // ICMP errors from earlier sends surface here on Linux, one each: keep
                     // reading. Errors that repeat mean the socket itself fails: wait for
                     // the next readiness rather than spin.
-                    tracing::debug!(error = %e, "recv_from");
+                    tracing::debug!(error = %e, "recvmmsg");
                     errors += 1;
                     if errors >= 16 {
                         self.stats.drop("recv_failed");
                         self.readable = false;
-                        return false;
+                        break;
                     }
                 }
             }
         }
-        true
+        self.got = got;
+        self.readable
     }
 
     fn send(&mut self, to: SocketAddr, message: &[u8]) {
@@ -188,5 +260,91 @@ impl Transport for UdpTransport {
         };
         // Only a peer this socket can reach (the family it serves).
         (addr.is_ipv4() == self.local.is_ipv4()).then_some(addr)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pair() -> (UdpTransport, std::net::UdpSocket) {
+        let server = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+        let client = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+        client
+            .connect(server.local_addr().expect("addr"))
+            .expect("connect");
+        (UdpTransport::new(server).expect("transport"), client)
+    }
+
+    fn receive_all(t: &mut UdpTransport, budget: usize) -> (Vec<(SocketAddr, Vec<u8>)>, bool) {
+        let mut got = Vec::new();
+        let left = t.receive(Instant::now(), budget, &mut |from, bytes| {
+            got.push((from, bytes.to_vec()))
+        });
+        (got, left)
+    }
+
+    #[test]
+    fn datagrams_beyond_one_batch_arrive_whole_in_order_with_their_source() {
+        let (mut t, client) = pair();
+        let n = RECV_BATCH * 2 + 5;
+        for i in 0..n {
+            // Lengths vary, so a datagram read into the wrong buffer or with the wrong
+            // length shows.
+            client.send(&vec![i as u8; 1 + i * 7]).expect("send");
+        }
+        let (got, left) = receive_all(&mut t, 1_000);
+        assert!(!left, "a short batch means the socket is empty");
+        assert_eq!(got.len(), n);
+        for (i, (from, bytes)) in got.iter().enumerate() {
+            assert_eq!(*from, client.local_addr().expect("addr"));
+            assert_eq!(bytes, &vec![i as u8; 1 + i * 7]);
+        }
+        assert_eq!(t.stats().messages_in, n as u64);
+        // Empty and marked so: nothing is read until the next readiness.
+        assert_eq!(receive_all(&mut t, 1_000), (Vec::new(), false));
+    }
+
+    #[test]
+    fn the_budget_bounds_one_call_and_the_rest_waits_for_the_next() {
+        let (mut t, client) = pair();
+        for i in 0..10u8 {
+            client.send(&[i]).expect("send");
+        }
+        let (first, left) = receive_all(&mut t, 4);
+        assert!(left, "input is left");
+        assert_eq!(first.len(), 4);
+        let (rest, left) = receive_all(&mut t, 100);
+        assert!(!left);
+        let order: Vec<u8> = first.iter().chain(&rest).map(|(_, b)| b[0]).collect();
+        assert_eq!(order, (0..10).collect::<Vec<u8>>());
+    }
+
+    #[test]
+    fn an_ipv6_source_is_read_with_its_address_and_port() {
+        let Ok(server) = std::net::UdpSocket::bind("[::1]:0") else {
+            eprintln!("no IPv6 loopback here; nothing to check");
+            return;
+        };
+        let client = std::net::UdpSocket::bind("[::1]:0").expect("bind");
+        let mut t = UdpTransport::new(server).expect("transport");
+        client.send_to(b"six", t.local_addr()).expect("send");
+        let (got, _) = receive_all(&mut t, 10);
+        assert_eq!(
+            got,
+            vec![(client.local_addr().expect("addr"), b"six".to_vec())]
+        );
+    }
+
+    #[test]
+    fn the_largest_datagram_gets_through() {
+        let (mut t, client) = pair();
+        let big = vec![0xA5; 65_507];
+        client.send(&big).expect("send");
+        client.send(b"after").expect("send");
+        let (got, _) = receive_all(&mut t, 10);
+        assert_eq!(got.len(), 2);
+        assert_eq!(got[0].1, big);
+        assert_eq!(got[1].1, b"after");
     }
 }

@@ -1,5 +1,4 @@
-//! Taking ownership of file descriptors that arrive as bare numbers: the front-end's only
-//! `unsafe` code.
+//! Taking ownership of file descriptors that arrive as bare numbers.
 //!
 //! Invariant for both functions: the number names an open descriptor that nothing else in
 //! this process owns or will close, so wrapping it in a [`File`] (which closes it on drop)

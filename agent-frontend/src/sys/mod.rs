@@ -1,0 +1,7 @@
+//! The front-end's only `unsafe` code, each part with its invariants written down:
+//!
+//! * [`owned_fd`]: taking ownership of descriptors that arrive as bare numbers;
+//! * [`mapped_file`]: a file mapped into memory, written without a system call.
+
+pub mod mapped_file;
+pub mod owned_fd;
