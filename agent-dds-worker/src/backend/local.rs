@@ -31,7 +31,7 @@
 //! those copies are dropped here as a volatile reader should never have had them.
 
 use std::cell::{Cell, RefCell};
-use std::collections::{HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::os::fd::RawFd;
 use std::rc::Rc;
 use std::sync::Arc;
@@ -357,8 +357,14 @@ impl LocalReaderState {
 /// A reader's queue of samples delivered inside the process, with the reader's history.
 #[derive(Debug)]
 struct LocalQueue {
-    samples: VecDeque<(Key, Taken)>,
-    per_instance: HashMap<Key, usize>,
+    /// The samples in arrival order, by arrival number (a sample KEEP_LAST evicted from the
+    /// middle leaves a gap).
+    samples: BTreeMap<u64, (Key, Taken)>,
+    /// Each instance's samples, oldest first, by arrival number: KEEP_LAST finds the oldest
+    /// of an instance without scanning the queue.
+    per_instance: HashMap<Key, VecDeque<u64>>,
+    /// The next arrival number.
+    next: u64,
     /// KEEP_LAST depth (None: KEEP_ALL).
     depth: Option<usize>,
     max_samples: usize,
@@ -378,8 +384,9 @@ impl LocalQueue {
         };
         let rl = qos.resource_limits;
         LocalQueue {
-            samples: VecDeque::new(),
+            samples: BTreeMap::new(),
             per_instance: HashMap::new(),
+            next: 0,
             depth: match qos.history {
                 History::KeepLast(n) => Some(usize::try_from(n).unwrap_or(1).max(1)),
                 History::KeepAll => None,
@@ -393,14 +400,15 @@ impl LocalQueue {
 
     /// Adds a sample of `instance`; false if the reader's limits refuse it.
     fn push(&mut self, instance: Key, taken: Taken) -> bool {
-        let held = self.per_instance.get(&instance).copied().unwrap_or(0);
+        let held = self.per_instance.get(&instance).map_or(0, VecDeque::len);
         if self.depth.is_some_and(|d| held >= d) {
             // KEEP_LAST: the instance's oldest sample makes room.
-            if let Some(i) = self.samples.iter().position(|(k, _)| *k == instance) {
-                if let Some((_, old)) = self.samples.remove(i) {
-                    self.bytes -= old.sample.body.len();
-                }
-                self.per_instance.insert(instance, held - 1);
+            let oldest = self
+                .per_instance
+                .get_mut(&instance)
+                .and_then(VecDeque::pop_front);
+            if let Some((_, old)) = oldest.and_then(|n| self.samples.remove(&n)) {
+                self.bytes -= old.sample.body.len();
             }
         } else if held >= self.max_per_instance
             || self.samples.len() >= self.max_samples
@@ -410,20 +418,31 @@ impl LocalQueue {
         }
         let len = taken.sample.body.len();
         if self.samples.len() >= self.max_samples || self.bytes + len > LOCAL_QUEUE_MAX_BYTES {
+            if self
+                .per_instance
+                .get(&instance)
+                .is_some_and(VecDeque::is_empty)
+            {
+                self.per_instance.remove(&instance);
+            }
             return false;
         }
-        *self.per_instance.entry(instance).or_default() += 1;
+        let n = self.next;
+        self.next += 1;
+        self.per_instance.entry(instance).or_default().push_back(n);
         self.bytes += len;
-        self.samples.push_back((instance, taken));
+        self.samples.insert(n, (instance, taken));
         true
     }
 
     fn pop(&mut self) -> Option<Taken> {
-        let (k, t) = self.samples.pop_front()?;
+        let (n, (k, t)) = self.samples.pop_first()?;
         self.bytes -= t.sample.body.len();
-        if let Some(n) = self.per_instance.get_mut(&k) {
-            *n -= 1;
-            if *n == 0 {
+        if let Some(q) = self.per_instance.get_mut(&k) {
+            // The queue's oldest sample is its instance's oldest.
+            debug_assert_eq!(q.front(), Some(&n));
+            q.pop_front();
+            if q.is_empty() {
                 self.per_instance.remove(&k);
             }
         }
@@ -976,6 +995,40 @@ mod tests {
         assert_eq!(seqs(&drain(&mut *r)), vec![1, 2]);
         drop(r);
         assert!(b.hub.readers.borrow().is_empty());
+    }
+
+    #[test]
+    fn keep_last_evicts_each_instance_s_oldest_from_the_middle_of_the_queue_in_order() {
+        let (mut b, _bus) = fake();
+        let g = groups(&mut b, 0);
+        let last1 = qos(EndpointSide::Reader, |d| {
+            d.history = Some(History::KeepLast(1))
+        });
+        let mut r = b
+            .create_reader(&*g.subscriber, &keyed_spec("k"), &last1, 1)
+            .expect("reader");
+        let w = b
+            .create_writer(&*g.publisher, &keyed_spec("k"), &writer_qos(), true)
+            .expect("writer");
+        // Sequence numbers 1-5: instances 1, 2, 3, 1, 2.
+        for (id, v) in [(1, 10), (2, 20), (3, 30), (1, 11), (2, 21)] {
+            w.write(keyed(id, v)).expect("write");
+        }
+        let first = r.take_next().expect("take").expect("a sample");
+        assert_eq!(
+            first.identity.sequence_number, 3,
+            "instance 3's only sample"
+        );
+        // 6-7: instances 3 and 1 again; 1's sample 4 goes from between 2's and 3's.
+        for (id, v) in [(3, 31), (1, 12)] {
+            w.write(keyed(id, v)).expect("write");
+        }
+        assert_eq!(seqs(&drain(&mut *r)), vec![5, 6, 7]);
+        // Emptied: every instance starts again.
+        for id in 1..=3 {
+            w.write(keyed(id, 0)).expect("write");
+        }
+        assert_eq!(seqs(&drain(&mut *r)), vec![8, 9, 10]);
     }
 
     #[test]
