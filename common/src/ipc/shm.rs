@@ -57,6 +57,17 @@ fn max_receivers(kind: ServiceKind) -> usize {
     }
 }
 
+/// Messages a receiver's queue holds. A worker announces itself once per start, so a few
+/// are plenty there; the depth matters because iceoryx2 sizes a publisher's bookkeeping by
+/// receivers times depth, times its possible segments, and fills it at once: with the
+/// operations' depth the announcements alone took 34 MiB of the worker's memory.
+fn queue_depth(kind: ServiceKind) -> usize {
+    match kind {
+        ServiceKind::Announce => 4,
+        ServiceKind::Data | ServiceKind::Reply => CHANNEL_DEPTH,
+    }
+}
+
 /// One iceoryx2 node of an agent instance.
 #[derive(Debug)]
 pub struct IpcNode {
@@ -166,7 +177,7 @@ impl IpcNode {
             .publish_subscribe::<[u8]>()
             .max_publishers(64)
             .max_subscribers(max_receivers(kind))
-            .subscriber_max_buffer_size(CHANNEL_DEPTH)
+            .subscriber_max_buffer_size(queue_depth(kind))
             .subscriber_max_borrowed_samples(2)
             .history_size(if kind == ServiceKind::Announce { 1 } else { 0 })
             .enable_safe_overflow(kind != ServiceKind::Reply)
