@@ -161,7 +161,7 @@ impl SessionStore {
                         .read(true)
                         .write(true)
                         .open(&path)
-                        .and_then(|file| MappedFile::open(&file, STATE_FILE_LEN));
+                        .and_then(|file| MappedFile::open(file, STATE_FILE_LEN));
                     match mapped {
                         Ok(map) => {
                             self.files.insert(key, StateFile::new(map, seq));
@@ -228,11 +228,13 @@ impl SessionStore {
         let crc = record_crc(&buf[4..16], &buf[HEADER..]);
         buf[16..HEADER].copy_from_slice(&crc.to_le_bytes());
         let at = ((f.seq % 2) * SLOT) as usize;
-        if f.map.write_at(at, buf) {
-            Ok(())
-        } else {
-            Err(std::io::Error::other("state record beyond its slot"))
+        let written = f.map.write_at(at, buf);
+        if written.is_err() {
+            // Not written: the next record goes to the same slot again, so the other one
+            // keeps the last whole record.
+            f.seq -= 1;
         }
+        written
     }
 
     /// Stores a client's objects.
@@ -329,7 +331,7 @@ fn create_state_file(path: &Path) -> std::io::Result<MappedFile> {
         .read(true)
         .write(true)
         .open(&tmp)?;
-    let map = MappedFile::open(&file, STATE_FILE_LEN)?;
+    let map = MappedFile::open(file, STATE_FILE_LEN)?;
     std::fs::rename(&tmp, path)?;
     Ok(map)
 }
