@@ -14,6 +14,14 @@
 //! * `<KEY>.objects`: the client's objects (their XRCE descriptions), rewritten (temporary
 //!   file, then rename) only when one is created or deleted.
 //!
+//! Limits of the mapping: each stored client takes one of the process's memory mappings
+//! (the kernel's `vm.max_map_count`, 65,530 by default, bounds them all: raise it for more
+//! than about 60,000 clients on one front-end); the directory should be a tmpfs (the default,
+//! `/dev/shm`), since on a copy-on-write disk file system a write to a page allocated
+//! already can still fail and that failure is a SIGBUS; and a front-end of a version before
+//! the mapping (records `XRSS`) cannot read these records (`XRS2`), so a downgrade loses the
+//! stored sessions and their clients create them again.
+//!
 //! The event loop stores what changed before it sends what the core produced, so nothing a
 //! client saw acknowledged or numbered is ahead of what a successor reads. An `alive` file
 //! holds the time the front-end last ran; a successor takes the sessions over only if that
@@ -148,10 +156,9 @@ impl SessionStore {
                 let _ = std::fs::remove_file(&path);
                 continue;
             };
-            let state = match std::fs::read(&path) {
-                Ok(bytes) => latest_record(&bytes),
-                Err(_) => None,
-            };
+            let state = std::fs::File::open(&path)
+                .ok()
+                .and_then(|f| latest_record(&f));
             let objects = std::fs::read(path.with_extension("objects")).ok();
             match (state, objects) {
                 (Some((seq, state)), Some(objects)) => {
@@ -344,22 +351,32 @@ fn record_crc(seq_len: &[u8], body: &[u8]) -> u32 {
     digest.finalize()
 }
 
-fn latest_record(bytes: &[u8]) -> Option<(u64, Vec<u8>)> {
-    let slot = |at: usize| -> Option<(u64, Vec<u8>)> {
-        let h = bytes.get(at..at.checked_add(HEADER)?)?;
+/// The newer whole record of a state file. Only the two records are read, not the file (a
+/// sparse half MiB per client).
+fn latest_record(file: &std::fs::File) -> Option<(u64, Vec<u8>)> {
+    use std::os::unix::fs::FileExt;
+    let slot = |at: u64| -> Option<(u64, Vec<u8>)> {
+        let mut h = [0u8; HEADER];
+        file.read_exact_at(&mut h, at).ok()?;
+        let magic: [u8; 4] = h[..4].try_into().ok()?;
+        if magic != MAGIC && magic != MAGIC_BODY_CRC {
+            return None;
+        }
         let seq = u64::from_le_bytes(h[4..12].try_into().ok()?);
         let len = u32::from_le_bytes(h[12..16].try_into().ok()?) as usize;
         let crc = u32::from_le_bytes(h[16..20].try_into().ok()?);
-        let start = at.checked_add(HEADER)?;
-        let body = bytes.get(start..start.checked_add(len)?)?;
-        let whole = match h[..4].try_into().ok()? {
-            MAGIC => record_crc(&h[4..16], body) == crc,
-            MAGIC_BODY_CRC => CRC.checksum(body) == crc,
-            _ => false,
+        if len > SLOT as usize - HEADER {
+            return None;
+        }
+        let mut body = vec![0u8; len];
+        file.read_exact_at(&mut body, at + HEADER as u64).ok()?;
+        let whole = match magic {
+            MAGIC => record_crc(&h[4..16], &body) == crc,
+            _ => CRC.checksum(&body) == crc,
         };
-        whole.then(|| (seq, body.to_vec()))
+        whole.then_some((seq, body))
     };
-    match (slot(0), slot(SLOT as usize)) {
+    match (slot(0), slot(SLOT)) {
         (Some(a), Some(b)) => Some(if a.0 > b.0 { a } else { b }),
         (a, b) => a.or(b),
     }

@@ -398,33 +398,38 @@ impl LocalQueue {
         }
     }
 
-    /// Adds a sample of `instance`; false if the reader's limits refuse it.
+    /// Adds a sample of `instance`; false if the reader's limits refuse it (then nothing
+    /// changed: KEEP_LAST evicts only once the new sample is sure to be taken).
     fn push(&mut self, instance: Key, taken: Taken) -> bool {
+        let len = taken.sample.body.len();
         let held = self.per_instance.get(&instance).map_or(0, VecDeque::len);
         if self.depth.is_some_and(|d| held >= d) {
-            // KEEP_LAST: the instance's oldest sample makes room.
+            // KEEP_LAST: the instance's oldest sample makes room, if the byte cap allows
+            // the new one in its place.
             let oldest = self
                 .per_instance
-                .get_mut(&instance)
-                .and_then(VecDeque::pop_front);
-            if let Some((_, old)) = oldest.and_then(|n| self.samples.remove(&n)) {
-                self.bytes -= old.sample.body.len();
+                .get(&instance)
+                .and_then(|q| q.front())
+                .copied();
+            let freed = oldest
+                .and_then(|n| self.samples.get(&n))
+                .map_or(0, |(_, t)| t.sample.body.len());
+            if self.bytes - freed + len > LOCAL_QUEUE_MAX_BYTES {
+                return false;
+            }
+            if let Some(n) = oldest {
+                if let Some(q) = self.per_instance.get_mut(&instance) {
+                    q.pop_front();
+                }
+                if self.samples.remove(&n).is_some() {
+                    self.bytes -= freed;
+                }
             }
         } else if held >= self.max_per_instance
             || self.samples.len() >= self.max_samples
             || (held == 0 && self.per_instance.len() >= self.max_instances)
+            || self.bytes + len > LOCAL_QUEUE_MAX_BYTES
         {
-            return false;
-        }
-        let len = taken.sample.body.len();
-        if self.samples.len() >= self.max_samples || self.bytes + len > LOCAL_QUEUE_MAX_BYTES {
-            if self
-                .per_instance
-                .get(&instance)
-                .is_some_and(VecDeque::is_empty)
-            {
-                self.per_instance.remove(&instance);
-            }
             return false;
         }
         let n = self.next;
@@ -1089,6 +1094,28 @@ mod tests {
         assert!(q.pop().is_some());
         assert!(q.push(Key::default(), taken(-2)), "room again");
         assert_eq!(q.bytes, LOCAL_QUEUE_MAX_BYTES);
+
+        // KEEP_LAST 1, one instance per sample, the queue at the cap: a bigger sample of
+        // an instance is refused without evicting that instance's sample; one that fits in
+        // its place replaces it.
+        let mut q = LocalQueue::new(&qos(EndpointSide::Reader, |d| {
+            d.history = Some(History::KeepLast(1));
+        }));
+        let key = |i: usize| -> Key { [i as u8; 16] };
+        for i in 0..fits {
+            assert!(q.push(key(i), taken(i as i64)), "instance {i}");
+        }
+        let mut bigger = taken(100);
+        bigger.sample.body = bytes::Bytes::from(vec![1u8; (1 << 20) + 1]);
+        assert!(!q.push(key(0), bigger), "over the cap even after eviction");
+        assert!(q.push(key(1), taken(101)), "same size: replaces");
+        let order: Vec<i64> = std::iter::from_fn(|| q.pop())
+            .map(|t| t.identity.sequence_number)
+            .collect();
+        let mut want: Vec<i64> = (0..fits as i64).filter(|n| *n != 1).collect();
+        want.push(101);
+        assert_eq!(order, want, "instance 0 kept its sample");
+        assert_eq!(q.bytes, 0);
     }
 
     #[test]

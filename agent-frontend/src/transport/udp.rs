@@ -39,7 +39,7 @@ pub struct UdpTransport {
     /// The kernel's message headers for `recvmmsg`, kept between calls.
     headers: MultiHeaders<SockaddrStorage>,
     /// What the last batch read: length and source of each datagram.
-    got: Vec<(usize, Option<SocketAddr>)>,
+    got: Vec<(usize, Result<SocketAddr, &'static str>)>,
     readable: bool,
     stats: TransportStats,
 }
@@ -77,11 +77,16 @@ impl UdpTransport {
     }
 
     /// Reads up to `want` (at most [`RECV_BATCH`]) datagrams into the buffers; for each,
-    /// its length and source (`None`: truncated or from no IP address, to be dropped).
+    /// its length and source, or why it is to be dropped (`truncated`, `unknown_source`).
+    ///
+    /// nix leaves each header's address length at what the kernel returned last time
+    /// instead of resetting it to the buffer's size; that is right here because a UDP
+    /// socket's sources all have its family's one length (16 bytes for IPv4, 28 for IPv6,
+    /// v4-mapped sources included).
     fn recv_batch(
         &mut self,
         want: usize,
-        got: &mut Vec<(usize, Option<SocketAddr>)>,
+        got: &mut Vec<(usize, Result<SocketAddr, &'static str>)>,
     ) -> nix::Result<()> {
         got.clear();
         let mut slices: Vec<[IoSliceMut<'_>; 1]> = self
@@ -98,9 +103,15 @@ impl UdpTransport {
             None,
         )?;
         for m in results {
-            let truncated = m.flags.contains(MsgFlags::MSG_TRUNC);
-            let src = m.address.as_ref().and_then(socket_addr);
-            got.push((m.bytes, src.filter(|_| !truncated)));
+            let src = if m.flags.contains(MsgFlags::MSG_TRUNC) {
+                Err("truncated")
+            } else {
+                m.address
+                    .as_ref()
+                    .and_then(socket_addr)
+                    .ok_or("unknown_source")
+            };
+            got.push((m.bytes, src));
         }
         Ok(())
     }
@@ -160,9 +171,12 @@ impl Transport for UdpTransport {
                     errors = 0;
                     for (i, &(n, src)) in got.iter().enumerate() {
                         handled += 1;
-                        let Some(src) = src else {
-                            self.stats.drop("truncated");
-                            continue;
+                        let src = match src {
+                            Ok(src) => src,
+                            Err(reason) => {
+                                self.stats.drop(reason);
+                                continue;
+                            }
                         };
                         self.stats.messages_in += 1;
                         let at = i * RECV_BUFFER;
@@ -180,9 +194,10 @@ impl Transport for UdpTransport {
                 }
                 Err(nix::errno::Errno::EINTR) => {}
                 Err(e) => {
-                    // ICMP errors from earlier sends surface here on Linux, one each: keep
-                    // reading. Errors that repeat mean the socket itself fails: wait for
-                    // the next readiness rather than spin.
+                    // Not expected on an unconnected socket without IP_RECVERR (ICMP
+                    // errors are not reported on it), but keep reading past a stray one.
+                    // Errors that repeat mean the socket itself fails: wait for the next
+                    // readiness rather than spin.
                     tracing::debug!(error = %e, "recvmmsg");
                     errors += 1;
                     if errors >= 16 {
