@@ -77,6 +77,16 @@ struct StateFile {
     buf: Vec<u8>,
 }
 
+impl StateFile {
+    fn new(map: MappedFile, seq: u64) -> Self {
+        StateFile {
+            map,
+            seq,
+            buf: Vec::new(),
+        }
+    }
+}
+
 /// The store of one front-end.
 #[derive(Debug)]
 pub struct SessionStore {
@@ -316,17 +326,6 @@ fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     std::fs::rename(&tmp, path)
 }
 
-/// The whole record with the highest sequence number of the two slots.
-impl StateFile {
-    fn new(map: MappedFile, seq: u64) -> Self {
-        StateFile {
-            map,
-            seq,
-            buf: Vec::new(),
-        }
-    }
-}
-
 /// A new state file at `path`, mapped. It is created under a temporary name, sized and then
 /// renamed into place, so a file of the same name that another process may still map is
 /// replaced rather than truncated under it.
@@ -351,8 +350,8 @@ fn record_crc(seq_len: &[u8], body: &[u8]) -> u32 {
     digest.finalize()
 }
 
-/// The newer whole record of a state file. Only the two records are read, not the file (a
-/// sparse half MiB per client).
+/// The whole record with the higher sequence number of a state file's two slots. Only the
+/// two records are read, not the file (a sparse half MiB per client).
 fn latest_record(file: &std::fs::File) -> Option<(u64, Vec<u8>)> {
     use std::os::unix::fs::FileExt;
     let slot = |at: u64| -> Option<(u64, Vec<u8>)> {

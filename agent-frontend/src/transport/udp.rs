@@ -337,10 +337,7 @@ mod tests {
 
     #[test]
     fn an_ipv6_source_is_read_with_its_address_and_port() {
-        let Ok(server) = std::net::UdpSocket::bind("[::1]:0") else {
-            eprintln!("no IPv6 loopback here; nothing to check");
-            return;
-        };
+        let server = std::net::UdpSocket::bind("[::1]:0").expect("IPv6 loopback");
         let client = std::net::UdpSocket::bind("[::1]:0").expect("bind");
         let mut t = UdpTransport::new(server).expect("transport");
         client.send_to(b"six", t.local_addr()).expect("send");
