@@ -63,6 +63,7 @@ pub mod references;
 pub mod representation;
 pub mod ros_graph;
 pub mod tree;
+pub mod turns;
 pub mod types;
 pub mod worker;
 pub mod xml;

@@ -39,6 +39,19 @@ pub const OUTBOX_MAX: usize = 8192;
 /// message (the eProsima client's default MTU) holds at most about 40 small WRITE_DATA.
 /// The operations of a larger message beyond this wait in the outbox.
 pub const HAND_OVER_HEADROOM: u64 = 48;
+/// Operations in flight (hand-over mode) that best-effort writes may not take: they are kept
+/// for reliable messages and control operations, so that clients flooding best-effort data
+/// do not leave every reliable message of the others refused and sent again (a flooded window
+/// would otherwise refuse them nearly always). A reliable message is taken while
+/// [`HAND_OVER_HEADROOM`] operations fit; best-effort writes stop this many short of that,
+/// so a best-effort flood alone never fills the window against one. Small: the worker
+/// handles what is in flight in batches, and a shallower window costs best-effort
+/// throughput (a 48-operation reserve cost a fifth of it at 1 kB samples).
+pub const BEST_EFFORT_RESERVE: u64 = 8;
+/// Queued operations (outbox mode) beyond which best-effort writes are dropped rather than
+/// queued: stale best-effort data is worth little, and reliable operations queued behind it
+/// would wait for all of it.
+pub const BEST_EFFORT_OUTBOX_MAX: usize = 1024;
 /// Absolute bound of the outbox (`has_room` keeps it below [`OUTBOX_MAX`] between messages).
 pub const OUTBOX_HARD_MAX: usize = 4 * OUTBOX_MAX;
 /// Bytes of queued operations before new ones are refused (flow control; samples reach 1 MiB).
@@ -946,6 +959,22 @@ impl Bridge {
     }
 }
 
+impl Bridge {
+    /// Whether a best-effort write may go to the worker (or the outbox) now: as
+    /// [`OperationSink::has_room`], less the share kept for reliable and control operations
+    /// ([`BEST_EFFORT_RESERVE`], [`BEST_EFFORT_OUTBOX_MAX`]).
+    fn has_room_for_best_effort(&self) -> bool {
+        if !self.has_room() {
+            return false;
+        }
+        if self.hand_over_at_once && self.generation.is_some() {
+            self.in_flight() + HAND_OVER_HEADROOM + BEST_EFFORT_RESERVE < IN_FLIGHT_WINDOW
+        } else {
+            self.outbox.len() < BEST_EFFORT_OUTBOX_MAX
+        }
+    }
+}
+
 impl OperationSink for Bridge {
     fn has_room(&self) -> bool {
         let retained = self.retained.len() < RETAIN_MAX && self.retained.bytes < RETAIN_MAX_BYTES;
@@ -960,6 +989,23 @@ impl OperationSink for Bridge {
                 && self.in_flight() + HAND_OVER_HEADROOM <= IN_FLIGHT_WINDOW;
         }
         self.outbox.len() < OUTBOX_MAX && self.outbox.bytes < OUTBOX_MAX_BYTES && retained
+    }
+
+    fn has_room_for(&self, submessages: usize) -> bool {
+        if self.hand_over_at_once && self.generation.is_some() {
+            // Room for what this message can bring (a submessage is one operation; twice
+            // that, for margin), not for the largest message: a client sending one WRITE_DATA
+            // a message is not refused while the window has room for it.
+            let need = u64::try_from(submessages)
+                .unwrap_or(u64::MAX)
+                .saturating_mul(2)
+                .clamp(1, HAND_OVER_HEADROOM);
+            return self.retained.len() < RETAIN_MAX
+                && self.retained.bytes < RETAIN_MAX_BYTES
+                && self.outbox.is_empty()
+                && self.in_flight() + need <= IN_FLIGHT_WINDOW;
+        }
+        self.has_room()
     }
 
     fn operation(&mut self, op: Operation<'_>) {
@@ -1071,7 +1117,7 @@ impl OperationSink for Bridge {
                     Awaited::No
                 };
                 let reliable = stream_id::is_reliable(stream);
-                if !reliable && !self.has_room() {
+                if !reliable && !self.has_room_for_best_effort() {
                     // Best-effort data is not held back by flow control: drop it, counted.
                     self.stats.ops_dropped += 1;
                     if self.stats.ops_dropped.is_power_of_two() {

@@ -192,6 +192,23 @@ impl Rig {
         rig
     }
 
+    /// A worker, and a rig connected to it whose bridge hands every operation over at once
+    /// (as in a front-end that stores its sessions: nothing waits in the outbox), with a
+    /// data writer the worker has created (its id).
+    fn handing_over_with_writer(instance: &str, generation: u32) -> (FakeWorker, Self, ObjectId) {
+        let worker = FakeWorker::start(instance, generation);
+        let mut rig = Rig::connected(instance, &worker, generation);
+        rig.bridge.set_hand_over_at_once(true);
+        let [.., w] = rig.create_writer();
+        rig.run(&[&worker], |_, s| {
+            s.iter()
+                .filter(|(h, _)| h.kind == MessageKind::Create)
+                .count()
+                == 4
+        });
+        (worker, rig, w)
+    }
+
     /// Creates a participant, a topic, a publisher and a data writer (their ids, in that
     /// order).
     fn create_writer(&mut self) -> [ObjectId; 4] {
@@ -427,5 +444,104 @@ fn a_write_its_readers_acknowledged_is_not_resent_to_a_new_worker() {
     assert_eq!(rig.bridge.stats().writes_acknowledged, 1);
     assert_eq!(rig.bridge.stats().writes_resent, 1);
     drop((rig, second));
+    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
+}
+
+#[test]
+fn a_best_effort_flood_leaves_room_for_reliable_writes() {
+    use xrce_common::ipc::IN_FLIGHT_WINDOW;
+    use xrce_frontend::bridge::{BEST_EFFORT_RESERVE, HAND_OVER_HEADROOM};
+    let inst = instance("flood");
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 5);
+    // A worker that takes nothing for a while: best-effort writes fill what they may of
+    // the window and the rest are dropped, counted.
+    let now = Instant::now();
+    for i in 0..IN_FLIGHT_WINDOW {
+        rig.client
+            .write(
+                now,
+                stream_id::BUILTIN_BEST_EFFORT,
+                w,
+                format!("flood {i}").as_bytes(),
+            )
+            .expect("write");
+        while let Some(d) = rig.client.poll_transmit() {
+            rig.agent.handle_datagram(now, ADDR, &d, &mut rig.bridge);
+        }
+    }
+    rig.bridge.pump();
+    assert!(
+        rig.bridge.stats().ops_dropped > 0,
+        "the flood was not bounded"
+    );
+    // A reliable write is still taken at once.
+    rig.client
+        .write(now, stream_id::BUILTIN_RELIABLE, w, b"urgent")
+        .expect("write");
+    while let Some(d) = rig.client.poll_transmit() {
+        rig.agent.handle_datagram(now, ADDR, &d, &mut rig.bridge);
+    }
+    rig.bridge.pump();
+    let served = worker.serve();
+    let writes: Vec<&Vec<u8>> = served
+        .iter()
+        .filter(|(h, _)| h.kind == MessageKind::Write)
+        .map(|(_, b)| b)
+        .collect();
+    let flood = writes.iter().filter(|b| b.starts_with(b"flood")).count() as u64;
+    assert!(
+        flood <= IN_FLIGHT_WINDOW - HAND_OVER_HEADROOM - BEST_EFFORT_RESERVE,
+        "{flood} best-effort writes in flight"
+    );
+    assert!(flood > 0);
+    assert!(
+        writes.iter().any(|b| b.ends_with(b"urgent")),
+        "the reliable write was refused behind the flood ({flood} best-effort writes in flight)"
+    );
+    drop((rig, worker));
+    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
+}
+
+#[test]
+fn small_reliable_messages_may_fill_the_window() {
+    use xrce_common::ipc::IN_FLIGHT_WINDOW;
+    use xrce_frontend::bridge::HAND_OVER_HEADROOM;
+    let inst = instance("small");
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 6);
+    // The worker takes nothing meanwhile; each message carries one WRITE_DATA, so each
+    // needs room for one operation, not for the largest message.
+    let mut now = Instant::now();
+    for i in 0..IN_FLIGHT_WINDOW + 40 {
+        let _ = rig.client.write(
+            now,
+            stream_id::BUILTIN_RELIABLE,
+            w,
+            format!("r{i}").as_bytes(),
+        );
+        for _ in 0..4 {
+            while let Some(d) = rig.client.poll_transmit() {
+                rig.agent.handle_datagram(now, ADDR, &d, &mut rig.bridge);
+            }
+            rig.bridge.pump();
+            rig.agent.handle_timeout(now, &mut rig.bridge);
+            while let Some(t) = rig.agent.poll_transmit() {
+                rig.client.handle_datagram(now, &t.data);
+            }
+            now += Duration::from_millis(60);
+            rig.client.handle_timeout(now);
+        }
+    }
+    let writes = worker
+        .serve()
+        .iter()
+        .filter(|(h, _)| h.kind == MessageKind::Write)
+        .count() as u64;
+    // Room for two operations a submessage is asked for: all but the last slot fill (the
+    // room for the largest message would have stopped them at 145).
+    assert!(
+        (IN_FLIGHT_WINDOW - 2..=IN_FLIGHT_WINDOW).contains(&writes),
+        "{writes} writes in flight (the largest message needs {HAND_OVER_HEADROOM})"
+    );
+    drop((rig, worker));
     xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }

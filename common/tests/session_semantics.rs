@@ -675,9 +675,10 @@ fn heartbeat_times(
     times
 }
 
-#[test]
-fn heartbeats_to_a_client_that_does_not_answer_back_off_and_reset_when_it_does() {
-    let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
+/// A connected client with one STATUS sent to it on its reliable stream and not yet
+/// acknowledged (so HEARTBEATs are due).
+fn with_unacknowledged_output() -> (Agent<u32>, Recorder, Instant) {
+    let (mut agent, rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
     let request = BaseObjectRequest {
         request_id: RequestId::from_u16(9),
         object_id: ObjectId::new(1, object_kind::PARTICIPANT),
@@ -686,6 +687,50 @@ fn heartbeats_to_a_client_that_does_not_answer_back_off_and_reset_when_it_does()
         .send_status(t0, KEY, request, ResultStatus::OK)
         .expect("queued");
     drain(&mut agent);
+    (agent, rec, t0)
+}
+
+#[test]
+fn heartbeats_to_a_client_that_is_heard_do_not_back_off_when_its_acknacks_are_lost() {
+    // A flooded socket drops datagrams whatever their kind: a client that keeps talking
+    // (here its own HEARTBEATs every 50 ms) but whose ACKNACKs never arrive is alive, and
+    // is probed at the base period, not less and less (its reliable output would stall).
+    let (mut agent, mut rec, t0) = with_unacknowledged_output();
+    let talk = in_session(
+        0,
+        0,
+        Payload::Heartbeat(HeartbeatPayload {
+            first_unacked_seq_num: 0,
+            last_unacked_seq_num: 0,
+            stream_id: stream_id::BUILTIN_RELIABLE,
+        }),
+    );
+    let mut times = Vec::new();
+    let mut t = Duration::ZERO;
+    while t <= Duration::from_secs(2) {
+        if t.as_millis() % 50 == 0 {
+            agent.handle_datagram(t0 + t, ADDR, &talk, &mut rec);
+        }
+        agent.handle_timeout(t0 + t, &mut rec);
+        if payloads(&drain(&mut agent))
+            .iter()
+            .any(|p| matches!(p, Payload::Heartbeat(_)))
+        {
+            times.push(t.as_millis());
+        }
+        t += Duration::from_millis(10);
+    }
+    assert_eq!(times.len(), 20, "{times:?}");
+    assert!(times.windows(2).all(|w| w[1] - w[0] == 100), "{times:?}");
+    // Once it falls silent, the back-off starts.
+    let times = heartbeat_times(&mut agent, &mut rec, t0 + t, Duration::from_secs(4));
+    let ms: Vec<u128> = times.iter().map(|d| d.as_millis()).collect();
+    assert!(ms.windows(2).any(|w| w[1] - w[0] >= 400), "{ms:?}");
+}
+
+#[test]
+fn heartbeats_to_a_client_that_does_not_answer_back_off_and_reset_when_it_does() {
+    let (mut agent, mut rec, t0) = with_unacknowledged_output();
     let times = heartbeat_times(&mut agent, &mut rec, t0, Duration::from_secs(20));
     let ms: Vec<u128> = times.iter().map(|d| d.as_millis()).collect();
     // 100, then 200, 400, 800, 1600 ms later, then every 3.2 s: 10 in 20 s, not 200.

@@ -124,5 +124,6 @@ impl Worker {
         }
         self.reads.remove(&key);
         self.to_pump.remove(&key);
+        self.pump_again.remove(&key);
     }
 }

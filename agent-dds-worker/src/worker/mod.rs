@@ -44,6 +44,7 @@ use crate::representation::{
 };
 use crate::ros_graph::{DomainNodes, RosGraph};
 use crate::tree::EntityTree;
+use crate::turns::Turns;
 use crate::types::{sample_len, KeyDescriptor, StructDef, Ty, TypeSet};
 use crate::xml::{self, TopicDesc};
 
@@ -122,7 +123,11 @@ pub struct Worker {
     /// Tokens of readers the backend said may have data (kept to reuse its memory).
     ready: Vec<ReaderToken>,
     reads: HashMap<EntityKey, ActiveRead>,
-    to_pump: HashSet<EntityKey>,
+    /// Readers to pump this pass, first come first served.
+    to_pump: Turns<EntityKey>,
+    /// Readers that had more than one batch: pumped again next pass, behind the readers
+    /// that became ready meanwhile (a flood takes one batch per turn, not every turn).
+    pump_again: Turns<EntityKey>,
     /// Writers holding their samples until matched (kept apart so that the loop never scans
     /// every entity: with thousands of clients that scan dominated the worker's CPU).
     holding: HashSet<EntityKey>,
@@ -212,7 +217,8 @@ impl Worker {
             next_token: 1,
             ready: Vec::new(),
             reads: HashMap::new(),
-            to_pump: HashSet::new(),
+            to_pump: Turns::new(),
+            pump_again: Turns::new(),
             holding: HashSet::new(),
             acks: AckTracker::new(Instant::now()),
             shared_writers: HashMap::new(),
@@ -294,22 +300,7 @@ impl Worker {
             let taken = requests.drain(|m| self.handle_request(m))?;
             let after_requests = pass.elapsed();
             self.serve_successors();
-            // Always, not only when its descriptor polled readable: gated that way, every
-            // reader stalled (measured with 3 and 100 publishers).
-            self.dds.ready_readers(&mut self.ready)?;
-            if let Some(s) = &mut self.services_dds {
-                s.ready_readers(&mut self.ready)?;
-            }
-            for t in self.ready.drain(..) {
-                if let Some(k) = self.readers.get(&t) {
-                    self.to_pump.insert(*k);
-                }
-            }
-            let pump: Vec<EntityKey> = self.to_pump.drain().collect();
-            let pumped = pump.len();
-            for k in pump {
-                self.pump(k);
-            }
+            let pumped = self.pump_readers()?;
             let after_reads = pass.elapsed();
             self.expire_reads();
             self.release_rematched();
@@ -340,13 +331,39 @@ impl Worker {
         }
     }
 
+    /// Sends the samples of every reader with an active read that has some, each in its
+    /// turn (see [`Turns`]); returns how many readers were pumped.
+    fn pump_readers(&mut self) -> std::io::Result<usize> {
+        // Always, not only when its descriptor polled readable: gated that way, every
+        // reader stalled (measured with 3 and 100 publishers).
+        self.dds.ready_readers(&mut self.ready)?;
+        if let Some(s) = &mut self.services_dds {
+            s.ready_readers(&mut self.ready)?;
+        }
+        // Readers served a full batch last pass queue behind the others.
+        for t in self.ready.drain(..) {
+            if let Some(k) = self.readers.get(&t) {
+                if !self.pump_again.contains(k) {
+                    self.to_pump.push(*k);
+                }
+            }
+        }
+        self.to_pump.append(&mut self.pump_again);
+        let pump: Vec<EntityKey> = self.to_pump.take_all();
+        let pumped = pump.len();
+        for k in pump {
+            self.pump(k);
+        }
+        Ok(pumped)
+    }
+
     fn poll_timeout(&self) -> i32 {
         let queued = self.dds.readers_queued()
             || self
                 .services_dds
                 .as_ref()
                 .is_some_and(|s| s.readers_queued());
-        if !self.to_pump.is_empty() || queued {
+        if !self.to_pump.is_empty() || !self.pump_again.is_empty() || queued {
             return 0;
         }
         let acks = self

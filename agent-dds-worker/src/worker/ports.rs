@@ -14,7 +14,7 @@ pub(super) struct FrontendPort {
     /// Bytes in `backlog`.
     pub(super) backlog_bytes: usize,
     /// Readers not drained while the front-end is congested; pumped once it has room.
-    pub(super) deferred: HashSet<EntityKey>,
+    pub(super) deferred: Turns<EntityKey>,
     /// When the front-end last took a message (a dead one takes none: back off).
     pub(super) last_delivery: Instant,
     /// Messages were published since the front-end was last woken.
@@ -98,7 +98,7 @@ impl Worker {
                     backlog: Default::default(),
                     backlog_bytes: 0,
                     unnotified: false,
-                    deferred: HashSet::new(),
+                    deferred: Turns::new(),
                     last_delivery: Instant::now(),
                 }))
             }
@@ -208,7 +208,7 @@ impl Worker {
                 sent = true;
             }
             if p.backlog.is_empty() {
-                self.to_pump.extend(p.deferred.drain());
+                self.to_pump.append(&mut p.deferred);
             }
             // Held writes left the queue but are not executed yet: execution stops just
             // before the oldest.

@@ -222,7 +222,7 @@ impl Worker {
         };
         if let Some(p) = self.ports.get_mut(&key.0).filter(|p| !p.backlog.is_empty()) {
             // The front-end is congested: leave the samples in the DDS reader for now.
-            p.deferred.insert(key);
+            p.deferred.push(key);
             return;
         }
         let request_id = read.request_id;
@@ -372,7 +372,7 @@ impl Worker {
         if ended {
             self.end_read(key);
         } else if more {
-            self.to_pump.insert(key);
+            self.pump_again.push(key);
         }
     }
 
@@ -393,7 +393,7 @@ impl Worker {
         for (k, r) in self.reads.iter_mut() {
             if r.pacing.next_at.is_some_and(|t| t <= now) {
                 r.pacing.next_at = None;
-                self.to_pump.insert(*k);
+                self.to_pump.push(*k);
             }
         }
         let expired: Vec<EntityKey> = self

@@ -122,7 +122,7 @@ impl Worker {
                 if let Some(r) = self.reads.get_mut(&key) {
                     r.paused = pause;
                     if !pause {
-                        self.to_pump.insert(key);
+                        self.to_pump.push(key);
                     }
                 }
             }
@@ -131,7 +131,7 @@ impl Worker {
                 if r.is_err() {
                     self.status(&h, r);
                 } else {
-                    self.to_pump.insert(key);
+                    self.to_pump.push(key);
                 }
             }
             other => {
@@ -161,6 +161,7 @@ impl Worker {
         }
         self.reads.retain(|k, _| k.0 != fe);
         self.to_pump.retain(|k| k.0 != fe);
+        self.pump_again.retain(|k| k.0 != fe);
         self.acks.forget_frontend(fe);
         self.adoption.offer(fe, keys);
     }

@@ -166,6 +166,13 @@ pub enum Operation<'a> {
 pub trait OperationSink {
     /// Whether the operations of one more reliable message can be taken now.
     fn has_room(&self) -> bool;
+    /// Whether the operations of one more reliable message of `submessages` submessages,
+    /// none of them a FRAGMENT, can be taken now (a small message may fit where the largest
+    /// would not). By default, as [`Self::has_room`].
+    fn has_room_for(&self, submessages: usize) -> bool {
+        let _ = submessages;
+        self.has_room()
+    }
     /// Takes one operation.
     fn operation(&mut self, op: Operation<'_>);
 }
@@ -969,7 +976,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                 }
             }
             Arrival::InOrder => {
-                if sink.has_room() {
+                if room_for(sink, bytes, hlen) {
                     if let Some(input) = self
                         .clients
                         .get_mut(&key)
@@ -1012,14 +1019,15 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             let Some(next) = input.take_ready() else {
                 return true;
             };
-            if !sink.has_room() {
+            let Ok((_, hlen)) = MessageHeader::decode(&next) else {
+                input.advance();
+                continue;
+            };
+            if !room_for(sink, &next, hlen) {
                 self.count_drop("backpressure");
                 return false;
             }
             input.advance();
-            let Ok((_, hlen)) = MessageHeader::decode(&next) else {
-                continue;
-            };
             self.process(now, key, &next, hlen, sink);
         }
     }
@@ -1804,6 +1812,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
     /// the clients whose timer fell due are looked at.
     pub fn handle_timeout(&mut self, now: Instant, sink: &mut impl OperationSink) {
         let max_period = self.config.max_heartbeat_period;
+        let base_period = self.config.heartbeat_period;
         let mut out = Vec::new();
         let mut dead = Vec::new();
         let mut due_clients = Vec::new();
@@ -1856,8 +1865,17 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     }
                 }
                 if any {
-                    // Unanswered so far: the next one waits twice as long.
-                    c.heartbeat_interval = (c.heartbeat_interval * 2).min(max_period);
+                    // Unanswered so far: the next one waits twice as long, unless the
+                    // client was heard since the last one. A client that keeps talking is
+                    // alive and its ACKNACKs were lost on the way (a flooded socket drops
+                    // datagrams whatever their kind): backing off would stall its reliable
+                    // output for seconds. Only a silent client is probed less and less.
+                    let heard = now.saturating_duration_since(c.last_heard) < c.heartbeat_interval;
+                    c.heartbeat_interval = if heard {
+                        base_period
+                    } else {
+                        (c.heartbeat_interval * 2).min(max_period)
+                    };
                 }
                 c.heartbeat_due = any.then_some(now + c.heartbeat_interval);
             }
@@ -1874,6 +1892,21 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             self.remove_client(key, sink);
         }
     }
+}
+
+/// Whether `sink` has room for the operations of the reliable message `bytes` (header
+/// `hlen` bytes long): asked for its submessages' count when none is a FRAGMENT (whose
+/// completion can bring a message of any size) and every header is whole, else for the
+/// largest message.
+fn room_for(sink: &impl OperationSink, bytes: &[u8], hlen: usize) -> bool {
+    let mut count = 0;
+    for raw in Submessages::new(bytes, hlen) {
+        match raw {
+            Ok(r) if r.id != submessage_id::FRAGMENT => count += 1,
+            _ => return sink.has_room(),
+        }
+    }
+    sink.has_room_for(count)
 }
 
 /// A sink that takes nothing: for tests and for fuzzing the core.

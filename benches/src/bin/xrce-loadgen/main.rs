@@ -104,6 +104,11 @@ pub struct Args {
     /// DDS domain of the clients' participants.
     #[arg(long, default_value_t = 42)]
     pub domain: i16,
+    /// Client key of the first simulated client (the others follow it), so that two
+    /// generators can share one agent (`--no-agent`) without taking over each other's
+    /// sessions: a CREATE_CLIENT with a key already in use replaces that session.
+    #[arg(long, default_value = "0x10000000", value_parser = parse_client_key)]
+    pub first_client_key: u32,
     /// Best-effort streams (default: reliable).
     #[arg(long)]
     pub best_effort: bool,
@@ -314,4 +319,14 @@ fn sweep(a: &Args) -> Result<(), String> {
         std::fs::write(path, text).map_err(|e| format!("writing {}: {e}", path.display()))?;
     }
     Ok(())
+}
+
+/// A client key in hexadecimal (`0x` optional) or decimal.
+fn parse_client_key(text: &str) -> Result<u32, String> {
+    let t = text.trim();
+    match t.strip_prefix("0x").or_else(|| t.strip_prefix("0X")) {
+        Some(hex) => u32::from_str_radix(hex, 16),
+        None => t.parse(),
+    }
+    .map_err(|e| format!("{text:?} is not a client key: {e}"))
 }

@@ -339,7 +339,11 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     let mut peers = Vec::with_capacity(total);
     let mut lines = lines.into_iter();
     for i in 0..total {
-        let key = [0x10, (i >> 16) as u8, (i >> 8) as u8, i as u8];
+        let key = u32::try_from(i)
+            .ok()
+            .and_then(|i| a.first_client_key.checked_add(i))
+            .ok_or("--first-client-key leaves no room for every client's key")?
+            .to_be_bytes();
         let peer = match a.transport {
             TransportArg::Udp => Peer::new(port, key).map_err(|e| format!("client socket: {e}"))?,
             TransportArg::Tcp => {
