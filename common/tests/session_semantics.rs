@@ -4,7 +4,7 @@
 use std::time::{Duration, Instant};
 
 use xrce_common::session::agent::{
-    Agent, AgentConfig, DataReply, Operation, OperationSink, Transmit,
+    Agent, AgentConfig, DataReply, Operation, OperationSink, SendError, Transmit,
 };
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
 use xrce_common::wire::cdr::CdrReader;
@@ -769,4 +769,56 @@ fn heartbeats_to_a_client_that_does_not_answer_back_off_and_reset_when_it_does()
         t += Duration::from_millis(10);
     }
     assert_eq!(next, [100, 200, 300, 400, 500, 700], "after ACKNACKs");
+}
+
+#[test]
+fn a_best_effort_sample_larger_than_the_client_mtu_is_dropped_without_a_sequence_number() {
+    // The client announced 512 bytes (CREATE_CLIENT's MTU property): a best-effort stream
+    // cannot fragment, so a bigger sample is dropped, counted, as the reference agent does;
+    // the next one that fits takes the sequence number it would have used.
+    let (mut agent, _rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
+    let reply = |sample: &'static [u8]| DataReply {
+        request: BaseObjectRequest {
+            request_id: RequestId::from_u16(5),
+            object_id: ObjectId::new(3, object_kind::DATAREADER),
+        },
+        format: data_format::DATA,
+        sample,
+        little_endian: true,
+        state: 0,
+        sequence_number: 1,
+    };
+    static BIG: [u8; 1000] = [7; 1000];
+    let err = agent
+        .send_data(t0, KEY, stream_id::BUILTIN_BEST_EFFORT, reply(&BIG))
+        .expect_err("too large for a best-effort stream");
+    assert_eq!(err, SendError::TooLarge);
+    assert!(drain(&mut agent).is_empty(), "nothing sent");
+    assert_eq!(agent.stats().dropped("over_mtu"), 1);
+    agent
+        .send_data(
+            t0,
+            KEY,
+            stream_id::BUILTIN_BEST_EFFORT,
+            reply(&[1, 2, 3, 4]),
+        )
+        .expect("fits");
+    let out = drain(&mut agent);
+    assert_eq!(out.len(), 1);
+    assert!(out[0].data.len() <= 512);
+    let m = Message::decode(&out[0].data).expect("decodes");
+    assert_eq!(m.header.stream_id, stream_id::BUILTIN_BEST_EFFORT);
+    assert_eq!(
+        m.header.sequence_nr, 0,
+        "the dropped sample used no sequence number"
+    );
+    // A reliable read of the same sample is fragmented, not dropped.
+    agent
+        .send_data(t0, KEY, stream_id::BUILTIN_RELIABLE, reply(&BIG))
+        .expect("fragments");
+    let frags = payloads(&drain(&mut agent))
+        .into_iter()
+        .filter(|p| matches!(p, Payload::Fragment { .. }))
+        .count();
+    assert!(frags >= 2, "{frags} fragments");
 }

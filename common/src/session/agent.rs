@@ -1798,11 +1798,25 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         } else {
             let seq = c.best_effort_out.entry(stream).or_insert(0);
             let mut b = MessageBuilder::new(MessageHeader::new(c.session_id, stream, *seq, c.key));
-            *seq = seq.wrapping_add(1);
             b.push(&payload, little_endian)
                 .map_err(|_| SendError::TooLarge)?;
+            let message = b.finish();
+            if message.len() > usize::from(c.mtu) {
+                // A best-effort stream cannot fragment, and the client cannot take a message
+                // beyond its MTU (its UDP buffer truncates it, its serial or TCP framing
+                // rejects it): dropped, as the reference agent does, without using a
+                // sequence number.
+                let (key, mtu, len) = (c.key, c.mtu, message.len());
+                self.count_drop("over_mtu");
+                let n = self.stats.dropped("over_mtu");
+                if n.is_power_of_two() {
+                    tracing::warn!(client = %key, mtu, message = len, dropped = n, "best-effort sample dropped: larger than the client's MTU (read it on a reliable stream, which fragments, or build the client with a larger MTU); further ones are counted");
+                }
+                return Err(SendError::TooLarge);
+            }
+            *seq = seq.wrapping_add(1);
             let addr = c.addr;
-            self.push_transmit(addr, b.finish());
+            self.push_transmit(addr, message);
         }
         Ok(())
     }

@@ -30,29 +30,33 @@ pub struct Peer {
 
 impl Peer {
     /// A client with its own socket, connected to the agent's port on 127.0.0.1.
-    pub fn new(port: u16, key: [u8; 4]) -> std::io::Result<Self> {
+    pub fn new(port: u16, key: [u8; 4], mtu: u16) -> std::io::Result<Self> {
         let socket = UdpSocket::bind("127.0.0.1:0")?;
         socket.connect(("127.0.0.1", port))?;
         socket.set_nonblocking(true)?;
-        Ok(Self::on_link(PeerLink::Udp(socket), key))
+        Ok(Self::on_link(PeerLink::Udp(socket), key, mtu))
     }
 
     /// A client on its own TCP connection to the agent's port on 127.0.0.1.
-    pub fn tcp(port: u16, key: [u8; 4]) -> std::io::Result<Self> {
+    pub fn tcp(port: u16, key: [u8; 4], mtu: u16) -> std::io::Result<Self> {
         let stream = TcpStream::connect(("127.0.0.1", port))?;
         stream.set_nodelay(true)?;
         stream.set_nonblocking(true)?;
-        Ok(Self::on_link(PeerLink::tcp(stream), key))
+        Ok(Self::on_link(PeerLink::tcp(stream), key, mtu))
     }
 
     /// A client on a serial line (a pty master) paced at `baud`.
-    pub fn serial(line: std::fs::File, baud: u32, key: [u8; 4]) -> Self {
-        Self::on_link(PeerLink::serial(line, baud), key)
+    pub fn serial(line: std::fs::File, baud: u32, key: [u8; 4], mtu: u16) -> Self {
+        Self::on_link(PeerLink::serial(line, baud), key, mtu)
     }
 
-    fn on_link(link: PeerLink, key: [u8; 4]) -> Self {
+    /// A client announcing `mtu` (the largest message it takes: the agent sends nothing
+    /// bigger, and drops a best-effort sample that does not fit).
+    fn on_link(link: PeerLink, key: [u8; 4], mtu: u16) -> Self {
+        let mut config = ClientConfig::new(ClientKey(key));
+        config.mtu = mtu;
         Peer {
-            client: Client::new(ClientConfig::new(ClientKey(key))),
+            client: Client::new(config),
             link,
             pending: HashSet::new(),
             next_timeout: None,

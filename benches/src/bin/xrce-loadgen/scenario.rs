@@ -338,6 +338,7 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     // subscribers + j - 1, its probe tag u32::MAX - j).
     let mut peers = Vec::with_capacity(total);
     let mut lines = lines.into_iter();
+    let mtu = client_mtu(payload);
     for i in 0..total {
         let key = u32::try_from(i)
             .ok()
@@ -345,13 +346,15 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
             .ok_or("--first-client-key leaves no room for every client's key")?
             .to_be_bytes();
         let peer = match a.transport {
-            TransportArg::Udp => Peer::new(port, key).map_err(|e| format!("client socket: {e}"))?,
+            TransportArg::Udp => {
+                Peer::new(port, key, mtu).map_err(|e| format!("client socket: {e}"))?
+            }
             TransportArg::Tcp => {
-                Peer::tcp(port, key).map_err(|e| format!("client connection: {e}"))?
+                Peer::tcp(port, key, mtu).map_err(|e| format!("client connection: {e}"))?
             }
             TransportArg::Serial => {
                 let (line, _) = lines.next().ok_or("no pty for a client")?;
-                Peer::serial(line, a.baud, key)
+                Peer::serial(line, a.baud, key, mtu)
             }
         };
         peers.push(peer);
@@ -879,4 +882,13 @@ fn warm_up(
     all.pump_until(Duration::from_millis(500), |_| false)?;
     eprintln!("warm-up: {} samples sent", share.sent);
     Ok(())
+}
+
+/// The MTU the simulated clients announce: the eProsima client's default (512), or enough
+/// for one sample of `payload` bytes in a message, as a client built for such samples
+/// would be configured (the agent drops a best-effort sample bigger than its client's MTU,
+/// as the reference agent does; reliable ones it fragments).
+fn client_mtu(payload: usize) -> u16 {
+    const HEADROOM: usize = 64;
+    u16::try_from((payload + HEADROOM).max(512)).unwrap_or(u16::MAX)
 }
