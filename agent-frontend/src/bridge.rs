@@ -39,14 +39,13 @@ pub const OUTBOX_MAX: usize = 8192;
 /// message (the eProsima client's default MTU) holds at most about 40 small WRITE_DATA.
 /// The operations of a larger message beyond this wait in the outbox.
 pub const HAND_OVER_HEADROOM: u64 = 48;
-/// Operations in flight (hand-over mode) that best-effort writes may not take: they are kept
-/// for reliable messages and control operations, so that clients flooding best-effort data
-/// do not leave every reliable message of the others refused and sent again (a flooded window
-/// would otherwise refuse them nearly always). A reliable message is taken while
-/// [`HAND_OVER_HEADROOM`] operations fit; best-effort writes stop this many short of that,
-/// so a best-effort flood alone never fills the window against one. Small: the worker
-/// handles what is in flight in batches, and a shallower window costs best-effort
-/// throughput (a 48-operation reserve cost a fifth of it at 1 kB samples).
+/// Operations in flight (hand-over mode) that best-effort writes leave free beyond the
+/// [`HAND_OVER_HEADROOM`] a largest reliable message needs: best-effort writes go only while
+/// `in_flight + HAND_OVER_HEADROOM + BEST_EFFORT_RESERVE < IN_FLIGHT_WINDOW` (136 of 192), so
+/// a best-effort flood alone never fills the window against reliable messages and control
+/// operations (which ask room for what they carry: [`OperationSink::has_room_for`]). Small:
+/// the worker handles what is in flight in batches, and a shallower window costs
+/// best-effort throughput (a 48-operation reserve cost a fifth of it at 1 kB samples).
 pub const BEST_EFFORT_RESERVE: u64 = 8;
 /// Queued operations (outbox mode) beyond which best-effort writes are dropped rather than
 /// queued: stale best-effort data is worth little, and reliable operations queued behind it

@@ -4,7 +4,7 @@
 use std::time::{Duration, Instant};
 
 use xrce_common::session::agent::{
-    Agent, AgentConfig, DataReply, Operation, OperationSink, SendError, Transmit,
+    Agent, AgentConfig, DataReply, Operation, OperationSink, Transmit,
 };
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
 use xrce_common::wire::cdr::CdrReader;
@@ -720,6 +720,7 @@ fn heartbeats_to_a_client_that_is_heard_do_not_back_off_when_its_acknacks_are_lo
         }
         t += Duration::from_millis(10);
     }
+    // Every 100 ms while it is heard.
     assert_eq!(times.len(), 20, "{times:?}");
     assert!(times.windows(2).all(|w| w[1] - w[0] == 100), "{times:?}");
     // Once it falls silent, the back-off starts.
@@ -789,10 +790,9 @@ fn a_best_effort_sample_larger_than_the_client_mtu_is_dropped_without_a_sequence
         sequence_number: 1,
     };
     static BIG: [u8; 1000] = [7; 1000];
-    let err = agent
+    agent
         .send_data(t0, KEY, stream_id::BUILTIN_BEST_EFFORT, reply(&BIG))
-        .expect_err("too large for a best-effort stream");
-    assert_eq!(err, SendError::TooLarge);
+        .expect("dropped and counted by the core, not an error to count again");
     assert!(drain(&mut agent).is_empty(), "nothing sent");
     assert_eq!(agent.stats().dropped("over_mtu"), 1);
     agent
@@ -821,4 +821,68 @@ fn a_best_effort_sample_larger_than_the_client_mtu_is_dropped_without_a_sequence
         .filter(|p| matches!(p, Payload::Fragment { .. }))
         .count();
     assert!(frags >= 2, "{frags} fragments");
+    // A spec client announces no MTU: only the transport bounds its best-effort messages.
+    let (mut spec, _rec, t0) = connected(AgentConfig::default(), [9, 9], None);
+    spec.send_data(t0, KEY, stream_id::BUILTIN_BEST_EFFORT, reply(&BIG))
+        .expect("sent");
+    let out = drain(&mut spec);
+    assert_eq!(out.len(), 1);
+    assert!(out[0].data.len() > 1000);
+    assert_eq!(spec.stats().dropped("over_mtu"), 0);
+}
+
+/// A sink with room for a small message but not for the largest one.
+#[derive(Default)]
+struct RoomForSmall(Recorder);
+
+impl OperationSink for RoomForSmall {
+    fn has_room(&self) -> bool {
+        false
+    }
+    fn has_room_for(&self, submessages: usize) -> bool {
+        submessages <= 2
+    }
+    fn operation(&mut self, op: Operation<'_>) {
+        self.0.operation(op)
+    }
+}
+
+#[test]
+fn a_reliable_message_asks_room_for_its_submessages_unless_one_can_bring_more() {
+    let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
+    let write = |seq: u8| {
+        Payload::WriteData(DataPayload {
+            base: BaseObjectRequest {
+                request_id: RequestId::from_u16(u16::from(seq) + 4),
+                object_id: ObjectId::new(1, object_kind::DATAWRITER),
+            },
+            format: data_format::DATA,
+            data: &[0, 1, 0, 0, 7, 7, 7, 7],
+        })
+    };
+    let mut sink = RoomForSmall(std::mem::take(&mut rec));
+    // One WRITE_DATA: room for it is enough.
+    agent.handle_datagram(t0, ADDR, &in_session(0x80, 0, write(0)), &mut sink);
+    assert_eq!(
+        sink.0 .0.last(),
+        Some(&Op::Write(Dialect::Eprosima, data_format::DATA))
+    );
+    let taken = sink.0 .0.len();
+    // A HEARTBEAT in the message can deliver early messages in its middle: the message
+    // needs the room of the largest, which this sink has not: refused, for the client to
+    // send again.
+    let mut b = MessageBuilder::new(MessageHeader::new(0x01, 0x80, 1, KEY));
+    b.push(
+        &Payload::Heartbeat(HeartbeatPayload {
+            first_unacked_seq_num: 0,
+            last_unacked_seq_num: 0,
+            stream_id: stream_id::BUILTIN_RELIABLE,
+        }),
+        true,
+    )
+    .expect("encode");
+    b.push(&write(1), true).expect("encode");
+    agent.handle_datagram(t0, ADDR, &b.finish(), &mut sink);
+    assert_eq!(sink.0 .0.len(), taken, "{:?}", sink.0 .0);
+    assert_eq!(agent.stats().dropped("backpressure"), 1);
 }

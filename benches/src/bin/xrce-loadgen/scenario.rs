@@ -338,7 +338,7 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     // subscribers + j - 1, its probe tag u32::MAX - j).
     let mut peers = Vec::with_capacity(total);
     let mut lines = lines.into_iter();
-    let mtu = client_mtu(payload);
+    let mtu = client_mtu(payload, a.best_effort);
     for i in 0..total {
         let key = u32::try_from(i)
             .ok()
@@ -884,11 +884,20 @@ fn warm_up(
     Ok(())
 }
 
-/// The MTU the simulated clients announce: the eProsima client's default (512), or enough
-/// for one sample of `payload` bytes in a message, as a client built for such samples
-/// would be configured (the agent drops a best-effort sample bigger than its client's MTU,
-/// as the reference agent does; reliable ones it fragments).
-fn client_mtu(payload: usize) -> u16 {
+/// The MTU the simulated clients announce: the eProsima client's default (512), or, on
+/// best-effort streams, enough for one sample of `payload` bytes in a message, as a client
+/// built for such samples would be configured (the agent drops a best-effort sample bigger
+/// than its client's MTU, as the reference agent does). Reliable runs keep 512, so their
+/// large samples are fragmented as in earlier measurements.
+fn client_mtu(payload: usize, best_effort: bool) -> u16 {
+    const DEFAULT: usize = 512;
     const HEADROOM: usize = 64;
-    u16::try_from((payload + HEADROOM).max(512)).unwrap_or(u16::MAX)
+    /// Below the largest UDP datagram (65,507 bytes).
+    const MOST: usize = 65_000;
+    let mtu = if best_effort {
+        (payload + HEADROOM).clamp(DEFAULT, MOST)
+    } else {
+        DEFAULT
+    };
+    u16::try_from(mtu).unwrap_or(u16::MAX)
 }
