@@ -46,6 +46,16 @@ pub enum PeerLink {
 /// The client's address on its serial line.
 const CLIENT_ADDRESS: u8 = 1;
 
+/// Bytes a receiving UART collects before it hands them over (a 16550's receive FIFO with
+/// its trigger level at 14; USB serial adapters hand over 64 bytes or more at a time), so the
+/// agent reads a serial line in chunks as it would on hardware, not byte by byte.
+const UART_FIFO: usize = 14;
+
+/// How long `n` bytes take on a line of `bytes_per_second`.
+fn byte_time(n: usize, bytes_per_second: f64) -> Duration {
+    Duration::from_secs_f64(n as f64 / bytes_per_second)
+}
+
 impl PeerLink {
     /// The descriptor to wait on.
     pub fn fd(&self) -> BorrowedFd<'_> {
@@ -89,11 +99,15 @@ impl PeerLink {
                 }
                 self.flush(now);
             }
-            PeerLink::Serial { out, .. } => {
+            PeerLink::Serial { out, free_at, .. } => {
                 let mut framed = Vec::with_capacity(message.len() + 16);
                 if serial_framing::encode(CLIENT_ADDRESS, AGENT_ADDRESS, message, &mut framed)
                     .is_ok()
                 {
+                    if out.is_empty() {
+                        // An idle line starts sending now.
+                        *free_at = (*free_at).max(now);
+                    }
                     out.extend(framed);
                 }
                 self.flush(now);
@@ -124,19 +138,19 @@ impl PeerLink {
                 free_at,
                 ..
             } => {
-                if out.is_empty() || now < *free_at {
+                // The receiving UART hands bytes over a FIFO's worth at a time (or what is
+                // left of the frame), once the last of them has crossed the line; later
+                // than that, all that has arrived by now.
+                let first = out.len().min(UART_FIFO);
+                if out.is_empty() || now < *free_at + byte_time(first, *bytes_per_second) {
                     return;
                 }
-                // What the line carried since it was last free, at most one UART FIFO's
-                // worth ahead (so a burst does not leave in zero time).
-                let idle = now.saturating_duration_since(*free_at).as_secs_f64();
-                let budget = ((idle * *bytes_per_second) as usize).clamp(1, 64);
-                let n = budget.min(out.len());
+                let arrived = now.saturating_duration_since(*free_at).as_secs_f64();
+                let n = ((arrived * *bytes_per_second) as usize).clamp(first, out.len());
                 let chunk: Vec<u8> = out.iter().take(n).copied().collect();
                 if let Ok(w) = line.write(&chunk) {
                     out.drain(..w);
-                    *free_at =
-                        now.max(*free_at) + Duration::from_secs_f64(w as f64 / *bytes_per_second);
+                    *free_at += byte_time(w, *bytes_per_second);
                 }
             }
         }
@@ -147,9 +161,14 @@ impl PeerLink {
         match self {
             PeerLink::Udp(_) => None,
             PeerLink::Tcp { out, .. } => (!out.is_empty()).then(|| now + Duration::from_millis(1)),
-            PeerLink::Serial { out, free_at, .. } => {
-                (!out.is_empty()).then_some((*free_at).max(now))
-            }
+            PeerLink::Serial {
+                out,
+                free_at,
+                bytes_per_second,
+                ..
+            } => (!out.is_empty()).then(|| {
+                (*free_at + byte_time(out.len().min(UART_FIFO), *bytes_per_second)).max(now)
+            }),
         }
     }
 
