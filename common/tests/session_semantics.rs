@@ -821,8 +821,25 @@ fn a_best_effort_sample_larger_than_the_client_mtu_is_dropped_without_a_sequence
         .filter(|p| matches!(p, Payload::Fragment { .. }))
         .count();
     assert!(frags >= 2, "{frags} fragments");
-    // A spec client announces no MTU: only the transport bounds its best-effort messages.
-    let (mut spec, _rec, t0) = connected(AgentConfig::default(), [9, 9], None);
+    // A client that announces no MTU (a spec client): only the transport bounds its
+    // best-effort messages.
+    let mut spec = Agent::new(AgentConfig::default());
+    let mut b = MessageBuilder::new(MessageHeader::new(0x00, 0, 0, KEY));
+    b.push(
+        &Payload::CreateClient(CreateClientPayload {
+            cookie: XRCE_COOKIE,
+            version: XRCE_VERSION,
+            vendor_id: [9, 9],
+            client_key: KEY,
+            session_id: 0x01,
+            properties: None,
+            mtu: None,
+        }),
+        true,
+    )
+    .expect("encode");
+    spec.handle_datagram(t0, ADDR, &b.finish(), &mut Recorder::default());
+    drain(&mut spec);
     spec.send_data(t0, KEY, stream_id::BUILTIN_BEST_EFFORT, reply(&BIG))
         .expect("sent");
     let out = drain(&mut spec);
@@ -848,41 +865,71 @@ impl OperationSink for RoomForSmall {
 }
 
 #[test]
-fn a_reliable_message_asks_room_for_its_submessages_unless_one_can_bring_more() {
+fn a_reliable_message_asks_room_for_its_submessages() {
     let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
-    let write = |seq: u8| {
-        Payload::WriteData(DataPayload {
-            base: BaseObjectRequest {
-                request_id: RequestId::from_u16(u16::from(seq) + 4),
-                object_id: ObjectId::new(1, object_kind::DATAWRITER),
-            },
-            format: data_format::DATA,
-            data: &[0, 1, 0, 0, 7, 7, 7, 7],
-        })
-    };
     let mut sink = RoomForSmall(std::mem::take(&mut rec));
-    // One WRITE_DATA: room for it is enough.
-    agent.handle_datagram(t0, ADDR, &in_session(0x80, 0, write(0)), &mut sink);
+    // One WRITE_DATA: room for it is enough, where the largest message's room is lacking.
+    agent.handle_datagram(
+        t0,
+        ADDR,
+        &in_session(0x80, 0, write(0, data_format::DATA)),
+        &mut sink,
+    );
     assert_eq!(
         sink.0 .0.last(),
         Some(&Op::Write(Dialect::Eprosima, data_format::DATA))
     );
-    let taken = sink.0 .0.len();
-    // A HEARTBEAT in the message can deliver early messages in its middle: the message
-    // needs the room of the largest, which this sink has not: refused, for the client to
+    // Three submessages are more than this sink has room for: refused, for the client to
     // send again.
     let mut b = MessageBuilder::new(MessageHeader::new(0x01, 0x80, 1, KEY));
+    for i in 1..4 {
+        b.push(&write(i, data_format::DATA), true).expect("encode");
+    }
+    let taken = sink.0 .0.len();
+    agent.handle_datagram(t0, ADDR, &b.finish(), &mut sink);
+    assert_eq!(sink.0 .0.len(), taken, "{:?}", sink.0 .0);
+    assert_eq!(agent.stats().dropped("backpressure"), 1);
+}
+
+#[test]
+fn a_heartbeat_inside_a_reliable_message_delivers_buffered_messages_after_it() {
+    // The message was given room for its own operations: buffered messages its HEARTBEAT
+    // makes deliverable come after them, not in its middle (where they could take that room
+    // and leave the rest of the message behind after it was acknowledged).
+    let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
+    let early = in_session(0x80, 2, write(2, data_format::SAMPLE));
+    agent.handle_datagram(t0, ADDR, &early, &mut rec);
+    assert_eq!(rec.0.len(), 1, "held for the gap: {:?}", rec.0);
+    let mut b = MessageBuilder::new(MessageHeader::new(0x01, 0x80, 0, KEY));
     b.push(
         &Payload::Heartbeat(HeartbeatPayload {
-            first_unacked_seq_num: 0,
-            last_unacked_seq_num: 0,
+            // The client gave up on message 1: message 2 is next after this one.
+            first_unacked_seq_num: 2,
+            last_unacked_seq_num: 2,
             stream_id: stream_id::BUILTIN_RELIABLE,
         }),
         true,
     )
     .expect("encode");
-    b.push(&write(1), true).expect("encode");
-    agent.handle_datagram(t0, ADDR, &b.finish(), &mut sink);
-    assert_eq!(sink.0 .0.len(), taken, "{:?}", sink.0 .0);
-    assert_eq!(agent.stats().dropped("backpressure"), 1);
+    b.push(&write(0, data_format::DATA), true).expect("encode");
+    agent.handle_datagram(t0, ADDR, &b.finish(), &mut rec);
+    assert_eq!(
+        rec.0[1..],
+        [
+            Op::Write(Dialect::Eprosima, data_format::DATA),
+            Op::Write(Dialect::Eprosima, data_format::SAMPLE)
+        ]
+    );
+}
+
+/// A WRITE_DATA of request `n` in `format`.
+fn write(n: u16, format: u8) -> Payload<'static> {
+    Payload::WriteData(DataPayload {
+        base: BaseObjectRequest {
+            request_id: RequestId::from_u16(n + 4),
+            object_id: ObjectId::new(1, object_kind::DATAWRITER),
+        },
+        format,
+        data: &[0, 1, 0, 0, 7, 7, 7, 7],
+    })
 }

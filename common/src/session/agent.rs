@@ -271,6 +271,9 @@ struct ProxyClient<A> {
     session_id: u8,
     addr: A,
     mtu: u16,
+    /// Whether the client announced its MTU (eProsima's CREATE_CLIENT property); if not,
+    /// `mtu` is assumed, and bounds its fragments but not its best-effort messages.
+    mtu_announced: bool,
     last_heard: Instant,
     reliable_in: HashMap<u8, ReliableInput>,
     best_effort_in: HashMap<u8, BestEffortInput>,
@@ -324,6 +327,7 @@ impl<A> ProxyClient<A> {
             session_id,
             addr,
             mtu,
+            mtu_announced: false,
             last_heard: now,
             reliable_in: HashMap::new(),
             best_effort_in: HashMap::new(),
@@ -542,6 +546,9 @@ pub struct Agent<A> {
     stats: AgentStats,
     /// Replies already made for the datagram being handled.
     replied: Vec<Reply>,
+    /// Reliable input streams named by HEARTBEATs inside reliable messages, whose buffered
+    /// messages are delivered once the message is done.
+    heartbeat_deliveries: Vec<u8>,
     /// Sessions whose snapshot changed since the last [`Agent::take_session_changes`]
     /// (with `track_sessions`), and sessions deleted since.
     changed: HashSet<ClientKey>,
@@ -572,6 +579,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             wall_clock: None,
             stats: AgentStats::default(),
             replied: Vec::new(),
+            heartbeat_deliveries: Vec::new(),
             changed: HashSet::new(),
             changed_input: HashSet::new(),
             removed: Vec::new(),
@@ -708,6 +716,8 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             now,
             &self.config,
         );
+        // Not stored: eProsima clients announce their MTU, spec clients do not.
+        client.mtu_announced = snapshot.dialect == Dialect::Eprosima;
         client.reliable_in = snapshot
             .reliable_in
             .iter()
@@ -933,6 +943,11 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             }
         } else {
             self.handle_reliable(now, key, header, hlen, bytes, sink);
+        }
+        // HEARTBEATs that came inside reliable messages (delivering may bring more).
+        while let Some(s) = self.heartbeat_deliveries.pop() {
+            self.deliver_ready(now, key, s, sink);
+            self.send_acknack(now, key, s, AckCause::Heartbeat);
         }
         self.flush_client(now, key);
         self.finish_client(now, key, sink);
@@ -1171,6 +1186,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                         existing.established_at = now;
                     }
                     existing.mtu = mtu;
+                    existing.mtu_announced = c.mtu.is_some();
                     existing.last_heard = now;
                     existing.detached = false;
                     existing.dialect = dialect;
@@ -1187,19 +1203,18 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     if existing.is_some() {
                         self.remove_client(c.client_key, sink);
                     }
-                    self.clients.insert(
+                    let mut client = ProxyClient::new(
                         c.client_key,
-                        ProxyClient::new(
-                            c.client_key,
-                            c.session_id,
-                            src,
-                            mtu,
-                            dialect,
-                            dead_time,
-                            now,
-                            &self.config,
-                        ),
+                        c.session_id,
+                        src,
+                        mtu,
+                        dialect,
+                        dead_time,
+                        now,
+                        &self.config,
                     );
+                    client.mtu_announced = c.mtu.is_some();
+                    self.clients.insert(c.client_key, client);
                     self.by_addr.insert(src, c.client_key);
                     sink.operation(Operation::ClientCreated {
                         client: c.client_key,
@@ -1439,10 +1454,17 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                             .on_heartbeat(&h);
                     }
                 }
-                // Messages the sender gave up on may have unblocked buffered ones.
+                // Messages the sender gave up on may have unblocked buffered ones. Inside a
+                // reliable message they wait for the end of it: its own operations were
+                // given room and go first (delivered in its middle, buffered ones could take
+                // that room and leave the rest of it behind, after it was acknowledged).
                 if self.once(Reply::Acknack(h.stream_id)) {
-                    self.deliver_ready(now, key, h.stream_id, sink);
-                    self.send_acknack(now, key, h.stream_id, AckCause::Heartbeat);
+                    if stream_id::is_reliable(stream) {
+                        self.heartbeat_deliveries.push(h.stream_id);
+                    } else {
+                        self.deliver_ready(now, key, h.stream_id, sink);
+                        self.send_acknack(now, key, h.stream_id, AckCause::Heartbeat);
+                    }
                 }
             }
             Payload::Heartbeat(_) => self.count_drop("heartbeat_for_best_effort_stream"),
@@ -1802,13 +1824,14 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             b.push(&payload, little_endian)
                 .map_err(|_| SendError::TooLarge)?;
             let message = b.finish();
-            // An eProsima client announces its MTU and cannot take a bigger message (its UDP
-            // buffer truncates it, its serial or TCP framing rejects it); a spec client
-            // announces none (its MTU is assumed, for fragments), so only what the transport
-            // carries bounds its best-effort messages, as before.
-            let limit = match c.dialect {
-                Dialect::Eprosima => c.mtu,
-                Dialect::Spec => self.config.max_message_size,
+            // A client that announced its MTU cannot take a bigger message (the eProsima
+            // client's UDP buffer truncates it, its serial or TCP framing rejects it); for one
+            // that announced none the MTU is assumed (for fragments), so only what the
+            // transport carries bounds its best-effort messages, as before.
+            let limit = if c.mtu_announced {
+                c.mtu
+            } else {
+                self.config.max_message_size
             };
             if message.len() > usize::from(limit) {
                 // A best-effort stream cannot fragment: dropped, as the reference agent does,
@@ -1893,10 +1916,11 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     // drops datagrams whatever their kind): every back-off step stalls its
                     // reliable output that much longer. Measured on a flooded socket, a
                     // back-off up to 400 ms for such clients left a reliable reader's
-                    // median at 1.1 s with 6 % of its samples lost to its DDS history, the
-                    // base period 0.09-0.28 s with none. The cost: a client that talks but
-                    // never acknowledges gets ten small HEARTBEATs a second. Only a silent
-                    // client is probed less and less, down to `max_heartbeat_period`.
+                    // median latency at 1.1 s with 6 % of its samples lost to its DDS
+                    // history; keeping the base period, 0.09-0.28 s and none lost. The cost:
+                    // a client that talks but never acknowledges gets ten small HEARTBEATs a
+                    // second. Only a silent client is probed less and less, its period
+                    // growing up to `max_heartbeat_period`.
                     let heard = now.saturating_duration_since(c.last_heard) < c.heartbeat_interval;
                     c.heartbeat_interval = if heard {
                         base_period
@@ -1923,17 +1947,13 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
 
 /// Whether `sink` has room for the operations of the reliable message `bytes` (header
 /// `hlen` bytes long): asked for its submessages' count when none is a FRAGMENT (whose
-/// completion can bring a message of any size) or a HEARTBEAT and every header is whole,
-/// else for the largest message.
+/// completion can bring a message of any size) and every header is whole, else for the
+/// largest message. (A HEARTBEAT in it delivers buffered messages only after it.)
 fn room_for(sink: &impl OperationSink, bytes: &[u8], hlen: usize) -> bool {
     let mut count = 0;
     for raw in Submessages::new(bytes, hlen) {
         match raw {
-            // A HEARTBEAT in the message delivers the early messages it makes ready, in the
-            // middle of this one: their operations count too.
-            Ok(r) if r.id != submessage_id::FRAGMENT && r.id != submessage_id::HEARTBEAT => {
-                count += 1
-            }
+            Ok(r) if r.id != submessage_id::FRAGMENT => count += 1,
             _ => return sink.has_room(),
         }
     }

@@ -139,7 +139,7 @@ impl PeerLink {
                 ..
             } => {
                 // The receiving UART hands bytes over a FIFO's worth at a time (or what is
-                // left of the frame), once the last of them has crossed the line; later
+                // left in the queue), once the last of them has crossed the line; later
                 // than that, all that has arrived by now.
                 let first = out.len().min(UART_FIFO);
                 if out.is_empty() || now < *free_at + byte_time(first, *bytes_per_second) {
@@ -148,9 +148,18 @@ impl PeerLink {
                 let arrived = now.saturating_duration_since(*free_at).as_secs_f64();
                 let n = ((arrived * *bytes_per_second) as usize).clamp(first, out.len());
                 let chunk: Vec<u8> = out.iter().take(n).copied().collect();
-                if let Ok(w) = line.write(&chunk) {
-                    out.drain(..w);
-                    *free_at += byte_time(w, *bytes_per_second);
+                match line.write(&chunk) {
+                    Ok(w) => {
+                        out.drain(..w);
+                        *free_at = if w == n {
+                            *free_at + byte_time(w, *bytes_per_second)
+                        } else {
+                            // The pty is full (the agent is not reading): the rest waits a
+                            // FIFO's time from now rather than being retried at once.
+                            now
+                        };
+                    }
+                    Err(_) => *free_at = now,
                 }
             }
         }
