@@ -956,9 +956,12 @@ impl Bridge {
             let _ = agent.send_info(now, client, req, result, config.as_ref());
         }
     }
-}
 
-impl Bridge {
+    /// Whether the retained reliable writes leave room for more (flow control).
+    fn retention_has_room(&self) -> bool {
+        self.retained.len() < RETAIN_MAX && self.retained.bytes < RETAIN_MAX_BYTES
+    }
+
     /// Whether a best-effort write may go to the worker (or the outbox) now: as
     /// [`OperationSink::has_room`], less the share kept for reliable and control operations
     /// ([`BEST_EFFORT_RESERVE`], [`BEST_EFFORT_OUTBOX_MAX`]).
@@ -976,7 +979,7 @@ impl Bridge {
 
 impl OperationSink for Bridge {
     fn has_room(&self) -> bool {
-        let retained = self.retained.len() < RETAIN_MAX && self.retained.bytes < RETAIN_MAX_BYTES;
+        let retained = self.retention_has_room();
         if self.hand_over_at_once && self.generation.is_some() {
             // What a client sent goes to the worker now or is refused unacknowledged (the
             // client sends it again): an operation left in this process's outbox would die
@@ -999,8 +1002,7 @@ impl OperationSink for Bridge {
                 .unwrap_or(u64::MAX)
                 .saturating_mul(2)
                 .clamp(1, HAND_OVER_HEADROOM);
-            return self.retained.len() < RETAIN_MAX
-                && self.retained.bytes < RETAIN_MAX_BYTES
+            return self.retention_has_room()
                 && self.outbox.is_empty()
                 && self.in_flight() + need <= IN_FLIGHT_WINDOW;
         }

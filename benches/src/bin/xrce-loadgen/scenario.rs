@@ -895,7 +895,7 @@ fn client_mtu(payload: usize, best_effort: bool) -> u16 {
     /// Below the largest UDP datagram (65,507 bytes).
     const MOST: usize = 65_000;
     let mtu = if best_effort {
-        (payload + HEADROOM).clamp(DEFAULT, MOST)
+        payload.saturating_add(HEADROOM).clamp(DEFAULT, MOST)
     } else {
         DEFAULT
     };
