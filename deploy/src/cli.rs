@@ -123,9 +123,22 @@ pub struct Common {
     /// /status, e.g. 127.0.0.1:9464; off by default.
     #[arg(long = "metrics", value_name = "ADDR:PORT")]
     pub metrics: Option<SocketAddr>,
+    /// Restart any process of the agent (the DDS worker, a front-end) whose resident memory
+    /// exceeds this many MiB; its clients' sessions survive the restart. Checked every
+    /// second, warned about at 80 %; off by default.
+    #[arg(
+        long = "memory-limit",
+        env = "XRCE_MEMORY_LIMIT",
+        value_name = "MIB",
+        value_parser = clap::value_parser!(u64).range(1..=MAX_MEMORY_LIMIT_MIB)
+    )]
+    pub memory_limit: Option<u64>,
     #[command(flatten)]
     pub admission: xrce_frontend::cli::AdmissionArgs,
 }
+
+/// The largest `--memory-limit` (and `memory_limit_mib`): 1 TiB.
+pub const MAX_MEMORY_LIMIT_MIB: u64 = 1 << 20;
 
 /// Options of the UDP transports.
 #[derive(Debug, Clone, Args)]
@@ -602,5 +615,18 @@ mod tests {
         assert_eq!(e.exit_code(), 2);
         let cli = parse(&["multiserial", "--devs", "/dev/a /dev/a"]).expect("parses");
         assert!(plan(cli.command.as_ref().expect("a command")).is_err());
+        for bad in ["0", "-1", "lots", "1048577"] {
+            let e = parse(&["udp4", "-p", "1", "--memory-limit", bad]).expect_err(bad);
+            assert_eq!(e.exit_code(), 2, "{bad}");
+        }
+    }
+
+    #[test]
+    fn the_memory_limit_is_in_mib() {
+        let cli = parse(&["tcp4", "-p", "1", "--memory-limit", "256"]).expect("parses");
+        let (_, common) = plan(cli.command.as_ref().expect("a command"))
+            .expect("plan")
+            .expect("transport");
+        assert_eq!(common.memory_limit, Some(256));
     }
 }

@@ -5,6 +5,7 @@
 //! [agent]
 //! instance = "gw"                  # optional: shared-memory name of the agent's processes
 //! verbose = 4                      # optional, like -v
+//! memory_limit_mib = 512           # optional, like --memory-limit (per process)
 //!
 //! [worker]
 //! refs = "profiles.xml"            # optional, like -r
@@ -85,6 +86,8 @@ pub struct AgentSection {
     pub instance: Option<String>,
     /// Verbosity 0..6, like `-v`.
     pub verbose: Option<Spanned<u8>>,
+    /// Resident memory (MiB) beyond which a process is restarted, like `--memory-limit`.
+    pub memory_limit_mib: Option<Spanned<u64>>,
 }
 
 /// `[worker]`: the DDS side.
@@ -270,6 +273,17 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
     if let Some(v) = &file.agent.verbose {
         if *v.get_ref() > 6 {
             return Err(c.err(v.span(), "agent.verbose must be 0 to 6"));
+        }
+    }
+    if let Some(m) = &file.agent.memory_limit_mib {
+        if !(1..=crate::cli::MAX_MEMORY_LIMIT_MIB).contains(m.get_ref()) {
+            return Err(c.err(
+                m.span(),
+                format!(
+                    "agent.memory_limit_mib must be 1 to {} (MiB)",
+                    crate::cli::MAX_MEMORY_LIMIT_MIB
+                ),
+            ));
         }
     }
     if let Some(i) = &file.agent.instance {
@@ -595,6 +609,8 @@ mod tests {
     fn the_documented_example_is_valid() {
         let g = check(
             r#"
+[agent]
+memory_limit_mib = 512
 [worker]
 dds_interfaces = ["127.0.0.1"]
 [[frontend]]
@@ -627,6 +643,7 @@ max_client_bytes_per_second = 100000
         )
         .expect("valid");
         assert_eq!(g.frontends.len(), 4);
+        assert_eq!(g.agent.memory_limit_mib.map(|m| m.into_inner()), Some(512));
         assert_eq!(g.frontends[0].name, "udp4-0");
         assert_eq!(g.frontends[1].id, 1);
         assert_eq!(g.frontends[3].name, "companion");
@@ -700,6 +717,14 @@ max_client_bytes_per_second = 100000
         assert_eq!(e.line, 2);
         let e = refused("[agent]\nverbose = 9\n[[frontend]]\ntransport = \"pseudoterminal\"\n");
         assert!(e.to_string().contains("verbose"), "{e}");
+        let e = refused(
+            "[agent]\nmemory_limit_mib = 0\n[[frontend]]\ntransport = \"pseudoterminal\"\n",
+        );
+        assert!(
+            e.to_string().contains("memory_limit_mib must be 1 to"),
+            "{e}"
+        );
+        assert_eq!(e.line, 2, "{e}");
         let e = refused("[worker]\n");
         assert!(e.to_string().contains("no [[frontend]]"), "{e}");
         let e = refused("[[frontend]]\ntransport = \"udp6\"\nport = 1\nbind = \"127.0.0.1\"\n");

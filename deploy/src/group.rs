@@ -46,6 +46,8 @@ pub struct Group {
     pub frontends: Vec<FrontendLaunch>,
     /// Where the metrics endpoint is served, if anywhere.
     pub metrics: Option<std::net::SocketAddr>,
+    /// Resident memory (bytes) beyond which a process is restarted, if any.
+    pub memory_limit: Option<u64>,
 }
 
 /// The log filter: `-v` (or the file's `verbose`) first, then XRCE_LOG, then the default.
@@ -185,6 +187,7 @@ impl Group {
             filter,
             env,
             metrics: common.metrics,
+            memory_limit: common.memory_limit.map(|mib| mib << 20),
             frontends: vec![FrontendLaunch {
                 name: frontend.label(),
                 id: 0,
@@ -236,6 +239,11 @@ impl Group {
             env,
             frontends,
             metrics: g.metrics,
+            memory_limit: g
+                .agent
+                .memory_limit_mib
+                .as_ref()
+                .map(|mib| *mib.get_ref() << 20),
         })
     }
 
@@ -381,7 +389,14 @@ impl Group {
         let monitoring = crate::Monitoring {
             dir: status_dir,
             stale_after: stall_timeout()?,
+            memory_limit: self.memory_limit,
         };
+        if let Some(limit) = self.memory_limit {
+            tracing::info!(
+                limit_mib = limit >> 20,
+                "each process is restarted beyond this resident memory"
+            );
+        }
         supervise(specs, cleanup, report_ready, Some(monitoring))?;
         drop(ptys);
         Ok(())
@@ -421,6 +436,13 @@ impl Group {
             cmd.arg("frontend").args(&f.args);
         }
         cmd.envs(self.env.iter().map(|(k, v)| (k, v)));
+        if self.memory_limit.is_some() {
+            tracing::warn!(
+                process = name,
+                "the memory limit is kept by the supervisor, which does not run here: give the \
+                 unit MemoryMax= instead (systemd restarts it, its sessions survive)"
+            );
+        }
         tracing::info!(process = name, instance = %self.instance, "starting");
         Err(anyhow::anyhow!("starting {name}: {}", cmd.exec()))
     }

@@ -54,7 +54,14 @@ pub struct Monitoring {
     pub dir: PathBuf,
     /// A child whose report is older than this is killed and restarted (never: `None`).
     pub stale_after: Option<Duration>,
+    /// A child whose resident memory exceeds this many bytes is killed and restarted (its
+    /// sessions survive: the worker's are replayed to its successor, a front-end's are handed
+    /// over); never: `None`.
+    pub memory_limit: Option<u64>,
 }
+
+/// Share of the memory limit (per mille) at which a child is warned about, once per life.
+pub const MEMORY_WARN_PERMILLE: u64 = 800;
 
 #[derive(Debug)]
 struct Supervised {
@@ -65,12 +72,31 @@ struct Supervised {
     restart_at: Option<Instant>,
     restarts: u64,
     watchdog_kills: u64,
+    memory_kills: u64,
+    /// Whether this life of the child was already logged as near its memory limit.
+    memory_warned: bool,
     /// The `updated_unix_ms` of its last report, and when (on the supervisor's monotonic
     /// clock) that value was first seen: a wall-clock step cannot make a child look wedged.
     last_report: Option<(u64, Instant)>,
 }
 
 impl Supervised {
+    /// A child just started for the first time.
+    fn started(spec: ChildSpec, child: Child) -> Self {
+        Supervised {
+            spec,
+            child: Some(child),
+            started: Instant::now(),
+            backoff: MIN_BACKOFF,
+            restart_at: None,
+            restarts: 0,
+            watchdog_kills: 0,
+            memory_kills: 0,
+            memory_warned: false,
+            last_report: None,
+        }
+    }
+
     fn status(&self, now: Instant) -> ChildStatus {
         ChildStatus {
             name: self.spec.name.clone(),
@@ -83,7 +109,44 @@ impl Supervised {
             },
             restarts: self.restarts,
             watchdog_kills: self.watchdog_kills,
+            memory_kills: self.memory_kills,
         }
+    }
+
+    /// Kills the child if its resident memory (`resident_of` its pid) exceeds `limit` bytes,
+    /// so that it is restarted; warns once per life when it comes near. Whether it killed.
+    fn check_memory(&mut self, limit: u64, resident_of: impl Fn(u32) -> Option<u64>) -> bool {
+        let Some(child) = &self.child else {
+            return false;
+        };
+        let pid = child.id();
+        let Some(resident) = resident_of(pid) else {
+            return false;
+        };
+        let mib = |b: u64| (b as f64 / 1_048_576.0 * 10.0).round() / 10.0;
+        if resident > limit {
+            tracing::error!(
+                name = %self.spec.name,
+                pid,
+                resident_mib = mib(resident),
+                limit_mib = mib(limit),
+                "child's resident memory is over the memory limit; killing it to restart it"
+            );
+            self.memory_kills += 1;
+            let _ = kill(Pid::from_raw(pid as i32), Signal::SIGKILL);
+            return true;
+        }
+        if !self.memory_warned && resident >= limit / 1000 * MEMORY_WARN_PERMILLE {
+            self.memory_warned = true;
+            tracing::warn!(
+                name = %self.spec.name,
+                pid,
+                resident_mib = mib(resident),
+                limit_mib = mib(limit),
+                "child's resident memory is near the memory limit (it is restarted beyond it)"
+            );
+        }
+        false
     }
 
     /// Whether its loop stopped reporting: its report (of this very process) has not changed
@@ -168,16 +231,7 @@ pub fn supervise(
             anyhow::anyhow!("starting {} ({}): {e}", spec.name, spec.program.display())
         })?;
         tracing::info!(name = %spec.name, pid = child.id(), "started");
-        children.push(Supervised {
-            spec,
-            child: Some(child),
-            started: Instant::now(),
-            backoff: MIN_BACKOFF,
-            restart_at: None,
-            restarts: 0,
-            watchdog_kills: 0,
-            last_report: None,
-        });
+        children.push(Supervised::started(spec, child));
     }
     // Runs with SIGINT/SIGTERM blocked, so threads it starts leave them to this loop.
     on_started();
@@ -229,6 +283,11 @@ pub fn supervise(
                     }
                 }
             }
+            if let Some(limit) = m.memory_limit {
+                for c in &mut children {
+                    c.check_memory(limit, status::resident_bytes_of);
+                }
+            }
         }
         for c in &mut children {
             if let Some(child) = c.child.as_mut() {
@@ -250,6 +309,7 @@ pub fn supervise(
                         tracing::info!(name = %c.spec.name, pid = child.id(), restarts = c.restarts, "restarted");
                         c.child = Some(child);
                         c.started = now;
+                        c.memory_warned = false;
                     }
                     Err(e) => {
                         tracing::error!(name = %c.spec.name, error = %e, "restart failed");
@@ -300,5 +360,67 @@ pub fn verbosity_filter(v: u8) -> &'static str {
         // Every XRCE message in and out as hex (the core logs them at trace), without the
         // trace of the DDS stack underneath.
         _ => "trace,rustdds=warn,iceoryx2=info,mio=info",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sleeper() -> Supervised {
+        let spec = ChildSpec {
+            name: "sleeper".into(),
+            program: "sleep".into(),
+            args: vec!["30".into()],
+            env: Vec::new(),
+            fds: Vec::new(),
+            role: "worker".into(),
+            report: None,
+        };
+        let child = spawn(&spec).expect("sleep runs");
+        Supervised::started(spec, child)
+    }
+
+    fn exited_within(c: &mut Supervised, d: Duration) -> bool {
+        let end = Instant::now() + d;
+        while Instant::now() < end {
+            if let Some(Ok(Some(_))) = c.child.as_mut().map(Child::try_wait) {
+                return true;
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        false
+    }
+
+    #[test]
+    fn a_child_over_the_memory_limit_is_killed_once_and_counted() {
+        let mut c = sleeper();
+        let pid = c.child.as_ref().map(Child::id).expect("pid");
+        // Its real resident memory is read when no other figure is given.
+        assert!(status::resident_bytes_of(pid).is_some_and(|b| b > 0));
+        assert!(!c.check_memory(100 << 20, |_| Some(79 << 20)));
+        assert!(!c.memory_warned, "79 % is not near yet");
+        assert!(!c.check_memory(100 << 20, |_| Some(80 << 20)));
+        assert!(c.memory_warned, "80 % is warned about");
+        assert!(
+            !c.check_memory(100 << 20, |_| Some(100 << 20)),
+            "at the limit is within it"
+        );
+        assert!(!exited_within(&mut c, Duration::from_millis(200)));
+        assert!(c.check_memory(100 << 20, |p| (p == pid).then_some((100 << 20) + 1)));
+        assert_eq!(c.status(Instant::now()).memory_kills, 1);
+        assert!(exited_within(&mut c, Duration::from_secs(5)), "killed");
+    }
+
+    #[test]
+    fn a_child_whose_memory_cannot_be_read_is_left_alone() {
+        let mut c = sleeper();
+        assert!(!c.check_memory(1, |_| None));
+        assert!(!exited_within(&mut c, Duration::from_millis(200)));
+        assert_eq!(c.memory_kills, 0);
+        if let Some(child) = c.child.as_mut() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
     }
 }

@@ -199,6 +199,11 @@ fn families(s: &AgentStatus) -> Vec<Family> {
         Counter,
         "Children killed (and restarted) because their event loop stopped reporting.",
     );
+    let mut memory_kills = Family::new(
+        "xrce_memory_limit_kills",
+        Counter,
+        "Children killed (and restarted) because their resident memory exceeded the limit.",
+    );
     let mut cpu = Family::new(
         "xrce_process_cpu_seconds",
         Counter,
@@ -259,7 +264,8 @@ fn families(s: &AgentStatus) -> Vec<Family> {
                 "worker" => worker_restarts.add(Vec::new(), c.restarts),
                 _ => frontend_restarts.add(vec![("frontend", name.clone())], c.restarts),
             }
-            watchdog_kills.add(vec![("process", name)], c.watchdog_kills);
+            watchdog_kills.add(vec![("process", name.clone())], c.watchdog_kills);
+            memory_kills.add(vec![("process", name)], c.memory_kills);
         }
     }
     let mut out = vec![sessions, connected];
@@ -272,6 +278,7 @@ fn families(s: &AgentStatus) -> Vec<Family> {
         worker_restarts,
         frontend_restarts,
         watchdog_kills,
+        memory_kills,
         cpu,
         memory,
         start,
@@ -417,6 +424,7 @@ mod tests {
                             name: "xrce-dds-worker".into(),
                             role: "worker".into(),
                             restarts: 2,
+                            memory_kills: 1,
                             ..Default::default()
                         },
                         ChildStatus {
@@ -469,6 +477,7 @@ mod tests {
             "xrce_dropped_total{process=\"udp4-8888\",reason=\"bad_header\"} 5",
             "xrce_dropped_total{process=\"worker\",reason=\"frontend_gone\"} 1",
             "xrce_worker_restarts_total 2",
+            "xrce_memory_limit_kills_total{process=\"worker\"} 1",
             "xrce_frontend_restarts_total{frontend=\"udp4-8888\"} 1",
             "xrce_worker_entities{kind=\"writer\"} 3",
             "xrce_process_cpu_seconds_total{process=\"worker\"} 1.5",

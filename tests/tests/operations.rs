@@ -1,6 +1,6 @@
 //! What an operator sees, through real processes: the Prometheus endpoint and `/status`
 //! while clients exchange samples, `xrce-agent status` reading them, restarts counted, and
-//! the supervisor's watchdog restarting a front-end whose loop stopped.
+//! the supervisor's watchdog restarting a front-end whose loop stopped, and its memory limit.
 
 use std::io::{Read, Write};
 use std::net::TcpStream;
@@ -77,6 +77,9 @@ fn metrics_and_status_show_the_clients_their_samples_and_the_restarts() {
             "127.0.0.1",
             "--metrics",
             &listen,
+            // Far above what any process uses: nothing is killed for it.
+            "--memory-limit",
+            "4096",
         ],
     )
     .expect("agent");
@@ -116,6 +119,11 @@ fn metrics_and_status_show_the_clients_their_samples_and_the_restarts() {
         Some(1.0)
     );
     assert_eq!(sample(&text, "xrce_worker_restarts_total"), Some(0.0));
+    assert_eq!(
+        sample(&text, "xrce_memory_limit_kills_total{process=\"worker\"}"),
+        Some(0.0),
+        "{text}"
+    );
     for process in ["supervisor", "worker", &format!("udp4-{port}")] {
         let rss = sample(
             &text,
@@ -218,5 +226,59 @@ fn a_front_end_whose_loop_stops_is_killed_and_restarted() {
     let (code, table, stderr) = status_command(&["--instance", agent.instance()]);
     assert_eq!(code, Some(0), "{stderr}");
     assert!(table.contains(&format!("udp4-{port}")), "{table}");
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn a_process_over_the_memory_limit_is_killed_and_restarted() {
+    // Every process of an agent is over 1 MiB: each is killed and restarted, with back-off.
+    let port = free_udp_port();
+    let metrics_port = free_tcp_port();
+    let instance = xrce_tests::unique_instance("memlimit");
+    let args = [
+        "udp4",
+        "-p",
+        &port.to_string(),
+        "--bind",
+        "127.0.0.1",
+        "--dds-interface",
+        "127.0.0.1",
+        "--instance",
+        &instance,
+        "--metrics",
+        &format!("127.0.0.1:{metrics_port}"),
+        "--memory-limit",
+        "1",
+    ];
+    let agent = AgentProcess::launch_raw(
+        &args,
+        instance.clone(),
+        "each process is restarted beyond this resident memory",
+        "127.0.0.1".parse().expect("address"),
+        port,
+    )
+    .expect("agent");
+    let out = agent.output().clone();
+    for name in ["xrce-dds-worker", &format!("xrce-frontend-udp4-{port}")] {
+        out.wait_for(
+            0,
+            &format!("over the memory limit; killing it to restart it name={name}"),
+            20 * SECOND,
+        )
+        .unwrap_or_else(|| panic!("{name} was not killed for its memory"));
+        out.wait_for(0, &format!("restarted name={name}"), 20 * SECOND)
+            .unwrap_or_else(|| panic!("{name} was not restarted"));
+    }
+    let text = scrape_until(metrics_port, 20 * SECOND, |t| {
+        sample(t, "xrce_memory_limit_kills_total{process=\"worker\"}").is_some_and(|v| v >= 2.0)
+    });
+    assert!(
+        // The second restart may still wait for its back-off.
+        sample(&text, "xrce_worker_restarts_total").is_some_and(|v| v >= 1.0),
+        "{text}"
+    );
+    // The restarts back off (50 ms doubling up to 5 s): a crash loop, not a busy loop.
+    out.wait_for(0, "(SIGKILL) restart_in=800ms", 30 * SECOND)
+        .expect("the restarts did not back off");
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -139,6 +139,9 @@ pub struct ChildStatus {
     pub restarts: u64,
     /// How often it was killed for not reporting (a wedged loop).
     pub watchdog_kills: u64,
+    /// How often it was killed for resident memory over the configured limit.
+    #[serde(default)]
+    pub memory_kills: u64,
 }
 
 /// Milliseconds since the Unix epoch.
@@ -215,6 +218,14 @@ pub fn own_usage() -> (f64, u64) {
     let cpu = (stat.utime + stat.stime) as f64 / ticks;
     let rss = stat.rss * procfs::page_size();
     (cpu, rss)
+}
+
+/// The resident memory (bytes) of process `pid`, when /proc tells.
+pub fn resident_bytes_of(pid: u32) -> Option<u64> {
+    let statm = procfs::process::Process::new(pid as i32)
+        .and_then(|p| p.statm())
+        .ok()?;
+    Some(statm.resident * procfs::page_size())
 }
 
 /// Whether a process is alive (its /proc entry exists and is no zombie).
