@@ -43,7 +43,8 @@ $LOADGEN --no-agent --port "${QUIET_PORT:-9000}" --domain 1 --first-client-key 0
     > "$OUT/$TAG-quiet.txt" 2>&1
 wait $FLOOD
 grep -E "^Udp:" /proc/net/snmp > "$OUT/$TAG-udp.txt"
-curl -s 127.0.0.1:9100/metrics | grep -E "^xrce_dropped" > "$OUT/$TAG-drops.txt"
+curl -s 127.0.0.1:9100/metrics \
+    | grep -E "^xrce_(dropped|memory_limit_kills|process_resident_memory)" > "$OUT/$TAG-drops.txt"
 kill $AGENT
 wait $AGENT
 echo "== $TAG: quiet pair"
