@@ -47,6 +47,16 @@ pub const HAND_OVER_HEADROOM: u64 = 48;
 /// the worker handles what is in flight in batches, and a shallower window costs
 /// best-effort throughput (a 48-operation reserve cost a fifth of it at 1 kB samples).
 pub const BEST_EFFORT_RESERVE: u64 = 8;
+/// Best-effort writes (hand-over mode) that wait in this process for the window's
+/// best-effort share when the worker has not yet taken the ones before: a worker pass that
+/// stalls for a few milliseconds (DDS discovery, a burst of another client's) is absorbed
+/// instead of dropping every write that comes meanwhile (about 10 ms of 20,000 samples/s).
+/// Beyond it, and beyond [`BEST_EFFORT_WAITING_MAX_BYTES`], they are dropped (counted): a
+/// sustained overload is shed, not queued. Nothing was acknowledged for them, so losing them
+/// with this process breaks no promise.
+pub const BEST_EFFORT_WAITING_MAX: usize = 256;
+/// Bytes of best-effort writes waiting (see [`BEST_EFFORT_WAITING_MAX`]).
+pub const BEST_EFFORT_WAITING_MAX_BYTES: usize = 1 << 20;
 /// Queued operations (outbox mode) beyond which best-effort writes are dropped rather than
 /// queued: stale best-effort data is worth little, and reliable operations queued behind it
 /// would wait for all of it.
@@ -97,6 +107,22 @@ enum Awaited {
     Yes,
     /// Internal or replayed: do not forward the STATUS.
     No,
+}
+
+/// The queues of operations not yet sent.
+#[derive(Debug, Clone, Copy)]
+enum Queue {
+    Outbox,
+    BestEffortWaiting,
+}
+
+/// Where a best-effort write goes ([`Bridge::best_effort_route`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum BestEffortRoute {
+    /// To the worker (or, outside hand-over mode, the outbox), as any operation.
+    Now,
+    /// To the best-effort waiting queue, for the window's best-effort share.
+    Wait,
 }
 
 #[derive(Debug)]
@@ -247,6 +273,9 @@ pub struct Bridge {
     /// (reported by the worker; only rises).
     acknowledged: u64,
     outbox: ByteQueue<OwnedOp>,
+    /// Best-effort writes waiting for the window's best-effort share (hand-over mode; see
+    /// [`BEST_EFFORT_WAITING_MAX`]); sent after the outbox.
+    best_effort_waiting: ByteQueue<OwnedOp>,
     retained: ByteQueue<Retained>,
     /// Sent operations whose STATUS a client waits for: seq -> (client, request, kind).
     pending: HashMap<u64, (ClientKey, BaseObjectRequest, MessageKind)>,
@@ -327,6 +356,7 @@ impl Bridge {
             processed: 0,
             acknowledged: 0,
             outbox: ByteQueue::default(),
+            best_effort_waiting: ByteQueue::default(),
             retained: ByteQueue::default(),
             pending: HashMap::new(),
             graphs: HashMap::new(),
@@ -403,9 +433,9 @@ impl Bridge {
         self.generation
     }
 
-    /// Operations waiting to be sent.
+    /// Operations waiting to be sent (the outbox and the best-effort writes waiting).
     pub fn backlog(&self) -> usize {
-        self.outbox.len()
+        self.outbox.len() + self.best_effort_waiting.len()
     }
 
     fn in_flight(&self) -> u64 {
@@ -488,27 +518,14 @@ impl Bridge {
         }
     }
 
-    /// Sends queued operations while the window allows; wakes the worker once.
+    /// Sends queued operations while the window allows (the outbox first, then best-effort
+    /// writes waiting for their share); wakes the worker once.
     pub fn pump(&mut self) {
-        while self.can_send_now() {
-            let Some(mut op) = self.outbox.pop_front() else {
-                break;
-            };
-            op.header.op_seq = self.next_seq;
-            op.header.incarnation = self.incarnation;
-            if let Err(e) = self.requests.send(&op.header, &op.body) {
-                tracing::warn!(error = %e, "could not hand an operation to the worker; will retry");
-                self.outbox.push_front(op);
-                break;
-            }
-            let OwnedOp {
-                header,
-                body,
-                retain,
-                awaited,
-            } = op;
-            self.after_send(header, retain, awaited, move || body);
-        }
+        while self.can_send_now() && self.send_first(Queue::Outbox) {}
+        while self.outbox.is_empty()
+            && self.best_effort_share_free()
+            && self.send_first(Queue::BestEffortWaiting)
+        {}
         if self.dirty {
             match self.requests.notify() {
                 Ok(()) => self.dirty = false,
@@ -516,6 +533,36 @@ impl Bridge {
                 Err(e) => tracing::debug!(error = %e, "worker wake-up failed"),
             }
         }
+    }
+
+    fn queue(&mut self, which: Queue) -> &mut ByteQueue<OwnedOp> {
+        match which {
+            Queue::Outbox => &mut self.outbox,
+            Queue::BestEffortWaiting => &mut self.best_effort_waiting,
+        }
+    }
+
+    /// Sends the first operation of a queue; false if it is empty or the send failed (the
+    /// operation stays first, tried again on a later pass).
+    fn send_first(&mut self, which: Queue) -> bool {
+        let Some(mut op) = self.queue(which).pop_front() else {
+            return false;
+        };
+        op.header.op_seq = self.next_seq;
+        op.header.incarnation = self.incarnation;
+        if let Err(e) = self.requests.send(&op.header, &op.body) {
+            tracing::warn!(error = %e, "could not hand an operation to the worker; will retry");
+            self.queue(which).push_front(op);
+            return false;
+        }
+        let OwnedOp {
+            header,
+            body,
+            retain,
+            awaited,
+        } = op;
+        self.after_send(header, retain, awaited, move || body);
+        true
     }
 
     /// Handles worker announcements and replies (consuming their wake-ups when their
@@ -962,17 +1009,37 @@ impl Bridge {
         self.retained.len() < RETAIN_MAX && self.retained.bytes < RETAIN_MAX_BYTES
     }
 
-    /// Whether a best-effort write may go to the worker (or the outbox) now: as
-    /// [`OperationSink::has_room`], less the share kept for reliable and control operations
-    /// ([`BEST_EFFORT_RESERVE`], [`BEST_EFFORT_OUTBOX_MAX`]).
-    fn has_room_for_best_effort(&self) -> bool {
-        if !self.has_room() {
-            return false;
+    /// Whether the window has room for a best-effort write beyond the share kept for
+    /// reliable and control operations ([`BEST_EFFORT_RESERVE`]).
+    fn best_effort_share_free(&self) -> bool {
+        self.can_send_now()
+            && self.in_flight() + HAND_OVER_HEADROOM + BEST_EFFORT_RESERVE < IN_FLIGHT_WINDOW
+    }
+
+    /// Where a best-effort write goes now, if anywhere: as [`OperationSink::has_room`], less
+    /// the share kept for reliable and control operations ([`BEST_EFFORT_RESERVE`],
+    /// [`BEST_EFFORT_OUTBOX_MAX`]), plus a short wait in hand-over mode
+    /// ([`BEST_EFFORT_WAITING_MAX`]).
+    fn best_effort_route(&self) -> Option<BestEffortRoute> {
+        if !self.retention_has_room() {
+            return None;
         }
         if self.hand_over_at_once && self.generation.is_some() {
-            self.in_flight() + HAND_OVER_HEADROOM + BEST_EFFORT_RESERVE < IN_FLIGHT_WINDOW
+            if self.outbox.is_empty()
+                && self.best_effort_waiting.is_empty()
+                && self.best_effort_share_free()
+            {
+                Some(BestEffortRoute::Now)
+            } else if self.best_effort_waiting.len() < BEST_EFFORT_WAITING_MAX
+                && self.best_effort_waiting.bytes < BEST_EFFORT_WAITING_MAX_BYTES
+            {
+                Some(BestEffortRoute::Wait)
+            } else {
+                None
+            }
         } else {
-            self.outbox.len() < BEST_EFFORT_OUTBOX_MAX
+            (self.has_room() && self.outbox.len() < BEST_EFFORT_OUTBOX_MAX)
+                .then_some(BestEffortRoute::Now)
         }
     }
 }
@@ -1118,7 +1185,12 @@ impl OperationSink for Bridge {
                     Awaited::No
                 };
                 let reliable = stream_id::is_reliable(stream);
-                if !reliable && !self.has_room_for_best_effort() {
+                let route = if reliable {
+                    Some(BestEffortRoute::Now)
+                } else {
+                    self.best_effort_route()
+                };
+                let Some(route) = route else {
                     // Best-effort data is not held back by flow control: drop it, counted.
                     self.stats.ops_dropped += 1;
                     if self.stats.ops_dropped.is_power_of_two() {
@@ -1128,13 +1200,25 @@ impl OperationSink for Bridge {
                             in_flight = self.in_flight(),
                             outbox = self.outbox.len(),
                             retained = self.retained.len(),
+                            waiting = self.best_effort_waiting.len(),
                             "best-effort write dropped: the worker has not taken the \
                              operations sent before it (further drops are counted)"
                         );
                     }
                     return;
+                };
+                match route {
+                    BestEffortRoute::Now => self.submit(h, data.data, reliable, awaited),
+                    BestEffortRoute::Wait => {
+                        h.incarnation = self.incarnation;
+                        self.best_effort_waiting.push_back(OwnedOp {
+                            header: h,
+                            body: data.data.to_vec(),
+                            retain: false,
+                            awaited,
+                        });
+                    }
                 }
-                self.submit(h, data.data, reliable, awaited);
             }
             Operation::GetInfo {
                 client,

@@ -447,22 +447,15 @@ fn a_write_its_readers_acknowledged_is_not_resent_to_a_new_worker() {
     xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
-#[test]
-fn a_best_effort_flood_leaves_room_for_reliable_writes() {
-    use xrce_common::ipc::IN_FLIGHT_WINDOW;
-    use xrce_frontend::bridge::{BEST_EFFORT_RESERVE, HAND_OVER_HEADROOM};
-    let inst = instance("flood");
-    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 5);
-    // A worker that takes nothing for a while: best-effort writes fill what they may of
-    // the window and the rest are dropped, counted.
-    let now = Instant::now();
-    for i in 0..IN_FLIGHT_WINDOW {
+/// Sends `n` best-effort writes of `w` (`{tag} {i}`) from the rig's client at `now`.
+fn best_effort_writes(rig: &mut Rig, now: Instant, w: ObjectId, tag: &str, n: u64) {
+    for i in 0..n {
         rig.client
             .write(
                 now,
                 stream_id::BUILTIN_BEST_EFFORT,
                 w,
-                format!("flood {i}").as_bytes(),
+                format!("{tag} {i}").as_bytes(),
             )
             .expect("write");
         while let Some(d) = rig.client.poll_transmit() {
@@ -470,11 +463,36 @@ fn a_best_effort_flood_leaves_room_for_reliable_writes() {
         }
     }
     rig.bridge.pump();
-    assert!(
-        rig.bridge.stats().ops_dropped > 0,
-        "the flood was not bounded"
+}
+
+/// The bodies of the WRITE operations among `served`.
+fn write_bodies(served: &[(IpcHeader, Vec<u8>)]) -> Vec<String> {
+    served
+        .iter()
+        .filter(|(h, _)| h.kind == MessageKind::Write)
+        .map(|(_, b)| String::from_utf8_lossy(b).into_owned())
+        .collect()
+}
+
+#[test]
+fn a_best_effort_flood_leaves_room_for_reliable_writes() {
+    use xrce_common::ipc::IN_FLIGHT_WINDOW;
+    use xrce_frontend::bridge::{BEST_EFFORT_RESERVE, BEST_EFFORT_WAITING_MAX, HAND_OVER_HEADROOM};
+    let inst = instance("flood");
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 5);
+    // A worker that takes nothing for a while: best-effort writes fill what they may of
+    // the window, a few wait for it, and the rest are dropped, counted.
+    let now = Instant::now();
+    let share = IN_FLIGHT_WINDOW - HAND_OVER_HEADROOM - BEST_EFFORT_RESERVE;
+    let waiting = BEST_EFFORT_WAITING_MAX as u64;
+    best_effort_writes(&mut rig, now, w, "flood", share + waiting + 100);
+    assert_eq!(
+        rig.bridge.stats().ops_dropped,
+        100,
+        "the flood beyond the window's share and the waiting queue"
     );
-    // A reliable write is still taken at once.
+    assert_eq!(rig.bridge.backlog(), BEST_EFFORT_WAITING_MAX);
+    // A reliable write is still taken at once, ahead of the waiting best-effort writes.
     rig.client
         .write(now, stream_id::BUILTIN_RELIABLE, w, b"urgent")
         .expect("write");
@@ -482,22 +500,49 @@ fn a_best_effort_flood_leaves_room_for_reliable_writes() {
         rig.agent.handle_datagram(now, ADDR, &d, &mut rig.bridge);
     }
     rig.bridge.pump();
-    let served = worker.serve();
-    let writes: Vec<&Vec<u8>> = served
-        .iter()
-        .filter(|(h, _)| h.kind == MessageKind::Write)
-        .map(|(_, b)| b)
-        .collect();
-    let flood = writes.iter().filter(|b| b.starts_with(b"flood")).count() as u64;
+    let writes = write_bodies(&worker.serve());
+    let flood = writes.iter().filter(|b| b.starts_with("flood")).count() as u64;
+    assert_eq!(flood, share, "best-effort writes in flight");
     assert!(
-        flood <= IN_FLIGHT_WINDOW - HAND_OVER_HEADROOM - BEST_EFFORT_RESERVE,
-        "{flood} best-effort writes in flight"
-    );
-    assert!(flood > 0);
-    assert!(
-        writes.iter().any(|b| b.ends_with(b"urgent")),
+        writes.iter().any(|b| b.ends_with("urgent")),
         "the reliable write was refused behind the flood ({flood} best-effort writes in flight)"
     );
+    drop((rig, worker));
+    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
+}
+
+#[test]
+fn best_effort_writes_wait_out_a_short_worker_stall_in_order() {
+    use xrce_common::ipc::IN_FLIGHT_WINDOW;
+    use xrce_frontend::bridge::{BEST_EFFORT_RESERVE, HAND_OVER_HEADROOM};
+    let inst = instance("stall");
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 7);
+    // The worker stalls while more best-effort writes come than the window's share holds.
+    let share = IN_FLIGHT_WINDOW - HAND_OVER_HEADROOM - BEST_EFFORT_RESERVE;
+    let n = share + 100;
+    best_effort_writes(&mut rig, Instant::now(), w, "be", n);
+    assert_eq!(rig.bridge.stats().ops_dropped, 0, "nothing is dropped");
+    assert_eq!(
+        rig.bridge.backlog(),
+        100,
+        "the writes beyond the share wait"
+    );
+    // It catches up: every write reaches it, once, in the order sent.
+    let mut got = Vec::new();
+    let end = Instant::now() + Duration::from_secs(10);
+    while (got.len() as u64) < n && Instant::now() < end {
+        got.extend(write_bodies(&worker.serve()));
+        rig.bridge
+            .poll_ipc(Instant::now(), &mut rig.agent, true, true);
+        rig.bridge.pump();
+    }
+    let expected: Vec<String> = (0..n).map(|i| format!("be {i}")).collect();
+    let got: Vec<String> = got
+        .iter()
+        .map(|b| b[b.find("be ").expect("a write of this test")..].to_string())
+        .collect();
+    assert_eq!(got, expected);
+    assert_eq!(rig.bridge.backlog(), 0);
     drop((rig, worker));
     xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
