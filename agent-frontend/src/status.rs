@@ -40,6 +40,7 @@ pub fn report<T: Transport>(
         ("samples_delivered", core.samples_out),
         ("retransmissions", core.retransmissions),
         ("reads_paused", b.reads_paused),
+        ("best_effort_sheds", b.best_effort_sheds),
         ("replays", b.replays),
         ("writes_resent", b.writes_resent),
         ("writes_acknowledged", b.writes_acknowledged),

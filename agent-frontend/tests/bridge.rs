@@ -548,6 +548,53 @@ fn best_effort_writes_wait_out_a_short_worker_stall_in_order() {
 }
 
 #[test]
+fn after_an_overflow_best_effort_writes_are_shed_not_queued_for_a_while() {
+    use xrce_common::ipc::IN_FLIGHT_WINDOW;
+    use xrce_frontend::bridge::{BEST_EFFORT_RESERVE, BEST_EFFORT_WAITING_MAX, HAND_OVER_HEADROOM};
+    let inst = instance("shed");
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 8);
+    // Longer than the default, so that a slow machine does not see it end early.
+    let hold = Duration::from_secs(2);
+    rig.bridge.set_best_effort_shed_hold(hold);
+    let share = IN_FLIGHT_WINDOW - HAND_OVER_HEADROOM - BEST_EFFORT_RESERVE;
+    let waiting = BEST_EFFORT_WAITING_MAX as u64;
+    // Let the worker take everything sent and waiting.
+    let catch_up = |rig: &mut Rig| {
+        let end = Instant::now() + Duration::from_secs(10);
+        while Instant::now() < end {
+            worker.serve();
+            rig.bridge
+                .poll_ipc(Instant::now(), &mut rig.agent, true, true);
+            rig.bridge.pump();
+            if rig.bridge.backlog() == 0 && worker.serve().is_empty() {
+                rig.bridge
+                    .poll_ipc(Instant::now(), &mut rig.agent, true, true);
+                return;
+            }
+        }
+        panic!("the worker did not catch up");
+    };
+    // An overload: more than the window's share and the waiting queue hold.
+    best_effort_writes(&mut rig, Instant::now(), w, "flood", share + waiting + 1);
+    assert_eq!(rig.bridge.stats().ops_dropped, 1);
+    assert_eq!(rig.bridge.stats().best_effort_sheds, 1);
+    catch_up(&mut rig);
+    // Right after it, what does not fit in the share is dropped, not queued.
+    best_effort_writes(&mut rig, Instant::now(), w, "shed", share + 10);
+    assert_eq!(rig.bridge.backlog(), 0, "queued while shedding");
+    assert_eq!(rig.bridge.stats().ops_dropped, 11);
+    catch_up(&mut rig);
+    // Once the hold is over, a short stall is waited out again.
+    std::thread::sleep(hold);
+    best_effort_writes(&mut rig, Instant::now(), w, "stall", share + 10);
+    assert_eq!(rig.bridge.backlog(), 10, "not queued after the hold");
+    assert_eq!(rig.bridge.stats().ops_dropped, 11);
+    assert_eq!(rig.bridge.stats().best_effort_sheds, 1);
+    drop((rig, worker));
+    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
+}
+
+#[test]
 fn small_reliable_messages_may_fill_the_window() {
     use xrce_common::ipc::IN_FLIGHT_WINDOW;
     use xrce_frontend::bridge::HAND_OVER_HEADROOM;

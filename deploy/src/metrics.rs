@@ -113,7 +113,7 @@ fn families(s: &AgentStatus) -> Vec<Family> {
         .processes
         .iter()
         .find_map(|p| p.worker.as_ref().map(|w| w.generation));
-    let per_frontend: [(&str, &'static str, &'static str); 9] = [
+    let per_frontend: [(&str, &'static str, &'static str); 10] = [
         (
             "messages_received",
             "xrce_messages_received",
@@ -143,6 +143,11 @@ fn families(s: &AgentStatus) -> Vec<Family> {
             "reads_paused",
             "xrce_reads_paused",
             "Times a read was paused because its client did not keep up.",
+        ),
+        (
+            "best_effort_sheds",
+            "xrce_best_effort_sheds",
+            "Times best-effort writes overflowed their wait for the worker (an overload: they are then shed, not queued, for 200 ms).",
         ),
         (
             "replays",
