@@ -228,6 +228,21 @@ impl<T: Weighed> ByteQueue<T> {
             self.push_back(t);
         }
     }
+
+    /// Keeps the entries `keep` says yes to, in order; returns how many it removed.
+    fn retain(&mut self, mut keep: impl FnMut(&T) -> bool) -> usize {
+        let before = self.items.len();
+        let mut bytes = 0;
+        self.items.retain(|t| {
+            let kept = keep(t);
+            if kept {
+                bytes += t.weight();
+            }
+            kept
+        });
+        self.bytes = bytes;
+        before - self.items.len()
+    }
 }
 
 /// Counters of the bridge.
@@ -643,6 +658,12 @@ impl Bridge {
         // The new worker starts every read unpaused.
         self.paused.clear();
         let old_outbox = self.outbox.take();
+        // Best-effort writes that waited for the share of a worker now gone are stale: they
+        // are dropped, as they would have been without the wait, and the new worker starts
+        // without a shedding hold.
+        let stale = self.best_effort_waiting.take();
+        self.stats.ops_dropped += stale.len() as u64;
+        self.best_effort_shed_until = None;
         // Operations a client still waits for: answered by the replay, or (deletes) now.
         let mut awaited: HashMap<(ClientKey, ObjectId), RequestId> = HashMap::new();
         // Writes of spec-dialect clients waiting for their STATUS.
@@ -1028,6 +1049,18 @@ impl Bridge {
         self.retained.len() < RETAIN_MAX && self.retained.bytes < RETAIN_MAX_BYTES
     }
 
+    /// Drops the waiting best-effort writes of `client` (to `objects` only, if given): an
+    /// operation sent now (a delete, a replacing create, the end of the session) would
+    /// otherwise reach the worker before them, and they would then go to no writer or to
+    /// another one.
+    fn drop_waiting_writes(&mut self, client: ClientKey, objects: Option<&[ObjectId]>) {
+        let dropped = self.best_effort_waiting.retain(|op| {
+            op.header.client_key != client
+                || objects.is_some_and(|ids| !ids.contains(&op.header.object_id))
+        });
+        self.stats.ops_dropped += dropped as u64;
+    }
+
     /// How long best-effort writes are shed, not queued, after their waiting queue
     /// overflowed (default [`BEST_EFFORT_SHED_HOLD`]).
     pub fn set_best_effort_shed_hold(&mut self, hold: Duration) {
@@ -1120,6 +1153,7 @@ impl OperationSink for Bridge {
             }
             Operation::ClientDeleted { client } => {
                 self.graphs.remove(&client);
+                self.drop_waiting_writes(client, None);
                 let h = header(
                     MessageKind::DeleteClient,
                     fe,
@@ -1149,9 +1183,11 @@ impl OperationSink for Bridge {
                             .push((client, create.base, ResultStatus::new(code)))
                     }
                     decision => {
-                        if decision == CreateDecision::Replace {
-                            graph.remove(id);
-                        }
+                        let replaced = if decision == CreateDecision::Replace {
+                            graph.remove(id)
+                        } else {
+                            Vec::new()
+                        };
                         graph.insert(GraphObject {
                             object_id: id,
                             request_id: create.base.request_id,
@@ -1159,6 +1195,9 @@ impl OperationSink for Bridge {
                             little_endian,
                             readers_matched: 0,
                         });
+                        if !replaced.is_empty() {
+                            self.drop_waiting_writes(client, Some(&replaced));
+                        }
                         let mut body = Vec::new();
                         create.variant.encode(&mut CdrWriter::new(&mut body, true));
                         let mut h = header(MessageKind::Create, fe, client, create.base);
@@ -1170,12 +1209,14 @@ impl OperationSink for Bridge {
                 }
             }
             Operation::Delete { client, request } => {
-                let known = self
+                let removed = self
                     .graphs
                     .get_mut(&client)
-                    .is_some_and(|g| !g.remove(request.object_id).is_empty());
+                    .map(|g| g.remove(request.object_id))
+                    .unwrap_or_default();
                 self.objects_changed.insert(client);
-                if known {
+                if !removed.is_empty() {
+                    self.drop_waiting_writes(client, Some(&removed));
                     self.submit(
                         header(MessageKind::Delete, fe, client, request),
                         &[],

@@ -54,7 +54,8 @@ pub struct Monitoring {
     pub dir: PathBuf,
     /// A child whose report is older than this is killed and restarted (never: `None`).
     pub stale_after: Option<Duration>,
-    /// A child whose resident memory exceeds this many bytes is killed and restarted (its
+    /// A child whose private resident memory (RssAnon: heap and stacks, not the shared
+    /// memory between the processes) exceeds this many bytes is killed and restarted (its
     /// sessions survive: the worker's are replayed to its successor, a front-end's are handed
     /// over); never: `None`.
     pub memory_limit: Option<u64>,
@@ -75,6 +76,9 @@ struct Supervised {
     memory_kills: u64,
     /// Whether this life of the child was already logged as near its memory limit.
     memory_warned: bool,
+    /// Whether this life of the child was already sent SIGKILL (by the watchdog or the
+    /// memory check): it is not killed, nor counted, again before it is reaped.
+    killed: bool,
     /// The `updated_unix_ms` of its last report, and when (on the supervisor's monotonic
     /// clock) that value was first seen: a wall-clock step cannot make a child look wedged.
     last_report: Option<(u64, Instant)>,
@@ -93,6 +97,7 @@ impl Supervised {
             watchdog_kills: 0,
             memory_kills: 0,
             memory_warned: false,
+            killed: false,
             last_report: None,
         }
     }
@@ -116,7 +121,7 @@ impl Supervised {
     /// Kills the child if its resident memory (`resident_of` its pid) exceeds `limit` bytes,
     /// so that it is restarted; warns once per life when it comes near. Whether it killed.
     fn check_memory(&mut self, limit: u64, resident_of: impl Fn(u32) -> Option<u64>) -> bool {
-        let Some(child) = &self.child else {
+        let Some(child) = self.child.as_ref().filter(|_| !self.killed) else {
             return false;
         };
         let pid = child.id();
@@ -130,9 +135,10 @@ impl Supervised {
                 pid,
                 resident_mib = mib(resident),
                 limit_mib = mib(limit),
-                "child's resident memory is over the memory limit; killing it to restart it"
+                "child's private resident memory is over the memory limit; killing it to restart it"
             );
             self.memory_kills += 1;
+            self.killed = true;
             let _ = kill(Pid::from_raw(pid as i32), Signal::SIGKILL);
             return true;
         }
@@ -143,7 +149,7 @@ impl Supervised {
                 pid,
                 resident_mib = mib(resident),
                 limit_mib = mib(limit),
-                "child's resident memory is near the memory limit (it is restarted beyond it)"
+                "child's private resident memory is near the memory limit (it is restarted beyond it)"
             );
         }
         false
@@ -271,12 +277,13 @@ pub fn supervise(
             if let Some(after) = m.stale_after {
                 let reports = status::read_reports(&m.dir);
                 for c in &mut children {
-                    if !c.is_wedged(now, &reports, after) {
+                    if c.killed || !c.is_wedged(now, &reports, after) {
                         continue;
                     }
                     if let Some(child) = &c.child {
                         tracing::error!(name = %c.spec.name, pid = child.id(), stale_after = ?after, "child stopped reporting (its event loop is stuck); killing it to restart it");
                         c.watchdog_kills += 1;
+                        c.killed = true;
                         // Once per wedge: its exit is reaped below and it is restarted.
                         c.last_report = None;
                         let _ = kill(Pid::from_raw(child.id() as i32), Signal::SIGKILL);
@@ -285,7 +292,7 @@ pub fn supervise(
             }
             if let Some(limit) = m.memory_limit {
                 for c in &mut children {
-                    c.check_memory(limit, status::resident_bytes_of);
+                    c.check_memory(limit, status::private_resident_bytes_of);
                 }
             }
         }
@@ -310,6 +317,7 @@ pub fn supervise(
                         c.child = Some(child);
                         c.started = now;
                         c.memory_warned = false;
+                        c.killed = false;
                     }
                     Err(e) => {
                         tracing::error!(name = %c.spec.name, error = %e, "restart failed");
@@ -396,8 +404,8 @@ mod tests {
     fn a_child_over_the_memory_limit_is_killed_once_and_counted() {
         let mut c = sleeper();
         let pid = c.child.as_ref().map(Child::id).expect("pid");
-        // Its real resident memory is read when no other figure is given.
-        assert!(status::resident_bytes_of(pid).is_some_and(|b| b > 0));
+        // Its real private resident memory can be read.
+        assert!(status::private_resident_bytes_of(pid).is_some_and(|b| b > 0));
         assert!(!c.check_memory(100 << 20, |_| Some(79 << 20)));
         assert!(!c.memory_warned, "79 % is not near yet");
         assert!(!c.check_memory(100 << 20, |_| Some(80 << 20)));
@@ -408,6 +416,9 @@ mod tests {
         );
         assert!(!exited_within(&mut c, Duration::from_millis(200)));
         assert!(c.check_memory(100 << 20, |p| (p == pid).then_some((100 << 20) + 1)));
+        assert_eq!(c.status(Instant::now()).memory_kills, 1);
+        // Until it is reaped, it is not killed or counted again.
+        assert!(!c.check_memory(100 << 20, |_| Some(200 << 20)));
         assert_eq!(c.status(Instant::now()).memory_kills, 1);
         assert!(exited_within(&mut c, Duration::from_secs(5)), "killed");
     }

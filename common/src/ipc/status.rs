@@ -220,12 +220,15 @@ pub fn own_usage() -> (f64, u64) {
     (cpu, rss)
 }
 
-/// The resident memory (bytes) of process `pid`, when /proc tells.
-pub fn resident_bytes_of(pid: u32) -> Option<u64> {
-    let statm = procfs::process::Process::new(pid as i32)
-        .and_then(|p| p.statm())
+/// The resident private memory (bytes: RssAnon, its heap and stacks) of process `pid`, when
+/// /proc tells. Unlike the whole resident set it leaves out the shared-memory segments
+/// between the agent's processes (bounded by construction, and counted again in every
+/// process that touches them) and mapped files.
+pub fn private_resident_bytes_of(pid: u32) -> Option<u64> {
+    let status = procfs::process::Process::new(pid as i32)
+        .and_then(|p| p.status())
         .ok()?;
-    Some(statm.resident * procfs::page_size())
+    Some(status.rssanon? * 1024)
 }
 
 /// Whether a process is alive (its /proc entry exists and is no zombie).
