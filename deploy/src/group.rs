@@ -394,7 +394,7 @@ impl Group {
         if let Some(limit) = self.memory_limit {
             tracing::info!(
                 limit_mib = limit >> 20,
-                "each process is restarted beyond this resident memory"
+                "each process is restarted beyond this private resident memory (RssAnon)"
             );
         }
         supervise(specs, cleanup, report_ready, Some(monitoring))?;

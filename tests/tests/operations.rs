@@ -253,7 +253,7 @@ fn a_process_over_the_memory_limit_is_killed_and_restarted() {
     let agent = AgentProcess::launch_raw(
         &args,
         instance.clone(),
-        "each process is restarted beyond this resident memory",
+        "each process is restarted beyond this private resident memory",
         "127.0.0.1".parse().expect("address"),
         port,
     )
