@@ -1050,9 +1050,9 @@ impl Bridge {
     }
 
     /// Drops the waiting best-effort writes of `client` (to `objects` only, if given): an
-    /// operation sent now (a delete, a replacing create, the end of the session) would
-    /// otherwise reach the worker before them, and they would then go to no writer or to
-    /// another one.
+    /// operation sent now (a delete, a create, the end of the session) would otherwise reach
+    /// the worker before them, and they would then go to no writer or to another one. They
+    /// get no STATUS, as no dropped best-effort write does.
     fn drop_waiting_writes(&mut self, client: ClientKey, objects: Option<&[ObjectId]>) {
         let dropped = self.best_effort_waiting.retain(|op| {
             op.header.client_key != client
@@ -1183,11 +1183,14 @@ impl OperationSink for Bridge {
                             .push((client, create.base, ResultStatus::new(code)))
                     }
                     decision => {
-                        let replaced = if decision == CreateDecision::Replace {
+                        let mut replaced = if decision == CreateDecision::Replace {
                             graph.remove(id)
                         } else {
                             Vec::new()
                         };
+                        // Writes a client sent to the id before it existed must not go to
+                        // the new object either.
+                        replaced.push(id);
                         graph.insert(GraphObject {
                             object_id: id,
                             request_id: create.base.request_id,
@@ -1195,7 +1198,7 @@ impl OperationSink for Bridge {
                             little_endian,
                             readers_matched: 0,
                         });
-                        if !replaced.is_empty() {
+                        if !self.best_effort_waiting.is_empty() {
                             self.drop_waiting_writes(client, Some(&replaced));
                         }
                         let mut body = Vec::new();

@@ -648,21 +648,23 @@ fn after_an_overflow_best_effort_writes_are_shed_not_queued_for_a_while() {
     // An overload: more than the window's share and the waiting queue hold.
     let overflow = Instant::now();
     best_effort_writes(&mut rig, Instant::now(), w, "flood", share + waiting + 1);
+    // The hold started at the last of those writes, at the latest now.
+    let hold_started = Instant::now();
     assert_eq!(rig.bridge.stats().ops_dropped, 1);
     assert_eq!(rig.bridge.stats().best_effort_sheds, 1);
     catch_up(&mut rig);
     // Right after it, what does not fit in the share is dropped, not queued.
     best_effort_writes(&mut rig, Instant::now(), w, "shed", share + 10);
-    assert_eq!(rig.bridge.backlog(), 0, "queued while shedding");
-    assert_eq!(rig.bridge.stats().ops_dropped, 11);
     assert!(
         overflow.elapsed() < hold,
-        "this machine took longer than the hold to get here; the check above proves nothing"
+        "this machine took longer than the hold to get here; the checks below prove nothing"
     );
+    assert_eq!(rig.bridge.backlog(), 0, "queued while shedding");
+    assert_eq!(rig.bridge.stats().ops_dropped, 11);
     catch_up(&mut rig);
     // Once the hold is over, a short stall is waited out again.
     std::thread::sleep(
-        (overflow + hold + Duration::from_millis(50)).saturating_duration_since(Instant::now()),
+        (hold_started + hold + Duration::from_millis(50)).saturating_duration_since(Instant::now()),
     );
     best_effort_writes(&mut rig, Instant::now(), w, "stall", share + 10);
     assert_eq!(rig.bridge.backlog(), 10, "not queued after the hold");

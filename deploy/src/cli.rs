@@ -123,7 +123,8 @@ pub struct Common {
     /// /status, e.g. 127.0.0.1:9464; off by default.
     #[arg(long = "metrics", value_name = "ADDR:PORT")]
     pub metrics: Option<SocketAddr>,
-    /// Restart any process of the agent (the DDS worker, a front-end) whose resident memory
+    /// Restart any process of the agent (the DDS worker, a front-end) whose private resident
+    /// memory (RssAnon: heap and stacks, not the shared memory between the processes)
     /// exceeds this many MiB; its clients' sessions survive the restart. Checked every
     /// second, warned about at 80 %; off by default.
     #[arg(

@@ -86,7 +86,8 @@ pub struct AgentSection {
     pub instance: Option<String>,
     /// Verbosity 0..6, like `-v`.
     pub verbose: Option<Spanned<u8>>,
-    /// Resident memory (MiB) beyond which a process is restarted, like `--memory-limit`.
+    /// Private resident memory (MiB) beyond which a process is restarted, like
+    /// `--memory-limit`.
     pub memory_limit_mib: Option<Spanned<u64>>,
 }
 

@@ -46,7 +46,7 @@ pub struct Group {
     pub frontends: Vec<FrontendLaunch>,
     /// Where the metrics endpoint is served, if anywhere.
     pub metrics: Option<std::net::SocketAddr>,
-    /// Resident memory (bytes) beyond which a process is restarted, if any.
+    /// Private resident memory (bytes, RssAnon) beyond which a process is restarted, if any.
     pub memory_limit: Option<u64>,
 }
 
@@ -392,6 +392,12 @@ impl Group {
             memory_limit: self.memory_limit,
         };
         if let Some(limit) = self.memory_limit {
+            if status::private_resident_bytes_of(std::process::id()).is_none() {
+                tracing::warn!(
+                    "this kernel does not report private resident memory (RssAnon, Linux 4.5 \
+                     and later): the memory limit cannot be kept"
+                );
+            }
             tracing::info!(
                 limit_mib = limit >> 20,
                 "each process is restarted beyond this private resident memory (RssAnon)"

@@ -118,7 +118,7 @@ impl Supervised {
         }
     }
 
-    /// Kills the child if its resident memory (`resident_of` its pid) exceeds `limit` bytes,
+    /// Kills the child if its private resident memory (`resident_of` its pid) exceeds `limit` bytes,
     /// so that it is restarted; warns once per life when it comes near. Whether it killed.
     fn check_memory(&mut self, limit: u64, resident_of: impl Fn(u32) -> Option<u64>) -> bool {
         let Some(child) = self.child.as_ref().filter(|_| !self.killed) else {

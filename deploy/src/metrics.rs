@@ -207,7 +207,7 @@ fn families(s: &AgentStatus) -> Vec<Family> {
     let mut memory_kills = Family::new(
         "xrce_memory_limit_kills",
         Counter,
-        "Children killed (and restarted) because their resident memory exceeded the limit.",
+        "Children killed (and restarted) because their private resident memory (RssAnon) exceeded --memory-limit.",
     );
     let mut cpu = Family::new(
         "xrce_process_cpu_seconds",
