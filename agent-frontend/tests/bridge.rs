@@ -594,6 +594,39 @@ fn waiting_writes_of_a_deleted_writer_are_dropped_not_sent_after_the_delete() {
 }
 
 #[test]
+fn waiting_writes_to_an_id_are_dropped_when_it_is_created() {
+    use xrce_common::ipc::IN_FLIGHT_WINDOW;
+    use xrce_frontend::bridge::{BEST_EFFORT_RESERVE, HAND_OVER_HEADROOM};
+    let inst = instance("createwait");
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 13);
+    let share = IN_FLIGHT_WINDOW - HAND_OVER_HEADROOM - BEST_EFFORT_RESERVE;
+    best_effort_writes(&mut rig, Instant::now(), w, "be", share + 10);
+    // Five writes to a writer the client has not created yet wait behind the ten.
+    let early = ObjectId::new(2, k::DATAWRITER);
+    best_effort_writes(&mut rig, Instant::now(), early, "early", 5);
+    assert_eq!(rig.bridge.backlog(), 15);
+    // Its CREATE goes to the worker now: the five must not reach the new writer after it.
+    rig.create(
+        early,
+        k::DATAWRITER,
+        "<dds/>",
+        VariantExtra::Parent(ObjectId::new(1, k::PUBLISHER)),
+    );
+    while let Some(d) = rig.client.poll_transmit() {
+        rig.agent
+            .handle_datagram(Instant::now(), ADDR, &d, &mut rig.bridge);
+    }
+    assert_eq!(
+        rig.bridge.backlog(),
+        10,
+        "only the writes to the new id are dropped"
+    );
+    assert_eq!(rig.bridge.stats().ops_dropped, 5);
+    drop((rig, worker));
+    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
+}
+
+#[test]
 fn waiting_writes_are_dropped_when_their_worker_is_replaced() {
     use xrce_common::ipc::IN_FLIGHT_WINDOW;
     use xrce_frontend::bridge::{BEST_EFFORT_RESERVE, HAND_OVER_HEADROOM};
