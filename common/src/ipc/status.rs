@@ -228,7 +228,7 @@ pub fn private_resident_bytes_of(pid: u32) -> Option<u64> {
     let status = procfs::process::Process::new(pid as i32)
         .and_then(|p| p.status())
         .ok()?;
-    Some(status.rssanon? * 1024)
+    Some(status.rssanon?.saturating_mul(1024))
 }
 
 /// Whether a process is alive (its /proc entry exists and is no zombie).
