@@ -4,7 +4,7 @@
 //! * Every client's object graph and active reads are kept here ([`ObjectGraph`]).
 //! * At most [`IN_FLIGHT_WINDOW`] operations are unprocessed by the worker at once, so its
 //!   queue never overflows; the rest wait in a bounded outbox (best-effort writes in a
-//!   short queue of their own, and not at all during an overload).
+//!   short queue of their own, shared fairly among the clients: [`crate::waiting_writes`]).
 //! * Writes that came on reliable streams are retained until the worker has executed them
 //!   and a settle time has passed (RustDDS sends asynchronously, so "executed" is not yet
 //!   "on the wire").
@@ -30,6 +30,8 @@ use xrce_common::wire::{
     RequestId, ResultStatus,
 };
 
+use crate::waiting_writes::{Room, WaitingWrites};
+
 /// GET_INFO mask bit asking for the object's configuration.
 const INFO_CONFIGURATION: u32 = 0x01;
 
@@ -53,19 +55,22 @@ pub const BEST_EFFORT_RESERVE: u64 = 8;
 /// stalls for a while (DDS discovery, a burst of another client's) is absorbed instead of
 /// dropping every write that comes meanwhile (50 ms of 20,000 samples/s, 17 ms of 60,000/s;
 /// measured, samples lost a run: 1,000 clients at 20,000/s 0 against 15-125, 100 clients at
-/// 60,000/s 16-910 against 2,807-8,416). Beyond it, and beyond
-/// [`BEST_EFFORT_WAITING_MAX_BYTES`], they are dropped (counted) and for
-/// [`BEST_EFFORT_SHED_HOLD`] not queued at all. Nothing was acknowledged for them, so losing
-/// them with this process breaks no promise.
+/// 60,000/s 16-910 against 2,807-8,416). The clients take turns and share it: when it is
+/// full (or holds [`BEST_EFFORT_WAITING_MAX_BYTES`]), a write of a client holding less than
+/// another takes the place of that other's newest, and the client holding the most has its
+/// write dropped (counted) and is not queued for [`BEST_EFFORT_SHED_HOLD`]
+/// ([`crate::waiting_writes`]). Nothing was acknowledged for them, so losing them with this
+/// process breaks no promise.
 pub const BEST_EFFORT_WAITING_MAX: usize = 1024;
 /// Bytes of best-effort writes waiting (see [`BEST_EFFORT_WAITING_MAX`]).
 pub const BEST_EFFORT_WAITING_MAX_BYTES: usize = 1 << 20;
-/// How long best-effort writes are not queued after the waiting queue overflowed: that is
-/// an overload, not a stall, and queueing under an overload only feeds the flood (the worker
-/// and this process run at full load for it) at the expense of every other client's service
-/// (measured: a quiet reliable pair sharing the socket with a 10x flood fell from 660-824 to
-/// 620 samples/s). Meanwhile best-effort writes go at once when the window's share allows,
-/// else are dropped, as without the queue.
+/// How long a client's best-effort writes are not queued after it overflowed the waiting
+/// queue (held the most of it when it was full): that is an overload, not a stall, and
+/// queueing under an overload only feeds the flood (the worker and this process run at full
+/// load for it) at the expense of every other client's service (measured: a quiet reliable
+/// pair sharing the socket with a 10x flood fell from 660-824 to 620 samples/s). Meanwhile
+/// its best-effort writes go at once when the window's share allows, else are dropped, as
+/// without the queue; other clients' writes still wait.
 pub const BEST_EFFORT_SHED_HOLD: Duration = Duration::from_millis(200);
 /// Queued operations (outbox mode) beyond which best-effort writes are dropped rather than
 /// queued: stale best-effort data is worth little, and reliable operations queued behind it
@@ -117,13 +122,6 @@ enum Awaited {
     Yes,
     /// Internal or replayed: do not forward the STATUS.
     No,
-}
-
-/// The queues of operations not yet sent.
-#[derive(Debug, Clone, Copy)]
-enum Queue {
-    Outbox,
-    BestEffortWaiting,
 }
 
 /// Where a best-effort write goes ([`Bridge::best_effort_route`]).
@@ -228,21 +226,6 @@ impl<T: Weighed> ByteQueue<T> {
             self.push_back(t);
         }
     }
-
-    /// Keeps the entries `keep` says yes to, in order; returns how many it removed.
-    fn retain(&mut self, mut keep: impl FnMut(&T) -> bool) -> usize {
-        let before = self.items.len();
-        let mut bytes = 0;
-        self.items.retain(|t| {
-            let kept = keep(t);
-            if kept {
-                bytes += t.weight();
-            }
-            kept
-        });
-        self.bytes = bytes;
-        before - self.items.len()
-    }
 }
 
 /// Counters of the bridge.
@@ -259,8 +242,8 @@ pub struct BridgeStats {
     /// Operations dropped because the outbox was full (best-effort writes, or beyond the
     /// hard bound).
     pub ops_dropped: u64,
-    /// Times best-effort writes overflowed their waiting queue (each starts
-    /// [`BEST_EFFORT_SHED_HOLD`] of shedding).
+    /// Times a client overflowed the best-effort waiting queue (held the most of it when it
+    /// was full): each starts [`BEST_EFFORT_SHED_HOLD`] of shedding that client's writes.
     pub best_effort_sheds: u64,
     /// Samples the agent core could not queue for their client (output queue full).
     pub samples_dropped: u64,
@@ -302,12 +285,8 @@ pub struct Bridge {
     acknowledged: u64,
     outbox: ByteQueue<OwnedOp>,
     /// Best-effort writes waiting for the window's best-effort share (hand-over mode; see
-    /// [`BEST_EFFORT_WAITING_MAX`]); sent after the outbox.
-    best_effort_waiting: ByteQueue<OwnedOp>,
-    /// Until when best-effort writes are not queued (see [`BEST_EFFORT_SHED_HOLD`]).
-    best_effort_shed_until: Option<Instant>,
-    /// [`BEST_EFFORT_SHED_HOLD`] unless set otherwise.
-    best_effort_shed_hold: Duration,
+    /// [`BEST_EFFORT_WAITING_MAX`]); sent after the outbox, the clients in turns.
+    best_effort_waiting: WaitingWrites<OwnedOp>,
     retained: ByteQueue<Retained>,
     /// Sent operations whose STATUS a client waits for: seq -> (client, request, kind).
     pending: HashMap<u64, (ClientKey, BaseObjectRequest, MessageKind)>,
@@ -388,9 +367,11 @@ impl Bridge {
             processed: 0,
             acknowledged: 0,
             outbox: ByteQueue::default(),
-            best_effort_waiting: ByteQueue::default(),
-            best_effort_shed_until: None,
-            best_effort_shed_hold: BEST_EFFORT_SHED_HOLD,
+            best_effort_waiting: WaitingWrites::new(
+                BEST_EFFORT_WAITING_MAX,
+                BEST_EFFORT_WAITING_MAX_BYTES,
+                BEST_EFFORT_SHED_HOLD,
+            ),
             retained: ByteQueue::default(),
             pending: HashMap::new(),
             graphs: HashMap::new(),
@@ -555,11 +536,8 @@ impl Bridge {
     /// Sends queued operations while the window allows (the outbox first, then best-effort
     /// writes waiting for their share); wakes the worker once.
     pub fn pump(&mut self) {
-        while self.can_send_now() && self.send_first(Queue::Outbox) {}
-        while self.outbox.is_empty()
-            && self.best_effort_share_free()
-            && self.send_first(Queue::BestEffortWaiting)
-        {}
+        while self.can_send_now() && self.send_first() {}
+        while self.outbox.is_empty() && self.best_effort_share_free() && self.send_waiting() {}
         if self.dirty {
             match self.requests.notify() {
                 Ok(()) => self.dirty = false,
@@ -569,26 +547,44 @@ impl Bridge {
         }
     }
 
-    fn queue(&mut self, which: Queue) -> &mut ByteQueue<OwnedOp> {
-        match which {
-            Queue::Outbox => &mut self.outbox,
-            Queue::BestEffortWaiting => &mut self.best_effort_waiting,
-        }
-    }
-
-    /// Sends the first operation of a queue; false if it is empty or the send failed (the
-    /// operation stays first, tried again on a later pass).
-    fn send_first(&mut self, which: Queue) -> bool {
-        let Some(mut op) = self.queue(which).pop_front() else {
+    /// Sends the first operation of the outbox; false if it is empty or the send failed
+    /// (the operation stays first, tried again on a later pass).
+    fn send_first(&mut self) -> bool {
+        let Some(mut op) = self.outbox.pop_front() else {
             return false;
         };
         op.header.op_seq = self.next_seq;
         op.header.incarnation = self.incarnation;
         if let Err(e) = self.requests.send(&op.header, &op.body) {
             tracing::warn!(error = %e, "could not hand an operation to the worker; will retry");
-            self.queue(which).push_front(op);
+            self.outbox.push_front(op);
             return false;
         }
+        self.sent_owned(op);
+        true
+    }
+
+    /// Sends the waiting best-effort write whose turn it is; false if none waits or the
+    /// send failed (it keeps its turn, tried again on a later pass).
+    fn send_waiting(&mut self) -> bool {
+        let Some(op) = self.best_effort_waiting.front() else {
+            return false;
+        };
+        let mut header = op.header;
+        header.op_seq = self.next_seq;
+        header.incarnation = self.incarnation;
+        if let Err(e) = self.requests.send(&header, &op.body) {
+            tracing::warn!(error = %e, "could not hand an operation to the worker; will retry");
+            return false;
+        }
+        if let Some(mut op) = self.best_effort_waiting.pop() {
+            op.header = header;
+            self.sent_owned(op);
+        }
+        true
+    }
+
+    fn sent_owned(&mut self, op: OwnedOp) {
         let OwnedOp {
             header,
             body,
@@ -596,7 +592,6 @@ impl Bridge {
             awaited,
         } = op;
         self.after_send(header, retain, awaited, move || body);
-        true
     }
 
     /// Handles worker announcements and replies (consuming their wake-ups when their
@@ -661,9 +656,7 @@ impl Bridge {
         // Best-effort writes that waited for the share of a worker now gone are stale: they
         // are dropped, as they would have been without the wait, and the new worker starts
         // without a shedding hold.
-        let stale = self.best_effort_waiting.take();
-        self.stats.ops_dropped += stale.len() as u64;
-        self.best_effort_shed_until = None;
+        self.stats.ops_dropped += self.best_effort_waiting.clear() as u64;
         // Operations a client still waits for: answered by the replay, or (deletes) now.
         let mut awaited: HashMap<(ClientKey, ObjectId), RequestId> = HashMap::new();
         // Writes of spec-dialect clients waiting for their STATUS.
@@ -1054,17 +1047,19 @@ impl Bridge {
     /// the worker before them, and they would then go to no writer or to another one. They
     /// get no STATUS, as no dropped best-effort write does.
     fn drop_waiting_writes(&mut self, client: ClientKey, objects: Option<&[ObjectId]>) {
-        let dropped = self.best_effort_waiting.retain(|op| {
-            op.header.client_key != client
-                || objects.is_some_and(|ids| !ids.contains(&op.header.object_id))
-        });
+        let dropped = match objects {
+            None => self.best_effort_waiting.remove_client(client),
+            Some(ids) => self
+                .best_effort_waiting
+                .retain_of(client, |op| !ids.contains(&op.header.object_id)),
+        };
         self.stats.ops_dropped += dropped as u64;
     }
 
-    /// How long best-effort writes are shed, not queued, after their waiting queue
-    /// overflowed (default [`BEST_EFFORT_SHED_HOLD`]).
+    /// How long a client's best-effort writes are shed, not queued, after it overflowed
+    /// their waiting queue (default [`BEST_EFFORT_SHED_HOLD`]).
     pub fn set_best_effort_shed_hold(&mut self, hold: Duration) {
-        self.best_effort_shed_hold = hold;
+        self.best_effort_waiting.set_hold(hold);
     }
 
     /// Whether the window has room for a best-effort write beyond the share kept for
@@ -1074,11 +1069,12 @@ impl Bridge {
             && self.in_flight() + HAND_OVER_HEADROOM + BEST_EFFORT_RESERVE < IN_FLIGHT_WINDOW
     }
 
-    /// Where a best-effort write goes now, if anywhere: as [`OperationSink::has_room`], less
-    /// the share kept for reliable and control operations ([`BEST_EFFORT_RESERVE`],
-    /// [`BEST_EFFORT_OUTBOX_MAX`]), plus, in hand-over mode, a short wait unless the agent
-    /// is shedding an overload ([`BEST_EFFORT_WAITING_MAX`], [`BEST_EFFORT_SHED_HOLD`]).
-    fn best_effort_route(&mut self) -> Option<BestEffortRoute> {
+    /// Where a best-effort write of `client` weighing `weight` goes now, if anywhere: as
+    /// [`OperationSink::has_room`], less the share kept for reliable and control operations
+    /// ([`BEST_EFFORT_RESERVE`], [`BEST_EFFORT_OUTBOX_MAX`]), plus, in hand-over mode, a
+    /// short wait unless the client is shed for overflowing it ([`BEST_EFFORT_WAITING_MAX`],
+    /// [`BEST_EFFORT_SHED_HOLD`]).
+    fn best_effort_route(&mut self, client: ClientKey, weight: usize) -> Option<BestEffortRoute> {
         if !self.retention_has_room() {
             return None;
         }
@@ -1090,21 +1086,28 @@ impl Bridge {
                 return Some(BestEffortRoute::Now);
             }
             let now = Instant::now();
-            if self.best_effort_shed_until.is_some_and(|t| now < t) {
-                return None;
+            match self.best_effort_waiting.make_room(client, weight, now) {
+                Room::Yes {
+                    evicted,
+                    holds_started,
+                } => {
+                    self.stats.ops_dropped += evicted as u64;
+                    self.stats.best_effort_sheds += holds_started as u64;
+                    Some(BestEffortRoute::Wait)
+                }
+                Room::No { hold_started } => {
+                    if hold_started {
+                        self.stats.best_effort_sheds += 1;
+                        tracing::debug!(
+                            %client,
+                            waiting = self.best_effort_waiting.len(),
+                            of_client = self.best_effort_waiting.len_of(client),
+                            "a client's best-effort writes overflow their waiting queue: shedding, not queueing, its writes for a while"
+                        );
+                    }
+                    None
+                }
             }
-            if self.best_effort_waiting.len() < BEST_EFFORT_WAITING_MAX
-                && self.best_effort_waiting.bytes < BEST_EFFORT_WAITING_MAX_BYTES
-            {
-                return Some(BestEffortRoute::Wait);
-            }
-            self.best_effort_shed_until = Some(now + self.best_effort_shed_hold);
-            self.stats.best_effort_sheds += 1;
-            tracing::debug!(
-                waiting = self.best_effort_waiting.len(),
-                "best-effort writes overflow their waiting queue: shedding, not queueing, for a while"
-            );
-            None
         } else {
             (self.has_room() && self.outbox.len() < BEST_EFFORT_OUTBOX_MAX)
                 .then_some(BestEffortRoute::Now)
@@ -1267,7 +1270,7 @@ impl OperationSink for Bridge {
                 let route = if reliable {
                     Some(BestEffortRoute::Now)
                 } else {
-                    self.best_effort_route()
+                    self.best_effort_route(client, IpcHeader::LEN + data.data.len())
                 };
                 let Some(route) = route else {
                     // Best-effort data is not held back by flow control: drop it, counted.
@@ -1290,12 +1293,14 @@ impl OperationSink for Bridge {
                     BestEffortRoute::Now => self.submit(h, data.data, reliable, awaited),
                     BestEffortRoute::Wait => {
                         h.incarnation = self.incarnation;
-                        self.best_effort_waiting.push_back(OwnedOp {
+                        let op = OwnedOp {
                             header: h,
                             body: data.data.to_vec(),
                             retain: false,
                             awaited,
-                        });
+                        };
+                        let weight = op.weight();
+                        self.best_effort_waiting.push(client, op, weight);
                     }
                 }
             }

@@ -6,6 +6,8 @@
 //!   TCP, serial lines, pseudoterminals) and the discovery responder;
 //! * [`event_loop`]: the one loop driving a transport, the session core and the bridge;
 //! * [`bridge`]: operations to the worker, replies back, replay after a worker restart;
+//! * [`waiting_writes`]: best-effort writes waiting for the worker, shared fairly among
+//!   clients;
 //! * [`cli`]: the front-end's settings and start-up;
 //! * [`report`]: counters in the log;
 //! * [`status`]: the status report (sessions, counters) for `xrce-agent status` and metrics;
@@ -22,3 +24,4 @@ pub mod status;
 mod sys;
 pub mod takeover;
 pub mod transport;
+pub mod waiting_writes;

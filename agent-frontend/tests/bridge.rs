@@ -692,6 +692,104 @@ fn after_an_overflow_best_effort_writes_are_shed_not_queued_until_the_hold_ends(
     assert_eq!(waiting_after_an_overflow("unshed", 14, Duration::ZERO), 10);
 }
 
+/// Datagrams between a second client (at `addr`) and the rig's session core, and the rig's
+/// IPC, once (the rig's own client gets what is meant for it).
+fn exchange_with(rig: &mut Rig, worker: &FakeWorker, other: &mut Client, addr: u32) {
+    let now = Instant::now();
+    while let Some(d) = other.poll_transmit() {
+        rig.agent.handle_datagram(now, addr, &d, &mut rig.bridge);
+    }
+    rig.bridge.pump();
+    worker.serve();
+    rig.bridge.poll_ipc(now, &mut rig.agent, true, true);
+    rig.agent.handle_timeout(now, &mut rig.bridge);
+    while let Some(t) = rig.agent.poll_transmit() {
+        if t.destination == addr {
+            other.handle_datagram(now, &t.data);
+        } else {
+            rig.client.handle_datagram(now, &t.data);
+        }
+    }
+}
+
+#[test]
+fn a_quiet_clients_best_effort_writes_wait_while_a_flooding_client_is_shed() {
+    use xrce_frontend::bridge::BEST_EFFORT_WAITING_MAX;
+    const QUIET: u32 = 8;
+    let inst = instance("fair");
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 16);
+    rig.bridge
+        .set_best_effort_shed_hold(Duration::from_secs(3600));
+    let mut quiet = Client::new(ClientConfig::new(ClientKey([0xC3, 0, 0, 2])));
+    quiet.connect(Instant::now());
+    let end = Instant::now() + Duration::from_secs(10);
+    while !quiet.is_connected() {
+        assert!(Instant::now() < end, "the second client did not connect");
+        exchange_with(&mut rig, &worker, &mut quiet, QUIET);
+    }
+    // The worker stalls; the rig's client floods it: the window's share goes, the wait
+    // fills, and the write that overflows it is dropped and starts the flooder's hold.
+    let share = best_effort_share();
+    let waiting = BEST_EFFORT_WAITING_MAX as u64;
+    best_effort_writes(&mut rig, Instant::now(), w, "flood", share + waiting + 1);
+    assert_eq!(rig.bridge.stats().ops_dropped, 1);
+    assert_eq!(rig.bridge.stats().best_effort_sheds, 1);
+    // The quiet client's writes still wait, each in place of the flood's newest, and the
+    // flooder's further writes are dropped.
+    let now = Instant::now();
+    for i in 0..10 {
+        quiet
+            .write(
+                now,
+                stream_id::BUILTIN_BEST_EFFORT,
+                w,
+                format!("quiet {i}").as_bytes(),
+            )
+            .expect("write");
+    }
+    while let Some(d) = quiet.poll_transmit() {
+        rig.agent.handle_datagram(now, QUIET, &d, &mut rig.bridge);
+    }
+    best_effort_writes(&mut rig, now, w, "late", 5);
+    assert_eq!(rig.bridge.backlog(), BEST_EFFORT_WAITING_MAX);
+    assert_eq!(rig.bridge.stats().ops_dropped, 1 + 10 + 5);
+    assert_eq!(rig.bridge.stats().best_effort_sheds, 1);
+    // When the worker catches up, the two take turns: the quiet client's writes arrive
+    // among the first waiting ones, in order, not behind the flood's backlog.
+    let served = rig.serve_until(&worker, |_, s| {
+        write_bodies(s).len() as u64 >= share + waiting
+    });
+    let bodies = write_bodies(&served);
+    let quiet_at: Vec<usize> = (0..10)
+        .map(|i| {
+            let tag = format!("quiet {i}");
+            bodies
+                .iter()
+                .position(|b| b.ends_with(&tag))
+                .unwrap_or_else(|| panic!("{tag} did not reach the worker"))
+        })
+        .collect();
+    assert!(
+        quiet_at.windows(2).all(|p| p[0] < p[1]),
+        "out of order: {quiet_at:?}"
+    );
+    assert!(
+        quiet_at[9] < (share + 20) as usize,
+        "the quiet client waited behind the flood: {quiet_at:?}"
+    );
+    // The flood kept its oldest writes, in order; its newest ten made the room.
+    let flood: Vec<u64> = bodies
+        .iter()
+        .filter_map(|b| b.find("flood ").map(|at| &b[at + 6..]))
+        .map(|n| n.parse().expect("a flood write's number"))
+        .collect();
+    let expected: Vec<u64> = (0..share + waiting - 10).collect();
+    assert_eq!(flood, expected);
+    assert!(!bodies.iter().any(|b| b.contains("late ")));
+    drop((rig, worker));
+    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
+}
+
 #[test]
 fn small_reliable_messages_may_fill_the_window() {
     use xrce_common::ipc::IN_FLIGHT_WINDOW;

@@ -10,7 +10,8 @@
 # below). FLOOD_RATE (samples/s in total, 0 = as fast as the generator can), QUIET_PORT
 # (another front-end of a gateway), QUIET_DELAY (seconds from the flood's start to the quiet
 # pair's: the flood sends only once its writers matched, which takes the reference agent
-# about a minute), OUT (result directory) are read from the environment.
+# about a minute), QUIET_ARGS (more load generator options for the quiet pair, such as
+# `--best-effort`), OUT (result directory) are read from the environment.
 # Run it only in a network namespace with nothing but loopback.
 set -u
 cd "$(dirname "$0")/../.."
@@ -39,12 +40,12 @@ $LOADGEN --no-agent --port 9000 --publishers 100 --subscribers 1 --best-effort \
 FLOOD=$!
 sleep "${QUIET_DELAY:-8}"
 $LOADGEN --no-agent --port "${QUIET_PORT:-9000}" --domain 1 --first-client-key 0x20000000 \
-    --publishers 1 --subscribers 1 --rate 1000 --samples 20000 \
+    --publishers 1 --subscribers 1 --rate 1000 --samples 20000 ${QUIET_ARGS:-} \
     > "$OUT/$TAG-quiet.txt" 2>&1
 wait $FLOOD
 grep -E "^Udp:" /proc/net/snmp > "$OUT/$TAG-udp.txt"
 curl -s 127.0.0.1:9100/metrics \
-    | grep -E "^xrce_(dropped|memory_limit_kills|process_resident_memory)" > "$OUT/$TAG-drops.txt"
+    | grep -E "^xrce_(dropped|best_effort_sheds|memory_limit_kills|process_resident_memory)" > "$OUT/$TAG-drops.txt"
 kill $AGENT
 wait $AGENT
 echo "== $TAG: quiet pair"

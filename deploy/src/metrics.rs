@@ -147,7 +147,7 @@ fn families(s: &AgentStatus) -> Vec<Family> {
         (
             "best_effort_sheds",
             "xrce_best_effort_sheds",
-            "Times best-effort writes overflowed their wait for the worker (an overload: they are then shed, not queued, for 200 ms).",
+            "Times a client's best-effort writes overflowed their wait for the worker, shared by the clients (an overload: that client's are then shed, not queued, for 200 ms).",
         ),
         (
             "replays",
