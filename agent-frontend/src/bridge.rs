@@ -69,8 +69,9 @@ pub const BEST_EFFORT_WAITING_MAX_BYTES: usize = 1 << 20;
 /// queueing under an overload only feeds the flood (the worker and this process run at full
 /// load for it) at the expense of every other client's service (measured: a quiet reliable
 /// pair sharing the socket with a 10x flood fell from 660-824 to 620 samples/s). Meanwhile
-/// its best-effort writes go at once when the window's share allows, else are dropped, as
-/// without the queue; other clients' writes still wait.
+/// its best-effort writes go to the worker only when nothing waits and the window's share
+/// has room, else are dropped; other clients' writes still wait. A client whose newest
+/// write was dropped to make room for a lighter client's is held as well.
 pub const BEST_EFFORT_SHED_HOLD: Duration = Duration::from_millis(200);
 /// Queued operations (outbox mode) beyond which best-effort writes are dropped rather than
 /// queued: stale best-effort data is worth little, and reliable operations queued behind it

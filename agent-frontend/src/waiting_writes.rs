@@ -11,13 +11,16 @@
 //! * **The heaviest pays.** When the queue is full, a write of a client that holds less than
 //!   another makes room by dropping that other's newest waiting write. A client that holds
 //!   the most when the queue is full is overloading it: its write is dropped and its
-//!   best-effort writes are *held*, not queued at all, for a while ([`WaitingWrites::hold`];
-//!   they still go to the worker at once when the window has room). Queueing a flood only
-//!   feeds it, at the expense of every other client's service.
+//!   best-effort writes are *held*, not queued at all, for a while ([`WaitingWrites::hold`]),
+//!   as is a client whose write was dropped to make room. Queueing a flood only feeds it, at
+//!   the expense of every other client's service. A write that finds nothing waiting and the
+//!   window's share free goes to the worker at once, held or not (the caller decides that).
+//!   If dropping the newer writes of heavier clients cannot make room (a large write into a
+//!   queue bound by its bytes), nothing of theirs is dropped.
 //!
 //! The structure is sans-IO: the caller passes the time and does the sending.
 
-use std::collections::{HashMap, VecDeque};
+use std::collections::{BinaryHeap, HashMap, VecDeque};
 use std::time::{Duration, Instant};
 
 use xrce_common::wire::ClientKey;
@@ -59,10 +62,10 @@ pub enum Room {
 
 /// Best-effort writes waiting for the window, per client in turns (see the module docs).
 ///
-/// Queueing and taking a write cost a hash lookup; only a full queue looks at every client
-/// with waiting writes (to find the one holding the most), and that happens at most about
-/// twice per client per hold, plus once per write of the clients that hold less (each such
-/// look holds the client it takes from, or the client asking).
+/// Queueing a write costs a few hash lookups and a push onto a heap of what clients hold
+/// (entries go stale as clients' writes leave and are corrected when they reach the top;
+/// the heap is rebuilt when it has grown to twice the clients); taking one costs a few hash
+/// lookups. A full queue finds the client holding the most in O(log clients).
 #[derive(Debug)]
 pub struct WaitingWrites<T> {
     /// An entry per client in `turns` (it may have no writes left: dropped when its turn
@@ -75,6 +78,10 @@ pub struct WaitingWrites<T> {
     max_len: usize,
     max_bytes: usize,
     hold: Duration,
+    /// What clients held when a write of theirs was queued: for every client with waiting
+    /// writes at least one entry at or above what it holds now (see
+    /// [`WaitingWrites::heaviest_other`]).
+    heaviest: BinaryHeap<(u128, ClientKey)>,
     /// Clients whose writes are not queued until then.
     holds: HashMap<ClientKey, Instant>,
     /// Size of `holds` beyond which ended holds are removed (amortised).
@@ -93,6 +100,7 @@ impl<T> WaitingWrites<T> {
             max_len: max_len.max(1),
             max_bytes,
             hold,
+            heaviest: BinaryHeap::new(),
             holds: HashMap::new(),
             prune_holds_beyond: 64,
         }
@@ -138,49 +146,54 @@ impl<T> WaitingWrites<T> {
     /// the expense of heavier clients if the queue is full. On [`Room::Yes`] the caller
     /// pushes it ([`WaitingWrites::push`]) before anything else changes the queue.
     pub fn make_room(&mut self, client: ClientKey, weight: usize, now: Instant) -> Room {
-        match self.holds.get(&client) {
-            Some(&until) if now < until => {
+        if let Some(&until) = self.holds.get(&client) {
+            if now < until {
                 return Room::No {
                     hold_started: false,
-                }
+                };
             }
-            Some(_) => {
-                self.holds.remove(&client);
-            }
-            None => {}
+            self.holds.remove(&client);
         }
-        let mut evicted = 0;
-        let mut holds_started = 0;
+        if self.fits(weight) {
+            return Room::Yes {
+                evicted: 0,
+                holds_started: 0,
+            };
+        }
+        let (own_len, own_bytes) = self
+            .clients
+            .get(&client)
+            .map_or((0, 0), |c| (c.items.len(), c.bytes));
+        let own = self.heaviness(own_len + 1, own_bytes.saturating_add(weight));
+        // Take the newest write of whoever holds the most while that is more than this
+        // client would; if that cannot make room, put everything back.
+        let mut taken: Vec<(ClientKey, T, usize, bool)> = Vec::new();
         while !self.fits(weight) {
-            let (own_len, own_bytes) = self
-                .clients
-                .get(&client)
-                .map_or((0, 0), |c| (c.items.len(), c.bytes));
-            let own = self.heaviness(own_len + 1, own_bytes.saturating_add(weight));
-            let heaviest = self
-                .clients
-                .iter()
-                .filter(|(k, c)| **k != client && !c.items.is_empty())
-                .map(|(k, c)| (self.heaviness(c.items.len(), c.bytes), *k))
-                .max();
-            match heaviest {
+            match self.heaviest_other(client) {
                 Some((theirs, other)) if theirs > own => {
-                    self.evict_newest(other);
-                    evicted += 1;
-                    if self.start_hold(other, now) {
-                        holds_started += 1;
-                    }
+                    let Some((item, w)) = self.take_newest(other) else {
+                        break;
+                    };
+                    let held = self.start_hold(other, now);
+                    taken.push((other, item, w, held));
                 }
-                _ => {
-                    return Room::No {
-                        hold_started: self.start_hold(client, now),
-                    }
-                }
+                _ => break,
             }
         }
-        Room::Yes {
-            evicted,
-            holds_started,
+        if self.fits(weight) {
+            return Room::Yes {
+                evicted: taken.len(),
+                holds_started: taken.iter().filter(|t| t.3).count(),
+            };
+        }
+        while let Some((other, item, w, held)) = taken.pop() {
+            if held {
+                self.holds.remove(&other);
+            }
+            self.push(other, item, w);
+        }
+        Room::No {
+            hold_started: self.start_hold(client, now),
         }
     }
 
@@ -192,8 +205,13 @@ impl<T> WaitingWrites<T> {
         });
         writes.items.push_back((item, weight));
         writes.bytes += weight;
+        let held = (writes.items.len(), writes.bytes);
         self.len += 1;
         self.bytes += weight;
+        self.heaviest.push((self.heaviness(held.0, held.1), client));
+        if self.heaviest.len() > 2 * self.clients.len() + 64 {
+            self.rebuild_heaviest();
+        }
     }
 
     /// The write whose turn it is, if any.
@@ -273,6 +291,7 @@ impl<T> WaitingWrites<T> {
         let dropped = self.len;
         self.clients.clear();
         self.turns.clear();
+        self.heaviest.clear();
         self.holds.clear();
         self.len = 0;
         self.bytes = 0;
@@ -292,16 +311,64 @@ impl<T> WaitingWrites<T> {
         by_len.max(by_bytes)
     }
 
-    /// Drops the newest waiting write of `client`.
-    fn evict_newest(&mut self, client: ClientKey) {
-        let Some(writes) = self.clients.get_mut(&client) else {
-            return;
+    /// Takes the newest waiting write of `client` (its heap entry goes stale).
+    fn take_newest(&mut self, client: ClientKey) -> Option<(T, usize)> {
+        let writes = self.clients.get_mut(&client)?;
+        let (item, weight) = writes.items.pop_back()?;
+        writes.bytes -= weight;
+        self.len -= 1;
+        self.bytes -= weight;
+        Some((item, weight))
+    }
+
+    /// What the client holding the most, other than `client`, holds, and who it is.
+    ///
+    /// Stale entries (the client holds less now, or nothing) at the top are replaced by
+    /// what their client holds; since every client with writes has an entry at or above
+    /// what it holds, a current entry at the top is the largest.
+    fn heaviest_other(&mut self, client: ClientKey) -> Option<(u128, ClientKey)> {
+        let mut own_entries = Vec::new();
+        let found = loop {
+            let Some((h, k)) = self.heaviest.pop() else {
+                break None;
+            };
+            let now_holds = self
+                .clients
+                .get(&k)
+                .map_or(0, |c| self.heaviness(c.items.len(), c.bytes));
+            if now_holds == 0 {
+                continue;
+            }
+            if now_holds != h {
+                // One current entry of `client` set aside is enough.
+                if k != client || own_entries.is_empty() {
+                    self.heaviest.push((now_holds, k));
+                }
+                continue;
+            }
+            if k == client {
+                own_entries.push((h, k));
+                continue;
+            }
+            break Some((h, k));
         };
-        if let Some((_, weight)) = writes.items.pop_back() {
-            writes.bytes -= weight;
-            self.len -= 1;
-            self.bytes -= weight;
+        // The entries looked at stay (a client's write may still be taken, or put back).
+        self.heaviest.extend(own_entries);
+        if let Some(entry) = found {
+            self.heaviest.push(entry);
         }
+        found
+    }
+
+    /// Rebuilds the heap from what every client holds.
+    fn rebuild_heaviest(&mut self) {
+        let entries: Vec<(u128, ClientKey)> = self
+            .clients
+            .iter()
+            .filter(|(_, c)| !c.items.is_empty())
+            .map(|(k, c)| (self.heaviness(c.items.len(), c.bytes), *k))
+            .collect();
+        self.heaviest = BinaryHeap::from(entries);
     }
 
     /// Holds `client` from `now`; false if it was held already.
@@ -450,15 +517,32 @@ mod tests {
     fn bytes_count_as_much_as_entries() {
         let now = Instant::now();
         let mut q = queue(100, 1000);
-        // A's four large writes fill the bytes though few entries.
-        assert_eq!(offer(&mut q, A, 0, 4, 250, now), 4);
-        // B's small one takes the room of one of them.
-        assert_eq!(offer(&mut q, B, 0, 1, 10, now), 1);
-        assert_eq!((q.len_of(A), q.len_of(B)), (3, 1));
-        assert_eq!(q.bytes(), 760);
+        // A holds few writes but most of the bytes, B more writes of few bytes.
+        assert_eq!(offer(&mut q, A, 0, 2, 400, now), 2);
+        assert_eq!(offer(&mut q, B, 0, 5, 10, now), 5);
+        // C's write does not fit the bytes: it takes the place of A's newest, not of B's.
+        assert_eq!(offer(&mut q, C, 0, 1, 200, now), 1);
+        assert_eq!((q.len_of(A), q.len_of(B), q.len_of(C)), (1, 5, 1));
+        assert_eq!(q.bytes(), 650);
         // A single write larger than the bound waits in an empty queue only.
         let mut empty = queue(100, 1000);
         assert_eq!(offer(&mut empty, C, 0, 2, 5000, now), 1);
+    }
+
+    #[test]
+    fn nothing_is_dropped_for_a_write_that_still_would_not_fit() {
+        let now = Instant::now();
+        let mut q = queue(100, 1000);
+        offer(&mut q, A, 0, 4, 200, now);
+        offer(&mut q, B, 0, 1, 190, now);
+        // C's 500 bytes: dropping A's newest two would leave A no heavier than C, and the
+        // write would still not fit; so nothing of A's goes, A is not held, C is.
+        assert_eq!(q.make_room(C, 500, now), Room::No { hold_started: true });
+        assert_eq!((q.len_of(A), q.len_of(B), q.bytes()), (4, 1, 990));
+        assert!(!q.is_held(A, now));
+        assert!(q.is_held(C, now));
+        // A's writes are still in their order.
+        assert_eq!(drain(&mut q), vec![(A, 0), (B, 0), (A, 1), (A, 2), (A, 3)]);
     }
 
     #[test]
@@ -513,20 +597,34 @@ mod tests {
     }
 
     #[test]
-    fn an_evicted_client_keeps_one_turn() {
+    fn an_emptied_client_keeps_one_turn() {
         let now = Instant::now();
-        let mut q = WaitingWrites::new(3, 1 << 20, Duration::ZERO);
-        offer(&mut q, A, 0, 2, 10, now);
+        let mut q = queue(100, 1 << 20);
+        offer(&mut q, A, 0, 3, 10, now);
         offer(&mut q, B, 0, 1, 10, now);
-        // C twice: first from A (2 against C's 1), then from B or A (1 each, C would hold 2:
-        // not heavier), so C's second is refused.
-        assert_eq!(offer(&mut q, C, 0, 2, 10, now), 1);
-        assert_eq!((q.len_of(A), q.len_of(B), q.len_of(C)), (1, 1, 1));
-        // B's only write goes; B returns with two: it is in the turns once.
+        // B's only write goes (its entry stays in the turns, empty); B returns with three.
         assert_eq!(q.retain_of(B, |_| false), 1);
-        q.push(B, (B, 1), 10);
-        q.push(B, (B, 2), 10);
-        assert_eq!(drain(&mut q), vec![(A, 0), (B, 1), (C, 0), (B, 2)]);
+        offer(&mut q, B, 1, 3, 10, now);
+        // One turn each, alternating: a second turn of B would put two of its writes in a
+        // row.
+        assert_eq!(
+            drain(&mut q),
+            vec![(A, 0), (B, 1), (A, 1), (B, 2), (A, 2), (B, 3)]
+        );
+        // The same after an eviction emptied it (only bytes can: a client holding one large
+        // write for a small one).
+        let mut q = queue(100, 1000);
+        offer(&mut q, A, 0, 1, 900, now);
+        offer(&mut q, B, 0, 3, 10, now);
+        assert_eq!(offer(&mut q, C, 0, 1, 100, now), 1);
+        assert_eq!(q.len_of(A), 0);
+        q.push(A, (A, 1), 10);
+        q.push(A, (A, 2), 10);
+        q.push(A, (A, 3), 10);
+        assert_eq!(
+            drain(&mut q),
+            vec![(A, 1), (B, 0), (C, 0), (A, 2), (B, 1), (A, 3), (B, 2)]
+        );
     }
 
     #[test]
@@ -544,5 +642,126 @@ mod tests {
             );
         }
         assert!(q.holds.len() <= 128, "{} holds kept", q.holds.len());
+    }
+
+    mod properties {
+        use super::*;
+        use proptest::prelude::*;
+
+        #[derive(Debug, Clone)]
+        enum Step {
+            Offer { client: u8, weight: usize },
+            Pop,
+            DropOdd { client: u8 },
+            Remove { client: u8 },
+            Clear,
+            Later,
+        }
+
+        fn step() -> impl Strategy<Value = Step> {
+            prop_oneof![
+                6 => (0u8..6, 1usize..400).prop_map(|(client, weight)| Step::Offer { client, weight }),
+                3 => Just(Step::Pop),
+                1 => (0u8..6).prop_map(|client| Step::DropOdd { client }),
+                1 => (0u8..6).prop_map(|client| Step::Remove { client }),
+                1 => Just(Step::Clear),
+                1 => Just(Step::Later),
+            ]
+        }
+
+        proptest! {
+            /// Whatever happens: the counts and bytes are the sum of what waits, the bounds
+            /// hold (but for one write alone), every write offered is sent, dropped, evicted
+            /// or refused exactly once, each client's writes are sent in their order, a
+            /// refusal changes nothing but its client's hold, and a client is evicted from
+            /// only for a write of a client that then holds less than it did.
+            #[test]
+            fn the_queue_keeps_its_promises(steps in proptest::collection::vec(step(), 1..300)) {
+                let start = Instant::now();
+                let mut now = start;
+                let mut q: WaitingWrites<(ClientKey, u32, usize)> =
+                    WaitingWrites::new(8, 1000, Duration::from_millis(5));
+                let mut next = [0u32; 6];
+                let mut last_sent: HashMap<ClientKey, u32> = HashMap::new();
+                let (mut offered, mut accounted) = (0usize, 0usize);
+                for s in steps {
+                    match s {
+                        Step::Offer { client, weight } => {
+                            let key = ClientKey([client, 0, 0, 1]);
+                            let before: Vec<(ClientKey, usize)> = (0..6u8)
+                                .map(|c| ClientKey([c, 0, 0, 1]))
+                                .map(|k| (k, q.len_of(k)))
+                                .collect();
+                            let (len, bytes) = (q.len(), q.bytes());
+                            let own_after = q.heaviness(q.len_of(key) + 1, {
+                                let b = q.clients.get(&key).map_or(0, |c| c.bytes);
+                                b + weight
+                            });
+                            let heaviness_before: HashMap<ClientKey, u128> = q
+                                .clients
+                                .iter()
+                                .map(|(k, c)| (*k, q.heaviness(c.items.len(), c.bytes)))
+                                .collect();
+                            offered += 1;
+                            let i = next[client as usize];
+                            next[client as usize] += 1;
+                            match q.make_room(key, weight, now) {
+                                Room::Yes { evicted, .. } => {
+                                    q.push(key, (key, i, weight), weight);
+                                    accounted += evicted;
+                                    for (k, n) in &before {
+                                        let lost = n.saturating_sub(q.len_of(*k));
+                                        if *k != key && lost > 0 {
+                                            prop_assert!(
+                                                heaviness_before[k] > own_after,
+                                                "{k:?} paid for a heavier or equal client"
+                                            );
+                                        }
+                                    }
+                                }
+                                Room::No { .. } => {
+                                    accounted += 1;
+                                    prop_assert_eq!((q.len(), q.bytes()), (len, bytes));
+                                    for (k, n) in &before {
+                                        prop_assert_eq!(q.len_of(*k), *n);
+                                    }
+                                }
+                            }
+                        }
+                        Step::Pop => {
+                            if let Some((k, i, _)) = q.pop() {
+                                accounted += 1;
+                                if let Some(prev) = last_sent.insert(k, i) {
+                                    prop_assert!(prev < i, "{k:?} sent {i} after {prev}");
+                                }
+                            }
+                        }
+                        Step::DropOdd { client } => {
+                            accounted +=
+                                q.retain_of(ClientKey([client, 0, 0, 1]), |(_, i, _)| i % 2 == 0);
+                        }
+                        Step::Remove { client } => {
+                            accounted += q.remove_client(ClientKey([client, 0, 0, 1]));
+                        }
+                        Step::Clear => accounted += q.clear(),
+                        Step::Later => now += Duration::from_millis(3),
+                    }
+                    let mut len = 0;
+                    let mut bytes = 0;
+                    for c in q.clients.values() {
+                        len += c.items.len();
+                        bytes += c.items.iter().map(|(_, w)| w).sum::<usize>();
+                        prop_assert_eq!(c.bytes, c.items.iter().map(|(_, w)| w).sum::<usize>());
+                    }
+                    prop_assert_eq!((len, bytes), (q.len(), q.bytes()));
+                    prop_assert!(q.len() <= 8);
+                    prop_assert!(q.len() <= 1 || q.bytes() <= 1000);
+                    let mut seen = std::collections::HashSet::new();
+                    prop_assert!(q.turns.iter().all(|k| seen.insert(*k)), "a client twice in the turns");
+                    prop_assert_eq!(q.turns.len(), q.clients.len());
+                    prop_assert_eq!(offered, accounted + q.len());
+                }
+            }
+        }
     }
 }
