@@ -1,0 +1,254 @@
+//! Sessions begin and end: CREATE_CLIENT, the requests that need no session, endpoints that
+//! close, deletions.
+
+use super::*;
+
+impl<A: Copy + Eq + Hash + Debug> Agent<A> {
+    pub(super) fn handle_sessionless(
+        &mut self,
+        now: Instant,
+        src: A,
+        header: MessageHeader,
+        hlen: usize,
+        bytes: &[u8],
+        sink: &mut impl OperationSink,
+    ) {
+        for raw in Submessages::new(bytes, hlen) {
+            let raw = match raw {
+                Ok(r) => r,
+                Err(e) => return self.drop_input(e.reason(), bytes),
+            };
+            let payload = match raw.decode() {
+                Ok(p) => p,
+                // eProsima's client always declares 16 bytes for CREATE_CLIENT, also when it
+                // appends properties (hard liveliness, shared memory) and then the MTU after
+                // them: read the CREATE_CLIENT from the rest of the datagram instead.
+                Err(DecodeError::Truncated) if raw.id == submessage_id::CREATE_CLIENT => {
+                    let rest = bytes.get(raw.offset + 4..).unwrap_or_default();
+                    match Payload::decode(raw.id, raw.flags, rest) {
+                        Ok(Payload::CreateClient(c)) => {
+                            tracing::trace!("CREATE_CLIENT longer than its declared length");
+                            return self.create_client(now, src, &c, sink);
+                        }
+                        Ok(_) => return,
+                        Err(e) => return self.drop_input(e.reason(), bytes),
+                    }
+                }
+                Err(e) => return self.drop_input(e.reason(), bytes),
+            };
+            match payload {
+                Payload::CreateClient(c) => self.create_client(now, src, &c, sink),
+                Payload::GetInfo(g) if self.once(Reply::Info) => {
+                    let dialect = self.config.dialect.unwrap_or_default();
+                    self.reply_info(src, header, g.base, false, dialect)
+                }
+                Payload::GetInfo(_) => self.count_drop("repeated_request"),
+                _ => self.drop_input("no_session", bytes),
+            }
+        }
+    }
+
+    pub(super) fn create_client(
+        &mut self,
+        now: Instant,
+        src: A,
+        c: &CreateClientPayload,
+        sink: &mut impl OperationSink,
+    ) {
+        let reply_header = MessageHeader::new(c.session_id, stream_id::NONE, 0, c.client_key);
+        let result = if c.cookie != XRCE_COOKIE {
+            status::ERR_INVALID_DATA
+        } else if c.version[0] != XRCE_VERSION[0] {
+            status::ERR_INCOMPATIBLE
+        } else if c.session_id == 0x00 || c.session_id == 0x80 || c.client_key == ClientKey::INVALID
+        {
+            status::ERR_INVALID_DATA
+        } else if !self.config.admission.admits(c.client_key) {
+            self.count_drop("key_not_allowed");
+            status::ERR_DENIED
+        } else if !self.clients.contains_key(&c.client_key)
+            && self.clients.len() >= self.config.max_clients
+        {
+            status::ERR_RESOURCES
+        } else {
+            status::OK
+        };
+        if result == status::OK {
+            // Another client at the same source address is gone (it was restarted with a new key).
+            if let Some(other) = self
+                .by_addr
+                .get(&src)
+                .copied()
+                .filter(|k| *k != c.client_key)
+            {
+                self.remove_client(other, sink);
+            }
+            // At least 64 (so fragments carry data), at most what the transport carries.
+            let mtu = c
+                .mtu
+                .unwrap_or(self.config.default_mtu)
+                .clamp(64, self.config.max_message_size.max(64));
+            let dialect = self
+                .config
+                .dialect
+                .unwrap_or(Dialect::for_vendor(c.vendor_id));
+            let dead_time = hard_liveliness(c).or(self.config.client_dead_time);
+            match self.clients.get_mut(&c.client_key) {
+                Some(existing) if existing.session_id == c.session_id => {
+                    // The same session again: a restarted client starts its streams at 0, so
+                    // ours restart too; its objects stay (§7.8.2.1 "no action"). A copy of the
+                    // CREATE_CLIENT that arrives just after the client began using its streams
+                    // is a network duplicate or a stale retry, not a restart: keep the streams.
+                    // From another endpoint (a new connection, a new source port) it is a
+                    // restart whatever the timing.
+                    let stale = existing.streams_used
+                        && existing.addr == src
+                        && !existing.detached
+                        && now.saturating_duration_since(existing.established_at)
+                            < self.config.duplicate_create_guard;
+                    if stale {
+                        self.stats.count("duplicate_create_client");
+                    } else {
+                        existing.reset_streams();
+                        existing.established_at = now;
+                    }
+                    existing.mtu = mtu;
+                    existing.mtu_announced = c.mtu.is_some();
+                    existing.last_heard = now;
+                    existing.detached = false;
+                    existing.dialect = dialect;
+                    existing.dead_time = dead_time;
+                    let old = existing.addr;
+                    existing.addr = src;
+                    if self.by_addr.get(&old) == Some(&c.client_key) {
+                        self.by_addr.remove(&old);
+                    }
+                    self.by_addr.insert(src, c.client_key);
+                    tracing::info!(client = %c.client_key, session = c.session_id, "session re-established");
+                }
+                existing => {
+                    if existing.is_some() {
+                        self.remove_client(c.client_key, sink);
+                    }
+                    let mut client = ProxyClient::new(
+                        c.client_key,
+                        c.session_id,
+                        src,
+                        mtu,
+                        dialect,
+                        dead_time,
+                        now,
+                        &self.config,
+                    );
+                    client.mtu_announced = c.mtu.is_some();
+                    self.clients.insert(c.client_key, client);
+                    self.by_addr.insert(src, c.client_key);
+                    sink.operation(Operation::ClientCreated {
+                        client: c.client_key,
+                    });
+                    tracing::info!(client = %c.client_key, session = c.session_id, mtu, ?dialect, ?dead_time, "session created");
+                }
+            }
+            self.schedule(c.client_key);
+            self.touch_input(c.client_key);
+        } else if result == status::ERR_DENIED {
+            if self.denied_logged.len() < 1024 && self.denied_logged.insert(c.client_key) {
+                tracing::warn!(client = %c.client_key, "CREATE_CLIENT refused: the key is not in --allow-keys (further attempts of this key are counted)");
+            } else {
+                tracing::debug!(client = %c.client_key, "CREATE_CLIENT refused: key not allowed");
+            }
+        } else {
+            tracing::info!(client = %c.client_key, status = result, "CREATE_CLIENT refused");
+        }
+        // Without a ResultStatus a refusal cannot be reported: only a forced spec dialect drops it.
+        let forced_spec = self.config.dialect == Some(Dialect::Spec);
+        let payload = Payload::StatusAgent(StatusAgentPayload {
+            result: (!forced_spec).then(|| ResultStatus::new(result)),
+            cookie: XRCE_COOKIE,
+            version: XRCE_VERSION,
+            vendor_id: self.config.vendor_id,
+            properties: None,
+        });
+        let mut b = MessageBuilder::new(reply_header);
+        let _ = b.push(&payload, true);
+        self.push_transmit(src, b.finish());
+    }
+
+    pub(super) fn reply_info(
+        &mut self,
+        dst: A,
+        header: MessageHeader,
+        request: BaseObjectRequest,
+        in_session: bool,
+        dialect: Dialect,
+    ) {
+        // Available, no locators advertised (discovery answers with them, see `discovery`).
+        let m = agent_info_message(
+            header,
+            request,
+            in_session,
+            dialect,
+            self.config.vendor_id,
+            Vec::new(),
+        );
+        self.push_transmit(dst, m);
+    }
+
+    /// Tells the core that a transport endpoint is gone for good (a TCP connection closed).
+    /// The session there is kept, with its objects: a client that reconnects and creates its
+    /// session again with the same key continues with them, as over UDP. Until it is heard
+    /// again nothing is sent to it (replies meanwhile wait in its reliable streams, bounded as
+    /// ever). Returns whether a session was at that endpoint.
+    pub fn endpoint_closed(&mut self, endpoint: A) -> bool {
+        let Some(key) = self.by_addr.remove(&endpoint) else {
+            return false;
+        };
+        match self.clients.get_mut(&key) {
+            Some(c) if c.addr == endpoint => {
+                c.detached = true;
+                c.heartbeat_due = None;
+                tracing::info!(client = %key, "client's endpoint closed; session kept");
+                self.schedule(key);
+                true
+            }
+            _ => false,
+        }
+    }
+
+    pub(super) fn remove_client(&mut self, key: ClientKey, sink: &mut impl OperationSink) {
+        if let Some(c) = self.clients.remove(&key) {
+            if self.config.track_sessions {
+                self.changed.remove(&key);
+                self.changed_input.remove(&key);
+                self.removed.push(key);
+            }
+            if self.by_addr.get(&c.addr) == Some(&key) {
+                self.by_addr.remove(&c.addr);
+            }
+            sink.operation(Operation::ClientDeleted { client: key });
+            tracing::info!(client = %key, "session deleted");
+        }
+    }
+
+    /// Removes a client that asked for its own deletion, after its STATUS went out.
+    pub(super) fn finish_client(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        sink: &mut impl OperationSink,
+    ) {
+        if self.clients.get(&key).is_some_and(|c| c.delete_requested) {
+            self.flush_client(now, key);
+            self.remove_client(key, sink);
+        }
+    }
+}
+
+/// The hard-liveliness timeout a client asks for in CREATE_CLIENT (property `uxr_hl`, six
+/// decimal digits of milliseconds).
+pub(super) fn hard_liveliness(c: &CreateClientPayload) -> Option<Duration> {
+    let props = c.properties.as_ref()?;
+    let (_, v) = props.iter().find(|(k, _)| k == "uxr_hl")?;
+    let ms: u64 = v.trim().parse().ok()?;
+    (ms > 0).then(|| Duration::from_millis(ms.max(100)))
+}

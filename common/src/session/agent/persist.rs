@@ -1,0 +1,150 @@
+//! Sessions saved for, and taken over by, a successor front-end process.
+
+use super::*;
+
+impl<A: Copy + Eq + Hash + Debug> Agent<A> {
+    /// The sessions whose snapshot may have changed, and the sessions deleted, since the
+    /// last call (empty unless `track_sessions`). A front-end stores the snapshots before
+    /// it sends what the core produced, so what a client saw acknowledged or numbered is
+    /// never behind what the stored state says.
+    ///
+    /// Sessions whose input positions changed are always returned; those where only the
+    /// output side changed only with `with_output` (a successor copes with output state a
+    /// little behind: its clients' ACKNACKs tell it where they are).
+    pub fn take_session_changes(&mut self, with_output: bool) -> (Vec<ClientKey>, Vec<ClientKey>) {
+        let mut changed: HashSet<ClientKey> = self.changed_input.drain().collect();
+        if with_output {
+            changed.extend(self.changed.drain());
+        }
+        (
+            changed.into_iter().collect(),
+            std::mem::take(&mut self.removed),
+        )
+    }
+
+    /// The state a successor front-end needs to take a session over, with its endpoint
+    /// encoded by `endpoint`.
+    pub fn snapshot(
+        &self,
+        key: ClientKey,
+        endpoint: impl Fn(A) -> Vec<u8>,
+    ) -> Option<SessionSnapshot> {
+        let c = self.clients.get(&key)?;
+        let mut reliable_in: Vec<(u8, u16)> = c
+            .reliable_in
+            .iter()
+            .map(|(s, i)| (*s, i.expected()))
+            .collect();
+        let mut best_effort_in: Vec<(u8, u16)> = c
+            .best_effort_in
+            .iter()
+            .filter_map(|(s, i)| Some((*s, i.last()?)))
+            .collect();
+        let mut reliable_out: Vec<OutputSnapshot> = c
+            .reliable_out
+            .iter()
+            .map(|(s, o)| OutputSnapshot {
+                stream_id: *s,
+                next: o.reliable.next_seq(),
+                // A stream still asking the client where it is has nothing to resend.
+                in_flight: (!o.reliable.is_resyncing()).then(|| {
+                    o.reliable
+                        .in_flight()
+                        .map(|(seq, m)| (seq, m.to_vec()))
+                        .collect()
+                }),
+                queued: o.queue.iter().cloned().collect(),
+            })
+            .collect();
+        reliable_out.sort_by_key(|o| o.stream_id);
+        let mut best_effort_out: Vec<(u8, u16)> =
+            c.best_effort_out.iter().map(|(s, n)| (*s, *n)).collect();
+        for list in [&mut reliable_in, &mut best_effort_in, &mut best_effort_out] {
+            list.sort_unstable();
+        }
+        Some(SessionSnapshot {
+            key,
+            session_id: c.session_id,
+            endpoint: endpoint(c.addr),
+            mtu: c.mtu,
+            dialect: c.dialect,
+            dead_time: c.dead_time,
+            reliable_in,
+            best_effort_in,
+            reliable_out,
+            best_effort_out,
+        })
+    }
+
+    /// Takes over a session a front-end that died stored (its object graph is the bridge's
+    /// business): the client goes on where it was. Its reliable output streams first ask
+    /// the client where it is (a HEARTBEAT now); a session of this key that exists already
+    /// is kept instead.
+    pub fn restore(&mut self, now: Instant, snapshot: &SessionSnapshot, endpoint: A) -> bool {
+        if self.clients.contains_key(&snapshot.key) || self.clients.len() >= self.config.max_clients
+        {
+            return false;
+        }
+        let (in_window, out_window) = (self.config.input_window, self.config.output_window);
+        let reliable_out = snapshot
+            .reliable_out
+            .iter()
+            .map(|o| {
+                let reliable = match &o.in_flight {
+                    Some(m) => ReliableOutput::restored(o.stream_id, out_window, o.next, m.clone()),
+                    None => ReliableOutput::resuming(o.stream_id, out_window, o.next),
+                };
+                (
+                    o.stream_id,
+                    OutStream {
+                        queued_bytes: o.queued.iter().map(Vec::len).sum(),
+                        reliable,
+                        queue: o.queued.iter().cloned().collect(),
+                    },
+                )
+            })
+            .collect();
+        // A HEARTBEAT now: the client says what it lacks (or, resyncing, where it is).
+        let resyncing = snapshot
+            .reliable_out
+            .iter()
+            .any(|o| o.in_flight.as_ref().is_none_or(|m| !m.is_empty()) || !o.queued.is_empty());
+        let mut client = ProxyClient::new(
+            snapshot.key,
+            snapshot.session_id,
+            endpoint,
+            snapshot.mtu.clamp(64, self.config.max_message_size.max(64)),
+            snapshot.dialect,
+            snapshot.dead_time,
+            now,
+            &self.config,
+        );
+        // Not stored: eProsima clients announce their MTU, spec clients do not.
+        client.mtu_announced = snapshot.dialect == Dialect::Eprosima;
+        client.reliable_in = snapshot
+            .reliable_in
+            .iter()
+            .map(|(s, e)| (*s, ReliableInput::resuming(in_window, *e)))
+            .collect();
+        client.best_effort_in = snapshot
+            .best_effort_in
+            .iter()
+            .map(|(s, l)| (*s, BestEffortInput::resuming(*l)))
+            .collect();
+        client.reliable_out = reliable_out;
+        client.best_effort_out = snapshot.best_effort_out.iter().copied().collect();
+        client.heartbeat_due = resyncing.then_some(now);
+        // Not a fresh session: a CREATE_CLIENT now is the client's own restart.
+        client.established_at = now
+            .checked_sub(self.config.duplicate_create_guard)
+            .unwrap_or(now);
+        client.streams_used = true;
+        self.clients.insert(snapshot.key, client);
+        self.by_addr.insert(endpoint, snapshot.key);
+        // Output that waited for window room goes out as room allows.
+        self.flush_client(now, snapshot.key);
+        self.schedule(snapshot.key);
+        tracing::info!(client = %snapshot.key, session = snapshot.session_id, ?endpoint, "session taken over from the previous front-end");
+        true
+    }
+}

@@ -1,0 +1,149 @@
+//! One client's session as the agent keeps it: its streams, timers and counters.
+
+use super::*;
+
+/// A reliable output stream and the submessages waiting for its window.
+#[derive(Debug)]
+pub(super) struct OutStream {
+    /// Bytes in `queue`.
+    pub(super) queued_bytes: usize,
+    pub(super) reliable: ReliableOutput,
+    /// Encoded submessages waiting for window room.
+    pub(super) queue: VecDeque<Vec<u8>>,
+}
+
+/// The agent's state of one client's session.
+#[derive(Debug)]
+pub(super) struct ProxyClient<A> {
+    pub(super) key: ClientKey,
+    pub(super) session_id: u8,
+    pub(super) addr: A,
+    pub(super) mtu: u16,
+    /// Whether the client announced its MTU (eProsima's CREATE_CLIENT property); if not,
+    /// `mtu` is assumed, and bounds its fragments but not its best-effort messages.
+    pub(super) mtu_announced: bool,
+    pub(super) last_heard: Instant,
+    pub(super) reliable_in: HashMap<u8, ReliableInput>,
+    pub(super) best_effort_in: HashMap<u8, BestEffortInput>,
+    pub(super) reliable_out: HashMap<u8, OutStream>,
+    pub(super) best_effort_out: HashMap<u8, u16>,
+    pub(super) reassembly: HashMap<u8, Reassembly>,
+    pub(super) heartbeat_due: Option<Instant>,
+    /// The period of the next HEARTBEAT (backs off while the client does not answer).
+    pub(super) heartbeat_interval: Duration,
+    /// The entry of this client in the agent's timer heap, if any.
+    pub(super) timer: Option<Instant>,
+    /// Its input rate quota's consumption (none when unlimited).
+    pub(super) meter: Option<RateMeter>,
+    /// Messages dropped because they presented this client's key from another endpoint.
+    pub(super) foreign_drops: u64,
+    /// What this client sent, received and lost.
+    pub(super) counters: ClientCounters,
+    /// When its session was created (a CREATE_CLIENT of the same session keeps it).
+    pub(super) created_at: Instant,
+    pub(super) delete_requested: bool,
+    /// When the session was created or its streams last reset by a CREATE_CLIENT.
+    pub(super) established_at: Instant,
+    /// Whether the client sent anything on a stream since then.
+    pub(super) streams_used: bool,
+    pub(super) dialect: Dialect,
+    /// Silence after which the client is dead (hard liveliness or the configured dead time).
+    pub(super) dead_time: Option<Duration>,
+    /// Its endpoint closed (a TCP connection): nothing is sent until it is heard again.
+    pub(super) detached: bool,
+    /// When the last GET_INFO liveliness probe went out.
+    pub(super) last_probe: Option<Instant>,
+    /// The last ACKNACK sent on each reliable input stream and when (see [`AckCause`]).
+    pub(super) last_acknack: HashMap<u8, (u16, u16, Instant)>,
+}
+
+impl<A> ProxyClient<A> {
+    /// A fresh session: no stream used yet.
+    #[allow(clippy::too_many_arguments)]
+    pub(super) fn new(
+        key: ClientKey,
+        session_id: u8,
+        addr: A,
+        mtu: u16,
+        dialect: Dialect,
+        dead_time: Option<Duration>,
+        now: Instant,
+        config: &AgentConfig,
+    ) -> Self {
+        ProxyClient {
+            key,
+            session_id,
+            addr,
+            mtu,
+            mtu_announced: false,
+            last_heard: now,
+            reliable_in: HashMap::new(),
+            best_effort_in: HashMap::new(),
+            reliable_out: HashMap::new(),
+            best_effort_out: HashMap::new(),
+            reassembly: HashMap::new(),
+            heartbeat_due: None,
+            heartbeat_interval: config.heartbeat_period,
+            timer: None,
+            meter: (!config.admission.rate.is_unlimited())
+                .then(|| RateMeter::new(config.admission.rate, now)),
+            foreign_drops: 0,
+            counters: ClientCounters::default(),
+            created_at: now,
+            delete_requested: false,
+            established_at: now,
+            streams_used: false,
+            dialect,
+            dead_time,
+            detached: false,
+            last_probe: None,
+            last_acknack: HashMap::new(),
+        }
+    }
+
+    pub(super) fn header(&self, stream: u8, seq: u16) -> MessageHeader {
+        MessageHeader::new(self.session_id, stream, seq, self.key)
+    }
+
+    pub(super) fn reset_streams(&mut self) {
+        self.reliable_in.clear();
+        self.best_effort_in.clear();
+        self.reliable_out.clear();
+        self.best_effort_out.clear();
+        self.reassembly.clear();
+        self.heartbeat_due = None;
+        self.streams_used = false;
+        self.last_acknack.clear();
+    }
+
+    /// When this client's timers have something to do next: a HEARTBEAT, a liveliness
+    /// probe, or (detached: nobody to probe) the end of its dead time.
+    pub(super) fn next_due(&self) -> Option<Instant> {
+        let liveliness = if self.detached {
+            self.dead_time.map(|d| self.last_heard + d)
+        } else {
+            self.liveliness_due()
+        };
+        match (self.heartbeat_due.filter(|_| !self.detached), liveliness) {
+            (Some(a), Some(b)) => Some(a.min(b)),
+            (a, b) => a.or(b),
+        }
+    }
+
+    /// When the liveliness check of this client has something to do next.
+    pub(super) fn liveliness_due(&self) -> Option<Instant> {
+        let dead = self.dead_time?;
+        let probe_every = probe_period(dead);
+        let first_probe = self.last_heard + probe_every;
+        let next_probe = self
+            .last_probe
+            .filter(|p| *p >= self.last_heard)
+            .map_or(first_probe, |p| (p + probe_every).max(first_probe));
+        Some(next_probe.min(self.last_heard + dead))
+    }
+}
+
+/// How often a silent client is probed: four times within its dead time, at most every 10 s.
+pub(super) fn probe_period(dead_time: Duration) -> Duration {
+    (dead_time / 4).clamp(Duration::from_millis(25), Duration::from_secs(10))
+}

@@ -1,0 +1,97 @@
+//! The agent's timers: HEARTBEATs, liveliness probes and dead sessions.
+
+use super::*;
+
+impl<A: Copy + Eq + Hash + Debug> Agent<A> {
+    /// Sends due HEARTBEATs and liveliness probes, and deletes the sessions of clients that
+    /// stayed silent past their dead time (their objects go with them through `sink`). Only
+    /// the clients whose timer fell due are looked at.
+    pub fn handle_timeout(&mut self, now: Instant, sink: &mut impl OperationSink) {
+        let max_period = self.config.max_heartbeat_period;
+        let base_period = self.config.heartbeat_period;
+        let mut out = Vec::new();
+        let mut dead = Vec::new();
+        let mut due_clients = Vec::new();
+        while let Some(Reverse((t, key))) = self.timers.peek().copied() {
+            if t > now {
+                break;
+            }
+            self.timers.pop();
+            // Only the client's live entry counts (older ones were superseded).
+            if let Some(c) = self.clients.get_mut(&key).filter(|c| c.timer == Some(t)) {
+                c.timer = None;
+                due_clients.push(key);
+            }
+        }
+        for key in &due_clients {
+            let Some(c) = self.clients.get_mut(key) else {
+                continue;
+            };
+            if let Some(dead_time) = c.dead_time {
+                let silence = now.saturating_duration_since(c.last_heard);
+                if silence >= dead_time {
+                    dead.push((c.key, silence));
+                    continue;
+                }
+                if !c.detached && c.liveliness_due().is_some_and(|d| d <= now) {
+                    // GET_INFO about the agent, as a ping: a live client answers with INFO.
+                    let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
+                    let probe = crate::wire::GetInfoPayload {
+                        base: BaseObjectRequest {
+                            request_id: LIVELINESS_PROBE_ID,
+                            object_id: ObjectId::AGENT,
+                        },
+                        info_mask: 0x02,
+                    };
+                    let _ = b.push(&Payload::GetInfo(probe), true);
+                    out.push((c.addr, b.finish()));
+                    c.last_probe = Some(now);
+                }
+            }
+            if c.detached {
+                c.heartbeat_due = None;
+            } else if c.heartbeat_due.is_some_and(|d| d <= now) {
+                let mut any = false;
+                for s in c.reliable_out.values() {
+                    if let Some(hb) = s.reliable.heartbeat() {
+                        let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
+                        let _ = b.push(&Payload::Heartbeat(hb), true);
+                        out.push((c.addr, b.finish()));
+                        any = true;
+                    }
+                }
+                if any {
+                    // Unanswered so far: the next one waits twice as long, unless the
+                    // client was heard since the last one. A client that keeps talking is
+                    // alive and its ACKNACKs were likely lost on the way (a flooded socket
+                    // drops datagrams whatever their kind): every back-off step stalls its
+                    // reliable output that much longer. Measured on a flooded socket, a
+                    // back-off up to 400 ms for such clients left a reliable reader's
+                    // median latency at 1.1 s with 6 % of its samples lost to its DDS
+                    // history; keeping the base period, 0.09-0.28 s and none lost. The cost:
+                    // a client that talks but never acknowledges gets ten small HEARTBEATs a
+                    // second. Only a silent client is probed less and less, its period
+                    // growing up to `max_heartbeat_period`.
+                    let heard = now.saturating_duration_since(c.last_heard) < c.heartbeat_interval;
+                    c.heartbeat_interval = if heard {
+                        base_period
+                    } else {
+                        (c.heartbeat_interval * 2).min(max_period)
+                    };
+                }
+                c.heartbeat_due = any.then_some(now + c.heartbeat_interval);
+            }
+        }
+        for key in due_clients {
+            self.schedule(key);
+        }
+        for (a, m) in out {
+            self.push_transmit(a, m);
+        }
+        for (key, silence) in dead {
+            tracing::warn!(client = %key, silent_ms = silence.as_millis() as u64, "client silent past its dead time; deleting its session");
+            self.count_drop("client_dead");
+            self.remove_client(key, sink);
+        }
+    }
+}
