@@ -19,7 +19,8 @@ use std::time::{Duration, Instant};
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
 use xrce_common::ipc::{
     self, IpcHeader, MessageKind, FLAG_DIALECT_SPEC, FLAG_DISPOSED, FLAG_LITTLE_ENDIAN,
-    FLAG_REPLAY, FLAG_STATUS_REQUESTED, FLAG_UNREGISTERED, IN_FLIGHT_WINDOW,
+    FLAG_PROGRESS_CAN_WAIT, FLAG_REPLAY, FLAG_STATUS_REQUESTED, FLAG_UNREGISTERED,
+    IN_FLIGHT_WINDOW,
 };
 use xrce_common::session::agent::{Agent, DataReply, Operation, OperationSink};
 use xrce_common::session::graph::{ActiveRead, CreateDecision, GraphObject, ObjectGraph};
@@ -93,6 +94,13 @@ pub const RETAIN_MAX_BYTES: usize = 64 << 20;
 pub const PAUSE_READ_AT: (usize, usize) = (1024, 1 << 20);
 /// A paused read resumes when the backlog is down to this.
 pub const RESUME_READ_AT: (usize, usize) = (256, 256 << 10);
+
+/// Operations in flight below which a best-effort write tells the worker that its progress
+/// can wait ([`FLAG_PROGRESS_CAN_WAIT`]): with most of the window free nothing here waits
+/// for that progress, so the worker need not wake this process for it (the progress is read
+/// on the next wake-up). From a sixth of the window on, progress wakes again, long before
+/// the best-effort share (136) or the window (192) fills.
+pub const PROGRESS_CAN_WAIT_BELOW: u64 = 32;
 
 /// How long an executed reliable write is kept at most in case the worker dies right after.
 /// A write is released as soon as the worker reports that every matched reliable reader of
@@ -480,6 +488,9 @@ impl Bridge {
         h.incarnation = self.incarnation;
         if self.outbox.is_empty() && self.can_send_now() {
             h.op_seq = self.next_seq;
+            if self.progress_can_wait(&h, retain, awaited) {
+                h.flags |= FLAG_PROGRESS_CAN_WAIT;
+            }
             if let Err(e) = self.requests.send(&h, body) {
                 tracing::warn!(error = %e, "could not hand an operation to the worker; queued");
                 self.outbox.push_back(OwnedOp {
@@ -499,6 +510,16 @@ impl Bridge {
                 awaited,
             });
         }
+    }
+
+    /// Whether nothing here will wait for the progress of `h`, sent now: a best-effort
+    /// write no one awaits an answer to, with nothing queued and most of the window free.
+    fn progress_can_wait(&self, h: &IpcHeader, retain: bool, awaited: Awaited) -> bool {
+        h.kind == MessageKind::Write
+            && !retain
+            && awaited == Awaited::No
+            && self.best_effort_waiting.is_empty()
+            && self.in_flight() < PROGRESS_CAN_WAIT_BELOW
     }
 
     fn after_send(

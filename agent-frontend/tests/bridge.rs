@@ -831,3 +831,52 @@ fn small_reliable_messages_may_fill_the_window() {
     drop((rig, worker));
     xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
+
+/// A best-effort write tells the worker its progress can wait only while most of the window
+/// is free; reliable writes and control operations never do.
+#[test]
+fn only_best_effort_writes_with_the_window_mostly_free_let_their_progress_wait() {
+    use xrce_common::ipc::FLAG_PROGRESS_CAN_WAIT;
+    use xrce_frontend::bridge::PROGRESS_CAN_WAIT_BELOW;
+    let inst = instance("lazy");
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 8);
+    rig.catch_up(&worker);
+    let can_wait = |h: &IpcHeader| h.flags & FLAG_PROGRESS_CAN_WAIT != 0;
+    // The worker takes nothing meanwhile: the window fills one write at a time.
+    let n = PROGRESS_CAN_WAIT_BELOW + 10;
+    best_effort_writes(&mut rig, Instant::now(), w, "be", n);
+    rig.client
+        .write(Instant::now(), stream_id::BUILTIN_RELIABLE, w, b"reliable")
+        .expect("write");
+    rig.deliver(Instant::now());
+    rig.bridge.pump();
+    let served = worker.serve();
+    let writes: Vec<&IpcHeader> = served
+        .iter()
+        .map(|(h, _)| h)
+        .filter(|h| h.kind == MessageKind::Write)
+        .collect();
+    assert_eq!(writes.len() as u64, n + 1);
+    let flagged: Vec<bool> = writes.iter().map(|h| can_wait(h)).collect();
+    let mut expected = vec![true; PROGRESS_CAN_WAIT_BELOW as usize];
+    expected.resize(n as usize + 1, false);
+    assert_eq!(
+        flagged, expected,
+        "flagged while fewer than {PROGRESS_CAN_WAIT_BELOW} were in flight"
+    );
+    // Control operations wait for their STATUS.
+    let r = ObjectId::new(2, k::DATAWRITER);
+    rig.create(
+        r,
+        k::DATAWRITER,
+        "<dds/>",
+        VariantExtra::Parent(ObjectId::new(1, k::PUBLISHER)),
+    );
+    rig.deliver(Instant::now());
+    let served = rig.serve_until(&worker, |_, s| {
+        s.iter().any(|(h, _)| h.kind == MessageKind::Create)
+    });
+    assert!(served.iter().all(|(h, _)| !can_wait(h)));
+    drop((rig, worker));
+    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
+}

@@ -19,6 +19,11 @@ pub(super) struct FrontendPort {
     pub(super) last_delivery: Instant,
     /// Messages were published since the front-end was last woken.
     pub(super) unnotified: bool,
+    /// The front-end is woken for the next progress message: an operation it sent without
+    /// [`ipc::FLAG_PROGRESS_CAN_WAIT`] was processed, or DDS readers acknowledged writes.
+    /// Kept while execution stops short of what was processed (held writes), so the progress
+    /// that finally covers them wakes it too.
+    pub(super) progress_wake_owed: bool,
 }
 
 /// Most replies held for one congested front-end; beyond, the oldest are dropped (counted).
@@ -98,6 +103,7 @@ impl Worker {
                     backlog: Default::default(),
                     backlog_bytes: 0,
                     unnotified: false,
+                    progress_wake_owed: false,
                     deferred: Turns::new(),
                     last_delivery: Instant::now(),
                 }))
@@ -185,12 +191,15 @@ impl Worker {
         for (fe, p) in self.ports.iter_mut() {
             if all || moved.contains(fe) {
                 p.dirty = true;
+                p.progress_wake_owed = true;
             }
         }
         // Computed once, and only when a progress message goes out (the loop runs per sample).
         let acks = &self.acks;
         let mut outstanding: Option<HashMap<u32, u64>> = None;
         for (fe, p) in self.ports.iter_mut() {
+            // Something the front-end must be woken for went out.
+            let mut wake = false;
             let mut sent = false;
             while let Some(m) = p.backlog.front() {
                 match p.sender.send_encoded(m) {
@@ -206,6 +215,7 @@ impl Worker {
                     p.backlog_bytes -= m.len();
                 }
                 sent = true;
+                wake = true;
             }
             if p.backlog.is_empty() {
                 self.to_pump.append(&mut p.deferred);
@@ -233,6 +243,10 @@ impl Worker {
                 if let Ok(true) = p.sender.send(&h, &body) {
                     p.dirty = false;
                     sent = true;
+                    if p.progress_wake_owed {
+                        wake = true;
+                        p.progress_wake_owed = executed < p.processed;
+                    }
                 }
             }
             if sent {
@@ -240,7 +254,10 @@ impl Worker {
             }
             // Also when only replies sent directly went out (a full queue may have refused
             // the progress message): a front-end that is not woken does not read them.
-            if sent || p.unnotified {
+            // Progress alone wakes only when owed: the front-end reads the rest on its next
+            // wake-up (at 20,000 samples/s from 100 clients that is one wake-up of the
+            // front-end and one notification of the worker less per sample).
+            if wake || p.unnotified {
                 p.unnotified = false;
                 if let Err(e) = p.sender.notify() {
                     // Tried again on the next pass.

@@ -144,6 +144,9 @@ impl Worker {
                 p.processed = p.processed.max(h.op_seq);
             }
             p.dirty = true;
+            if h.flags & ipc::FLAG_PROGRESS_CAN_WAIT == 0 {
+                p.progress_wake_owed = true;
+            }
         }
     }
 

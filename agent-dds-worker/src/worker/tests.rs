@@ -681,3 +681,79 @@ fn a_flooded_reader_does_not_keep_the_reader_of_another_client_waiting() {
         (0..flood).map(|i| keyed(i as i32, 0)).collect::<Vec<_>>()
     );
 }
+
+impl Harness {
+    /// Hands the worker a request of the front-end (its current process) and ends the pass.
+    fn request(&mut self, kind: MessageKind, seq: u64, flags: u8, body: &[u8]) {
+        let mut h = IpcHeader::new(kind);
+        h.frontend_id = FE;
+        h.client_key = CLIENT;
+        h.object_id = WRITER;
+        h.op_seq = seq;
+        h.flags = flags;
+        self.worker.process_request(h, body);
+        self.worker.flush();
+    }
+
+    /// What the front-end was told executed since the last call (each progress message's
+    /// first number), and whether it was woken for it.
+    fn progress(&mut self) -> (Vec<u64>, bool) {
+        let mut executed = Vec::new();
+        self.replies
+            .drain(|m| {
+                let (h, body) = IpcHeader::decode(m).expect("reply");
+                if h.kind == MessageKind::Progress {
+                    let mut n = [0u8; 8];
+                    n.copy_from_slice(&body[..8]);
+                    executed.push(u64::from_le_bytes(n));
+                }
+            })
+            .expect("drain");
+        (executed, self.replies.take_events())
+    }
+}
+
+/// Progress of an operation sent with FLAG_PROGRESS_CAN_WAIT goes out without waking the
+/// front-end; progress that covers any other operation wakes it.
+#[test]
+fn progress_wakes_the_front_end_only_for_operations_that_wait_for_it() {
+    let mut t = Harness::new(false);
+    // Operations that need no reply (a pause of a read that is not there).
+    t.request(MessageKind::PauseRead, 1, ipc::FLAG_PROGRESS_CAN_WAIT, &[]);
+    assert_eq!(t.progress(), (vec![1], false));
+    t.request(MessageKind::PauseRead, 2, ipc::FLAG_PROGRESS_CAN_WAIT, &[]);
+    t.request(MessageKind::PauseRead, 3, 0, &[]);
+    assert_eq!(t.progress(), (vec![2, 3], true));
+    // Nothing new: no message, no wake-up.
+    t.worker.flush();
+    assert_eq!(t.progress(), (vec![], false));
+    // A reply always wakes (a write to a writer that does not exist fails with a STATUS).
+    let flags = ipc::FLAG_PROGRESS_CAN_WAIT | ipc::FLAG_LITTLE_ENDIAN;
+    t.request(MessageKind::Write, 4, flags, &keyed(1, 1));
+    assert_eq!(t.progress(), (vec![4], true));
+}
+
+/// A write the worker holds (its writer waits for its readers to match again) is not
+/// executed yet: the front-end is woken for every progress message until one covers it,
+/// and once more when it is released.
+#[test]
+fn progress_owed_for_a_held_write_wakes_until_the_write_is_executed() {
+    let mut t = reader_and_new_writer();
+    let _ = t.progress();
+    t.request(
+        MessageKind::Write,
+        10,
+        ipc::FLAG_LITTLE_ENDIAN,
+        &keyed(1, 1),
+    );
+    assert!(t.bus.written.borrow().is_empty(), "held");
+    assert_eq!(t.progress(), (vec![9], true));
+    t.worker.flush();
+    assert_eq!(t.progress(), (vec![9], true), "still held, still owed");
+    t.matched_long_ago(CLIENT, WRITER);
+    assert_eq!(t.bus.samples_on(TOPIC), vec![keyed(1, 1)]);
+    t.worker.flush();
+    assert_eq!(t.progress(), (vec![10], true), "executed: the owed wake-up");
+    t.worker.flush();
+    assert_eq!(t.progress(), (vec![], false));
+}

@@ -158,6 +158,12 @@ impl SampleIdentity {
 pub const FLAG_DISPOSED: u8 = 0x10;
 /// Flag on Write and Sample: the sample unregisters its instance.
 pub const FLAG_UNREGISTERED: u8 = 0x20;
+/// Flag on a request: the front-end needs no wake-up for this operation's progress (a
+/// best-effort write sent with most of the window free). The worker still sends progress
+/// for it, but only wakes the front-end for progress that covers an operation sent without
+/// the flag: the front-end reads it on its next wake-up, which its next datagram brings.
+/// Without the flag (and from a front-end that never sets it) every progress wakes.
+pub const FLAG_PROGRESS_CAN_WAIT: u8 = 0x40;
 
 /// The fixed header of every IPC message.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

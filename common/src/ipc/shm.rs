@@ -429,6 +429,13 @@ impl Receiver {
         let _ = self.listener.try_wait(|_| {});
     }
 
+    /// Consumes pending wake-ups; whether a sender notified since they were last consumed.
+    pub fn take_events(&self) -> bool {
+        let mut any = false;
+        let _ = self.listener.try_wait(|_| any = true);
+        any
+    }
+
     /// Calls `f` with every message received so far; returns how many.
     pub fn drain(&self, mut f: impl FnMut(&[u8])) -> Result<usize, ShmError> {
         let mut n = 0;

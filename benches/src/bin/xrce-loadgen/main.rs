@@ -62,6 +62,11 @@ pub struct Args {
     /// UDP or TCP port of the agent.
     #[arg(long, default_value_t = 8888)]
     pub port: u16,
+    /// Port of the subscribing clients, when not `--port`: another front-end of a gateway
+    /// (`xrce-agent --config`), so that the publishers' front-end hears from the worker
+    /// only about its own operations.
+    #[arg(long)]
+    pub subscriber_port: Option<u16>,
     /// How the clients reach the agent.
     #[arg(long, value_enum, default_value_t = TransportArg::Udp)]
     pub transport: TransportArg,

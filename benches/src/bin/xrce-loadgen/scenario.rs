@@ -345,6 +345,10 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
             .and_then(|i| a.first_client_key.checked_add(i))
             .ok_or("--first-client-key leaves no room for every client's key")?
             .to_be_bytes();
+        let port = match a.subscriber_port {
+            Some(p) if i < subscribers => p,
+            _ => port,
+        };
         let peer = match a.transport {
             TransportArg::Udp => {
                 Peer::new(port, key, mtu).map_err(|e| format!("client socket: {e}"))?
