@@ -493,6 +493,8 @@ impl Bridge {
             }
             if let Err(e) = self.requests.send(&h, body) {
                 tracing::warn!(error = %e, "could not hand an operation to the worker; queued");
+                // Sent later from the outbox, with whatever is in flight then.
+                h.flags &= !FLAG_PROGRESS_CAN_WAIT;
                 self.outbox.push_back(OwnedOp {
                     header: h,
                     body: body.to_vec(),

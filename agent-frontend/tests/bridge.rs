@@ -832,6 +832,16 @@ fn small_reliable_messages_may_fill_the_window() {
     xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
+/// Sends a reliable write of `w` from the rig's client and hands it to the bridge.
+fn reliable_write(rig: &mut Rig, w: ObjectId, body: &[u8]) {
+    let now = Instant::now();
+    rig.client
+        .write(now, stream_id::BUILTIN_RELIABLE, w, body)
+        .expect("write");
+    rig.deliver(now);
+    rig.bridge.pump();
+}
+
 /// A best-effort write tells the worker its progress can wait only while most of the window
 /// is free; reliable writes and control operations never do.
 #[test]
@@ -842,14 +852,30 @@ fn only_best_effort_writes_with_the_window_mostly_free_let_their_progress_wait()
     let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 8);
     rig.catch_up(&worker);
     let can_wait = |h: &IpcHeader| h.flags & FLAG_PROGRESS_CAN_WAIT != 0;
+    // With the window free: a CREATE (its client waits for the STATUS) and a reliable write
+    // (retained until executed) wait for their progress.
+    let r = ObjectId::new(2, k::DATAWRITER);
+    rig.create(
+        r,
+        k::DATAWRITER,
+        "<dds/>",
+        VariantExtra::Parent(ObjectId::new(1, k::PUBLISHER)),
+    );
+    rig.deliver(Instant::now());
+    let served = rig.serve_until(&worker, |_, s| {
+        s.iter().any(|(h, _)| h.kind == MessageKind::Create)
+    });
+    assert!(served.iter().all(|(h, _)| !can_wait(h)));
+    rig.catch_up(&worker);
+    reliable_write(&mut rig, w, b"reliable");
+    let served = worker.serve();
+    assert_eq!(served.len(), 1);
+    assert!(!can_wait(&served[0].0), "a reliable write");
+    rig.catch_up(&worker);
     // The worker takes nothing meanwhile: the window fills one write at a time.
     let n = PROGRESS_CAN_WAIT_BELOW + 10;
     best_effort_writes(&mut rig, Instant::now(), w, "be", n);
-    rig.client
-        .write(Instant::now(), stream_id::BUILTIN_RELIABLE, w, b"reliable")
-        .expect("write");
-    rig.deliver(Instant::now());
-    rig.bridge.pump();
+    reliable_write(&mut rig, w, b"reliable");
     let served = worker.serve();
     let writes: Vec<&IpcHeader> = served
         .iter()
@@ -864,19 +890,6 @@ fn only_best_effort_writes_with_the_window_mostly_free_let_their_progress_wait()
         flagged, expected,
         "flagged while fewer than {PROGRESS_CAN_WAIT_BELOW} were in flight"
     );
-    // Control operations wait for their STATUS.
-    let r = ObjectId::new(2, k::DATAWRITER);
-    rig.create(
-        r,
-        k::DATAWRITER,
-        "<dds/>",
-        VariantExtra::Parent(ObjectId::new(1, k::PUBLISHER)),
-    );
-    rig.deliver(Instant::now());
-    let served = rig.serve_until(&worker, |_, s| {
-        s.iter().any(|(h, _)| h.kind == MessageKind::Create)
-    });
-    assert!(served.iter().all(|(h, _)| !can_wait(h)));
     drop((rig, worker));
     xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }

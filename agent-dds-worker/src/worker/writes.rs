@@ -320,6 +320,8 @@ impl Worker {
         let now = Instant::now();
         let mut failures = 0u64;
         let mut done = Vec::new();
+        // Front-ends whose held writes advanced: their progress is sent.
+        let mut released = Vec::new();
         for key in &self.holding {
             let Some(Entity {
                 kind: EntityKind::Writer(w, rematch, _),
@@ -375,6 +377,7 @@ impl Worker {
                     RELEASE_BATCH
                 };
                 rematch.last_batch = Some(now);
+                released.push(key.0);
                 for _ in 0..batch {
                     let Some((seq, sample, dispose)) = rematch.held.pop_front() else {
                         break;
@@ -403,6 +406,12 @@ impl Worker {
         }
         for k in done {
             self.holding.remove(&k);
+            released.push(k.0);
+        }
+        for fe in released {
+            if let Some(p) = self.ports.get_mut(&fe) {
+                p.dirty = true;
+            }
         }
         for _ in 0..failures {
             self.count("dds_write_failed");

@@ -253,6 +253,18 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
         Some(r) => r * publishers as f64,
         None => a.rate,
     };
+    if a.subscriber_port.is_some() {
+        if a.transport == TransportArg::Serial || a.null_agent {
+            return Err("--subscriber-port is for an agent over UDP or TCP".into());
+        }
+        if agent_cmd.is_none() && !a.no_agent {
+            return Err(
+                "--subscriber-port needs an agent that serves it: --agent-cmd (a gateway \
+                 config) or --no-agent"
+                    .into(),
+            );
+        }
+    }
     let stream = if a.best_effort {
         stream_id::BUILTIN_BEST_EFFORT
     } else {
@@ -307,14 +319,16 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
             .replace("{devices}", &devices.join(" "));
         Some(AgentUnderTest::start(&cmd, port)?)
     };
-    let ready = match a.transport {
-        TransportArg::Udp => wait_for_agent(port, Duration::from_secs(30), &mut agent),
-        TransportArg::Tcp => wait_for_tcp_agent(port, Duration::from_secs(30), &mut agent),
-        // Serial clients retry their CREATE_CLIENT until the agent opened their line.
-        TransportArg::Serial => true,
-    };
-    if !ready {
-        return Err(format!("no agent answers a ping on port {port}"));
+    for port in std::iter::once(port).chain(a.subscriber_port) {
+        let ready = match a.transport {
+            TransportArg::Udp => wait_for_agent(port, Duration::from_secs(30), &mut agent),
+            TransportArg::Tcp => wait_for_tcp_agent(port, Duration::from_secs(30), &mut agent),
+            // Serial clients retry their CREATE_CLIENT until the agent opened their line.
+            TransportArg::Serial => true,
+        };
+        if !ready {
+            return Err(format!("no agent answers a ping on port {port}"));
+        }
     }
     let usage_empty = agent
         .as_ref()
