@@ -906,6 +906,19 @@ impl TestClient {
         self.step();
     }
 
+    /// Writes on the best-effort stream (nothing waits: what is lost is lost).
+    pub fn write_best_effort(&mut self, writer: ObjectId, sample: &[u8]) {
+        self.client
+            .write(
+                Instant::now(),
+                stream_id::BUILTIN_BEST_EFFORT,
+                writer,
+                sample,
+            )
+            .expect("write");
+        self.step();
+    }
+
     /// HelloWorld samples received so far (consumed from `events`).
     pub fn take_samples(&mut self) -> Vec<(u32, String)> {
         let mut out = Vec::new();

@@ -128,6 +128,96 @@ fn worker_sigkill_mid_stream_loses_no_reliable_sample() {
     assert!(agent.stop(), "agent did not stop cleanly after the restart");
 }
 
+/// The worker is SIGKILLed while a client publishes on its best-effort stream: what was
+/// written while no worker ran may be lost, but the stream resumes on the new worker's
+/// writer, nothing comes twice, and everything written once the new worker runs arrives
+/// (its writes wait for the Cyclone DDS reader to match again, and the front-end's window
+/// does not stay filled with operations whose progress it was never told of).
+#[test]
+fn worker_sigkill_mid_best_effort_stream_resumes_it() {
+    // Written after the front-end saw the new worker, at least.
+    const AFTER: u32 = 300;
+    // At most (the restart would have taken a minute).
+    const N: u32 = 6_000;
+    const KILL_AT: u32 = 100;
+    let agent = AgentProcess::start("kill-be");
+    let reader = DdsPeer::start(&[
+        "read",
+        "--domain",
+        "15",
+        "--count",
+        &(10 * N).to_string(),
+        "--reliable",
+        "--timeout",
+        "120",
+    ]);
+    let mut c = TestClient::new(agent.addr(), [0xAB, 0xCD, 0xEF, 0x05]);
+    c.connect(10 * SECOND);
+    let w = c.setup_publisher(15);
+    assert!(
+        reader
+            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+            .is_some(),
+        "Cyclone never matched"
+    );
+    let old_workers = agent.child_pids("dds-worker");
+    assert_eq!(old_workers.len(), 1, "one worker: {old_workers:?}");
+    let mut got = Deliveries::default();
+    let collect = |reader: &DdsPeer, got: &mut Deliveries| {
+        while let Some(l) = reader.line(Duration::ZERO) {
+            if let Some((i, m)) = parse_sample_line(&l) {
+                assert_eq!(m, "best effort");
+                got.record(i);
+            }
+        }
+    };
+    // The first sample written once a new worker serves (the supervisor restarts it).
+    let mut first_after_restart = None;
+    let mut written = 0;
+    while written < N && first_after_restart.is_none_or(|f| written < f + AFTER) {
+        let i = written;
+        if i == KILL_AT {
+            sigkill(old_workers[0]);
+        }
+        // Once the front-end saw the new worker (what it sent before went to the dead one).
+        if i > KILL_AT
+            && first_after_restart.is_none()
+            && agent.output().count("worker generation seen") >= 2
+        {
+            first_after_restart = Some(i);
+        }
+        c.write_best_effort(w, &hello_world(i, "best effort"));
+        // ~100 samples/s.
+        c.run_until(Duration::from_millis(10), |_| false);
+        collect(&reader, &mut got);
+        written += 1;
+    }
+    let first = first_after_restart.expect("the front-end never saw a new worker");
+    c.run_until(30 * SECOND, |_| {
+        collect(&reader, &mut got);
+        (first..written).all(|i| got.count(i) > 0)
+    });
+    c.run_until(DUPLICATE_GRACE, |_| {
+        collect(&reader, &mut got);
+        false
+    });
+    eprintln!(
+        "best-effort stream across a worker restart: {} of {written} delivered, new worker from sample {first}",
+        got.distinct()
+    );
+    let missing: Vec<u32> = (first..written).filter(|i| got.count(*i) == 0).collect();
+    assert!(
+        missing.is_empty(),
+        "written after the new worker started, lost: {missing:?}"
+    );
+    assert!(
+        (0..KILL_AT).all(|i| got.count(i) > 0),
+        "written before the kill, lost"
+    );
+    assert!(got.repeated().is_empty(), "repeated: {:?}", got.repeated());
+    assert!(agent.stop(), "agent did not stop cleanly after the restart");
+}
+
 /// The worker is SIGKILLed while a client reads: the front-end replays the read on the new
 /// worker, samples resume, and none is delivered twice (the reader is volatile: what Cyclone
 /// wrote while no worker ran is not replayed to it).
