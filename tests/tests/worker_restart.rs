@@ -6,6 +6,7 @@
 use std::time::{Duration, Instant};
 
 use xrce_common::session::client::ClientEvent;
+use xrce_common::wire::ObjectId;
 use xrce_tests::{
     hello_world, parse_sample_line, sigkill, AgentProcess, DdsPeer, Deliveries, TestClient,
     DUPLICATE_GRACE,
@@ -13,47 +14,59 @@ use xrce_tests::{
 
 const SECOND: Duration = Duration::from_secs(1);
 
-#[test]
-fn worker_sigkill_mid_stream_loses_no_reliable_sample() {
-    const N: u32 = 300;
-    const KILL_AT: u32 = 100;
-    let agent = AgentProcess::start("kill");
-    // The reader counts duplicates too, so let it run past N; the test ends it.
+/// An agent, a reliable Cyclone DDS reader of HelloWorld in `domain` (ended by the test or
+/// after 120 s), a client with key `key` whose writer it matched (the writer's id), and the
+/// agent's worker (its pid).
+fn publisher_and_reader(
+    tag: &str,
+    domain: i16,
+    key: [u8; 4],
+) -> (AgentProcess, DdsPeer, TestClient, ObjectId, i32) {
+    let agent = AgentProcess::start(tag);
+    // The reader counts duplicates too, so let it run past what is written.
     let reader = DdsPeer::start(&[
         "read",
         "--domain",
-        "14",
+        &domain.to_string(),
         "--count",
-        &(10 * N).to_string(),
+        "100000",
         "--reliable",
         "--timeout",
         "120",
     ]);
-    let mut c = TestClient::new(agent.addr(), [0xAB, 0xCD, 0xEF, 0x04]);
-    c.connect(10 * SECOND);
-    let w = c.setup_publisher(14);
+    let mut client = TestClient::new(agent.addr(), key);
+    client.connect(10 * SECOND);
+    let writer = client.setup_publisher(domain);
     assert!(
         reader
-            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+            .wait_for("MATCHED 1", 30 * SECOND, || client.step())
             .is_some(),
         "Cyclone never matched"
     );
-    let old_workers = agent.child_pids("dds-worker");
-    assert_eq!(
-        old_workers.len(),
-        1,
-        "expected one worker, got {old_workers:?}"
-    );
+    let workers = agent.child_pids("dds-worker");
+    assert_eq!(workers.len(), 1, "expected one worker, got {workers:?}");
+    (agent, reader, client, writer, workers[0])
+}
 
-    let mut got = Deliveries::default();
-    let collect = |reader: &DdsPeer, got: &mut Deliveries| {
-        while let Some(l) = reader.line(Duration::ZERO) {
-            if let Some((i, m)) = parse_sample_line(&l) {
-                assert_eq!(m, "through a crash");
-                got.record(i);
-            }
+/// Records the HelloWorld samples the reader printed so far, each of which says `message`.
+fn collect(reader: &DdsPeer, got: &mut Deliveries, message: &str) {
+    while let Some(l) = reader.line(Duration::ZERO) {
+        if let Some((i, m)) = parse_sample_line(&l) {
+            assert_eq!(m, message);
+            got.record(i);
         }
-    };
+    }
+}
+
+#[test]
+fn worker_sigkill_mid_stream_loses_no_reliable_sample() {
+    const N: u32 = 300;
+    const KILL_AT: u32 = 100;
+    let (agent, reader, mut c, w, old_worker) =
+        publisher_and_reader("kill", 14, [0xAB, 0xCD, 0xEF, 0x04]);
+    let old_workers = vec![old_worker];
+    let mut got = Deliveries::default();
+    let collect = |reader: &DdsPeer, got: &mut Deliveries| collect(reader, got, "through a crash");
     let mut killed_at = None;
     for i in 0..N {
         if i == KILL_AT {
@@ -140,44 +153,17 @@ fn worker_sigkill_mid_best_effort_stream_resumes_it() {
     // At most (the restart would have taken a minute).
     const N: u32 = 6_000;
     const KILL_AT: u32 = 100;
-    let agent = AgentProcess::start("kill-be");
-    let reader = DdsPeer::start(&[
-        "read",
-        "--domain",
-        "15",
-        "--count",
-        &(10 * N).to_string(),
-        "--reliable",
-        "--timeout",
-        "120",
-    ]);
-    let mut c = TestClient::new(agent.addr(), [0xAB, 0xCD, 0xEF, 0x05]);
-    c.connect(10 * SECOND);
-    let w = c.setup_publisher(15);
-    assert!(
-        reader
-            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
-            .is_some(),
-        "Cyclone never matched"
-    );
-    let old_workers = agent.child_pids("dds-worker");
-    assert_eq!(old_workers.len(), 1, "one worker: {old_workers:?}");
+    let (agent, reader, mut c, w, old_worker) =
+        publisher_and_reader("kill-be", 15, [0xAB, 0xCD, 0xEF, 0x05]);
     let mut got = Deliveries::default();
-    let collect = |reader: &DdsPeer, got: &mut Deliveries| {
-        while let Some(l) = reader.line(Duration::ZERO) {
-            if let Some((i, m)) = parse_sample_line(&l) {
-                assert_eq!(m, "best effort");
-                got.record(i);
-            }
-        }
-    };
+    let collect = |reader: &DdsPeer, got: &mut Deliveries| collect(reader, got, "best effort");
     // The first sample written once a new worker serves (the supervisor restarts it).
     let mut first_after_restart = None;
     let mut written = 0;
     while written < N && first_after_restart.is_none_or(|f| written < f + AFTER) {
         let i = written;
         if i == KILL_AT {
-            sigkill(old_workers[0]);
+            sigkill(old_worker);
         }
         // Once the front-end saw the new worker (what it sent before went to the dead one).
         if i > KILL_AT
