@@ -621,7 +621,7 @@ impl Bridge {
     /// Handles worker announcements and replies (consuming their wake-ups when their
     /// descriptors were readable: `replies_ready`, `announce_ready`); applies results to the
     /// agent core.
-    pub fn poll_ipc<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
+    pub fn poll_ipc<A: xrce_common::session::agent::Endpoint>(
         &mut self,
         now: Instant,
         agent: &mut Agent<A>,
@@ -801,7 +801,7 @@ impl Bridge {
         self.outbox.extend(writes);
     }
 
-    fn handle_reply<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
+    fn handle_reply<A: xrce_common::session::agent::Endpoint>(
         &mut self,
         now: Instant,
         m: &[u8],
@@ -985,10 +985,7 @@ impl Bridge {
     }
 
     /// Resumes paused reads whose clients caught up (or are gone). Cheap when none is paused.
-    pub fn resume_reads<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
-        &mut self,
-        agent: &Agent<A>,
-    ) {
+    pub fn resume_reads<A: xrce_common::session::agent::Endpoint>(&mut self, agent: &Agent<A>) {
         if self.paused.is_empty() {
             return;
         }
@@ -1048,7 +1045,7 @@ impl Bridge {
     }
 
     /// Sends STATUS replies decided here (creation modes, unknown objects, replays).
-    pub fn apply_replies<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
+    pub fn apply_replies<A: xrce_common::session::agent::Endpoint>(
         &mut self,
         now: Instant,
         agent: &mut Agent<A>,

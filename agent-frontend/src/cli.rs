@@ -8,6 +8,7 @@ use std::time::Duration;
 
 use xrce_common::session::admission::{Admission, KeyArg, RateQuota};
 use xrce_common::session::agent::AgentConfig;
+use xrce_common::session::budget::{self, Limits};
 use xrce_common::wire::Dialect;
 
 use crate::bridge::Bridge;
@@ -126,11 +127,13 @@ pub struct FrontendArgs {
 
 /// Who may hold a session and how much each client may do: options of the front-end, also
 /// taken by `xrce-agent` (which passes them on) and set per front-end in a gateway file.
-#[derive(Debug, Clone, Default, PartialEq, clap::Args)]
+#[derive(Debug, Clone, PartialEq, clap::Args)]
 pub struct AdmissionArgs {
     /// Client keys that may create a session, comma-separated, 8 hexadecimal digits each as
-    /// the client's code writes them (e.g. 0xAAAABBBB); other keys are refused with
-    /// STATUS_ERR_DENIED. Default: every key.
+    /// the client's code writes them (e.g. 0xAAAABBBB), each optionally bound to the network
+    /// its client must come from (0xAAAABBBB@192.168.1.0/24); other keys, and bound keys
+    /// from elsewhere or from a serial line, are refused with STATUS_ERR_DENIED. Default:
+    /// every key.
     #[arg(long = "allow-keys", value_delimiter = ',', value_name = "KEYS")]
     pub allow_keys: Vec<KeyArg>,
     /// Let a session follow its client to another source address or connection without a new
@@ -158,6 +161,58 @@ pub struct AdmissionArgs {
         default_value_t = 0
     )]
     pub max_client_bytes_per_second: u64,
+    /// Memory the front-end may hold for its clients, in MiB: unfinished fragments, early
+    /// reliable messages, output waiting for or unacknowledged by clients. Shared fairly
+    /// between source addresses, then between each address's sessions; over it, the
+    /// heaviest holders are refused first (reliable input unacknowledged, so it comes again).
+    #[arg(long = "memory-budget", value_name = "MIB", default_value_t = DEFAULT_MEMORY_BUDGET_MIB, value_parser = at_least_one)]
+    pub memory_budget_mib: usize,
+    /// Most sessions of one front-end; a new one beyond evicts the most silent session
+    /// without objects of the address with the most sessions, or is refused with
+    /// STATUS_ERR_RESOURCES.
+    #[arg(long = "max-sessions", value_name = "N", default_value_t = budget::DEFAULT_MAX_SESSIONS, value_parser = at_least_one)]
+    pub max_sessions: usize,
+    /// Most sessions from one source address (a serial line counts as one address).
+    #[arg(long = "max-sessions-per-address", value_name = "N", default_value_t = budget::DEFAULT_MAX_SESSIONS_PER_ORIGIN, value_parser = at_least_one)]
+    pub max_sessions_per_address: usize,
+    /// TCP: most connections from one source address; more are closed as they arrive.
+    #[arg(long = "max-connections-per-address", value_name = "N", default_value_t = DEFAULT_TCP_PER_ADDRESS, value_parser = at_least_one)]
+    pub max_connections_per_address: usize,
+    /// TCP: seconds a connection may pass with nothing received and nothing sent before
+    /// it is closed (its session then waits out `--closed-session-grace`). 0: no limit.
+    #[arg(long = "tcp-idle-timeout", value_name = "SECONDS", default_value_t = DEFAULT_TCP_IDLE_SECS)]
+    pub tcp_idle_timeout: u64,
+    /// Seconds the session of a client whose TCP connection closed waits for it to connect
+    /// again before the session and its DDS entities are deleted. 0: kept for ever.
+    #[arg(long = "closed-session-grace", value_name = "SECONDS", default_value_t = DEFAULT_CLOSED_GRACE_SECS)]
+    pub closed_session_grace: u64,
+}
+
+/// Default `--memory-budget` in MiB.
+pub const DEFAULT_MEMORY_BUDGET_MIB: usize = budget::DEFAULT_MEMORY_BUDGET >> 20;
+/// Default `--max-connections-per-address`.
+pub const DEFAULT_TCP_PER_ADDRESS: usize = 256;
+/// Default `--tcp-idle-timeout`.
+pub const DEFAULT_TCP_IDLE_SECS: u64 = 300;
+/// Default `--closed-session-grace`.
+pub const DEFAULT_CLOSED_GRACE_SECS: u64 = 60;
+
+impl Default for AdmissionArgs {
+    fn default() -> Self {
+        AdmissionArgs {
+            allow_keys: Vec::new(),
+            allow_roaming: false,
+            max_objects_per_client: xrce_common::session::graph::MAX_OBJECTS,
+            max_client_messages_per_second: 0,
+            max_client_bytes_per_second: 0,
+            memory_budget_mib: DEFAULT_MEMORY_BUDGET_MIB,
+            max_sessions: budget::DEFAULT_MAX_SESSIONS,
+            max_sessions_per_address: budget::DEFAULT_MAX_SESSIONS_PER_ORIGIN,
+            max_connections_per_address: DEFAULT_TCP_PER_ADDRESS,
+            tcp_idle_timeout: DEFAULT_TCP_IDLE_SECS,
+            closed_session_grace: DEFAULT_CLOSED_GRACE_SECS,
+        }
+    }
 }
 
 /// A count of at least 1.
@@ -172,8 +227,7 @@ impl AdmissionArgs {
     /// The session core's admission settings.
     pub fn admission(&self) -> Admission {
         Admission {
-            allowed_keys: (!self.allow_keys.is_empty())
-                .then(|| self.allow_keys.iter().map(|k| k.0).collect()),
+            allowed_keys: Admission::allow_list(&self.allow_keys),
             allow_roaming: self.allow_roaming,
             rate: RateQuota {
                 messages_per_second: (self.max_client_messages_per_second > 0)
@@ -188,11 +242,7 @@ impl AdmissionArgs {
     pub fn to_args(&self) -> Vec<String> {
         let mut a = Vec::new();
         if !self.allow_keys.is_empty() {
-            let keys: Vec<String> = self
-                .allow_keys
-                .iter()
-                .map(|k| format!("0x{}", k.0))
-                .collect();
+            let keys: Vec<String> = self.allow_keys.iter().map(KeyArg::to_string).collect();
             a.extend(["--allow-keys".to_string(), keys.join(",")]);
         }
         if self.allow_roaming {
@@ -216,7 +266,56 @@ impl AdmissionArgs {
                 self.max_client_bytes_per_second.to_string(),
             ]);
         }
+        let d = AdmissionArgs::default();
+        let limits = [
+            (
+                "--memory-budget",
+                self.memory_budget_mib as u64,
+                d.memory_budget_mib as u64,
+            ),
+            (
+                "--max-sessions",
+                self.max_sessions as u64,
+                d.max_sessions as u64,
+            ),
+            (
+                "--max-sessions-per-address",
+                self.max_sessions_per_address as u64,
+                d.max_sessions_per_address as u64,
+            ),
+            (
+                "--max-connections-per-address",
+                self.max_connections_per_address as u64,
+                d.max_connections_per_address as u64,
+            ),
+            (
+                "--tcp-idle-timeout",
+                self.tcp_idle_timeout,
+                d.tcp_idle_timeout,
+            ),
+            (
+                "--closed-session-grace",
+                self.closed_session_grace,
+                d.closed_session_grace,
+            ),
+        ];
+        for (flag, value, default) in limits {
+            if value != default {
+                a.extend([flag.to_string(), value.to_string()]);
+            }
+        }
         a
+    }
+
+    /// The session core's limits.
+    pub fn limits(&self) -> Limits {
+        Limits {
+            memory_budget: self.memory_budget_mib.saturating_mul(1 << 20),
+            max_sessions_per_origin: self.max_sessions_per_address,
+            detached_grace: (self.closed_session_grace > 0)
+                .then(|| Duration::from_secs(self.closed_session_grace.min(31_536_000))),
+            ..Limits::default()
+        }
     }
 }
 
@@ -232,6 +331,8 @@ impl FrontendArgs {
             dialect: self.dialect,
             client_dead_time: (dead > 0.0).then(|| Duration::from_secs_f64(dead.max(0.1))),
             admission: self.admission.admission(),
+            max_clients: self.admission.max_sessions,
+            limits: self.admission.limits(),
             ..AgentConfig::default()
         })
     }
@@ -337,6 +438,9 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
                 TcpListener::bind(addr).map_err(|e| anyhow::anyhow!("binding TCP {addr}: {e}"))?;
             let tcp = TcpConfig {
                 max_connections: args.max_connections.max(1),
+                max_per_address: args.admission.max_connections_per_address,
+                idle_timeout: (args.admission.tcp_idle_timeout > 0)
+                    .then(|| Duration::from_secs(args.admission.tcp_idle_timeout)),
                 send_buffer: args.tcp_send_buffer.max(1024),
                 ..TcpConfig::default()
             };

@@ -30,7 +30,7 @@ impl StatsReport {
 
     /// Everything counted as not delivered: the core's drops by reason, the bridge's and the
     /// transport's.
-    fn total<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
+    fn total<A: xrce_common::session::agent::Endpoint>(
         agent: &Agent<A>,
         bridge: &Bridge,
         transport: &TransportStats,
@@ -46,7 +46,7 @@ impl StatsReport {
     }
 
     /// A deadline only while there is something new to report.
-    pub fn due<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
+    pub fn due<A: xrce_common::session::agent::Endpoint>(
         &self,
         agent: &Agent<A>,
         bridge: &Bridge,
@@ -57,7 +57,7 @@ impl StatsReport {
     }
 
     /// Logs the counters if they changed and the period passed.
-    pub fn maybe_log<A: Copy + Eq + std::hash::Hash + std::fmt::Debug>(
+    pub fn maybe_log<A: xrce_common::session::agent::Endpoint>(
         &mut self,
         now: Instant,
         agent: &Agent<A>,

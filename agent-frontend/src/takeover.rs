@@ -31,7 +31,7 @@ use crate::transport::{StoredEndpoint, Transport};
 /// sessions whose output or reads changed (the event loop does so at most every
 /// [`OUTPUT_STORE_PERIOD`]: a successor finds output state that much behind at worst, which
 /// the clients' ACKNACKs correct). Changed objects are always stored.
-pub fn persist<A: Copy + Eq + std::hash::Hash + std::fmt::Debug + StoredEndpoint>(
+pub fn persist<A: xrce_common::session::agent::Endpoint + StoredEndpoint>(
     store: &mut SessionStore,
     agent: &mut Agent<A>,
     bridge: &mut Bridge,

@@ -38,6 +38,20 @@ impl Harness {
         s
     }
 
+    /// A connection from another loopback address (the whole of 127.0.0.0/8 is local).
+    fn connect_from(&self, ip: &str) -> TcpStream {
+        let socket = socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None)
+            .expect("socket");
+        let from: std::net::SocketAddr = format!("{ip}:0").parse().expect("address");
+        socket.bind(&from.into()).expect("bind the source address");
+        socket
+            .connect(&self.tcp.local_addr().into())
+            .expect("connect");
+        let s: TcpStream = socket.into();
+        s.set_nodelay(true).expect("nodelay");
+        s
+    }
+
     /// Runs the transport for `d` or until `done`, collecting messages.
     fn run(
         &mut self,
@@ -58,6 +72,9 @@ impl Harness {
                 .expect("poll");
             for e in self.events.iter() {
                 self.tcp.on_event(e);
+            }
+            if self.tcp.poll_timeout().is_some_and(|t| t <= Instant::now()) {
+                self.tcp.handle_timeout(Instant::now());
             }
             left = self.tcp.receive(Instant::now(), 256, &mut |from, m| {
                 got.push((from, m.to_vec()))
@@ -228,7 +245,10 @@ fn a_thousand_connections_at_once_with_bounded_memory() {
         n >= 1000,
         "this machine allows only {n} connections a process"
     );
-    let mut h = Harness::new(TcpConfig::default());
+    let mut h = Harness::new(TcpConfig {
+        max_per_address: n,
+        ..TcpConfig::default()
+    });
     let mut clients: Vec<TcpStream> = Vec::with_capacity(n);
     let mut got = Vec::new();
     for i in 0..n {
@@ -265,4 +285,116 @@ fn a_thousand_connections_at_once_with_bounded_memory() {
         c.read_exact(&mut buf).expect("reply");
         assert_eq!(&buf[2..], want.as_bytes());
     }
+}
+
+/// Whether the peer closed a connection (read returns 0 or an error) within `d`.
+fn closed_by_peer(s: &mut TcpStream, d: Duration) -> bool {
+    s.set_read_timeout(Some(d)).expect("timeout");
+    let mut buf = [0u8; 16];
+    matches!(s.read(&mut buf), Ok(0) | Err(_))
+}
+
+#[test]
+fn a_flood_of_unfinished_frames_from_one_address_does_not_lock_out_another() {
+    // Every slot taken by connections from 127.0.0.1 that each hold one byte of a length
+    // prefix (and would be allowed many more per address).
+    let mut h = Harness::new(TcpConfig {
+        max_connections: 64,
+        max_per_address: 10_000,
+        ..TcpConfig::default()
+    });
+    let mut flood = Vec::new();
+    for _ in 0..100 {
+        let mut c = h.connect();
+        c.write_all(&[0x05]).expect("write");
+        flood.push(c);
+        h.run(Duration::from_millis(2), |_, _| false);
+    }
+    assert_eq!(h.tcp.connections(), 64);
+    assert!(h.tcp.stats().dropped("tcp_connection_refused") >= 36);
+    // A client from another address is served all the same: it displaces one of them.
+    let mut other = h.connect_from("127.0.0.2");
+    other.write_all(&framed(b"hello")).expect("write");
+    let got = h.run(Duration::from_secs(5), |g, _| !g.is_empty());
+    assert_eq!(got.len(), 1);
+    assert_eq!(got[0].1, b"hello");
+    assert_eq!(h.tcp.stats().dropped("tcp_connection_displaced"), 1);
+    assert_eq!(h.tcp.connections(), 64);
+    // The newcomer, having sent a message, is not the next one displaced.
+    let mut third = h.connect_from("127.0.0.3");
+    third.write_all(&framed(b"again")).expect("write");
+    let got = h.run(Duration::from_secs(5), |g, _| !g.is_empty());
+    assert_eq!(got.len(), 1);
+    h.tcp.send(got[0].0, b"reply");
+    other.write_all(&framed(b"still here")).expect("write");
+    let got = h.run(Duration::from_secs(5), |g, _| !g.is_empty());
+    assert_eq!(
+        got.first().map(|g| g.1.as_slice()),
+        Some(&b"still here"[..])
+    );
+}
+
+#[test]
+fn connections_from_one_address_are_capped() {
+    let mut h = Harness::new(TcpConfig {
+        max_per_address: 3,
+        ..TcpConfig::default()
+    });
+    let mut mine: Vec<TcpStream> = (0..3).map(|_| h.connect()).collect();
+    h.run(Duration::from_millis(200), |_, _| false);
+    let mut fourth = h.connect();
+    h.run(Duration::from_millis(200), |_, _| false);
+    assert!(closed_by_peer(&mut fourth, Duration::from_secs(5)));
+    assert_eq!(
+        h.tcp.stats().dropped("tcp_connection_refused_per_address"),
+        1
+    );
+    let mut other = h.connect_from("127.0.0.2");
+    other.write_all(&framed(b"x")).expect("write");
+    let got = h.run(Duration::from_secs(5), |g, _| !g.is_empty());
+    assert_eq!(got.len(), 1, "another address is served");
+    mine[0].write_all(&framed(b"y")).expect("write");
+    let got = h.run(Duration::from_secs(5), |g, _| !g.is_empty());
+    assert_eq!(got.len(), 1, "the first three are served");
+}
+
+#[test]
+fn a_message_trickled_slower_than_the_frame_limit_closes_its_connection() {
+    let mut h = Harness::new(TcpConfig {
+        frame_limit: Duration::from_millis(500),
+        first_message_limit: Duration::from_secs(60),
+        ..TcpConfig::default()
+    });
+    let mut slow = h.connect();
+    let mut fine = h.connect();
+    fine.write_all(&framed(b"ok")).expect("write");
+    // One byte of a 100-byte message every 200 ms: input keeps coming, the message never ends.
+    let start = Instant::now();
+    let mut closed = false;
+    for _ in 0..20 {
+        let _ = slow.write_all(&[100]);
+        h.run(Duration::from_millis(200), |_, c| !c.is_empty());
+        if h.tcp.stats().dropped("tcp_stalled_message") == 1 {
+            closed = true;
+            break;
+        }
+    }
+    assert!(closed, "still open after {:?}", start.elapsed());
+    assert!(closed_by_peer(&mut slow, Duration::from_secs(5)));
+    assert_eq!(h.tcp.connections(), 1, "the other connection stays");
+}
+
+#[test]
+fn an_idle_connection_is_closed() {
+    let mut h = Harness::new(TcpConfig {
+        idle_timeout: Some(Duration::from_millis(500)),
+        ..TcpConfig::default()
+    });
+    let mut c = h.connect();
+    c.write_all(&framed(b"once")).expect("write");
+    let got = h.run(Duration::from_secs(5), |g, _| !g.is_empty());
+    assert_eq!(got.len(), 1);
+    h.run(Duration::from_secs(5), |_, closed| !closed.is_empty());
+    assert_eq!(h.tcp.stats().dropped("tcp_idle_connection"), 1);
+    assert!(closed_by_peer(&mut c, Duration::from_secs(5)));
 }

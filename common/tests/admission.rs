@@ -113,15 +113,60 @@ fn a_known_key_from_another_endpoint_does_not_take_the_session_over() {
     agent.handle_datagram(t0, HOME, &write(0, b"genuine"), &mut rec);
     assert_eq!(rec.writes, [b"genuine".to_vec()]);
     assert!(drain(&mut agent).iter().all(|t| t.destination == HOME));
-    // A CREATE_CLIENT moves the session: the client restarted elsewhere.
+    // A CREATE_CLIENT from elsewhere is not answered at once: the session's endpoint is
+    // probed (a GET_INFO to home) to see whether its client is still there.
     agent.handle_datagram(t0, ELSEWHERE, &create_client(KEY), &mut rec);
+    let out = drain(&mut agent);
+    assert!(statuses(&out).is_empty(), "answered before probing");
+    assert!(!out.is_empty() && out.iter().all(|t| t.destination == HOME));
+    assert_eq!(agent.stats().dropped("takeover_probing"), 1);
+    // Home stays silent: the client restarted elsewhere, and its retry a second later
+    // moves the session.
+    let t1 = t0 + Duration::from_secs(1);
+    agent.handle_datagram(t1, ELSEWHERE, &create_client(KEY), &mut rec);
     assert_eq!(statuses(&drain(&mut agent)), [(ELSEWHERE, status::OK)]);
-    agent.handle_datagram(t0, ELSEWHERE, &write(0, b"moved"), &mut rec);
+    agent.handle_datagram(t1, ELSEWHERE, &write(0, b"moved"), &mut rec);
     assert_eq!(rec.writes.len(), 2);
     // Now home is the foreign one.
-    agent.handle_datagram(t0, HOME, &write(1, b"stale"), &mut rec);
+    agent.handle_datagram(t1, HOME, &write(1, b"stale"), &mut rec);
     assert_eq!(rec.writes.len(), 2);
     assert_eq!(agent.stats().dropped("foreign_endpoint"), 2);
+}
+
+#[test]
+fn a_session_whose_client_answers_the_probe_is_not_taken_over() {
+    let (mut agent, mut rec, t0) = agent_with(Admission::default());
+    let ms = |n| t0 + Duration::from_millis(n);
+    agent.handle_datagram(ms(0), ELSEWHERE, &create_client(KEY), &mut rec);
+    assert!(statuses(&drain(&mut agent)).is_empty());
+    // The genuine client is alive: it is heard after the probe.
+    agent.handle_datagram(ms(50), HOME, &write(0, b"alive"), &mut rec);
+    drain(&mut agent);
+    // The intruder's retry is refused, and the session stays home.
+    agent.handle_datagram(ms(1000), ELSEWHERE, &create_client(KEY), &mut rec);
+    assert_eq!(
+        statuses(&drain(&mut agent)),
+        [(ELSEWHERE, status::ERR_DENIED)]
+    );
+    assert_eq!(agent.stats().dropped("takeover_refused"), 1);
+    agent.handle_datagram(ms(1100), HOME, &write(1, b"still mine"), &mut rec);
+    assert_eq!(rec.writes, [b"alive".to_vec(), b"still mine".to_vec()]);
+    assert!(drain(&mut agent).iter().all(|t| t.destination == HOME));
+    // Nothing the intruder sends reaches DDS.
+    agent.handle_datagram(ms(1200), ELSEWHERE, &write(2, b"intruder"), &mut rec);
+    assert_eq!(rec.writes.len(), 2);
+}
+
+#[test]
+fn a_takeover_waits_out_the_probe_even_when_retried_at_once() {
+    let (mut agent, mut rec, t0) = agent_with(Admission::default());
+    let ms = |n| t0 + Duration::from_millis(n);
+    agent.handle_datagram(ms(0), ELSEWHERE, &create_client(KEY), &mut rec);
+    // A retry before the probe had its time is not answered either.
+    agent.handle_datagram(ms(100), ELSEWHERE, &create_client(KEY), &mut rec);
+    assert!(statuses(&drain(&mut agent)).is_empty());
+    agent.handle_datagram(ms(400), ELSEWHERE, &create_client(KEY), &mut rec);
+    assert_eq!(statuses(&drain(&mut agent)), [(ELSEWHERE, status::OK)]);
 }
 
 #[test]
@@ -144,7 +189,7 @@ fn with_roaming_allowed_a_session_follows_its_client() {
 fn keys_outside_the_allow_list_are_denied_and_counted() {
     let other = ClientKey([0x01, 0x02, 0x03, 0x04]);
     let (mut agent, mut rec, t0) = agent_with(Admission {
-        allowed_keys: Some([KEY].into_iter().collect()),
+        allowed_keys: Some([(KEY, None)].into_iter().collect()),
         ..Admission::default()
     });
     for _ in 0..3 {

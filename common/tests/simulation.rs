@@ -28,6 +28,15 @@ impl Rng {
 #[derive(Clone, Copy, PartialEq, Eq, Hash, Debug)]
 struct Addr(u32);
 
+impl xrce_common::session::budget::Origin for Addr {
+    fn origin(&self) -> xrce_common::session::budget::OriginId {
+        self.0.origin()
+    }
+    fn ip(&self) -> Option<std::net::IpAddr> {
+        None
+    }
+}
+
 /// Echoes every write back to the client as DATA, and counts what it saw.
 #[derive(Default)]
 struct EchoSink {

@@ -30,6 +30,12 @@
 //! max_objects_per_client = 1024    # optional
 //! max_client_messages_per_second = 0  # optional, 0 = no bound
 //! max_client_bytes_per_second = 0     # optional, 0 = no bound
+//! memory_budget_mib = 64           # optional: what clients may make it hold (any transport)
+//! max_sessions = 8192              # optional
+//! max_sessions_per_address = 2048  # optional (a serial line is one address)
+//! max_connections_per_address = 256  # optional, tcp
+//! tcp_idle_timeout = 300           # optional, tcp, seconds, 0 = none
+//! closed_session_grace = 60        # optional, tcp, seconds, 0 = keep for ever
 //!
 //! [[frontend]]
 //! transport = "serial"
@@ -51,7 +57,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
 use toml::Spanned;
-use xrce_common::session::admission::{parse_client_key, KeyArg};
+use xrce_common::session::admission::KeyArg;
 use xrce_frontend::cli::{AdmissionArgs, TransportKind};
 
 use crate::cli::FrontendPlan;
@@ -132,6 +138,12 @@ struct FrontendSection {
     max_objects_per_client: Option<Spanned<usize>>,
     max_client_messages_per_second: Option<u32>,
     max_client_bytes_per_second: Option<u64>,
+    memory_budget_mib: Option<Spanned<usize>>,
+    max_sessions: Option<Spanned<usize>>,
+    max_sessions_per_address: Option<Spanned<usize>>,
+    max_connections_per_address: Option<Spanned<usize>>,
+    tcp_idle_timeout: Option<u64>,
+    closed_session_grace: Option<u64>,
 }
 
 /// One front-end of a checked gateway.
@@ -556,9 +568,10 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
                 ));
             }
             for k in keys.get_ref() {
-                let key = parse_client_key(k)
+                let key = k
+                    .parse::<KeyArg>()
                     .map_err(|e| here("allow_keys", keys.span(), &e.to_string()))?;
-                allow_keys.push(KeyArg(key));
+                allow_keys.push(key);
             }
         }
         let max_objects_per_client = match &f.max_objects_per_client {
@@ -572,12 +585,36 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
             Some(m) => *m.get_ref(),
             None => xrce_common::session::graph::MAX_OBJECTS,
         };
+        let d = AdmissionArgs::default();
+        let at_least_one = |v: &Option<Spanned<usize>>, key: &str, default: usize| match v {
+            Some(m) if *m.get_ref() == 0 => Err(here(key, m.span(), "must be at least 1")),
+            Some(m) => Ok(*m.get_ref()),
+            None => Ok(default),
+        };
         let admission = AdmissionArgs {
             allow_keys,
             allow_roaming: f.allow_roaming.unwrap_or(false),
             max_objects_per_client,
             max_client_messages_per_second: f.max_client_messages_per_second.unwrap_or(0),
             max_client_bytes_per_second: f.max_client_bytes_per_second.unwrap_or(0),
+            memory_budget_mib: at_least_one(
+                &f.memory_budget_mib,
+                "memory_budget_mib",
+                d.memory_budget_mib,
+            )?,
+            max_sessions: at_least_one(&f.max_sessions, "max_sessions", d.max_sessions)?,
+            max_sessions_per_address: at_least_one(
+                &f.max_sessions_per_address,
+                "max_sessions_per_address",
+                d.max_sessions_per_address,
+            )?,
+            max_connections_per_address: at_least_one(
+                &f.max_connections_per_address,
+                "max_connections_per_address",
+                d.max_connections_per_address,
+            )?,
+            tcp_idle_timeout: f.tcp_idle_timeout.unwrap_or(d.tcp_idle_timeout),
+            closed_session_grace: f.closed_session_grace.unwrap_or(d.closed_session_grace),
         };
         frontends.push(GatewayFrontend {
             name,

@@ -28,12 +28,13 @@ use std::time::Instant;
 
 use mio::event::Event;
 use mio::Registry;
+use xrce_common::session::budget::Origin;
 use xrce_common::wire::info::TransportLocator;
 
 /// A way to reach clients, driven by the front-end's event loop.
 pub trait Transport {
     /// Identifies where a message came from and where a reply goes.
-    type Endpoint: Copy + Eq + Hash + Debug + StoredEndpoint;
+    type Endpoint: Copy + Eq + Hash + Debug + StoredEndpoint + Origin;
 
     /// Name for logs and counters (`udp4`, `tcp6`, `serial`, ...).
     fn name(&self) -> &'static str;

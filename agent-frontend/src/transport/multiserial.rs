@@ -49,6 +49,16 @@ pub struct SerialEndpoint {
     pub address: u8,
 }
 
+impl xrce_common::session::budget::Origin for SerialEndpoint {
+    /// Everyone on a line shares its wire: one origin per line.
+    fn origin(&self) -> xrce_common::session::budget::OriginId {
+        xrce_common::session::budget::OriginId(u128::from(self.line))
+    }
+    fn ip(&self) -> Option<std::net::IpAddr> {
+        None
+    }
+}
+
 impl super::StoredEndpoint for SerialEndpoint {
     fn stored(&self) -> Vec<u8> {
         let mut out = self.line.to_le_bytes().to_vec();

@@ -5,19 +5,25 @@
 //! the send buffer at most [`TcpConfig::send_buffer`] bytes. A client that does not read
 //! (its kernel buffer full, then ours) first loses best-effort output (counted), then is
 //! disconnected (counted), so one stuck client never holds memory or blocks the others. A
-//! connection that sends no whole message within [`SILENCE_LIMIT`] of opening, or stops in
-//! the middle of one for as long, is closed too. At most [`TcpConfig::max_connections`] are
-//! served; more are accepted and closed at once, with a log line. Each connection gets at
-//! most [`READ_BUDGET`] bytes read per loop pass, so a fast sender cannot starve the others.
+//! connection that sends no whole message within [`TcpConfig::first_message_limit`] of
+//! opening, or takes longer than [`TcpConfig::frame_limit`] to finish a message it began
+//! (however slowly it trickles bytes), is closed too, and so is one idle (nothing in, nothing out) for
+//! [`TcpConfig::idle_timeout`]. At most [`TcpConfig::max_connections`] are served, at most
+//! [`TcpConfig::max_per_address`] from one address; a connection beyond the first bound
+//! takes the place of the oldest connection that has sent no whole message yet from the
+//! address with the most connections (when that is not its own address), else it is closed
+//! at once, with a log line per episode. Each connection gets at most [`READ_BUDGET`] bytes
+//! read per loop pass, so a fast sender cannot starve the others.
 
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
 use std::io::{IoSlice, Read, Write};
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::time::{Duration, Instant};
 
 use mio::event::Event;
 use mio::{Interest, Registry, Token};
 use xrce_common::framing::length_prefix::{self, LengthPrefixDecoder};
+use xrce_common::session::budget::{ip_origin, Origin, OriginId};
 use xrce_common::wire::info::TransportLocator;
 
 use super::{is_gone, Transport, TransportStats};
@@ -32,6 +38,15 @@ pub struct TcpConfig {
     /// Largest message accepted (at most 65,535, what the prefix can say); a longer one
     /// closes its connection.
     pub max_message: usize,
+    /// Connections from one source address served at once.
+    pub max_per_address: usize,
+    /// A connection with nothing received and nothing sent for this long is closed.
+    pub idle_timeout: Option<Duration>,
+    /// A connection that sends no whole message this long after opening is closed.
+    pub first_message_limit: Duration,
+    /// A message must arrive whole this long after its first bytes, or its connection is
+    /// closed: trickling a byte now and then holds nothing.
+    pub frame_limit: Duration,
 }
 
 impl Default for TcpConfig {
@@ -41,6 +56,10 @@ impl Default for TcpConfig {
             max_connections: 2_000,
             send_buffer: 128 << 10,
             max_message: length_prefix::MAX_MESSAGE,
+            max_per_address: 256,
+            idle_timeout: Some(Duration::from_secs(300)),
+            first_message_limit: FIRST_MESSAGE_LIMIT,
+            frame_limit: FRAME_LIMIT,
         }
     }
 }
@@ -50,6 +69,17 @@ impl Default for TcpConfig {
 pub struct TcpEndpoint {
     slot: u32,
     generation: u32,
+    /// The peer's address (the session core shares resources between addresses).
+    ip: IpAddr,
+}
+
+impl Origin for TcpEndpoint {
+    fn origin(&self) -> OriginId {
+        ip_origin(self.ip)
+    }
+    fn ip(&self) -> Option<IpAddr> {
+        Some(self.ip)
+    }
 }
 
 #[derive(Debug)]
@@ -68,8 +98,22 @@ struct Connection {
     opened_at: Instant,
     /// When bytes last arrived.
     last_input: Instant,
+    /// When bytes were last written to it.
+    last_output: Instant,
+    /// When the message being received began (its first bytes arrived).
+    frame_started: Option<Instant>,
     /// Whole messages received.
     delivered: u64,
+}
+
+impl Connection {
+    fn endpoint(&self, slot: u32) -> TcpEndpoint {
+        TcpEndpoint {
+            slot,
+            generation: self.generation,
+            ip: self.peer.ip(),
+        }
+    }
 }
 
 impl Connection {
@@ -121,6 +165,10 @@ pub struct TcpTransport {
     closed: VecDeque<TcpEndpoint>,
     next_sweep: Instant,
     stats: TransportStats,
+    /// Open connections per peer address.
+    per_address: HashMap<IpAddr, usize>,
+    /// Refusals logged once per episode.
+    episodes: xrce_common::session::budget::Episodes,
 }
 
 /// Why a connection was closed by us (counted as drops; a peer's own close is not one).
@@ -129,13 +177,17 @@ const TOO_LONG: &str = "tcp_frame_too_long";
 const REFUSED: &str = "tcp_connection_refused";
 const SILENT: &str = "tcp_silent_connection";
 const STALLED: &str = "tcp_stalled_message";
+const IDLE: &str = "tcp_idle_connection";
+const PER_ADDRESS: &str = "tcp_connection_refused_per_address";
+const DISPLACED: &str = "tcp_connection_displaced";
 
 /// Bytes read from one connection per loop pass before the others get a turn.
 pub const READ_BUDGET: usize = 256 << 10;
-/// A connection that sends no whole message this long after opening, or stops this long
-/// in the middle of one, is closed.
-pub const SILENCE_LIMIT: Duration = Duration::from_secs(30);
-/// How often connections are checked against [`SILENCE_LIMIT`].
+/// Default [`TcpConfig::first_message_limit`].
+pub const FIRST_MESSAGE_LIMIT: Duration = Duration::from_secs(10);
+/// Default [`TcpConfig::frame_limit`] (a 64 KiB message then needs 6.6 KB/s).
+pub const FRAME_LIMIT: Duration = Duration::from_secs(10);
+/// How often connections are checked against the limits above.
 const SWEEP_PERIOD: Duration = Duration::from_secs(1);
 /// Accept errors tolerated in one pass (aborted handshakes and the like) before the
 /// listener waits for the next retry.
@@ -175,6 +227,8 @@ impl TcpTransport {
             closed: VecDeque::new(),
             next_sweep: Instant::now() + SWEEP_PERIOD,
             stats: TransportStats::default(),
+            per_address: HashMap::new(),
+            episodes: Default::default(),
         })
     }
 
@@ -221,18 +275,61 @@ impl TcpTransport {
         self.free.push(slot);
         self.live -= 1;
         self.stats.closed += 1;
-        self.closed.push_back(TcpEndpoint {
-            slot,
-            generation: c.generation,
-        });
+        let ip = c.peer.ip();
+        if let Some(n) = self.per_address.get_mut(&ip) {
+            *n -= 1;
+            if *n == 0 {
+                self.per_address.remove(&ip);
+            }
+        }
+        self.closed.push_back(c.endpoint(slot));
         let age_ms = c.opened_at.elapsed().as_millis() as u64;
         match reason {
             Some(reason) => {
                 let n = self.stats.drop(reason);
-                tracing::warn!(peer = %c.peer, reason, detail, closed_for_this_reason = n, age_ms, "TCP connection closed");
+                if self.episodes.bite(Instant::now(), reason).is_some() {
+                    tracing::warn!(peer = %c.peer, reason, detail, closed_for_this_reason = n, age_ms, "TCP connection closed (further closes for this reason are logged at debug until they stop for 10 s)");
+                } else {
+                    tracing::debug!(peer = %c.peer, reason, detail, closed_for_this_reason = n, age_ms, "TCP connection closed");
+                }
             }
             None => tracing::debug!(peer = %c.peer, detail, age_ms, "TCP connection closed"),
         }
+    }
+
+    /// Makes room for a connection from `ip` when every slot is taken: closes the oldest
+    /// connection that has sent no whole message yet of the address with the most
+    /// connections, if that is another address with more connections than `ip` has (so a
+    /// flood of unfinished connections from one place cannot keep others out). Whether
+    /// one was closed.
+    fn displace_for(&mut self, ip: IpAddr) -> bool {
+        let mine = self.per_address.get(&ip).copied().unwrap_or(0);
+        let Some((&busiest, &n)) = self.per_address.iter().max_by_key(|(a, n)| (**n, **a)) else {
+            return false;
+        };
+        if busiest == ip || n <= mine + 1 {
+            return false;
+        }
+        let victim = self
+            .slots
+            .iter()
+            .enumerate()
+            .filter_map(|(slot, c)| c.as_ref().map(|c| (slot, c)))
+            .filter(|(_, c)| c.peer.ip() == busiest && c.delivered == 0)
+            .min_by_key(|(_, c)| c.opened_at)
+            .map(|(slot, _)| slot as u32);
+        let Some(victim) = victim else {
+            return false;
+        };
+        if self.episodes.bite(Instant::now(), DISPLACED).is_some() {
+            tracing::warn!(from = %busiest, connections = n, "TCP connections full: a connection that sent nothing whole yet, from the address with the most, closed for a newcomer (logged once per episode)");
+        }
+        self.close(
+            victim,
+            Some(DISPLACED),
+            "displaced by a connection from another address",
+        );
+        true
     }
 
     fn accept(&mut self) {
@@ -271,10 +368,19 @@ impl TcpTransport {
                     continue;
                 }
             };
-            if self.live >= self.config.max_connections {
+            let from_peer = self.per_address.get(&peer.ip()).copied().unwrap_or(0);
+            if from_peer >= self.config.max_per_address {
+                let n = self.stats.drop(PER_ADDRESS);
+                if self.episodes.bite(Instant::now(), PER_ADDRESS).is_some() {
+                    tracing::warn!(%peer, max = self.config.max_per_address, refused = n, "TCP connection refused: its address has its maximum of connections (--max-connections-per-address; logged once per episode)");
+                }
+                drop(stream);
+                continue;
+            }
+            if self.live >= self.config.max_connections && !self.displace_for(peer.ip()) {
                 let n = self.stats.drop(REFUSED);
-                if n.is_power_of_two() {
-                    tracing::warn!(%peer, max = self.config.max_connections, refused = n, "TCP connection refused: the front-end serves its maximum of connections (--max-connections)");
+                if self.episodes.bite(Instant::now(), REFUSED).is_some() {
+                    tracing::warn!(%peer, max = self.config.max_connections, refused = n, "TCP connection refused: the front-end serves its maximum of connections (--max-connections) and none that sent nothing whole yet can make room (logged once per episode)");
                 }
                 drop(stream);
                 continue;
@@ -302,6 +408,8 @@ impl TcpTransport {
                 queued: false,
                 opened_at: Instant::now(),
                 last_input: Instant::now(),
+                last_output: Instant::now(),
+                frame_started: None,
                 delivered: 0,
             };
             let token = self.token(slot);
@@ -314,6 +422,7 @@ impl TcpTransport {
             }
             self.slots[slot as usize] = Some(c);
             self.live += 1;
+            *self.per_address.entry(peer.ip()).or_default() += 1;
             self.stats.opened += 1;
             tracing::debug!(%peer, connections = self.live, "TCP connection accepted");
             // Data may have arrived before the registration.
@@ -336,10 +445,7 @@ impl TcpTransport {
         let Some(c) = self.slots.get_mut(slot as usize).and_then(Option::as_mut) else {
             return (0, false);
         };
-        let ep = TcpEndpoint {
-            slot,
-            generation: c.generation,
-        };
+        let ep = c.endpoint(slot);
         'read: loop {
             // Whole messages first (some may be left from a budget used up).
             while let Some(m) = c.decoder.next_message() {
@@ -357,6 +463,12 @@ impl TcpTransport {
                         break 'read;
                     }
                 }
+            }
+            // The message being received (if any) began with the bytes that are left.
+            if c.decoder.buffered() == 0 {
+                c.frame_started = None;
+            } else if c.frame_started.is_none() {
+                c.frame_started = Some(Instant::now());
             }
             if read >= READ_BUDGET {
                 left = true;
@@ -432,7 +544,11 @@ impl Transport for TcpTransport {
             let Some(c) = self.slots.get_mut(slot as usize).and_then(Option::as_mut) else {
                 return;
             };
+            let before = c.pending_out();
             let flushed = c.flush();
+            if c.pending_out() < before {
+                c.last_output = Instant::now();
+            }
             let (empty, writable) = (c.pending_out() == 0, c.writable);
             match flushed {
                 Err(e) => self.close(slot, None, &e.to_string()),
@@ -507,7 +623,10 @@ impl Transport for TcpTransport {
                 .stream
                 .write_vectored(&[IoSlice::new(&prefix), IoSlice::new(message)])
             {
-                Ok(n) => written = n,
+                Ok(n) => {
+                    written = n;
+                    c.last_output = Instant::now();
+                }
                 Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
                 Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
                 Err(e) => {
@@ -575,19 +694,31 @@ impl Transport for TcpTransport {
         }
         if now >= self.next_sweep {
             self.next_sweep = now + SWEEP_PERIOD;
+            let (idle, first, frame) = (
+                self.config.idle_timeout,
+                self.config.first_message_limit,
+                self.config.frame_limit,
+            );
             let mut silent = Vec::new();
             for (slot, c) in self.slots.iter().enumerate() {
                 let Some(c) = c else { continue };
-                if c.delivered == 0 && now.saturating_duration_since(c.opened_at) > SILENCE_LIMIT {
-                    silent.push((slot as u32, SILENT));
+                let since = |t: Instant| now.saturating_duration_since(t);
+                if c.delivered == 0 && since(c.opened_at) > first {
+                    silent.push((slot as u32, SILENT, "no whole message since it opened"));
                 } else if c.decoder.buffered() > 0
-                    && now.saturating_duration_since(c.last_input) > SILENCE_LIMIT
+                    && c.frame_started.is_some_and(|t| since(t) > frame)
                 {
-                    silent.push((slot as u32, STALLED));
+                    silent.push((
+                        slot as u32,
+                        STALLED,
+                        "a message begun but not finished in time",
+                    ));
+                } else if idle.is_some_and(|d| since(c.last_input.max(c.last_output)) > d) {
+                    silent.push((slot as u32, IDLE, "nothing received or sent for too long"));
                 }
             }
-            for (slot, reason) in silent {
-                self.close(slot, Some(reason), "no whole message for too long");
+            for (slot, reason, detail) in silent {
+                self.close(slot, Some(reason), detail);
             }
         }
     }

@@ -4,19 +4,23 @@
 //!
 //! Sans-IO like the rest of the session core: the caller passes the time.
 
-use std::collections::HashSet;
+use std::collections::HashMap;
 use std::fmt;
+use std::net::IpAddr;
 use std::str::FromStr;
 use std::time::Instant;
+
+pub use ipnet::IpNet;
 
 use crate::wire::ClientKey;
 
 /// Admission settings of a front-end's sessions.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Admission {
-    /// Client keys that may create a session; `None` admits every key. Others get
-    /// STATUS_ERR_DENIED (counted as `key_not_allowed`).
-    pub allowed_keys: Option<HashSet<ClientKey>>,
+    /// Client keys that may create a session, each from anywhere (`None`) or only from
+    /// the listed networks; `None` admits every key. Others get STATUS_ERR_DENIED (counted
+    /// as `key_not_allowed`, or `key_wrong_network`).
+    pub allowed_keys: Option<HashMap<ClientKey, Option<Vec<IpNet>>>>,
     /// Whether a message presenting a session's client key from another endpoint (a new
     /// source address or port, another connection) moves the session there. Off, only a
     /// CREATE_CLIENT moves a session; other messages from a foreign endpoint are dropped
@@ -27,9 +31,61 @@ pub struct Admission {
 }
 
 impl Admission {
-    /// Whether this key may hold a session.
-    pub fn admits(&self, key: ClientKey) -> bool {
-        self.allowed_keys.as_ref().is_none_or(|k| k.contains(&key))
+    /// Whether this key may hold a session from an endpoint at `ip` (`None`: an endpoint
+    /// without a network address, such as a serial line, which no network-bound key
+    /// matches).
+    pub fn admits(&self, key: ClientKey, ip: Option<IpAddr>) -> KeyCheck {
+        let Some(keys) = &self.allowed_keys else {
+            return KeyCheck::Admitted;
+        };
+        match keys.get(&key) {
+            None => KeyCheck::NotListed,
+            Some(None) => KeyCheck::Admitted,
+            Some(Some(nets)) => match ip {
+                Some(ip) if nets.iter().any(|n| n.contains(&unmapped(ip))) => KeyCheck::Admitted,
+                _ => KeyCheck::WrongNetwork,
+            },
+        }
+    }
+
+    /// An allow-list from command-line keys (a key listed both bound and unbound is
+    /// admitted from anywhere).
+    pub fn allow_list(keys: &[KeyArg]) -> Option<HashMap<ClientKey, Option<Vec<IpNet>>>> {
+        if keys.is_empty() {
+            return None;
+        }
+        let mut map: HashMap<ClientKey, Option<Vec<IpNet>>> = HashMap::new();
+        for k in keys {
+            match (map.get_mut(&k.key), k.network) {
+                (Some(None), _) => {}
+                (Some(nets), None) => *nets = None,
+                (Some(Some(nets)), Some(n)) => nets.push(n),
+                (None, n) => {
+                    map.insert(k.key, n.map(|n| vec![n]));
+                }
+            }
+        }
+        Some(map)
+    }
+}
+
+/// What the allow-list says of a key at an address.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum KeyCheck {
+    /// It may hold a session.
+    Admitted,
+    /// It is not listed.
+    NotListed,
+    /// It is listed for other networks.
+    WrongNetwork,
+}
+
+/// An IPv4-mapped IPv6 address as the IPv4 address it is (a dual-stack socket's view of an
+/// IPv4 peer), so that IPv4 networks match it.
+fn unmapped(ip: IpAddr) -> IpAddr {
+    match ip {
+        IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(ip, IpAddr::V4),
+        v4 => v4,
     }
 }
 
@@ -76,7 +132,7 @@ impl fmt::Display for KeyParseError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "client key {:?} is not 8 hexadecimal digits (e.g. 0xAAAABBBB)",
+            "client key {:?} is not 8 hexadecimal digits, optionally followed by @ and a network (e.g. 0xAAAABBBB or 0xAAAABBBB@192.168.1.0/24)",
             self.0
         )
     }
@@ -84,14 +140,51 @@ impl fmt::Display for KeyParseError {
 
 impl std::error::Error for KeyParseError {}
 
-/// A parsed key, for command-line parsers.
+/// A client key as the allow-list takes it: the key, and optionally the one network its
+/// client may come from (`0xAAAABBBB@192.168.1.0/24`; a bare address is a /32 or /128).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub struct KeyArg(pub ClientKey);
+pub struct KeyArg {
+    /// The key.
+    pub key: ClientKey,
+    /// The network its sessions must come from; `None`: anywhere.
+    pub network: Option<IpNet>,
+}
+
+impl KeyArg {
+    /// A key admitted from anywhere.
+    pub fn anywhere(key: ClientKey) -> Self {
+        KeyArg { key, network: None }
+    }
+}
+
+impl fmt::Display for KeyArg {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "0x{}", self.key)?;
+        if let Some(n) = self.network {
+            write!(f, "@{n}")?;
+        }
+        Ok(())
+    }
+}
 
 impl FromStr for KeyArg {
     type Err = KeyParseError;
     fn from_str(s: &str) -> Result<Self, Self::Err> {
-        parse_client_key(s).map(KeyArg)
+        let (key, network) = match s.split_once('@') {
+            Some((k, n)) => {
+                let n = n.trim();
+                let net = n
+                    .parse::<IpNet>()
+                    .or_else(|_| n.parse::<IpAddr>().map(IpNet::from))
+                    .map_err(|_| KeyParseError(s.to_string()))?;
+                (k, Some(net.trunc()))
+            }
+            None => (s, None),
+        };
+        Ok(KeyArg {
+            key: parse_client_key(key)?,
+            network,
+        })
     }
 }
 
@@ -319,12 +412,65 @@ mod tests {
     #[test]
     fn an_allow_list_admits_only_its_keys() {
         let open = Admission::default();
-        assert!(open.admits(ClientKey([1, 2, 3, 4])));
+        assert_eq!(
+            open.admits(ClientKey([1, 2, 3, 4]), None),
+            KeyCheck::Admitted
+        );
         let listed = Admission {
-            allowed_keys: Some([ClientKey([1, 2, 3, 4])].into_iter().collect()),
+            allowed_keys: Some([(ClientKey([1, 2, 3, 4]), None)].into_iter().collect()),
             ..Admission::default()
         };
-        assert!(listed.admits(ClientKey([1, 2, 3, 4])));
-        assert!(!listed.admits(ClientKey([1, 2, 3, 5])));
+        assert_eq!(
+            listed.admits(ClientKey([1, 2, 3, 4]), None),
+            KeyCheck::Admitted
+        );
+        assert_eq!(
+            listed.admits(ClientKey([1, 2, 3, 5]), None),
+            KeyCheck::NotListed
+        );
+    }
+
+    #[test]
+    fn a_key_bound_to_a_network_is_admitted_only_from_it() {
+        let keys: Vec<KeyArg> = [
+            "0xAAAABBBB@192.168.1.0/24",
+            "0xAAAABBBB@10.0.0.7",
+            "0x01020304",
+        ]
+        .iter()
+        .map(|s| s.parse().expect("key"))
+        .collect();
+        assert_eq!(keys[1].network, Some("10.0.0.7/32".parse().expect("net")));
+        assert_eq!(keys[0].to_string(), "0xAAAABBBB@192.168.1.0/24");
+        let a = Admission {
+            allowed_keys: Admission::allow_list(&keys),
+            ..Admission::default()
+        };
+        let key = ClientKey([0xAA, 0xAA, 0xBB, 0xBB]);
+        let ip = |s: &str| Some(s.parse::<IpAddr>().expect("ip"));
+        assert_eq!(a.admits(key, ip("192.168.1.77")), KeyCheck::Admitted);
+        assert_eq!(a.admits(key, ip("::ffff:192.168.1.77")), KeyCheck::Admitted);
+        assert_eq!(a.admits(key, ip("10.0.0.7")), KeyCheck::Admitted);
+        assert_eq!(a.admits(key, ip("10.0.0.8")), KeyCheck::WrongNetwork);
+        assert_eq!(
+            a.admits(key, None),
+            KeyCheck::WrongNetwork,
+            "a serial line has no network"
+        );
+        assert_eq!(a.admits(ClientKey([1, 2, 3, 4]), None), KeyCheck::Admitted);
+        // Listed once unbound: admitted from anywhere.
+        let both: Vec<KeyArg> = ["0x01020304@10.0.0.0/8", "0x01020304"]
+            .iter()
+            .map(|s| s.parse().expect("key"))
+            .collect();
+        let a = Admission {
+            allowed_keys: Admission::allow_list(&both),
+            ..Admission::default()
+        };
+        assert_eq!(
+            a.admits(ClientKey([1, 2, 3, 4]), ip("192.0.2.1")),
+            KeyCheck::Admitted
+        );
+        assert!("0xAAAABBBB@not-a-net".parse::<KeyArg>().is_err());
     }
 }

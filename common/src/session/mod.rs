@@ -2,6 +2,7 @@
 //!
 //! * [`agent`]: the agent side of every session of one front-end.
 //! * [`admission`]: the allow-list of client keys, roaming, per-client rate quotas.
+//! * [`budget`]: the memory budget shared fairly between hosts and sessions, session caps.
 //! * [`client`]: a client side, for tests, simulation and the load generator.
 //! * [`discovery`]: answers to multicast agent discovery.
 //! * [`graph`]: a client's object graph and active reads, kept for replay.
@@ -10,6 +11,7 @@
 
 pub mod admission;
 pub mod agent;
+pub mod budget;
 pub mod client;
 pub mod discovery;
 pub mod fragment;

@@ -241,6 +241,14 @@ impl ReliableInput {
         self.early.values().map(Vec::len).sum()
     }
 
+    /// Gives up the early messages kept (they are not acknowledged: their sender sends them
+    /// again); returns their bytes.
+    pub fn drop_early(&mut self) -> usize {
+        let bytes = self.early_bytes();
+        self.early.clear();
+        bytes
+    }
+
     /// Keeps an early message.
     pub fn store_early(&mut self, s: u16, message: Vec<u8>) {
         self.early.insert(s, message);

@@ -3,7 +3,7 @@
 
 use super::*;
 
-impl<A: Copy + Eq + Hash + Debug> Agent<A> {
+impl<A: Endpoint> Agent<A> {
     pub(super) fn handle_sessionless(
         &mut self,
         now: Instant,
@@ -63,15 +63,46 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         } else if c.session_id == 0x00 || c.session_id == 0x80 || c.client_key == ClientKey::INVALID
         {
             status::ERR_INVALID_DATA
-        } else if !self.config.admission.admits(c.client_key) {
-            self.count_drop("key_not_allowed");
-            status::ERR_DENIED
-        } else if !self.clients.contains_key(&c.client_key)
-            && self.clients.len() >= self.config.max_clients
-        {
-            status::ERR_RESOURCES
         } else {
+            match self.config.admission.admits(c.client_key, src.ip()) {
+                KeyCheck::Admitted => status::OK,
+                KeyCheck::NotListed => {
+                    self.count_drop("key_not_allowed");
+                    status::ERR_DENIED
+                }
+                KeyCheck::WrongNetwork => {
+                    self.count_drop("key_wrong_network");
+                    status::ERR_DENIED
+                }
+            }
+        };
+        let result = if result != status::OK {
+            result
+        } else if self.clients.contains_key(&c.client_key) {
+            match self.takeover(now, c.client_key, src) {
+                limits::Takeover::Allow => status::OK,
+                limits::Takeover::Probing => {
+                    // Unanswered: the client asks again (eProsima's every second), and by
+                    // then its session's endpoint has answered the probe or not.
+                    self.count_drop("takeover_probing");
+                    tracing::info!(client = %c.client_key, from = ?src, "CREATE_CLIENT for a live session from another endpoint: probing the session's endpoint before moving it");
+                    return;
+                }
+                limits::Takeover::Refuse => {
+                    self.count_drop("takeover_refused");
+                    if let Some(previous) = self.episodes.bite(now, "takeover_refused") {
+                        tracing::warn!(client = %c.client_key, from = ?src, previous_episode = previous, "CREATE_CLIENT refused: the key's session is alive at another endpoint, which answered a probe (run with --allow-roaming to let sessions move freely; logged once per episode)");
+                    }
+                    status::ERR_DENIED
+                }
+            }
+        } else if self.by_addr.get(&src).is_some_and(|k| *k != c.client_key)
+            || self.admit_session(now, src, sink)
+        {
+            // (A new key at an endpoint that has a session replaces that session.)
             status::OK
+        } else {
+            status::ERR_RESOURCES
         };
         if result == status::OK {
             // Another client at the same source address is gone (it was restarted with a new key).
@@ -116,10 +147,19 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     existing.mtu_announced = c.mtu.is_some();
                     existing.last_heard = now;
                     existing.detached = false;
+                    existing.attached_dead_time = None;
+                    existing.takeover = None;
                     existing.dialect = dialect;
                     existing.dead_time = dead_time;
                     let old = existing.addr;
                     existing.addr = src;
+                    let (before_origin, held) = (existing.origin, existing.held);
+                    existing.origin = src.origin();
+                    if before_origin != existing.origin {
+                        self.budget.session_removed(before_origin, held);
+                        self.budget.session_added(src.origin());
+                        self.budget.changed(src.origin(), 0, held);
+                    }
                     if self.by_addr.get(&old) == Some(&c.client_key) {
                         self.by_addr.remove(&old);
                     }
@@ -141,6 +181,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                         &self.config,
                     );
                     client.mtu_announced = c.mtu.is_some();
+                    self.budget.session_added(client.origin);
                     self.clients.insert(c.client_key, client);
                     self.by_addr.insert(src, c.client_key);
                     sink.operation(Operation::ClientCreated {
@@ -207,6 +248,12 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             Some(c) if c.addr == endpoint => {
                 c.detached = true;
                 c.heartbeat_due = None;
+                if let Some(grace) = self.config.limits.detached_grace {
+                    if c.attached_dead_time.is_none() {
+                        c.attached_dead_time = Some(c.dead_time);
+                    }
+                    c.dead_time = Some(c.dead_time.map_or(grace, |d| d.min(grace)));
+                }
                 tracing::info!(client = %key, "client's endpoint closed; session kept");
                 self.schedule(key);
                 true
@@ -217,6 +264,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
 
     pub(super) fn remove_client(&mut self, key: ClientKey, sink: &mut impl OperationSink) {
         if let Some(c) = self.clients.remove(&key) {
+            self.budget.session_removed(c.origin, c.held);
             if self.config.track_sessions {
                 self.changed.remove(&key);
                 self.changed_input.remove(&key);

@@ -21,7 +21,8 @@ use std::fmt::Debug;
 use std::hash::Hash;
 use std::time::{Duration, Instant};
 
-use super::admission::{Admission, Metered, RateMeter};
+use super::admission::{Admission, KeyCheck, Metered, RateMeter};
+use super::budget::{Budget, Decision, Episodes, Limits, Origin, OriginId};
 use super::fragment::{fragments, Reassembly};
 use super::snapshot::{OutputSnapshot, SessionSnapshot};
 use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
@@ -39,6 +40,7 @@ use crate::wire::{
 };
 
 mod lifecycle;
+mod limits;
 mod output;
 mod persist;
 mod proxy;
@@ -48,14 +50,22 @@ pub(crate) use output::agent_info_message;
 pub use output::{DataReply, SendError};
 use proxy::{OutStream, ProxyClient};
 
+/// What the session core needs of an endpoint: an identity, and the host it belongs to.
+pub trait Endpoint: Copy + Eq + Hash + Debug + Origin {}
+impl<T: Copy + Eq + Hash + Debug + Origin> Endpoint for T {}
+
 /// Largest datagram UDP over IPv4 carries: the default [`AgentConfig::max_message_size`].
 pub const MAX_DATAGRAM: u16 = 65_507;
 
 /// Tunables of the agent core.
 #[derive(Debug, Clone)]
 pub struct AgentConfig {
-    /// Most sessions at once; more get STATUS_ERR_RESOURCES.
+    /// Most sessions at once; a new one beyond evicts the most silent session without
+    /// objects of the origin with the most sessions, or gets STATUS_ERR_RESOURCES.
     pub max_clients: usize,
+    /// The memory budget, the per-origin session cap and the timeouts that bound what a
+    /// client can make the front-end hold.
+    pub limits: Limits,
     /// Early messages kept per reliable input stream (≤ 16, the ACKNACK bitmap width).
     pub input_window: u16,
     /// Unacknowledged messages per reliable output stream.
@@ -105,7 +115,8 @@ pub struct AgentConfig {
 impl Default for AgentConfig {
     fn default() -> Self {
         AgentConfig {
-            max_clients: 65_536,
+            max_clients: super::budget::DEFAULT_MAX_SESSIONS,
+            limits: Limits::default(),
             input_window: 16,
             output_window: 16,
             max_output_queue: 4096,
@@ -231,9 +242,18 @@ pub struct SessionInfo<A> {
 
 /// Drop reasons that lose nothing: a reliable message refused for lack of room in the agent
 /// or among the messages held for a gap (not acknowledged: the client sends it again), and a
-/// copy of a message already taken. (A rate-quota refusal is counted: on a best-effort
-/// stream it is lost.)
-pub const NOT_LOST: [&str; 3] = ["backpressure", "early_buffer_full", "duplicate"];
+/// copy of a message already taken, a reliable message refused or an early one given up
+/// for the memory budget (not acknowledged either), and a CREATE_CLIENT left unanswered
+/// while the session's current endpoint is probed. (A rate-quota refusal is counted: on a
+/// best-effort stream it is lost.)
+pub const NOT_LOST: [&str; 6] = [
+    "backpressure",
+    "early_buffer_full",
+    "duplicate",
+    "memory_budget",
+    "early_evicted",
+    "takeover_probing",
+];
 
 /// Counters of what the core did and dropped.
 #[derive(Debug, Clone, Default)]
@@ -327,6 +347,10 @@ pub struct Agent<A> {
     changed: HashSet<ClientKey>,
     changed_input: HashSet<ClientKey>,
     removed: Vec<ClientKey>,
+    /// What the sessions hold, by origin.
+    budget: Budget,
+    /// Refusals logged once per episode.
+    episodes: Episodes,
 }
 
 /// Replies the agent makes at most once per datagram, so that one datagram packed with
@@ -339,11 +363,10 @@ enum Reply {
     Retransmit(u8),
 }
 
-impl<A: Copy + Eq + Hash + Debug> Agent<A> {
+impl<A: Endpoint> Agent<A> {
     /// An agent with no sessions.
     pub fn new(config: AgentConfig) -> Self {
         Agent {
-            config,
             clients: HashMap::new(),
             by_addr: HashMap::new(),
             transmits: VecDeque::new(),
@@ -356,6 +379,9 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             changed: HashSet::new(),
             changed_input: HashSet::new(),
             removed: Vec::new(),
+            budget: Budget::new(config.limits.memory_budget),
+            episodes: Episodes::default(),
+            config,
         }
     }
 
@@ -423,7 +449,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         let Some(c) = self.clients.get_mut(&key) else {
             return;
         };
-        if let Some(due) = c.next_due() {
+        if let Some(due) = c.next_due(self.config.limits.reassembly_timeout) {
             if c.timer.is_none_or(|t| due < t) {
                 c.timer = Some(due);
                 self.timers.push(Reverse((due, key)));
@@ -507,7 +533,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             self.by_addr.insert(src, key);
         }
         client.last_heard = now;
-        client.detached = false;
+        client.reattach();
         client.counters.messages_in += 1;
         let lost_before = self.stats.lost_total;
         self.handle_session_message(now, key, header, hlen, bytes, sink);
@@ -521,6 +547,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         if let Some(c) = self.clients.get_mut(&key) {
             c.counters.dropped += lost;
         }
+        self.account(key);
     }
 
     /// A message of an existing session, from its endpoint.
@@ -615,12 +642,24 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
                     .sum();
                 if held + bytes.len() > self.config.max_early_bytes {
                     self.count_drop("early_buffer_full");
-                } else if let Some(input) = client.reliable_in.get_mut(&stream) {
+                } else if !self.make_room(now, key, bytes.len(), "memory_budget") {
+                    // Not acknowledged: sent again once it is next.
+                } else if let Some(input) = self
+                    .clients
+                    .get_mut(&key)
+                    .and_then(|c| c.reliable_in.get_mut(&stream))
+                {
                     input.store_early(header.sequence_nr, bytes.to_vec());
+                    self.account(key);
                 }
             }
             Arrival::InOrder => {
-                if room_for(sink, bytes, hlen) {
+                // A FRAGMENT makes the core keep its bytes until the last one: room for
+                // them first, or the message is not acknowledged and comes again.
+                let kept = fragment_bytes(bytes, hlen);
+                if kept > 0 && !self.make_room(now, key, kept, "memory_budget") {
+                    cause = AckCause::Refused;
+                } else if room_for(sink, bytes, hlen) {
                     if let Some(input) = self
                         .clients
                         .get_mut(&key)
@@ -770,11 +809,16 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         };
         let le = raw.little_endian();
         match payload {
-            Payload::Create(c) => sink.operation(Operation::Create {
-                client: key,
-                create: &c,
-                little_endian: le,
-            }),
+            Payload::Create(c) => {
+                if let Some(client) = self.clients.get_mut(&key) {
+                    client.has_objects = true;
+                }
+                sink.operation(Operation::Create {
+                    client: key,
+                    create: &c,
+                    little_endian: le,
+                })
+            }
             Payload::Delete(d) if d.object_id == ObjectId::CLIENT => {
                 if stream == stream_id::NONE {
                     // Answered the way it came, as the reference agent does: the
@@ -914,12 +958,21 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         let Some(c) = self.clients.get_mut(&key) else {
             return;
         };
-        match c
+        let pushed = c
             .reassembly
             .entry(stream)
             .or_default()
-            .push(data, last, max)
-        {
+            .push(data, last, max);
+        if matches!(pushed, Ok(None)) {
+            c.reassembly_at.insert(stream, now);
+        } else {
+            c.reassembly_at.remove(&stream);
+        }
+        if c.reassembly_at.len() == 1 {
+            // The first reassembly in progress: its timeout is a timer of the client.
+            self.schedule(key);
+        }
+        match pushed {
             Ok(None) => {}
             Ok(Some(whole)) => {
                 for raw in Submessages::reassembled(&whole) {
@@ -1013,6 +1066,16 @@ fn room_for(sink: &impl OperationSink, bytes: &[u8], hlen: usize) -> bool {
         }
     }
     sink.has_room_for(count)
+}
+
+/// Bytes of FRAGMENT payload in a message (what the core keeps of it until the last
+/// fragment).
+fn fragment_bytes(bytes: &[u8], hlen: usize) -> usize {
+    Submessages::new(bytes, hlen)
+        .filter_map(Result::ok)
+        .filter(|r| r.id == submessage_id::FRAGMENT)
+        .map(|r| r.payload.len())
+        .sum()
 }
 
 /// A sink that takes nothing: for tests and for fuzzing the core.

@@ -93,7 +93,7 @@ pub(crate) fn agent_info_message(
     b.finish()
 }
 
-impl<A: Copy + Eq + Hash + Debug> Agent<A> {
+impl<A: Endpoint> Agent<A> {
     /// Moves queued reliable submessages into free window slots and sends them.
     pub(super) fn flush_client(&mut self, now: Instant, key: ClientKey) {
         self.touch(key);
@@ -205,6 +205,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         }
         self.queue_status(key, request, result);
         self.flush_client(now, key);
+        self.account(key);
         Ok(())
     }
 
@@ -237,6 +238,7 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         let parts = Self::fit_or_fragment(c, sub);
         self.queue_reliable(key, stream_id::BUILTIN_RELIABLE, parts)?;
         self.flush_client(now, key);
+        self.account(key);
         Ok(())
     }
 
@@ -311,8 +313,13 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             let sub = crate::wire::encode_large_submessage(&payload, little_endian)
                 .map_err(|_| SendError::TooLarge)?;
             let parts = Self::fit_or_fragment(c, sub);
+            let bytes: usize = parts.iter().map(Vec::len).sum();
+            if !self.make_room(now, key, bytes, "memory_budget_output") {
+                return Err(SendError::QueueFull);
+            }
             self.queue_reliable(key, stream, parts)?;
             self.flush_client(now, key);
+            self.account(key);
         } else if c.detached {
             self.count_drop("endpoint_closed");
         } else {

@@ -2,7 +2,7 @@
 
 use super::*;
 
-impl<A: Copy + Eq + Hash + Debug> Agent<A> {
+impl<A: Endpoint> Agent<A> {
     /// The sessions whose snapshot may have changed, and the sessions deleted, since the
     /// last call (empty unless `track_sessions`). A front-end stores the snapshots before
     /// it sends what the core produced, so what a client saw acknowledged or numbered is
@@ -139,8 +139,15 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             .checked_sub(self.config.duplicate_create_guard)
             .unwrap_or(now);
         client.streams_used = true;
+        // Its objects are the front-end's to restore: not a session to evict first.
+        client.has_objects = true;
+        if let Some(old) = self.clients.remove(&snapshot.key) {
+            self.budget.session_removed(old.origin, old.held);
+        }
+        self.budget.session_added(client.origin);
         self.clients.insert(snapshot.key, client);
         self.by_addr.insert(endpoint, snapshot.key);
+        self.account(snapshot.key);
         // Output that waited for window room goes out as room allows.
         self.flush_client(now, snapshot.key);
         self.schedule(snapshot.key);

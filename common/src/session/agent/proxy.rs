@@ -55,9 +55,22 @@ pub(super) struct ProxyClient<A> {
     pub(super) last_probe: Option<Instant>,
     /// The last ACKNACK sent on each reliable input stream and when (see [`AckCause`]).
     pub(super) last_acknack: HashMap<u8, (u16, u16, Instant)>,
+    /// The host its endpoint belongs to (the budget's books are kept by origin).
+    pub(super) origin: OriginId,
+    /// Bytes the core holds for it, as last accounted in the budget.
+    pub(super) held: usize,
+    /// Whether it ever asked for an object (sessions without are evicted first).
+    pub(super) has_objects: bool,
+    /// When each reliable input stream's unfinished reassembly last gained a fragment.
+    pub(super) reassembly_at: HashMap<u8, Instant>,
+    /// Another endpoint's claim on the session (CREATE_CLIENT with its key), and when the
+    /// session's endpoint was probed for it.
+    pub(super) takeover: Option<(A, Instant)>,
+    /// Its dead time before its endpoint closed (the detached grace replaces it meanwhile).
+    pub(super) attached_dead_time: Option<Option<Duration>>,
 }
 
-impl<A> ProxyClient<A> {
+impl<A: Origin> ProxyClient<A> {
     /// A fresh session: no stream used yet.
     #[allow(clippy::too_many_arguments)]
     pub(super) fn new(
@@ -73,7 +86,6 @@ impl<A> ProxyClient<A> {
         ProxyClient {
             key,
             session_id,
-            addr,
             mtu,
             mtu_announced: false,
             last_heard: now,
@@ -98,6 +110,13 @@ impl<A> ProxyClient<A> {
             detached: false,
             last_probe: None,
             last_acknack: HashMap::new(),
+            origin: addr.origin(),
+            held: 0,
+            has_objects: false,
+            reassembly_at: HashMap::new(),
+            takeover: None,
+            attached_dead_time: None,
+            addr,
         }
     }
 
@@ -111,6 +130,7 @@ impl<A> ProxyClient<A> {
         self.reliable_out.clear();
         self.best_effort_out.clear();
         self.reassembly.clear();
+        self.reassembly_at.clear();
         self.heartbeat_due = None;
         self.streams_used = false;
         self.last_acknack.clear();
@@ -118,15 +138,32 @@ impl<A> ProxyClient<A> {
 
     /// When this client's timers have something to do next: a HEARTBEAT, a liveliness
     /// probe, or (detached: nobody to probe) the end of its dead time.
-    pub(super) fn next_due(&self) -> Option<Instant> {
+    pub(super) fn next_due(&self, reassembly_timeout: Duration) -> Option<Instant> {
         let liveliness = if self.detached {
             self.dead_time.map(|d| self.last_heard + d)
         } else {
             self.liveliness_due()
         };
-        match (self.heartbeat_due.filter(|_| !self.detached), liveliness) {
-            (Some(a), Some(b)) => Some(a.min(b)),
-            (a, b) => a.or(b),
+        let stale = self
+            .reassembly_at
+            .values()
+            .min()
+            .map(|at| *at + reassembly_timeout);
+        [
+            self.heartbeat_due.filter(|_| !self.detached),
+            liveliness,
+            stale,
+        ]
+        .into_iter()
+        .flatten()
+        .min()
+    }
+
+    /// Its endpoint is back: the dead time it had before it closed applies again.
+    pub(super) fn reattach(&mut self) {
+        self.detached = false;
+        if let Some(d) = self.attached_dead_time.take() {
+            self.dead_time = d;
         }
     }
 

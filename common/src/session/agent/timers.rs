@@ -2,7 +2,7 @@
 
 use super::*;
 
-impl<A: Copy + Eq + Hash + Debug> Agent<A> {
+impl<A: Endpoint> Agent<A> {
     /// Sends due HEARTBEATs and liveliness probes, and deletes the sessions of clients that
     /// stayed silent past their dead time (their objects go with them through `sink`). Only
     /// the clients whose timer fell due are looked at.
@@ -24,13 +24,14 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
             }
         }
         for key in &due_clients {
+            self.drop_stale_reassemblies(now, *key);
             let Some(c) = self.clients.get_mut(key) else {
                 continue;
             };
             if let Some(dead_time) = c.dead_time {
                 let silence = now.saturating_duration_since(c.last_heard);
                 if silence >= dead_time {
-                    dead.push((c.key, silence));
+                    dead.push((c.key, silence, c.detached));
                     continue;
                 }
                 if !c.detached && c.liveliness_due().is_some_and(|d| d <= now) {
@@ -88,9 +89,14 @@ impl<A: Copy + Eq + Hash + Debug> Agent<A> {
         for (a, m) in out {
             self.push_transmit(a, m);
         }
-        for (key, silence) in dead {
-            tracing::warn!(client = %key, silent_ms = silence.as_millis() as u64, "client silent past its dead time; deleting its session");
-            self.count_drop("client_dead");
+        for (key, silence, detached) in dead {
+            if detached {
+                tracing::warn!(client = %key, gone_ms = silence.as_millis() as u64, "client's connection closed and it did not come back within the grace period; deleting its session");
+                self.count_drop("detached_expired");
+            } else {
+                tracing::warn!(client = %key, silent_ms = silence.as_millis() as u64, "client silent past its dead time; deleting its session");
+                self.count_drop("client_dead");
+            }
             self.remove_client(key, sink);
         }
     }

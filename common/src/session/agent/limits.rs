@@ -1,0 +1,283 @@
+//! What clients make the core hold, kept within the front-end's limits: the memory budget
+//! (accounting, room asked before bytes are kept, eviction from sessions over their share,
+//! reassemblies that stall), session caps, and sessions kept by the endpoint they live at
+//! when someone else presents their key.
+
+use super::*;
+
+/// A session must have been silent this long to be evicted for a new one.
+const EVICTABLE_SILENCE: Duration = Duration::from_secs(1);
+/// Sessions looked at, at most, to free room for one request (each look is a scan).
+const MAX_VICTIMS: usize = 16;
+/// A takeover probe older than this is forgotten: the next CREATE_CLIENT probes again.
+const TAKEOVER_MEMORY: Duration = Duration::from_secs(10);
+
+/// What a CREATE_CLIENT with a live session's key from another endpoint may do.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Takeover {
+    /// Move the session (its endpoint did not answer, or roaming is allowed).
+    Allow,
+    /// The current endpoint was probed: no answer to the newcomer yet (it asks again).
+    Probing,
+    /// The current endpoint answered: the session stays with it.
+    Refuse,
+}
+
+impl<A: Endpoint> Agent<A> {
+    /// Bytes the core holds for a client.
+    pub(super) fn held_bytes(c: &ProxyClient<A>) -> usize {
+        let reassembly: usize = c.reassembly.values().map(Reassembly::len).sum();
+        let early: usize = c.reliable_in.values().map(ReliableInput::early_bytes).sum();
+        let output: usize = c
+            .reliable_out
+            .values()
+            .map(|s| {
+                s.queued_bytes
+                    + s.reliable
+                        .unacked_messages()
+                        .map(<[u8]>::len)
+                        .sum::<usize>()
+            })
+            .sum();
+        reassembly + early + output
+    }
+
+    /// Brings the budget's books up to date with what a client holds now.
+    pub(super) fn account(&mut self, key: ClientKey) {
+        let Some(c) = self.clients.get_mut(&key) else {
+            return;
+        };
+        let now_held = Self::held_bytes(c);
+        let before = std::mem::replace(&mut c.held, now_held);
+        self.budget.changed(c.origin, before, now_held);
+    }
+
+    /// Bytes held for every client together, and the budget.
+    pub fn memory_held(&self) -> (usize, usize) {
+        (self.budget.total(), self.budget.limit())
+    }
+
+    /// Whether a client may make the core keep `extra` more bytes; room is taken from
+    /// sessions over their share if the budget is full. A refusal is counted as `reason`
+    /// and logged once per episode.
+    pub(super) fn make_room(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        extra: usize,
+        reason: &'static str,
+    ) -> bool {
+        let Some(c) = self.clients.get(&key) else {
+            return false;
+        };
+        let (origin, held) = (c.origin, c.held);
+        let ok = match self.budget.decide(origin, held, extra) {
+            Decision::Grant => true,
+            Decision::Evict(needed) => self.evict_over_share(now, needed, key) >= needed,
+            Decision::Refuse => false,
+        };
+        if !ok {
+            self.count_drop(reason);
+            if let Some(previous) = self.episodes.bite(now, reason) {
+                let (total, limit) = self.memory_held();
+                tracing::warn!(client = %key, reason, wanted = extra, holds = held, share = self.budget.session_share(origin), held_total = total, budget = limit, previous_episode = previous, "memory budget: refused (further refusals of this kind are counted, not logged, until they stop for 10 s)");
+            }
+        }
+        ok
+    }
+
+    /// Frees what sessions over their fair share hold that can be given up (early
+    /// messages, which their clients send again; then unfinished reassemblies, lost to
+    /// them), the furthest over first, until `needed` bytes are free. Returns the bytes
+    /// freed.
+    fn evict_over_share(&mut self, now: Instant, needed: usize, except: ClientKey) -> usize {
+        let mut freed = 0;
+        for _ in 0..MAX_VICTIMS {
+            let victim = self
+                .clients
+                .values()
+                .filter(|c| c.key != except)
+                .map(|c| (self.budget.over_share(c.origin, c.held), c.key))
+                .filter(|(over, _)| *over > 0)
+                .max();
+            let Some((_, victim)) = victim else {
+                break;
+            };
+            let Some(c) = self.clients.get_mut(&victim) else {
+                break;
+            };
+            let mut early = 0;
+            for input in c.reliable_in.values_mut() {
+                early += input.drop_early();
+            }
+            let mut partial = 0;
+            for r in c.reassembly.values_mut() {
+                if !r.is_empty() {
+                    partial += 1;
+                    r.clear();
+                }
+            }
+            c.reassembly_at.clear();
+            let before = c.held;
+            self.account(victim);
+            let after = self.clients.get(&victim).map_or(0, |c| c.held);
+            if early > 0 {
+                self.count_drop("early_evicted");
+            }
+            for _ in 0..partial {
+                self.count_drop("reassembly_evicted");
+            }
+            if before == after {
+                // Nothing it holds can be given up (output): look no further.
+                break;
+            }
+            if let Some(previous) = self.episodes.bite(now, "reassembly_evicted") {
+                tracing::warn!(client = %victim, freed = before - after, previous_episode = previous, "memory budget full: what a session over its share held was given up for another (logged once per episode)");
+            }
+            freed += before - after;
+            if freed >= needed {
+                break;
+            }
+        }
+        freed
+    }
+
+    /// Drops a client's reassemblies that gained nothing for the reassembly timeout.
+    pub(super) fn drop_stale_reassemblies(&mut self, now: Instant, key: ClientKey) {
+        let timeout = self.config.limits.reassembly_timeout;
+        let Some(c) = self.clients.get_mut(&key) else {
+            return;
+        };
+        let stale: Vec<u8> = c
+            .reassembly_at
+            .iter()
+            .filter(|(_, at)| now.saturating_duration_since(**at) >= timeout)
+            .map(|(s, _)| *s)
+            .collect();
+        if stale.is_empty() {
+            return;
+        }
+        for s in &stale {
+            c.reassembly_at.remove(s);
+            if let Some(r) = c.reassembly.get_mut(s) {
+                r.clear();
+            }
+        }
+        for _ in 0..stale.len() {
+            self.count_drop("reassembly_stale");
+        }
+        if let Some(previous) = self.episodes.bite(now, "reassembly_stale") {
+            tracing::warn!(client = %key, streams = stale.len(), timeout_ms = timeout.as_millis() as u64, previous_episode = previous, "unfinished FRAGMENT reassembly dropped: no fragment came for too long (logged once per episode)");
+        }
+        self.account(key);
+    }
+
+    /// Whether a new session from `src` fits the session caps, after evicting, if need
+    /// be, the most silent session without objects of the origin with the most sessions.
+    /// On `false` the refusal is counted and logged.
+    pub(super) fn admit_session(
+        &mut self,
+        now: Instant,
+        src: A,
+        sink: &mut impl OperationSink,
+    ) -> bool {
+        let origin = src.origin();
+        let per_origin = self.config.limits.max_sessions_per_origin;
+        if self.budget.sessions_of(origin) >= per_origin && !self.evict_session(now, origin, sink) {
+            self.refuse_session(now, "session_cap_per_address", origin);
+            return false;
+        }
+        if self.clients.len() >= self.config.max_clients {
+            let busiest = self.budget.busiest_origin();
+            let evicted = busiest.is_some_and(|(o, n)| {
+                (o == origin || n > self.budget.sessions_of(origin) + 1)
+                    && self.evict_session(now, o, sink)
+            });
+            if !evicted {
+                self.refuse_session(now, "session_cap", origin);
+                return false;
+            }
+        }
+        true
+    }
+
+    fn refuse_session(&mut self, now: Instant, reason: &'static str, origin: OriginId) {
+        self.count_drop(reason);
+        if let Some(previous) = self.episodes.bite(now, reason) {
+            tracing::warn!(reason, sessions = self.clients.len(), max_sessions = self.config.max_clients, from_this_origin = self.budget.sessions_of(origin), max_per_origin = self.config.limits.max_sessions_per_origin, previous_episode = previous, "CREATE_CLIENT refused with STATUS_ERR_RESOURCES: session cap reached and no silent session without objects to evict (logged once per episode)");
+        }
+    }
+
+    /// Evicts the most silent session without objects of `origin` (silent for at least
+    /// [`EVICTABLE_SILENCE`]); whether there was one.
+    fn evict_session(
+        &mut self,
+        now: Instant,
+        origin: OriginId,
+        sink: &mut impl OperationSink,
+    ) -> bool {
+        let victim = self
+            .clients
+            .values()
+            .filter(|c| c.origin == origin && !c.has_objects)
+            .filter(|c| now.saturating_duration_since(c.last_heard) >= EVICTABLE_SILENCE)
+            .min_by_key(|c| (c.last_heard, c.key))
+            .map(|c| c.key);
+        let Some(victim) = victim else {
+            return false;
+        };
+        self.count_drop("session_evicted");
+        if let Some(previous) = self.episodes.bite(now, "session_evicted") {
+            tracing::warn!(client = %victim, previous_episode = previous, "session cap reached: a silent session without objects was deleted for a new one (logged once per episode)");
+        }
+        self.remove_client(victim, sink);
+        true
+    }
+
+    /// What a CREATE_CLIENT with `key`'s live session from `src`, another endpoint than
+    /// the session's, may do: the session's endpoint is probed first, and the session moves
+    /// only if it stays silent for the probe wait (a client that restarted from a new port
+    /// asks again a second later and gets it); one that answers keeps it.
+    pub(super) fn takeover(&mut self, now: Instant, key: ClientKey, src: A) -> Takeover {
+        if self.config.admission.allow_roaming {
+            return Takeover::Allow;
+        }
+        let wait = self.config.limits.takeover_probe_wait;
+        let Some(c) = self.clients.get_mut(&key) else {
+            return Takeover::Allow;
+        };
+        if c.addr == src || c.detached {
+            return Takeover::Allow;
+        }
+        match c.takeover {
+            Some((claimant, probed))
+                if claimant == src && now.saturating_duration_since(probed) < TAKEOVER_MEMORY =>
+            {
+                if c.last_heard > probed {
+                    c.takeover = None;
+                    Takeover::Refuse
+                } else if now.saturating_duration_since(probed) >= wait {
+                    c.takeover = None;
+                    Takeover::Allow
+                } else {
+                    Takeover::Probing
+                }
+            }
+            _ => {
+                c.takeover = Some((src, now));
+                let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
+                let probe = crate::wire::GetInfoPayload {
+                    base: BaseObjectRequest {
+                        request_id: LIVELINESS_PROBE_ID,
+                        object_id: ObjectId::AGENT,
+                    },
+                    info_mask: 0x02,
+                };
+                let _ = b.push(&Payload::GetInfo(probe), true);
+                let addr = c.addr;
+                self.push_transmit(addr, b.finish());
+                Takeover::Probing
+            }
+        }
+    }
+}
