@@ -23,6 +23,7 @@ use xrce_common::ipc::{
     IN_FLIGHT_WINDOW,
 };
 use xrce_common::session::agent::{Agent, DataReply, Operation, OperationSink};
+use xrce_common::session::budget::{BudgetSplit, Episodes, DEFAULT_MEMORY_BUDGET};
 use xrce_common::session::graph::{ActiveRead, CreateDecision, GraphObject, ObjectGraph};
 use xrce_common::wire::cdr::CdrWriter;
 use xrce_common::wire::sample::{is_defined_format, sample_state};
@@ -31,6 +32,7 @@ use xrce_common::wire::{
     RequestId, ResultStatus,
 };
 
+use crate::object_budget::ObjectBudget;
 use crate::waiting_writes::{Room, WaitingWrites};
 
 /// GET_INFO mask bit asking for the object's configuration.
@@ -268,6 +270,9 @@ pub struct BridgeStats {
     pub writes_settled_unacknowledged: u64,
     /// CREATEs refused because their client had its quota of objects.
     pub objects_over_quota: u64,
+    /// CREATEs refused because their description did not fit the client's share of the
+    /// object-description memory.
+    pub objects_over_budget: u64,
     /// Replies meant for the front-end process this one took over from, ignored.
     pub predecessor_replies: u64,
 }
@@ -318,6 +323,15 @@ pub struct Bridge {
     stats: BridgeStats,
     /// Most objects per client.
     max_objects: usize,
+    /// Memory for object descriptions, shared between addresses and sessions.
+    object_budget: ObjectBudget,
+    object_budget_episodes: Episodes,
+    /// Bytes of queued operations before new ones are refused ([`OUTBOX_MAX_BYTES`] unless
+    /// a memory budget says less).
+    outbox_max_bytes: usize,
+    /// Bytes of retained writes before new ones are refused ([`RETAIN_MAX_BYTES`] unless a
+    /// memory budget says less).
+    retain_max_bytes: usize,
 }
 
 fn header(
@@ -392,7 +406,25 @@ impl Bridge {
             dirty: false,
             stats: BridgeStats::default(),
             max_objects: xrce_common::session::graph::MAX_OBJECTS,
+            object_budget: ObjectBudget::new(BudgetSplit::of(DEFAULT_MEMORY_BUDGET).objects),
+            object_budget_episodes: Episodes::default(),
+            outbox_max_bytes: OUTBOX_MAX_BYTES,
+            retain_max_bytes: RETAIN_MAX_BYTES,
         })
+    }
+
+    /// Bounds what this process holds for clients by its parts of a front-end's memory
+    /// budget: object descriptions, queued operations and retained writes (the session
+    /// core has its own part, [`BudgetSplit::core`]).
+    pub fn set_memory_budget(&mut self, split: BudgetSplit) {
+        self.object_budget = ObjectBudget::new(split.objects);
+        self.outbox_max_bytes = split.outbox.clamp(1 << 20, OUTBOX_MAX_BYTES);
+        self.retain_max_bytes = split.retained.clamp(1 << 20, RETAIN_MAX_BYTES);
+    }
+
+    /// Bytes of object descriptions held, and their part of the budget.
+    pub fn object_memory(&self) -> (usize, usize) {
+        self.object_budget.held()
     }
 
     /// Sets the most objects one client may create (at least 1).
@@ -428,6 +460,11 @@ impl Bridge {
     /// Takes over a client's graph a predecessor stored (before the first worker is seen:
     /// the replay to it creates the objects and restarts the reads).
     pub fn restore_graph(&mut self, client: ClientKey, graph: ObjectGraph) {
+        for o in graph.objects() {
+            let mut body = Vec::new();
+            o.variant.encode(&mut CdrWriter::new(&mut body, true));
+            self.object_budget.set(client, o.object_id, body.len());
+        }
         self.graphs.insert(client, graph);
     }
 
@@ -473,7 +510,7 @@ impl Bridge {
     /// Sends now if the window allows (copying `body` straight into shared memory), else
     /// queues an owned copy.
     fn submit(&mut self, mut h: IpcHeader, body: &[u8], retain: bool, awaited: Awaited) {
-        if self.outbox.len() >= OUTBOX_HARD_MAX || self.outbox.bytes >= 4 * OUTBOX_MAX_BYTES {
+        if self.outbox.len() >= OUTBOX_HARD_MAX || self.outbox.bytes >= 4 * self.outbox_max_bytes {
             // Only one message packed with operations gets here past `has_room`.
             self.stats.ops_dropped += 1;
             if self.stats.ops_dropped.is_power_of_two() {
@@ -1060,7 +1097,7 @@ impl Bridge {
 
     /// Whether the retained reliable writes leave room for more (flow control).
     fn retention_has_room(&self) -> bool {
-        self.retained.len() < RETAIN_MAX && self.retained.bytes < RETAIN_MAX_BYTES
+        self.retained.len() < RETAIN_MAX && self.retained.bytes < self.retain_max_bytes
     }
 
     /// Drops the waiting best-effort writes of `client` (to `objects` only, if given): an
@@ -1149,7 +1186,7 @@ impl OperationSink for Bridge {
                 && self.outbox.is_empty()
                 && self.in_flight() + HAND_OVER_HEADROOM <= IN_FLIGHT_WINDOW;
         }
-        self.outbox.len() < OUTBOX_MAX && self.outbox.bytes < OUTBOX_MAX_BYTES && retained
+        self.outbox.len() < OUTBOX_MAX && self.outbox.bytes < self.outbox_max_bytes && retained
     }
 
     fn has_room_for(&self, submessages: usize) -> bool {
@@ -1171,12 +1208,14 @@ impl OperationSink for Bridge {
     fn operation(&mut self, op: Operation<'_>) {
         let fe = self.frontend_id;
         match op {
-            Operation::ClientCreated { client } => {
+            Operation::ClientCreated { client, origin } => {
                 self.graphs.insert(client, ObjectGraph::default());
+                self.object_budget.client_created(client, origin);
                 self.objects_changed.insert(client);
             }
             Operation::ClientDeleted { client } => {
                 self.graphs.remove(&client);
+                self.object_budget.client_deleted(client);
                 self.drop_waiting_writes(client, None);
                 let h = header(
                     MessageKind::DeleteClient,
@@ -1207,11 +1246,36 @@ impl OperationSink for Bridge {
                             .push((client, create.base, ResultStatus::new(code)))
                     }
                     decision => {
+                        let mut body = Vec::new();
+                        create.variant.encode(&mut CdrWriter::new(&mut body, true));
+                        if !self.object_budget.admit(client, id, body.len()) {
+                            self.stats.objects_over_budget += 1;
+                            let (held, pool) = self.object_budget.held();
+                            if self
+                                .object_budget_episodes
+                                .bite(std::time::Instant::now(), "objects")
+                                .is_some()
+                            {
+                                tracing::warn!(%client, bytes = body.len(), held, pool, refused = self.stats.objects_over_budget, "CREATE refused with STATUS_ERR_RESOURCES: object descriptions over the client's share of the memory budget (--memory-budget; logged once per episode)");
+                            }
+                            self.replies_out.push((
+                                client,
+                                create.base,
+                                ResultStatus::new(status::ERR_RESOURCES),
+                            ));
+                            return;
+                        }
+                        let Some(graph) = self.graphs.get_mut(&client) else {
+                            return;
+                        };
                         let mut replaced = if decision == CreateDecision::Replace {
                             graph.remove(id)
                         } else {
                             Vec::new()
                         };
+                        let children: Vec<ObjectId> =
+                            replaced.iter().copied().filter(|r| *r != id).collect();
+                        self.object_budget.removed(client, &children);
                         // Writes a client sent to the id before it existed must not go to
                         // the new object either.
                         replaced.push(id);
@@ -1225,8 +1289,6 @@ impl OperationSink for Bridge {
                         if !self.best_effort_waiting.is_empty() {
                             self.drop_waiting_writes(client, Some(&replaced));
                         }
-                        let mut body = Vec::new();
-                        create.variant.encode(&mut CdrWriter::new(&mut body, true));
                         let mut h = header(MessageKind::Create, fe, client, create.base);
                         if little_endian {
                             h.flags |= FLAG_LITTLE_ENDIAN;
@@ -1241,6 +1303,7 @@ impl OperationSink for Bridge {
                     .get_mut(&client)
                     .map(|g| g.remove(request.object_id))
                     .unwrap_or_default();
+                self.object_budget.removed(client, &removed);
                 self.objects_changed.insert(client);
                 if !removed.is_empty() {
                     self.drop_waiting_writes(client, Some(&removed));

@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use xrce_common::session::admission::{Admission, KeyArg, RateQuota};
 use xrce_common::session::agent::AgentConfig;
-use xrce_common::session::budget::{self, Limits};
+use xrce_common::session::budget::{self, BudgetSplit, Limits};
 use xrce_common::wire::Dialect;
 
 use crate::bridge::Bridge;
@@ -307,10 +307,15 @@ impl AdmissionArgs {
         a
     }
 
+    /// How `--memory-budget` is split between the parts of the front-end.
+    pub fn budget_split(&self) -> BudgetSplit {
+        BudgetSplit::of(self.memory_budget_mib.saturating_mul(1 << 20))
+    }
+
     /// The session core's limits.
     pub fn limits(&self) -> Limits {
         Limits {
-            memory_budget: self.memory_budget_mib.saturating_mul(1 << 20),
+            memory_budget: self.budget_split().core,
             max_sessions_per_origin: self.max_sessions_per_address,
             detached_grace: (self.closed_session_grace > 0)
                 .then(|| Duration::from_secs(self.closed_session_grace.min(31_536_000))),
@@ -501,6 +506,7 @@ fn serve<T: Transport>(
     let incarnation = crate::session_store::next_incarnation(&args.instance, args.frontend_id);
     let mut bridge = Bridge::new(&args.instance, args.frontend_id, incarnation)?;
     bridge.set_max_objects_per_client(args.admission.max_objects_per_client);
+    bridge.set_memory_budget(args.admission.budget_split());
     if let Some(keys) = &config.admission.allowed_keys {
         tracing::info!(keys = keys.len(), "only listed client keys are admitted");
     }

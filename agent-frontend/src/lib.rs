@@ -18,6 +18,7 @@
 pub mod bridge;
 pub mod cli;
 pub mod event_loop;
+pub mod object_budget;
 pub mod report;
 pub mod session_store;
 pub mod status;

@@ -72,6 +72,7 @@ pub fn report<T: Transport>(
     add("samples_dropped", b.samples_dropped);
     add("instance_ends_skipped", b.instance_ends_skipped);
     add("objects_over_quota", b.objects_over_quota);
+    add("objects_over_budget", b.objects_over_budget);
     let mut sessions: Vec<SessionStatus> = agent
         .sessions(now)
         .map(|s| SessionStatus {

@@ -23,7 +23,7 @@ impl OperationSink for Recorder {
     }
     fn operation(&mut self, op: Operation<'_>) {
         match op {
-            Operation::ClientCreated { client } => self.created.push(client),
+            Operation::ClientCreated { client, .. } => self.created.push(client),
             Operation::Write { data, .. } => self.writes.push(data.data.to_vec()),
             _ => {}
         }

@@ -73,14 +73,14 @@ fn create_status(out: &[Transmit<Ep>], to: Ep) -> Option<u8> {
 /// The first unacknowledged sequence number of the ACKNACK sent to `to` for stream 0x80.
 fn acked_up_to(out: &[Transmit<Ep>], to: Ep) -> Option<u16> {
     out.iter()
+        .rev()
         .filter(|t| t.destination == to)
         .filter_map(|t| Message::decode(&t.data).ok())
         .flat_map(|m| m.submessages)
-        .filter_map(|s| match s.payload {
+        .find_map(|s| match s.payload {
             Payload::Acknack(a) if a.stream_id == 0x80 => Some(a.first_unacked_seq_num),
             _ => None,
         })
-        .last()
 }
 
 fn agent(limits: Limits, max_clients: usize) -> Agent<Ep> {

@@ -30,7 +30,7 @@ impl OperationSink for Recorder {
     }
     fn operation(&mut self, op: Operation<'_>) {
         self.0.push(match op {
-            Operation::ClientCreated { client } => Op::Created(client),
+            Operation::ClientCreated { client, .. } => Op::Created(client),
             Operation::ClientDeleted { client } => Op::Deleted(client),
             Operation::GetInfo {
                 request, info_mask, ..

@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 /// The host a message came from, as far as the transport tells: sessions and memory are
 /// shared fairly between origins. For IP transports the peer's address (any port), for a
 /// serial line the line (everyone on it shares one wire).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct OriginId(pub u128);
 
 /// What the session core needs to know of an endpoint beyond its identity.
@@ -104,6 +104,35 @@ impl Default for Limits {
     }
 }
 
+/// How a front-end's memory budget is split between the parts that hold what clients
+/// send: the session core, object descriptions, operations waiting for the worker and
+/// reliable writes retained until DDS acknowledges them (the last two are flow control:
+/// full, they refuse reliable input unacknowledged, so clients send it again later).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct BudgetSplit {
+    /// The session core ([`Limits::memory_budget`]): half.
+    pub core: usize,
+    /// Object descriptions kept for replay: an eighth.
+    pub objects: usize,
+    /// Operations waiting to be handed to the worker: three sixteenths.
+    pub outbox: usize,
+    /// Reliable writes retained for a worker crash: three sixteenths.
+    pub retained: usize,
+}
+
+impl BudgetSplit {
+    /// The parts of a budget of `total` bytes.
+    pub fn of(total: usize) -> Self {
+        let sixteenth = total / 16;
+        BudgetSplit {
+            core: total / 2,
+            objects: total / 8,
+            outbox: 3 * sixteenth,
+            retained: 3 * sixteenth,
+        }
+    }
+}
+
 /// A session may always hold this much while the budget has room, whatever its share: a
 /// few messages of the largest MTU.
 const MIN_GRANT: usize = 16 << 10;
@@ -159,6 +188,11 @@ impl Budget {
     /// Sessions of an origin.
     pub fn sessions_of(&self, origin: OriginId) -> usize {
         self.origins.get(&origin).map_or(0, |u| u.sessions)
+    }
+
+    /// Bytes held by an origin's sessions.
+    pub fn held_by(&self, origin: OriginId) -> usize {
+        self.origins.get(&origin).map_or(0, |u| u.held)
     }
 
     /// The origin with the most sessions, and how many.

@@ -186,6 +186,7 @@ impl<A: Endpoint> Agent<A> {
                     self.by_addr.insert(src, c.client_key);
                     sink.operation(Operation::ClientCreated {
                         client: c.client_key,
+                        origin: src.origin(),
                     });
                     tracing::info!(client = %c.client_key, session = c.session_id, mtu, ?dialect, ?dead_time, "session created");
                 }

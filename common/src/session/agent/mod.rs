@@ -153,7 +153,12 @@ pub struct Transmit<A> {
 #[derive(Debug, Clone, Copy)]
 pub enum Operation<'a> {
     /// A new session replaced nothing or replaced a session with another session id.
-    ClientCreated { client: ClientKey },
+    ClientCreated {
+        /// Its key.
+        client: ClientKey,
+        /// The host it came from (what it holds elsewhere is shared by host too).
+        origin: OriginId,
+    },
     /// A session ended (deleted by the client, or replaced): drop all its objects.
     ClientDeleted { client: ClientKey },
     /// CREATE, with the byte order the client used (its data writers publish in it).
