@@ -55,9 +55,38 @@ impl Link {
         Link::Udp(socket)
     }
 
+    /// A UDP socket at `local` (an address of this host, e.g. 127.0.0.2: every address of
+    /// 127.0.0.0/8 is local) connected to `agent`: a client from another host, as far as
+    /// the agent can tell.
+    pub fn udp_from(agent: SocketAddr, local: std::net::IpAddr) -> Self {
+        let socket = UdpSocket::bind(SocketAddr::new(local, 0)).expect("bind client");
+        socket.connect(agent).expect("connect");
+        socket.set_nonblocking(true).expect("non-blocking");
+        Link::Udp(socket)
+    }
+
     /// A TCP connection to `agent`.
     pub fn tcp(agent: SocketAddr) -> std::io::Result<Self> {
         let stream = TcpStream::connect_timeout(&agent, Duration::from_secs(5))?;
+        stream.set_nodelay(true)?;
+        stream.set_nonblocking(true)?;
+        Ok(Link::Tcp {
+            stream,
+            decoder: LengthPrefixDecoder::new(length_prefix::MAX_MESSAGE),
+        })
+    }
+
+    /// A TCP connection to `agent` from the local address `local` (127.0.0.2, say).
+    pub fn tcp_from(agent: SocketAddr, local: std::net::IpAddr) -> std::io::Result<Self> {
+        let domain = if agent.is_ipv4() {
+            socket2::Domain::IPV4
+        } else {
+            socket2::Domain::IPV6
+        };
+        let socket = socket2::Socket::new(domain, socket2::Type::STREAM, None)?;
+        socket.bind(&SocketAddr::new(local, 0).into())?;
+        socket.connect_timeout(&agent.into(), Duration::from_secs(5))?;
+        let stream: TcpStream = socket.into();
         stream.set_nodelay(true)?;
         stream.set_nonblocking(true)?;
         Ok(Link::Tcp {

@@ -12,9 +12,15 @@ use xrce_tests::{free_tcp_port, hello_world, xml, AgentProcess, DdsPeer, Link, T
 const SECOND: Duration = Duration::from_secs(1);
 
 fn tcp_agent(tag: &str, transport: &str, bind: &str) -> AgentProcess {
+    tcp_agent_with(tag, transport, bind, &[])
+}
+
+fn tcp_agent_with(tag: &str, transport: &str, bind: &str, extra: &[&str]) -> AgentProcess {
     for _ in 0..5 {
         let port = free_tcp_port().to_string();
-        if let Some(a) = AgentProcess::launch(tag, &[transport, "-p", &port, "--bind", bind]) {
+        let mut args = vec![transport, "-p", &port, "--bind", bind];
+        args.extend_from_slice(extra);
+        if let Some(a) = AgentProcess::launch(tag, &args) {
             return a;
         }
     }
@@ -143,7 +149,13 @@ fn a_reconnecting_client_gets_its_objects_back() {
 /// Hundreds of clients connected and in session at once; the agent keeps serving a new one.
 #[test]
 fn hundreds_of_tcp_sessions_at_once() {
-    let agent = tcp_agent("tcpmany", "tcp4", "127.0.0.1");
+    // All from 127.0.0.1: more than the default 256 connections from one address.
+    let agent = tcp_agent_with(
+        "tcpmany",
+        "tcp4",
+        "127.0.0.1",
+        &["--max-connections-per-address", "400"],
+    );
     let mut clients: Vec<TestClient> = (0..300u16)
         .map(|i| {
             let [a, b] = i.to_be_bytes();

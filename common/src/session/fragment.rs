@@ -39,6 +39,23 @@ impl Reassembly {
         self.buf.len()
     }
 
+    /// Bytes of memory it holds (what a memory budget counts: a growing buffer holds more
+    /// than it has collected).
+    pub fn capacity(&self) -> usize {
+        self.buf.capacity()
+    }
+
+    /// Bytes of memory it would take on if `n` more bytes were collected (a buffer grows by
+    /// doubling).
+    pub fn growth_for(&self, n: usize) -> usize {
+        let (len, cap) = (self.buf.len(), self.buf.capacity());
+        if len + n <= cap {
+            0
+        } else {
+            (cap * 2).max(len + n).max(8) - cap
+        }
+    }
+
     /// Whether nothing is being collected.
     pub fn is_empty(&self) -> bool {
         self.buf.is_empty()

@@ -26,7 +26,7 @@ pub(super) enum Takeover {
 impl<A: Endpoint> Agent<A> {
     /// Bytes the core holds for a client.
     pub(super) fn held_bytes(c: &ProxyClient<A>) -> usize {
-        let reassembly: usize = c.reassembly.values().map(Reassembly::len).sum();
+        let reassembly: usize = c.reassembly.values().map(Reassembly::capacity).sum();
         let early: usize = c.reliable_in.values().map(ReliableInput::early_bytes).sum();
         let output: usize = c
             .reliable_out

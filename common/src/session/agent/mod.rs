@@ -662,7 +662,12 @@ impl<A: Endpoint> Agent<A> {
                 // A FRAGMENT makes the core keep its bytes until the last one: room for
                 // them first, or the message is not acknowledged and comes again.
                 let kept = fragment_bytes(bytes, hlen);
-                if kept > 0 && !self.make_room(now, key, kept, "memory_budget") {
+                let growth = self
+                    .clients
+                    .get(&key)
+                    .and_then(|c| c.reassembly.get(&stream))
+                    .map_or(kept, |r| r.growth_for(kept));
+                if growth > 0 && !self.make_room(now, key, growth, "memory_budget") {
                     cause = AckCause::Refused;
                 } else if room_for(sink, bytes, hlen) {
                     if let Some(input) = self
