@@ -50,6 +50,17 @@ pub struct AgentStatus {
 }
 
 impl AgentStatus {
+    /// Replaces every client key by its redacted form ([`redact_key`]).
+    pub fn redact_keys(&mut self) {
+        for p in &mut self.processes {
+            if let Some(f) = &mut p.frontend {
+                for s in &mut f.sessions {
+                    s.client_key = redact_key(&s.client_key);
+                }
+            }
+        }
+    }
+
     /// The reports found now in an instance's status directory.
     pub fn read(instance: &str, dir: &std::path::Path) -> Self {
         AgentStatus {
@@ -57,6 +68,18 @@ impl AgentStatus {
             processes: status::read_reports(dir),
         }
     }
+}
+
+/// A client key as status views show it by default: its last two hexadecimal digits only
+/// (`0x******BB`), enough to tell sessions apart at a glance, too little to present the key.
+pub fn redact_key(key: &str) -> String {
+    let digits: Vec<char> = key
+        .trim_start_matches("0x")
+        .chars()
+        .filter(char::is_ascii_hexdigit)
+        .collect();
+    let tail: String = digits[digits.len().saturating_sub(2)..].iter().collect();
+    format!("0x******{tail}")
 }
 
 /// Labels of one sample.
@@ -1047,7 +1070,14 @@ fn respond(head: &[u8], registry: &Registry, instance: &str, dir: &std::path::Pa
             }
         }
         "/status" => {
-            let snapshot = AgentStatus::read(instance, dir);
+            let mut snapshot = AgentStatus::read(instance, dir);
+            // Client keys are the clients' credentials: shown only when asked for.
+            let show_keys = target
+                .split_once('?')
+                .is_some_and(|(_, q)| q.split('&').any(|p| p == "keys=show"));
+            if !show_keys {
+                snapshot.redact_keys();
+            }
             match serde_json::to_string_pretty(&snapshot) {
                 Ok(json) => response(200, "OK", &json, "application/json"),
                 Err(e) => response(
@@ -1377,6 +1407,31 @@ mod tests {
         for r in Refusal::ALL {
             assert_eq!(stats.refused(r), 0, "{r:?}");
         }
+    }
+
+    #[test]
+    fn status_keys_are_redacted_unless_asked_for() {
+        assert_eq!(redact_key("0xAAAABBBB"), "0x******BB");
+        assert_eq!(redact_key("0x1"), "0x******1");
+        let mut s = snapshot();
+        let key = |s: &AgentStatus| {
+            s.processes
+                .iter()
+                .filter_map(|p| p.frontend.as_ref())
+                .flat_map(|f| f.sessions.iter())
+                .map(|x| x.client_key.clone())
+                .collect::<Vec<_>>()
+        };
+        for p in &mut s.processes {
+            if let Some(f) = &mut p.frontend {
+                for x in &mut f.sessions {
+                    x.client_key = "0xAAAABBBB".into();
+                }
+            }
+        }
+        assert!(!key(&s).is_empty());
+        s.redact_keys();
+        assert!(key(&s).iter().all(|k| k == "0x******BB"), "{:?}", key(&s));
     }
 
     #[test]
