@@ -1,8 +1,9 @@
 //! The front-end's sessions kept where its successor finds them, so that a front-end
 //! killed hard (or replaced by a new binary) is taken over without its clients noticing.
 //!
-//! One directory per front-end (`/dev/shm/xrce-sessions-<instance>/frontend-<id>/`), and in
-//! it per client:
+//! One directory per front-end (`<runtime>/<instance>/sessions/frontend-<id>/`, in the
+//! agent's private runtime directory: [`xrce_common::ipc::runtime_dir`]), and in it per
+//! client:
 //!
 //! * `<KEY>.state`: the session core's snapshot
 //!   ([`xrce_common::session::snapshot::SessionSnapshot`]: streams' positions, endpoint) and
@@ -16,8 +17,8 @@
 //!
 //! Limits of the mapping: each stored client takes one of the process's memory mappings
 //! (the kernel's `vm.max_map_count`, 65,530 by default, bounds them all: raise it for more
-//! than about 60,000 clients on one front-end); the directory should be a tmpfs (the default,
-//! `/dev/shm`), since on a copy-on-write disk file system a write to a page allocated
+//! than about 60,000 clients on one front-end); the directory should be a tmpfs (the default
+//! runtime directories are), since on a copy-on-write disk file system a write to a page allocated
 //! already can still fail and that failure is a SIGBUS; and a front-end of a version before
 //! the mapping (records `XRSS`) cannot read these records (`XRS2`), so a downgrade loses the
 //! stored sessions and their clients create them again.
@@ -26,12 +27,22 @@
 //! client saw acknowledged or numbered is ahead of what a successor reads. An `alive` file
 //! holds the time the front-end last ran; a successor takes the sessions over only if that
 //! is recent ([`TAKE_OVER_WITHIN`]): after a long stop its clients are gone.
+//!
+//! **Privacy and ownership.** The directory is 0700 and every file 0600, created without
+//! following links (temporary files exclusively, then renamed); files read back are opened
+//! without following links and restored only if they are regular files of this user: a
+//! file another user planted is ignored, counted and logged, never replayed to the worker.
+//! The front-end holds an exclusive `flock` on the directory's `lock` file for its whole
+//! life, taken before it reads or clears anything ([`next_incarnation`] or [`SessionStore::open`],
+//! whichever comes first): a second front-end with the same instance and id cannot take
+//! the store (and so cannot wipe the first one's sessions), while the successor of a
+//! front-end killed hard takes it at once (the kernel releases a dead process's lock).
 
 use std::collections::HashMap;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+use xrce_common::ipc::runtime_dir::{self, LockFile, RuntimeDirError};
 use xrce_common::wire::ClientKey;
 
 use crate::sys::mapped_file::MappedFile;
@@ -51,6 +62,8 @@ const MAGIC_BODY_CRC: [u8; 4] = *b"XRSS";
 const HEADER: usize = 4 + 8 + 4 + 4;
 /// Length of a state file: two slots.
 const STATE_FILE_LEN: u64 = 2 * SLOT;
+/// Largest objects file read back (object descriptions of one client).
+const MAX_OBJECTS_FILE: u64 = 64 << 20;
 
 /// Slice-by-16 tables: a subscriber's record (its reads' delivered marks) is rewritten on
 /// every loop pass, and the byte-wise table made the checksum a twentieth of the front-end's
@@ -97,29 +110,65 @@ pub struct SessionStore {
     failing: bool,
     /// Clients whose state was too large to store (warned once each).
     too_large: std::collections::HashSet<ClientKey>,
+    /// Files found in the directory that were not this user's regular files (planted), so
+    /// not restored.
+    ignored: usize,
 }
 
 fn key_name(key: ClientKey) -> String {
     format!("{key}")
 }
 
+/// The session stores whose lock this process holds, with their locks: held for the
+/// process's life (a front-end serves one store), taken once.
+static HELD: std::sync::Mutex<Vec<(PathBuf, LockFile)>> = std::sync::Mutex::new(Vec::new());
+
+/// Takes the lock of the store in `dir` for this process, unless it holds it already;
+/// fails if another process holds it (`what` names that one in the message).
+fn lock_store(dir: &Path, what: &str) -> Result<(), RuntimeDirError> {
+    let mut held = HELD
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    if held.iter().any(|(d, _)| d == dir) {
+        return Ok(());
+    }
+    let lock = LockFile::acquire(&dir.join(runtime_dir::FRONTEND_LOCK), what)?;
+    held.push((dir.to_path_buf(), lock));
+    Ok(())
+}
+
 impl SessionStore {
-    /// The store of front-end `id` of `instance` (its directory is created).
-    pub fn open(instance: &str, id: u32) -> std::io::Result<Self> {
-        let dir = xrce_common::ipc::status::sessions_dir(instance).join(format!("frontend-{id}"));
-        Self::open_at(dir)
+    /// The store of front-end `id` of `instance`: its directory is created (0700) or
+    /// checked, and its lock taken; another live front-end with this id is an error.
+    pub fn open(instance: &str, id: u32) -> Result<Self, RuntimeDirError> {
+        let dir = runtime_dir::ensure_frontend_store_dir(instance, id)?;
+        lock_store(&dir, &format!("front-end {id}"))?;
+        Ok(Self::prepared(dir))
     }
 
-    /// A store in `dir`.
-    pub fn open_at(dir: PathBuf) -> std::io::Result<Self> {
-        std::fs::create_dir_all(&dir)?;
-        Ok(SessionStore {
+    /// A store in `dir` (created 0700 if missing, its parent must exist; checked if there),
+    /// with its lock.
+    pub fn open_at(dir: PathBuf) -> Result<Self, RuntimeDirError> {
+        runtime_dir::prepare_private_dir(&dir)?;
+        lock_store(&dir, "another front-end")?;
+        Ok(Self::prepared(dir))
+    }
+
+    fn prepared(dir: PathBuf) -> Self {
+        SessionStore {
             dir,
             files: HashMap::new(),
             next_alive: Instant::now(),
             failing: false,
             too_large: Default::default(),
-        })
+            ignored: 0,
+        }
+    }
+
+    /// How many files [`Self::take_over`] ignored because they were not this user's
+    /// regular files (planted by someone else, or links).
+    pub fn ignored_files(&self) -> usize {
+        self.ignored
     }
 
     /// Its directory.
@@ -130,8 +179,12 @@ impl SessionStore {
     /// The clients a predecessor left, if it ran within [`TAKE_OVER_WITHIN`]; otherwise
     /// (or when none ran) the directory is emptied and nothing is returned. Unreadable
     /// clients are skipped with a warning.
+    ///
+    /// Only regular files of this user are read, without following links; anything else
+    /// (a file another user planted, a link) is left alone, counted
+    /// ([`Self::ignored_files`]) and logged, and its client is not restored.
     pub fn take_over(&mut self) -> Vec<StoredClient> {
-        let recent = std::fs::read(self.dir.join("alive"))
+        let recent = runtime_dir::read_owned(&self.dir.join("alive"), 8)
             .ok()
             .and_then(|b| b.try_into().ok().map(u64::from_le_bytes))
             .is_some_and(|ms| {
@@ -145,7 +198,10 @@ impl SessionStore {
         let mut names: Vec<PathBuf> = entries.flatten().map(|e| e.path()).collect();
         names.sort();
         for path in names {
-            if path.file_name().is_some_and(|n| n == "incarnation") {
+            if path
+                .file_name()
+                .is_some_and(|n| n == "incarnation" || n == runtime_dir::FRONTEND_LOCK)
+            {
                 continue;
             }
             let is_state = path.extension().is_some_and(|x| x == "state");
@@ -166,19 +222,32 @@ impl SessionStore {
                 let _ = std::fs::remove_file(&path);
                 continue;
             };
-            let state = std::fs::File::open(&path)
-                .ok()
-                .and_then(|f| latest_record(&f));
-            let objects = std::fs::read(path.with_extension("objects")).ok();
+            // Opened once, without following links, for reading its records and mapping it.
+            let state_file = match runtime_dir::open_owned(&path, true) {
+                Ok(f) => Some(f),
+                Err(e) if e.is_untrusted() => {
+                    self.ignore(&e);
+                    continue;
+                }
+                Err(_) => None,
+            };
+            let objects_path = path.with_extension("objects");
+            let objects = match runtime_dir::read_owned(&objects_path, MAX_OBJECTS_FILE) {
+                Ok(b) => Some(b),
+                Err(e) if e.is_untrusted() => {
+                    self.ignore(&e);
+                    continue;
+                }
+                Err(_) => None,
+            };
+            let state = state_file.and_then(|f| latest_record(&f).map(|r| (f, r)));
             match (state, objects) {
-                (Some((seq, state)), Some(objects)) => {
+                (Some((file, (seq, state))), Some(objects)) => {
                     // The predecessor is gone: its file is this front-end's to map (and to
-                    // grow, if an earlier version wrote it shorter).
-                    let mapped = std::fs::OpenOptions::new()
-                        .read(true)
-                        .write(true)
-                        .open(&path)
-                        .and_then(|file| MappedFile::open(file, STATE_FILE_LEN));
+                    // grow, if an earlier version wrote it shorter; and to make private, if
+                    // an earlier version made it 0644).
+                    let mapped =
+                        private(&file).and_then(|()| MappedFile::open(file, STATE_FILE_LEN));
                     match mapped {
                         Ok(map) => {
                             self.files.insert(key, StateFile::new(map, seq));
@@ -199,7 +268,16 @@ impl SessionStore {
                 }
             }
         }
+        if self.ignored > 0 {
+            tracing::warn!(dir = %self.dir.display(), ignored = self.ignored, "files in the session store that are not this user's regular files were ignored: their sessions are not restored");
+        }
         out
+    }
+
+    /// Counts and logs a file of the store that is not ours to use.
+    fn ignore(&mut self, why: &RuntimeDirError) {
+        self.ignored += 1;
+        tracing::warn!(error = %why, "not restored");
     }
 
     /// Rewrites the `alive` file if it is due.
@@ -289,22 +367,38 @@ impl SessionStore {
 /// The incarnation number of a new process of front-end `id` of `instance`: its
 /// predecessor's plus one (kept beside its sessions), never 0; without a predecessor (or a
 /// place to keep it), one from the clock and the process id.
+///
+/// The first thing a front-end does in its session store, so it takes the store's lock
+/// (kept for the process's life, see [`SessionStore::open`]): if another live front-end
+/// holds it, nothing is read or written, the refusal is logged, and a fresh number returned
+/// (the caller then fails on the duplicate id, or runs without a store).
 pub fn next_incarnation(instance: &str, id: u32) -> u16 {
-    let dir = xrce_common::ipc::status::sessions_dir(instance).join(format!("frontend-{id}"));
-    let path = dir.join("incarnation");
     let fresh = || {
         let nanos = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0, |d| d.subsec_nanos());
         ((nanos ^ std::process::id().rotate_left(7)) as u16).max(1)
     };
-    let next = match std::fs::read(&path).ok().and_then(|b| b.try_into().ok()) {
+    let dir = match runtime_dir::ensure_frontend_store_dir(instance, id) {
+        Ok(dir) => dir,
+        Err(e) => {
+            tracing::error!(error = %e, "the session store cannot be used");
+            return fresh();
+        }
+    };
+    if let Err(e) = lock_store(&dir, &format!("front-end {id}")) {
+        tracing::error!(error = %e, "the session store is another front-end's; it is left alone");
+        return fresh();
+    }
+    let path = dir.join("incarnation");
+    let next = match runtime_dir::read_owned(&path, 2)
+        .ok()
+        .and_then(|b| b.try_into().ok())
+    {
         Some(b) => u16::from_le_bytes(b).wrapping_add(1).max(1),
         None => fresh(),
     };
-    let kept =
-        std::fs::create_dir_all(&dir).and_then(|()| write_atomically(&path, &next.to_le_bytes()));
-    if let Err(e) = kept {
+    if let Err(e) = write_atomically(&path, &next.to_le_bytes()) {
         tracing::debug!(error = %e, "front-end incarnation not kept");
     }
     next
@@ -318,25 +412,27 @@ fn parse_key(s: &str) -> Option<ClientKey> {
     Some(ClientKey(v.to_be_bytes()))
 }
 
+/// Replaces `path` with `bytes` through a new private temporary file (never through a link).
 fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let tmp = path.with_extension("tmp");
-    let mut f = std::fs::File::create(&tmp)?;
-    f.write_all(bytes)?;
-    drop(f);
-    std::fs::rename(&tmp, path)
+    runtime_dir::write_atomically(path, &path.with_extension("tmp"), bytes)
+        .map_err(std::io::Error::other)
 }
 
-/// A new state file at `path`, mapped. It is created under a temporary name, sized and then
-/// renamed into place, so a file of the same name that another process may still map is
-/// replaced rather than truncated under it.
+/// Makes a file taken over private (0600) if an earlier version made it 0644.
+fn private(file: &std::fs::File) -> std::io::Result<()> {
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+    if file.metadata()?.mode() & 0o077 != 0 {
+        file.set_permissions(std::fs::Permissions::from_mode(runtime_dir::FILE_MODE))?;
+    }
+    Ok(())
+}
+
+/// A new state file at `path`, mapped. It is created (0600, exclusively, never through a
+/// link) under a temporary name, sized and then renamed into place, so a file of the same
+/// name that another process may still map is replaced rather than truncated under it.
 fn create_state_file(path: &Path) -> std::io::Result<MappedFile> {
     let tmp = path.with_extension("state.tmp");
-    let file = std::fs::OpenOptions::new()
-        .create(true)
-        .truncate(true)
-        .read(true)
-        .write(true)
-        .open(&tmp)?;
+    let file = runtime_dir::create_temp(&tmp).map_err(std::io::Error::other)?;
     let map = MappedFile::open(file, STATE_FILE_LEN)?;
     std::fs::rename(&tmp, path)?;
     Ok(map)
@@ -518,6 +614,104 @@ mod tests {
         let _ = std::fs::remove_dir_all(s.dir());
     }
 
+    fn mode(p: &Path) -> u32 {
+        use std::os::unix::fs::MetadataExt;
+        std::fs::symlink_metadata(p).expect("exists").mode() & 0o7777
+    }
+
+    #[test]
+    fn the_store_and_its_files_are_private() {
+        let mut s = store("private");
+        let key = ClientKey([7, 7, 7, 7]);
+        s.keep_alive(Instant::now());
+        s.save_objects(key, b"o");
+        s.save_state(key, b"s");
+        assert_eq!(mode(s.dir()), 0o700);
+        let mut names = Vec::new();
+        for e in std::fs::read_dir(s.dir()).expect("dir").flatten() {
+            assert_eq!(mode(&e.path()), 0o600, "{}", e.path().display());
+            names.push(e.file_name().to_string_lossy().into_owned());
+        }
+        names.sort();
+        assert_eq!(
+            names,
+            ["07070707.objects", "07070707.state", "alive", "lock"]
+        );
+        let _ = std::fs::remove_dir_all(s.dir());
+    }
+
+    #[test]
+    fn links_planted_in_the_store_are_neither_followed_nor_restored() {
+        use std::os::unix::fs::symlink;
+        let mut s = store("planted");
+        let dir = s.dir().to_path_buf();
+        let victim = std::env::temp_dir().join(format!("xrce-victim-{}", std::process::id()));
+        std::fs::write(&victim, b"untouched").expect("victim");
+        // Links where temporary files will be made.
+        symlink(&victim, dir.join("alive.tmp")).expect("link");
+        symlink(&victim, dir.join("01010101.state.tmp")).expect("link");
+        symlink(&victim, dir.join("01010101.tmp")).expect("link");
+        let key = ClientKey([1, 1, 1, 1]);
+        s.keep_alive(Instant::now());
+        s.save_state(key, b"mine");
+        s.save_objects(key, b"objects");
+        assert_eq!(std::fs::read(&victim).expect("victim"), b"untouched");
+        for f in ["alive", "01010101.state", "01010101.objects"] {
+            let m = std::fs::symlink_metadata(dir.join(f)).expect("written");
+            assert!(m.is_file(), "{f} is a regular file");
+        }
+        // A client whose stored files are links (to files that would pass for a session):
+        // not restored, counted.
+        let elsewhere = std::env::temp_dir().join(format!("xrce-elsewhere-{}", std::process::id()));
+        std::fs::copy(dir.join("01010101.state"), &elsewhere).expect("copy");
+        symlink(&elsewhere, dir.join("02020202.state")).expect("link");
+        std::fs::write(dir.join("02020202.objects"), b"objects").expect("objects");
+        drop(s);
+        let mut next = SessionStore::open_at(dir.clone()).expect("store");
+        let found = next.take_over();
+        assert_eq!(found.len(), 1, "only the real client");
+        assert_eq!(found[0].key, key);
+        assert_eq!(next.ignored_files(), 1);
+        let _ = std::fs::remove_file(victim);
+        let _ = std::fs::remove_file(elsewhere);
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
+    #[test]
+    fn a_state_file_of_another_user_is_not_restored() {
+        if xrce_common::ipc::runtime_dir::euid() != 0 {
+            return; // only root can give a file away
+        }
+        let mut s = store("foreign");
+        let key = ClientKey([3, 3, 3, 3]);
+        s.keep_alive(Instant::now());
+        s.save_objects(key, b"o");
+        s.save_state(key, b"s");
+        let dir = s.dir().to_path_buf();
+        drop(s);
+        std::os::unix::fs::chown(dir.join("03030303.state"), Some(65534), None).expect("chown");
+        let mut next = SessionStore::open_at(dir.clone()).expect("store");
+        assert!(next.take_over().is_empty());
+        assert_eq!(next.ignored_files(), 1);
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
+    #[test]
+    fn a_store_locked_by_another_front_end_is_refused() {
+        let dir = std::env::temp_dir().join(format!("xrce-store-locked-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        xrce_common::ipc::runtime_dir::prepare_private_dir(&dir).expect("dir");
+        // Another open file description: another front-end, as far as flock is concerned.
+        let other = LockFile::acquire(&dir.join("lock"), "front-end 0").expect("lock");
+        let e = SessionStore::open_at(dir.clone()).expect_err("locked");
+        assert!(matches!(e, RuntimeDirError::Locked { .. }), "{e}");
+        assert!(e.to_string().contains("already runs"), "{e}");
+        // Once it is gone (its process died), the store is taken.
+        drop(other);
+        SessionStore::open_at(dir.clone()).expect("free");
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
     #[test]
     fn sessions_of_a_front_end_long_gone_are_not_taken_over() {
         let mut s = store("old");
@@ -531,7 +725,12 @@ mod tests {
             .expect("store")
             .take_over()
             .is_empty());
-        assert_eq!(std::fs::read_dir(&dir).expect("dir").count(), 0, "emptied");
+        let left: Vec<_> = std::fs::read_dir(&dir)
+            .expect("dir")
+            .flatten()
+            .map(|e| e.file_name())
+            .collect();
+        assert_eq!(left, ["lock"], "emptied but for the lock");
         let _ = std::fs::remove_dir_all(dir);
     }
 }

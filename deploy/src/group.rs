@@ -13,7 +13,7 @@ use xrce_frontend::cli::TransportKind;
 use crate::cli::{Common, FrontendPlan, DEFAULT_VERBOSITY};
 use crate::gateway::Gateway;
 use crate::{readiness, supervise, verbosity_filter, ChildSpec};
-use xrce_common::ipc::status;
+use xrce_common::ipc::{runtime_dir, status};
 
 /// One front-end of the group.
 #[derive(Debug, Clone)]
@@ -267,8 +267,29 @@ impl Group {
     }
 
     /// Runs every process under the supervisor until SIGINT or SIGTERM.
+    ///
+    /// First, before anything of the instance is read or removed, it takes the instance's
+    /// lock (`<runtime>/<instance>/agent.lock`, see [`runtime_dir`]): a second supervisor of
+    /// the same instance is refused and leaves the first one's sessions alone. The lock's
+    /// descriptor is close-on-exec: no child holds it, so a supervisor killed hard is
+    /// replaced at once even while its children still stop. Then it checks the instance's
+    /// private directories and shared memory (refusing planted ones, clearly, rather than
+    /// letting the children fail over and over).
     pub fn supervise(self) -> anyhow::Result<()> {
-        self.preflight()?;
+        let lock = runtime_dir::lock_instance(&self.instance)?;
+        let checked = status::ensure_status_dir(&self.instance)
+            .map_err(anyhow::Error::from)
+            .and_then(|_| {
+                drop(xrce_common::ipc::shm::IpcNode::new(
+                    &self.instance,
+                    "xrce-agent",
+                )?);
+                self.preflight()
+            });
+        if let Err(e) = checked {
+            runtime_dir::remove_instance_dir(&self.instance, lock);
+            return Err(e);
+        }
         let exe = std::env::current_exe()
             .map_err(|e| anyhow::anyhow!("locating this executable: {e}"))?;
         let mut specs = vec![ChildSpec {
@@ -327,21 +348,36 @@ impl Group {
         );
         let status_dir = status::status_dir(&self.instance);
         let dir = status_dir.clone();
-        let sessions = status::sessions_dir(&self.instance);
+        // Released (and its file removed) by the last cleanup.
+        let lock = std::sync::Mutex::new(Some(lock));
         let cleanup = move |last: bool| {
             // Sessions are handed from a front-end to its restarted successor; a new agent
-            // (and a stopped one) has none.
-            let _ = std::fs::remove_dir_all(&sessions);
+            // (and a stopped one) has none. (A store whose front-end still runs, a child of
+            // a supervisor killed hard that is still stopping, is kept.)
             if last {
-                let _ = std::fs::remove_dir_all(&dir);
+                let held = lock
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .take();
+                match held {
+                    Some(l) => runtime_dir::remove_instance(&instance, l),
+                    None => {
+                        runtime_dir::clear_sessions(&instance);
+                        let _ = std::fs::remove_dir_all(&dir);
+                    }
+                }
             } else {
+                runtime_dir::clear_sessions(&instance);
                 status::remove_dead_reports(&dir);
                 if !explicit {
-                    // Status directories of earlier agents with this stem, all dead.
+                    // Directories of earlier agents with this stem, all dead (their lock
+                    // is free and they left no live report).
                     for (name, d) in status::instance_dirs() {
-                        if name.starts_with(&stem) && status::read_reports(&d).is_empty() {
-                            let _ = std::fs::remove_dir_all(&d);
-                            let _ = std::fs::remove_dir_all(status::sessions_dir(&name));
+                        if name.starts_with(&stem)
+                            && name != instance
+                            && status::read_reports(&d).is_empty()
+                        {
+                            runtime_dir::remove_instance_if_unlocked(&name);
                         }
                     }
                 }
@@ -353,6 +389,7 @@ impl Group {
                         drop(n);
                     }
                     xrce_common::ipc::shm::remove_instance_leftovers(&dead);
+                    runtime_dir::remove_instance_if_unlocked(&dead);
                     tracing::info!(instance = %dead, "removed shared memory of a dead agent");
                 }
             }

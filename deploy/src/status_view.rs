@@ -1,7 +1,18 @@
 //! `xrce-agent status`: the live sessions and processes of a running agent, as a table
 //! (`--watch` redraws it every second) or as JSON (`--json`). The data comes from the
 //! running agent: its metrics endpoint's `/status` (`--metrics URL`), or the status
-//! reports its processes write on this machine (`--instance NAME`, or every agent found).
+//! reports its processes write on this machine (`--instance NAME`, or every agent of this
+//! user found in its private runtime directory: see
+//! [`xrce_common::ipc::runtime_dir`]).
+//!
+//! What it prints comes from other processes, and partly from the network (a client's
+//! peer address, a transport's description), so every string is made printable first
+//! ([`printable`]): control characters (escape sequences, carriage returns, ...) and other
+//! characters a terminal acts on without printing (bidirectional overrides, zero-width and
+//! invisible formatting characters) become `?`, and a string is cut at
+//! [`MAX_PRINTED_CHARS`]. Client keys are printed redacted, `0x****BBBB`: a key is what a
+//! client's session is bound to (anyone who has it can claim the session), the last four
+//! hex digits tell clients apart; `--show-keys` prints them whole (as does the JSON, then).
 
 use std::fmt::Write as _;
 use std::time::Duration;
@@ -28,18 +39,149 @@ pub struct StatusArgs {
     /// agents) instead of a table.
     #[arg(long)]
     pub json: bool,
+    /// Print client keys whole; by default only their last four hex digits are shown
+    /// (0x****BBBB), in the table and in the JSON.
+    #[arg(long)]
+    pub show_keys: bool,
+}
+
+/// The longest string printed from a report; a longer one is cut and ends with `…`.
+pub const MAX_PRINTED_CHARS: usize = 256;
+
+/// Whether a terminal would act on `c` rather than print it: control characters (C0, DEL,
+/// C1) and the format, separator and invisible characters that reorder, hide or break text
+/// (bidirectional marks and overrides, zero-width characters, line and paragraph
+/// separators, variation selectors, tag characters, the byte-order mark).
+pub fn is_unprintable(c: char) -> bool {
+    c.is_control()
+        || matches!(
+            c,
+            '\u{00AD}'
+                | '\u{034F}'
+                | '\u{061C}'
+                | '\u{115F}'
+                | '\u{1160}'
+                | '\u{17B4}'
+                | '\u{17B5}'
+                | '\u{180B}'..='\u{180F}'
+                | '\u{200B}'..='\u{200F}'
+                | '\u{2028}'..='\u{202E}'
+                | '\u{2060}'..='\u{206F}'
+                | '\u{3164}'
+                | '\u{FE00}'..='\u{FE0F}'
+                | '\u{FEFF}'
+                | '\u{FFA0}'
+                | '\u{FFF0}'..='\u{FFFB}'
+                | '\u{1D173}'..='\u{1D17A}'
+                | '\u{E0000}'..='\u{E0FFF}'
+        )
+}
+
+/// `s` made safe to print: every character a terminal would act on ([`is_unprintable`])
+/// becomes `?`, and at most [`MAX_PRINTED_CHARS`] characters are kept.
+pub fn printable(s: &str) -> String {
+    let mut out = String::with_capacity(s.len().min(MAX_PRINTED_CHARS * 4));
+    for (i, c) in s.chars().enumerate() {
+        if i == MAX_PRINTED_CHARS {
+            out.push('…');
+            break;
+        }
+        out.push(if is_unprintable(c) { '?' } else { c });
+    }
+    out
+}
+
+/// A client key as printed by default: `0x****BBBB` (its last four hex digits); a key in
+/// any other form is hidden whole.
+pub fn redact_key(key: &str) -> String {
+    let hex = key
+        .strip_prefix("0x")
+        .or_else(|| key.strip_prefix("0X"))
+        .unwrap_or(key);
+    if hex.len() == 8 && hex.bytes().all(|b| b.is_ascii_hexdigit()) {
+        format!("0x****{}", &hex[4..])
+    } else {
+        "0x********".to_string()
+    }
+}
+
+/// Makes every string of `agent` printable ([`printable`]), map keys included, and redacts
+/// its client keys unless `show_keys`.
+pub fn sanitize(agent: &mut AgentStatus, show_keys: bool) {
+    fn clean(s: &mut String) {
+        *s = printable(s);
+    }
+    fn clean_keys(m: &mut std::collections::BTreeMap<String, u64>) {
+        *m = std::mem::take(m)
+            .into_iter()
+            .map(|(k, v)| (printable(&k), v))
+            .collect();
+    }
+    clean(&mut agent.instance);
+    for p in &mut agent.processes {
+        clean(&mut p.name);
+        clean(&mut p.role);
+        if let Some(f) = &mut p.frontend {
+            clean(&mut f.transport);
+            clean(&mut f.serving);
+            clean_keys(&mut f.counters);
+            clean_keys(&mut f.dropped);
+            for s in &mut f.sessions {
+                s.client_key = if show_keys {
+                    printable(&s.client_key)
+                } else {
+                    redact_key(&s.client_key)
+                };
+                clean(&mut s.peer);
+                clean(&mut s.dialect);
+            }
+        }
+        if let Some(w) = &mut p.worker {
+            clean_keys(&mut w.entities);
+            clean_keys(&mut w.dropped);
+        }
+        for c in &mut p.children {
+            clean(&mut c.name);
+            clean(&mut c.role);
+        }
+    }
+}
+
+/// JSON text with every unprintable character ([`is_unprintable`]) written as a `\u`
+/// escape: serde_json escapes only C0 controls, and a string field this view does not know
+/// yet (sanitized by [`sanitize`] or not) must not reach the terminal raw either. Valid
+/// JSON stays valid (raw unprintables occur only inside strings; the structural line
+/// breaks of pretty printing are kept).
+fn escape_unprintables(json: &str) -> String {
+    let mut out = String::with_capacity(json.len());
+    for c in json.chars() {
+        if c != '\n' && is_unprintable(c) {
+            let mut units = [0u16; 2];
+            for u in c.encode_utf16(&mut units) {
+                let _ = write!(out, "\\u{u:04x}");
+            }
+        } else {
+            out.push(c);
+        }
+    }
+    out
 }
 
 /// Runs `xrce-agent status`.
 pub fn run(args: &StatusArgs) -> anyhow::Result<()> {
     loop {
-        let agents = fetch(args)?;
+        let mut agents = fetch(args)?;
+        for a in &mut agents {
+            sanitize(a, args.show_keys);
+        }
         let out = if args.json {
-            if agents.len() == 1 && (args.metrics.is_some() || args.instance.is_some()) {
+            escape_unprintables(&if agents.len() == 1
+                && (args.metrics.is_some() || args.instance.is_some())
+            {
                 serde_json::to_string_pretty(&agents[0])?
             } else {
                 serde_json::to_string_pretty(&agents)?
-            }
+            })
         } else {
             agents
                 .iter()
@@ -63,24 +205,38 @@ fn fetch(args: &StatusArgs) -> anyhow::Result<Vec<AgentStatus>> {
         return Ok(vec![fetch_url(url)?]);
     }
     if let Some(instance) = &args.instance {
+        if !xrce_common::ipc::shm::valid_instance(instance) {
+            anyhow::bail!(
+                "instance name {:?} must be 1-32 characters of [A-Za-z0-9_-]",
+                printable(instance)
+            );
+        }
+        // A runtime or instance directory planted by another user is reported, not read.
+        xrce_common::ipc::runtime_dir::check_instance_dir(instance)?;
         let dir = status::status_dir(instance);
         let s = AgentStatus::read(instance, &dir);
         if s.processes.is_empty() {
             anyhow::bail!(
-                "no running agent with instance {instance:?} on this machine (no live reports in {})",
+                "no running agent with instance {instance:?} of this user on this machine (no \
+                 live reports in {}); an agent of another user (or under systemd's \
+                 RuntimeDirectory=) keeps them in its own runtime directory: run this as that \
+                 user with the same XRCE_RUNTIME_DIR, or pass --metrics URL",
                 dir.display()
             );
         }
         return Ok(vec![s]);
     }
-    let found: Vec<AgentStatus> = status::instance_dirs()
+    let found: Vec<AgentStatus> = xrce_common::ipc::runtime_dir::list_instances()?
         .into_iter()
         .map(|(name, dir)| AgentStatus::read(&name, &dir))
         .filter(|s| !s.processes.is_empty())
         .collect();
     if found.is_empty() {
         anyhow::bail!(
-            "no running agent found on this machine; for an agent elsewhere, pass --metrics URL"
+            "no running agent of this user found in {}; for an agent of another user, run \
+             this as that user (with its XRCE_RUNTIME_DIR, if set), and for an agent \
+             elsewhere, pass --metrics URL",
+            xrce_common::ipc::runtime_dir::runtime_root().0.display()
         );
     }
     Ok(found)
@@ -148,8 +304,13 @@ fn human_bytes(bytes: u64) -> String {
     }
 }
 
-/// Lays rows out in columns of the widest cell.
+/// Lays rows out in columns of the widest cell (every cell made [`printable`]).
 fn table(header: &[&str], rows: &[Vec<String>]) -> String {
+    let rows: Vec<Vec<String>> = rows
+        .iter()
+        .map(|r| r.iter().map(|c| printable(c)).collect())
+        .collect();
+    let rows = &rows[..];
     let mut widths: Vec<usize> = header.iter().map(|h| h.len()).collect();
     for r in rows {
         for (i, c) in r.iter().enumerate() {
@@ -194,7 +355,7 @@ pub fn render(agent: &AgentStatus, now_ms: u64) -> String {
         .sum();
     let mut out = format!(
         "agent {}: {} processes, {} sessions\n\n",
-        agent.instance,
+        printable(&agent.instance),
         agent.processes.len(),
         sessions
     );
@@ -352,6 +513,57 @@ mod tests {
         for cell in ["0x81", "eth/udp4", "127.0.0.1:40000", " 6 ", " 10 "] {
             assert!(session.contains(cell), "{cell:?} in {session}");
         }
+    }
+
+    #[test]
+    fn strings_from_reports_cannot_drive_the_terminal_and_keys_are_redacted() {
+        let hostile = "eth\x1b]0;owned\x07\x1b[2J\r\u{202E}gnp.exe\u{200B}\u{9B}31m";
+        let mut agent = AgentStatus {
+            instance: hostile.into(),
+            processes: vec![ProcessReport {
+                name: hostile.into(),
+                role: "frontend".into(),
+                frontend: Some(FrontendStatus {
+                    transport: hostile.into(),
+                    serving: hostile.into(),
+                    dropped: [(hostile.to_string(), 1)].into(),
+                    sessions: vec![SessionStatus {
+                        client_key: "0xAAAABBBB".into(),
+                        peer: hostile.into(),
+                        dialect: hostile.into(),
+                        ..Default::default()
+                    }],
+                    ..Default::default()
+                }),
+                ..Default::default()
+            }],
+        };
+        let mut shown = agent.clone();
+        sanitize(&mut agent, false);
+        let text = render(&agent, 0);
+        let json = escape_unprintables(&serde_json::to_string_pretty(&agent).expect("json"));
+        for out in [&text, &json] {
+            assert!(
+                !out.chars().any(|c| c != '\n' && is_unprintable(c)),
+                "{out:?}"
+            );
+            assert!(out.contains("0x****BBBB"), "{out}");
+            assert!(!out.contains("AAAA"), "{out}");
+        }
+        assert!(text.contains("eth?]0;owned??[2J??gnp.exe??31m"), "{text}");
+        // Shown whole when asked; the JSON stays valid, with its escapes.
+        sanitize(&mut shown, true);
+        assert!(render(&shown, 0).contains("0xAAAABBBB"));
+        let escaped = escape_unprintables("{\"a\": \"x\u{202E}\u{E0041}\"}");
+        assert_eq!(escaped, "{\"a\": \"x\\u202e\\udb40\\udc41\"}");
+        let back: serde_json::Value = serde_json::from_str(&escaped).expect("valid JSON");
+        assert_eq!(back["a"], "x\u{202E}\u{E0041}");
+        // Odd keys are hidden whole; long strings are cut.
+        assert_eq!(redact_key("0xAB"), "0x********");
+        assert_eq!(redact_key("0XaaaaBBBB"), "0x****BBBB");
+        let long = printable(&"x".repeat(1000));
+        assert_eq!(long.chars().count(), MAX_PRINTED_CHARS + 1);
+        assert!(long.ends_with('…'));
     }
 
     #[test]

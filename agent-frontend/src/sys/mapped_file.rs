@@ -2,9 +2,9 @@
 //! session store's state records ([`crate::session_store`]) change with almost every client
 //! message, and a `pwrite` each cost more than the rest of the message's handling.
 //!
-//! The pages belong to the file (a tmpfs file under `/dev/shm`), not to the process: what was
-//! copied into them is in the file the moment the copy ends, and stays there when the process
-//! is killed. A kill can cut a copy short, which the store's records detect (two slots,
+//! The pages belong to the file (a tmpfs file in the agent's runtime directory), not to the
+//! process: what was copied into them is in the file the moment the copy ends, and stays
+//! there when the process is killed. A kill can cut a copy short, which the store's records detect (two slots,
 //! each with a checksum over all of it).
 //!
 //! Invariants that make [`MappedFile`] sound (a mapped file changed or shrunk behind the

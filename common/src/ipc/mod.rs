@@ -10,6 +10,8 @@
 //! same name plus `.ev` so receivers block instead of polling.
 
 #[cfg(feature = "shm")]
+pub mod runtime_dir;
+#[cfg(feature = "shm")]
 pub mod shm;
 #[cfg(feature = "shm")]
 pub mod status;

@@ -4,6 +4,10 @@
 //! A [`Sender`] loans a shared-memory sample, lets the caller fill it in place (one copy from
 //! wherever the bytes are) and publishes it; one [`Sender::notify`] per burst wakes the
 //! receiver. A [`Receiver`] exposes the file descriptor of its event listener for `poll(2)`.
+//!
+//! Where iceoryx2's files are ([`IpcNode::new`]): its root, with the node and service files
+//! and the event sockets, is the private `<runtime>/ipc/` (see [`super::runtime_dir`]);
+//! the shared-memory segments (`xrce_<instance>_*` in `/dev/shm`) are 0600.
 
 use std::os::fd::RawFd;
 
@@ -83,9 +87,28 @@ pub fn valid_instance(instance: &str) -> bool {
             .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
 }
 
+/// Suffix of iceoryx2's event sockets in its root (its default is `.event`): shorter, so
+/// that the socket paths (108 bytes at most) fit under a private runtime directory.
+pub const EVENT_SUFFIX: &str = ".ev";
+
+/// The prefix of every file iceoryx2 makes for `instance`, in its root and in `/dev/shm`.
+pub fn file_prefix(instance: &str) -> String {
+    format!("xrce_{instance}_")
+}
+
+/// The directory of POSIX shared memory (where `shm_open` puts its objects).
+const SHM_DIR: &str = "/dev/shm";
+
 impl IpcNode {
     /// Creates the node `name` of agent instance `instance`; all its files carry a prefix
     /// derived from the instance, so instances never see each other.
+    ///
+    /// iceoryx2's root (its node and service files and its event sockets, `/tmp/iceoryx2/`
+    /// by default) is the private [`super::runtime_dir::ipc_root`] (0700); its shared-memory
+    /// segments stay in `/dev/shm` (POSIX shared memory has no directory to choose), where
+    /// iceoryx2 makes them 0600, except the 16-byte node counter it makes 0666, which is
+    /// made 0600 here. Files with this instance's prefix in `/dev/shm` that are not this
+    /// user's regular files (planted to be opened as the instance's) are refused.
     pub fn new(instance: &str, name: &str) -> Result<Self, ShmError> {
         if !valid_instance(instance) {
             return Err(ShmError {
@@ -93,15 +116,30 @@ impl IpcNode {
                 detail: format!("{instance:?} is not [A-Za-z0-9_-]{{1,32}}"),
             });
         }
+        let private = |e: super::runtime_dir::RuntimeDirError| ShmError {
+            what: "private runtime directory",
+            detail: e.to_string(),
+        };
+        super::runtime_dir::check_instance_dir(instance).map_err(private)?;
+        let root = super::runtime_dir::ensure_ipc_root(instance).map_err(private)?;
+        check_shm_files(instance)?;
         set_log_level(LogLevel::Error);
         let mut config = Config::default();
         config.global.prefix =
-            FileName::new(format!("xrce_{instance}_").as_bytes()).map_err(err("prefix"))?;
+            FileName::new(file_prefix(instance).as_bytes()).map_err(err("prefix"))?;
+        {
+            use std::os::unix::ffi::OsStrExt;
+            let root = Path::new(root.as_os_str().as_bytes()).map_err(err("root path"))?;
+            config.global.set_root_path(&root);
+        }
+        config.global.service.event_connection_suffix =
+            FileName::new(EVENT_SUFFIX.as_bytes()).map_err(err("event suffix"))?;
         let node = NodeBuilder::new()
             .name(&NodeName::new(name).map_err(err("node name"))?)
             .config(&config)
             .create::<ipc::Service>()
             .map_err(err("create node"))?;
+        make_node_counter_private(instance);
         Ok(IpcNode { node })
     }
 
@@ -281,6 +319,80 @@ pub fn wait_readable(fds: &[RawFd], timeout_ms: i32) -> std::io::Result<u64> {
         .fold(0, |m, (i, _)| m | (1 << i)))
 }
 
+/// Refuses to open an instance whose names in `/dev/shm` are taken by something that is
+/// not this user's regular file: another user could have made it (the names are
+/// predictable) so that the agent maps memory that user reads or writes.
+fn check_shm_files(instance: &str) -> Result<(), ShmError> {
+    use std::os::unix::fs::MetadataExt;
+    let prefix = file_prefix(instance);
+    let Ok(dir) = std::fs::read_dir(SHM_DIR) else {
+        return Ok(());
+    };
+    let me = super::runtime_dir::euid();
+    for e in dir.flatten() {
+        let named = e
+            .file_name()
+            .to_str()
+            .is_some_and(|n| n.starts_with(&prefix));
+        if !named {
+            continue;
+        }
+        let Ok(m) = std::fs::symlink_metadata(e.path()) else {
+            continue;
+        };
+        if m.uid() != me || !m.is_file() {
+            return Err(ShmError {
+                what: "shared memory not ours",
+                detail: format!(
+                    "{} is {} of uid {} (this user is uid {me}): another user may have \
+                     planted it to read or forge this instance's messages; remove it (as its \
+                     owner or root), or use another --instance",
+                    e.path().display(),
+                    if m.is_file() {
+                        "a file"
+                    } else {
+                        "not a regular file"
+                    },
+                    m.uid()
+                ),
+            });
+        }
+    }
+    Ok(())
+}
+
+/// iceoryx2 makes its per-prefix node counter (`<prefix>node.<version>.global_mgmt` in
+/// `/dev/shm`) readable and writable by everyone, for processes of other users in the same
+/// iceoryx2 domain; an agent's processes all run as one user, so it is made 0600 (opened
+/// without following links, and only if it is ours).
+fn make_node_counter_private(instance: &str) {
+    use std::os::unix::fs::{MetadataExt, OpenOptionsExt, PermissionsExt};
+    let prefix = file_prefix(instance);
+    let Ok(dir) = std::fs::read_dir(SHM_DIR) else {
+        return;
+    };
+    for e in dir.flatten() {
+        let counter = e
+            .file_name()
+            .to_str()
+            .is_some_and(|n| n.starts_with(&prefix) && n.ends_with(".global_mgmt"));
+        if !counter {
+            continue;
+        }
+        let opened = std::fs::OpenOptions::new()
+            .read(true)
+            .custom_flags(libc::O_NOFOLLOW | libc::O_NONBLOCK | libc::O_CLOEXEC)
+            .open(e.path());
+        let Ok(f) = opened else { continue };
+        let Ok(m) = f.metadata() else { continue };
+        if m.is_file() && m.uid() == super::runtime_dir::euid() && m.mode() & 0o077 != 0 {
+            if let Err(err) = f.set_permissions(std::fs::Permissions::from_mode(0o600)) {
+                tracing::debug!(path = %e.path().display(), error = %err, "iceoryx2's node counter stays shared");
+            }
+        }
+    }
+}
+
 /// Removes what an instance leaves in `/dev/shm` after its last node is gone (iceoryx2
 /// keeps a 16-byte `global_mgmt` object per prefix). Call only when no process of the
 /// instance runs any more. Returns how many files were removed.
@@ -288,8 +400,8 @@ pub fn remove_instance_leftovers(instance: &str) -> usize {
     if !valid_instance(instance) {
         return 0;
     }
-    let prefix = format!("xrce_{instance}_");
-    let Ok(dir) = std::fs::read_dir("/dev/shm") else {
+    let prefix = file_prefix(instance);
+    let Ok(dir) = std::fs::read_dir(SHM_DIR) else {
         return 0;
     };
     dir.flatten()
@@ -307,7 +419,7 @@ pub fn remove_instance_leftovers(instance: &str) -> usize {
 pub fn dead_instances(stem: &str) -> Vec<String> {
     let prefix = format!("xrce_{stem}");
     let mut out: Vec<String> = Vec::new();
-    let Ok(dir) = std::fs::read_dir("/dev/shm") else {
+    let Ok(dir) = std::fs::read_dir(SHM_DIR) else {
         return out;
     };
     for e in dir.flatten() {
@@ -328,17 +440,30 @@ pub fn dead_instances(stem: &str) -> Vec<String> {
     out
 }
 
-/// Files of an instance still present in `/dev/shm` (for tests and diagnostics).
+/// Files of an instance still present in `/dev/shm` and in iceoryx2's root (its event
+/// sockets, service and node files), for tests and diagnostics; those in the root are
+/// named by their path under it.
 pub fn instance_files(instance: &str) -> Vec<String> {
-    let prefix = format!("xrce_{instance}_");
-    std::fs::read_dir("/dev/shm")
-        .map(|d| {
-            d.flatten()
-                .filter_map(|e| e.file_name().into_string().ok())
-                .filter(|n| n.starts_with(&prefix))
-                .collect()
-        })
-        .unwrap_or_default()
+    let prefix = file_prefix(instance);
+    let named = |dir: &std::path::Path, shown: &str| -> Vec<String> {
+        std::fs::read_dir(dir)
+            .map(|d| {
+                d.flatten()
+                    .filter_map(|e| e.file_name().into_string().ok())
+                    .filter(|n| n.starts_with(&prefix))
+                    .map(|n| format!("{shown}{n}"))
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    let mut out = named(std::path::Path::new(SHM_DIR), "");
+    if valid_instance(instance) {
+        let root = super::runtime_dir::ipc_root(instance);
+        for sub in ["", "services/", "nodes/"] {
+            out.extend(named(&root.join(sub), &format!("{}{sub}", root.display())));
+        }
+    }
+    out
 }
 
 /// Publishes IPC messages on one service.

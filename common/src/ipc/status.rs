@@ -1,14 +1,16 @@
 //! Status reports: what each process of an agent instance is doing, for `xrce-agent status`,
 //! the metrics endpoint and the watchdog.
 //!
-//! Every process rewrites its own JSON report in the instance's status directory (in shared
-//! memory, `/dev/shm/xrce-status-<instance>/`) about every [`REPORT_PERIOD`], from its event
-//! loop: written to a temporary file and renamed, so a reader never sees half a report, and a
-//! report that stops changing means a wedged loop (the supervisor restarts that process).
-//! Readers take the reports of live processes only (a process killed hard leaves its file).
+//! Every process rewrites its own JSON report in the instance's status directory (in the
+//! private runtime directory, `<runtime>/<instance>/status/`: see [`super::runtime_dir`])
+//! about every [`REPORT_PERIOD`], from its event loop: written to a new private temporary
+//! file and renamed, so a reader never sees half a report, and a report that stops changing
+//! means a wedged loop (the supervisor restarts that process). Readers take the reports of
+//! live processes only (a process killed hard leaves its file), and only regular files of
+//! their own user, opened without following links: a report is never taken from a file
+//! another user planted.
 
 use std::collections::BTreeMap;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
@@ -19,9 +21,9 @@ pub const REPORT_PERIOD: Duration = Duration::from_secs(1);
 /// A report older than this belongs to a process whose loop is stuck.
 pub const STALE_AFTER: Duration = Duration::from_secs(30);
 /// Overrides the directory of the reports (tests, or a system without `/dev/shm`).
-pub const STATUS_DIR_ENV: &str = "XRCE_STATUS_DIR";
-/// Prefix of the per-instance directories under `/dev/shm`.
-pub const DIR_PREFIX: &str = "xrce-status-";
+pub const STATUS_DIR_ENV: &str = super::runtime_dir::STATUS_DIR_ENV;
+/// Largest report read (a front-end with tens of thousands of sessions writes megabytes).
+pub const MAX_REPORT_BYTES: u64 = 64 << 20;
 
 /// One process's report.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -151,59 +153,36 @@ pub fn unix_ms() -> u64 {
         .map_or(0, |d| d.as_millis() as u64)
 }
 
-/// The status directory of an instance.
+/// The status directory of an instance (a path: nothing is created or checked; see
+/// [`super::runtime_dir::status_dir`]).
 pub fn status_dir(instance: &str) -> PathBuf {
-    if let Some(dir) = std::env::var_os(STATUS_DIR_ENV) {
-        return PathBuf::from(dir);
-    }
-    let shm = Path::new("/dev/shm");
-    let base = if shm.is_dir() {
-        shm.to_path_buf()
-    } else {
-        std::env::temp_dir()
-    };
-    base.join(format!("{DIR_PREFIX}{instance}"))
+    super::runtime_dir::status_dir(instance)
+}
+
+/// Creates or checks the status directory of an instance (private, ours).
+pub fn ensure_status_dir(instance: &str) -> Result<PathBuf, super::runtime_dir::RuntimeDirError> {
+    super::runtime_dir::ensure_status_dir(instance)
 }
 
 /// Where the front-ends of an instance keep their sessions for a successor (see the
-/// front-end's session store): `/dev/shm/xrce-sessions-<instance>/` (`XRCE_SESSION_DIR`
-/// overrides the parent). The supervisor empties it when the agent starts and stops.
+/// front-end's session store): `<runtime>/<instance>/sessions/` (`XRCE_SESSION_DIR` moves
+/// it to `$XRCE_SESSION_DIR/xrce-sessions-<instance>/`). The supervisor empties it when the
+/// agent starts and stops. A path: nothing is created or checked.
 pub fn sessions_dir(instance: &str) -> PathBuf {
-    let base = std::env::var_os("XRCE_SESSION_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| {
-            let shm = Path::new("/dev/shm");
-            if shm.is_dir() {
-                shm.to_path_buf()
-            } else {
-                std::env::temp_dir()
-            }
-        });
-    base.join(format!("xrce-sessions-{instance}"))
+    super::runtime_dir::sessions_dir(instance)
 }
 
-/// The status directories of every instance on this machine (under `/dev/shm`), with their
-/// instance names.
+/// The status directories of every instance of this user on this machine (in the runtime
+/// directory), with their instance names; empty when the runtime directory is missing or
+/// cannot be trusted ([`super::runtime_dir::list_instances`] says why).
 pub fn instance_dirs() -> Vec<(String, PathBuf)> {
-    if let Some(dir) = std::env::var_os(STATUS_DIR_ENV) {
-        return vec![("".into(), PathBuf::from(dir))];
+    match super::runtime_dir::list_instances() {
+        Ok(v) => v,
+        Err(e) => {
+            tracing::warn!(error = %e, "cannot list the agents of this user");
+            Vec::new()
+        }
     }
-    let Ok(entries) = std::fs::read_dir("/dev/shm") else {
-        return Vec::new();
-    };
-    let mut out: Vec<(String, PathBuf)> = entries
-        .flatten()
-        .filter_map(|e| {
-            let name = e
-                .file_name()
-                .to_str()?
-                .strip_prefix(DIR_PREFIX)?
-                .to_string();
-            Some((name, e.path()))
-        })
-        .collect();
-    out.sort();
-    out
 }
 
 /// This process's CPU time (seconds) and resident memory (bytes), when /proc tells.
@@ -263,15 +242,15 @@ fn is_zero(v: &u64) -> bool {
     *v == 0
 }
 
-/// Writes the report of process `file_stem` atomically into `dir` (created if missing).
+/// Writes the report of process `file_stem` atomically into `dir` (created 0700 if
+/// missing; if there, it must be a real directory of ours that only we can change): to a new
+/// 0600 temporary file (`O_EXCL | O_NOFOLLOW`), then renamed into place.
 pub fn write_report(dir: &Path, file_stem: &str, report: &ProcessReport) -> std::io::Result<()> {
-    std::fs::create_dir_all(dir)?;
+    super::runtime_dir::prepare_dir_for_writing(dir).map_err(std::io::Error::other)?;
     let json = serde_json::to_vec(report).map_err(std::io::Error::other)?;
     let tmp = dir.join(format!(".{file_stem}.{}.tmp", std::process::id()));
-    let mut f = std::fs::File::create(&tmp)?;
-    f.write_all(&json)?;
-    drop(f);
-    std::fs::rename(&tmp, dir.join(format!("{file_stem}.json")))
+    super::runtime_dir::write_atomically(&dir.join(format!("{file_stem}.json")), &tmp, &json)
+        .map_err(std::io::Error::other)
 }
 
 /// Removes the report of process `file_stem` (on a clean exit).
@@ -279,16 +258,24 @@ pub fn remove_report(dir: &Path, file_stem: &str) {
     let _ = std::fs::remove_file(dir.join(format!("{file_stem}.json")));
 }
 
-/// Removes the reports in `dir` of processes that are gone (killed hard, they leave theirs).
+/// The report in `path`, if it is a regular file of ours (opened without following links)
+/// holding one; `Err` says why a file there was not trusted.
+fn read_report(path: &Path) -> Result<Option<ProcessReport>, super::runtime_dir::RuntimeDirError> {
+    let bytes = super::runtime_dir::read_owned(path, MAX_REPORT_BYTES)?;
+    Ok(serde_json::from_slice::<ProcessReport>(&bytes).ok())
+}
+
+/// Removes the reports in `dir` of processes that are gone (killed hard, they leave theirs),
+/// and anything else in it that is no live report of ours (unlinking never follows a link).
 pub fn remove_dead_reports(dir: &Path) {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return;
     };
     for e in entries.flatten() {
         let path = e.path();
-        let dead = std::fs::read(&path)
+        let dead = read_report(&path)
             .ok()
-            .and_then(|b| serde_json::from_slice::<ProcessReport>(&b).ok())
+            .flatten()
             .is_none_or(|r| !report_is_live(&r));
         if dead {
             let _ = std::fs::remove_file(&path);
@@ -296,19 +283,31 @@ pub fn remove_dead_reports(dir: &Path) {
     }
 }
 
-/// The reports in `dir` of processes that are alive, sorted by name; unreadable files are
-/// skipped.
+/// The reports in `dir` of processes that are alive, sorted by name. Unreadable files are
+/// skipped; so are files that are not regular files of this user (links are not followed),
+/// which are counted in one warning.
 pub fn read_reports(dir: &Path) -> Vec<ProcessReport> {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return Vec::new();
     };
+    let mut untrusted = Vec::new();
     let mut out: Vec<ProcessReport> = entries
         .flatten()
         .filter(|e| e.path().extension().is_some_and(|x| x == "json"))
-        .filter_map(|e| std::fs::read(e.path()).ok())
-        .filter_map(|bytes| serde_json::from_slice::<ProcessReport>(&bytes).ok())
+        .filter_map(|e| match read_report(&e.path()) {
+            Ok(r) => r,
+            Err(err) => {
+                if err.is_untrusted() {
+                    untrusted.push(err.to_string());
+                }
+                None
+            }
+        })
         .filter(report_is_live)
         .collect();
+    if !untrusted.is_empty() {
+        tracing::warn!(dir = %dir.display(), ignored = untrusted.len(), first = %untrusted[0], "status files that are not this user's regular files were ignored");
+    }
     out.sort_by(|a, b| (role_rank(&a.role), &a.name).cmp(&(role_rank(&b.role), &b.name)));
     out
 }
@@ -325,6 +324,9 @@ fn role_rank(role: &str) -> u8 {
 #[derive(Debug)]
 pub struct Reporter {
     dir: PathBuf,
+    /// The instance whose status directory (and the directories above it) is created or
+    /// checked before the first report, if the reporter was made for an instance.
+    instance: Option<String>,
     file_stem: String,
     started_unix_ms: u64,
     next: std::time::Instant,
@@ -334,13 +336,16 @@ pub struct Reporter {
 impl Reporter {
     /// Reports of process `file_stem` of `instance`.
     pub fn new(instance: &str, file_stem: &str) -> Self {
-        Self::at(status_dir(instance), file_stem)
+        let mut r = Self::at(status_dir(instance), file_stem);
+        r.instance = Some(instance.to_string());
+        r
     }
 
     /// Reports of process `file_stem` in directory `dir`.
     pub fn at(dir: PathBuf, file_stem: &str) -> Self {
         Reporter {
             dir,
+            instance: None,
             file_stem: file_stem.to_string(),
             started_unix_ms: unix_ms(),
             next: std::time::Instant::now(),
@@ -372,8 +377,16 @@ impl Reporter {
         let (cpu, rss) = own_usage();
         report.cpu_seconds = cpu;
         report.resident_bytes = rss;
-        match write_report(&self.dir, &self.file_stem, &report) {
+        let prepared = match &self.instance {
+            Some(instance) => ensure_status_dir(instance)
+                .map(drop)
+                .map_err(std::io::Error::other),
+            None => Ok(()),
+        };
+        match prepared.and_then(|()| write_report(&self.dir, &self.file_stem, &report)) {
             Ok(()) => {
+                // The directory stays prepared; only its last component is checked again.
+                self.instance = None;
                 if self.failed {
                     tracing::info!(dir = %self.dir.display(), "status reports written again");
                     self.failed = false;
@@ -482,6 +495,33 @@ mod tests {
         r.pid = 0;
         write_report(&dir, "frontend-udp", &r).expect("write");
         assert!(read_reports(&dir).is_empty());
+        std::fs::remove_dir_all(&dir).expect("cleanup");
+    }
+
+    #[test]
+    fn reports_are_private_and_planted_ones_are_not_read() {
+        use std::os::unix::fs::{MetadataExt, PermissionsExt};
+        let dir = std::env::temp_dir().join(format!("xrce-status-priv-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let r = ProcessReport {
+            name: "w".into(),
+            role: "worker".into(),
+            pid: std::process::id(),
+            ..Default::default()
+        };
+        write_report(&dir, "worker", &r).expect("write");
+        let mode = |p: &Path| std::fs::symlink_metadata(p).expect("exists").mode() & 0o7777;
+        assert_eq!(mode(&dir), 0o700);
+        assert_eq!(mode(&dir.join("worker.json")), 0o600);
+        // A link to a live report elsewhere is not taken for one.
+        let elsewhere = dir.with_extension("elsewhere");
+        std::fs::copy(dir.join("worker.json"), &elsewhere).expect("copy");
+        std::os::unix::fs::symlink(&elsewhere, dir.join("planted.json")).expect("link");
+        assert_eq!(read_reports(&dir), vec![r.clone()]);
+        // Nor is a directory made loose since.
+        std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o777)).expect("chmod");
+        assert!(write_report(&dir, "worker", &r).is_err());
+        let _ = std::fs::remove_file(elsewhere);
         std::fs::remove_dir_all(&dir).expect("cleanup");
     }
 

@@ -1,0 +1,1081 @@
+//! Where an agent keeps its files, and how it creates and reads them so that no other local
+//! user can read, forge or redirect them.
+//!
+//! The files hold what a client must keep secret from other users of the gateway: client
+//! keys, session state, unacknowledged samples, object descriptions. So every process of an
+//! agent works in one **private runtime directory**, decided here and nowhere else:
+//!
+//! 1. `$XRCE_RUNTIME_DIR`, if set;
+//! 2. systemd's `$RUNTIME_DIRECTORY` (its first entry: the unit's `RuntimeDirectory=`);
+//! 3. `$XDG_RUNTIME_DIR/xrce-agent`, when `$XDG_RUNTIME_DIR` is a directory of this user
+//!    (it is not after `su` or `sudo`, which keep the caller's);
+//! 4. `/dev/shm/xrce-agent-<euid>` (the temporary directory when there is no `/dev/shm`).
+//!
+//! All of these are in memory (tmpfs) on a usual Linux system, which the front-end's session
+//! store relies on: it maps its files and writes them through the mapping, and on a disk file
+//! system a write to a mapped page can fail as a SIGBUS instead of an error.
+//!
+//! Under it, per instance (an instance name is `[A-Za-z0-9_-]{1,32}`, never a path):
+//!
+//! ```text
+//! <runtime>/<instance>/              0700, the instance's directory
+//! <runtime>/<instance>/agent.lock    0600, held (flock) by the instance's supervisor
+//! <runtime>/<instance>/sessions/frontend-<id>/   0700, a front-end's session store, its lock
+//! <runtime>/<instance>/status/       0700, the processes' status reports (0600 files)
+//! <runtime>/ipc/                     0700, iceoryx2's root (node and service files, sockets)
+//! ```
+//!
+//! `XRCE_SESSION_DIR` (the parent of `xrce-sessions-<instance>/`) and `XRCE_STATUS_DIR` (the
+//! status directory itself) still move those parts elsewhere, under the same checks.
+//!
+//! **Rules.** A directory the agent creates is made with mode 0700 (`mkdir` with that mode,
+//! then checked and corrected, whatever the umask), exclusively: `mkdir` fails on anything
+//! already there. A directory that already exists is used only if it is a real directory (not
+//! a symbolic link), owned by this process's effective user, with no permission bit for
+//! group or others; anything else was made by someone else or loosened since, and the agent
+//! refuses to start, saying which path, what it found and what to do
+//! ([`RuntimeDirError`]). A directory the user or systemd *gives* (`$XRCE_RUNTIME_DIR`,
+//! `$RUNTIME_DIRECTORY`, `XRCE_SESSION_DIR`, `XRCE_STATUS_DIR`) may be readable by others
+//! (systemd makes `RuntimeDirectory=` 0755 by default) but must be ours and writable by us
+//! alone: nothing can then be planted or renamed in it, and what the agent creates in it is
+//! 0700 again.
+//!
+//! Files are created 0600 with `O_NOFOLLOW` (a symbolic link where a file will be is never
+//! followed) and `O_CLOEXEC`; temporary files with `O_EXCL` too, then renamed into place.
+//! Files read back are opened with `O_NOFOLLOW` and used only if they are regular files
+//! owned by us ([`open_owned`]). Locks ([`LockFile`]) are `flock`s on 0600 files, held for a
+//! process's life and released by the kernel when it dies, never inherited by children.
+
+use std::ffi::OsString;
+use std::fs::File;
+use std::io::{Read, Write};
+use std::os::unix::fs::{DirBuilderExt, MetadataExt, OpenOptionsExt, PermissionsExt};
+use std::path::{Path, PathBuf};
+
+/// Overrides the runtime directory (any directory of this user, writable by it alone).
+pub const RUNTIME_DIR_ENV: &str = "XRCE_RUNTIME_DIR";
+/// Set by systemd for a unit with `RuntimeDirectory=` (colon-separated; the first is used).
+pub const SYSTEMD_RUNTIME_DIR_ENV: &str = "RUNTIME_DIRECTORY";
+/// The user's runtime directory (freedesktop.org base directory specification).
+pub const XDG_RUNTIME_DIR_ENV: &str = "XDG_RUNTIME_DIR";
+/// Moves the session stores: the parent of `xrce-sessions-<instance>/`.
+pub const SESSION_DIR_ENV: &str = "XRCE_SESSION_DIR";
+/// Moves the status reports: the status directory itself (shared by every instance).
+pub const STATUS_DIR_ENV: &str = "XRCE_STATUS_DIR";
+/// The supervisor's lock in the instance's directory.
+pub const AGENT_LOCK: &str = "agent.lock";
+/// A front-end's lock in its session-store directory.
+pub const FRONTEND_LOCK: &str = "lock";
+/// iceoryx2's root under the runtime directory (shared by the user's instances; the file
+/// name prefix of each instance keeps them apart, as in `/dev/shm`).
+pub const IPC_DIR: &str = "ipc";
+/// Name of the session-store parent under [`SESSION_DIR_ENV`].
+pub const SESSIONS_PREFIX: &str = "xrce-sessions-";
+
+/// Mode of every directory the agent creates.
+pub const DIR_MODE: u32 = 0o700;
+/// Mode of every file the agent creates.
+pub const FILE_MODE: u32 = 0o600;
+
+/// What a directory or file was found to be when it could not be used.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FoundKind {
+    /// A symbolic link.
+    Symlink,
+    /// A directory.
+    Directory,
+    /// A regular file.
+    File,
+    /// A FIFO, socket or device.
+    Other,
+}
+
+impl std::fmt::Display for FoundKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            FoundKind::Symlink => "a symbolic link",
+            FoundKind::Directory => "a directory",
+            FoundKind::File => "a regular file",
+            FoundKind::Other => "a FIFO, socket or device",
+        })
+    }
+}
+
+/// Why the agent will not use a directory or file (every message names the path, what was
+/// found and what to do).
+#[derive(Debug, thiserror::Error)]
+pub enum RuntimeDirError {
+    /// A system call failed.
+    #[error("{action} {path}: {source}")]
+    Io {
+        /// What was being done (`creating`, `opening`, ...).
+        action: &'static str,
+        /// Where.
+        path: PathBuf,
+        /// The error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// Something else stands where a directory (or a regular file) must be.
+    #[error(
+        "{path} is {found}, not {expected}: the agent does not follow links or use what it did \
+         not make; remove it (if another user made it, that user or root must), or point \
+         {RUNTIME_DIR_ENV} elsewhere"
+    )]
+    WrongKind {
+        /// Where.
+        path: PathBuf,
+        /// What is there.
+        found: FoundKind,
+        /// What must be there (`a directory`, `a regular file`).
+        expected: &'static str,
+    },
+    /// Owned by another user: it may have been planted to read or forge the agent's files.
+    #[error(
+        "{path} belongs to uid {owner}, not to this user (uid {euid}): another user may have \
+         planted it to read or forge the agent's files; remove it (as uid {owner} or root) and \
+         start again, or point {RUNTIME_DIR_ENV} to a directory of your own"
+    )]
+    WrongOwner {
+        /// Where.
+        path: PathBuf,
+        /// Its owner.
+        owner: u32,
+        /// This process's effective user.
+        euid: u32,
+    },
+    /// Group or others may read, enter or change it.
+    #[error(
+        "{path} has mode {mode:04o}: {who} may {what} it; if you made it and trust what is in \
+         it, `chmod {fix:o} {path}`, else remove it and start again"
+    )]
+    LooseMode {
+        /// Where.
+        path: PathBuf,
+        /// Its permission bits.
+        mode: u32,
+        /// The mode it should have.
+        fix: u32,
+        /// `group and others`, `group` or `others`.
+        who: &'static str,
+        /// `read or change` (private) or `change` (a given directory).
+        what: &'static str,
+    },
+    /// Another process holds the lock.
+    #[error(
+        "{what} already runs with this instance: {path} is locked{}; stop it first, or give \
+         this one another --instance",
+        holder.map(|p| format!(" by process {p}")).unwrap_or_default()
+    )]
+    Locked {
+        /// The lock file.
+        path: PathBuf,
+        /// What holds it (`another xrce-agent`, `front-end 0`).
+        what: String,
+        /// The pid written in the lock file by its holder, if readable.
+        holder: Option<u32>,
+    },
+    /// Bigger than anything the agent writes there.
+    #[error("{path} is {len} bytes, more than the {max} the agent ever writes there; ignored")]
+    TooLarge {
+        /// Where.
+        path: PathBuf,
+        /// Its length.
+        len: u64,
+        /// The largest accepted.
+        max: u64,
+    },
+    /// Not a valid instance name (it is used as a directory name).
+    #[error("instance name {0:?} must be 1-32 characters of [A-Za-z0-9_-]")]
+    InstanceName(String),
+}
+
+impl RuntimeDirError {
+    fn io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> Self {
+        let path = path.to_path_buf();
+        move |source| RuntimeDirError::Io {
+            action,
+            path,
+            source,
+        }
+    }
+
+    /// Whether the path was there but not of the right kind, owner or mode (a planted or
+    /// loosened entry), rather than unreadable.
+    pub fn is_untrusted(&self) -> bool {
+        matches!(
+            self,
+            RuntimeDirError::WrongKind { .. }
+                | RuntimeDirError::WrongOwner { .. }
+                | RuntimeDirError::LooseMode { .. }
+        )
+    }
+}
+
+/// The system calls std does not offer, each with its safety argument.
+#[allow(unsafe_code)]
+mod sys {
+    use std::os::fd::AsRawFd;
+
+    /// This process's effective user id.
+    pub fn euid() -> u32 {
+        // SAFETY: geteuid takes no argument, touches no memory and cannot fail.
+        unsafe { libc::geteuid() }
+    }
+
+    /// Takes an exclusive `flock` on `file` without waiting; `Ok(false)` if another open file
+    /// description holds it.
+    pub fn try_flock(file: &std::fs::File) -> std::io::Result<bool> {
+        loop {
+            // SAFETY: the descriptor is open (borrowed from `file` for the call); flock only
+            // changes the lock state of its open file description.
+            let rc = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+            if rc == 0 {
+                return Ok(true);
+            }
+            let e = std::io::Error::last_os_error();
+            match e.raw_os_error() {
+                Some(libc::EWOULDBLOCK) => return Ok(false),
+                Some(libc::EINTR) => continue,
+                _ => return Err(e),
+            }
+        }
+    }
+
+    /// The file-system type of the file system `file` lives on (`statfs`'s `f_type`).
+    pub fn fs_type(file: &std::fs::File) -> Option<u64> {
+        let mut st = std::mem::MaybeUninit::<libc::statfs>::uninit();
+        // SAFETY: the descriptor is open for the call and `st` is a writable statfs the
+        // kernel fills in completely when the call succeeds (checked before it is read).
+        let rc = unsafe { libc::fstatfs(file.as_raw_fd(), st.as_mut_ptr()) };
+        if rc != 0 {
+            return None;
+        }
+        // SAFETY: fstatfs succeeded, so `st` is initialised.
+        let st = unsafe { st.assume_init() };
+        #[allow(clippy::unnecessary_cast)]
+        Some(st.f_type as u64 & 0xFFFF_FFFF)
+    }
+}
+
+pub use sys::euid;
+
+/// The file-system types that keep files in memory (tmpfs, ramfs).
+const MEMORY_FS: [u64; 2] = [0x0102_1994, 0x8584_58f6];
+
+/// Where the runtime directory came from ([`runtime_root`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RootOrigin {
+    /// `$XRCE_RUNTIME_DIR`.
+    Env,
+    /// systemd's `$RUNTIME_DIRECTORY`.
+    Systemd,
+    /// `$XDG_RUNTIME_DIR/xrce-agent`.
+    Xdg,
+    /// `/dev/shm/xrce-agent-<euid>` (or the temporary directory's).
+    Shared,
+}
+
+impl RootOrigin {
+    /// Whether the directory is given (checked, not created private by the agent).
+    fn is_given(self) -> bool {
+        matches!(self, RootOrigin::Env | RootOrigin::Systemd)
+    }
+}
+
+/// The runtime directory of this process's agents, and where that choice came from. Pure:
+/// nothing is created ([`ensure_runtime_root`] does).
+pub fn runtime_root() -> (PathBuf, RootOrigin) {
+    let nonempty = |name: &str| std::env::var_os(name).filter(|v| !v.is_empty());
+    if let Some(dir) = nonempty(RUNTIME_DIR_ENV) {
+        return (PathBuf::from(dir), RootOrigin::Env);
+    }
+    if let Some(dirs) = nonempty(SYSTEMD_RUNTIME_DIR_ENV) {
+        let first: OsString = {
+            use std::os::unix::ffi::{OsStrExt, OsStringExt};
+            let bytes = dirs.as_bytes();
+            let end = bytes.iter().position(|b| *b == b':').unwrap_or(bytes.len());
+            OsString::from_vec(bytes[..end].to_vec())
+        };
+        if !first.is_empty() {
+            return (PathBuf::from(first), RootOrigin::Systemd);
+        }
+    }
+    if let Some(xdg) = nonempty(XDG_RUNTIME_DIR_ENV).map(PathBuf::from) {
+        let ours = xdg.is_absolute()
+            && std::fs::symlink_metadata(&xdg)
+                .is_ok_and(|m| m.is_dir() && m.uid() == euid() && m.mode() & 0o022 == 0);
+        if ours {
+            return (xdg.join("xrce-agent"), RootOrigin::Xdg);
+        }
+    }
+    let shm = Path::new("/dev/shm");
+    let base = if shm.is_dir() {
+        shm.to_path_buf()
+    } else {
+        std::env::temp_dir()
+    };
+    (
+        base.join(format!("xrce-agent-{}", euid())),
+        RootOrigin::Shared,
+    )
+}
+
+/// Creates (0700) or checks the runtime directory; returns it. Warns once if it is not in
+/// memory (the session store maps its files).
+pub fn ensure_runtime_root() -> Result<PathBuf, RuntimeDirError> {
+    let (root, origin) = runtime_root();
+    let dir = if origin.is_given() {
+        prepare_given_dir(&root)?
+    } else {
+        prepare_private_dir(&root)?
+    };
+    static WARNED: std::sync::Once = std::sync::Once::new();
+    if sys::fs_type(&dir).is_some_and(|t| !MEMORY_FS.contains(&t)) {
+        WARNED.call_once(|| {
+            tracing::warn!(dir = %root.display(), "the runtime directory is not in memory (tmpfs): session stores map their files there, and a full disk would kill a front-end with SIGBUS instead of an error");
+        });
+    }
+    Ok(root)
+}
+
+/// Checks an instance name before it becomes a directory name.
+fn check_instance(instance: &str) -> Result<(), RuntimeDirError> {
+    if super::shm::valid_instance(instance) {
+        Ok(())
+    } else {
+        Err(RuntimeDirError::InstanceName(instance.to_string()))
+    }
+}
+
+/// The directory of `instance` (pure).
+pub fn instance_dir(instance: &str) -> PathBuf {
+    runtime_root().0.join(instance)
+}
+
+/// Creates or checks the runtime directory and the directory of `instance` in it.
+pub fn ensure_instance_dir(instance: &str) -> Result<PathBuf, RuntimeDirError> {
+    check_instance(instance)?;
+    let root = ensure_runtime_root()?;
+    let dir = root.join(instance);
+    prepare_private_dir(&dir)?;
+    Ok(dir)
+}
+
+/// Checks the runtime directory and the directory of `instance` in it, where they exist
+/// (nothing is created): every process of an agent refuses to run on a planted or loosened
+/// one, whichever process comes first.
+pub fn check_instance_dir(instance: &str) -> Result<(), RuntimeDirError> {
+    check_instance(instance)?;
+    let (root, origin) = runtime_root();
+    let exists = |p: &Path| std::fs::symlink_metadata(p).is_ok();
+    if exists(&root) {
+        check_dir(&root, if origin.is_given() { 0o022 } else { 0o077 })?;
+        let dir = root.join(instance);
+        if exists(&dir) {
+            check_dir(&dir, 0o077)?;
+        }
+    }
+    Ok(())
+}
+
+/// The parent of the front-ends' session stores of `instance` (pure): `XRCE_SESSION_DIR`'s
+/// `xrce-sessions-<instance>/` when set, else `<runtime>/<instance>/sessions/`.
+pub fn sessions_dir(instance: &str) -> PathBuf {
+    match std::env::var_os(SESSION_DIR_ENV).filter(|v| !v.is_empty()) {
+        Some(dir) => PathBuf::from(dir).join(format!("{SESSIONS_PREFIX}{instance}")),
+        None => instance_dir(instance).join("sessions"),
+    }
+}
+
+/// Creates or checks [`sessions_dir`] and every directory above it that the agent owns.
+pub fn ensure_sessions_dir(instance: &str) -> Result<PathBuf, RuntimeDirError> {
+    check_instance(instance)?;
+    let dir = match std::env::var_os(SESSION_DIR_ENV).filter(|v| !v.is_empty()) {
+        Some(parent) => {
+            let parent = PathBuf::from(parent);
+            prepare_given_dir(&parent)?;
+            parent.join(format!("{SESSIONS_PREFIX}{instance}"))
+        }
+        None => ensure_instance_dir(instance)?.join("sessions"),
+    };
+    prepare_private_dir(&dir)?;
+    Ok(dir)
+}
+
+/// The session store of front-end `id` of `instance` (pure).
+pub fn frontend_store_dir(instance: &str, id: u32) -> PathBuf {
+    sessions_dir(instance).join(format!("frontend-{id}"))
+}
+
+/// Creates or checks [`frontend_store_dir`] (and the directories above it).
+pub fn ensure_frontend_store_dir(instance: &str, id: u32) -> Result<PathBuf, RuntimeDirError> {
+    let dir = ensure_sessions_dir(instance)?.join(format!("frontend-{id}"));
+    prepare_private_dir(&dir)?;
+    Ok(dir)
+}
+
+/// The status directory of `instance` (pure): `XRCE_STATUS_DIR` when set, else
+/// `<runtime>/<instance>/status/`.
+pub fn status_dir(instance: &str) -> PathBuf {
+    match std::env::var_os(STATUS_DIR_ENV).filter(|v| !v.is_empty()) {
+        Some(dir) => PathBuf::from(dir),
+        None => instance_dir(instance).join("status"),
+    }
+}
+
+/// Creates or checks [`status_dir`] (and the directories above it).
+pub fn ensure_status_dir(instance: &str) -> Result<PathBuf, RuntimeDirError> {
+    match std::env::var_os(STATUS_DIR_ENV).filter(|v| !v.is_empty()) {
+        Some(dir) => {
+            let dir = PathBuf::from(dir);
+            prepare_given_dir(&dir)?;
+            Ok(dir)
+        }
+        None => {
+            let dir = ensure_instance_dir(instance)?.join("status");
+            prepare_private_dir(&dir)?;
+            Ok(dir)
+        }
+    }
+}
+
+/// The instances with a directory in the runtime directory, with their status directories
+/// (`XRCE_STATUS_DIR`, when set, is the one status directory, with an empty name). The
+/// runtime directory is checked first: one planted by another user is an error, not a list.
+pub fn list_instances() -> Result<Vec<(String, PathBuf)>, RuntimeDirError> {
+    if let Some(dir) = std::env::var_os(STATUS_DIR_ENV).filter(|v| !v.is_empty()) {
+        return Ok(vec![(String::new(), PathBuf::from(dir))]);
+    }
+    let (root, origin) = runtime_root();
+    match std::fs::symlink_metadata(&root) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        _ => {
+            if origin.is_given() {
+                check_dir(&root, 0o022)?;
+            } else {
+                check_dir(&root, 0o077)?;
+            }
+        }
+    }
+    let entries = std::fs::read_dir(&root).map_err(RuntimeDirError::io("listing", &root))?;
+    let mut out: Vec<(String, PathBuf)> = entries
+        .flatten()
+        .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
+        .filter_map(|e| {
+            let name = e.file_name().into_string().ok()?;
+            (name != IPC_DIR && super::shm::valid_instance(&name))
+                .then(|| (name, e.path().join("status")))
+        })
+        .collect();
+    out.sort();
+    Ok(out)
+}
+
+/// iceoryx2's root directory for `instance` (pure): `<runtime>/ipc/`, unless the event
+/// sockets iceoryx2 makes there would not fit a Unix socket path (108 bytes) with this
+/// instance's file name prefix; then `/dev/shm/xrce-ipc-<euid>/` (or the temporary
+/// directory's), which is as private. Ends with `/`, as iceoryx2 expects.
+pub fn ipc_root(instance: &str) -> PathBuf {
+    let preferred = runtime_root().0.join(IPC_DIR);
+    if ipc_root_fits(&preferred, instance) {
+        return with_slash(preferred);
+    }
+    let shm = Path::new("/dev/shm");
+    let base = if shm.is_dir() {
+        shm.to_path_buf()
+    } else {
+        std::env::temp_dir()
+    };
+    with_slash(base.join(format!("xrce-ipc-{}", euid())))
+}
+
+fn with_slash(p: PathBuf) -> PathBuf {
+    let mut s = p.into_os_string();
+    s.push("/");
+    PathBuf::from(s)
+}
+
+/// Longest event-socket file name iceoryx2 makes in its root for an instance (past its
+/// prefix): a listener id (a `u128` in decimal, up to 39 digits) and the suffix.
+pub const IPC_SOCKET_NAME_MAX: usize = 39 + super::shm::EVENT_SUFFIX.len();
+/// Longest Unix socket path (`sun_path`, with its terminating NUL).
+const SUN_PATH_MAX: usize = 108;
+
+/// Whether every event socket of `instance` fits under `root`.
+pub fn ipc_root_fits(root: &Path, instance: &str) -> bool {
+    use std::os::unix::ffi::OsStrExt;
+    let root_len = root.as_os_str().as_bytes().len() + 1;
+    let prefix_len = super::shm::file_prefix(instance).len();
+    root_len + prefix_len + IPC_SOCKET_NAME_MAX < SUN_PATH_MAX
+}
+
+/// Creates or checks iceoryx2's root for `instance` ([`ipc_root`]) and its `services/` and
+/// `nodes/` directories (0700: iceoryx2 would make them 0750 and 0755).
+pub fn ensure_ipc_root(instance: &str) -> Result<PathBuf, RuntimeDirError> {
+    check_instance(instance)?;
+    let root = ipc_root(instance);
+    let preferred = with_slash(runtime_root().0.join(IPC_DIR));
+    if root == preferred {
+        ensure_runtime_root()?;
+    }
+    prepare_private_dir(&root)?;
+    for sub in ["services", "nodes"] {
+        prepare_private_dir(&root.join(sub))?;
+    }
+    Ok(root)
+}
+
+fn kind_of(m: &std::fs::Metadata) -> FoundKind {
+    let t = m.file_type();
+    if t.is_symlink() {
+        FoundKind::Symlink
+    } else if t.is_dir() {
+        FoundKind::Directory
+    } else if t.is_file() {
+        FoundKind::File
+    } else {
+        FoundKind::Other
+    }
+}
+
+/// Checks that `path` is a real directory of ours with none of the bits of `forbidden`
+/// (0o077: private; 0o022: given); returns it opened (`O_NOFOLLOW`, so what was checked is
+/// what is open).
+fn check_dir(path: &Path, forbidden: u32) -> Result<File, RuntimeDirError> {
+    let lmeta = std::fs::symlink_metadata(path).map_err(RuntimeDirError::io("inspecting", path))?;
+    if !lmeta.is_dir() {
+        return Err(RuntimeDirError::WrongKind {
+            path: path.to_path_buf(),
+            found: kind_of(&lmeta),
+            expected: "a directory",
+        });
+    }
+    let dir = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_DIRECTORY | libc::O_NOFOLLOW | libc::O_CLOEXEC)
+        .open(path)
+        .map_err(RuntimeDirError::io("opening", path))?;
+    let meta = dir
+        .metadata()
+        .map_err(RuntimeDirError::io("inspecting", path))?;
+    check_owner_mode(path, &meta, forbidden)?;
+    Ok(dir)
+}
+
+fn check_owner_mode(
+    path: &Path,
+    meta: &std::fs::Metadata,
+    forbidden: u32,
+) -> Result<(), RuntimeDirError> {
+    let me = euid();
+    if meta.uid() != me {
+        return Err(RuntimeDirError::WrongOwner {
+            path: path.to_path_buf(),
+            owner: meta.uid(),
+            euid: me,
+        });
+    }
+    let mode = meta.mode() & 0o7777;
+    let loose = mode & forbidden;
+    if loose != 0 {
+        let who = match (loose & 0o070 != 0, loose & 0o007 != 0) {
+            (true, true) => "group and others",
+            (true, false) => "group",
+            _ => "others",
+        };
+        let fix = if meta.is_dir() { DIR_MODE } else { FILE_MODE };
+        return Err(RuntimeDirError::LooseMode {
+            path: path.to_path_buf(),
+            mode,
+            fix: if forbidden == 0o022 {
+                mode & !0o022
+            } else {
+                fix
+            },
+            who,
+            what: if forbidden == 0o022 {
+                "change"
+            } else {
+                "read or change"
+            },
+        });
+    }
+    Ok(())
+}
+
+/// Creates the directory `path` with mode 0700 (its parent must exist), or checks the one
+/// there: a real directory, ours, private (no group or other bits). Returns it opened.
+pub fn prepare_private_dir(path: &Path) -> Result<File, RuntimeDirError> {
+    let created = match std::fs::DirBuilder::new().mode(DIR_MODE).create(path) {
+        Ok(()) => true,
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => false,
+        Err(e) => return Err(RuntimeDirError::io("creating", path)(e)),
+    };
+    if created {
+        // The umask may have taken bits away (never added any): put them back, by path
+        // (a directory with no read bit for its owner could not be opened to check it). It
+        // was just made, exclusively, in a directory where nobody else can rename it.
+        let meta =
+            std::fs::symlink_metadata(path).map_err(RuntimeDirError::io("inspecting", path))?;
+        if meta.is_dir() && meta.uid() == euid() && meta.mode() & 0o777 != DIR_MODE {
+            std::fs::set_permissions(path, std::fs::Permissions::from_mode(DIR_MODE))
+                .map_err(RuntimeDirError::io("setting the mode of", path))?;
+        }
+    }
+    check_dir(path, 0o077)
+}
+
+/// Creates the given directory `path` (and missing parents) with mode 0700, or checks the
+/// one there: a real directory, ours, writable by us alone. Returns it opened.
+pub fn prepare_given_dir(path: &Path) -> Result<File, RuntimeDirError> {
+    if std::fs::symlink_metadata(path).is_err() {
+        match std::fs::DirBuilder::new()
+            .mode(DIR_MODE)
+            .recursive(true)
+            .create(path)
+        {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
+            Err(e) => return Err(RuntimeDirError::io("creating", path)(e)),
+        }
+    }
+    check_dir(path, 0o022)
+}
+
+/// Creates the directory `path` (0700) if missing, else checks it is a real directory of ours
+/// that only we can change: for writers that find their directory prepared already (status
+/// reports), at the cost of one `lstat`.
+pub fn prepare_dir_for_writing(path: &Path) -> Result<(), RuntimeDirError> {
+    match std::fs::symlink_metadata(path) {
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => prepare_private_dir(path).map(drop),
+        _ => check_dir(path, 0o022).map(drop),
+    }
+}
+
+fn open_flags() -> i32 {
+    libc::O_NOFOLLOW | libc::O_CLOEXEC
+}
+
+/// Sets `file`'s mode to 0600 if it is anything else (the umask, or an earlier version's
+/// 0644), so that a file we made is private whatever the umask was.
+fn make_private(file: &File, path: &Path) -> Result<(), RuntimeDirError> {
+    let meta = file
+        .metadata()
+        .map_err(RuntimeDirError::io("inspecting", path))?;
+    if meta.mode() & 0o7777 != FILE_MODE {
+        file.set_permissions(std::fs::Permissions::from_mode(FILE_MODE))
+            .map_err(RuntimeDirError::io("setting the mode of", path))?;
+    }
+    Ok(())
+}
+
+/// Creates the new file `path` (0600, `O_EXCL | O_NOFOLLOW`) for reading and writing. A file
+/// or link already there is removed first (unlinking never follows a link): for temporary
+/// files, whose name is this process's alone, that something else left.
+pub fn create_temp(path: &Path) -> Result<File, RuntimeDirError> {
+    let open = || {
+        std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create_new(true)
+            .mode(FILE_MODE)
+            .custom_flags(open_flags())
+            .open(path)
+    };
+    let file = match open() {
+        Ok(f) => f,
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+            if let Ok(m) = std::fs::symlink_metadata(path) {
+                if !m.is_file() {
+                    tracing::warn!(path = %path.display(), found = %kind_of(&m), "removed something planted where a temporary file is made (not followed)");
+                }
+            }
+            std::fs::remove_file(path).map_err(RuntimeDirError::io("removing", path))?;
+            open().map_err(RuntimeDirError::io("creating", path))?
+        }
+        Err(e) => return Err(RuntimeDirError::io("creating", path)(e)),
+    };
+    make_private(&file, path)?;
+    Ok(file)
+}
+
+/// Replaces `path` with `bytes` atomically: written to the new private file `tmp`
+/// ([`create_temp`]) and renamed over `path` (a link at `path` is replaced, not followed).
+pub fn write_atomically(path: &Path, tmp: &Path, bytes: &[u8]) -> Result<(), RuntimeDirError> {
+    let mut f = create_temp(tmp)?;
+    if let Err(e) = f.write_all(bytes) {
+        drop(f);
+        let _ = std::fs::remove_file(tmp);
+        return Err(RuntimeDirError::io("writing", tmp)(e));
+    }
+    drop(f);
+    std::fs::rename(tmp, path).map_err(RuntimeDirError::io("renaming into", path))
+}
+
+/// Opens `path` (`O_NOFOLLOW`, and `O_NONBLOCK` so that a planted FIFO cannot block) and
+/// checks that it is a regular file owned by us; for writing too if `write`. What fails
+/// the check was not written by the agent and must not be used.
+pub fn open_owned(path: &Path, write: bool) -> Result<File, RuntimeDirError> {
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(write)
+        .custom_flags(open_flags() | libc::O_NONBLOCK)
+        .open(path)
+        .map_err(|e| {
+            // ELOOP: the last component is a symbolic link.
+            if e.raw_os_error() == Some(libc::ELOOP) {
+                RuntimeDirError::WrongKind {
+                    path: path.to_path_buf(),
+                    found: FoundKind::Symlink,
+                    expected: "a regular file",
+                }
+            } else {
+                RuntimeDirError::io("opening", path)(e)
+            }
+        })?;
+    let meta = file
+        .metadata()
+        .map_err(RuntimeDirError::io("inspecting", path))?;
+    if !meta.is_file() {
+        return Err(RuntimeDirError::WrongKind {
+            path: path.to_path_buf(),
+            found: kind_of(&meta),
+            expected: "a regular file",
+        });
+    }
+    let me = euid();
+    if meta.uid() != me {
+        return Err(RuntimeDirError::WrongOwner {
+            path: path.to_path_buf(),
+            owner: meta.uid(),
+            euid: me,
+        });
+    }
+    Ok(file)
+}
+
+/// The bytes of `path`, at most `max` of them, if it is a regular file of ours
+/// ([`open_owned`]).
+pub fn read_owned(path: &Path, max: u64) -> Result<Vec<u8>, RuntimeDirError> {
+    let file = open_owned(path, false)?;
+    let len = file
+        .metadata()
+        .map_err(RuntimeDirError::io("inspecting", path))?
+        .len();
+    if len > max {
+        return Err(RuntimeDirError::TooLarge {
+            path: path.to_path_buf(),
+            len,
+            max,
+        });
+    }
+    let mut out = Vec::with_capacity(len as usize);
+    file.take(max)
+        .read_to_end(&mut out)
+        .map_err(RuntimeDirError::io("reading", path))?;
+    Ok(out)
+}
+
+/// An exclusive `flock` on a 0600 lock file, held until dropped (or the process ends: the
+/// kernel releases it then, so a successor of a process killed hard takes it at once). The
+/// descriptor is close-on-exec, so no child inherits the lock and outlives its holder with it.
+#[derive(Debug)]
+pub struct LockFile {
+    /// Kept open: the lock lives as long as this open file description.
+    _file: File,
+    path: PathBuf,
+}
+
+impl LockFile {
+    /// Takes the lock at `path` (created if missing) without waiting; `what` names the
+    /// holder kind in the error (`another xrce-agent`, `front-end 0`). The holder's pid is
+    /// written into the file, for the message a refused process prints.
+    pub fn acquire(path: &Path, what: &str) -> Result<Self, RuntimeDirError> {
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .create(true)
+            .truncate(false)
+            .mode(FILE_MODE)
+            .custom_flags(open_flags())
+            .open(path)
+            .map_err(|e| {
+                if e.raw_os_error() == Some(libc::ELOOP) {
+                    RuntimeDirError::WrongKind {
+                        path: path.to_path_buf(),
+                        found: FoundKind::Symlink,
+                        expected: "a regular file",
+                    }
+                } else {
+                    RuntimeDirError::io("opening", path)(e)
+                }
+            })?;
+        let meta = file
+            .metadata()
+            .map_err(RuntimeDirError::io("inspecting", path))?;
+        if !meta.is_file() {
+            return Err(RuntimeDirError::WrongKind {
+                path: path.to_path_buf(),
+                found: kind_of(&meta),
+                expected: "a regular file",
+            });
+        }
+        check_owner_mode(path, &meta, 0)?;
+        make_private(&file, path)?;
+        if !sys::try_flock(&file).map_err(RuntimeDirError::io("locking", path))? {
+            let mut text = String::new();
+            let _ = (&file).take(32).read_to_string(&mut text);
+            return Err(RuntimeDirError::Locked {
+                path: path.to_path_buf(),
+                what: what.to_string(),
+                holder: text.trim().parse().ok(),
+            });
+        }
+        let pid = format!("{}\n", std::process::id());
+        let _ = file.set_len(0);
+        {
+            use std::os::unix::fs::FileExt;
+            let _ = file.write_all_at(pid.as_bytes(), 0);
+        }
+        Ok(LockFile {
+            _file: file,
+            path: path.to_path_buf(),
+        })
+    }
+
+    /// The lock file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+/// Whether the lock at `path` is free (nobody holds it), taking and releasing it to know;
+/// `false` when it cannot be told.
+pub fn lock_is_free(path: &Path) -> bool {
+    match LockFile::acquire(path, "") {
+        Ok(l) => {
+            drop(l);
+            true
+        }
+        Err(_) => false,
+    }
+}
+
+/// Takes the supervisor's lock of `instance` (creating the instance's directory): a second
+/// supervisor of the same instance is refused before it removes or reads anything.
+pub fn lock_instance(instance: &str) -> Result<LockFile, RuntimeDirError> {
+    let dir = ensure_instance_dir(instance)?;
+    LockFile::acquire(&dir.join(AGENT_LOCK), "another xrce-agent")
+}
+
+/// Removes the session stores of `instance` whose front-end is gone (its lock is free), for
+/// a supervisor that starts or stops; a store whose front-end still runs (a child of a
+/// supervisor killed hard, still stopping) is kept. Returns how many stores were kept.
+pub fn clear_sessions(instance: &str) -> usize {
+    let dir = sessions_dir(instance);
+    let Ok(entries) = std::fs::read_dir(&dir) else {
+        return 0;
+    };
+    let mut kept = 0;
+    for e in entries.flatten() {
+        let path = e.path();
+        let is_dir = e.file_type().is_ok_and(|t| t.is_dir());
+        if is_dir {
+            match LockFile::acquire(&path.join(FRONTEND_LOCK), "") {
+                Ok(lock) => {
+                    let _ = std::fs::remove_dir_all(&path);
+                    drop(lock);
+                }
+                Err(RuntimeDirError::Locked { holder, .. }) => {
+                    tracing::warn!(store = %path.display(), ?holder, "a front-end still runs with this session store; kept");
+                    kept += 1;
+                }
+                Err(_) => {
+                    let _ = std::fs::remove_dir_all(&path);
+                }
+            }
+        } else {
+            let _ = std::fs::remove_file(&path);
+        }
+    }
+    if kept == 0 {
+        let _ = std::fs::remove_dir(&dir);
+    }
+    kept
+}
+
+/// Removes what a stopping instance leaves in the runtime directory: its session stores
+/// (see [`clear_sessions`]), its status directory, then its lock file and its directory
+/// (if empty); `lock`, the supervisor's own, is released last.
+pub fn remove_instance(instance: &str, lock: LockFile) {
+    clear_sessions(instance);
+    let _ = std::fs::remove_dir_all(status_dir(instance));
+    remove_instance_dir(instance, lock);
+}
+
+/// Removes the instance's own status directory (not `XRCE_STATUS_DIR`), its lock and its
+/// directory (if empty then): what a supervisor that fails to start leaves.
+pub fn remove_instance_dir(instance: &str, lock: LockFile) {
+    let dir = instance_dir(instance);
+    let _ = std::fs::remove_dir_all(dir.join("status"));
+    let _ = std::fs::remove_file(lock.path());
+    let _ = std::fs::remove_dir(&dir);
+    drop(lock);
+}
+
+/// Removes the directory of an instance whose supervisor is gone (its lock is free; taken
+/// while the directory is removed), for a supervisor that tidies up after dead agents;
+/// returns whether it did. One whose lock is held (a running agent) is left alone.
+pub fn remove_instance_if_unlocked(instance: &str) -> bool {
+    if check_instance(instance).is_err() {
+        return false;
+    }
+    let dir = instance_dir(instance);
+    if check_dir(&dir, 0o077).is_err() {
+        return false;
+    }
+    match LockFile::acquire(&dir.join(AGENT_LOCK), "") {
+        Ok(lock) => {
+            // Not `XRCE_STATUS_DIR`, shared by every instance.
+            clear_sessions(instance);
+            remove_instance_dir(instance, lock);
+            true
+        }
+        Err(_) => false,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::os::unix::fs::symlink;
+
+    fn scratch(tag: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("xrce-rtdir-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&d);
+        d
+    }
+
+    fn mode(p: &Path) -> u32 {
+        std::fs::symlink_metadata(p).expect("exists").mode() & 0o7777
+    }
+
+    #[test]
+    fn directories_are_made_private_whatever_exists() {
+        let d = scratch("dirs");
+        prepare_private_dir(&d).expect("created");
+        assert_eq!(mode(&d), 0o700);
+        prepare_private_dir(&d).expect("ours and private: accepted");
+        // Loosened: refused, with the mode in the message.
+        std::fs::set_permissions(&d, std::fs::Permissions::from_mode(0o777)).expect("chmod");
+        let e = prepare_private_dir(&d).expect_err("loose");
+        assert!(
+            matches!(e, RuntimeDirError::LooseMode { mode: 0o777, .. }),
+            "{e}"
+        );
+        assert!(
+            e.to_string().contains("0777") && e.to_string().contains("chmod 700"),
+            "{e}"
+        );
+        // Given directories may be readable, not writable, by others.
+        std::fs::set_permissions(&d, std::fs::Permissions::from_mode(0o755)).expect("chmod");
+        prepare_given_dir(&d).expect("0755 given: accepted");
+        assert!(prepare_private_dir(&d).is_err());
+        std::fs::set_permissions(&d, std::fs::Permissions::from_mode(0o700)).expect("chmod");
+        // A link where a directory must be is not followed.
+        let link = d.join("link");
+        let target = d.join("target");
+        prepare_private_dir(&target).expect("target");
+        symlink(&target, &link).expect("symlink");
+        let e = prepare_private_dir(&link).expect_err("link");
+        assert!(
+            matches!(
+                e,
+                RuntimeDirError::WrongKind {
+                    found: FoundKind::Symlink,
+                    ..
+                }
+            ),
+            "{e}"
+        );
+        assert!(prepare_given_dir(&link).is_err());
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn a_directory_of_another_user_is_refused() {
+        if euid() != 0 {
+            return; // only root can make one
+        }
+        let d = scratch("owner");
+        prepare_private_dir(&d).expect("created");
+        std::os::unix::fs::chown(&d, Some(65534), None).expect("chown");
+        let e = prepare_private_dir(&d).expect_err("not ours");
+        assert!(
+            matches!(e, RuntimeDirError::WrongOwner { owner: 65534, .. }),
+            "{e}"
+        );
+        assert!(e.to_string().contains("uid 65534"), "{e}");
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn files_are_private_and_links_are_never_followed() {
+        let d = scratch("files");
+        prepare_private_dir(&d).expect("dir");
+        let victim = d.join("victim");
+        std::fs::write(&victim, b"untouched").expect("victim");
+        // A link planted at the temporary name: replaced, the victim untouched.
+        symlink(&victim, d.join("x.tmp")).expect("symlink");
+        write_atomically(&d.join("x"), &d.join("x.tmp"), b"new").expect("written");
+        assert_eq!(std::fs::read(&victim).expect("victim"), b"untouched");
+        assert_eq!(std::fs::read(d.join("x")).expect("x"), b"new");
+        assert_eq!(mode(&d.join("x")), 0o600);
+        // A link read back is refused; so is a FIFO (without blocking).
+        symlink(&victim, d.join("y")).expect("symlink");
+        let e = read_owned(&d.join("y"), 100).expect_err("link");
+        assert!(e.is_untrusted(), "{e}");
+        let fifo = d.join("fifo");
+        assert!(std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .is_ok_and(|s| s.success()));
+        assert!(read_owned(&fifo, 100).expect_err("fifo").is_untrusted());
+        assert_eq!(read_owned(&d.join("x"), 100).expect("ours"), b"new");
+        assert!(matches!(
+            read_owned(&d.join("x"), 2),
+            Err(RuntimeDirError::TooLarge { .. })
+        ));
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn a_lock_is_exclusive_until_dropped() {
+        let d = scratch("lock");
+        prepare_private_dir(&d).expect("dir");
+        let path = d.join("agent.lock");
+        let held = LockFile::acquire(&path, "another xrce-agent").expect("first");
+        assert_eq!(mode(&path), 0o600);
+        let e = LockFile::acquire(&path, "another xrce-agent").expect_err("second");
+        match &e {
+            RuntimeDirError::Locked { holder, .. } => {
+                assert_eq!(*holder, Some(std::process::id()))
+            }
+            other => panic!("{other}"),
+        }
+        assert!(e.to_string().contains("already runs"), "{e}");
+        assert!(!lock_is_free(&path));
+        drop(held);
+        assert!(lock_is_free(&path));
+        let _ = std::fs::remove_dir_all(&d);
+    }
+
+    #[test]
+    fn sockets_of_long_instance_names_move_to_a_shorter_root() {
+        let long = "a".repeat(32);
+        let deep = Path::new("/run/user/4294967294/some/deep/runtime/directory/xrce-agent/ipc");
+        assert!(!ipc_root_fits(deep, &long));
+        assert!(ipc_root_fits(Path::new("/dev/shm/xrce-ipc-65534"), &long));
+    }
+}
