@@ -3,6 +3,7 @@
 use std::net::IpAddr;
 
 use crate::backend::{BackendKind, DdsConfig};
+use crate::domains::{DomainPolicy, DomainSet};
 use crate::worker::{Worker, WorkerConfig};
 
 /// Settings of a DDS worker process.
@@ -44,6 +45,20 @@ pub struct WorkerArgs {
         default_value_t = 30.0
     )]
     pub frontend_grace: f64,
+    /// The DDS domain ids clients may use: ids and ranges, comma-separated (e.g.
+    /// `0-10,42`); a participant in another domain is refused with STATUS_ERR_DENIED.
+    /// Without it any domain id is allowed, but at most `--max-domains` at once.
+    #[arg(long = "domains", env = "XRCE_DOMAINS")]
+    pub domains: Option<DomainSet>,
+    /// Most distinct DDS domains in use at once (each costs DDS participants, threads and
+    /// sockets); a participant in one more is refused with STATUS_ERR_RESOURCES. Default:
+    /// 8 without `--domains`, no cap with it.
+    #[arg(
+        long = "max-domains",
+        env = "XRCE_MAX_DOMAINS",
+        value_parser = clap::value_parser!(u16).range(1..=233)
+    )]
+    pub max_domains: Option<u16>,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_dds_worker=debug`.
     #[arg(long, env = "XRCE_LOG", default_value = "info,rustdds=error")]
     pub log: String,
@@ -66,6 +81,12 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         }
         None => Default::default(),
     };
+    let domains = DomainPolicy::from_options(args.domains, args.max_domains.map(usize::from));
+    tracing::info!(
+        domains = %domains.allowed.as_ref().map_or("any".to_string(), ToString::to_string),
+        max_in_use = ?domains.max_in_use,
+        "DDS domains clients may use"
+    );
     let mut worker = Worker::new(WorkerConfig {
         instance: args.instance,
         dds: DdsConfig {
@@ -80,6 +101,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         } else {
             30.0
         }),
+        domains,
     })?;
     // Under systemd (a unit of its own), the worker is ready once it serves.
     if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {
@@ -100,5 +122,45 @@ fn raise_fd_limit() {
         },
         Ok((soft, _)) => tracing::debug!(limit = soft, "open-file limit"),
         Err(e) => tracing::warn!(error = %e, "could not read the open-file limit"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Debug, Parser)]
+    struct Cli {
+        #[command(flatten)]
+        args: WorkerArgs,
+    }
+
+    #[test]
+    fn the_domain_options_are_parsed_into_the_policy() {
+        let cli = Cli::try_parse_from(["w", "--domains", "0-10,42", "--max-domains", "4"])
+            .expect("valid options");
+        let policy = DomainPolicy::from_options(
+            cli.args.domains.clone(),
+            cli.args.max_domains.map(usize::from),
+        );
+        assert_eq!(policy.max_in_use, Some(4));
+        assert!(policy
+            .allowed
+            .as_ref()
+            .is_some_and(|a| a.contains(42) && !a.contains(11)));
+        let cli = Cli::try_parse_from(["w"]).expect("no options");
+        assert_eq!(
+            DomainPolicy::from_options(cli.args.domains, cli.args.max_domains.map(usize::from)),
+            DomainPolicy::default()
+        );
+        for bad in [
+            &["w", "--domains", "0-300"][..],
+            &["w", "--domains", "x"],
+            &["w", "--max-domains", "0"],
+            &["w", "--max-domains", "234"],
+        ] {
+            assert!(Cli::try_parse_from(bad).is_err(), "{bad:?}");
+        }
     }
 }

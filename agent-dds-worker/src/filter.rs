@@ -7,15 +7,154 @@
 //! BETWEEN Value AND Value`; `RelOp := = | <> | != | < | <= | > | >= | LIKE`; values are
 //! integers (decimal or 0x hex), floats, `'strings'`, TRUE/FALSE and enumerator names.
 //! Parameters (`%n`) are refused: an XRCE read carries none.
+//!
+//! # Bounds
+//!
+//! A filter runs on the worker's loop for every sample of its reader, and its expression
+//! comes from a client, so its cost is bounded three ways (a client could otherwise make one
+//! pass of the loop take minutes: the watchdog would restart the worker, the replay would
+//! re-create the filter, and so on):
+//!
+//! * **Clauses**: at most [`MAX_CLAUSES`] predicates (comparisons, `BETWEEN`s, `LIKE`s) per
+//!   filter; more is refused at creation ([`FilterError::TooManyClauses`], which the worker
+//!   answers with `STATUS_ERR_RESOURCES`).
+//! * **Per evaluation**: one budget of [`EVAL_BUDGET`] steps for everything one sample's
+//!   evaluation does, all clauses together: walking the sample to its fields (a step per
+//!   element visited, and per [`STRING_OCTETS_PER_STEP`] string octets copied), a step per
+//!   condition node, a step per `LIKE` iteration, and a step per
+//!   [`STRING_OCTETS_PER_STEP`] octets of a string comparison. A sample whose evaluation
+//!   runs out of budget is **treated as not matching** ([`Verdict::OverBudget`]): the worker
+//!   drops it from that read as it drops filtered samples, and counts it
+//!   (`content_filter_over_budget`). The outcome depends only on the sample and the filter,
+//!   never on the load.
+//! * **Per reader and per pass** (the worker's reads): a reader evaluates at most
+//!   [`READER_PASS_BUDGET`] steps per pass of the worker's loop, and all readers together at
+//!   most [`PASS_BUDGET`]; a reader takes its next sample only while a whole evaluation fits
+//!   in what is left, so the rest of its samples wait in DDS for the next pass, and none is
+//!   judged on a budget cut short.
 
 use std::sync::Arc;
 
-use crate::types::{read_fields, resolve_path, Seg, StructDef, Ty, Value};
+pub use crate::types::STRING_OCTETS_PER_STEP;
+use crate::types::{read_fields_within, resolve_path, Seg, StructDef, Ty, Value, WalkError};
 
 /// Longest expression accepted (octets).
 const MAX_EXPRESSION: usize = 4096;
 /// Deepest nesting of conditions.
 const MAX_NESTING: usize = 64;
+
+/// Most predicates one filter may have: real filters have a few; each one is work for every
+/// sample of the reader.
+pub const MAX_CLAUSES: usize = 32;
+
+/// Steps one evaluation of one sample may take, all clauses and the walk to the fields
+/// together (about a millisecond at worst; see [`Filter::evaluate`]).
+pub const EVAL_BUDGET: u64 = 1 << 16;
+
+/// Steps one reader's evaluations may take in one pass of the worker's loop (16 worst-case
+/// evaluations; thousands of ordinary ones).
+pub const READER_PASS_BUDGET: u64 = 1 << 20;
+
+/// Steps all readers' evaluations may take together in one pass of the worker's loop: what
+/// bounds the time filters add to a pass, whatever the number of readers.
+pub const PASS_BUDGET: u64 = 1 << 22;
+
+/// Why an expression was refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum FilterError {
+    /// Longer than 4,096 octets.
+    #[error("expression longer than {MAX_EXPRESSION} octets")]
+    TooLong,
+    /// More than [`MAX_CLAUSES`] predicates.
+    #[error("more than {MAX_CLAUSES} clauses (comparisons, BETWEEN, LIKE) in one filter")]
+    TooManyClauses,
+    /// Conditions nested deeper than 64 levels.
+    #[error("expression nested deeper than {MAX_NESTING}")]
+    TooDeep,
+    /// Not the grammar, or a field the type does not have.
+    #[error("{0}")]
+    Syntax(String),
+}
+
+impl From<String> for FilterError {
+    fn from(s: String) -> Self {
+        FilterError::Syntax(s)
+    }
+}
+
+impl From<&str> for FilterError {
+    fn from(s: &str) -> Self {
+        FilterError::Syntax(s.to_string())
+    }
+}
+
+impl FilterError {
+    /// Whether it is a bound on the work a filter may cause (the CREATE or READ is refused
+    /// for resources) rather than an invalid expression.
+    pub fn is_limit(&self) -> bool {
+        matches!(self, FilterError::TooManyClauses)
+    }
+}
+
+/// A step budget, spent by evaluations.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Steps {
+    left: u64,
+    spent: u64,
+}
+
+impl Steps {
+    /// A budget of `n` steps.
+    pub fn new(n: u64) -> Self {
+        Steps { left: n, spent: 0 }
+    }
+
+    /// Steps left.
+    pub fn left(&self) -> u64 {
+        self.left
+    }
+
+    /// Steps spent so far.
+    pub fn spent(&self) -> u64 {
+        self.spent
+    }
+
+    /// Spends `n` steps, or all that are left if fewer (work done elsewhere: a reader's
+    /// pass budget pays for the evaluations of its samples).
+    pub fn charge(&mut self, n: u64) {
+        let n = n.min(self.left);
+        self.left -= n;
+        self.spent += n;
+    }
+
+    /// Spends `n` steps; `Err` (and nothing left) if fewer than `n` were left.
+    fn spend(&mut self, n: u64) -> Result<(), OverBudget> {
+        if n > self.left {
+            self.spent += self.left;
+            self.left = 0;
+            return Err(OverBudget);
+        }
+        self.left -= n;
+        self.spent += n;
+        Ok(())
+    }
+}
+
+/// An evaluation ran out of steps.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct OverBudget;
+
+/// What an evaluation found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verdict {
+    /// The sample passes.
+    Match,
+    /// It does not (or it cannot be walked: a malformed sample does not pass).
+    NoMatch,
+    /// Its evaluation needed more steps than the budget: treated as not matching, and
+    /// counted by the caller.
+    OverBudget,
+}
 
 /// A compiled filter.
 #[derive(Debug, Clone)]
@@ -177,6 +316,8 @@ struct Parser<'t> {
     paths: Vec<Vec<Seg>>,
     types: Vec<Ty>,
     depth: usize,
+    /// Predicates parsed so far.
+    clauses: usize,
 }
 
 fn keyword(t: Option<&Tok>, k: &str) -> bool {
@@ -193,7 +334,7 @@ impl Parser<'_> {
         t
     }
 
-    fn or(&mut self) -> Result<Cond, String> {
+    fn or(&mut self) -> Result<Cond, FilterError> {
         let mut l = self.and()?;
         while keyword(self.peek(), "OR") {
             self.pos += 1;
@@ -202,7 +343,7 @@ impl Parser<'_> {
         Ok(l)
     }
 
-    fn and(&mut self) -> Result<Cond, String> {
+    fn and(&mut self) -> Result<Cond, FilterError> {
         let mut l = self.not()?;
         while keyword(self.peek(), "AND") {
             self.pos += 1;
@@ -211,10 +352,10 @@ impl Parser<'_> {
         Ok(l)
     }
 
-    fn not(&mut self) -> Result<Cond, String> {
+    fn not(&mut self) -> Result<Cond, FilterError> {
         self.depth += 1;
         if self.depth > MAX_NESTING {
-            return Err("expression nested too deep".into());
+            return Err(FilterError::TooDeep);
         }
         let c = if keyword(self.peek(), "NOT") {
             self.pos += 1;
@@ -243,7 +384,7 @@ impl Parser<'_> {
         Ok(self.paths.len() - 1)
     }
 
-    fn operand(&mut self) -> Result<Operand, String> {
+    fn operand(&mut self) -> Result<Operand, FilterError> {
         match self.next() {
             Some(Tok::Int(v)) => Ok(Operand::Const(Value::Int(v))),
             Some(Tok::Float(v)) => Ok(Operand::Const(Value::Float(v))),
@@ -272,14 +413,18 @@ impl Parser<'_> {
                             .map(|(n, v)| Operand::Const(Value::Enum(*v, n.clone()))),
                         _ => None,
                     })
-                    .ok_or(e),
+                    .ok_or(FilterError::Syntax(e)),
             },
-            Some(t) => Err(format!("unexpected {t:?}")),
+            Some(t) => Err(format!("unexpected {t:?}").into()),
             None => Err("unexpected end of expression".into()),
         }
     }
 
-    fn predicate(&mut self) -> Result<Cond, String> {
+    fn predicate(&mut self) -> Result<Cond, FilterError> {
+        self.clauses += 1;
+        if self.clauses > MAX_CLAUSES {
+            return Err(FilterError::TooManyClauses);
+        }
         let l = self.operand()?;
         let negated = keyword(self.peek(), "NOT");
         if negated {
@@ -304,7 +449,7 @@ impl Parser<'_> {
         let op = match self.next() {
             Some(Tok::Op(op)) => op,
             Some(Tok::Ident(s)) if s.eq_ignore_ascii_case("LIKE") => Op::Like,
-            other => return Err(format!("expected a comparison, found {other:?}")),
+            other => return Err(format!("expected a comparison, found {other:?}").into()),
         };
         let r = self.operand()?;
         if !matches!((&l, &r), (Operand::Field(_), _) | (_, Operand::Field(_))) {
@@ -316,9 +461,9 @@ impl Parser<'_> {
 
 impl Filter {
     /// Compiles `expression` against the structure `ty`.
-    pub fn compile(expression: &str, ty: Arc<StructDef>) -> Result<Filter, String> {
+    pub fn compile(expression: &str, ty: Arc<StructDef>) -> Result<Filter, FilterError> {
         if expression.len() > MAX_EXPRESSION {
-            return Err(format!("expression longer than {MAX_EXPRESSION} octets"));
+            return Err(FilterError::TooLong);
         }
         let toks = tokenize(expression)?;
         let mut p = Parser {
@@ -328,10 +473,11 @@ impl Filter {
             paths: Vec::new(),
             types: Vec::new(),
             depth: 0,
+            clauses: 0,
         };
         let root = p.or()?;
-        if p.pos != toks.len() {
-            return Err(format!("unexpected {:?}", toks[p.pos]));
+        if let Some(t) = toks.get(p.pos) {
+            return Err(format!("unexpected {t:?}").into());
         }
         Ok(Filter {
             ty,
@@ -346,11 +492,38 @@ impl Filter {
         &self.text
     }
 
-    /// Whether a sample passes; a sample that cannot be walked does not.
+    /// Whether a sample passes within one evaluation's budget ([`EVAL_BUDGET`]); a sample
+    /// that cannot be walked, or needs more steps, does not.
     pub fn matches(&self, body: &[u8], le: bool, xcdr2: bool) -> bool {
-        match read_fields(&self.ty, &self.paths, body, le, xcdr2) {
-            Ok(values) => eval(&self.root, &values),
-            Err(_) => false,
+        self.evaluate(body, le, xcdr2, &mut Steps::new(EVAL_BUDGET)) == Verdict::Match
+    }
+
+    /// Evaluates the filter on a sample, spending from `steps` (see the module's "Bounds"):
+    /// [`Verdict::OverBudget`] as soon as they run out, whatever is left to do.
+    pub fn evaluate(&self, body: &[u8], le: bool, xcdr2: bool, steps: &mut Steps) -> Verdict {
+        let limit = usize::try_from(steps.left()).unwrap_or(usize::MAX);
+        let values = match read_fields_within(&self.ty, &self.paths, body, le, xcdr2, limit) {
+            Ok((values, walked)) => {
+                if steps.spend(walked as u64).is_err() {
+                    return Verdict::OverBudget;
+                }
+                values
+            }
+            // The walk stopped at the budget (or at its own bound, which is larger than any
+            // budget a caller has).
+            Err(WalkError::TooComplex) => {
+                let _ = steps.spend(steps.left().saturating_add(1));
+                return Verdict::OverBudget;
+            }
+            Err(_) => {
+                let _ = steps.spend(1);
+                return Verdict::NoMatch;
+            }
+        };
+        match eval(&self.root, &values, steps) {
+            Ok(true) => Verdict::Match,
+            Ok(false) => Verdict::NoMatch,
+            Err(OverBudget) => Verdict::OverBudget,
         }
     }
 }
@@ -362,21 +535,32 @@ fn value_of<'v>(o: &'v Operand, values: &'v [Option<Value>]) -> Option<&'v Value
     }
 }
 
-fn eval(c: &Cond, values: &[Option<Value>]) -> bool {
-    match c {
-        Cond::And(a, b) => eval(a, values) && eval(b, values),
-        Cond::Or(a, b) => eval(a, values) || eval(b, values),
-        Cond::Not(a) => !eval(a, values),
+/// Steps a comparison of `a` and `b` costs: one, and the octets of the shorter string.
+fn compare_cost(a: &Value, b: &Value) -> u64 {
+    let len = |v: &Value| match v {
+        Value::Str(s) | Value::Enum(_, s) => s.len(),
+        _ => 0,
+    };
+    1 + (len(a).min(len(b)) / STRING_OCTETS_PER_STEP) as u64
+}
+
+fn eval(c: &Cond, values: &[Option<Value>], steps: &mut Steps) -> Result<bool, OverBudget> {
+    steps.spend(1)?;
+    Ok(match c {
+        Cond::And(a, b) => eval(a, values, steps)? && eval(b, values, steps)?,
+        Cond::Or(a, b) => eval(a, values, steps)? || eval(b, values, steps)?,
+        Cond::Not(a) => !eval(a, values, steps)?,
         Cond::Cmp(l, op, r) => {
             let (Some(l), Some(r)) = (value_of(l, values), value_of(r, values)) else {
-                return false;
+                return Ok(false);
             };
             if *op == Op::Like {
                 return match (l, r) {
-                    (Value::Str(s), Value::Str(p)) => like(s.as_bytes(), p.as_bytes()),
-                    _ => false,
+                    (Value::Str(s), Value::Str(p)) => like(s.as_bytes(), p.as_bytes(), steps),
+                    _ => Ok(false),
                 };
             }
+            steps.spend(compare_cost(l, r))?;
             match compare(l, r) {
                 Some(o) => match op {
                     Op::Eq => o.is_eq(),
@@ -396,13 +580,14 @@ fn eval(c: &Cond, values: &[Option<Value>]) -> bool {
                 value_of(lo, values),
                 value_of(hi, values),
             ) else {
-                return false;
+                return Ok(false);
             };
+            steps.spend(compare_cost(v, lo) + compare_cost(v, hi))?;
             let inside = compare(v, lo).is_some_and(|o| o.is_ge())
                 && compare(v, hi).is_some_and(|o| o.is_le());
             inside != *negated
         }
-    }
+    })
 }
 
 fn compare(a: &Value, b: &Value) -> Option<std::cmp::Ordering> {
@@ -425,20 +610,21 @@ fn compare(a: &Value, b: &Value) -> Option<std::cmp::Ordering> {
     }
 }
 
-/// Most steps one LIKE may take: the greedy matcher is O(|s|·|p|), and a client can send a
-/// long pattern against a long string; beyond this the sample does not match.
-const LIKE_MAX_STEPS: usize = 1 << 20;
-
-/// SQL LIKE: `%` any run, `_` any one character (iterative, bounded).
-fn like(s: &[u8], p: &[u8]) -> bool {
+/// SQL LIKE: `%` any run, `_` any one character (iterative). The greedy matcher is
+/// O(|s|·|p|) and a client chooses the pattern and may choose the string: every iteration
+/// is a step of the evaluation's budget.
+fn like(s: &[u8], p: &[u8], steps: &mut Steps) -> Result<bool, OverBudget> {
     let (mut si, mut pi) = (0, 0);
     let mut star: Option<(usize, usize)> = None;
-    let mut steps = 0usize;
+    // Spent in rounds rather than per iteration (the loop is a few instructions).
+    const ROUND: u64 = 64;
+    let mut round = 0;
     while si < s.len() {
-        steps += 1;
-        if steps > LIKE_MAX_STEPS {
-            return false;
+        if round == 0 {
+            steps.spend(ROUND)?;
+            round = ROUND;
         }
+        round -= 1;
         if pi < p.len() && p[pi] == b'%' {
             star = Some((pi, si));
             pi += 1;
@@ -450,10 +636,11 @@ fn like(s: &[u8], p: &[u8]) -> bool {
             si = ss + 1;
             star = Some((sp, ss + 1));
         } else {
-            return false;
+            return Ok(false);
         }
     }
-    p[pi..].iter().all(|&c| c == b'%')
+    steps.spend(1 + (p.len().saturating_sub(pi) / STRING_OCTETS_PER_STEP) as u64)?;
+    Ok(p[pi..].iter().all(|&c| c == b'%'))
 }
 
 #[cfg(test)]
@@ -492,6 +679,11 @@ mod tests {
         b.extend(color.to_le_bytes());
         b.push(ok as u8);
         b
+    }
+
+    /// LIKE with a whole evaluation's budget.
+    fn like_ok(s: &[u8], p: &[u8]) -> bool {
+        like(s, p, &mut Steps::new(EVAL_BUDGET)) == Ok(true)
     }
 
     fn check(expr: &str, s: &[u8]) -> bool {
@@ -551,17 +743,184 @@ mod tests {
 
     #[test]
     fn like_patterns() {
-        assert!(like(b"", b"%"));
-        assert!(like(b"abc", b"a%c"));
-        assert!(!like(b"abc", b"a%d"));
-        assert!(like(b"aaa", b"%a%a%a%"));
-        assert!(!like(&[b'a'; 40], b"%a%a%a%a%a%a%b"));
-        assert!(like(b"%x", b"%"), "a literal % in the string");
-        assert!(like(b"a%c", b"a%c"));
+        assert!(like_ok(b"", b"%"));
+        assert!(like_ok(b"abc", b"a%c"));
+        assert!(!like_ok(b"abc", b"a%d"));
+        assert!(like_ok(b"aaa", b"%a%a%a%"));
+        assert!(!like_ok(&[b'a'; 40], b"%a%a%a%a%a%a%b"));
+        assert!(like_ok(b"%x", b"%"), "a literal % in the string");
+        assert!(like_ok(b"a%c", b"a%c"));
         let long = vec![b'a'; 1 << 20];
-        assert!(!like(
-            &long,
-            &[b"%".as_slice(), &[b'a'; 2000], b"b"].concat()
+        let mut steps = Steps::new(EVAL_BUDGET);
+        assert_eq!(
+            like(
+                &long,
+                &[b"%".as_slice(), &[b'a'; 2000], b"b"].concat(),
+                &mut steps
+            ),
+            Err(OverBudget),
+            "a quadratic match stops at the budget"
+        );
+        assert_eq!(steps.left(), 0);
+    }
+
+    /// The worst filters a client can build within the caps, each with the sample that
+    /// makes it work hardest: (what, expression, type XML, type name, sample, verdict).
+    type Case = (&'static str, String, String, &'static str, Vec<u8>, Verdict);
+
+    fn worst_cases() -> Vec<Case> {
+        let cdr_string = |b: &mut Vec<u8>, s: &str| {
+            while b.len() % 4 != 0 {
+                b.push(0);
+            }
+            b.extend((s.len() as u32 + 1).to_le_bytes());
+            b.extend(s.as_bytes());
+            b.push(0);
+        };
+        let mut out = Vec::new();
+        // 1. LIKE: quadratic patterns against a long string, as many clauses as allowed
+        //    (the first one spends the whole budget).
+        let named = r#"<types><struct name="N"><member name="id" type="int32"/>
+            <member name="name" type="string"/></struct></types>"#;
+        let pattern = format!("%{}b", "a".repeat(100));
+        let like_all = vec![format!("name LIKE '{pattern}'"); MAX_CLAUSES].join(" OR ");
+        assert!(like_all.len() <= MAX_EXPRESSION);
+        let mut sample = 1i32.to_le_bytes().to_vec();
+        cdr_string(&mut sample, &"a".repeat(60_000));
+        out.push((
+            "LIKE",
+            like_all,
+            named.to_string(),
+            "N",
+            sample,
+            Verdict::OverBudget,
         ));
+        // 2. The walk: a field behind a long sequence of elements to skip, each a struct
+        //    (empty, of one octet, of one string).
+        for (what, elem, per) in [
+            ("walk (empty structs)", r#"<struct name="E"/>"#, 0usize),
+            (
+                "walk (one-octet structs)",
+                r#"<struct name="E"><member name="x" type="int8"/></struct>"#,
+                1,
+            ),
+            (
+                "walk (one-string structs)",
+                r#"<struct name="E"><member name="s" type="string"/></struct>"#,
+                5,
+            ),
+        ] {
+            let xml = format!(
+                r#"<types>{elem}<struct name="W"><member name="items" type="nonBasic"
+                   nonBasicTypeName="E" sequenceMaxLength="-1"/>
+                   <member name="id" type="int32"/></struct></types>"#
+            );
+            let n = 200_000u32;
+            let mut sample = n.to_le_bytes().to_vec();
+            for _ in 0..n {
+                match per {
+                    0 => {}
+                    1 => sample.push(7),
+                    _ => cdr_string(&mut sample, ""),
+                }
+            }
+            while sample.len() % 4 != 0 {
+                sample.push(0);
+            }
+            sample.extend(1i32.to_le_bytes());
+            let filter = vec!["id = 1"; MAX_CLAUSES].join(" AND ");
+            out.push((what, filter, xml, "W", sample, Verdict::OverBudget));
+        }
+        // 3. Condition nodes: the longest chains of NOT the expression allows around
+        //    cheap comparisons (the nesting cap is per chain).
+        let chain = |i: usize| format!("{}id <> {}", "NOT ".repeat(30), 1000 + i);
+        let nodes = (0..MAX_CLAUSES)
+            .map(chain)
+            .take_while({
+                let mut len = 0;
+                move |c| {
+                    len += c.len() + 4;
+                    len <= MAX_EXPRESSION
+                }
+            })
+            .collect::<Vec<_>>()
+            .join(" AND ");
+        let mut sample = 1i32.to_le_bytes().to_vec();
+        cdr_string(&mut sample, "x");
+        out.push((
+            "nodes",
+            nodes,
+            named.to_string(),
+            "N",
+            sample,
+            Verdict::Match,
+        ));
+        // 4. Fields: 32 comparisons of 64 long string fields with each other.
+        let members: String = (0..2 * MAX_CLAUSES)
+            .map(|i| format!(r#"<member name="s{i}" type="string"/>"#))
+            .collect();
+        let xml = format!(r#"<types><struct name="F">{members}</struct></types>"#);
+        let filter = (0..MAX_CLAUSES)
+            .map(|i| format!("s{} = s{}", 2 * i, 2 * i + 1))
+            .collect::<Vec<_>>()
+            .join(" AND ");
+        let mut sample = Vec::new();
+        let long = "q".repeat(1_000);
+        for _ in 0..2 * MAX_CLAUSES {
+            cdr_string(&mut sample, &long);
+        }
+        out.push(("fields", filter, xml, "F", sample, Verdict::Match));
+        out
+    }
+
+    /// Each worst case stays within one evaluation's budget and has the outcome the module
+    /// documents (out of budget: not matching). Run it in release mode with `--nocapture`
+    /// for the times (printed, not asserted): the worst evaluation, the worst reader's
+    /// share of a pass, and the worst pass.
+    #[test]
+    fn the_worst_filters_within_the_caps_stay_within_their_budgets() {
+        let mut worst = std::time::Duration::ZERO;
+        for (what, expression, xml, name, sample, expected) in worst_cases() {
+            let ty = TypeSet::parse(&xml)
+                .expect("type")
+                .get(name)
+                .expect("struct");
+            let f = Filter::compile(&expression, ty).expect("within the caps");
+            let mut steps = Steps::new(EVAL_BUDGET);
+            assert_eq!(
+                f.evaluate(&sample, true, false, &mut steps),
+                expected,
+                "{what}"
+            );
+            assert!(steps.spent() <= EVAL_BUDGET, "{what}: {}", steps.spent());
+            if expected == Verdict::OverBudget {
+                assert_eq!(steps.left(), 0, "{what}");
+            }
+            // Timed: as many evaluations as a pass allows (each at least one step).
+            let evaluations = (PASS_BUDGET / steps.spent().max(1)).clamp(1, 4096);
+            let start = std::time::Instant::now();
+            for _ in 0..evaluations {
+                let mut steps = Steps::new(EVAL_BUDGET);
+                let _ = f.evaluate(&sample, true, false, &mut steps);
+            }
+            let each = start.elapsed() / evaluations as u32;
+            worst = worst.max(each);
+            eprintln!(
+                "filter worst case {what:28}: {:6} steps, {:8.1} µs per evaluation \
+                 ({:.0} ns per step)",
+                steps.spent(),
+                each.as_secs_f64() * 1e6,
+                each.as_secs_f64() * 1e9 / steps.spent().max(1) as f64
+            );
+        }
+        let reader = worst * (READER_PASS_BUDGET / EVAL_BUDGET) as u32;
+        let pass = worst * (PASS_BUDGET / EVAL_BUDGET) as u32;
+        eprintln!(
+            "filter bounds: worst evaluation {:.2} ms, a reader's share of a pass {:.1} ms, \
+             a pass {:.1} ms (evaluations alone)",
+            worst.as_secs_f64() * 1e3,
+            reader.as_secs_f64() * 1e3,
+            pass.as_secs_f64() * 1e3
+        );
     }
 }

@@ -49,6 +49,16 @@
 //! Durations accept `<sec>` and `<nanosec>`, `DURATION_INFINITY` (and its `DURATION_INFINITE_*`
 //! spellings), and values beyond 2³¹ s as infinite; a malformed value refuses the CREATE
 //! with `STATUS_ERR_INVALID_DATA` naming the element.
+//!
+//! # Bounds against hostile clients
+//!
+//! What a client can make the worker hold or do is bounded (issue 29): DDS domains
+//! ([`domains`]: `--domains`, `--max-domains`, 8 distinct domains at once by default, a
+//! domain's DDS participants released with its last XRCE participant), content filters
+//! ([`filter`]: clauses per filter, steps per evaluation, per reader and per pass of the
+//! loop), and `--dds-interface`, which fails closed ([`backend::confine`]). Refusals are
+//! counted by reason in the worker's `dropped` counters (`xrce_dropped_total` in
+//! `/metrics`) and logged once per episode ([`episodes`]).
 #![deny(unsafe_code)] // the exceptions: backend::cyclone::ffi (feature `cyclone`), and one function of backend::confine
 
 pub mod acks;
@@ -56,6 +66,8 @@ pub mod adoption;
 pub mod backend;
 pub mod binary;
 pub mod cli;
+pub mod domains;
+pub mod episodes;
 pub mod filter;
 pub mod fuzzing;
 pub mod recent;

@@ -94,6 +94,14 @@ impl RosGraph {
         self.writers.contains_key(&domain)
     }
 
+    /// Drops `domain`'s graph writer and publisher (its last XRCE participant went, and the
+    /// domain's DDS participant is released with them: ROS tools forget the nodes of a
+    /// participant that left). A node in the domain later makes a new writer.
+    pub fn forget(&mut self, domain: u16) {
+        self.writers.remove(&domain);
+        self.dirty.remove(&domain);
+    }
+
     /// When the next update is due, if one is pending.
     pub fn deadline(&self) -> Option<Instant> {
         self.next_at

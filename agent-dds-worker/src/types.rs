@@ -39,6 +39,8 @@ const MAX_ARRAY_DIMENSIONS: usize = 8;
 const MAX_TYPE_WORK: usize = 1 << 16;
 /// Most elements a single walk visits (bounds the work one sample can cause).
 const MAX_STEPS: usize = 1 << 20;
+/// String octets copied (or compared, by content filters) per step of a walk's work.
+pub const STRING_OCTETS_PER_STEP: usize = 16;
 
 /// A primitive type.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -629,6 +631,8 @@ pub struct Cursor<'a> {
     le: bool,
     xcdr2: bool,
     steps: usize,
+    /// Most steps the walk may take ([`MAX_STEPS`] unless a caller gave less).
+    limit: usize,
 }
 
 impl<'a> Cursor<'a> {
@@ -641,7 +645,23 @@ impl<'a> Cursor<'a> {
             le,
             xcdr2,
             steps: 0,
+            limit: MAX_STEPS,
         }
+    }
+
+    /// Steps taken so far (elements visited, and string octets copied at one step per
+    /// [`STRING_OCTETS_PER_STEP`]).
+    pub fn steps(&self) -> usize {
+        self.steps
+    }
+
+    /// Counts `n` steps of work at once; `TooComplex` beyond the limit.
+    fn charge(&mut self, n: usize) -> Result<(), WalkError> {
+        self.steps = self.steps.saturating_add(n);
+        if self.steps > self.limit {
+            return Err(WalkError::TooComplex);
+        }
+        Ok(())
     }
 
     /// Octets consumed so far.
@@ -663,11 +683,7 @@ impl<'a> Cursor<'a> {
     }
 
     fn step(&mut self) -> Result<(), WalkError> {
-        self.steps += 1;
-        if self.steps > MAX_STEPS {
-            return Err(WalkError::TooComplex);
-        }
-        Ok(())
+        self.charge(1)
     }
 
     fn prim(&mut self, p: Prim) -> Result<&'a [u8], WalkError> {
@@ -778,7 +794,10 @@ impl<'a> Cursor<'a> {
                 }
             }
             Ty::Str { bound, wide: false } => {
-                Value::Str(String::from_utf8_lossy(self.string(*bound, false)?).into_owned())
+                let octets = self.string(*bound, false)?;
+                // Charged before the copy, which is the work.
+                self.charge(octets.len() / STRING_OCTETS_PER_STEP)?;
+                Value::Str(String::from_utf8_lossy(octets).into_owned())
             }
             Ty::Enum(e) => {
                 let v = i64::from(self.u32()? as i32);
@@ -1155,11 +1174,49 @@ pub fn read_fields(
     le: bool,
     xcdr2: bool,
 ) -> Result<Vec<Option<Value>>, WalkError> {
+    read_fields_within(ty, paths, body, le, xcdr2, MAX_STEPS).map(|(v, _)| v)
+}
+
+/// [`read_fields`] in at most `max_steps` steps of work (elements visited, string octets
+/// copied; never more than the walk's own bound): the values and the steps taken, or
+/// `TooComplex` when the sample needs more. Content filters walk samples within their
+/// evaluation budget with it.
+pub fn read_fields_within(
+    ty: &Arc<StructDef>,
+    paths: &[Vec<Seg>],
+    body: &[u8],
+    le: bool,
+    xcdr2: bool,
+    max_steps: usize,
+) -> Result<(Vec<Option<Value>>, usize), WalkError> {
     let mut out = vec![None; paths.len()];
     let wanted: Vec<(usize, &[Seg])> = paths.iter().enumerate().map(|(i, p)| (i, &p[..])).collect();
     let mut c = Cursor::new(body, 0, le, xcdr2);
+    c.limit = max_steps.min(MAX_STEPS);
     read_into(&Ty::Struct(ty.clone()), &mut c, &wanted, &mut out)?;
-    Ok(out)
+    Ok((out, c.steps))
+}
+
+/// A wanted field: its index among the filter's paths, and the rest of its path.
+type Wanted<'p> = (usize, &'p [Seg]);
+
+/// The wanted paths that go on through member or element `index` of the value at hand,
+/// grouped by that index, in increasing order (each path looked at once, however many
+/// members or elements the value has).
+fn by_index<'p>(wanted: &[Wanted<'p>], member: bool) -> Vec<(usize, Vec<Wanted<'p>>)> {
+    let mut groups: Vec<(usize, Vec<Wanted<'p>>)> = Vec::new();
+    for (j, p) in wanted {
+        let index = match (p.first(), member) {
+            (Some(Seg::Member(k)), true) | (Some(Seg::Index(k)), false) => *k,
+            _ => continue,
+        };
+        match groups.iter_mut().find(|(k, _)| *k == index) {
+            Some((_, g)) => g.push((*j, &p[1..])),
+            None => groups.push((index, vec![(*j, &p[1..])])),
+        }
+    }
+    groups.sort_by_key(|(k, _)| *k);
+    groups
 }
 
 fn read_into(
@@ -1180,35 +1237,50 @@ fn read_into(
         }
         return Ok(());
     }
-    let sub = |seg: Seg| -> Vec<(usize, &[Seg])> {
-        wanted
-            .iter()
-            .filter(|(_, p)| p.first() == Some(&seg))
-            .map(|(i, p)| (*i, &p[1..]))
-            .collect()
-    };
     match ty {
         Ty::Struct(s) => {
+            let groups = by_index(wanted, true);
+            let mut next = groups.iter().peekable();
             for (k, m) in s.members.iter().enumerate() {
-                read_into(&m.ty, c, &sub(Seg::Member(k)), out)?;
+                match next.next_if(|(i, _)| *i == k) {
+                    Some((_, w)) => read_into(&m.ty, c, w, out)?,
+                    None => c.skip(&m.ty)?,
+                }
             }
         }
         Ty::Array(t, n) => {
             c.collection_header(t)?;
-            for k in 0..*n as usize {
-                read_into(t, c, &sub(Seg::Index(k)), out)?;
-            }
+            read_elements(t, *n as usize, c, wanted, out)?;
         }
         Ty::Seq(t, bound) => {
             c.collection_header(t)?;
             let n = c.count(*bound)?;
-            for k in 0..n {
-                read_into(t, c, &sub(Seg::Index(k)), out)?;
-            }
+            read_elements(t, n, c, wanted, out)?;
         }
         other => c.skip(other)?,
     }
     Ok(())
+}
+
+/// The `n` elements of an array or sequence: the wanted ones read, the runs between them
+/// skipped (a run of primitives in one step).
+fn read_elements(
+    t: &Ty,
+    n: usize,
+    c: &mut Cursor<'_>,
+    wanted: &[(usize, &[Seg])],
+    out: &mut [Option<Value>],
+) -> Result<(), WalkError> {
+    let mut at = 0;
+    for (k, w) in by_index(wanted, false) {
+        if k >= n {
+            break;
+        }
+        c.skip_n(t, k - at)?;
+        read_into(t, c, &w, out)?;
+        at = k + 1;
+    }
+    c.skip_n(t, n - at)
 }
 
 #[cfg(test)]

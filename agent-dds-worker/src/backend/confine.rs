@@ -19,6 +19,15 @@
 //! participant, or by someone else). An unspecified address among the configured ones means
 //! every interface: nothing is confined then.
 //!
+//! It fails closed. At start, [`check`] decides whether the configured addresses can be
+//! confined to at all: each must be held by an interface of this host (an address nothing
+//! holds leaves DDS nothing to listen on, and no interface whose multicast to take), there
+//! must be few enough for one filter program ([`MAX_NAMED`]), the kernel must take a socket
+//! filter (a probe socket, never bound), and the process must be able to list its
+//! descriptors; if not, the worker refuses to start, saying why ([`ConfineError`]). Later,
+//! a participant whose sockets cannot all be confined is deleted and its creation fails
+//! (the client gets `STATUS_ERR_DDS_ERROR`): DDS never runs wider than it was told.
+//!
 //! Limits: datagrams a socket queued between the library's bind and the filter (a few
 //! milliseconds at participant creation) are not filtered; multicast is accepted through the
 //! interfaces that held a configured address when the filter was attached (an interface
@@ -33,6 +42,131 @@ use std::net::{IpAddr, SocketAddr};
 use std::os::fd::{BorrowedFd, RawFd};
 
 use socket2::{SockFilter, SockRef, Type};
+
+/// Why DDS cannot be confined to the configured addresses (the worker refuses to start, or a
+/// participant is refused, rather than let DDS listen wider than it was told).
+#[derive(Debug, thiserror::Error)]
+pub enum ConfineError {
+    /// No interface of this host holds the address.
+    #[error(
+        "--dds-interface {0}: no interface of this host has this address (is the interface \
+         up and configured?)"
+    )]
+    NotLocal(IpAddr),
+    /// More addresses than one filter program can name.
+    #[error("at most {MAX_NAMED} DDS interface addresses can be confined to ({0} given)")]
+    TooManyAddresses(usize),
+    /// The addresses are on more interfaces than one filter program can name.
+    #[error(
+        "the DDS interface addresses are on {0} interfaces, more than the {MAX_NAMED} one \
+         socket filter can name"
+    )]
+    TooManyInterfaces(usize),
+    /// The filter program could not be assembled (a fault of this module).
+    #[error("the socket filter program could not be assembled: {0}")]
+    Program(&'static str),
+    /// The interfaces of this host could not be listed.
+    #[error("the interfaces of this host could not be listed: {0}")]
+    Interfaces(std::io::Error),
+    /// The kernel refused a socket filter on a probe socket.
+    #[error("a socket filter (SO_ATTACH_FILTER) cannot be attached here: {0}")]
+    FiltersUnavailable(std::io::Error),
+    /// `/proc/self/fd` could not be read.
+    #[error("this process's descriptors cannot be listed (/proc/self/fd): {0}")]
+    Descriptors(std::io::Error),
+    /// Some sockets could not be confined.
+    #[error("{confined} DDS sockets confined, failed for {failed}")]
+    Sockets {
+        /// Sockets confined.
+        confined: usize,
+        /// Which failed, and why.
+        failed: String,
+    },
+}
+
+/// What the configured addresses ask for.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Plan {
+    /// No address, or an unspecified one: DDS on every interface, nothing to confine.
+    Everywhere,
+    /// Wildcard sockets get the filter of these addresses (canonical: an IPv4-mapped IPv6
+    /// address is its IPv4 address) and of the interfaces (indices) that hold them.
+    Confined {
+        /// The configured addresses.
+        addresses: Vec<IpAddr>,
+        /// The indices of the interfaces holding them.
+        interfaces: Vec<u32>,
+        /// The filter.
+        program: Program,
+    },
+}
+
+/// The decision, from the configured addresses and this host's (address, interface index)
+/// pairs: every address must be held by an interface, and the filter must fit.
+pub fn plan(addresses: &[IpAddr], host: &[(IpAddr, u32)]) -> Result<Plan, ConfineError> {
+    // An IPv4-mapped IPv6 address is the IPv4 address (interfaces, the unspecified check).
+    let addresses: Vec<IpAddr> = addresses.iter().map(IpAddr::to_canonical).collect();
+    if addresses.is_empty() || addresses.iter().any(IpAddr::is_unspecified) {
+        return Ok(Plan::Everywhere);
+    }
+    let mut interfaces = Vec::new();
+    for a in &addresses {
+        let mut held = false;
+        for (ip, index) in host {
+            if ip.to_canonical() == *a {
+                held = true;
+                if !interfaces.contains(index) {
+                    interfaces.push(*index);
+                }
+            }
+        }
+        if !held {
+            return Err(ConfineError::NotLocal(*a));
+        }
+    }
+    let program = Program::allowing(&addresses, &interfaces)?;
+    Ok(Plan::Confined {
+        addresses,
+        interfaces,
+        program,
+    })
+}
+
+/// The addresses of this host's interfaces, with the interface indices.
+pub fn host_interfaces() -> Result<Vec<(IpAddr, u32)>, ConfineError> {
+    let ifaddrs = nix::ifaddrs::getifaddrs()
+        .map_err(|e| ConfineError::Interfaces(std::io::Error::from(e)))?;
+    let mut out = Vec::new();
+    for ifa in ifaddrs {
+        let ip = ifa.address.as_ref().and_then(|a| {
+            a.as_sockaddr_in()
+                .map(|s| IpAddr::V4(s.ip()))
+                .or_else(|| a.as_sockaddr_in6().map(|s| IpAddr::V6(s.ip())))
+        });
+        let Some(ip) = ip else { continue };
+        if let Ok(index) = nix::net::if_::if_nametoindex(ifa.interface_name.as_str()) {
+            out.push((ip, index));
+        }
+    }
+    Ok(out)
+}
+
+/// Whether DDS can be confined to `addresses` on this host, checked before the worker
+/// serves (it refuses to start otherwise): the plan ([`plan`]), a probe socket that takes
+/// the filter, and a readable `/proc/self/fd`.
+pub fn check(addresses: &[IpAddr]) -> Result<Plan, ConfineError> {
+    let plan = plan(addresses, &host_interfaces()?)?;
+    if let Plan::Confined { program, .. } = &plan {
+        let probe = socket2::Socket::new(socket2::Domain::IPV4, Type::DGRAM, None)
+            .or_else(|_| socket2::Socket::new(socket2::Domain::IPV6, Type::DGRAM, None))
+            .map_err(ConfineError::FiltersUnavailable)?;
+        probe
+            .attach_filter(&program.to_socket2())
+            .map_err(ConfineError::FiltersUnavailable)?;
+        std::fs::read_dir("/proc/self/fd").map_err(ConfineError::Descriptors)?;
+    }
+    Ok(plan)
+}
 
 /// Classic BPF: the instruction classes, sizes, modes and operations the program uses
 /// (`linux/bpf_common.h`).
@@ -116,20 +250,26 @@ impl Assembler {
         self.insns
             .push((op::JMP | op::JA, To::Next, To::Next, to as u32 | 1 << 31));
     }
-    fn finish(self) -> Result<Program, String> {
-        let at = |i: usize, to: To| -> Result<u32, String> {
+    fn finish(self) -> Result<Program, ConfineError> {
+        let at = |i: usize, to: To| -> Result<u32, ConfineError> {
             let target = match to {
                 To::Next => return Ok(0),
-                To::Label(l) => self.labels[l].ok_or("an unplaced label")?,
+                To::Label(l) => self
+                    .labels
+                    .get(l)
+                    .copied()
+                    .flatten()
+                    .ok_or(ConfineError::Program("an unplaced label"))?,
             };
             target
                 .checked_sub(i + 1)
                 .map(|d| d as u32)
-                .ok_or_else(|| "a backward jump".to_string())
+                .ok_or(ConfineError::Program("a backward jump"))
         };
         let mut out = Vec::with_capacity(self.insns.len());
         for (i, &(code, jt, jf, k)) in self.insns.iter().enumerate() {
-            let short = |d: u32| u8::try_from(d).map_err(|_| "a jump too far".to_string());
+            let short =
+                |d: u32| u8::try_from(d).map_err(|_| ConfineError::Program("a jump too far"));
             let (jt, jf, k) = if code == op::JMP | op::JA && k & 1 << 31 != 0 {
                 // An unconditional jump to a label (marked in `k` while assembling).
                 (0, 0, at(i, To::Label((k & !(1 << 31)) as usize))?)
@@ -147,16 +287,12 @@ impl Program {
     /// group through one of the interfaces `interfaces` (their indices), and drops the rest.
     /// The same program serves IPv4 sockets and IPv6 ones (which may take IPv4 datagrams
     /// too): it looks at the IP version first.
-    pub fn allowing(addresses: &[IpAddr], interfaces: &[u32]) -> Result<Program, String> {
+    pub fn allowing(addresses: &[IpAddr], interfaces: &[u32]) -> Result<Program, ConfineError> {
         if addresses.len() > MAX_NAMED {
-            return Err(format!(
-                "at most {MAX_NAMED} DDS interface addresses can be confined to"
-            ));
+            return Err(ConfineError::TooManyAddresses(addresses.len()));
         }
         if interfaces.len() > MAX_NAMED {
-            return Err(format!(
-                "the DDS interface addresses are on more than {MAX_NAMED} interfaces"
-            ));
+            return Err(ConfineError::TooManyInterfaces(interfaces.len()));
         }
         let mut a = Assembler::default();
         let (v6, multicast, drop, accept) = (a.label(), a.label(), a.label(), a.label());
@@ -220,49 +356,17 @@ impl Program {
     }
 }
 
-/// The indices of the interfaces that hold `addresses`.
-pub fn interface_indices(addresses: &[IpAddr]) -> Vec<u32> {
-    let mut out = Vec::new();
-    let Ok(ifaddrs) = nix::ifaddrs::getifaddrs() else {
-        return out;
-    };
-    for ifa in ifaddrs {
-        let ip = ifa.address.as_ref().and_then(|a| {
-            a.as_sockaddr_in()
-                .map(|s| IpAddr::V4(s.ip()))
-                .or_else(|| a.as_sockaddr_in6().map(|s| IpAddr::V6(s.ip())))
-        });
-        if ip.is_some_and(|ip| addresses.contains(&ip)) {
-            if let Ok(index) = nix::net::if_::if_nametoindex(ifa.interface_name.as_str()) {
-                if !out.contains(&index) {
-                    out.push(index);
-                }
-            }
-        }
-    }
-    out
-}
-
 /// Attaches the filter of `addresses` to every UDP socket of this process bound to a
 /// wildcard address; returns how many it confined. Does nothing without addresses (DDS on
 /// every interface). Call it from the thread that creates and deletes the DDS participants,
-/// right after creating one (see [`with_socket`] for why).
-pub fn confine_udp_sockets(addresses: &[IpAddr]) -> Result<usize, String> {
-    // An IPv4-mapped IPv6 address is the IPv4 address (interfaces, the unspecified check).
-    let canonical: Vec<IpAddr> = addresses.iter().map(IpAddr::to_canonical).collect();
-    let addresses = &canonical[..];
-    if addresses.is_empty() || addresses.iter().any(IpAddr::is_unspecified) {
-        return Ok(0);
-    }
-    let interfaces = interface_indices(addresses);
-    if interfaces.is_empty() {
-        tracing::warn!(
-            ?addresses,
-            "no interface holds the DDS interface addresses: DDS takes no multicast (SPDP)"
-        );
-    }
-    let program = Program::allowing(addresses, &interfaces)?.to_socket2();
-    let dir = std::fs::read_dir("/proc/self/fd").map_err(|e| format!("/proc/self/fd: {e}"))?;
+/// right after creating one (see `sys::with_socket` for why); on an error, delete that
+/// participant (its sockets may listen unconfined).
+pub fn confine_udp_sockets(addresses: &[IpAddr]) -> Result<usize, ConfineError> {
+    let program = match plan(addresses, &host_interfaces()?)? {
+        Plan::Everywhere => return Ok(0),
+        Plan::Confined { program, .. } => program.to_socket2(),
+    };
+    let dir = std::fs::read_dir("/proc/self/fd").map_err(ConfineError::Descriptors)?;
     let mut confined = 0;
     let mut failures = Vec::new();
     for entry in dir.flatten() {
@@ -293,10 +397,10 @@ pub fn confine_udp_sockets(addresses: &[IpAddr]) -> Result<usize, String> {
     if failures.is_empty() {
         Ok(confined)
     } else {
-        Err(format!(
-            "{confined} confined, failed for {}",
-            failures.join(", ")
-        ))
+        Err(ConfineError::Sockets {
+            confined,
+            failed: failures.join(", "),
+        })
     }
 }
 
@@ -497,15 +601,100 @@ mod tests {
 
     #[test]
     fn an_unspecified_address_means_every_interface() {
-        assert_eq!(
+        assert!(matches!(
             confine_udp_sockets(&[IpAddr::V4(Ipv4Addr::UNSPECIFIED)]),
             Ok(0)
-        );
-        assert_eq!(confine_udp_sockets(&[]), Ok(0));
-        assert_eq!(
+        ));
+        assert!(matches!(confine_udp_sockets(&[]), Ok(0)));
+        assert!(matches!(
             confine_udp_sockets(&["::ffff:0.0.0.0".parse().expect("an address")]),
             Ok(0)
+        ));
+        assert!(matches!(plan(&[], &[]), Ok(Plan::Everywhere)));
+    }
+
+    fn ip(a: &str) -> IpAddr {
+        a.parse().expect("an address")
+    }
+
+    /// The decision: an address no interface of the host holds cannot be confined to, and
+    /// is refused (the worker does not start) rather than run DDS unconfined.
+    #[test]
+    fn addresses_the_host_does_not_hold_are_refused_and_held_ones_planned() {
+        let host = [
+            (ip("127.0.0.1"), LO),
+            (ip("::1"), LO),
+            (ip("192.168.1.10"), ETH),
+            (ip("fe80::1"), ETH),
+        ];
+        match plan(&[ip("192.168.1.10"), ip("::1")], &host) {
+            Ok(Plan::Confined {
+                addresses,
+                interfaces,
+                ..
+            }) => {
+                assert_eq!(addresses, vec![ip("192.168.1.10"), ip("::1")]);
+                assert_eq!(interfaces, vec![ETH, LO]);
+            }
+            other => panic!("expected a confinement, got {other:?}"),
+        }
+        match plan(&[ip("::ffff:127.0.0.1")], &host) {
+            Ok(Plan::Confined { addresses, .. }) => assert_eq!(addresses, vec![ip("127.0.0.1")]),
+            other => panic!("expected a confinement, got {other:?}"),
+        }
+        let refused = plan(&[ip("192.168.1.10"), ip("198.51.100.77")], &host);
+        assert!(
+            matches!(refused, Err(ConfineError::NotLocal(a)) if a == ip("198.51.100.77")),
+            "{refused:?}"
         );
+        let message = ConfineError::NotLocal(ip("198.51.100.77")).to_string();
+        assert!(
+            message.contains("--dds-interface 198.51.100.77"),
+            "{message}"
+        );
+        assert!(matches!(
+            plan(&[ip("10.0.0.1")], &[]),
+            Err(ConfineError::NotLocal(_))
+        ));
+        let many: Vec<(IpAddr, u32)> = (0..=MAX_NAMED as u8)
+            .map(|i| (IpAddr::V4(Ipv4Addr::new(10, 0, 0, i)), u32::from(i) + 10))
+            .collect();
+        let all: Vec<IpAddr> = many.iter().map(|(a, _)| *a).collect();
+        assert!(matches!(
+            plan(&all, &many),
+            Err(ConfineError::TooManyAddresses(17))
+        ));
+        assert!(matches!(
+            plan(&all[..MAX_NAMED], &many),
+            Ok(Plan::Confined { .. })
+        ));
+        // One address held by two interfaces: one interface too many.
+        let mut twice = many.clone();
+        twice.push((all[0], 99));
+        assert!(matches!(
+            plan(&all[..MAX_NAMED], &twice),
+            Err(ConfineError::TooManyInterfaces(n)) if n == MAX_NAMED + 1
+        ));
+    }
+
+    /// On this host: loopback can be confined to (the probe takes the filter), an address
+    /// nothing holds cannot.
+    #[test]
+    fn the_start_check_passes_for_loopback_and_fails_for_an_address_not_here() {
+        assert!(matches!(
+            check(&[IpAddr::V4(Ipv4Addr::LOCALHOST)]),
+            Ok(Plan::Confined { .. })
+        ));
+        assert!(matches!(check(&[]), Ok(Plan::Everywhere)));
+        // TEST-NET-2: documentation only, on no host's interface.
+        assert!(matches!(
+            check(&[ip("198.51.100.77")]),
+            Err(ConfineError::NotLocal(_))
+        ));
+        assert!(matches!(
+            confine_udp_sockets(&[ip("198.51.100.77")]),
+            Err(ConfineError::NotLocal(_))
+        ));
     }
 
     #[test]

@@ -52,8 +52,10 @@ pub struct FakeBus {
     ready: RefCell<Vec<ReaderToken>>,
     /// What `all_acknowledged` answers.
     pub acknowledged: Cell<bool>,
-    /// Participants made, by domain.
+    /// The domains with a participant now, in the order they were made.
     pub domains: RefCell<Vec<u16>>,
+    /// Domains whose participant was released, in order.
+    pub released: RefCell<Vec<u16>>,
     /// Every endpoint made: its topic and the QoS it was given.
     pub endpoints: RefCell<Vec<(String, EndpointQos)>>,
 }
@@ -78,6 +80,23 @@ impl FakeBus {
             .iter()
             .filter(|r| r.topic == topic)
             .count()
+    }
+
+    /// Live writers and readers in `domain`.
+    pub fn endpoints_in(&self, domain: u16) -> usize {
+        let readers = self
+            .readers
+            .borrow()
+            .iter()
+            .filter(|r| r.domain == domain)
+            .count();
+        let writers = self
+            .live_writers
+            .borrow()
+            .iter()
+            .filter(|w| w.1 == domain)
+            .count();
+        readers + writers
     }
 
     /// Live writers of a topic (in any domain).
@@ -375,6 +394,20 @@ impl DdsBackend for Fake {
 
     fn participants(&self) -> usize {
         self.bus.domains.borrow().len()
+    }
+
+    fn participant_domains(&self) -> Vec<u16> {
+        let mut d = self.bus.domains.borrow().clone();
+        d.sort_unstable();
+        d
+    }
+
+    fn release_domain(&mut self, domain: u16) {
+        let mut domains = self.bus.domains.borrow_mut();
+        if domains.contains(&domain) {
+            domains.retain(|d| *d != domain);
+            self.bus.released.borrow_mut().push(domain);
+        }
     }
 }
 

@@ -743,6 +743,15 @@ impl DdsBackend for LocalDelivery {
         self.inner.participants()
     }
 
+    fn participant_domains(&self) -> Vec<u16> {
+        self.inner.participant_domains()
+    }
+
+    fn release_domain(&mut self, domain: u16) {
+        // The hub forgets endpoints as they are dropped: nothing of the domain is left here.
+        self.inner.release_domain(domain);
+    }
+
     fn dropped(&self) -> Vec<(&'static str, u64)> {
         let mut d = self.inner.dropped();
         if self.refused() > 0 {

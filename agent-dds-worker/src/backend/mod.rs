@@ -77,8 +77,48 @@ impl BackendKind {
     }
 }
 
-/// The backend `config` names.
+/// Refuses a configuration DDS cannot be confined by (`--dds-interface`: an address this
+/// host does not hold, too many, no socket filters; see [`confine`]), or that the backend
+/// cannot use (Cyclone DDS: IPv4 and IPv6 addresses together), before anything is made:
+/// the worker then refuses to start rather than run DDS on interfaces it was not given.
+pub fn check_config(config: &DdsConfig) -> anyhow::Result<()> {
+    use anyhow::Context as _;
+    let plan = confine::check(&config.interfaces).with_context(|| {
+        format!(
+            "cannot confine DDS to --dds-interface {}",
+            config
+                .interfaces
+                .iter()
+                .map(ToString::to_string)
+                .collect::<Vec<_>>()
+                .join(",")
+        )
+    })?;
+    match plan {
+        confine::Plan::Everywhere if config.interfaces.is_empty() => {}
+        confine::Plan::Everywhere => {
+            tracing::info!("DDS on every interface (an unspecified --dds-interface address)")
+        }
+        confine::Plan::Confined {
+            addresses,
+            interfaces,
+            ..
+        } => tracing::info!(
+            ?addresses,
+            ?interfaces,
+            "DDS confined to these addresses and interfaces"
+        ),
+    }
+    #[cfg(feature = "cyclone")]
+    if config.backend == BackendKind::Cyclone {
+        cyclone::config_xml(&config.interfaces, None).map_err(|e| anyhow::anyhow!("{e}"))?;
+    }
+    Ok(())
+}
+
+/// The backend `config` names, once [`check_config`] accepted the configuration.
 pub fn create(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
+    check_config(config)?;
     match config.backend {
         BackendKind::Rustdds => rustdds_delivering_locally(config.clone()),
         #[cfg(feature = "cyclone")]
@@ -101,6 +141,7 @@ pub fn for_services(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
         backend: BackendKind::Rustdds,
         ..config.clone()
     };
+    check_config(&config)?;
     rustdds_delivering_locally(config)
 }
 
@@ -119,21 +160,29 @@ fn rustdds_delivering_locally(config: DdsConfig) -> anyhow::Result<Box<dyn DdsBa
 }
 
 /// Confines the UDP sockets a backend's new participant bound to the wildcard address to
-/// the configured interfaces ([`confine`]); a failure is logged (DDS then works, but listens
-/// wider than it was told) rather than refusing the participant.
-pub(crate) fn confine_new_sockets(config: &DdsConfig) {
+/// the configured interfaces ([`confine`]). It fails closed: on an error the caller deletes
+/// the participant (its sockets might take datagrams sent to any address of this host) and
+/// refuses what needed it.
+pub(crate) fn confine_new_sockets(config: &DdsConfig) -> Result<(), String> {
     match confine::confine_udp_sockets(&config.interfaces) {
-        Ok(0) => {}
-        Ok(n) => tracing::debug!(
-            sockets = n,
-            interfaces = ?config.interfaces,
-            "DDS sockets bound to the wildcard address confined to the DDS interfaces"
-        ),
-        Err(e) => tracing::error!(
-            interfaces = ?config.interfaces,
-            "could not confine DDS to its interfaces, it takes datagrams sent to any \
-             address of this host: {e}"
-        ),
+        Ok(0) => Ok(()),
+        Ok(n) => {
+            tracing::debug!(
+                sockets = n,
+                interfaces = ?config.interfaces,
+                "DDS sockets bound to the wildcard address confined to the DDS interfaces"
+            );
+            Ok(())
+        }
+        Err(e) => {
+            tracing::error!(
+                interfaces = ?config.interfaces,
+                "could not confine a new DDS participant to the DDS interfaces; it is deleted: {e}"
+            );
+            Err(format!(
+                "the DDS participant could not be confined to --dds-interface: {e}"
+            ))
+        }
     }
 }
 
@@ -356,8 +405,17 @@ pub trait DdsBackend {
     fn readers_queued(&self) -> bool {
         false
     }
-    /// How many DDS participants it made.
+    /// How many DDS participants it holds now.
     fn participants(&self) -> usize;
+    /// The domains it holds a DDS participant in now (in increasing order).
+    fn participant_domains(&self) -> Vec<u16>;
+    /// Lets the DDS participant(s) of `domain` go: the worker calls this when the domain's
+    /// last XRCE participant was deleted, after dropping every group, writer and reader it
+    /// made in the domain, so that the participant is deleted and its threads and sockets
+    /// go back (a client could otherwise make the worker keep one per domain id for ever).
+    /// A participant something still holds is deleted when that is dropped; a later use of
+    /// the domain makes a new one.
+    fn release_domain(&mut self, domain: u16);
     /// Samples it dropped, by reason, since it started (for the worker's status).
     fn dropped(&self) -> Vec<(&'static str, u64)> {
         Vec::new()

@@ -42,10 +42,14 @@ pub(super) fn compile_filter(
         )
     })?;
     Filter::compile(expression, ty.clone()).map_err(|e| {
-        (
-            status::ERR_INVALID_DATA,
-            format!("content filter {expression:?}: {e}"),
-        )
+        // A bound on the work a client may cause is a refusal for resources; the rest is
+        // an invalid expression.
+        let code = if e.is_limit() {
+            status::ERR_RESOURCES
+        } else {
+            status::ERR_INVALID_DATA
+        };
+        (code, format!("content filter {expression:?}: {e}"))
     })
 }
 
@@ -83,6 +87,7 @@ impl Worker {
             (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
                 check_plain(repr, variant.kind, &self.config.references, little_endian)?;
                 let domain = effective_domain(d).map_err(|e| (status::ERR_INVALID_DATA, e))?;
+                self.admit_domain(domain, key)?;
                 let node = participant_name(repr, &self.config.references, little_endian)
                     .as_deref()
                     .and_then(crate::ros_graph::node_name);
@@ -222,7 +227,8 @@ impl Worker {
                     .content_filter
                     .as_deref()
                     .map(|f| compile_filter(f, ty.as_ref(), &tdesc.type_name))
-                    .transpose()?;
+                    .transpose()
+                    .map_err(|e| self.filter_refused(e))?;
                 let qos = EndpointQos::resolve(EndpointSide::Reader, &tdesc.qos, &desc.qos);
                 let token = self.next_token;
                 self.next_token += 1;
@@ -312,14 +318,33 @@ impl Worker {
                 | EntityKind::Reader(..)
                 | EntityKind::Service(..)
         );
+        let joins = match &kind {
+            EntityKind::Participant(d, _) => Some(*d),
+            _ => None,
+        };
         let origin = Origin::new(body, little_endian);
         self.entities.insert(key, parent, Entity { kind, origin });
+        if let Some(d) = joins {
+            if self.domains.join(d) {
+                let in_use = self.domains.in_use().count();
+                tracing::info!(domain = d, in_use, "DDS domain in use");
+            }
+        }
         if graph_change {
             if let Some(d) = self.domain_of(key) {
                 self.graph.touch(d, Instant::now());
             }
         }
         Ok(())
+    }
+
+    /// Counts (and logs once per episode) a content filter refused for its size; passes
+    /// any error on.
+    pub(super) fn filter_refused(&mut self, e: OpError) -> OpError {
+        if e.0 == status::ERR_RESOURCES {
+            self.refused("filters_refused", &e.1);
+        }
+        e
     }
 
     /// A type by name: from the client's TYPE objects, else the references file.

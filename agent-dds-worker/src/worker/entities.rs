@@ -101,6 +101,11 @@ impl Worker {
             r.forget(&key);
         }
         match e.kind {
+            // Its subtree went before it (endpoints before their parents): the last
+            // participant of a domain leaves nothing of the worker's in it.
+            EntityKind::Participant(domain, _) if self.domains.leave(domain) => {
+                self.release_domain(domain);
+            }
             EntityKind::Writer(w, _, _) => {
                 // The last XRCE writer of a shared DDS writer: forget the entry.
                 if let Some(k) = w.shared.clone() {
@@ -125,5 +130,6 @@ impl Worker {
         self.reads.remove(&key);
         self.to_pump.remove(&key);
         self.pump_again.remove(&key);
+        self.over_budget.remove(&key);
     }
 }

@@ -37,7 +37,9 @@ use crate::backend::{
     self, effective_domain, DdsBackend, DdsConfig, DdsGroup, DdsReader, EndpointQos, EndpointSide,
     ReaderToken, Sample, TopicSpec,
 };
-use crate::filter::Filter;
+use crate::domains::{DomainPolicy, DomainRefusal, Domains};
+use crate::episodes::Episodes;
+use crate::filter::{Filter, Steps, Verdict};
 use crate::recent::RecentSamples;
 use crate::representation::{
     check_plain, describe_endpoint, describe_service, describe_topic, participant_name,
@@ -83,6 +85,8 @@ pub struct WorkerConfig {
     /// How long the entities of a front-end whose process is gone are kept for it to come
     /// back (restarted by its supervisor) before they are deleted.
     pub frontend_grace: Duration,
+    /// Which DDS domains clients may use, and how many at once ([`crate::domains`]).
+    pub domains: DomainPolicy,
 }
 
 /// A loop pass longer than this is logged (front-ends' operations wait meanwhile, and a
@@ -128,6 +132,15 @@ pub struct Worker {
     /// Readers that had more than one batch: pumped again next pass, behind the readers
     /// that became ready meanwhile (a flood takes one batch per turn, not every turn).
     pump_again: Turns<EntityKey>,
+    /// Readers with content filters that got no turn because the pass's filter budget
+    /// ([`crate::filter::PASS_BUDGET`]) was spent: pumped first next pass.
+    over_budget: Turns<EntityKey>,
+    /// What is left of this pass's filter budget.
+    filter_pass_left: u64,
+    /// The domains in use and the policy admitting new ones.
+    domains: Domains,
+    /// Refusals logged once per episode.
+    episodes: Episodes,
     /// Writers holding their samples until matched (kept apart so that the loop never scans
     /// every entity: with thousands of clients that scan dominated the worker's CPU).
     holding: HashSet<EntityKey>,
@@ -203,6 +216,7 @@ impl Worker {
         let generation = (nanos ^ std::process::id().rotate_left(16)) | 1;
         let ros_graph = config.ros_graph;
         let config_instance = config.instance.clone();
+        let domains = Domains::new(config.domains.clone());
         let w = Worker {
             config,
             node,
@@ -219,6 +233,10 @@ impl Worker {
             reads: HashMap::new(),
             to_pump: Turns::new(),
             pump_again: Turns::new(),
+            over_budget: Turns::new(),
+            filter_pass_left: crate::filter::PASS_BUDGET,
+            domains,
+            episodes: Episodes::default(),
             holding: HashSet::new(),
             acks: AckTracker::new(Instant::now()),
             shared_writers: HashMap::new(),
@@ -254,6 +272,53 @@ impl Worker {
 
     fn count(&mut self, reason: &'static str) {
         *self.dropped.entry(reason).or_default() += 1;
+    }
+
+    /// Counts a refusal of one of the worker's bounds under `reason`, and logs it if it
+    /// opens an episode of them (a client can cause them at will: one line per episode,
+    /// not per refusal).
+    fn refused(&mut self, reason: &'static str, why: &str) {
+        self.count(reason);
+        if self.episodes.refused(reason, Instant::now()) {
+            tracing::warn!(
+                reason,
+                total = self.dropped.get(reason).copied().unwrap_or(0),
+                "{why} (further refusals of this kind are counted, not logged, until the \
+                 episode ends)"
+            );
+        }
+    }
+
+    /// Admits a new XRCE participant's domain, or refuses it (counted, logged once per
+    /// episode).
+    fn admit_domain(&mut self, domain: u16, key: EntityKey) -> Result<(), OpError> {
+        self.domains.admit(domain).map_err(|r: DomainRefusal| {
+            let why = format!("client {} of front-end {}: {r}", key.1, key.0);
+            self.refused(r.reason(), &why);
+            (r.status(), r.to_string())
+        })
+    }
+
+    /// The last XRCE participant of `domain` was deleted (everything under it went first):
+    /// the domain's DDS participants go, with their threads and sockets.
+    fn release_domain(&mut self, domain: u16) {
+        // The graph writer is the one thing of the worker left in the domain.
+        self.graph.forget(domain);
+        self.shared_writers.retain(|k, _| k.0 != domain);
+        self.dds.release_domain(domain);
+        if let Some(s) = &mut self.services_dds {
+            s.release_domain(domain);
+        }
+        let in_use = self.domains.in_use().count();
+        tracing::info!(
+            domain,
+            in_use,
+            "DDS domain released: its last XRCE participant was deleted"
+        );
+        // A domain freed: a refusal for the cap from now on is a new episode.
+        if let Some(n) = self.episodes.end("domains_refused") {
+            tracing::info!(refused = n, "DDS domains free again after refusals");
+        }
     }
 
     /// Runs until SIGINT or SIGTERM.
@@ -340,7 +405,8 @@ impl Worker {
         if let Some(s) = &mut self.services_dds {
             s.ready_readers(&mut self.ready)?;
         }
-        // Readers served a full batch last pass queue behind the others.
+        // Readers served a full batch last pass queue behind the others; readers that got no
+        // turn for the filter budget go first.
         for t in self.ready.drain(..) {
             if let Some(k) = self.readers.get(&t) {
                 if !self.pump_again.contains(k) {
@@ -348,8 +414,11 @@ impl Worker {
                 }
             }
         }
-        self.to_pump.append(&mut self.pump_again);
-        let pump: Vec<EntityKey> = self.to_pump.take_all();
+        let mut line = std::mem::take(&mut self.over_budget);
+        line.append(&mut self.to_pump);
+        line.append(&mut self.pump_again);
+        self.filter_pass_left = crate::filter::PASS_BUDGET;
+        let pump: Vec<EntityKey> = line.take_all();
         let pumped = pump.len();
         for k in pump {
             self.pump(k);
@@ -363,7 +432,11 @@ impl Worker {
                 .services_dds
                 .as_ref()
                 .is_some_and(|s| s.readers_queued());
-        if !self.to_pump.is_empty() || !self.pump_again.is_empty() || queued {
+        if !self.to_pump.is_empty()
+            || !self.pump_again.is_empty()
+            || !self.over_budget.is_empty()
+            || queued
+        {
             return 0;
         }
         let acks = self

@@ -171,6 +171,12 @@ impl Worker {
     pub(super) fn status(&mut self, req: &IpcHeader, result: Result<(), OpError>) {
         let code = match &result {
             Ok(()) => status::OK,
+            // Refusals of the worker's bounds (resources, denied) were counted and logged
+            // once per episode where they were decided: a client causes them at will.
+            Err((code, why)) if matches!(*code, status::ERR_RESOURCES | status::ERR_DENIED) => {
+                tracing::debug!(client = %req.client_key, object = ?req.object_id, kind = ?req.kind, status = code, "{why}");
+                *code
+            }
             Err((code, why)) => {
                 tracing::warn!(client = %req.client_key, object = ?req.object_id, kind = ?req.kind, status = code, "{why}");
                 *code

@@ -2,6 +2,7 @@
 //! and the samples taken from DDS readers for them.
 
 use super::*;
+use crate::filter::{EVAL_BUDGET, READER_PASS_BUDGET};
 
 pub(super) struct ActiveRead {
     pub(super) request_id: xrce_common::wire::RequestId,
@@ -116,7 +117,10 @@ impl Worker {
         let filter = match (spec.content_filter_expression.as_deref(), reader_type) {
             (None, _) => None,
             (Some(f), _) if f.trim().is_empty() => None,
-            (Some(f), Some(ty)) => Some(compile_filter(f, ty.as_ref(), "the reader's topic")?),
+            (Some(f), Some(ty)) => Some(
+                compile_filter(f, ty.as_ref(), "the reader's topic")
+                    .map_err(|e| self.filter_refused(e))?,
+            ),
             (Some(_), None) => {
                 return Err((
                     status::ERR_INCOMPATIBLE,
@@ -216,6 +220,13 @@ impl Worker {
     }
 
     /// Takes samples of a reader with an active read and sends them to its front-end.
+    ///
+    /// A reader with a content filter (its own or its read's) spends from its filter budget
+    /// for this pass ([`crate::filter::READER_PASS_BUDGET`], within what is left of the
+    /// pass's [`crate::filter::PASS_BUDGET`]) and takes a sample only while a whole
+    /// evaluation ([`crate::filter::EVAL_BUDGET`]) fits in what is left: the rest waits in
+    /// the DDS reader for the next pass. A sample whose own evaluation runs out of budget is
+    /// treated as not matching, and counted (`content_filter_over_budget`).
     pub(super) fn pump(&mut self, key: EntityKey) {
         let Some(read) = self.reads.get_mut(&key).filter(|r| !r.paused) else {
             return;
@@ -225,6 +236,32 @@ impl Worker {
             p.deferred.push(key);
             return;
         }
+        let filtering = read.filter.is_some()
+            || matches!(
+                self.entities.value(&key),
+                Some(Entity {
+                    kind: EntityKind::Reader(
+                        _,
+                        _,
+                        ReaderInfo {
+                            filter: Some(_),
+                            ..
+                        }
+                    ),
+                    ..
+                })
+            );
+        if filtering && self.filter_pass_left < EVAL_BUDGET {
+            // The pass's filter budget is spent: first in line next pass.
+            self.over_budget.push(key);
+            return;
+        }
+        let Some(read) = self.reads.get_mut(&key) else {
+            return;
+        };
+        let mut budget = Steps::new(READER_PASS_BUDGET.min(self.filter_pass_left));
+        let mut over_budget = 0u64;
+        let mut deferred = false;
         let request_id = read.request_id;
         let (reader, mut service, reader_filter) = match self.entities.value_mut(&key) {
             Some(Entity {
@@ -256,6 +293,13 @@ impl Worker {
                 // Paced: the rest waits in the DDS reader until `next_at`.
                 break;
             }
+            if filtering && budget.left() < EVAL_BUDGET {
+                // Not a whole evaluation left for this reader this pass: the rest waits in
+                // the DDS reader (no sample is judged on a budget cut short).
+                more = true;
+                deferred = true;
+                break;
+            }
             match reader.take_next() {
                 Ok(Some(taken)) => {
                     let mut s = taken.sample.clone();
@@ -277,13 +321,25 @@ impl Worker {
                         // Taken, not delivered, not counted against max_samples.
                         continue;
                     }
-                    // A filter sees samples; instance ends (key fields only) pass.
-                    let passes = |f: Option<&Filter>| {
-                        f.is_none_or(|f| {
-                            f.matches(&s.body, s.little_endian(), s.encoding.is_xcdr2())
-                        })
+                    // A filter sees samples; instance ends (key fields only) pass. Both
+                    // filters of a sample share one evaluation's budget.
+                    let selected = ends || {
+                        let mut steps = Steps::new(EVAL_BUDGET);
+                        let (le, xcdr2) = (s.little_endian(), s.encoding.is_xcdr2());
+                        let mut verdict = Verdict::Match;
+                        for f in [reader_filter, read.filter.as_ref()].into_iter().flatten() {
+                            verdict = f.evaluate(&s.body, le, xcdr2, &mut steps);
+                            if verdict != Verdict::Match {
+                                break;
+                            }
+                        }
+                        // What the evaluation spent leaves the reader's pass budget.
+                        budget.charge(steps.spent());
+                        if verdict == Verdict::OverBudget {
+                            over_budget += 1;
+                        }
+                        verdict == Verdict::Match
                     };
-                    let selected = ends || (passes(reader_filter) && passes(read.filter.as_ref()));
                     if !selected {
                         // Taken and dropped; it does not count against max_samples, but it
                         // counts against the batch so a flood cannot starve the loop.
@@ -324,6 +380,24 @@ impl Worker {
         for _ in 0..errors {
             self.count("dds_sample_undecodable");
         }
+        self.filter_pass_left = self.filter_pass_left.saturating_sub(budget.spent());
+        if deferred {
+            // Not a fault: the reader's samples wait for the next pass.
+            self.count("filter_budget_deferrals");
+        }
+        if over_budget > 0 {
+            *self
+                .dropped
+                .entry("content_filter_over_budget")
+                .or_default() += over_budget - 1;
+            self.refused(
+                "content_filter_over_budget",
+                "a content filter's evaluation of a sample ran out of its step budget: the \
+                 sample was treated as not matching and dropped from the read",
+            );
+        }
+        // Over-budget samples are counted on their own.
+        let filtered = filtered - over_budget;
         if filtered > 0 {
             // Not a fault: counted so a filter's effect can be seen.
             *self.dropped.entry("content_filtered").or_default() += filtered;

@@ -165,6 +165,7 @@ impl Worker {
         self.reads.retain(|k, _| k.0 != fe);
         self.to_pump.retain(|k| k.0 != fe);
         self.pump_again.retain(|k| k.0 != fe);
+        self.over_budget.retain(|k| k.0 != fe);
         self.acks.forget_frontend(fe);
         self.adoption.offer(fe, keys);
     }

@@ -79,6 +79,11 @@ struct Harness {
 
 impl Harness {
     fn new(share_writers: bool) -> Self {
+        Self::with(|c| c.share_writers = share_writers)
+    }
+
+    /// A worker over a fake backend with the settings `configure` makes of the defaults.
+    fn with(configure: impl FnOnce(&mut WorkerConfig)) -> Self {
         static N: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
         let instance = format!(
             "wt{}-{}",
@@ -86,18 +91,17 @@ impl Harness {
             N.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
         );
         let (fake, bus) = Fake::new().expect("fake backend");
-        let worker = Worker::with_backend(
-            WorkerConfig {
-                instance: instance.clone(),
-                dds: DdsConfig::default(),
-                references: Default::default(),
-                ros_graph: false,
-                share_writers,
-                frontend_grace: Duration::from_secs(30),
-            },
-            Box::new(fake),
-        )
-        .expect("worker");
+        let mut config = WorkerConfig {
+            instance: instance.clone(),
+            dds: DdsConfig::default(),
+            references: Default::default(),
+            ros_graph: false,
+            share_writers: false,
+            frontend_grace: Duration::from_secs(30),
+            domains: DomainPolicy::default(),
+        };
+        configure(&mut config);
+        let worker = Worker::with_backend(config, Box::new(fake)).expect("worker");
         let node = IpcNode::new(&instance, "test-frontend").expect("node");
         let replies = node
             .receiver(&ipc::reply_service(&instance, FE), ServiceKind::Reply)
@@ -776,4 +780,415 @@ fn progress_of_released_writes_that_can_wait_goes_out_without_a_wake_up() {
     assert_eq!(t.bus.samples_on(TOPIC), vec![keyed(1, 1)]);
     t.worker.flush();
     assert_eq!(t.progress(), (vec![1], false));
+}
+
+// ---- Bounds: DDS domains (issue 29 item 2) ----
+
+/// A participant object of `client` in `domain`, named `name`.
+fn participant_in(domain: i16, name: &str) -> Vec<u8> {
+    variant(
+        object_kind::PARTICIPANT,
+        &format!("<dds><participant><rtps><name>{name}</name></rtps></participant></dds>"),
+        VariantExtra::DomainId(domain),
+    )
+}
+
+impl Harness {
+    /// A participant of `client` in `domain` with a publisher and a writer of `topic`.
+    fn publisher_in(&mut self, client: ClientKey, domain: i16, topic: &str) {
+        self.create(client, PARTICIPANT, &participant_in(domain, "talker"))
+            .expect("participant");
+        let g = variant(
+            object_kind::PUBLISHER,
+            "",
+            VariantExtra::Parent(PARTICIPANT),
+        );
+        self.create(client, PUBLISHER, &g).expect("publisher");
+        self.writer(client, WRITER, &writer_xml(topic, "NO_KEY", "VOLATILE"))
+            .expect("writer");
+    }
+
+    /// The backend's domains with a participant now.
+    fn backend_domains(&self) -> Vec<u16> {
+        self.worker.dds.participant_domains()
+    }
+}
+
+fn client(n: u8) -> ClientKey {
+    ClientKey([0xd0, 0, 0, n])
+}
+
+/// The DDS participant of a domain goes when the last XRCE participant in it is deleted
+/// (and not before): its threads and sockets go back. The ROS graph writer it had goes too.
+#[test]
+fn the_last_participant_of_a_domain_releases_the_domains_dds_participant() {
+    let mut t = Harness::with(|c| c.ros_graph = true);
+    // Two clients in domain 5, one in domain 6; ROS nodes (an rt/ topic), so the graph
+    // writer of domain 5 exists too.
+    t.publisher_in(CLIENT, 5, "rt/chatter");
+    t.publisher_in(OTHER, 5, "rt/chatter");
+    t.publisher_in(client(9), 6, "rt/other");
+    std::thread::sleep(crate::ros_graph::REFRESH);
+    t.worker.publish_graph();
+    assert_eq!(t.bus.writers_of("ros_discovery_info"), 2, "one per domain");
+    assert_eq!(t.backend_domains(), vec![5, 6]);
+
+    t.worker.remove_where(|c| c.1 == CLIENT);
+    assert_eq!(t.backend_domains(), vec![5, 6], "domain 5 still has a user");
+    assert!(t.bus.released.borrow().is_empty());
+
+    // The last user of domain 5 deletes its participant (a DELETE of the object).
+    let mut h = IpcHeader::new(MessageKind::Delete);
+    h.frontend_id = FE;
+    h.client_key = OTHER;
+    h.object_id = PARTICIPANT;
+    t.worker.greeted.insert((FE, 0));
+    t.worker.process_request(h, &[]);
+    assert_eq!(t.backend_domains(), vec![6], "no participant for domain 5");
+    assert_eq!(t.bus.released.borrow().as_slice(), &[5]);
+    assert_eq!(
+        t.bus.endpoints_in(5),
+        0,
+        "nothing of the worker is left in domain 5 (graph writer included)"
+    );
+    assert_eq!(t.worker.domains.in_use().collect::<Vec<_>>(), vec![6]);
+    // The graph of domain 5 is not published again (no writer, no node).
+    std::thread::sleep(crate::ros_graph::REFRESH);
+    t.worker.publish_graph();
+    assert_eq!(t.backend_domains(), vec![6]);
+
+    // Used again, the domain gets a new participant.
+    t.publisher_in(CLIENT, 5, "rt/chatter");
+    assert_eq!(t.backend_domains(), vec![5, 6]);
+    t.worker.remove_where(|_| true);
+    assert!(t.backend_domains().is_empty());
+    let mut released = t.bus.released.borrow().clone();
+    released.sort_unstable();
+    assert_eq!(released, vec![5, 5, 6]);
+    assert!(t.worker.domains.in_use().next().is_none());
+}
+
+/// By default at most 8 distinct domains are in use at once: a 9th is refused with
+/// STATUS_ERR_RESOURCES and counted, a domain in use still takes participants, and a domain
+/// released makes room.
+#[test]
+fn a_ninth_distinct_domain_is_refused_for_resources_until_one_is_released() {
+    let mut t = Harness::new(false);
+    for d in 0..8u8 {
+        t.publisher_in(client(d), i16::from(d) + 10, "T");
+    }
+    let refused = t
+        .create(client(8), PARTICIPANT, &participant_in(30, "p"))
+        .expect_err("a 9th domain");
+    assert_eq!(refused.0, status::ERR_RESOURCES, "{}", refused.1);
+    assert_eq!(t.worker.dropped.get("domains_refused"), Some(&1));
+    assert!(!t
+        .worker
+        .entities
+        .contains_key(&(FE, client(8), PARTICIPANT)));
+    // Refused again: counted, and the episode's one log line is behind us.
+    assert!(t
+        .create(client(8), PARTICIPANT, &participant_in(31, "p"))
+        .is_err());
+    assert_eq!(t.worker.dropped.get("domains_refused"), Some(&2));
+    // A domain in use takes more participants.
+    t.create(client(8), PARTICIPANT, &participant_in(12, "p"))
+        .expect("a domain in use");
+    // Released, domain 10 makes room for domain 30.
+    t.worker.remove_where(|c| c.1 == client(0));
+    assert!(!t.backend_domains().contains(&10));
+    t.create(client(9), PARTICIPANT, &participant_in(30, "p"))
+        .expect("room again");
+    assert_eq!(t.worker.domains.in_use().count(), 8);
+}
+
+/// With `--domains`, a domain outside the list is refused with STATUS_ERR_DENIED (and the
+/// list replaces the default cap).
+#[test]
+fn a_domain_outside_the_allowed_list_is_denied() {
+    let mut t = Harness::with(|c| {
+        c.domains = DomainPolicy::from_options(Some("0-10,42".parse().expect("list")), None)
+    });
+    for d in (0..=10).chain([42]) {
+        t.create(client(d as u8), PARTICIPANT, &participant_in(d, "p"))
+            .expect("an allowed domain");
+    }
+    let refused = t
+        .create(client(50), PARTICIPANT, &participant_in(11, "p"))
+        .expect_err("not in the list");
+    assert_eq!(refused.0, status::ERR_DENIED, "{}", refused.1);
+    assert_eq!(t.worker.dropped.get("domain_denied"), Some(&1));
+    // The reply status is the refusal's.
+    let mut h = IpcHeader::new(MessageKind::Create);
+    h.frontend_id = FE;
+    h.client_key = client(51);
+    h.object_id = PARTICIPANT;
+    t.worker.greeted.insert((FE, 0));
+    t.worker.process_request(h, &participant_in(200, "p"));
+    t.worker.flush();
+    let mut statuses = Vec::new();
+    t.replies
+        .drain(|m| {
+            let (h, body) = IpcHeader::decode(m).expect("reply");
+            if h.kind == MessageKind::Status {
+                statuses.push(body[0]);
+            }
+        })
+        .expect("drain");
+    assert_eq!(statuses, vec![status::ERR_DENIED]);
+}
+
+/// A restarted worker gets the object graphs replayed: the domains in use before (within the
+/// cap, since the old worker kept to it) are all admitted again.
+#[test]
+fn a_replay_to_a_new_worker_recreates_every_domain_in_use() {
+    let mut before = Harness::new(false);
+    for d in 0..8u8 {
+        before.publisher_in(client(d), i16::from(d), "T");
+    }
+    assert_eq!(before.backend_domains().len(), 8);
+    let mut after = Harness::new(false);
+    for d in 0..8u8 {
+        for (id, body) in [
+            (PARTICIPANT, participant_in(i16::from(d), "talker")),
+            (
+                PUBLISHER,
+                variant(
+                    object_kind::PUBLISHER,
+                    "",
+                    VariantExtra::Parent(PARTICIPANT),
+                ),
+            ),
+            (
+                WRITER,
+                variant(
+                    object_kind::DATAWRITER,
+                    &writer_xml("T", "NO_KEY", "VOLATILE"),
+                    VariantExtra::Parent(PUBLISHER),
+                ),
+            ),
+        ] {
+            after
+                .worker
+                .create((FE, client(d), id), &body, true, true, 0)
+                .expect("replayed");
+        }
+    }
+    assert_eq!(after.backend_domains(), before.backend_domains());
+    assert_eq!(after.bus.writers_of("T"), 8);
+}
+
+// ---- Bounds: content filters (issue 29 item 2) ----
+
+const NAMED_TYPE: &str = r#"<dds><types><struct name="Named">
+    <member name="id" type="int32"/>
+    <member name="name" type="string"/>
+  </struct></types></dds>"#;
+const NAMED_TYPES: ObjectId = ObjectId::new(2, object_kind::TYPE);
+
+/// A `Named` sample, little endian.
+fn named(id: i32, name: &str) -> Vec<u8> {
+    let mut b = id.to_le_bytes().to_vec();
+    b.extend((name.len() as u32 + 1).to_le_bytes());
+    b.extend(name.as_bytes());
+    b.push(0);
+    b
+}
+
+fn filtered_reader_xml(topic: &str, expression: &str) -> String {
+    format!(
+        "<dds><data_reader><topic><kind>NO_KEY</kind><name>{topic}</name>\
+         <dataType>Named</dataType></topic>\
+         <content_filter><expression>{expression}</expression></content_filter>\
+         </data_reader></dds>"
+    )
+}
+
+/// A LIKE that takes |name|·|pattern| steps on a name of `a`s: over any budget.
+const QUADRATIC: &str = "name LIKE '%aaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaaab'";
+
+impl Harness {
+    /// A participant (domain 3) whose client defines `Named`, with a subscriber.
+    fn named_participant(&mut self, client: ClientKey) {
+        self.participant(client);
+        let types = variant(object_kind::TYPE, NAMED_TYPE, VariantExtra::None);
+        self.create(client, NAMED_TYPES, &types).expect("types");
+    }
+
+    /// Injects `n` samples from outside the agent on `topic` (domain 3).
+    fn inject(&self, topic: &str, n: usize, body: impl Fn(usize) -> Vec<u8>) {
+        for i in 0..n {
+            let b = body(i);
+            self.bus.inject(3, topic, || backend::Taken {
+                sample: Sample::cdr(true, &b),
+                identity: backend::SampleIdentity {
+                    writer: [0x77; 16],
+                    sequence_number: i as i64 + 1,
+                },
+                related: None,
+                disposed: false,
+                unregistered: false,
+            });
+        }
+    }
+
+    fn dropped(&self, reason: &str) -> u64 {
+        self.worker.dropped.get(reason).copied().unwrap_or(0)
+    }
+}
+
+/// A filter of more clauses than MAX_CLAUSES is refused with STATUS_ERR_RESOURCES, on a
+/// reader's XML and on a READ_DATA; one at the cap is accepted.
+#[test]
+fn a_filter_with_too_many_clauses_is_refused_for_resources() {
+    let mut t = Harness::new(false);
+    t.named_participant(CLIENT);
+    let clauses = |n: usize| vec!["id = 1"; n].join(" OR ");
+    let at_cap = clauses(crate::filter::MAX_CLAUSES);
+    t.reader(CLIENT, READER, &filtered_reader_xml("F", &at_cap))
+        .expect("at the cap");
+    let over = clauses(crate::filter::MAX_CLAUSES + 1);
+    let refused = t
+        .reader(
+            CLIENT,
+            ObjectId::new(2, object_kind::DATAREADER),
+            &filtered_reader_xml("F", &over),
+        )
+        .expect_err("over the cap");
+    assert_eq!(refused.0, status::ERR_RESOURCES, "{}", refused.1);
+    assert!(refused.1.contains("clauses"), "{}", refused.1);
+    assert_eq!(t.dropped("filters_refused"), 1);
+    // On a READ_DATA of the accepted reader.
+    let mut body = Vec::new();
+    ReadSpecification {
+        data_format: xrce_common::wire::data_format::DATA,
+        content_filter_expression: Some(over),
+        ..Default::default()
+    }
+    .encode(&mut CdrWriter::new(&mut body, true));
+    let h = IpcHeader::new(MessageKind::Read);
+    let refused = t
+        .worker
+        .start_read((FE, CLIENT, READER), &h, &body)
+        .expect_err("over the cap");
+    assert_eq!(refused.0, status::ERR_RESOURCES);
+    assert_eq!(t.dropped("filters_refused"), 2);
+}
+
+/// A sample whose evaluation runs out of the evaluation budget is treated as not matching:
+/// not delivered, counted as `content_filter_over_budget`, and the samples after it are
+/// judged on their own.
+#[test]
+fn a_sample_over_the_evaluation_budget_does_not_match_and_is_counted() {
+    let mut t = Harness::new(false);
+    t.named_participant(CLIENT);
+    let expression = format!("id = 7 OR {QUADRATIC}");
+    t.reader(CLIENT, READER, &filtered_reader_xml("F", &expression))
+        .expect("reader");
+    t.read(CLIENT, READER);
+    let long = "a".repeat(4000);
+    t.inject("F", 3, |i| match i {
+        0 => named(1, &long),   // over budget
+        1 => named(7, &long),   // matches by its first clause (OR short-cuts)
+        _ => named(2, "short"), // no match, cheaply
+    });
+    t.worker.pump_readers().expect("pump");
+    t.worker.flush();
+    let got: Vec<Vec<u8>> = t.samples().into_iter().map(|(_, _, b)| b).collect();
+    assert_eq!(got, vec![named(7, &long)]);
+    assert_eq!(t.dropped("content_filter_over_budget"), 1);
+    assert_eq!(t.dropped("content_filtered"), 1);
+}
+
+/// The worst case of the walk to a field (filter.rs measures it with the others): a field
+/// behind a sequence of one-octet structures, each two steps to skip.
+const WALK_TYPE: &str = r#"<dds><types><struct name="E"><member name="x" type="int8"/></struct>
+    <struct name="Walk"><member name="items" type="nonBasic" nonBasicTypeName="E"
+      sequenceMaxLength="-1"/><member name="id" type="int32"/></struct></types></dds>"#;
+
+/// A `Walk` sample of `n` elements and id 1.
+fn walk(n: u32) -> Vec<u8> {
+    let mut b = n.to_le_bytes().to_vec();
+    b.resize(4 + n as usize, 7);
+    while b.len() % 4 != 0 {
+        b.push(0);
+    }
+    b.extend(1i32.to_le_bytes());
+    b
+}
+
+/// A reader whose evaluations spend its budget for the pass takes the rest of its samples
+/// next pass (nothing is lost, nothing judged on a budget cut short), and all readers
+/// together stop at the pass's budget: those left go first next pass. With the worst
+/// filters within the caps (a quadratic LIKE, the walk to a field), each sample costing a
+/// whole evaluation's budget; the passes' times are printed (not asserted: release mode
+/// and `--nocapture` for numbers worth reading).
+#[test]
+fn filter_work_per_reader_and_per_pass_is_bounded_and_the_rest_waits() {
+    let long = "a".repeat(4000);
+    bounded_passes("LIKE", "Named", QUADRATIC, &|_| named(1, &long));
+    bounded_passes("walk", "Walk", "id = 1 AND id = 1", &|_| walk(40_000));
+}
+
+fn bounded_passes(what: &str, ty: &str, expression: &str, sample: &dyn Fn(usize) -> Vec<u8>) {
+    use crate::filter::{EVAL_BUDGET, PASS_BUDGET, READER_PASS_BUDGET};
+    let per_reader = READER_PASS_BUDGET / EVAL_BUDGET;
+    let readers_per_pass = (PASS_BUDGET / READER_PASS_BUDGET) as usize;
+    let mut t = Harness::new(false);
+    t.named_participant(CLIENT);
+    let types = variant(object_kind::TYPE, WALK_TYPE, VariantExtra::None);
+    t.create(CLIENT, ObjectId::new(3, object_kind::TYPE), &types)
+        .expect("types");
+    let n_readers = readers_per_pass + 1;
+    let ids: Vec<ObjectId> = (0..n_readers)
+        .map(|i| ObjectId::new(10 + i as u16, object_kind::DATAREADER))
+        .collect();
+    let xml = filtered_reader_xml("W", expression).replace("Named", ty);
+    for id in &ids {
+        t.reader(CLIENT, *id, &xml).expect("reader");
+        t.read(CLIENT, *id);
+    }
+    // Each sample costs a whole evaluation budget (and does not match).
+    let samples = 2 * per_reader as usize + 3;
+    t.inject("W", samples, sample);
+
+    let start = Instant::now();
+    t.worker.pump_readers().expect("pump");
+    let took = start.elapsed();
+    let first = per_reader * readers_per_pass as u64;
+    assert_eq!(
+        t.dropped("content_filter_over_budget"),
+        first,
+        "{what}: {per_reader} evaluations per reader, {readers_per_pass} readers per pass"
+    );
+    eprintln!(
+        "{what}: a pass of {readers_per_pass} readers full of the worst samples took {:.1} ms \
+         ({:.2} ms per reader, {:.3} ms per evaluation)",
+        took.as_secs_f64() * 1e3,
+        took.as_secs_f64() * 1e3 / readers_per_pass as f64,
+        took.as_secs_f64() * 1e3 / first as f64
+    );
+    let last = (FE, CLIENT, ids[n_readers - 1]);
+    assert!(
+        t.worker.over_budget.contains(&last),
+        "{what}: the reader without a turn goes first next pass"
+    );
+    assert_eq!(
+        t.dropped("filter_budget_deferrals"),
+        readers_per_pass as u64
+    );
+
+    t.worker.pump_readers().expect("pump");
+    // The reader left out went first and got its full share.
+    let second = t.dropped("content_filter_over_budget") - first;
+    assert_eq!(second, per_reader * readers_per_pass as u64);
+    for _ in 0..8 {
+        t.worker.pump_readers().expect("pump");
+    }
+    assert_eq!(
+        t.dropped("content_filter_over_budget"),
+        (samples * n_readers) as u64,
+        "{what}: every sample was evaluated once, none lost or skipped"
+    );
+    assert!(t.worker.over_budget.is_empty() && t.worker.pump_again.is_empty());
 }

@@ -134,8 +134,10 @@ impl Cyclone {
         let uri = std::env::var("CYCLONEDDS_URI").ok();
         let xml = config_xml(&self.config.interfaces, uri.as_deref())?;
         let p = Rc::new(ffi::Participant::new(u32::from(domain), Some(&xml))?);
+        // Fails closed: unconfined, the participant (and its domain) is deleted here.
+        super::confine_new_sockets(&self.config)
+            .map_err(|e| format!("DDS participant in domain {domain}: {e}"))?;
         tracing::info!(domain, "Cyclone DDS participant created");
-        super::confine_new_sockets(&self.config);
         self.participants.insert(domain, p.clone());
         Ok(p)
     }
@@ -668,6 +670,22 @@ impl DdsBackend for Cyclone {
 
     fn participants(&self) -> usize {
         self.participants.len()
+    }
+
+    fn participant_domains(&self) -> Vec<u16> {
+        let mut d: Vec<u16> = self.participants.keys().copied().collect();
+        d.sort_unstable();
+        d
+    }
+
+    fn release_domain(&mut self, domain: u16) {
+        // The last reference deletes the participant and the domain made for it (with the
+        // domain's threads and sockets, `ffi::Participant`).
+        if self.participants.remove(&domain).is_some() {
+            tracing::info!(domain, "Cyclone DDS participant released");
+        }
+        self.topics
+            .retain(|(d, ..), t| *d != domain && t.strong_count() > 0);
     }
 }
 

@@ -80,8 +80,10 @@ impl RustDds {
         let p = b
             .build()
             .map_err(|e| format!("creating DDS participant in domain {domain}: {e:?}"))?;
+        // Fails closed: unconfined, the participant is dropped (deleted) here.
+        super::confine_new_sockets(&self.config)
+            .map_err(|e| format!("DDS participant in domain {domain}: {e}"))?;
         tracing::info!(domain, ?role, "DDS participant created");
-        super::confine_new_sockets(&self.config);
         self.participants.insert((domain, role), p.clone());
         Ok(p)
     }
@@ -338,5 +340,23 @@ impl DdsBackend for RustDds {
 
     fn participants(&self) -> usize {
         self.participants.len()
+    }
+
+    fn participant_domains(&self) -> Vec<u16> {
+        let mut d: Vec<u16> = self.participants.keys().map(|(d, _)| *d).collect();
+        d.sort_unstable();
+        d.dedup();
+        d
+    }
+
+    fn release_domain(&mut self, domain: u16) {
+        // A RustDDS participant is a handle on shared state: the last clone dropped (here,
+        // its groups and endpoints being gone already) stops its threads and closes its
+        // sockets.
+        let before = self.participants.len();
+        self.participants.retain(|(d, _), _| *d != domain);
+        if self.participants.len() != before {
+            tracing::info!(domain, "DDS participants released");
+        }
     }
 }

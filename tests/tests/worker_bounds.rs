@@ -1,0 +1,135 @@
+//! The DDS worker bounded against hostile clients (issue 29 item 2), end to end: with default
+//! options at most 8 distinct DDS domains are in use at once (a 9th is refused with
+//! STATUS_ERR_RESOURCES), a worker killed and restarted takes every domain in use back from
+//! the front-end's replay, and deleting the last participant of each domain gives the
+//! domains' threads back.
+
+use std::time::{Duration, Instant};
+
+use xrce_common::wire::{object_kind as k, status, ObjectId, VariantExtra};
+use xrce_tests::{sigkill, xml, AgentProcess, TestClient};
+
+/// Threads of process `pid`.
+fn threads(pid: i32) -> usize {
+    std::fs::read_dir(format!("/proc/{pid}/task"))
+        .map(|d| d.count())
+        .unwrap_or(0)
+}
+
+/// Steps every client until `done` or `d` passed; whether `done` came.
+fn run_all(clients: &mut [TestClient], d: Duration, mut done: impl FnMut() -> bool) -> bool {
+    let end = Instant::now() + d;
+    while Instant::now() < end {
+        for c in clients.iter_mut() {
+            c.step();
+        }
+        if done() {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    false
+}
+
+/// Domains below the kernel's ephemeral ports (DDS ports are 7400 + 250 × domain), used by
+/// no other test.
+const FIRST_DOMAIN: i16 = 80;
+
+#[test]
+fn a_ninth_domain_is_refused_the_domains_survive_a_restart_and_deleted_ones_give_threads_back() {
+    let agent = AgentProcess::start("wbounds");
+    let first_worker = *agent
+        .child_pids("dds-worker")
+        .first()
+        .expect("the worker process");
+    let idle = threads(first_worker);
+    let participant = ObjectId::new(1, k::PARTICIPANT);
+    let mut clients = Vec::new();
+    for i in 0..8u8 {
+        let mut c = TestClient::new(agent.addr(), [0x5b, 0x0d, 0, i]);
+        c.connect(Duration::from_secs(10));
+        c.setup_publisher(FIRST_DOMAIN + i16::from(i));
+        clients.push(c);
+    }
+    let busy = threads(first_worker);
+    assert!(
+        busy > idle,
+        "8 DDS domains cost threads ({idle} before, {busy} with them)"
+    );
+
+    // A 9th distinct domain is refused; a domain in use is not.
+    let mut ninth = TestClient::new(agent.addr(), [0x5b, 0x0d, 0, 9]);
+    ninth.connect(Duration::from_secs(10));
+    let beyond = VariantExtra::DomainId(FIRST_DOMAIN + 8);
+    assert_eq!(
+        ninth.create(participant, k::PARTICIPANT, xml::PARTICIPANT, beyond),
+        status::ERR_RESOURCES
+    );
+    let in_use = VariantExtra::DomainId(FIRST_DOMAIN);
+    assert_eq!(
+        ninth.create(participant, k::PARTICIPANT, xml::PARTICIPANT, in_use),
+        status::OK
+    );
+    assert_eq!(
+        threads(first_worker),
+        busy,
+        "a refused domain made no DDS participant"
+    );
+    clients.push(ninth);
+
+    // The worker is killed; its successor gets every client's objects replayed, and admits
+    // all 8 domains again (the old worker kept to the cap, so the replay fits in it).
+    let mark = agent.output().len();
+    sigkill(first_worker);
+    let mut worker = None;
+    let replaced = run_all(&mut clients, Duration::from_secs(60), || {
+        worker = agent
+            .child_pids("dds-worker")
+            .into_iter()
+            .find(|p| *p != first_worker);
+        worker.is_some()
+            && agent
+                .output()
+                .wait_for(mark, "in_use=8", Duration::ZERO)
+                .is_some()
+    });
+    assert!(
+        replaced,
+        "the restarted worker took the 8 domains back from the replay"
+    );
+    let worker = worker.expect("the new worker");
+    let ninth = clients.last_mut().expect("the ninth client");
+    let another = ObjectId::new(2, k::PARTICIPANT);
+    assert_eq!(
+        ninth.create(another, k::PARTICIPANT, xml::PARTICIPANT, beyond),
+        status::ERR_RESOURCES,
+        "the cap holds after the restart"
+    );
+
+    // Every participant deleted: every domain released, its threads gone.
+    for c in clients.iter_mut() {
+        let req = c
+            .client
+            .delete(Instant::now(), participant)
+            .expect("delete");
+        assert_eq!(c.wait_status(req, Duration::from_secs(20)), status::OK);
+    }
+    let released = run_all(&mut clients, Duration::from_secs(20), || {
+        threads(worker) <= idle
+    });
+    assert!(
+        released,
+        "the worker's threads went back to {idle} (now {})",
+        threads(worker)
+    );
+    eprintln!(
+        "worker threads: {idle} idle, {busy} with 8 domains, {} after they were released",
+        threads(worker)
+    );
+    // Room again for a new domain.
+    let ninth = clients.last_mut().expect("the ninth client");
+    assert_eq!(
+        ninth.create(another, k::PARTICIPANT, xml::PARTICIPANT, beyond),
+        status::OK
+    );
+}
