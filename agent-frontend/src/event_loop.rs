@@ -62,13 +62,22 @@ pub fn run<T: Transport>(
     let instance = place.instance.as_str();
     let mut reporter = Reporter::new(instance, &format!("frontend-{}", who.id));
     let mut watchdog = Watchdog::from_env();
-    let mut store = match SessionStore::open(instance, who.id) {
-        Ok(s) if place.keep_sessions => Some(s),
-        Ok(_) => None,
-        Err(e) => {
-            tracing::warn!(error = %e, "cannot keep sessions for a successor: a restart of this front-end will lose them");
-            None
+    // Refused, not worked around: a store another front-end holds, or a directory someone
+    // else planted or loosened, must not be used, and running without one would lose the
+    // sessions at the next restart without anyone having asked for that.
+    let mut store = if place.keep_sessions {
+        match SessionStore::open(instance, who.id) {
+            Ok(s) => Some(s),
+            Err(e) => {
+                reporter.remove();
+                anyhow::bail!(
+                    "the session store of front-end {}: {e} (or run with --keep-sessions false)",
+                    who.id
+                );
+            }
         }
+    } else {
+        None
     };
     config.track_sessions = store.is_some();
     bridge.set_hand_over_at_once(store.is_some());

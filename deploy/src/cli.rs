@@ -115,6 +115,15 @@ pub struct Common {
     /// see one writer per group of clients.
     #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
     pub share_writers: bool,
+    /// Domain ids clients may use, e.g. `0-10,42`; a participant in another gets
+    /// STATUS_ERR_DENIED. Default: any, but at most `--max-domains` at once.
+    #[arg(long = "domains", env = "XRCE_DOMAINS", value_name = "LIST")]
+    pub domains: Option<String>,
+    /// Most distinct DDS domains in use at once (each costs the worker a DDS participant and
+    /// its threads, released with its last user); one more gets STATUS_ERR_RESOURCES.
+    /// Default 8, or no cap with `--domains`.
+    #[arg(long = "max-domains", env = "XRCE_MAX_DOMAINS", value_name = "N")]
+    pub max_domains: Option<u16>,
     /// The DDS implementation of the worker: `cyclone` (Cyclone DDS, the default in builds
     /// with the `cyclone` feature, which is on by default) or `rustdds`.
     #[arg(long = "dds-backend", env = "XRCE_DDS_BACKEND", value_enum)]

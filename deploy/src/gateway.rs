@@ -12,6 +12,9 @@
 //! dds_interfaces = ["127.0.0.1"]   # optional, like --dds-interface
 //! ros_graph = true                 # optional
 //! share_writers = false            # optional
+//! domains = "0-10,42"              # optional: the domain ids clients may use (default: any)
+//! max_domains = 8                  # optional: most domains in use at once (default 8, or
+//!                                  #   none with `domains`)
 //! dds_backend = "cyclone"          # optional, like --dds-backend (cyclone, the default, or rustdds)
 //! frontend_grace = 30              # optional: seconds a gone front-end's clients are kept
 //!
@@ -114,6 +117,10 @@ pub struct WorkerSection {
     pub dds_backend: Option<xrce_dds_worker::backend::BackendKind>,
     /// Seconds a gone front-end's entities are kept for it to come back (default 30).
     pub frontend_grace: Option<f64>,
+    /// Domain ids clients may use, like `--domains` (`"0-10,42"`).
+    pub domains: Option<String>,
+    /// Most distinct domains in use at once, like `--max-domains`.
+    pub max_domains: Option<u16>,
 }
 
 /// One `[[frontend]]` as written.

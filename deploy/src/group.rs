@@ -84,14 +84,44 @@ fn init_logging(filter: &str) {
 }
 
 /// The worker's settings as environment variables.
+/// The domain ids a worker serves (`--domains`, `--max-domains`).
+#[derive(Debug, Clone, Default)]
+pub struct WorkerDomains {
+    /// Domain ids clients may use (`0-10,42`); `None`: any.
+    pub domains: Option<String>,
+    /// Most distinct domains in use at once; `None`: the worker's default (8, none with a
+    /// list of domains).
+    pub max_domains: Option<u16>,
+}
+
 fn worker_env(
     refs: Option<&std::path::Path>,
     dds_interfaces: &[IpAddr],
     ros_graph: bool,
     share_writers: bool,
     dds_backend: Option<BackendKind>,
+    domains: &WorkerDomains,
 ) -> anyhow::Result<Vec<(String, String)>> {
     let mut env = Vec::new();
+    if let Some(list) = &domains.domains {
+        // Refused here, with a clear message, rather than in a worker crash loop.
+        list.parse::<xrce_dds_worker::domains::DomainSet>()
+            .map_err(|e| anyhow::anyhow!("--domains {list:?}: {e}"))?;
+        env.push(("XRCE_DOMAINS".into(), list.clone()));
+    }
+    if let Some(n) = domains.max_domains {
+        if !(1..=233).contains(&n) {
+            anyhow::bail!("--max-domains must be 1 to 233, got {n}");
+        }
+        env.push(("XRCE_MAX_DOMAINS".into(), n.to_string()));
+    }
+    if !dds_interfaces.is_empty() {
+        // The worker refuses to run unconfined; refused here too, before any process starts.
+        xrce_dds_worker::backend::check_config(&xrce_dds_worker::backend::DdsConfig {
+            interfaces: dds_interfaces.to_vec(),
+            backend: dds_backend.unwrap_or_default(),
+        })?;
+    }
     if let Some(b) = dds_backend {
         // Refused here, with a clear message, rather than in a worker crash loop.
         if !b.is_built() {
@@ -149,6 +179,10 @@ impl Group {
             common.ros_graph,
             common.share_writers,
             common.dds_backend,
+            &WorkerDomains {
+                domains: common.domains.clone(),
+                max_domains: common.max_domains,
+            },
         )?);
         if let Some(d) = common.dialect {
             let name = if d == xrce_common::wire::Dialect::Spec {
@@ -217,6 +251,10 @@ impl Group {
             g.worker.ros_graph.unwrap_or(true),
             g.worker.share_writers.unwrap_or(false),
             g.worker.dds_backend,
+            &WorkerDomains {
+                domains: g.worker.domains.clone(),
+                max_domains: g.worker.max_domains,
+            },
         )?);
         if let Some(grace) = g.worker.frontend_grace {
             env.push(("XRCE_FRONTEND_GRACE".into(), grace.to_string()));

@@ -50,12 +50,13 @@ pub struct AgentStatus {
 }
 
 impl AgentStatus {
-    /// Replaces every client key by its redacted form ([`redact_key`]).
+    /// Replaces every client key by its redacted form
+    /// ([`crate::status_view::redact_key`]).
     pub fn redact_keys(&mut self) {
         for p in &mut self.processes {
             if let Some(f) = &mut p.frontend {
                 for s in &mut f.sessions {
-                    s.client_key = redact_key(&s.client_key);
+                    s.client_key = crate::status_view::redact_key(&s.client_key);
                 }
             }
         }
@@ -68,18 +69,6 @@ impl AgentStatus {
             processes: status::read_reports(dir),
         }
     }
-}
-
-/// A client key as status views show it by default: its last two hexadecimal digits only
-/// (`0x******BB`), enough to tell sessions apart at a glance, too little to present the key.
-pub fn redact_key(key: &str) -> String {
-    let digits: Vec<char> = key
-        .trim_start_matches("0x")
-        .chars()
-        .filter(char::is_ascii_hexdigit)
-        .collect();
-    let tail: String = digits[digits.len().saturating_sub(2)..].iter().collect();
-    format!("0x******{tail}")
 }
 
 /// Labels of one sample.
@@ -1411,8 +1400,6 @@ mod tests {
 
     #[test]
     fn status_keys_are_redacted_unless_asked_for() {
-        assert_eq!(redact_key("0xAAAABBBB"), "0x******BB");
-        assert_eq!(redact_key("0x1"), "0x******1");
         let mut s = snapshot();
         let key = |s: &AgentStatus| {
             s.processes
@@ -1431,7 +1418,7 @@ mod tests {
         }
         assert!(!key(&s).is_empty());
         s.redact_keys();
-        assert!(key(&s).iter().all(|k| k == "0x******BB"), "{:?}", key(&s));
+        assert!(key(&s).iter().all(|k| k == "0x****BBBB"), "{:?}", key(&s));
     }
 
     #[test]

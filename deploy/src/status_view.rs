@@ -202,7 +202,7 @@ pub fn run(args: &StatusArgs) -> anyhow::Result<()> {
 /// The status of the agent(s) asked for.
 fn fetch(args: &StatusArgs) -> anyhow::Result<Vec<AgentStatus>> {
     if let Some(url) = &args.metrics {
-        return Ok(vec![fetch_url(url)?]);
+        return Ok(vec![fetch_url(url, args.show_keys)?]);
     }
     if let Some(instance) = &args.instance {
         if !xrce_common::ipc::shm::valid_instance(instance) {
@@ -242,8 +242,8 @@ fn fetch(args: &StatusArgs) -> anyhow::Result<Vec<AgentStatus>> {
     Ok(found)
 }
 
-/// `/status` of a metrics endpoint.
-fn fetch_url(url: &str) -> anyhow::Result<AgentStatus> {
+/// `/status` of a metrics endpoint (which redacts client keys unless asked to show them).
+fn fetch_url(url: &str, show_keys: bool) -> anyhow::Result<AgentStatus> {
     let base = if url.contains("://") {
         url.trim_end_matches('/').to_string()
     } else {
@@ -253,7 +253,11 @@ fn fetch_url(url: &str) -> anyhow::Result<AgentStatus> {
         .strip_suffix("/metrics")
         .or_else(|| base.strip_suffix("/status"))
         .unwrap_or(&base);
-    let target = format!("{base}/status");
+    let target = if show_keys {
+        format!("{base}/status?keys=show")
+    } else {
+        format!("{base}/status")
+    };
     let agent: ureq::Agent = ureq::Agent::config_builder()
         .timeout_global(Some(Duration::from_secs(5)))
         .build()

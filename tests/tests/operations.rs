@@ -138,7 +138,8 @@ fn metrics_and_status_show_the_clients_their_samples_and_the_restarts() {
     );
     assert_eq!(get(metrics_port, "/nothing-here").map(|r| r.0), Some(404));
 
-    // `xrce-agent status` from the endpoint: both keys, their samples; and as JSON.
+    // `xrce-agent status` from the endpoint: both keys (redacted: their last four digits
+    // only), their samples; and as JSON, asked to show the keys whole.
     let (code, table, stderr) = status_command(&["--metrics", &format!("http://{listen}")]);
     assert_eq!(code, Some(0), "{stderr}");
     let row = |key: &str| {
@@ -151,8 +152,9 @@ fn metrics_and_status_show_the_clients_their_samples_and_the_restarts() {
             .collect::<Vec<_>>()
     };
     // CLIENT KEY, SESSION, FRONT-END, PEER, AGE, ENTITIES, SAMPLES IN, SAMPLES OUT, ...
-    let subscriber = row("0x11111178");
-    let publisher = row("0x22222278");
+    let subscriber = row("0x****1178");
+    let publisher = row("0x****2278");
+    assert!(!table.contains("0x11111178"), "a key shown whole:\n{table}");
     assert_eq!(
         subscriber[7], "30",
         "samples out to the subscriber: {table}"
@@ -160,7 +162,7 @@ fn metrics_and_status_show_the_clients_their_samples_and_the_restarts() {
     assert_eq!(publisher[6], "30", "samples in from the publisher: {table}");
     assert_eq!(subscriber[2], format!("udp4-{port}/udp4"));
     assert!(subscriber[3].starts_with("127.0.0.1:"), "{table}");
-    let (code, json, stderr) = status_command(&["--metrics", &listen, "--json"]);
+    let (code, json, stderr) = status_command(&["--metrics", &listen, "--json", "--show-keys"]);
     assert_eq!(code, Some(0), "{stderr}");
     let doc: serde_json::Value = serde_json::from_str(&json).expect("status JSON");
     let keys: Vec<&str> = doc["processes"]
