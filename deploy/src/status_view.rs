@@ -98,8 +98,12 @@ pub fn redact_key(key: &str) -> String {
         .strip_prefix("0x")
         .or_else(|| key.strip_prefix("0X"))
         .unwrap_or(key);
+    let tail_ok = |t: &str| t.len() == 4 && t.bytes().all(|b| b.is_ascii_hexdigit());
     if hex.len() == 8 && hex.bytes().all(|b| b.is_ascii_hexdigit()) {
         format!("0x****{}", &hex[4..])
+    } else if let Some(tail) = hex.strip_prefix("****").filter(|t| tail_ok(t)) {
+        // Already redacted (by the metrics endpoint's /status).
+        format!("0x****{tail}")
     } else {
         "0x********".to_string()
     }
@@ -565,6 +569,12 @@ mod tests {
         // Odd keys are hidden whole; long strings are cut.
         assert_eq!(redact_key("0xAB"), "0x********");
         assert_eq!(redact_key("0XaaaaBBBB"), "0x****BBBB");
+        assert_eq!(
+            redact_key("0x****BBBB"),
+            "0x****BBBB",
+            "redacted once is enough"
+        );
+        assert_eq!(redact_key("0x****\u{1b}[2J"), "0x********");
         let long = printable(&"x".repeat(1000));
         assert_eq!(long.chars().count(), MAX_PRINTED_CHARS + 1);
         assert!(long.ends_with('…'));
