@@ -89,9 +89,15 @@ pub struct Common {
         value_delimiter = ','
     )]
     pub dds_interfaces: Vec<IpAddr>,
-    /// Instance name shared by the agent's processes (default: derived from the transport).
+    /// Instance name shared by the agent's processes (default: derived from what the agent
+    /// serves and its network namespace, so that the same command line finds the sessions
+    /// its predecessor stored).
     #[arg(long, env = "XRCE_INSTANCE")]
     pub instance: Option<String>,
+    /// Start without the sessions a previous agent of this instance stored (by default a
+    /// restarted agent takes them over and its clients go on).
+    #[arg(long = "discard-sessions", env = "XRCE_DISCARD_SESSIONS", action = clap::ArgAction::SetTrue, value_parser = clap::builder::FalseyValueParser::new())]
+    pub discard_sessions: bool,
     /// Protocol dialect for every session: `spec` or `eprosima` (default: per session, from
     /// the client's vendor id).
     #[arg(long, env = "XRCE_DIALECT")]
@@ -303,6 +309,20 @@ impl FrontendPlan {
                 )
             }
             FrontendPlan::Pty { .. } => "pseudoterminal".into(),
+        }
+    }
+
+    /// What it serves, for the derived instance name: the address and port, or the devices
+    /// (a pseudoterminal is a new one at every start: nothing).
+    pub fn identity(&self) -> String {
+        match self {
+            FrontendPlan::Ip { listen, .. } => listen.to_string(),
+            FrontendPlan::Serial { devices, .. } => devices
+                .iter()
+                .map(|d| d.display().to_string())
+                .collect::<Vec<_>>()
+                .join(" "),
+            _ => String::new(),
         }
     }
 

@@ -28,6 +28,9 @@ pub struct FrontendLaunch {
     pub args: Vec<String>,
 }
 
+/// Longest a new supervisor waits for the processes of the previous agent of its instance.
+pub const PREDECESSOR_WAIT: Duration = Duration::from_secs(10);
+
 /// The processes of one agent instance and their settings.
 #[derive(Debug, Clone)]
 pub struct Group {
@@ -48,6 +51,8 @@ pub struct Group {
     pub metrics: Option<std::net::SocketAddr>,
     /// Private resident memory (bytes, RssAnon) beyond which a process is restarted, if any.
     pub memory_limit: Option<u64>,
+    /// Start without the sessions a previous agent of the instance stored.
+    pub discard_sessions: bool,
 }
 
 /// The log filter: `-v` (or the file's `verbose`) first, then XRCE_LOG, then the default.
@@ -154,13 +159,14 @@ impl Group {
     pub fn from_command_line(frontend: FrontendPlan, common: &Common) -> anyhow::Result<Self> {
         let filter = log_filter(common.verbose);
         init_logging(&filter);
-        // By default every agent is its own instance (two agents on one port, bound to
-        // different addresses or in different network namespaces, must not share their IPC).
+        // By default the instance is derived from what the agent serves and its network
+        // namespace: a restarted agent finds its predecessor's sessions, and two agents on
+        // one port, bound to different addresses or in different network namespaces, never
+        // share one (the instance lock refuses a second agent on the same one).
         let stem = format!("{}-", frontend.label());
-        let instance = common
-            .instance
-            .clone()
-            .unwrap_or_else(|| format!("{stem}{}", std::process::id()));
+        let instance = common.instance.clone().unwrap_or_else(|| {
+            xrce_common::ipc::derived_instance(&frontend.label(), &frontend.identity())
+        });
         if !xrce_common::ipc::shm::valid_instance(&instance) {
             anyhow::bail!("instance name {instance:?} must be 1-32 characters of [A-Za-z0-9_-]");
         }
@@ -222,6 +228,7 @@ impl Group {
             env,
             metrics: common.metrics,
             memory_limit: common.memory_limit.map(|mib| mib << 20),
+            discard_sessions: common.discard_sessions,
             frontends: vec![FrontendLaunch {
                 name: frontend.label(),
                 id: 0,
@@ -236,11 +243,12 @@ impl Group {
         let filter = log_filter(g.agent.verbose.as_ref().map(|v| *v.get_ref()));
         init_logging(&filter);
         let stem = "gw-".to_string();
-        let instance = g
-            .agent
-            .instance
-            .clone()
-            .unwrap_or_else(|| format!("{stem}{}", std::process::id()));
+        let instance = g.agent.instance.clone().unwrap_or_else(|| {
+            // Derived from the file (its full path) and the network namespace, as for a
+            // command line.
+            let file = std::fs::canonicalize(&g.path).unwrap_or_else(|_| g.path.clone());
+            xrce_common::ipc::derived_instance("gw", &file.display().to_string())
+        });
         let mut env = vec![
             ("XRCE_INSTANCE".to_string(), instance.clone()),
             ("XRCE_LOG".to_string(), filter.clone()),
@@ -282,6 +290,8 @@ impl Group {
                 .memory_limit_mib
                 .as_ref()
                 .map(|mib| *mib.get_ref() << 20),
+            discard_sessions: std::env::var("XRCE_DISCARD_SESSIONS")
+                .is_ok_and(|v| !v.is_empty() && v != "0" && v != "false"),
         })
     }
 
@@ -315,6 +325,14 @@ impl Group {
     /// letting the children fail over and over).
     pub fn supervise(self) -> anyhow::Result<()> {
         let lock = runtime_dir::lock_instance(&self.instance)?;
+        self.wait_for_predecessor();
+        if self.discard_sessions {
+            let n = runtime_dir::clear_sessions(&self.instance);
+            tracing::info!(
+                kept_by_live_front_ends = n,
+                "stored sessions discarded (--discard-sessions)"
+            );
+        }
         let checked = status::ensure_status_dir(&self.instance)
             .map_err(anyhow::Error::from)
             .and_then(|_| {
@@ -393,19 +411,19 @@ impl Group {
             // (and a stopped one) has none. (A store whose front-end still runs, a child of
             // a supervisor killed hard that is still stopping, is kept.)
             if last {
+                // The sessions stay for the next agent of this instance (a restart, an
+                // upgrade): its front-ends take them over. The rest goes.
                 let held = lock
                     .lock()
                     .unwrap_or_else(std::sync::PoisonError::into_inner)
                     .take();
                 match held {
-                    Some(l) => runtime_dir::remove_instance(&instance, l),
+                    Some(l) => runtime_dir::remove_instance_dir(&instance, l),
                     None => {
-                        runtime_dir::clear_sessions(&instance);
                         let _ = std::fs::remove_dir_all(&dir);
                     }
                 }
             } else {
-                runtime_dir::clear_sessions(&instance);
                 status::remove_dead_reports(&dir);
                 if !explicit {
                     // Directories of earlier agents with this stem, all dead (their lock
@@ -422,7 +440,10 @@ impl Group {
             }
             if !last && !explicit {
                 // Leftovers of earlier agents with this stem that died without cleaning up.
-                for dead in xrce_common::ipc::shm::dead_instances(&stem) {
+                for dead in xrce_common::ipc::shm::dead_instances(&stem)
+                    .into_iter()
+                    .filter(|d| *d != instance)
+                {
                     if let Ok(n) = xrce_common::ipc::shm::IpcNode::new(&dead, "xrce-agent") {
                         drop(n);
                     }
@@ -481,6 +502,35 @@ impl Group {
         supervise(specs, cleanup, report_ready, Some(monitoring))?;
         drop(ptys);
         Ok(())
+    }
+
+    /// Waits (at most [`PREDECESSOR_WAIT`]) until no process of a previous agent of this
+    /// instance is alive: a supervisor killed hard leaves its children stopping (they
+    /// finish handing their operations to DDS first), and the new children must find their
+    /// session stores and ports free rather than fail and be restarted with back-off.
+    fn wait_for_predecessor(&self) {
+        let dir = status::status_dir(&self.instance);
+        let live = || {
+            status::read_reports(&dir)
+                .into_iter()
+                .filter(status::report_is_live)
+                .filter(|r| r.pid != std::process::id())
+                .map(|r| r.name)
+                .collect::<Vec<_>>()
+        };
+        let first = live();
+        if first.is_empty() {
+            return;
+        }
+        tracing::info!(processes = ?first, "processes of the previous agent of this instance are still stopping; waiting for them");
+        let end = std::time::Instant::now() + PREDECESSOR_WAIT;
+        while std::time::Instant::now() < end {
+            std::thread::sleep(Duration::from_millis(50));
+            if live().is_empty() {
+                return;
+            }
+        }
+        tracing::warn!(processes = ?live(), "processes of the previous agent still run; starting anyway (the new ones retry until they are gone)");
     }
 
     /// Replaces this process with one of the group's (`worker`, or a front-end by name), for

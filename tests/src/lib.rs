@@ -343,7 +343,7 @@ impl AgentProcess {
     }
 
     /// Starts an agent bound to `addr`; without `instance` it picks its default name
-    /// (`udp4-<port>-<pid>`).
+    /// (`udp4-<port>-<hash of what it serves and its network namespace>`).
     pub fn start_on(addr: SocketAddr, instance: Option<String>) -> Self {
         Self::start_with(addr, instance, &[])
     }
@@ -393,7 +393,13 @@ impl AgentProcess {
         if let Some(err) = child.stderr.take() {
             output.collect(err, true);
         }
-        let instance = instance.unwrap_or_else(|| format!("udp4-{port}-{}", child.id()));
+        // The agent's own default: derived from what it serves (and the namespace).
+        let instance = instance.unwrap_or_else(|| {
+            xrce_common::ipc::derived_instance(
+                &format!("udp4-{port}"),
+                &SocketAddr::new(addr.ip(), port).to_string(),
+            )
+        });
         let mut agent = AgentProcess {
             child,
             port,
@@ -489,19 +495,26 @@ impl AgentProcess {
     }
 
     /// Sends SIGTERM and waits; returns whether it exited cleanly (code 0) and left no
-    /// shared-memory files behind.
-    pub fn stop(mut self) -> bool {
+    /// shared-memory files or status reports behind. The stored sessions are removed after
+    /// it (an agent keeps them for the next agent of its instance; a test's agent has none).
+    pub fn stop(self) -> bool {
+        let instance = self.instance.clone();
+        let clean = self.stop_keeping_sessions();
+        let _ = std::fs::remove_dir_all(xrce_common::ipc::status::sessions_dir(&instance));
+        if let Some(dir) = xrce_common::ipc::status::sessions_dir(&instance).parent() {
+            let _ = std::fs::remove_dir(dir);
+        }
+        clean
+    }
+
+    /// [`Self::stop`] as an operator's `systemctl stop` before a start: the stored sessions
+    /// stay for the next agent of the instance.
+    pub fn stop_keeping_sessions(mut self) -> bool {
         let clean = self.terminate();
         let left = xrce_common::ipc::shm::instance_files(&self.instance);
         assert!(
             left.is_empty(),
             "stale shared-memory files after stop: {left:?}"
-        );
-        let sessions = xrce_common::ipc::status::sessions_dir(&self.instance);
-        assert!(
-            !sessions.exists(),
-            "stored sessions left after stop in {}",
-            sessions.display()
         );
         let status = xrce_common::ipc::status::status_dir(&self.instance);
         assert!(

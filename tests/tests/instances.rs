@@ -1,6 +1,7 @@
 //! Two agents on the same UDP port, bound to different loopback addresses and started with
 //! their default instance names, are isolated from each other: each answers on its own
-//! address, their shared memory is separate, and each stops cleanly.
+//! address, their shared memory is separate, and each stops cleanly. The same command line
+//! started again takes its instance over.
 
 use std::time::Duration;
 
@@ -58,7 +59,7 @@ fn two_agents_on_one_port_do_not_share_their_ipc() {
 }
 
 #[test]
-fn shared_memory_of_a_killed_agent_is_removed_by_the_next_one() {
+fn a_killed_agents_instance_is_taken_over_and_left_clean_by_the_next_one() {
     use nix::sys::signal::{kill, Signal};
     use nix::unistd::Pid;
     let port = free_udp_port();
@@ -92,10 +93,21 @@ fn shared_memory_of_a_killed_agent_is_removed_by_the_next_one() {
         !xrce_common::ipc::shm::instance_files(&instance).is_empty(),
         "the killed agent left nothing to clean"
     );
+    // The same command line derives the same instance: the next agent takes it over (its
+    // predecessor's dead nodes are cleaned when its own are made), serves, and leaves
+    // nothing in shared memory when it stops.
     let next = AgentProcess::start_on(([127, 0, 0, 1], port).into(), None);
+    assert_eq!(
+        next.instance(),
+        instance,
+        "the same command line, another instance"
+    );
+    let mut c = TestClient::new(next.addr(), [0x1E, 0, 0, 1]);
+    c.connect(Duration::from_secs(10));
+    c.setup_publisher(17);
+    assert!(next.stop());
     let left = xrce_common::ipc::shm::instance_files(&instance);
     assert!(left.is_empty(), "leftovers of the killed agent: {left:?}");
-    assert!(next.stop());
 }
 
 /// Whether a process exists and is not a zombie.

@@ -296,10 +296,24 @@ fn an_agents_files_are_private_to_its_user() {
         eprintln!("not root: the part run as another user is skipped");
     }
 
-    // A clean stop leaves nothing of the instance: not its directory, not its files in
-    // iceoryx2's root or in /dev/shm.
+    // A clean stop leaves nothing of the instance but its stored sessions (for the next
+    // agent of the instance: a restart goes on with them), still private: not its status
+    // reports, not its lock, not its files in iceoryx2's root or in /dev/shm.
     assert!(agent.stop_process(), "the agent did not stop cleanly");
-    assert!(!rt.join(&instance).exists(), "instance directory left");
+    let kept: Vec<String> = std::fs::read_dir(rt.join(&instance))
+        .map(|d| {
+            d.flatten()
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    assert_eq!(kept, ["sessions"], "left in the instance directory");
+    let sessions_mode = std::fs::symlink_metadata(rt.join(&instance).join("sessions"))
+        .expect("sessions kept")
+        .mode()
+        & 0o7777;
+    assert_eq!(sessions_mode, 0o700);
+    let _ = std::fs::remove_dir_all(rt.join(&instance));
     let prefix = format!("xrce_{instance}_");
     let left: Vec<PathBuf> = walk(&ipc)
         .into_iter()

@@ -92,6 +92,11 @@ pub struct WorkerConfig {
 /// A loop pass longer than this is logged (front-ends' operations wait meanwhile, and a
 /// front-end drops best-effort writes once its window to the worker is full).
 const SLOW_PASS: Duration = Duration::from_millis(50);
+/// A stopping worker stops once no operation came for this long (and DDS readers have
+/// acknowledged every write).
+pub const DRAIN_QUIET: Duration = Duration::from_millis(100);
+/// Longest a stopping worker drains (below the supervisor's stop grace of 5 s).
+pub const DRAIN_MAX: Duration = Duration::from_secs(3);
 /// At most one such line in this period (with the count of slow passes so far).
 const SLOW_PASS_LOG_PERIOD: Duration = Duration::from_secs(10);
 
@@ -321,7 +326,7 @@ impl Worker {
         }
     }
 
-    /// Runs until SIGINT or SIGTERM.
+    /// Runs until SIGINT or SIGTERM, then drains (see [`DRAIN_MAX`]).
     pub fn run(&mut self) -> anyhow::Result<()> {
         let requests = self
             .requests
@@ -333,10 +338,32 @@ impl Worker {
     }
 
     fn serve(&mut self, requests: &Receiver) -> anyhow::Result<()> {
+        // Since when the worker drains before it stops, and when it last took a request.
+        let mut draining: Option<Instant> = None;
+        let mut last_request = Instant::now();
         loop {
-            if self.node.termination_requested() {
-                tracing::info!("termination requested");
-                return Ok(());
+            if let Some(since) = draining {
+                // Stop once the front-ends have sent nothing for a moment (they stop with
+                // it: a supervisor that stops or dies stops them all) and DDS readers have
+                // acknowledged every write, or after DRAIN_MAX whatever is left.
+                let quiet = last_request.elapsed() >= DRAIN_QUIET;
+                let acknowledged = self.acks.outstanding_writes() == 0;
+                if (quiet && acknowledged) || since.elapsed() >= DRAIN_MAX {
+                    tracing::info!(
+                        drained_ms = since.elapsed().as_millis() as u64,
+                        unacknowledged_writes = self.acks.outstanding_writes(),
+                        "stopping"
+                    );
+                    return Ok(());
+                }
+            } else if self.node.termination_requested() {
+                // Operations a front-end handed over were acknowledged to its clients: they
+                // are executed, and their samples given DDS's time to reach its readers,
+                // before the DDS entities go with this process.
+                tracing::info!(
+                    "termination requested; executing what the front-ends handed over first"
+                );
+                draining = Some(Instant::now());
             }
             let now = Instant::now();
             if now >= self.reporter.due() {
@@ -349,6 +376,12 @@ impl Worker {
             let timeout = match self.poll_timeout() {
                 t if t < 0 => period,
                 t => t.min(period),
+            };
+            // Draining, it looks at the clock often enough to stop on time.
+            let timeout = if draining.is_some() {
+                timeout.min(20)
+            } else {
+                timeout
             };
             let mut fds = [requests.raw_fd(), self.dds.readiness_fd(), -1];
             if let Some(s) = &self.services_dds {
@@ -363,6 +396,9 @@ impl Worker {
                 requests.clear_events();
             }
             let taken = requests.drain(|m| self.handle_request(m))?;
+            if taken > 0 {
+                last_request = Instant::now();
+            }
             let after_requests = pass.elapsed();
             self.serve_successors();
             let pumped = self.pump_readers()?;

@@ -318,6 +318,42 @@ pub fn announce_service(instance: &str) -> String {
     format!("xrce/{instance}/announce")
 }
 
+/// The instance name an agent takes when none is given: `<label>-<8 hex digits>`, the digits
+/// a CRC-32 of what the agent serves (`identity`: its transport's address and port, or its
+/// devices) and of the network namespace it runs in (its inode, as `/proc/self/ns/net`
+/// shows it). The same command line in the same namespace finds the same instance, and so
+/// the sessions its predecessor stored, after a restart of the whole agent; two agents that
+/// serve different things (one port on two addresses, one command line in two network
+/// namespaces) never share one. Stays within the 32 characters an instance may have.
+pub fn derived_instance(label: &str, identity: &str) -> String {
+    let netns = std::fs::read_link("/proc/self/ns/net")
+        .map(|p| p.display().to_string())
+        .unwrap_or_default();
+    derived_instance_in(label, identity, &netns)
+}
+
+/// [`derived_instance`] for a given network namespace.
+pub fn derived_instance_in(label: &str, identity: &str, netns: &str) -> String {
+    const CRC: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
+    let mut digest = CRC.digest();
+    for part in [label, identity, netns] {
+        digest.update(part.as_bytes());
+        digest.update(&[0]);
+    }
+    let label: String = label
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .take(32 - 9)
+        .collect();
+    format!("{label}-{:08x}", digest.finalize())
+}
+
 /// The event service paired with a data service.
 pub fn event_service(data_service: &str) -> String {
     format!("{data_service}.ev")
@@ -326,6 +362,27 @@ pub fn event_service(data_service: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn derived_instances_are_stable_and_tell_agents_apart() {
+        let a = derived_instance_in("udp4-8888", "0.0.0.0:8888", "net:[4026531840]");
+        assert_eq!(
+            a,
+            derived_instance_in("udp4-8888", "0.0.0.0:8888", "net:[4026531840]")
+        );
+        assert!(a.starts_with("udp4-8888-") && a.len() == 18, "{a}");
+        assert_ne!(
+            a,
+            derived_instance_in("udp4-8888", "10.0.0.1:8888", "net:[4026531840]")
+        );
+        assert_ne!(
+            a,
+            derived_instance_in("udp4-8888", "0.0.0.0:8888", "net:[4026532000]")
+        );
+        let long = derived_instance_in(&"x".repeat(40), "", "");
+        assert!(long.len() <= 32, "{long}");
+        assert_eq!(derived_instance_in("a.b", "", "").chars().nth(1), Some('_'));
+    }
 
     #[test]
     fn header_round_trips_and_rejects_other_versions() {
