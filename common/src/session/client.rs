@@ -37,6 +37,11 @@ pub struct ClientConfig {
     /// Byte order of the submessages the client sends on its streams (a big-endian
     /// microcontroller sends big-endian CREATE and WRITE_DATA).
     pub little_endian: bool,
+    /// Vendor id announced in CREATE_CLIENT (eProsima's by default).
+    pub vendor_id: [u8; 2],
+    /// Number of the first message of every stream, both ways: 0 (eProsima's client), or 1
+    /// as RTI's nano-client numbers them, which drops an agent's messages numbered below.
+    pub first_seq: u16,
 }
 
 impl ClientConfig {
@@ -51,6 +56,18 @@ impl ClientConfig {
             connect_retry: Duration::from_millis(250),
             hard_liveliness: None,
             little_endian: true,
+            vendor_id: VENDOR_EPROSIMA,
+            first_seq: 0,
+        }
+    }
+
+    /// A client that behaves as RTI's nano-client does where agents must tell: RTI's vendor
+    /// id, streams numbered from 1.
+    pub fn like_rti(key: ClientKey) -> Self {
+        ClientConfig {
+            vendor_id: crate::wire::VENDOR_RTI,
+            first_seq: 1,
+            ..ClientConfig::new(key)
         }
     }
 }
@@ -147,7 +164,7 @@ impl Client {
         let p = Payload::CreateClient(CreateClientPayload {
             cookie: XRCE_COOKIE,
             version: XRCE_VERSION,
-            vendor_id: VENDOR_EPROSIMA,
+            vendor_id: self.config.vendor_id,
             client_key: self.config.key,
             session_id: self.config.session_id,
             properties: self.config.hard_liveliness.map(|t| {
@@ -244,7 +261,8 @@ impl Client {
             self.pending.entry(stream).or_default().extend(parts);
             self.flush_reliable(now, stream);
         } else {
-            let seq = self.best_effort_out.entry(stream).or_insert(0);
+            let first = self.config.first_seq;
+            let seq = self.best_effort_out.entry(stream).or_insert(first);
             let mut b = MessageBuilder::new(MessageHeader::new(
                 self.config.session_id,
                 stream,
@@ -261,11 +279,11 @@ impl Client {
 
     /// Sends queued submessages of a reliable stream while its window has room.
     fn flush_reliable(&mut self, now: Instant, stream: u8) {
-        let window = self.config.output_window;
+        let (window, first) = (self.config.output_window, self.config.first_seq);
         let out = self
             .reliable_out
             .entry(stream)
-            .or_insert_with(|| ReliableOutput::new(stream, window));
+            .or_insert_with(|| ReliableOutput::starting_at(stream, window, first));
         let Some(queue) = self.pending.get_mut(&stream) else {
             return;
         };
@@ -455,19 +473,28 @@ impl Client {
         if stream == stream_id::NONE {
             self.process(now, stream, bytes, hlen);
         } else if !stream_id::is_reliable(stream) {
+            let first = self.config.first_seq;
             if self
                 .best_effort_in
                 .entry(stream)
-                .or_default()
+                .or_insert_with(|| {
+                    if first == 0 {
+                        BestEffortInput::default()
+                    } else {
+                        // Numbered from `first`: anything below is taken for old.
+                        BestEffortInput::resuming(first.wrapping_sub(1))
+                    }
+                })
                 .accept(header.sequence_nr)
             {
                 self.process(now, stream, bytes, hlen);
             }
         } else {
+            let first = self.config.first_seq;
             let input = self
                 .reliable_in
                 .entry(stream)
-                .or_insert_with(|| ReliableInput::new(16));
+                .or_insert_with(|| ReliableInput::resuming(16, first));
             match input.classify(header.sequence_nr) {
                 Arrival::InOrder => {
                     input.advance();
@@ -554,10 +581,11 @@ impl Client {
                 }
             }
             Payload::Heartbeat(h) => {
+                let first = self.config.first_seq;
                 let input = self
                     .reliable_in
                     .entry(h.stream_id)
-                    .or_insert_with(|| ReliableInput::new(16));
+                    .or_insert_with(|| ReliableInput::resuming(16, first));
                 input.on_heartbeat(&h);
                 self.deliver_ready(now, h.stream_id);
                 self.send_acknack(h.stream_id);

@@ -37,6 +37,15 @@ impl ReliableOutput {
         }
     }
 
+    /// A new stream whose first message is numbered `first` (0 by the spec's "initialize
+    /// to 0" as eProsima reads it; 1 for a client that reads it as "the last one sent").
+    pub fn starting_at(stream_id: u8, window: usize, first: u16) -> Self {
+        ReliableOutput {
+            next: first,
+            ..Self::new(stream_id, window)
+        }
+    }
+
     /// A stream taken over from a front-end that died after numbering up to `next`. The
     /// messages it had not seen acknowledged died with it, so the client may wait for
     /// numbers nobody will send again: until the client's ACKNACK says which number it

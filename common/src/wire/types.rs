@@ -179,6 +179,9 @@ pub const XRCE_VERSION: [u8; 2] = [0x01, 0x00];
 /// eProsima's vendor id.
 pub const VENDOR_EPROSIMA: [u8; 2] = [0x01, 0x0F];
 
+/// XRCE vendor id of RTI (its nano-client), whose reliable streams start at 1.
+pub const VENDOR_RTI: [u8; 2] = [0x01, 0x01];
+
 /// `Time_t`: seconds and nanoseconds.
 #[derive(Clone, Copy, PartialEq, Eq, Debug, Default)]
 pub struct Time {

@@ -143,6 +143,7 @@ impl<A: Endpoint> Agent<A> {
                         existing.reset_streams();
                         existing.established_at = now;
                     }
+                    existing.first_seq = proxy::first_sequence_number(c.vendor_id);
                     existing.mtu = mtu;
                     existing.mtu_announced = c.mtu.is_some();
                     existing.last_heard = now;
@@ -181,6 +182,7 @@ impl<A: Endpoint> Agent<A> {
                         &self.config,
                     );
                     client.mtu_announced = c.mtu.is_some();
+                    client.first_seq = proxy::first_sequence_number(c.vendor_id);
                     self.budget.session_added(client.origin);
                     self.clients.insert(c.client_key, client);
                     self.by_addr.insert(src, c.client_key);
@@ -188,7 +190,8 @@ impl<A: Endpoint> Agent<A> {
                         client: c.client_key,
                         origin: src.origin(),
                     });
-                    tracing::info!(client = %c.client_key, session = c.session_id, mtu, ?dialect, ?dead_time, "session created");
+                    tracing::info!(client = %c.client_key, session = c.session_id, vendor = %vendor_name(c.vendor_id), version = %format!("{}.{}", c.version[0], c.version[1]), mtu, ?dialect, ?dead_time, first_sequence_number = proxy::first_sequence_number(c.vendor_id), "session created");
+                    self.warn_misfit(c, dialect);
                 }
             }
             self.schedule(c.client_key);
@@ -289,6 +292,30 @@ impl<A: Endpoint> Agent<A> {
         if self.clients.get(&key).is_some_and(|c| c.delete_requested) {
             self.flush_client(now, key);
             self.remove_client(key, sink);
+        }
+    }
+}
+
+/// A vendor id as a log line shows it: the name of a known implementation, else its hex.
+pub(super) fn vendor_name(v: [u8; 2]) -> String {
+    match v {
+        crate::wire::VENDOR_EPROSIMA => "eProsima (01.0F)".into(),
+        crate::wire::VENDOR_RTI => "RTI (01.01)".into(),
+        [a, b] => format!("{a:02X}.{b:02X}"),
+    }
+}
+
+impl<A: Endpoint> Agent<A> {
+    /// Warns once per session about combinations known to misbehave: a dialect forced
+    /// against the one the client's vendor speaks (eProsima's client cannot read a
+    /// spec-dialect STATUS_AGENT without its ResultStatus, nor a spec client eProsima's).
+    pub(super) fn warn_misfit(&self, c: &CreateClientPayload, dialect: Dialect) {
+        let natural = Dialect::for_vendor(c.vendor_id);
+        if self.config.dialect.is_some() && dialect != natural {
+            tracing::warn!(client = %c.client_key, vendor = %vendor_name(c.vendor_id), forced = ?dialect, natural = ?natural, "--dialect forces a dialect this client's vendor does not speak: expect its replies to be misread");
+        }
+        if c.version[1] != XRCE_VERSION[1] {
+            tracing::info!(client = %c.client_key, version = %format!("{}.{}", c.version[0], c.version[1]), "client of another minor protocol version: served as 1.0");
         }
     }
 }

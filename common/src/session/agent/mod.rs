@@ -631,10 +631,11 @@ impl<A: Endpoint> Agent<A> {
         if !client.reliable_in.contains_key(&stream) && client.reliable_in.len() >= max_streams {
             return self.drop_input("too_many_streams", bytes);
         }
+        let first = client.first_seq;
         let input = client
             .reliable_in
             .entry(stream)
-            .or_insert_with(|| ReliableInput::new(window));
+            .or_insert_with(|| ReliableInput::resuming(window, first));
         let mut cause = AckCause::Arrival;
         match input.classify(header.sequence_nr) {
             Arrival::Duplicate => self.count_drop("duplicate"),
@@ -829,7 +830,10 @@ impl<A: Endpoint> Agent<A> {
                     little_endian: le,
                 })
             }
-            Payload::Delete(d) if d.object_id == ObjectId::CLIENT => {
+            // The client object by its kind, whatever its number: eProsima's client names
+            // it OBJECTID_CLIENT (0xFFFE), RTI's nano-client 0x000E (kind CLIENT, id 0);
+            // MicroXRCEAgent also looks at the kind only.
+            Payload::Delete(d) if d.object_id.kind() == crate::wire::object_kind::CLIENT => {
                 if stream == stream_id::NONE {
                     // Answered the way it came, as the reference agent does: the
                     // session's streams end with it.
@@ -904,9 +908,10 @@ impl<A: Endpoint> Agent<A> {
                 if let Some(c) = self.clients.get_mut(&key) {
                     if c.reliable_in.contains_key(&h.stream_id) || c.reliable_in.len() < max_streams
                     {
+                        let first = c.first_seq;
                         c.reliable_in
                             .entry(h.stream_id)
-                            .or_insert_with(|| ReliableInput::new(window))
+                            .or_insert_with(|| ReliableInput::resuming(window, first))
                             .on_heartbeat(&h);
                     }
                 }

@@ -162,9 +162,10 @@ impl<A: Endpoint> Agent<A> {
         let (window, max_queue) = (self.config.output_window, self.config.max_output_queue);
         let max_bytes = self.config.max_output_queue_bytes;
         let c = self.clients.get_mut(&key).ok_or(SendError::NoClient)?;
+        let first = c.first_seq;
         let s = c.reliable_out.entry(stream).or_insert_with(|| OutStream {
             queued_bytes: 0,
-            reliable: ReliableOutput::new(stream, window),
+            reliable: ReliableOutput::starting_at(stream, window, first),
             queue: VecDeque::new(),
         });
         let bytes: usize = subs.iter().map(Vec::len).sum();
@@ -323,7 +324,7 @@ impl<A: Endpoint> Agent<A> {
         } else if c.detached {
             self.count_drop("endpoint_closed");
         } else {
-            let seq = c.best_effort_out.entry(stream).or_insert(0);
+            let seq = c.best_effort_out.entry(stream).or_insert(c.first_seq);
             let mut b = MessageBuilder::new(MessageHeader::new(c.session_id, stream, *seq, c.key));
             b.push(&payload, little_endian)
                 .map_err(|_| SendError::TooLarge)?;

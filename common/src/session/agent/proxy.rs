@@ -68,6 +68,17 @@ pub(super) struct ProxyClient<A> {
     pub(super) takeover: Option<(A, Instant)>,
     /// Its dead time before its endpoint closed (the detached grace replaces it meanwhile).
     pub(super) attached_dead_time: Option<Option<Duration>>,
+    /// The number of the first message of each new stream, both ways: 0 as the spec's
+    /// "initialize to 0" is read by eProsima, 1 for a client that reads it as the number
+    /// before the first (RTI's nano-client: [`first_sequence_number`]).
+    pub(super) first_seq: u16,
+}
+
+/// The number a client's streams start at, by its vendor: RTI's nano-client sends its
+/// first reliable message as 1 and drops a first message numbered 0 (its stream state
+/// starts at 0 = nothing received); every other client starts at 0.
+pub(super) fn first_sequence_number(vendor: [u8; 2]) -> u16 {
+    u16::from(vendor == crate::wire::VENDOR_RTI)
 }
 
 impl<A: Origin> ProxyClient<A> {
@@ -116,6 +127,7 @@ impl<A: Origin> ProxyClient<A> {
             reassembly_at: HashMap::new(),
             takeover: None,
             attached_dead_time: None,
+            first_seq: 0,
             addr,
         }
     }
