@@ -30,6 +30,16 @@ pub struct WorkerArgs {
     /// (`rt/`, `rq/`, `rr/`: micro-ROS) on `ros_discovery_info`, so ROS 2 tools list them.
     #[arg(long = "ros-graph", env = "XRCE_ROS_GRAPH", default_value_t = true, action = clap::ArgAction::Set)]
     pub ros_graph: bool,
+    /// The ROS 2 distribution whose `ros_discovery_info` layout the graph is published in:
+    /// `humble` (24-octet GIDs) or `iron`, `jazzy`, `kilted`, `rolling` (16-octet GIDs).
+    /// Without it, `ROS_DISTRO` as a sourced ROS 2 shell sets it; else jazzy.
+    #[arg(
+        long = "ros-distro",
+        env = "XRCE_ROS_DISTRO",
+        value_enum,
+        ignore_case = true
+    )]
+    pub ros_distro: Option<crate::ros_graph::RosDistro>,
     /// Map the XRCE data writers of one domain, topic, type and QoS onto shared DDS writers,
     /// one per 32 clients, each keeping 32 times the clients' history depth (volatile,
     /// shared-ownership writers only): thousands of clients publishing on one topic then
@@ -72,6 +82,11 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    // Before anything starts: a ROS_DISTRO the agent does not know stops it here.
+    let (ros_distro, distro_source) = crate::ros_graph::RosDistro::resolve(
+        args.ros_distro,
+        std::env::var_os("ROS_DISTRO").as_deref(),
+    )?;
     raise_fd_limit();
     let references = match &args.refs {
         Some(path) => {
@@ -103,6 +118,15 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         }),
         domains,
     })?;
+    worker.set_ros_distro(ros_distro);
+    if args.ros_graph {
+        tracing::info!(
+            distro = %ros_distro,
+            from = ?distro_source,
+            gid_octets = ros_distro.gid_layout().octets(),
+            "ROS 2 graph layout"
+        );
+    }
     // Under systemd (a unit of its own), the worker is ready once it serves.
     if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {
         tracing::warn!(error = %e, "sd_notify failed");
@@ -153,6 +177,18 @@ mod tests {
         assert_eq!(
             DomainPolicy::from_options(cli.args.domains, cli.args.max_domains.map(usize::from)),
             DomainPolicy::default()
+        );
+        // --ros-distro: the names ROS_DISTRO uses; another is refused, naming them.
+        let cli = Cli::try_parse_from(["w", "--ros-distro", "humble"]).expect("valid");
+        assert_eq!(
+            cli.args.ros_distro,
+            Some(crate::ros_graph::RosDistro::Humble)
+        );
+        let err = Cli::try_parse_from(["w", "--ros-distro", "foxy"]).expect_err("unknown");
+        assert!(
+            err.to_string()
+                .contains("humble, iron, jazzy, kilted, rolling"),
+            "{err}"
         );
         for bad in [
             &["w", "--domains", "0-300"][..],

@@ -3,6 +3,13 @@
 use super::*;
 
 impl Worker {
+    /// Publishes the ROS graph in the `ros_discovery_info` layout of `distro` (24-octet GIDs
+    /// for Humble, 16 for Iron and later). Called once before [`Worker::run`]; the worker's
+    /// configuration does not carry it so that the graph's settings stay in this module.
+    pub fn set_ros_distro(&mut self, distro: crate::ros_graph::RosDistro) {
+        self.graph.set_layout(distro.gid_layout(), Instant::now());
+    }
+
     /// Publishes the ROS graph of every domain that changed, when its update is due.
     pub(super) fn publish_graph(&mut self) {
         let now = Instant::now();
