@@ -14,7 +14,8 @@
 //! that delivers between its own writers and readers in memory. [`confine`] keeps either's
 //! sockets to the configured interfaces; [`local`] delivers between the worker's own writers
 //! and readers inside the process for RustDDS, which would send those samples through UDP
-//! loopback.
+//! loopback. [`ports`] keeps DDS off the UDP ports the agent's front-ends serve (an XRCE port
+//! that is also a well-known DDS port, such as 7401, domain 0's user-data multicast port).
 
 use std::net::IpAddr;
 use std::os::fd::RawFd;
@@ -29,6 +30,7 @@ pub mod confine;
 #[cfg(feature = "cyclone")]
 pub mod cyclone;
 pub mod local;
+pub mod ports;
 pub mod qos;
 pub mod rustdds;
 
@@ -111,14 +113,35 @@ pub fn check_config(config: &DdsConfig) -> anyhow::Result<()> {
     }
     #[cfg(feature = "cyclone")]
     if config.backend == BackendKind::Cyclone {
-        cyclone::config_xml(&config.interfaces, None).map_err(|e| anyhow::anyhow!("{e}"))?;
+        cyclone::config_xml(&config.interfaces, None, None).map_err(|e| anyhow::anyhow!("{e}"))?;
     }
+    // A malformed list from the supervisor is refused at start, not at the first participant.
+    ports::ReservedPorts::from_env().map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(())
+}
+
+/// Refuses, before anything starts, UDP ports the front-ends are to serve (`reserved`) that
+/// DDS cannot leave to them: the discovery multicast port of a domain clients may use
+/// (`allowed`, e.g. from `--domains`) while DDS uses multicast (not confined to loopback).
+/// The error names the port, the domain and the ways out. Other well-known DDS ports are
+/// served (the backends move off them: [`ports`]). The worker learns the ports from
+/// [`ports::RESERVED_PORTS_ENV`].
+pub fn check_reserved_ports(
+    config: &DdsConfig,
+    reserved: &[u16],
+    allowed: impl Fn(u16) -> bool,
+) -> anyhow::Result<()> {
+    let reserved = ports::ReservedPorts::new(reserved.iter().copied());
+    ports::check_reserved(&reserved, &config.interfaces, allowed)
+        .map_err(|clash| anyhow::anyhow!("{clash}"))
 }
 
 /// The backend `config` names, once [`check_config`] accepted the configuration.
 pub fn create(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
     check_config(config)?;
+    if let Ok(reserved) = ports::ReservedPorts::from_env() {
+        ports::log_reserved(&reserved, &config.interfaces);
+    }
     match config.backend {
         BackendKind::Rustdds => rustdds_delivering_locally(config.clone()),
         #[cfg(feature = "cyclone")]

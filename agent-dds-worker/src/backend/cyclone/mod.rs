@@ -21,6 +21,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 
+use super::ports::{self, ReservedPorts};
 use super::{
     DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, Encoding, EndpointQos, Guid,
     ReaderToken, Sample, SampleIdentity, Taken, TopicSpec,
@@ -36,6 +37,8 @@ pub struct Cyclone {
     // Declared first: its thread stops before any entity is deleted.
     acks: AckWatcher,
     config: DdsConfig,
+    /// The UDP ports the agent's front-ends serve, which Cyclone must leave to them.
+    reserved: ReservedPorts,
     participants: HashMap<u16, Rc<ffi::Participant>>,
     /// Topics by (domain, name, type name, keyed), shared by their endpoints and deleted
     /// with the last of them.
@@ -66,8 +69,14 @@ const AGENT_SETTINGS: &str =
 /// `interfaces`, DDS restricted to them (later settings win). On loopback alone there is no
 /// multicast, so discovery goes by unicast to the well-known ports of the first participant
 /// indices on the same addresses (which is also how RustDDS and a loopback-pinned Cyclone
-/// find each other).
-pub fn config_xml(interfaces: &[IpAddr], uri: Option<&str>) -> Result<String, String> {
+/// find each other). With `data_multicast_offset`, user-data multicast is received on that
+/// port of the domain's range instead of its own (`7400 + 250·d + 1`, which an XRCE front-end
+/// serves: [`super::ports`]); Cyclone announces the port, so other participants send there.
+pub fn config_xml(
+    interfaces: &[IpAddr],
+    uri: Option<&str>,
+    data_multicast_offset: Option<u32>,
+) -> Result<String, String> {
     let v6 = interfaces.iter().filter(|a| a.is_ipv6()).count();
     if v6 != 0 && v6 != interfaces.len() {
         return Err("Cyclone DDS uses either IPv4 or IPv6 addresses in a domain, not both".into());
@@ -79,8 +88,32 @@ pub fn config_xml(interfaces: &[IpAddr], uri: Option<&str>) -> Result<String, St
     }
     s.push_str("<CycloneDDS><Domain id=\"any\">");
     s.push_str(AGENT_SETTINGS);
+    let mut discovery = String::new();
+    if let Some(offset) = data_multicast_offset {
+        let _ = write!(
+            discovery,
+            "<Ports><MulticastDataOffset>{offset}</MulticastDataOffset></Ports>"
+        );
+    }
+    let loopback = !interfaces.is_empty() && interfaces.iter().all(|a| a.is_loopback());
+    if loopback {
+        discovery.push_str(
+            "<ParticipantIndex>auto</ParticipantIndex>\
+             <MaxAutoParticipantIndex>50</MaxAutoParticipantIndex><Peers>",
+        );
+        for a in interfaces {
+            match a {
+                IpAddr::V4(a) => {
+                    let _ = write!(discovery, "<Peer address=\"{a}\"/>");
+                }
+                IpAddr::V6(a) => {
+                    let _ = write!(discovery, "<Peer address=\"[{a}]\"/>");
+                }
+            }
+        }
+        discovery.push_str("</Peers>");
+    }
     if !interfaces.is_empty() {
-        let loopback = interfaces.iter().all(|a| a.is_loopback());
         s.push_str("<General><Interfaces>");
         for a in interfaces {
             let _ = write!(s, "<NetworkInterface address=\"{a}\"/>");
@@ -93,33 +126,21 @@ pub fn config_xml(interfaces: &[IpAddr], uri: Option<&str>) -> Result<String, St
             s.push_str("<AllowMulticast>false</AllowMulticast>");
         }
         s.push_str("</General>");
-        if loopback {
-            s.push_str(
-                "<Discovery><ParticipantIndex>auto</ParticipantIndex>\
-                 <MaxAutoParticipantIndex>50</MaxAutoParticipantIndex><Peers>",
-            );
-            for a in interfaces {
-                match a {
-                    IpAddr::V4(a) => {
-                        let _ = write!(s, "<Peer address=\"{a}\"/>");
-                    }
-                    IpAddr::V6(a) => {
-                        let _ = write!(s, "<Peer address=\"[{a}]\"/>");
-                    }
-                }
-            }
-            s.push_str("</Peers></Discovery>");
-        }
+    }
+    if !discovery.is_empty() {
+        let _ = write!(s, "<Discovery>{discovery}</Discovery>");
     }
     s.push_str("</Domain></CycloneDDS>");
     Ok(s)
 }
 
 impl Cyclone {
-    /// A backend with no participant yet.
+    /// A backend with no participant yet, leaving the ports named by
+    /// [`ports::RESERVED_PORTS_ENV`] to the front-ends.
     pub fn new(config: DdsConfig) -> std::io::Result<Self> {
         Ok(Cyclone {
             config,
+            reserved: ReservedPorts::from_env().map_err(std::io::Error::other)?,
             participants: HashMap::new(),
             topics: HashMap::new(),
             readiness: ffi::Readiness::new()?,
@@ -127,13 +148,54 @@ impl Cyclone {
         })
     }
 
+    /// Leaves these UDP ports to the agent's front-ends (instead of the environment's).
+    pub fn reserve_ports(&mut self, reserved: ReservedPorts) {
+        self.reserved = reserved;
+    }
+
     fn participant(&mut self, domain: u16) -> Result<Rc<ffi::Participant>, String> {
         if let Some(p) = self.participants.get(&domain) {
             return Ok(p.clone());
         }
+        // Cyclone binds its multicast sockets on the wildcard address of its transport's
+        // family (IPv6 only when every configured address is one).
+        let v6 = !self.config.interfaces.is_empty()
+            && self.config.interfaces.iter().all(IpAddr::is_ipv6);
+        let plan = ports::plan(domain, &self.reserved, &self.config.interfaces, |p| {
+            ports::shareable(p, v6)
+        })
+        .map_err(|clash| clash.to_string())?;
+        if let Some(taken) = plan.user_multicast_taken {
+            let Some(offset) = plan.data_multicast_offset else {
+                return Err(format!(
+                    "DDS domain {domain}: UDP port {taken}, its user-data multicast port, is \
+                     taken (an XRCE port?), and so are its spare ports {}-{}",
+                    ports::port_at(domain, *ports::SPARE_OFFSETS.start()).unwrap_or(0),
+                    ports::port_at(domain, *ports::SPARE_OFFSETS.end()).unwrap_or(0),
+                ));
+            };
+            tracing::info!(
+                domain,
+                taken,
+                instead = ports::port_at(domain, offset),
+                "the domain's user-data multicast port is taken (an XRCE port?): Cyclone DDS \
+                 receives user-data multicast on a spare port instead, which it announces to \
+                 the other participants"
+            );
+        }
         let uri = std::env::var("CYCLONEDDS_URI").ok();
-        let xml = config_xml(&self.config.interfaces, uri.as_deref())?;
-        let p = Rc::new(ffi::Participant::new(u32::from(domain), Some(&xml))?);
+        let xml = config_xml(
+            &self.config.interfaces,
+            uri.as_deref(),
+            plan.data_multicast_offset,
+        )?;
+        let guard = plan.guard(v6);
+        let p = ffi::Participant::new(u32::from(domain), Some(&xml))
+            .map_err(|e| format!("{e} (Cyclone DDS's reason is in the worker's log just before)"));
+        // Released before the sockets are confined (it is one of the process's wildcard
+        // sockets).
+        drop(guard);
+        let p = Rc::new(p?);
         // Fails closed: unconfined, the participant (and its domain) is deleted here.
         super::confine_new_sockets(&self.config)
             .map_err(|e| format!("DDS participant in domain {domain}: {e}"))?;
@@ -895,12 +957,12 @@ mod tests {
 
     #[test]
     fn loopback_configuration_discovers_by_unicast_and_others_keep_multicast() {
-        let none = config_xml(&[], None).expect("valid");
+        let none = config_xml(&[], None, None).expect("valid");
         assert!(
             none.contains("HeartbeatInterval") && !none.contains("Interfaces"),
             "{none}"
         );
-        let lo = config_xml(&[addr("127.0.0.1")], None).expect("valid");
+        let lo = config_xml(&[addr("127.0.0.1")], None, None).expect("valid");
         assert!(
             lo.contains("<NetworkInterface address=\"127.0.0.1\"/>"),
             "{lo}"
@@ -910,23 +972,63 @@ mod tests {
             "{lo}"
         );
         assert!(lo.contains("<Peer address=\"127.0.0.1\"/>"), "{lo}");
-        let v6 = config_xml(&[addr("::1")], None).expect("valid");
+        let v6 = config_xml(&[addr("::1")], None, None).expect("valid");
         assert!(
             v6.contains("<Transport>udp6</Transport>") && v6.contains("[::1]"),
             "{v6}"
         );
-        let lan = config_xml(&[addr("192.0.2.7")], None).expect("valid");
+        let lan = config_xml(&[addr("192.0.2.7")], None, None).expect("valid");
         assert!(
             !lan.contains("AllowMulticast") && !lan.contains("<Peers>"),
             "{lan}"
         );
-        assert!(config_xml(&[addr("127.0.0.1"), addr("::1")], None).is_err());
+        assert!(config_xml(&[addr("127.0.0.1"), addr("::1")], None, None).is_err());
         // The user's file first, so that the agent's settings and --dds-interface win.
-        let with_uri = config_xml(&[], Some("file:///etc/cyclone.xml")).expect("valid");
+        let with_uri = config_xml(&[], Some("file:///etc/cyclone.xml"), None).expect("valid");
         assert!(
             with_uri.starts_with("file:///etc/cyclone.xml,<CycloneDDS>"),
             "{with_uri}"
         );
+    }
+
+    #[test]
+    fn a_taken_user_multicast_port_moves_to_the_spare_offset_in_one_discovery_element() {
+        let lan = config_xml(&[], None, Some(2)).expect("valid");
+        assert!(
+            lan.contains(
+                "<Discovery><Ports><MulticastDataOffset>2</MulticastDataOffset></Ports>\
+                 </Discovery>"
+            ),
+            "{lan}"
+        );
+        let lo = config_xml(&[addr("127.0.0.1")], None, Some(3)).expect("valid");
+        assert_eq!(lo.matches("<Discovery>").count(), 1, "{lo}");
+        assert!(
+            lo.contains("<MulticastDataOffset>3</MulticastDataOffset>")
+                && lo.contains("<Peer address=\"127.0.0.1\"/>"),
+            "{lo}"
+        );
+        assert!(!config_xml(&[], None, None)
+            .expect("valid")
+            .contains("Discovery"));
+    }
+
+    #[test]
+    fn a_front_ends_free_port_is_not_taken_by_the_participant() {
+        // Domain 98 on loopback: participant index 0 would listen on 31910 and 31911.
+        let (disc, data) = (
+            ports::port_at(98, ports::D1).expect("port"),
+            ports::port_at(98, ports::D3).expect("port"),
+        );
+        let mut dds = loopback();
+        dds.reserve_ports(ReservedPorts::new([disc, data]));
+        let _publisher = dds.create_group(98, true, &[]).expect("publisher");
+        for p in [disc, data] {
+            assert!(
+                std::net::UdpSocket::bind(("0.0.0.0", p)).is_ok(),
+                "Cyclone took port {p}, which a front-end serves"
+            );
+        }
     }
 
     #[test]

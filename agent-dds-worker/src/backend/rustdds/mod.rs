@@ -16,6 +16,7 @@ use std::time::Duration;
 use rustdds::mio1::{Events, Interest, Poll, Registry, Token};
 use rustdds::{DomainParticipant, DomainParticipantBuilder, QosPolicies, RTPSEntity, TopicKind};
 
+use super::ports::{self, ReservedPorts};
 use super::{
     DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken, Sample,
     SampleIdentity, Taken, TopicSpec,
@@ -39,6 +40,8 @@ enum Role {
 /// DDS through RustDDS.
 pub struct RustDds {
     config: DdsConfig,
+    /// The UDP ports the agent's front-ends serve, which RustDDS must leave to them.
+    reserved: ReservedPorts,
     participants: HashMap<(u16, Role), DomainParticipant>,
     poll: Poll,
     /// The poll's registry, shared by every reader for its deregistration (one descriptor).
@@ -55,12 +58,14 @@ impl std::fmt::Debug for RustDds {
 }
 
 impl RustDds {
-    /// A backend with no participant yet.
+    /// A backend with no participant yet, leaving the ports named by
+    /// [`ports::RESERVED_PORTS_ENV`] to the front-ends.
     pub fn new(config: DdsConfig) -> std::io::Result<Self> {
         let poll = Poll::new()?;
         let registry = Rc::new(poll.registry().try_clone()?);
         Ok(RustDds {
             config,
+            reserved: ReservedPorts::from_env().map_err(std::io::Error::other)?,
             participants: HashMap::new(),
             poll,
             registry,
@@ -68,18 +73,46 @@ impl RustDds {
         })
     }
 
+    /// Leaves these UDP ports to the agent's front-ends (instead of the environment's).
+    pub fn reserve_ports(&mut self, reserved: ReservedPorts) {
+        self.reserved = reserved;
+    }
+
     /// The participant of `domain` for `role`, created on first use.
+    ///
+    /// RustDDS binds the domain's multicast ports sharing them (and goes on without a
+    /// listener it cannot bind), and its unicast ports at the first participant index whose
+    /// ports are free: so a front-end's port is left alone if the front-end holds it, and
+    /// [`ports::PortGuard`] holds it meanwhile if not. A taken discovery multicast port
+    /// refuses the domain ([`ports::plan`]) instead of leaving it deaf to the others'
+    /// announcements.
     fn participant(&mut self, domain: u16, role: Role) -> Result<DomainParticipant, String> {
         if let Some(p) = self.participants.get(&(domain, role)) {
             return Ok(p.clone());
+        }
+        // RustDDS's sockets are IPv4.
+        let plan = ports::plan(domain, &self.reserved, &self.config.interfaces, |p| {
+            ports::shareable(p, false)
+        })
+        .map_err(|clash| clash.to_string())?;
+        if let Some(taken) = plan.user_multicast_taken {
+            tracing::info!(
+                domain,
+                taken,
+                "the domain's user-data multicast port is taken (an XRCE port?): RustDDS \
+                 receives user data by unicast only there, as Fast DDS does by default"
+            );
         }
         let mut b = DomainParticipantBuilder::new(domain);
         if !self.config.interfaces.is_empty() {
             b = b.with_only_networks(self.config.interfaces.clone());
         }
-        let p = b
-            .build()
-            .map_err(|e| format!("creating DDS participant in domain {domain}: {e:?}"))?;
+        let guard = plan.guard(false);
+        let p = b.build();
+        // Released before the sockets are confined (it is one of the process's wildcard
+        // sockets).
+        drop(guard);
+        let p = p.map_err(|e| format!("creating DDS participant in domain {domain}: {e:?}"))?;
         // Fails closed: unconfined, the participant is dropped (deleted) here.
         super::confine_new_sockets(&self.config)
             .map_err(|e| format!("DDS participant in domain {domain}: {e}"))?;
@@ -357,6 +390,36 @@ impl DdsBackend for RustDds {
         self.participants.retain(|(d, _), _| *d != domain);
         if self.participants.len() != before {
             tracing::info!(domain, "DDS participants released");
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_front_ends_free_ports_are_not_taken_by_the_participants() {
+        // Domain 99 on loopback: RustDDS would bind the user-data multicast port 32151 and
+        // give its first participant 32160 and 32161.
+        let reserved: Vec<u16> = [ports::D2, ports::D1, ports::D3]
+            .iter()
+            .filter_map(|o| ports::port_at(99, *o))
+            .collect();
+        let mut dds = RustDds::new(DdsConfig {
+            interfaces: vec!["127.0.0.1".parse().expect("address")],
+            backend: super::super::BackendKind::Rustdds,
+        })
+        .expect("backend");
+        dds.reserve_ports(ReservedPorts::new(reserved.iter().copied()));
+        let _publisher = dds.create_group(99, true, &[]).expect("publisher");
+        let _subscriber = dds.create_group(99, false, &[]).expect("subscriber");
+        assert_eq!(dds.participants(), 2);
+        for p in reserved {
+            assert!(
+                std::net::UdpSocket::bind(("0.0.0.0", p)).is_ok(),
+                "RustDDS took port {p}, which a front-end serves"
+            );
         }
     }
 }
