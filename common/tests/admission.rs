@@ -142,18 +142,27 @@ fn a_session_whose_client_answers_the_probe_is_not_taken_over() {
     // The genuine client is alive: it is heard after the probe.
     agent.handle_datagram(ms(50), HOME, &write(0, b"alive"), &mut rec);
     drain(&mut agent);
-    // The intruder's retry is refused, and the session stays home.
+    // The intruder's retry a second later is not answered yet: home is probed again (an
+    // answer in the first moments may come from a client just given that port).
     agent.handle_datagram(ms(1000), ELSEWHERE, &create_client(KEY), &mut rec);
+    let out = drain(&mut agent);
+    assert!(statuses(&out).is_empty());
+    assert!(
+        out.iter().any(|t| t.destination == HOME),
+        "home not probed again"
+    );
+    agent.handle_datagram(ms(1100), HOME, &write(1, b"still mine"), &mut rec);
+    assert!(drain(&mut agent).iter().all(|t| t.destination == HOME));
+    // Home kept answering for two seconds: the next retry is refused, the session stays.
+    agent.handle_datagram(ms(2000), ELSEWHERE, &create_client(KEY), &mut rec);
     assert_eq!(
         statuses(&drain(&mut agent)),
         [(ELSEWHERE, status::ERR_DENIED)]
     );
     assert_eq!(agent.stats().dropped("takeover_refused"), 1);
-    agent.handle_datagram(ms(1100), HOME, &write(1, b"still mine"), &mut rec);
     assert_eq!(rec.writes, [b"alive".to_vec(), b"still mine".to_vec()]);
-    assert!(drain(&mut agent).iter().all(|t| t.destination == HOME));
     // Nothing the intruder sends reaches DDS.
-    agent.handle_datagram(ms(1200), ELSEWHERE, &write(2, b"intruder"), &mut rec);
+    agent.handle_datagram(ms(2100), ELSEWHERE, &write(2, b"intruder"), &mut rec);
     assert_eq!(rec.writes.len(), 2);
 }
 
@@ -319,4 +328,23 @@ fn a_message_refused_for_room_is_asked_for_again_only_when_the_client_heartbeats
             b"three".to_vec()
         ]
     );
+}
+
+#[test]
+fn a_claim_answered_by_a_client_new_at_the_old_port_goes_through_once_it_creates_its_session() {
+    // The session's client restarted from another port, and its old port went to another
+    // client, which answers the agent's probe before it creates its own session there.
+    let (mut agent, mut rec, t0) = agent_with(Admission::default());
+    let ms = |n| t0 + Duration::from_millis(n);
+    agent.handle_datagram(ms(0), ELSEWHERE, &create_client(KEY), &mut rec);
+    drain(&mut agent);
+    agent.handle_datagram(ms(50), HOME, &write(0, b"from the newcomer"), &mut rec);
+    drain(&mut agent);
+    let newcomer = ClientKey([0x0C, 0x0C, 0x0C, 0x0C]);
+    agent.handle_datagram(ms(300), HOME, &create_client(newcomer), &mut rec);
+    assert_eq!(statuses(&drain(&mut agent)), [(HOME, status::OK)]);
+    // The old session went with its address: the claim goes through at its next retry.
+    agent.handle_datagram(ms(1000), ELSEWHERE, &create_client(KEY), &mut rec);
+    assert_eq!(statuses(&drain(&mut agent)), [(ELSEWHERE, status::OK)]);
+    assert_eq!(agent.stats().dropped("takeover_refused"), 0);
 }

@@ -121,6 +121,11 @@ pub struct Common {
     /// see one writer per group of clients.
     #[arg(long = "share-writers", env = "XRCE_SHARE_WRITERS", default_value_t = false, action = clap::ArgAction::Set)]
     pub share_writers: bool,
+    /// The ROS 2 distribution whose `ros_discovery_info` layout the graph is published in
+    /// (`humble` has 24-octet GIDs, `iron` and later 16): default `ROS_DISTRO` as a sourced
+    /// ROS 2 shell sets it, else jazzy.
+    #[arg(long = "ros-distro", env = "XRCE_ROS_DISTRO", value_enum)]
+    pub ros_distro: Option<xrce_dds_worker::ros_graph::RosDistro>,
     /// Domain ids clients may use, e.g. `0-10,42`; a participant in another gets
     /// STATUS_ERR_DENIED. Default: any, but at most `--max-domains` at once.
     #[arg(long = "domains", env = "XRCE_DOMAINS", value_name = "LIST")]

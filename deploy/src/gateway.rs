@@ -12,6 +12,7 @@
 //! dds_interfaces = ["127.0.0.1"]   # optional, like --dds-interface
 //! ros_graph = true                 # optional
 //! share_writers = false            # optional
+//! ros_distro = "humble"            # optional: the graph's layout (default ROS_DISTRO, else jazzy)
 //! domains = "0-10,42"              # optional: the domain ids clients may use (default: any)
 //! max_domains = 8                  # optional: most domains in use at once (default 8, or
 //!                                  #   none with `domains`)
@@ -117,6 +118,8 @@ pub struct WorkerSection {
     pub dds_backend: Option<xrce_dds_worker::backend::BackendKind>,
     /// Seconds a gone front-end's entities are kept for it to come back (default 30).
     pub frontend_grace: Option<f64>,
+    /// The ROS 2 distribution of the graph's layout, like `--ros-distro`.
+    pub ros_distro: Option<String>,
     /// Domain ids clients may use, like `--domains` (`"0-10,42"`).
     pub domains: Option<String>,
     /// Most distinct domains in use at once, like `--max-domains`.

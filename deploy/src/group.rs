@@ -89,9 +89,12 @@ fn init_logging(filter: &str) {
 }
 
 /// The worker's settings as environment variables.
-/// The domain ids a worker serves (`--domains`, `--max-domains`).
+/// The domain ids a worker serves (`--domains`, `--max-domains`) and the ROS 2
+/// distribution its graph is laid out for.
 #[derive(Debug, Clone, Default)]
 pub struct WorkerDomains {
+    /// `--ros-distro`; `None`: `ROS_DISTRO` (which the worker inherits), else jazzy.
+    pub ros_distro: Option<xrce_dds_worker::ros_graph::RosDistro>,
     /// Domain ids clients may use (`0-10,42`); `None`: any.
     pub domains: Option<String>,
     /// Most distinct domains in use at once; `None`: the worker's default (8, none with a
@@ -106,13 +109,53 @@ fn worker_env(
     share_writers: bool,
     dds_backend: Option<BackendKind>,
     domains: &WorkerDomains,
+    frontends: &[&FrontendPlan],
 ) -> anyhow::Result<Vec<(String, String)>> {
     let mut env = Vec::new();
+    // Checked here, with a clear message, rather than in a worker crash loop (an unknown
+    // ROS_DISTRO stops the worker).
+    let (distro, _) = xrce_dds_worker::ros_graph::RosDistro::resolve(
+        domains.ros_distro,
+        std::env::var_os("ROS_DISTRO").as_deref(),
+    )?;
+    env.push(("XRCE_ROS_DISTRO".into(), distro.to_string()));
     if let Some(list) = &domains.domains {
         // Refused here, with a clear message, rather than in a worker crash loop.
         list.parse::<xrce_dds_worker::domains::DomainSet>()
             .map_err(|e| anyhow::anyhow!("--domains {list:?}: {e}"))?;
         env.push(("XRCE_DOMAINS".into(), list.clone()));
+    }
+    // The UDP ports the front-ends serve: DDS leaves them alone (a well-known DDS port,
+    // such as RTI's default XRCE port 7401, domain 0's user multicast port, is moved off),
+    // and one it cannot leave is refused here, before anything starts.
+    let udp_ports: Vec<u16> = frontends
+        .iter()
+        .filter_map(|f| match f {
+            FrontendPlan::Ip {
+                kind: TransportKind::Udp4 | TransportKind::Udp6,
+                listen,
+                ..
+            } => Some(listen.port()),
+            _ => None,
+        })
+        .collect();
+    if !udp_ports.is_empty() {
+        let allowed = domains
+            .domains
+            .as_deref()
+            .map(str::parse::<xrce_dds_worker::domains::DomainSet>)
+            .transpose()
+            .map_err(|e| anyhow::anyhow!("--domains: {e}"))?;
+        xrce_dds_worker::backend::check_reserved_ports(
+            &xrce_dds_worker::backend::DdsConfig {
+                interfaces: dds_interfaces.to_vec(),
+                backend: dds_backend.unwrap_or_default(),
+            },
+            &udp_ports,
+            |d| allowed.as_ref().is_none_or(|s| s.contains(d)),
+        )?;
+        let list: Vec<String> = udp_ports.iter().map(ToString::to_string).collect();
+        env.push(("XRCE_RESERVED_PORTS".into(), list.join(",")));
     }
     if let Some(n) = domains.max_domains {
         if !(1..=233).contains(&n) {
@@ -186,9 +229,11 @@ impl Group {
             common.share_writers,
             common.dds_backend,
             &WorkerDomains {
+                ros_distro: common.ros_distro,
                 domains: common.domains.clone(),
                 max_domains: common.max_domains,
             },
+            &[&frontend],
         )?);
         if let Some(d) = common.dialect {
             let name = if d == xrce_common::wire::Dialect::Spec {
@@ -260,9 +305,17 @@ impl Group {
             g.worker.share_writers.unwrap_or(false),
             g.worker.dds_backend,
             &WorkerDomains {
+                ros_distro: g
+                    .worker
+                    .ros_distro
+                    .as_deref()
+                    .map(str::parse::<xrce_dds_worker::ros_graph::RosDistro>)
+                    .transpose()
+                    .map_err(|e| anyhow::anyhow!("[worker] ros_distro: {e}"))?,
                 domains: g.worker.domains.clone(),
                 max_domains: g.worker.max_domains,
             },
+            &g.frontends.iter().map(|f| &f.plan).collect::<Vec<_>>(),
         )?);
         if let Some(grace) = g.worker.frontend_grace {
             env.push(("XRCE_FRONTEND_GRACE".into(), grace.to_string()));

@@ -11,6 +11,22 @@ const EVICTABLE_SILENCE: Duration = Duration::from_secs(1);
 const MAX_VICTIMS: usize = 16;
 /// A takeover probe older than this is forgotten: the next CREATE_CLIENT probes again.
 const TAKEOVER_MEMORY: Duration = Duration::from_secs(10);
+/// A claim is refused (STATUS_ERR_DENIED) only once the session's endpoint has kept answering
+/// for this long: an answer in the first moments may come from another client that was just
+/// given that address and port and has not created its own session there yet (which, when it
+/// does, ends the old session and lets the claim through).
+const DENY_AFTER: Duration = Duration::from_secs(2);
+
+/// Another endpoint's claim on a session (a CREATE_CLIENT with its key).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Claim<A> {
+    /// Who claims it.
+    pub(super) claimant: A,
+    /// When it first did.
+    pub(super) first: Instant,
+    /// When the session's endpoint was last probed for it.
+    pub(super) probed: Instant,
+}
 
 /// What a CREATE_CLIENT with a live session's key from another endpoint may do.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -237,7 +253,8 @@ impl<A: Endpoint> Agent<A> {
     /// What a CREATE_CLIENT with `key`'s live session from `src`, another endpoint than
     /// the session's, may do: the session's endpoint is probed first, and the session moves
     /// only if it stays silent for the probe wait (a client that restarted from a new port
-    /// asks again a second later and gets it); one that answers keeps it.
+    /// asks again a second later and gets it); one that keeps answering for [`DENY_AFTER`]
+    /// keeps it, and the claimant is refused.
     pub(super) fn takeover(&mut self, now: Instant, key: ClientKey, src: A) -> Takeover {
         if self.config.admission.allow_roaming {
             return Takeover::Allow;
@@ -249,35 +266,44 @@ impl<A: Endpoint> Agent<A> {
         if c.addr == src || c.detached {
             return Takeover::Allow;
         }
-        match c.takeover {
-            Some((claimant, probed))
-                if claimant == src && now.saturating_duration_since(probed) < TAKEOVER_MEMORY =>
-            {
-                if c.last_heard > probed {
+        let since = |t: Instant| now.saturating_duration_since(t);
+        let claim = match c.takeover {
+            Some(claim) if claim.claimant == src && since(claim.probed) < TAKEOVER_MEMORY => {
+                if c.last_heard <= claim.probed {
+                    if since(claim.probed) >= wait {
+                        c.takeover = None;
+                        return Takeover::Allow;
+                    }
+                    return Takeover::Probing;
+                }
+                if since(claim.first) >= DENY_AFTER {
                     c.takeover = None;
-                    Takeover::Refuse
-                } else if now.saturating_duration_since(probed) >= wait {
-                    c.takeover = None;
-                    Takeover::Allow
-                } else {
-                    Takeover::Probing
+                    return Takeover::Refuse;
+                }
+                // Alive so far: probed again, asked again.
+                Claim {
+                    probed: now,
+                    ..claim
                 }
             }
-            _ => {
-                c.takeover = Some((src, now));
-                let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
-                let probe = crate::wire::GetInfoPayload {
-                    base: BaseObjectRequest {
-                        request_id: LIVELINESS_PROBE_ID,
-                        object_id: ObjectId::AGENT,
-                    },
-                    info_mask: 0x02,
-                };
-                let _ = b.push(&Payload::GetInfo(probe), true);
-                let addr = c.addr;
-                self.push_transmit(addr, b.finish());
-                Takeover::Probing
-            }
-        }
+            _ => Claim {
+                claimant: src,
+                first: now,
+                probed: now,
+            },
+        };
+        c.takeover = Some(claim);
+        let mut b = MessageBuilder::new(c.header(stream_id::NONE, 0));
+        let probe = crate::wire::GetInfoPayload {
+            base: BaseObjectRequest {
+                request_id: LIVELINESS_PROBE_ID,
+                object_id: ObjectId::AGENT,
+            },
+            info_mask: 0x02,
+        };
+        let _ = b.push(&Payload::GetInfo(probe), true);
+        let addr = c.addr;
+        self.push_transmit(addr, b.finish());
+        Takeover::Probing
     }
 }

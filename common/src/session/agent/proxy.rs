@@ -65,7 +65,7 @@ pub(super) struct ProxyClient<A> {
     pub(super) reassembly_at: HashMap<u8, Instant>,
     /// Another endpoint's claim on the session (CREATE_CLIENT with its key), and when the
     /// session's endpoint was probed for it.
-    pub(super) takeover: Option<(A, Instant)>,
+    pub(super) takeover: Option<super::limits::Claim<A>>,
     /// Its dead time before its endpoint closed (the detached grace replaces it meanwhile).
     pub(super) attached_dead_time: Option<Option<Duration>>,
     /// The number of the first message of each new stream, both ways: 0 as the spec's
