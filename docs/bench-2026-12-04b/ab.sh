@@ -4,6 +4,9 @@
 # Run as: unshare -n sh docs/bench-2026-12-04b/ab.sh OUT_DIR
 set -e
 ip link set lo up
+# Each round starts a fresh agent on the same port: without this it would take over the
+# sessions the previous round stored (what a restarted agent does), which no benchmark wants.
+export XRCE_DISCARD_SESSIONS=true
 O=${1:-/tmp/ab}
 mkdir -p "$O"
 A=/tmp/new/xrce-agent
