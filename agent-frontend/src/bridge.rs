@@ -906,7 +906,8 @@ impl Bridge {
                         self.objects_changed.insert(h.client_key);
                         self.reads_changed.insert(h.client_key);
                         if waited.is_some_and(|w| w.2 == MessageKind::Create) {
-                            g.remove(h.object_id);
+                            let removed = g.remove(h.object_id);
+                            self.object_budget.removed(h.client_key, &removed);
                         } else if g
                             .read_mut(h.object_id)
                             .is_some_and(|r| r.request_id == h.request_id)

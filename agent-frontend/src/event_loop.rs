@@ -197,7 +197,7 @@ fn serve<T: Transport>(
             }
         });
         while let Some(closed) = transport.poll_closed() {
-            agent.endpoint_closed(closed);
+            agent.endpoint_closed(Instant::now(), closed);
         }
         discovery_left = discovery.as_mut().is_some_and(Discovery::answer_pending);
         bridge.apply_replies(now, &mut agent);

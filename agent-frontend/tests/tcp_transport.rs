@@ -398,3 +398,34 @@ fn an_idle_connection_is_closed() {
     assert_eq!(h.tcp.stats().dropped("tcp_idle_connection"), 1);
     assert!(closed_by_peer(&mut c, Duration::from_secs(5)));
 }
+
+#[test]
+fn a_client_streaming_messages_back_to_back_is_not_taken_for_a_stalled_one() {
+    let mut h = Harness::new(TcpConfig {
+        frame_limit: Duration::from_millis(500),
+        ..TcpConfig::default()
+    });
+    let mut c = h.connect();
+    // For two seconds, every write ends in the middle of the next message: there is always
+    // a message begun, but each is finished in time.
+    let start = Instant::now();
+    let next = framed(b"next");
+    let mut sent = 0;
+    let mut got = 0;
+    let mut bytes = Vec::new();
+    while start.elapsed() < Duration::from_secs(2) {
+        // The rest of the message begun last time, a whole one, the start of another.
+        bytes.extend_from_slice(&framed(b"whole one"));
+        bytes.extend_from_slice(&next[..3]);
+        c.write_all(&bytes).expect("write");
+        sent += 1;
+        got += h.run(Duration::from_millis(50), |_, _| false).len();
+        bytes = next[3..].to_vec();
+        sent += 1;
+    }
+    c.write_all(&bytes).expect("write");
+    got += h.run(Duration::from_millis(500), |_, _| false).len();
+    assert_eq!(h.tcp.stats().dropped("tcp_stalled_message"), 0);
+    assert_eq!(got, sent);
+    assert_eq!(h.tcp.connections(), 1);
+}

@@ -224,7 +224,7 @@ fn a_closed_connection_s_session_expires_after_the_grace() {
     let t0 = Instant::now();
     let k = key(1);
     assert_eq!(connect(&mut a, t0, Ep(1, 1), k), Some(status::OK));
-    assert!(a.endpoint_closed(Ep(1, 1)));
+    assert!(a.endpoint_closed(t0, Ep(1, 1)));
     a.handle_timeout(t0 + Duration::from_secs(2), &mut NullSink);
     assert!(a.has_client(k), "gone before the grace");
     a.handle_timeout(t0 + Duration::from_secs(4), &mut NullSink);
@@ -234,7 +234,7 @@ fn a_closed_connection_s_session_expires_after_the_grace() {
     let k2 = key(2);
     let t2 = t0 + Duration::from_secs(10);
     assert_eq!(connect(&mut a, t2, Ep(1, 2), k2), Some(status::OK));
-    assert!(a.endpoint_closed(Ep(1, 2)));
+    assert!(a.endpoint_closed(t2, Ep(1, 2)));
     // Reconnecting from a new connection: the old endpoint is closed, so no probe wait.
     assert_eq!(
         connect(&mut a, t2 + Duration::from_secs(1), Ep(1, 3), k2),
@@ -242,4 +242,46 @@ fn a_closed_connection_s_session_expires_after_the_grace() {
     );
     a.handle_timeout(t2 + Duration::from_secs(60), &mut NullSink);
     assert!(a.has_client(k2));
+}
+
+#[test]
+fn the_grace_of_a_closed_connection_counts_from_the_close_not_from_the_last_message() {
+    let mut a = agent(
+        Limits {
+            detached_grace: Some(Duration::from_secs(60)),
+            ..Limits::default()
+        },
+        100,
+    );
+    let t0 = Instant::now();
+    let k = key(1);
+    assert_eq!(connect(&mut a, t0, Ep(1, 1), k), Some(status::OK));
+    // Silent for five minutes (a subscriber with nothing to read), then its connection closes.
+    let closed = t0 + Duration::from_secs(300);
+    assert!(a.endpoint_closed(closed, Ep(1, 1)));
+    a.handle_timeout(closed + Duration::from_secs(1), &mut NullSink);
+    assert!(a.has_client(k), "deleted at once after a long silence");
+    a.handle_timeout(closed + Duration::from_secs(59), &mut NullSink);
+    assert!(a.has_client(k), "deleted before the grace ran out");
+    a.handle_timeout(closed + Duration::from_secs(61), &mut NullSink);
+    assert!(!a.has_client(k));
+}
+
+#[test]
+fn fragments_after_a_stalled_reassembly_are_not_taken_for_a_message() {
+    let mut a = agent(Limits::default(), 100);
+    let t0 = Instant::now();
+    let ep = Ep(1, 1);
+    let k = key(1);
+    assert_eq!(connect(&mut a, t0, ep, k), Some(status::OK));
+    a.handle_datagram(t0, ep, &fragment(k, 0, 100), &mut NullSink);
+    a.handle_timeout(t0 + Duration::from_secs(6), &mut NullSink);
+    assert_eq!(a.stats().dropped("reassembly_stale"), 1);
+    // The rest of that message comes late, up to its last fragment: dropped with it.
+    let t1 = t0 + Duration::from_secs(7);
+    a.handle_datagram(t1, ep, &fragment(k, 1, 100), &mut NullSink);
+    let mut last = fragment(k, 2, 8);
+    last[9] |= flags::LAST_FRAGMENT; // the submessage flags, after the 8-octet header
+    a.handle_datagram(t1, ep, &last, &mut NullSink);
+    assert_eq!(a.stats().dropped("reassembly_discarded"), 2);
 }

@@ -572,8 +572,8 @@ fn a_closed_endpoint_keeps_its_session_and_silences_it_until_the_client_returns(
         request_id: RequestId::from_u16(9),
         object_id: ObjectId::new(1, object_kind::PARTICIPANT),
     };
-    assert!(agent.endpoint_closed(ADDR), "a session was there");
-    assert!(!agent.endpoint_closed(ADDR), "only once");
+    assert!(agent.endpoint_closed(t0, ADDR), "a session was there");
+    assert!(!agent.endpoint_closed(t0, ADDR), "only once");
     assert!(agent.has_client(KEY), "the session is kept");
     // A reply meanwhile is queued but not sent, and no heartbeat or probe goes out.
     agent
@@ -615,7 +615,7 @@ fn a_closed_endpoint_keeps_its_session_and_silences_it_until_the_client_returns(
 fn a_closed_endpoints_client_is_deleted_after_its_dead_time() {
     let props = Some(vec![("uxr_hl".to_string(), "000400".to_string())]);
     let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, props);
-    agent.endpoint_closed(ADDR);
+    agent.endpoint_closed(t0, ADDR);
     run_timers(
         &mut agent,
         &mut rec,

@@ -317,8 +317,9 @@ impl FrontendPlan {
         }
     }
 
-    /// What it serves, for the derived instance name: the address and port, or the devices
-    /// (a pseudoterminal is a new one at every start: nothing).
+    /// What it serves, for the derived instance name: the address and port, or the devices.
+    /// A pseudoterminal is a new one at every start, which no client of a previous agent
+    /// can reach: its agent's instance is its own (the process id).
     pub fn identity(&self) -> String {
         match self {
             FrontendPlan::Ip { listen, .. } => listen.to_string(),
@@ -327,7 +328,7 @@ impl FrontendPlan {
                 .map(|d| d.display().to_string())
                 .collect::<Vec<_>>()
                 .join(" "),
-            _ => String::new(),
+            _ => format!("pid {}", std::process::id()),
         }
     }
 

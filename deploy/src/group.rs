@@ -28,6 +28,14 @@ pub struct FrontendLaunch {
     pub args: Vec<String>,
 }
 
+/// Whether `name` is an instance name of the kind agents before derived names used: `stem`
+/// followed by a process id (at most 7 digits, Linux's largest pid being 4,194,304), not
+/// `stem` followed by the 8 hexadecimal digits of a derived name.
+fn is_legacy_instance(name: &str, stem: &str) -> bool {
+    name.strip_prefix(stem)
+        .is_some_and(|pid| (1..=7).contains(&pid.len()) && pid.bytes().all(|b| b.is_ascii_digit()))
+}
+
 /// Longest a new supervisor waits for the processes of the previous agent of its instance.
 pub const PREDECESSOR_WAIT: Duration = Duration::from_secs(10);
 
@@ -479,10 +487,12 @@ impl Group {
             } else {
                 status::remove_dead_reports(&dir);
                 if !explicit {
-                    // Directories of earlier agents with this stem, all dead (their lock
-                    // is free and they left no live report).
+                    // Directories of agents of earlier versions with this stem, named by
+                    // their pid, all dead (their lock is free and they left no live
+                    // report). Not other derived names: those are other agents (another
+                    // address, another namespace), whose stored sessions stay for them.
                     for (name, d) in status::instance_dirs() {
-                        if name.starts_with(&stem)
+                        if is_legacy_instance(&name, &stem)
                             && name != instance
                             && status::read_reports(&d).is_empty()
                         {
@@ -495,7 +505,7 @@ impl Group {
                 // Leftovers of earlier agents with this stem that died without cleaning up.
                 for dead in xrce_common::ipc::shm::dead_instances(&stem)
                     .into_iter()
-                    .filter(|d| *d != instance)
+                    .filter(|d| *d != instance && is_legacy_instance(d, &stem))
                 {
                     if let Ok(n) = xrce_common::ipc::shm::IpcNode::new(&dead, "xrce-agent") {
                         drop(n);
@@ -664,5 +674,21 @@ fn stall_timeout() -> anyhow::Result<Option<Duration>> {
                 "XRCE_STALL_TIMEOUT={v:?}: seconds from 2 to 86400, or 0 for no stall check"
             ),
         },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::is_legacy_instance;
+
+    #[test]
+    fn only_pid_named_instances_count_as_leftovers_of_earlier_versions() {
+        assert!(is_legacy_instance("udp4-8888-12345", "udp4-8888-"));
+        assert!(is_legacy_instance("udp4-8888-4194304", "udp4-8888-"));
+        // Derived names: 8 hexadecimal digits, all-decimal ones included.
+        assert!(!is_legacy_instance("udp4-8888-1a2b3c4d", "udp4-8888-"));
+        assert!(!is_legacy_instance("udp4-8888-12345678", "udp4-8888-"));
+        assert!(!is_legacy_instance("udp4-8888-", "udp4-8888-"));
+        assert!(!is_legacy_instance("gw-abc", "gw-"));
     }
 }

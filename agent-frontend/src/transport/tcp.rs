@@ -447,6 +447,7 @@ impl TcpTransport {
         };
         let ep = c.endpoint(slot);
         'read: loop {
+            let before = delivered;
             // Whole messages first (some may be left from a budget used up).
             while let Some(m) = c.decoder.next_message() {
                 match m {
@@ -464,10 +465,11 @@ impl TcpTransport {
                     }
                 }
             }
-            // The message being received (if any) began with the bytes that are left.
+            // The message being received (if any) began with the bytes that are left: its
+            // time starts when the one before it was taken, or when its first bytes came.
             if c.decoder.buffered() == 0 {
                 c.frame_started = None;
-            } else if c.frame_started.is_none() {
+            } else if delivered > before || c.frame_started.is_none() {
                 c.frame_started = Some(Instant::now());
             }
             if read >= READ_BUDGET {

@@ -7,6 +7,10 @@ use crate::wire::{flags, submessage_id};
 #[derive(Debug, Clone, Default)]
 pub struct Reassembly {
     buf: Vec<u8>,
+    /// A message was given up part way (too large, stalled, evicted): its remaining
+    /// fragments, up to its last, are dropped too, or their bytes would be taken for a
+    /// message of their own.
+    discarding: bool,
 }
 
 /// Why reassembly gave up.
@@ -15,6 +19,9 @@ pub enum ReassemblyError {
     /// The fragments add up to more than the configured bound; they are discarded.
     #[error("reassembled message exceeds {0} bytes")]
     TooLarge(usize),
+    /// A fragment of a message given up before: dropped with it.
+    #[error("fragment of a message given up")]
+    Discarded,
 }
 
 impl Reassembly {
@@ -26,8 +33,13 @@ impl Reassembly {
         last: bool,
         max: usize,
     ) -> Result<Option<Vec<u8>>, ReassemblyError> {
+        if self.discarding {
+            self.discarding = !last;
+            return Err(ReassemblyError::Discarded);
+        }
         if self.buf.len() + data.len() > max {
             self.buf = Vec::new();
+            self.discarding = !last;
             return Err(ReassemblyError::TooLarge(max));
         }
         self.buf.extend_from_slice(data);
@@ -63,6 +75,16 @@ impl Reassembly {
 
     /// Forgets a partial message (stream reset).
     pub fn clear(&mut self) {
+        self.buf = Vec::new();
+        self.discarding = false;
+    }
+
+    /// Gives up the message being collected: its memory goes now, and its fragments still
+    /// to come are dropped up to its last one.
+    pub fn abandon(&mut self) {
+        if !self.buf.is_empty() {
+            self.discarding = true;
+        }
         self.buf = Vec::new();
     }
 }
@@ -105,6 +127,26 @@ mod tests {
         }
         assert_eq!(out, Some(sub));
         assert!(r.is_empty());
+    }
+
+    #[test]
+    fn the_rest_of_a_message_given_up_is_dropped_up_to_its_last_fragment() {
+        let mut r = Reassembly::default();
+        assert_eq!(r.push(b"abc", false, 100), Ok(None));
+        r.abandon();
+        assert_eq!(r.push(b"def", false, 100), Err(ReassemblyError::Discarded));
+        assert_eq!(r.push(b"ghi", true, 100), Err(ReassemblyError::Discarded));
+        // The next message is whole again.
+        assert_eq!(r.push(b"jk", false, 100), Ok(None));
+        assert_eq!(r.push(b"l", true, 100), Ok(Some(b"jkl".to_vec())));
+        // Too large: the rest of that message is dropped too.
+        assert_eq!(r.push(&[0; 80], false, 100), Ok(None));
+        assert_eq!(
+            r.push(&[0; 80], false, 100),
+            Err(ReassemblyError::TooLarge(100))
+        );
+        assert_eq!(r.push(b"tail", true, 100), Err(ReassemblyError::Discarded));
+        assert_eq!(r.push(b"x", true, 100), Ok(Some(b"x".to_vec())));
     }
 
     #[test]

@@ -148,6 +148,7 @@ impl<A: Endpoint> Agent<A> {
                     existing.mtu_announced = c.mtu.is_some();
                     existing.last_heard = now;
                     existing.detached = false;
+                    existing.closed_at = None;
                     existing.attached_dead_time = None;
                     existing.takeover = None;
                     existing.dialect = dialect;
@@ -239,18 +240,20 @@ impl<A: Endpoint> Agent<A> {
         self.push_transmit(dst, m);
     }
 
-    /// Tells the core that a transport endpoint is gone for good (a TCP connection closed).
-    /// The session there is kept, with its objects: a client that reconnects and creates its
+    /// Tells the core that a transport endpoint is gone for good (a TCP connection closed)
+    /// at `now` (the detached grace counts from then). The session there is kept, with its
+    /// objects: a client that reconnects and creates its
     /// session again with the same key continues with them, as over UDP. Until it is heard
     /// again nothing is sent to it (replies meanwhile wait in its reliable streams, bounded as
     /// ever). Returns whether a session was at that endpoint.
-    pub fn endpoint_closed(&mut self, endpoint: A) -> bool {
+    pub fn endpoint_closed(&mut self, now: Instant, endpoint: A) -> bool {
         let Some(key) = self.by_addr.remove(&endpoint) else {
             return false;
         };
         match self.clients.get_mut(&key) {
             Some(c) if c.addr == endpoint => {
                 c.detached = true;
+                c.closed_at = Some(now);
                 c.heartbeat_due = None;
                 if let Some(grace) = self.config.limits.detached_grace {
                     if c.attached_dead_time.is_none() {

@@ -107,20 +107,24 @@ impl<A: Endpoint> Agent<A> {
     /// them), the furthest over first, until `needed` bytes are free. Returns the bytes
     /// freed.
     fn evict_over_share(&mut self, now: Instant, needed: usize, except: ClientKey) -> usize {
+        // One scan: the sessions over their share that hold something they can give up,
+        // the furthest over first.
+        let mut victims: Vec<(usize, ClientKey)> = self
+            .clients
+            .values()
+            .filter(|c| c.key != except)
+            .filter(|c| {
+                c.reliable_in.values().any(|i| i.early_bytes() > 0)
+                    || c.reassembly.values().any(|r| !r.is_empty())
+            })
+            .map(|c| (self.budget.over_share(c.origin, c.held), c.key))
+            .filter(|(over, _)| *over > 0)
+            .collect();
+        victims.sort_unstable_by(|a, b| b.cmp(a));
         let mut freed = 0;
-        for _ in 0..MAX_VICTIMS {
-            let victim = self
-                .clients
-                .values()
-                .filter(|c| c.key != except)
-                .map(|c| (self.budget.over_share(c.origin, c.held), c.key))
-                .filter(|(over, _)| *over > 0)
-                .max();
-            let Some((_, victim)) = victim else {
-                break;
-            };
+        for (_, victim) in victims.into_iter().take(MAX_VICTIMS) {
             let Some(c) = self.clients.get_mut(&victim) else {
-                break;
+                continue;
             };
             let mut early = 0;
             for input in c.reliable_in.values_mut() {
@@ -130,7 +134,7 @@ impl<A: Endpoint> Agent<A> {
             for r in c.reassembly.values_mut() {
                 if !r.is_empty() {
                     partial += 1;
-                    r.clear();
+                    r.abandon();
                 }
             }
             c.reassembly_at.clear();
@@ -143,14 +147,10 @@ impl<A: Endpoint> Agent<A> {
             for _ in 0..partial {
                 self.count_drop("reassembly_evicted");
             }
-            if before == after {
-                // Nothing it holds can be given up (output): look no further.
-                break;
-            }
             if let Some(previous) = self.episodes.bite(now, "reassembly_evicted") {
-                tracing::warn!(client = %victim, freed = before - after, previous_episode = previous, "memory budget full: what a session over its share held was given up for another (logged once per episode)");
+                tracing::warn!(client = %victim, freed = before.saturating_sub(after), previous_episode = previous, "memory budget full: what a session over its share held was given up for another (logged once per episode)");
             }
-            freed += before - after;
+            freed += before.saturating_sub(after);
             if freed >= needed {
                 break;
             }
@@ -176,7 +176,7 @@ impl<A: Endpoint> Agent<A> {
         for s in &stale {
             c.reassembly_at.remove(s);
             if let Some(r) = c.reassembly.get_mut(s) {
-                r.clear();
+                r.abandon();
             }
         }
         for _ in 0..stale.len() {

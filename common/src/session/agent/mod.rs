@@ -997,7 +997,12 @@ impl<A: Endpoint> Agent<A> {
                     }
                 }
             }
-            Err(_) => self.count_drop("reassembly_too_large"),
+            Err(crate::session::fragment::ReassemblyError::TooLarge(_)) => {
+                self.count_drop("reassembly_too_large")
+            }
+            Err(crate::session::fragment::ReassemblyError::Discarded) => {
+                self.count_drop("reassembly_discarded")
+            }
         }
     }
 

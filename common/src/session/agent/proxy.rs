@@ -68,6 +68,8 @@ pub(super) struct ProxyClient<A> {
     pub(super) takeover: Option<super::limits::Claim<A>>,
     /// Its dead time before its endpoint closed (the detached grace replaces it meanwhile).
     pub(super) attached_dead_time: Option<Option<Duration>>,
+    /// When its endpoint closed (while detached).
+    pub(super) closed_at: Option<Instant>,
     /// The number of the first message of each new stream, both ways: 0 as the spec's
     /// "initialize to 0" is read by eProsima, 1 for a client that reads it as the number
     /// before the first (RTI's nano-client: [`first_sequence_number`]).
@@ -128,6 +130,7 @@ impl<A: Origin> ProxyClient<A> {
             takeover: None,
             attached_dead_time: None,
             first_seq: 0,
+            closed_at: None,
             addr,
         }
     }
@@ -152,7 +155,8 @@ impl<A: Origin> ProxyClient<A> {
     /// probe, or (detached: nobody to probe) the end of its dead time.
     pub(super) fn next_due(&self, reassembly_timeout: Duration) -> Option<Instant> {
         let liveliness = if self.detached {
-            self.dead_time.map(|d| self.last_heard + d)
+            self.dead_time
+                .map(|d| self.closed_at.unwrap_or(self.last_heard) + d)
         } else {
             self.liveliness_due()
         };
@@ -174,6 +178,7 @@ impl<A: Origin> ProxyClient<A> {
     /// Its endpoint is back: the dead time it had before it closed applies again.
     pub(super) fn reattach(&mut self) {
         self.detached = false;
+        self.closed_at = None;
         if let Some(d) = self.attached_dead_time.take() {
             self.dead_time = d;
         }

@@ -29,7 +29,13 @@ impl<A: Endpoint> Agent<A> {
                 continue;
             };
             if let Some(dead_time) = c.dead_time {
-                let silence = now.saturating_duration_since(c.last_heard);
+                // Detached, the time runs from the close (it may have been silent long
+                // before without being dead).
+                let since = match (c.detached, c.closed_at) {
+                    (true, Some(at)) => at,
+                    _ => c.last_heard,
+                };
+                let silence = now.saturating_duration_since(since);
                 if silence >= dead_time {
                     dead.push((c.key, silence, c.detached));
                     continue;
