@@ -165,8 +165,8 @@ pub struct TcpTransport {
     closed: VecDeque<TcpEndpoint>,
     next_sweep: Instant,
     stats: TransportStats,
-    /// Open connections per peer address.
-    per_address: HashMap<IpAddr, usize>,
+    /// Open connections per peer host (an IPv6 /64 is one host: [`ip_origin`]).
+    per_address: HashMap<OriginId, usize>,
     /// Refusals logged once per episode.
     episodes: xrce_common::session::budget::Episodes,
 }
@@ -275,11 +275,11 @@ impl TcpTransport {
         self.free.push(slot);
         self.live -= 1;
         self.stats.closed += 1;
-        let ip = c.peer.ip();
-        if let Some(n) = self.per_address.get_mut(&ip) {
+        let host = ip_origin(c.peer.ip());
+        if let Some(n) = self.per_address.get_mut(&host) {
             *n -= 1;
             if *n == 0 {
-                self.per_address.remove(&ip);
+                self.per_address.remove(&host);
             }
         }
         self.closed.push_back(c.endpoint(slot));
@@ -303,6 +303,7 @@ impl TcpTransport {
     /// flood of unfinished connections from one place cannot keep others out). Whether
     /// one was closed.
     fn displace_for(&mut self, ip: IpAddr) -> bool {
+        let ip = ip_origin(ip);
         let mine = self.per_address.get(&ip).copied().unwrap_or(0);
         let Some((&busiest, &n)) = self.per_address.iter().max_by_key(|(a, n)| (**n, **a)) else {
             return false;
@@ -315,7 +316,7 @@ impl TcpTransport {
             .iter()
             .enumerate()
             .filter_map(|(slot, c)| c.as_ref().map(|c| (slot, c)))
-            .filter(|(_, c)| c.peer.ip() == busiest && c.delivered == 0)
+            .filter(|(_, c)| ip_origin(c.peer.ip()) == busiest && c.delivered == 0)
             .min_by_key(|(_, c)| c.opened_at)
             .map(|(slot, _)| slot as u32);
         let Some(victim) = victim else {
@@ -368,7 +369,11 @@ impl TcpTransport {
                     continue;
                 }
             };
-            let from_peer = self.per_address.get(&peer.ip()).copied().unwrap_or(0);
+            let from_peer = self
+                .per_address
+                .get(&ip_origin(peer.ip()))
+                .copied()
+                .unwrap_or(0);
             if from_peer >= self.config.max_per_address {
                 let n = self.stats.drop(PER_ADDRESS);
                 if self.episodes.bite(Instant::now(), PER_ADDRESS).is_some() {
@@ -422,7 +427,7 @@ impl TcpTransport {
             }
             self.slots[slot as usize] = Some(c);
             self.live += 1;
-            *self.per_address.entry(peer.ip()).or_default() += 1;
+            *self.per_address.entry(ip_origin(peer.ip())).or_default() += 1;
             self.stats.opened += 1;
             tracing::debug!(%peer, connections = self.live, "TCP connection accepted");
             // Data may have arrived before the registration.

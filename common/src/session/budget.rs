@@ -24,6 +24,18 @@ use std::time::{Duration, Instant};
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct OriginId(pub u128);
 
+impl std::fmt::Display for OriginId {
+    /// An IPv4 address, an IPv6 /64, or a small number (a serial line, a test's endpoint).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let v6 = std::net::Ipv6Addr::from(self.0);
+        match v6.to_ipv4_mapped() {
+            Some(v4) => write!(f, "{v4}"),
+            None if self.0 < 1 << 16 => write!(f, "#{}", self.0),
+            None => write!(f, "{v6}/64"),
+        }
+    }
+}
+
 /// What the session core needs to know of an endpoint beyond its identity.
 pub trait Origin {
     /// The host it belongs to.
@@ -34,13 +46,17 @@ pub trait Origin {
 }
 
 /// The origin of an IP address: IPv4 addresses as their IPv4-mapped IPv6 form, so that a
-/// dual-stack socket's two views of one peer are one origin.
+/// dual-stack socket's two views of one peer are one origin; an IPv6 address by its /64
+/// (one host commonly holds a whole /64 and may use any address of it).
 pub fn ip_origin(ip: IpAddr) -> OriginId {
-    let v6 = match ip {
-        IpAddr::V4(v4) => v4.to_ipv6_mapped(),
-        IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(v6, |v4| v4.to_ipv6_mapped()),
+    let bits = match ip {
+        IpAddr::V4(v4) => u128::from(v4.to_ipv6_mapped()),
+        IpAddr::V6(v6) => match v6.to_ipv4_mapped() {
+            Some(v4) => u128::from(v4.to_ipv6_mapped()),
+            None => u128::from(v6) & !((1u128 << 64) - 1),
+        },
     };
-    OriginId(u128::from(v6))
+    OriginId(bits)
 }
 
 impl Origin for SocketAddr {
@@ -365,5 +381,11 @@ mod tests {
         let v4: IpAddr = "192.0.2.1".parse().expect("ip");
         let mapped: IpAddr = "::ffff:192.0.2.1".parse().expect("ip");
         assert_eq!(ip_origin(v4), ip_origin(mapped));
+        let a: IpAddr = "2001:db8:1:2::1".parse().expect("ip");
+        let b: IpAddr = "2001:db8:1:2:ffff::9".parse().expect("ip");
+        let c: IpAddr = "2001:db8:1:3::1".parse().expect("ip");
+        assert_eq!(ip_origin(a), ip_origin(b), "one /64, one host");
+        assert_ne!(ip_origin(a), ip_origin(c));
+        assert_ne!(ip_origin(v4), ip_origin("192.0.2.2".parse().expect("ip")));
     }
 }
