@@ -73,6 +73,9 @@ def parse_args(argv):
 
     r = sub.add_parser("read", parents=[common], help="subscribe and print samples as JSON lines")
     r.add_argument("--count", type=int, default=1, help="samples to receive before exiting 0 (default 1)")
+    r.add_argument("--linger-ms", type=int, default=1000,
+                   help="after --count samples, keep printing what still arrives for this long "
+                        "(a late duplicate shows; default 1000; HelloWorld only)")
 
     g = sub.add_parser("graph", parents=[common], help="print ros_discovery_info samples")
     g.add_argument("--count", type=int, default=1, help="graph samples to receive (default 1)")
@@ -211,6 +214,19 @@ def main(argv=None):
                 eprint(f"TIMEOUT got={got}")
                 return EXIT_TIMEOUT
             waitset.wait(left)
+        # Past the count, what still arrives is printed too for a while: a test that expects
+        # exactly N samples must see an (N+1)th, a late duplicate, rather than a peer gone.
+        if not args.keyed and args.linger_ms > 0:
+            linger_end = time.monotonic() + args.linger_ms / 1000.0
+            while True:
+                for s in reader.take(N=64, condition=cond):
+                    if isinstance(s, HelloWorld):
+                        out(json.dumps({"index": int(s.index), "message": s.message,
+                                        "writer": int(s.sample_info.publication_handle)}))
+                left = linger_end - time.monotonic()
+                if left <= 0:
+                    break
+                waitset.wait(int(left * 1e9))
         return EXIT_OK
 
     # write
