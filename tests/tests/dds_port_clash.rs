@@ -235,7 +235,7 @@ fn inner_domain_3_user_multicast_port_8151_serves_a_publisher_and_a_subscriber()
 fn serves_a_publisher_and_a_subscriber(port: u16, domain: i16) {
     let agent = agent_on(port, &[]);
     let d = domain.to_string();
-    let reader = MulticastPeer::start(&[
+    let mut reader = MulticastPeer::start(&[
         "read",
         "--domain",
         &d,
@@ -262,6 +262,10 @@ fn serves_a_publisher_and_a_subscriber(port: u16, domain: i16) {
         reader.samples(&message)
     });
     got.assert_exactly_once(0..20, "Cyclone reading a client served on a DDS port");
+    // The reader goes on listening a second past its count (for a late duplicate): it must be
+    // gone before the Cyclone writer below waits for a match, or it would match that reader
+    // and write before the agent's reader is matched.
+    assert_eq!(reader.wait(30 * SECOND, || publ.step()), Some(0));
 
     let mut sub = TestClient::new(agent.addr(), [0x74, 0x01, 0x00, 0x02]);
     sub.connect(10 * SECOND);
