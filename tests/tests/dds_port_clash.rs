@@ -27,9 +27,9 @@ const SECOND: Duration = Duration::from_secs(1);
 /// Set in the environment of the test binary started inside the namespace.
 const INSIDE: &str = "XRCE_TEST_PRIVATE_NETNS";
 
-/// Runs the test `inner` (an ignored test of this file) in a private network namespace;
-/// false if namespaces are not available here.
-fn in_private_network(inner: &str) -> bool {
+/// Runs the test `inner` of this file again, in a private network namespace (where, seeing
+/// [`INSIDE`], it runs its body), and fails unless it passed there.
+fn in_private_network(inner: &str) {
     // Built (and Cyclone's Python installed) out here, where the network is.
     binaries();
     cyclone_python();
@@ -37,28 +37,19 @@ fn in_private_network(inner: &str) -> bool {
         .args(["-n", "true"])
         .stderr(Stdio::null())
         .status();
-    if !probe.is_ok_and(|s| s.success()) {
-        eprintln!(
-            "SKIPPED {inner}: `unshare -n` is not available here (needs CAP_SYS_ADMIN); the \
-             DDS port clash needs DDS with multicast, which only a private network namespace \
-             keeps off the real network"
-        );
-        return false;
-    }
+    assert!(
+        probe.is_ok_and(|s| s.success()),
+        "{inner}: `unshare -n` is not available here (it needs CAP_SYS_ADMIN, as root has); the \
+         DDS port clash needs DDS with multicast, which only a private network namespace keeps \
+         off the real network"
+    );
     let exe = std::env::current_exe().expect("the test binary");
     let out = output_within(
         Command::new("unshare")
             .arg("-n")
             .arg("--")
             .arg(exe)
-            .args([
-                inner,
-                "--exact",
-                "--include-ignored",
-                "--nocapture",
-                "--test-threads",
-                "1",
-            ])
+            .args([inner, "--exact", "--nocapture", "--test-threads", "1"])
             .env(INSIDE, "1"),
         Duration::from_secs(300),
     );
@@ -70,16 +61,15 @@ fn in_private_network(inner: &str) -> bool {
         stdout.contains("1 passed"),
         "{inner} did not run in its namespace"
     );
-    true
 }
 
 /// Inside the namespace: its loopback interface up, with multicast (as a LAN interface has
 /// it), so that both DDS implementations use multicast there. False outside one.
 fn namespace_ready() -> bool {
-    if std::env::var_os(INSIDE).is_none() {
-        eprintln!("run by the test of the same name without `inner_`, in its own namespace");
-        return false;
-    }
+    assert!(
+        std::env::var_os(INSIDE).is_some(),
+        "a test body meant for a private network namespace ran outside one"
+    );
     for args in [
         &["link", "set", "lo", "up"][..],
         &["link", "set", "lo", "multicast", "on"],
@@ -202,11 +192,13 @@ fn agent_on(port: u16, extra: &[&str]) -> AgentProcess {
 
 #[test]
 fn rti_default_port_7401_serves_a_publisher_and_a_subscriber() {
-    in_private_network("inner_rti_default_port_7401_serves_a_publisher_and_a_subscriber");
+    if std::env::var_os(INSIDE).is_some() {
+        inner_rti_default_port_7401_serves_a_publisher_and_a_subscriber();
+    } else {
+        in_private_network("rti_default_port_7401_serves_a_publisher_and_a_subscriber");
+    }
 }
 
-#[test]
-#[ignore = "run by rti_default_port_7401_serves_a_publisher_and_a_subscriber, in a namespace"]
 fn inner_rti_default_port_7401_serves_a_publisher_and_a_subscriber() {
     if namespace_ready() {
         serves_a_publisher_and_a_subscriber(7401, 0);
@@ -215,13 +207,13 @@ fn inner_rti_default_port_7401_serves_a_publisher_and_a_subscriber() {
 
 #[test]
 fn domain_3_user_multicast_port_8151_serves_a_publisher_and_a_subscriber() {
-    in_private_network(
-        "inner_domain_3_user_multicast_port_8151_serves_a_publisher_and_a_subscriber",
-    );
+    if std::env::var_os(INSIDE).is_some() {
+        inner_domain_3_user_multicast_port_8151_serves_a_publisher_and_a_subscriber();
+    } else {
+        in_private_network("domain_3_user_multicast_port_8151_serves_a_publisher_and_a_subscriber");
+    }
 }
 
-#[test]
-#[ignore = "run by domain_3_user_multicast_port_8151_serves_a_publisher_and_a_subscriber"]
 fn inner_domain_3_user_multicast_port_8151_serves_a_publisher_and_a_subscriber() {
     if namespace_ready() {
         // 7400 + 250 × 3 + 1: each domain's ports move by 250.
@@ -302,13 +294,15 @@ fn serves_a_publisher_and_a_subscriber(port: u16, domain: i16) {
 /// worker in `XRCE_RESERVED_PORTS`).
 #[test]
 fn discovery_port_7400_is_refused_at_start_naming_the_clash_and_the_way_out() {
-    in_private_network(
-        "inner_discovery_port_7400_is_refused_at_start_naming_the_clash_and_the_way_out",
-    );
+    if std::env::var_os(INSIDE).is_some() {
+        inner_discovery_port_7400_is_refused_at_start_naming_the_clash_and_the_way_out();
+    } else {
+        in_private_network(
+            "discovery_port_7400_is_refused_at_start_naming_the_clash_and_the_way_out",
+        );
+    }
 }
 
-#[test]
-#[ignore = "run by discovery_port_7400_is_refused_at_start_naming_the_clash_and_the_way_out"]
 fn inner_discovery_port_7400_is_refused_at_start_naming_the_clash_and_the_way_out() {
     if !namespace_ready() {
         return;
@@ -348,11 +342,13 @@ fn inner_discovery_port_7400_is_refused_at_start_naming_the_clash_and_the_way_ou
 
 #[test]
 fn discovery_port_7400_is_served_where_dds_does_without_it() {
-    in_private_network("inner_discovery_port_7400_is_served_where_dds_does_without_it");
+    if std::env::var_os(INSIDE).is_some() {
+        inner_discovery_port_7400_is_served_where_dds_does_without_it();
+    } else {
+        in_private_network("discovery_port_7400_is_served_where_dds_does_without_it");
+    }
 }
 
-#[test]
-#[ignore = "run by discovery_port_7400_is_served_where_dds_does_without_it, in a namespace"]
 fn inner_discovery_port_7400_is_served_where_dds_does_without_it() {
     if !namespace_ready() {
         return;

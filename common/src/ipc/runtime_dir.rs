@@ -713,27 +713,24 @@ pub fn write_atomically(path: &Path, tmp: &Path, bytes: &[u8]) -> Result<(), Run
     std::fs::rename(tmp, path).map_err(RuntimeDirError::io("renaming into", path))
 }
 
-/// Opens `path` (`O_NOFOLLOW`, and `O_NONBLOCK` so that a planted FIFO cannot block) and
-/// checks that it is a regular file owned by us; for writing too if `write`. What fails
-/// the check was not written by the agent and must not be used.
-pub fn open_owned(path: &Path, write: bool) -> Result<File, RuntimeDirError> {
-    let file = std::fs::OpenOptions::new()
-        .read(true)
-        .write(write)
-        .custom_flags(open_flags() | libc::O_NONBLOCK)
-        .open(path)
-        .map_err(|e| {
-            // ELOOP: the last component is a symbolic link.
-            if e.raw_os_error() == Some(libc::ELOOP) {
-                RuntimeDirError::WrongKind {
-                    path: path.to_path_buf(),
-                    found: FoundKind::Symlink,
-                    expected: "a regular file",
-                }
-            } else {
-                RuntimeDirError::io("opening", path)(e)
+/// A file opened without following links, checked to be a regular file: a link where the
+/// file should be (`ELOOP`) or anything but a regular file is refused.
+fn regular_file(
+    path: &Path,
+    opened: std::io::Result<File>,
+) -> Result<(File, std::fs::Metadata), RuntimeDirError> {
+    let file = opened.map_err(|e| {
+        // ELOOP: the last component is a symbolic link.
+        if e.raw_os_error() == Some(libc::ELOOP) {
+            RuntimeDirError::WrongKind {
+                path: path.to_path_buf(),
+                found: FoundKind::Symlink,
+                expected: "a regular file",
             }
-        })?;
+        } else {
+            RuntimeDirError::io("opening", path)(e)
+        }
+    })?;
     let meta = file
         .metadata()
         .map_err(RuntimeDirError::io("inspecting", path))?;
@@ -744,6 +741,19 @@ pub fn open_owned(path: &Path, write: bool) -> Result<File, RuntimeDirError> {
             expected: "a regular file",
         });
     }
+    Ok((file, meta))
+}
+
+/// Opens `path` (`O_NOFOLLOW`, and `O_NONBLOCK` so that a planted FIFO cannot block) and
+/// checks that it is a regular file owned by us; for writing too if `write`. What fails
+/// the check was not written by the agent and must not be used.
+pub fn open_owned(path: &Path, write: bool) -> Result<File, RuntimeDirError> {
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(write)
+        .custom_flags(open_flags() | libc::O_NONBLOCK)
+        .open(path);
+    let (file, meta) = regular_file(path, file)?;
     let me = euid();
     if meta.uid() != me {
         return Err(RuntimeDirError::WrongOwner {
@@ -799,28 +809,8 @@ impl LockFile {
             .truncate(false)
             .mode(FILE_MODE)
             .custom_flags(open_flags())
-            .open(path)
-            .map_err(|e| {
-                if e.raw_os_error() == Some(libc::ELOOP) {
-                    RuntimeDirError::WrongKind {
-                        path: path.to_path_buf(),
-                        found: FoundKind::Symlink,
-                        expected: "a regular file",
-                    }
-                } else {
-                    RuntimeDirError::io("opening", path)(e)
-                }
-            })?;
-        let meta = file
-            .metadata()
-            .map_err(RuntimeDirError::io("inspecting", path))?;
-        if !meta.is_file() {
-            return Err(RuntimeDirError::WrongKind {
-                path: path.to_path_buf(),
-                found: kind_of(&meta),
-                expected: "a regular file",
-            });
-        }
+            .open(path);
+        let (file, meta) = regular_file(path, file)?;
         check_owner_mode(path, &meta, 0)?;
         make_private(&file, path)?;
         if !sys::try_flock(&file).map_err(RuntimeDirError::io("locking", path))? {
