@@ -82,6 +82,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    xrce_common::fault::install_and_log("worker")?;
     // Before anything starts: a ROS_DISTRO the agent does not know stops it here.
     let (ros_distro, distro_source) = crate::ros_graph::RosDistro::resolve(
         args.ros_distro,

@@ -16,6 +16,7 @@
 use std::collections::{HashMap, HashSet, VecDeque};
 use std::time::{Duration, Instant};
 
+use xrce_common::fault::{self, Fault};
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
 use xrce_common::ipc::{
     self, IpcHeader, MessageKind, FLAG_DIALECT_SPEC, FLAG_DISPOSED, FLAG_LITTLE_ENDIAN,
@@ -28,8 +29,8 @@ use xrce_common::session::graph::{ActiveRead, CreateDecision, GraphObject, Objec
 use xrce_common::wire::cdr::CdrWriter;
 use xrce_common::wire::sample::{is_defined_format, sample_state};
 use xrce_common::wire::{
-    data_format, status, stream_id, BaseObjectRequest, ClientKey, Dialect, ObjectId, ObjectVariant,
-    RequestId, ResultStatus,
+    data_format, object_kind, status, stream_id, BaseObjectRequest, ClientKey, Dialect, ObjectId,
+    ObjectVariant, RequestId, ResultStatus,
 };
 
 use crate::object_budget::ObjectBudget;
@@ -794,6 +795,9 @@ impl Bridge {
                 });
             }
             for (reader, read) in graph.reads() {
+                if !first && fault::once(Fault::ReplaySkip) {
+                    continue;
+                }
                 let mut body = Vec::new();
                 read.spec.encode(&mut CdrWriter::new(&mut body, true));
                 let req = BaseObjectRequest {
@@ -975,12 +979,14 @@ impl Bridge {
                     state,
                     sequence_number,
                 };
-                if let Err(e) = agent.send_data(now, h.client_key, stream, reply) {
-                    // A full output queue is counted by the core (output_queue_full).
-                    if e != xrce_common::session::agent::SendError::QueueFull {
-                        self.stats.samples_dropped += 1;
+                for _ in 0..fault_copies(h.object_id) {
+                    if let Err(e) = agent.send_data(now, h.client_key, stream, reply) {
+                        // A full output queue is counted by the core (output_queue_full).
+                        if e != xrce_common::session::agent::SendError::QueueFull {
+                            self.stats.samples_dropped += 1;
+                        }
+                        tracing::debug!(client = %h.client_key, error = %e, "sample not delivered");
                     }
-                    tracing::debug!(client = %h.client_key, error = %e, "sample not delivered");
                 }
                 let congested = agent
                     .output_backlog(h.client_key, stream)
@@ -1450,4 +1456,19 @@ impl OperationSink for Bridge {
             }
         }
     }
+}
+
+/// How many times a sample from the worker goes to its client: once, unless a fault injected
+/// on purpose (`xrce_common::fault`, test builds only) drops or repeats it.
+fn fault_copies(reader: ObjectId) -> usize {
+    if reader.kind() == object_kind::REQUESTER && fault::hit(Fault::ReplyDuplicate, 1) {
+        return 2;
+    }
+    if fault::hit(Fault::ClientDuplicate, 10) {
+        return 2;
+    }
+    if fault::hit(Fault::ClientDrop, 10) {
+        return 0;
+    }
+    1
 }

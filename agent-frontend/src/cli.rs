@@ -426,6 +426,7 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
         )
         .with_writer(std::io::stderr)
         .init();
+    xrce_common::fault::install_and_log("frontend")?;
     let config = args.agent_config()?;
     // Every TCP connection is a descriptor, and so is every stored session's state file.
     raise_fd_limit();

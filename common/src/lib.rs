@@ -5,6 +5,7 @@
 //!   reliability) and a client side used by tests and the load generator.
 //! * [`framing`]: byte-stream framers for TCP (length prefix) and serial lines.
 //! * [`ipc`]: the versioned contract between front-ends and the DDS worker.
+//! * [`fault`]: faults injected on purpose (feature `fault-injection`, test builds only).
 //! * [`fuzzing`]: invariant-checking entry points for the fuzz targets and their corpus tests.
 //!
 //! This crate owns no socket, no thread and no clock: callers pass bytes, sources and
@@ -13,6 +14,7 @@
 //! use for the contract, and [`ipc::status`], the status reports each process writes.
 #![deny(unsafe_code)]
 
+pub mod fault;
 pub mod framing;
 pub mod fuzzing;
 pub mod ipc;

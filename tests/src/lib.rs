@@ -61,6 +61,10 @@ pub fn binaries() -> &'static Path {
             "xrce-frontend",
             "-p",
             "xrce-dds-worker",
+            // Faults injected on purpose when XRCE_FAULT names one (tests/fault-check.sh);
+            // inert otherwise. Release builds of the agent never have this feature.
+            "--features",
+            "xrce-agent/fault-injection,xrce-frontend/fault-injection,xrce-dds-worker/fault-injection",
         ]);
         if release {
             cmd.arg("--release");
@@ -88,21 +92,19 @@ fn ip_and_port(args: &[&str]) -> (std::net::IpAddr, u16) {
     (ip, port)
 }
 
-/// A port free for both TCP and UDP on 127.0.0.1, below the kernel's ephemeral range.
+/// A port free for both TCP and UDP on 127.0.0.1, below every DDS port (RTPS puts domain
+/// `d` at 7400 + 250 d and up) and so below the kernel's ephemeral range too.
 ///
-/// A port the kernel hands out for `bind(0)` would be fine but for one thing: between the
+/// A port the kernel hands out for `bind(0)` would be fine but for two things: between the
 /// test learning it and the agent binding it, any client socket of any test running in
-/// parallel (the load generator opens hundreds) may be given the same ephemeral port. Ports
-/// below the ephemeral range are never handed out that way, so only another test choosing
-/// the same one could race, and the candidates are spread by process id and a counter.
+/// parallel (the load generator opens hundreds) may be given the same ephemeral port; and a
+/// port of the DDS range may be the one a DDS participant of another test's domain wants
+/// next. Ports from 2000 to 7399 are neither, so only another test choosing the same one
+/// could race, and the candidates are spread by process id and a counter.
 pub fn free_port() -> u16 {
     use std::sync::atomic::{AtomicU32, Ordering};
     static NEXT: AtomicU32 = AtomicU32::new(0);
-    let ephemeral_low = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range")
-        .ok()
-        .and_then(|r| r.split_whitespace().next()?.parse::<u32>().ok())
-        .unwrap_or(32768);
-    let (low, high) = (10_000u32, ephemeral_low.clamp(10_001, 65_535));
+    let (low, high) = (FREE_PORTS.start, FREE_PORTS.end);
     let span = high - low;
     let seed = std::process::id().wrapping_mul(2_654_435_761);
     for _ in 0..span {
@@ -114,8 +116,11 @@ pub fn free_port() -> u16 {
             return port;
         }
     }
-    panic!("no free port below the ephemeral range")
+    panic!("no free port in {FREE_PORTS:?}")
 }
+
+/// Where [`free_port`] looks: above the well-known ports, below RTPS's first (7400).
+pub const FREE_PORTS: std::ops::Range<u32> = 2_000..7_400;
 
 /// A free TCP port on 127.0.0.1 (see [`free_port`]).
 pub fn free_tcp_port() -> u16 {
@@ -665,6 +670,8 @@ pub struct TestClient {
     pub link: Link,
     /// Events received and not yet consumed.
     pub events: Vec<ClientEvent>,
+    /// Messages sent so far.
+    pub sent: u64,
     buf: Vec<u8>,
 }
 
@@ -699,6 +706,7 @@ impl TestClient {
             client: Client::new(config),
             link,
             events: Vec::new(),
+            sent: 0,
             buf: vec![0; 65_536],
         }
     }
@@ -720,7 +728,7 @@ impl TestClient {
     /// One round: flush, receive what arrived (up to 5 ms), fire timers.
     pub fn step(&mut self) {
         while let Some(t) = self.client.poll_transmit() {
-            self.link.send(&t);
+            self.sent += u64::from(self.link.send(&t));
         }
         for m in self.link.receive(Duration::from_millis(5), &mut self.buf) {
             self.client.handle_datagram(Instant::now(), &m);
@@ -730,7 +738,7 @@ impl TestClient {
             self.events.push(e);
         }
         while let Some(t) = self.client.poll_transmit() {
-            self.link.send(&t);
+            self.sent += u64::from(self.link.send(&t));
         }
     }
 
@@ -932,12 +940,16 @@ impl TestClient {
         self.step();
     }
 
-    /// HelloWorld samples received so far (consumed from `events`).
+    /// HelloWorld samples received so far (consumed from `events`). A DATA that is not a
+    /// HelloWorld sample fails the test: a corrupted sample must not pass as a lost one.
     pub fn take_samples(&mut self) -> Vec<(u32, String)> {
         let mut out = Vec::new();
         self.events.retain(|e| match e {
             ClientEvent::Data { data, .. } => {
-                out.extend(parse_hello_world(data));
+                match parse_hello_world(data) {
+                    Some(s) => out.push(s),
+                    None => panic!("a DATA that is not a HelloWorld sample: {data:?}"),
+                }
                 false
             }
             _ => true,
@@ -1085,6 +1097,16 @@ impl Deliveries {
     /// Deliveries in all, duplicates included.
     pub fn total(&self) -> usize {
         self.order.len()
+    }
+
+    /// Deliveries recorded so far, duplicates included (a mark for [`Deliveries::order_from`]).
+    pub fn order_len(&self) -> usize {
+        self.order.len()
+    }
+
+    /// The indices delivered since `mark` (an earlier [`Deliveries::order_len`]), in order.
+    pub fn order_from(&self, mark: usize) -> Vec<u32> {
+        self.order.get(mark..).unwrap_or_default().to_vec()
     }
 
     /// The index delivered last (0 if none).

@@ -14,14 +14,33 @@ const SECOND: Duration = Duration::from_secs(1);
 
 #[test]
 fn a_read_asking_for_sample_seq_gets_numbered_sample_infos() {
-    let agent = AgentProcess::start("fmtsub");
-    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4D, 0x00, 0x01]);
+    read_in_format(data_format::SAMPLE_SEQ, 20, 1);
+}
+
+/// PACKED_SAMPLES: the SampleInfo is the base the (here absent) deltas would refer to.
+#[test]
+fn a_read_asking_for_packed_samples_gets_numbered_sample_infos() {
+    read_in_format(data_format::PACKED_SAMPLES, 69, 2);
+}
+
+/// FORMAT_SAMPLE: one SampleInfo and its sample per DATA.
+#[test]
+fn a_read_asking_for_sample_gets_numbered_sample_infos() {
+    read_in_format(data_format::SAMPLE, 23, 3);
+}
+
+/// Cyclone writes five samples; a read in `format` gets each once, in its own DATA, with a
+/// SampleInfo numbering it within the read.
+fn read_in_format(format: u8, domain: i16, key: u8) {
+    let agent = AgentProcess::start(&format!("fmtsub{format}"));
+    let mut c = TestClient::new(agent.addr(), [0xF0, 0x4D, 0x00, key]);
     c.connect(10 * SECOND);
+    let domain_arg = domain.to_string();
     c.setup_subscriber_with(
-        20,
+        domain,
         ReadSpecification {
             preferred_stream_id: stream_id::BUILTIN_RELIABLE,
-            data_format: data_format::SAMPLE_SEQ,
+            data_format: format,
             delivery_control: Some(DataDeliveryControl {
                 max_samples: u16::MAX,
                 ..Default::default()
@@ -32,7 +51,7 @@ fn a_read_asking_for_sample_seq_gets_numbered_sample_infos() {
     let mut writer = DdsPeer::start(&[
         "write",
         "--domain",
-        "20",
+        &domain_arg,
         "--count",
         "5",
         "--interval-ms",
@@ -62,14 +81,15 @@ fn a_read_asking_for_sample_seq_gets_numbered_sample_infos() {
         indexes
     });
     got.extend(data);
-    deliveries.assert_exactly_once(0..5, "a SAMPLE_SEQ read of Cyclone's samples");
-    deliveries.assert_in_order("a SAMPLE_SEQ read of Cyclone's samples");
+    let what = format!("a read in format {format:#x} of Cyclone's samples");
+    deliveries.assert_exactly_once(0..5, &what);
+    deliveries.assert_in_order(&what);
     let mut seqs = BTreeSet::new();
     let mut indexes = BTreeSet::new();
-    for (format, bytes) in &got {
-        assert_eq!(*format, data_format::SAMPLE_SEQ);
-        let samples = decode_samples(*format, bytes, true, Dialect::Eprosima, None)
-            .expect("a SampleSeq the eProsima dialect reads");
+    for (got_format, bytes) in &got {
+        assert_eq!(*got_format, format);
+        let samples = decode_samples(format, bytes, true, Dialect::Eprosima, None)
+            .expect("samples the eProsima dialect reads");
         assert_eq!(samples.len(), 1);
         let info = samples[0].info.expect("SampleInfo");
         assert_eq!(info.state, 0, "alive");

@@ -120,11 +120,15 @@ fn a_bad_references_file_is_refused_at_start() {
     .stdout(std::process::Stdio::piped())
     .stderr(std::process::Stdio::piped());
     let out = xrce_tests::output_within(&mut cmd, Duration::from_secs(30));
-    assert!(
-        !out.status.success(),
-        "a malformed references file must stop the agent"
-    );
     let stderr = String::from_utf8_lossy(&out.stderr);
+    // An error the agent reports and exits on (status 1), not a crash (a panic exits with
+    // 101, a signal with none).
+    assert_eq!(
+        out.status.code(),
+        Some(1),
+        "a malformed references file must stop the agent with an error: {stderr}"
+    );
+    assert!(!stderr.contains("panicked"), "{stderr}");
     assert!(
         stderr.contains("bad.refs"),
         "the error names the file: {stderr}"

@@ -4,11 +4,11 @@
 //! the request's SampleIdentity in front of it and sends it back in front of the reply; the
 //! requester gets the BaseObjectRequest of its own WRITE_DATA in front of the reply.
 
-use std::collections::HashMap as BTreeMap;
+use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 
 use xrce_common::wire::{object_kind as k, ObjectId, RequestId, VariantExtra};
-use xrce_tests::{xml, AgentProcess, TestClient};
+use xrce_tests::{xml, AgentProcess, TestClient, DUPLICATE_GRACE};
 
 const SECOND: Duration = Duration::from_secs(1);
 
@@ -43,13 +43,18 @@ fn request(a: u32, b: u32) -> Vec<u8> {
     [a.to_le_bytes(), b.to_le_bytes()].concat()
 }
 
-/// The replier's side: answers every request received so far with the sum.
-fn serve(replier: &mut TestClient, id: ObjectId) -> usize {
+/// The replier's side: answers every request received so far with the sum, and checks that
+/// no request arrives twice (`seen` holds the SampleIdentity of every request answered).
+fn serve(replier: &mut TestClient, id: ObjectId, seen: &mut HashSet<Vec<u8>>) -> usize {
     replier.step();
     let mut n = 0;
     for (_, d) in replier.take_data() {
         assert!(d.len() >= 24 + 8, "request without SampleIdentity: {d:?}");
         let (identity, body) = d.split_at(24);
+        assert!(
+            seen.insert(identity.to_vec()),
+            "the replier got the request {identity:?} twice"
+        );
         let a = u32::from_le_bytes(body[0..4].try_into().expect("a"));
         let b = u32::from_le_bytes(body[4..8].try_into().expect("b"));
         let mut reply = identity.to_vec();
@@ -69,48 +74,62 @@ fn replies_reach_the_requester_matched_to_their_requests() {
     let mut requester = TestClient::new(agent.addr(), [0x2E, 0x90, 0x00, 0x02]);
     requester.connect(10 * SECOND);
     let req = endpoint(&mut requester, k::REQUESTER, "requester");
+    let mut seen = HashSet::new();
 
     // Requests are volatile: probe until the first reply shows both sides matched.
-    let mut sent: BTreeMap<RequestId, u32> = BTreeMap::new();
-    let mut answered: BTreeMap<RequestId, u32> = BTreeMap::new();
+    let mut sent: HashMap<RequestId, u32> = HashMap::new();
+    let mut answered: HashMap<RequestId, Vec<u32>> = HashMap::new();
     let end = Instant::now() + 30 * SECOND;
     while answered.is_empty() && Instant::now() < end {
         let id = requester.write_reliable_id(req, &request(100, 1));
         sent.insert(id, 101);
         let until = Instant::now() + Duration::from_millis(200);
         while Instant::now() < until {
-            serve(&mut replier, rep);
+            serve(&mut replier, rep, &mut seen);
             requester.step();
             collect(&mut requester, req, &mut answered);
         }
     }
     assert!(!answered.is_empty(), "no reply within 30 s");
     // Now ten requests with distinct operands; each reply must carry its request's id.
-    let mut expected = BTreeMap::new();
+    let mut expected = HashMap::new();
     for i in 0..10u32 {
         let id = requester.write_reliable_id(req, &request(i, i * 10));
         expected.insert(id, i * 11);
     }
     let end = Instant::now() + 30 * SECOND;
     while expected.keys().any(|id| !answered.contains_key(id)) && Instant::now() < end {
-        serve(&mut replier, rep);
+        serve(&mut replier, rep, &mut seen);
+        requester.step();
+        collect(&mut requester, req, &mut answered);
+    }
+    // Then a while longer, so that a late repeated reply is seen.
+    let grace = Instant::now() + DUPLICATE_GRACE;
+    while Instant::now() < grace {
+        serve(&mut replier, rep, &mut seen);
         requester.step();
         collect(&mut requester, req, &mut answered);
     }
     for (id, sum) in &expected {
-        assert_eq!(answered.get(id), Some(sum), "reply to request {id:?}");
+        assert_eq!(
+            answered.get(id).map(Vec::as_slice),
+            Some(&[*sum][..]),
+            "replies to request {id:?} (exactly one expected)"
+        );
     }
     for (id, v) in &answered {
+        let asked = expected.get(id).or(sent.get(id));
         assert!(
-            expected.get(id).or(sent.get(id)) == Some(v),
-            "reply {v} for request {id:?} that asked something else"
+            asked.is_some() && v.iter().all(|s| Some(s) == asked),
+            "replies {v:?} for request {id:?} that asked {asked:?}"
         );
+        assert_eq!(v.len(), 1, "request {id:?} answered {} times", v.len());
     }
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
-/// The requester's side: (request id, sum) of every reply received so far.
-fn collect(requester: &mut TestClient, req: ObjectId, answered: &mut BTreeMap<RequestId, u32>) {
+/// The requester's side: (request id, sums) of every reply received so far.
+fn collect(requester: &mut TestClient, req: ObjectId, answered: &mut HashMap<RequestId, Vec<u32>>) {
     for (_, d) in requester.take_data() {
         assert!(d.len() >= 8, "reply too short: {d:?}");
         assert_eq!(
@@ -119,7 +138,10 @@ fn collect(requester: &mut TestClient, req: ObjectId, answered: &mut BTreeMap<Re
             "the BaseObjectRequest names the requester"
         );
         let sum = u32::from_le_bytes(d[4..8].try_into().expect("sum"));
-        answered.insert(RequestId([d[0], d[1]]), sum);
+        answered
+            .entry(RequestId([d[0], d[1]]))
+            .or_default()
+            .push(sum);
     }
 }
 

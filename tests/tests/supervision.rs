@@ -166,7 +166,11 @@ fn rss_kib(pid: i32) -> u64 {
         .unwrap_or(0)
 }
 
-/// A subscriber stops reading (and acknowledging) while Cyclone floods its topic with 20 MB:
+/// Samples of the flood: about 1 KB each, 117 MiB in all, more than either bound below, so
+/// that an agent holding the whole flood fails the test.
+const FLOOD_SAMPLES: u32 = 120_000;
+
+/// A subscriber stops reading (and acknowledging) while Cyclone floods its topic with 117 MiB:
 /// its read is paused, the samples wait in the DDS reader's bounded history, the agent's
 /// memory grows by no more than its configured queues, and another client is served
 /// meanwhile.
@@ -188,7 +192,7 @@ fn a_flood_to_a_stalled_subscriber_stays_within_the_agents_bounds() {
         "--domain",
         "39",
         "--count",
-        "20000",
+        &FLOOD_SAMPLES.to_string(),
         "--interval-ms",
         "0",
         "--message",
@@ -236,7 +240,7 @@ fn a_flood_to_a_stalled_subscriber_stays_within_the_agents_bounds() {
             }
         }
         while let Some(l) = writer.line(Duration::ZERO) {
-            flooded |= l.starts_with("SENT 19999");
+            flooded |= l.starts_with(&format!("SENT {}", FLOOD_SAMPLES - 1));
         }
         peak = (peak.0.max(rss_kib(frontend)), peak.1.max(rss_kib(worker)));
     }

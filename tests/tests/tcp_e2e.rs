@@ -4,6 +4,7 @@
 
 use std::time::{Duration, Instant};
 
+use xrce_common::session::client::ClientEvent;
 use xrce_common::wire::{
     object_kind, status, ObjectId, ObjectVariant, Representation, VariantExtra,
 };
@@ -199,6 +200,41 @@ fn hundreds_of_tcp_sessions_at_once() {
     }
     let got = reader.collect_deliveries(5, "one of many", 30 * SECOND, || c.step());
     got.assert_exactly_once(0..5, "a client among 300 others");
+    // And the 300 are still served: each one's session answers a request (a DELETE of an
+    // object it never created).
+    let now = std::time::Instant::now();
+    let requests: Vec<_> = clients
+        .iter_mut()
+        .map(|c| {
+            c.client
+                .delete(now, ObjectId::new(9, object_kind::DATAWRITER))
+                .expect("delete")
+        })
+        .collect();
+    let mut answers: Vec<Option<u8>> = vec![None; clients.len()];
+    let end = now + 60 * SECOND;
+    while answers.iter().any(Option::is_none) && std::time::Instant::now() < end {
+        for (i, c) in clients.iter_mut().enumerate() {
+            if answers[i].is_some() {
+                continue;
+            }
+            c.step();
+            answers[i] = c.events.iter().find_map(|e| match e {
+                ClientEvent::Status(s) if s.related.request_id == requests[i] => {
+                    Some(s.result.status)
+                }
+                _ => None,
+            });
+        }
+    }
+    let unanswered = answers.iter().filter(|a| a.is_none()).count();
+    assert_eq!(unanswered, 0, "sessions of the 300 that no longer answer");
+    assert!(
+        answers
+            .iter()
+            .all(|a| *a == Some(status::ERR_UNKNOWN_REFERENCE)),
+        "{answers:?}"
+    );
     drop(clients);
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -41,16 +41,27 @@ fn trace(name: &str) -> Vec<Line> {
         .collect()
 }
 
-/// Replies on streams (STATUS and DATA) in stream and sequence order, deduplicated.
+/// Replies on streams (STATUS and DATA) in stream and sequence order, each once: a message
+/// seen again under the same stream and sequence number is a retransmission, which must carry
+/// the same bytes (a sample sent twice as two messages has two numbers and stays twice).
 fn reliable_replies(all: &[Vec<u8>]) -> Vec<Vec<u8>> {
-    let mut v: Vec<Vec<u8>> = all
-        .iter()
-        .filter(|d| d.len() > 4 && d[1] != 0)
-        .cloned()
-        .collect();
-    v.sort_by_key(|d| (d[1], u16::from_le_bytes([d[2], d[3]])));
-    v.dedup();
-    v
+    let mut by_number: std::collections::BTreeMap<(u8, u16), Vec<u8>> = Default::default();
+    for d in all.iter().filter(|d| d.len() > 4 && d[1] != 0) {
+        let number = (d[1], u16::from_le_bytes([d[2], d[3]]));
+        match by_number.entry(number) {
+            std::collections::btree_map::Entry::Vacant(v) => {
+                v.insert(d.clone());
+            }
+            std::collections::btree_map::Entry::Occupied(o) => assert_eq!(
+                hex(o.get()),
+                hex(d),
+                "stream {} message {} sent again with other contents",
+                number.0,
+                number.1
+            ),
+        }
+    }
+    by_number.into_values().collect()
 }
 
 #[test]

@@ -14,6 +14,7 @@
 use std::cell::Cell;
 use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
+use xrce_common::fault::{self, Fault};
 
 use std::rc::Rc;
 use std::sync::Arc;

@@ -271,7 +271,11 @@ impl Worker {
             let now = Instant::now();
             rematch.held_bytes = 0;
             for (s_seq, s, d) in rematch.held.drain(..) {
-                let done = if d { w.raw.dispose(&s) } else { w.raw.write(s) };
+                let done = if d {
+                    w.raw.dispose(&s)
+                } else {
+                    publish(&*w.raw, s)
+                };
                 if done.is_ok() && w.outstanding.record(key.0, s_seq, now, w.raw.writes()) {
                     self.acks.watch(w);
                 }
@@ -282,9 +286,7 @@ impl Worker {
                 .dispose(&sample)
                 .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS dispose: {e}")))
         } else {
-            w.raw
-                .write(sample)
-                .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
+            publish(&*w.raw, sample).map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
         };
         if done.is_ok()
             && w.outstanding
@@ -386,7 +388,7 @@ impl Worker {
                     let done = if dispose {
                         w.raw.dispose(&sample)
                     } else {
-                        w.raw.write(sample)
+                        publish(&*w.raw, sample)
                     };
                     if let Err(e) = &done {
                         tracing::warn!(frontend = key.0, client = %key.1, error = %e, dispose, "held sample not published");
@@ -464,4 +466,16 @@ impl Worker {
         }
         m
     }
+}
+
+/// Writes one sample to DDS: once, unless a fault injected on purpose (`xrce_common::fault`,
+/// test builds only) drops it or writes it twice.
+fn publish(writer: &dyn backend::DdsWriter, sample: Sample) -> Result<(), String> {
+    if fault::hit(Fault::DdsDrop, 10) {
+        return Ok(());
+    }
+    if fault::hit(Fault::DdsDuplicate, 10) {
+        writer.write(sample.clone())?;
+    }
+    writer.write(sample)
 }

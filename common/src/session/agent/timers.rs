@@ -80,7 +80,8 @@ impl<A: Endpoint> Agent<A> {
                     // second. Only a silent client is probed less and less, its period
                     // growing up to `max_heartbeat_period`.
                     let heard = now.saturating_duration_since(c.last_heard) < c.heartbeat_interval;
-                    c.heartbeat_interval = if heard {
+                    let fixed = crate::fault::hit(crate::fault::Fault::HeartbeatFixed, 1);
+                    c.heartbeat_interval = if heard || fixed {
                         base_period
                     } else {
                         (c.heartbeat_interval * 2).min(max_period)

@@ -1,0 +1,100 @@
+//! HEARTBEATs to a client that has gone silent back off: the agent's reliable output to a
+//! client that stopped answering (asleep, out of range, rebooting) is announced less and less
+//! often, up to `max_heartbeat_period` (3.2 s), instead of ten times a second for as long as
+//! the session lives. A client that keeps talking keeps the base period (100 ms), which the
+//! core's unit tests cover.
+
+use std::time::{Duration, Instant};
+
+use xrce_common::wire::{Message, Payload};
+use xrce_tests::{hello_world, AgentProcess, TestClient};
+
+const SECOND: Duration = Duration::from_secs(1);
+
+/// How long the subscriber stays silent and counts: five periods of a back-off doubling from
+/// 100 ms (0.1, 0.2, 0.4, 0.8, 1.6, 3.2 s: the sixth HEARTBEAT is due 3.1 s after the first).
+const WATCH: Duration = Duration::from_secs(6);
+
+#[test]
+fn heartbeats_to_a_silent_client_back_off() {
+    let agent = AgentProcess::start("hbbackoff");
+    let domain = 68;
+    let mut sub = TestClient::new(agent.addr(), [0x4B, 0xB0, 0x00, 0x01]);
+    sub.connect(10 * SECOND);
+    sub.setup_subscriber(domain);
+    let mut publ = TestClient::new(agent.addr(), [0x4B, 0xB0, 0x00, 0x02]);
+    publ.connect(10 * SECOND);
+    let w = publ.setup_publisher(domain);
+    // Both sessions settled: the subscriber's READ_DATA acknowledged, and one sample through
+    // shows the two endpoints matched.
+    let mut through = false;
+    let end = Instant::now() + 30 * SECOND;
+    let mut i = 0;
+    while !through && Instant::now() < end {
+        publ.write_reliable(w, &hello_world(i, "warm-up"));
+        i += 1;
+        let until = Instant::now() + Duration::from_millis(200);
+        while Instant::now() < until {
+            publ.step();
+            sub.step();
+            through |= !sub.take_samples().is_empty();
+        }
+    }
+    assert!(through, "no sample reached the subscriber within 30 s");
+    // Let the last acknowledgements settle, then the subscriber goes silent: it reads what
+    // arrives without handing it to its session, so it never acknowledges.
+    let settle = Instant::now() + SECOND;
+    while Instant::now() < settle {
+        publ.step();
+        sub.step();
+        sub.take_samples();
+    }
+    for k in 0..5 {
+        publ.write_reliable(w, &hello_world(1000 + k, "unacknowledged"));
+    }
+    let mut data = 0;
+    let mut heartbeats: Vec<Instant> = Vec::new();
+    let mut buf = vec![0u8; 65536];
+    let start = Instant::now();
+    while start.elapsed() < WATCH {
+        publ.step();
+        for m in sub.link.receive(Duration::from_millis(5), &mut buf) {
+            let Ok(msg) = Message::decode(&m) else {
+                continue;
+            };
+            for s in &msg.submessages {
+                match s.payload {
+                    Payload::Heartbeat(_) => heartbeats.push(Instant::now()),
+                    Payload::Data(_) => data += 1,
+                    _ => {}
+                }
+            }
+        }
+    }
+    assert!(
+        data >= 5,
+        "the unacknowledged samples never reached the subscriber ({data} DATA)"
+    );
+    let gaps: Vec<u128> = heartbeats
+        .windows(2)
+        .map(|w| (w[1] - w[0]).as_millis())
+        .collect();
+    // Without a back-off: about 60 in 6 s. With it: 6 or 7 (fewer on a loaded machine, whose
+    // late timers only stretch the gaps).
+    assert!(
+        heartbeats.len() >= 3,
+        "a silent client with unacknowledged output is not told about it: {} HEARTBEATs in {WATCH:?}",
+        heartbeats.len()
+    );
+    assert!(
+        heartbeats.len() <= 9,
+        "HEARTBEATs to a silent client do not back off: {} in {WATCH:?}, gaps (ms) {gaps:?}",
+        heartbeats.len()
+    );
+    let last = gaps.last().copied().unwrap_or(0);
+    assert!(
+        last >= 1200,
+        "the HEARTBEAT period did not grow past a second: gaps (ms) {gaps:?}"
+    );
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
