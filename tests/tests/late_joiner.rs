@@ -10,7 +10,14 @@ const SECOND: Duration = Duration::from_secs(1);
 
 #[test]
 fn a_late_transient_local_reader_gets_the_history() {
-    let agent = AgentProcess::start("late");
+    // The worker says (at debug level) when a new writer stops holding its samples.
+    let agent = AgentProcess::start_with_env(
+        "late",
+        &[(
+            "XRCE_LOG",
+            "info,rustdds=error,xrce_dds_worker::worker::writes=debug",
+        )],
+    );
     let mut c = TestClient::new(agent.addr(), [0x1A, 0x7E, 0x00, 0x01]);
     c.connect(10 * SECOND);
     let w = c.setup_publisher(24);
@@ -27,7 +34,14 @@ fn a_late_transient_local_reader_gets_the_history() {
     // then in the writer's history, not held, and the late joiner must get that history
     // whole (with Cyclone DDS it got only the last sample until its durability service kept
     // the writer's depth).
-    c.run_until(1500 * Duration::from_millis(1), |_| false);
+    let (_, line) = agent
+        .output()
+        .wait_for(0, "holding writer resumes", 10 * SECOND)
+        .expect("the worker never released its new writer's hold");
+    assert!(
+        plain(&line).contains("matched=false"),
+        "the hold ended by a match, with no reader: {line}"
+    );
     let reader = DdsPeer::start(&[
         "read",
         "--domain",
@@ -43,4 +57,23 @@ fn a_late_transient_local_reader_gets_the_history() {
     got.assert_exactly_once(0..8, "a late transient-local reader's history");
     got.assert_in_order("a late transient-local reader's history");
     assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+/// A log line without its terminal colours.
+fn plain(line: &str) -> String {
+    let mut out = String::new();
+    let mut chars = line.chars();
+    while let Some(ch) = chars.next() {
+        if ch == '\u{1b}' {
+            // ESC [ ... m
+            for c in chars.by_ref() {
+                if c == 'm' {
+                    break;
+                }
+            }
+        } else {
+            out.push(ch);
+        }
+    }
+    out
 }

@@ -6,16 +6,16 @@ use std::process::Command;
 /// report; returns the report and the generator's stdout.
 pub fn run_loadgen(name: &str, args: &[&str]) -> (serde_json::Value, String) {
     let json = std::env::temp_dir().join(format!("loadgen-{name}-{}.json", std::process::id()));
-    // The generator starts the `xrce-agent` next to it; build it if this run did not.
+    // The generator starts the `xrce-agent` next to it: built now from the sources under
+    // test (a no-op when current), as the end-to-end tests build it, not whatever binary an
+    // earlier build left there.
     let loadgen = std::path::Path::new(env!("CARGO_BIN_EXE_xrce-loadgen"));
-    if !loadgen.with_file_name("xrce-agent").exists() {
-        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
-        let ok = Command::new(cargo)
-            .args(["build", "-p", "xrce-agent", "--bin", "xrce-agent"])
-            .status()
-            .is_ok_and(|s| s.success());
-        assert!(ok, "building xrce-agent failed");
-    }
+    let built = xrce_tests::binaries();
+    assert_eq!(
+        loadgen.parent(),
+        Some(built),
+        "xrce-loadgen and the agent it starts are in one folder"
+    );
     // A port found free may still be taken before the agent binds it (by another test):
     // then the agent cannot start and another port is tried.
     let mut out = None;
