@@ -26,11 +26,20 @@ checks=(
 )
 
 only=${1:-}
+if [ -n "$only" ] && ! printf '%s\n' "${checks[@]}" | grep -q "^$only "; then
+  echo "fault-check: no fault named '$only' (known: $(printf '%s\n' "${checks[@]}" | awk '{print $1}' | sort -u | tr '\n' ' '))" >&2
+  exit 2
+fi
 logs=$(mktemp -d)
 trap 'rm -rf "$logs"' EXIT
 
-# Builds the tests (and, through the harness, the agent with fault injection) once.
-cargo test --locked -p xrce-tests --no-run -q 2>&1 | tail -n 3
+# Builds the test binaries once (each builds the agent, with fault injection, on its first
+# run: the control runs below).
+if ! cargo test --locked -p xrce-tests --no-run -q >"$logs/build" 2>&1; then
+  tail -n 30 "$logs/build"
+  echo "fault-check: building the tests failed" >&2
+  exit 1
+fi
 
 run() { # fault binary name log -> exit status of the test
   local fault=$1 bin=$2 name=$3 log=$4
@@ -73,6 +82,13 @@ for c in "${checks[@]}"; do
     missed=$((missed + 1))
     echo "XRCE_FAULT=$fault  $test: passed: NOT CAUGHT ($((SECONDS - start)) s)"
     report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "NOT CAUGHT")")
+  elif ! grep -q "FAULT INJECTION active" "$log"; then
+    # Red without the fault running (the agent did not start, a name it does not know, a
+    # harness failure) proves nothing.
+    missed=$((missed + 1))
+    echo "XRCE_FAULT=$fault  $test: failed, but no agent reported the fault active:"
+    grep -m1 -A1 "panicked at" "$log" || tail -n 5 "$log"
+    report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "FAILED WITHOUT THE FAULT ACTIVE")")
   elif grep -q "panicked at" "$log"; then
     echo "XRCE_FAULT=$fault  $test: caught ($((SECONDS - start)) s): $(why "$log")"
     report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "caught: $(why "$log")")")
@@ -87,7 +103,7 @@ done
 
 echo
 echo "=== fault check: what caught what ==="
-printf '%s\n' "${report[@]}"
+[ "${#report[@]}" -gt 0 ] && printf '%s\n' "${report[@]}"
 if [ "$missed" -gt 0 ]; then
   echo "fault check: $missed check(s) failed"
   exit 1

@@ -15,6 +15,7 @@ struct Options
     int domain = 0;
     int count = 10;
     int timeout_s = 20;        // subscriber only
+    int linger_ms = 1000;      // subscriber only: listens this long after -n samples
     bool best_effort = false;  // default RELIABLE
     bool transient_local = false; // default VOLATILE
     bool builtin_transports = false; // default: UDPv4 only, whitelist 127.0.0.1
@@ -32,7 +33,7 @@ inline void usage(const char* prog, bool sub)
             "  --transient-local    TRANSIENT_LOCAL durability\n"
             "  --builtin-transports use Fast DDS default transports (UDPv4 on all interfaces + SHM), no whitelist\n"
             "  --no-peers           do not add the 127.0.0.1 initial peer (multicast discovery only)\n",
-            prog, sub ? " [-t|--timeout SEC]" : "", sub ? ", timeout 20 s" : "");
+            prog, sub ? " [-t|--timeout SEC] [--linger-ms MS]" : "", sub ? ", timeout 20 s, linger 1000 ms" : "");
 }
 
 inline Options parse(int argc, char** argv, bool sub)
@@ -48,6 +49,7 @@ inline Options parse(int argc, char** argv, bool sub)
         if (a == "-d" || a == "--domain") o.domain = next();
         else if (a == "-n" || a == "--count") o.count = next();
         else if (sub && (a == "-t" || a == "--timeout")) o.timeout_s = next();
+        else if (sub && a == "--linger-ms") o.linger_ms = next();
         else if (a == "--best-effort") o.best_effort = true;
         else if (a == "--reliable") o.best_effort = false;
         else if (a == "--transient-local") o.transient_local = true;

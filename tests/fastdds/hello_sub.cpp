@@ -6,6 +6,7 @@
 #include <chrono>
 #include <condition_variable>
 #include <mutex>
+#include <thread>
 #include <fastdds/dds/domain/DomainParticipant.hpp>
 #include <fastdds/dds/subscriber/Subscriber.hpp>
 #include <fastdds/dds/subscriber/DataReader.hpp>
@@ -83,6 +84,13 @@ int main(int argc, char** argv)
     {
         std::unique_lock<std::mutex> lk(listener.m);
         listener.cv.wait_for(lk, std::chrono::seconds(o.timeout_s), [&] { return listener.received >= o.count; });
+        got = listener.received;
+    }
+    if (got >= o.count)
+    {
+        // Listening on past the count, so that a sample delivered twice is printed twice.
+        std::this_thread::sleep_for(std::chrono::milliseconds(o.linger_ms));
+        std::lock_guard<std::mutex> lk(listener.m);
         got = listener.received;
     }
     std::fprintf(stderr, "[sub] received %d/%d samples\n", got, o.count);

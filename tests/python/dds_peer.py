@@ -11,7 +11,8 @@ Subcommands:
 
 Output protocol (stdout, one line each, flushed):
   READY                  reader (read) / writer (write) exists
-  MATCHED <n>            matched-endpoint count changed to n (n >= 1 for write --wait-match)
+  MATCHED <n>            matched-endpoint count changed to n (n >= 1 for write --wait-match;
+                         a writer reports changes before the next SENT)
   {"index": i, "message": "..."}   one received sample (read)
   {"color": c, "x": x, "state": "alive"|"disposed"|"no_writers"}   (read --keyed; disposes
                          and unregisters count as samples)
@@ -244,11 +245,13 @@ def main(argv=None):
     waitset.attach(writer)
     out("READY")
 
+    last_matched = None
     if args.wait_match:
         while True:
             st = writer.get_publication_matched_status()
             if st.current_count >= 1:
                 out(f"MATCHED {st.current_count}")
+                last_matched = st.current_count
                 break
             left = remaining_ns()
             if left == 0:
@@ -259,6 +262,12 @@ def main(argv=None):
     for i in range(args.count):
         if i > 0 and args.interval_ms > 0:
             time.sleep(args.interval_ms / 1000.0)
+        # A change of the match count is reported before the next sample, so that a test
+        # knows which samples were written while a reader was matched.
+        matched = writer.get_publication_matched_status().current_count
+        if matched != last_matched:
+            out(f"MATCHED {matched}")
+            last_matched = matched
         if args.keyed:
             colors = args.colors.split(",")
             writer.write(ShapeType(color=colors[i % len(colors)], x=i, y=2 * i, shapesize=30))

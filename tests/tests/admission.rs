@@ -1,13 +1,17 @@
 //! Who may hold a session and how much a client may do, end to end: the allow-list of client
 //! keys, no takeover of a session from another socket (and roaming when allowed), the quota
-//! of objects per client, the input rate quota (a client over it is slowed, loses nothing).
+//! of objects per client, the input quotas in messages and in bytes per second (a client
+//! over one is slowed and loses nothing).
 
 use std::net::UdpSocket;
 use std::time::{Duration, Instant};
 
 use xrce_common::session::client::{ClientConfig, ClientEvent};
 use xrce_common::wire::*;
-use xrce_tests::{free_udp_port, hello_world, xml, AgentProcess, DdsPeer, Link, TestClient};
+use xrce_tests::{
+    free_udp_port, hello_world, parse_sample_line, xml, AgentProcess, DdsPeer, Deliveries, Link,
+    TestClient, DUPLICATE_GRACE,
+};
 
 const SECOND: Duration = Duration::from_secs(1);
 
@@ -229,22 +233,88 @@ fn objects_beyond_the_quota_are_refused_with_err_resources() {
 
 #[test]
 fn a_client_over_its_message_quota_is_slowed_and_loses_nothing() {
-    let agent = agent("ratequota", &["--max-client-messages-per-second", "40"]);
-    let reader = cyclone_reader("74", "120");
-    let mut c = TestClient::new(agent.addr(), [0xAB, 0xCD, 0x00, 0x74]);
+    // 120 writes at 40 messages per second with a second's burst: the last cannot be taken
+    // before (120 - 40) / 40 = 2 s after the first (unmetered, they all arrive within tens of
+    // milliseconds). Half a second is left for the burst's edges.
+    let span = metered_writes(
+        "ratequota",
+        ["--max-client-messages-per-second", "40"],
+        74,
+        120,
+        "metered",
+    );
+    assert!(
+        span >= Duration::from_millis(1500),
+        "120 messages at 40 per second went through in {span:?}"
+    );
+}
+
+#[test]
+fn a_client_over_its_byte_quota_is_slowed_and_loses_nothing() {
+    // 40 writes of about 230 bytes each (9.2 KB) at 3,000 bytes per second with a second's
+    // burst: the last cannot be taken before about 2 s after the first.
+    let message = "b".repeat(200);
+    let span = metered_writes(
+        "bytequota",
+        ["--max-client-bytes-per-second", "3000"],
+        75,
+        40,
+        &message,
+    );
+    assert!(
+        span >= Duration::from_millis(1500),
+        "9 KB at 3,000 bytes per second went through in {span:?}"
+    );
+}
+
+/// Writes `count` reliable samples of `message` as fast as the client's window allows, to an
+/// agent started with `quota` (a `--max-client-…-per-second` flag and its value); every
+/// sample must reach Cyclone once, in order, and the quota must have bitten (logged).
+/// Returns how long after the first write the last sample arrived.
+fn metered_writes(tag: &str, quota: [&str; 2], domain: i16, count: u32, message: &str) -> Duration {
+    let agent = agent(tag, &quota);
+    let reader = cyclone_reader(&domain.to_string(), &count.to_string());
+    let mut c = TestClient::new(agent.addr(), [0xAB, 0xCD, 0x00, domain as u8]);
     c.connect(10 * SECOND);
-    let w = c.setup_publisher(74);
+    let w = c.setup_publisher(domain);
     assert!(reader
         .wait_for("MATCHED 1", 30 * SECOND, || c.step())
         .is_some());
-    // 120 reliable writes as fast as the window allows: three seconds' worth of the quota.
-    for i in 0..120 {
-        c.write_reliable(w, &hello_world(i, "metered"));
+    // A second without messages: the burst allowance (a second's worth) is full again.
+    c.run_until(SECOND, |_| false);
+    let start = Instant::now();
+    let mut got = Deliveries::default();
+    let mut last_new = start;
+    let take = |got: &mut Deliveries, last_new: &mut Instant| {
+        while let Some(l) = reader.line(Duration::ZERO) {
+            if let Some((i, m)) = parse_sample_line(&l) {
+                assert_eq!(m, message, "sample {i}");
+                if got.count(i) == 0 {
+                    *last_new = Instant::now();
+                }
+                got.record(i);
+            }
+        }
+    };
+    for i in 0..count {
+        c.write_reliable(w, &hello_world(i, message));
+        take(&mut got, &mut last_new);
     }
-    let got = reader.collect_deliveries(120, "metered", 60 * SECOND, || c.step());
-    got.assert_exactly_once(0..120, "a client over its quota");
+    let end = Instant::now() + 60 * SECOND;
+    let mut complete_at: Option<Instant> = None;
+    while Instant::now() < end && complete_at.is_none_or(|t| t.elapsed() < DUPLICATE_GRACE) {
+        c.step();
+        take(&mut got, &mut last_new);
+        if complete_at.is_none() && got.distinct() >= count as usize {
+            complete_at = Some(Instant::now());
+        }
+    }
+    got.assert_exactly_once(0..count, "a client over its quota");
     got.assert_in_order("a client over its quota");
-    let out = agent.output();
-    assert!(out.count("over its rate quota") >= 1);
+    assert!(
+        agent.output().count("over its rate quota") >= 1,
+        "the quota never bit"
+    );
     assert!(agent.stop(), "agent did not stop cleanly");
+    last_new.duration_since(start)
 }

@@ -4,20 +4,24 @@
 
 use std::time::{Duration, Instant};
 
-use xrce_common::wire::{object_kind, stream_id, DataDeliveryControl, ReadSpecification};
-use xrce_tests::{xml, AgentProcess, DdsPeer, Deliveries, TestClient};
+use xrce_common::wire::sample::{decode_samples, SampleInfo, SampleInfoDetail};
+use xrce_common::wire::{
+    data_format, object_kind, stream_id, DataDeliveryControl, Dialect, ReadSpecification,
+};
+use xrce_tests::{parse_hello_world, xml, AgentProcess, DdsPeer, Deliveries, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 
-/// Subscribes with `ddc`, lets Cyclone write `count` samples of `message` back to back, and
-/// returns the arrival times of the distinct samples.
-fn paced_arrivals(
+/// Subscribes with `ddc` in FORMAT_SAMPLE, lets Cyclone write `count` samples of `message`
+/// back to back, and returns when the agent sent each (its SampleInfo's session time offset,
+/// in milliseconds: the agent's clock, which a busy test process cannot skew).
+fn paced_sends(
     name: &str,
     domain: i16,
     ddc: DataDeliveryControl,
     count: u32,
     message: &str,
-) -> Vec<Instant> {
+) -> Vec<u32> {
     let agent = AgentProcess::start(name);
     let mut c = TestClient::new(agent.addr(), [0xDD, 0xC0, 0x00, domain as u8]);
     c.connect(10 * SECOND);
@@ -25,6 +29,7 @@ fn paced_arrivals(
         domain,
         ReadSpecification {
             preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+            data_format: data_format::SAMPLE,
             delivery_control: Some(ddc),
             ..Default::default()
         },
@@ -48,15 +53,30 @@ fn paced_arrivals(
         "--linger-ms",
         "8000",
     ]);
-    let mut arrivals = Vec::new();
+    let mut sent_at = Vec::new();
     let got = Deliveries::collect(count as usize, 60 * SECOND, || {
         c.step();
-        let now = Instant::now();
-        c.take_samples()
+        c.take_data()
             .into_iter()
-            .map(|(i, m)| {
+            .map(|(format, bytes)| {
+                assert_eq!(format, data_format::SAMPLE);
+                let samples = decode_samples(format, &bytes, true, Dialect::Eprosima, None)
+                    .expect("a SAMPLE");
+                assert_eq!(samples.len(), 1);
+                let Some(SampleInfo {
+                    detail:
+                        SampleInfoDetail::Both {
+                            session_time_offset,
+                            ..
+                        },
+                    ..
+                }) = samples[0].info
+                else {
+                    panic!("a SampleInfo with a time offset: {:?}", samples[0].info)
+                };
+                let (i, m) = parse_hello_world(samples[0].data).expect("a HelloWorld");
                 assert_eq!(m, message);
-                arrivals.push(now);
+                sent_at.push(session_time_offset);
                 i
             })
             .collect()
@@ -65,7 +85,7 @@ fn paced_arrivals(
     got.assert_in_order("paced samples");
     assert_eq!(writer.wait(30 * SECOND, || c.step()), Some(0));
     assert!(agent.stop(), "agent did not stop cleanly");
-    arrivals
+    sent_at
 }
 
 #[test]
@@ -75,35 +95,37 @@ fn min_pace_period_spaces_the_samples_and_loses_none() {
         min_pace_period: 200,
         ..Default::default()
     };
-    let t = paced_arrivals("pace", 26, ddc, 5, "paced");
-    // Every gap at least 200 ms: the agent paces from when it sent the previous one, so
-    // only delivery jitter (the test client polls every 5 ms) can shorten a gap here; a
-    // loaded machine only lengthens them.
-    let gaps: Vec<Duration> = t.windows(2).map(|w| w[1].duration_since(w[0])).collect();
+    let t = paced_sends("pace", 26, ddc, 5, "paced");
+    // Every gap at least 200 ms on the agent's clock (its offsets are whole milliseconds).
+    let gaps: Vec<u32> = t.windows(2).map(|w| w[1].saturating_sub(w[0])).collect();
     assert!(
-        gaps.iter().all(|g| *g >= Duration::from_millis(170)),
-        "samples closer than the 200 ms min_pace_period: gaps {gaps:?}"
+        gaps.iter().all(|g| *g >= 199),
+        "samples sent closer than the 200 ms min_pace_period: gaps (ms) {gaps:?}"
     );
 }
 
 #[test]
 fn max_bytes_per_second_caps_the_rate_and_loses_none() {
-    // Each HelloWorld sample here is 4 + 4 + 6 = 14 bytes: at most 7 per second at 100 B/s,
-    // so 20 samples span at least three one-second windows, and the first and the last
-    // are more than a second apart however late the first arrives in its window (the
-    // first window opens with the read). Unpaced they would all come within tens of
-    // milliseconds; 100 ms of slack is left for delivery jitter on a loaded machine.
+    // Each HelloWorld sample here is 4 + 4 + 6 = 14 bytes: 7 per one-second window at 100
+    // B/s. The first window opens with the read (before the first sample), so 20 samples
+    // take three windows and the first and the last are sent more than a second apart;
+    // unpaced they would all go within milliseconds.
     let ddc = DataDeliveryControl {
         max_samples: u16::MAX,
         max_bytes_per_second: 100,
         ..Default::default()
     };
-    let t = paced_arrivals("bps", 27, ddc, 20, "bytes");
-    let span = t[19].duration_since(t[0]);
-    assert!(
-        span >= Duration::from_millis(900),
-        "20 samples within {span:?}"
-    );
+    let t = paced_sends("bps", 27, ddc, 20, "bytes");
+    let span = t[19] - t[0];
+    assert!(span >= 999, "20 samples sent within {span} ms: {t:?}");
+    // Any second of the agent's clock overlaps two windows at most: 16 samples.
+    for (k, start) in t.iter().enumerate() {
+        let within = t[k..].iter().take_while(|x| **x < start + 1000).count();
+        assert!(
+            within <= 16,
+            "{within} samples sent within a second from {start} ms: {t:?}"
+        );
+    }
 }
 
 /// A client reads through the agent with `ddc` while Cyclone writes `count` samples `every`

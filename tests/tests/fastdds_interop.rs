@@ -5,6 +5,7 @@
 //! pinned to 127.0.0.1; the test builds them with g++ once. The other independent DDS of the
 //! suite is Cyclone DDS from Python (helloworld_e2e.rs and others).
 
+use std::collections::HashMap;
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -12,7 +13,10 @@ use std::sync::mpsc::{channel, Receiver};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-use xrce_tests::{hello_world, workspace, AgentProcess, Deliveries, TestClient};
+use xrce_common::wire::{object_kind, RequestId};
+use xrce_tests::{
+    adder_request, hello_world, workspace, AgentProcess, Deliveries, TestClient, DUPLICATE_GRACE,
+};
 
 const SECOND: Duration = Duration::from_secs(1);
 
@@ -23,7 +27,7 @@ fn fastdds_programs() -> &'static Path {
         let src = workspace().join("tests/fastdds");
         let out = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join("fastdds");
         std::fs::create_dir_all(&out).expect("output directory");
-        for program in ["hello_pub", "hello_sub"] {
+        for program in ["hello_pub", "hello_sub", "adder_replier"] {
             let result = Command::new("g++")
                 .args(["-std=c++14", "-O1", "-Wall", "-o"])
                 .arg(out.join(program))
@@ -185,4 +189,88 @@ fn fast_dds_publishes_and_a_client_reads_every_sample() {
         writer.transcript()
     );
     assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+/// The service side with an independent DDS: an XRCE requester and Fast DDS replying as
+/// eProsima's agent does (the reply carries the request's SampleIdentity as its related
+/// sample identity). Each request reaches Fast DDS once and each reply the requester once,
+/// matched to its request.
+#[test]
+fn an_xrce_requester_gets_each_reply_of_a_fast_dds_replier_once() {
+    let agent = AgentProcess::start("fastdds-rpc");
+    let mut replier = FastDds::start("adder_replier", &["-d", "93", "-n", "100000", "-t", "90"]);
+    let mut c = TestClient::new(agent.addr(), [0xFA, 0x57, 0xDD, 0x03]);
+    c.connect(10 * SECOND);
+    let req = c.setup_adder(93, object_kind::REQUESTER);
+    // Requests are volatile: probe until a reply shows both directions matched.
+    let mut answered: HashMap<RequestId, Vec<u32>> = HashMap::new();
+    let mut probes: HashMap<RequestId, u32> = HashMap::new();
+    let end = Instant::now() + 30 * SECOND;
+    while answered.is_empty() && Instant::now() < end {
+        probes.insert(c.write_reliable_id(req, &adder_request(100, 1)), 101);
+        let until = Instant::now() + Duration::from_millis(200);
+        while Instant::now() < until {
+            c.step();
+            replies(&mut c, &mut answered);
+        }
+    }
+    assert!(
+        !answered.is_empty(),
+        "no reply from Fast DDS within 30 s:\n{}",
+        replier.transcript()
+    );
+    let mut expected = HashMap::new();
+    for i in 0..10u32 {
+        expected.insert(c.write_reliable_id(req, &adder_request(i, 1000)), i + 1000);
+    }
+    let end = Instant::now() + 30 * SECOND;
+    while expected.keys().any(|id| !answered.contains_key(id)) && Instant::now() < end {
+        c.step();
+        replies(&mut c, &mut answered);
+    }
+    let grace = Instant::now() + DUPLICATE_GRACE;
+    while Instant::now() < grace {
+        c.step();
+        replies(&mut c, &mut answered);
+    }
+    for (id, sum) in &expected {
+        assert_eq!(
+            answered.get(id).map(Vec::as_slice),
+            Some(&[*sum][..]),
+            "replies to request {id:?} (exactly one expected):\n{}",
+            replier.transcript()
+        );
+    }
+    for (id, sums) in &answered {
+        let asked = expected.get(id).or(probes.get(id));
+        assert!(
+            asked.is_some() && sums.len() == 1 && Some(&sums[0]) == asked,
+            "replies {sums:?} to request {id:?}, which asked {asked:?}"
+        );
+    }
+    // Fast DDS took each of the ten requests once.
+    replier.poll();
+    for i in 0..10u32 {
+        let line = format!(" a={i} b=1000");
+        let n = replier.seen.iter().filter(|l| l.ends_with(&line)).count();
+        assert_eq!(
+            n,
+            1,
+            "Fast DDS got request {i} {n} times:\n{}",
+            replier.transcript()
+        );
+    }
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+/// The requester's side: the sums of every reply received so far, by request id.
+fn replies(c: &mut TestClient, answered: &mut HashMap<RequestId, Vec<u32>>) {
+    for (_, d) in c.take_data() {
+        assert!(d.len() >= 8, "reply too short: {d:?}");
+        let sum = u32::from_le_bytes([d[4], d[5], d[6], d[7]]);
+        answered
+            .entry(RequestId([d[0], d[1]]))
+            .or_default()
+            .push(sum);
+    }
 }

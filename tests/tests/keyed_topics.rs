@@ -236,6 +236,12 @@ fn a_keyed_writer_publishes_instances_and_disposes_them() {
             xs.windows(2).all(|w| w[0] < w[1]),
             "{color}: values out of order or repeated: {values:?}"
         );
+        let disposals = values.iter().filter(|(_, st)| st == "disposed").count();
+        assert!(
+            disposals <= 1
+                && values.iter().skip_while(|(_, st)| st != "disposed").count() == disposals,
+            "{color}: disposed more than once, or alive after its dispose: {values:?}"
+        );
     }
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -42,6 +42,10 @@ fn a_late_transient_local_reader_gets_the_history() {
         plain(&line).contains("matched=false"),
         "the hold ended by a match, with no reader: {line}"
     );
+    agent
+        .output()
+        .wait_for(0, "holding writer drained", 10 * SECOND)
+        .expect("the worker never published what its new writer held");
     let reader = DdsPeer::start(&[
         "read",
         "--domain",

@@ -7,40 +7,17 @@
 use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 
-use xrce_common::wire::{object_kind as k, ObjectId, RequestId, VariantExtra};
-use xrce_tests::{xml, AgentProcess, TestClient, DUPLICATE_GRACE};
+use xrce_common::wire::{object_kind as k, ObjectId, RequestId};
+use xrce_tests::{adder_request, AgentProcess, TestClient, DUPLICATE_GRACE};
 
 const SECOND: Duration = Duration::from_secs(1);
 
-const SERVICE: &str = "<dds><{e} profile_name=\"adder\" service_name=\"/add\" \
-    request_type=\"AddRequest\" reply_type=\"AddReply\">\
-    <request_topic_name>rq/addRequest</request_topic_name>\
-    <reply_topic_name>rr/addReply</reply_topic_name></{e}></dds>";
-
-/// Creates the participant and the requester or replier, and starts an unlimited read on it
-/// (with either DDS backend: Cyclone DDS's C API cannot send a related sample identity, so
-/// with it the worker serves requesters and repliers through RustDDS beside it).
-fn endpoint(c: &mut TestClient, kind: u8, element: &str) -> ObjectId {
-    let p = ObjectId::new(1, k::PARTICIPANT);
-    let e = ObjectId::new(1, kind);
-    assert_eq!(
-        c.create(
-            p,
-            k::PARTICIPANT,
-            xml::PARTICIPANT,
-            VariantExtra::DomainId(28)
-        ),
-        0
-    );
-    let x = SERVICE.replace("{e}", element);
-    let status = c.create(e, kind, &x, VariantExtra::Parent(p));
-    assert_eq!(status, 0, "creating the {element}");
-    c.read_unlimited(e);
-    e
+fn endpoint(c: &mut TestClient, kind: u8) -> ObjectId {
+    c.setup_adder(28, kind)
 }
 
 fn request(a: u32, b: u32) -> Vec<u8> {
-    [a.to_le_bytes(), b.to_le_bytes()].concat()
+    adder_request(a, b)
 }
 
 /// The replier's side: answers every request received so far with the sum, and checks that
@@ -70,10 +47,10 @@ fn replies_reach_the_requester_matched_to_their_requests() {
     let agent = AgentProcess::start("rpc");
     let mut replier = TestClient::new(agent.addr(), [0x2E, 0x91, 0x00, 0x01]);
     replier.connect(10 * SECOND);
-    let rep = endpoint(&mut replier, k::REPLIER, "replier");
+    let rep = endpoint(&mut replier, k::REPLIER);
     let mut requester = TestClient::new(agent.addr(), [0x2E, 0x90, 0x00, 0x02]);
     requester.connect(10 * SECOND);
-    let req = endpoint(&mut requester, k::REQUESTER, "requester");
+    let req = endpoint(&mut requester, k::REQUESTER);
     let mut seen = HashSet::new();
 
     // Requests are volatile: probe until the first reply shows both sides matched.
@@ -150,7 +127,7 @@ fn a_content_filter_on_a_requester_is_refused() {
     let agent = AgentProcess::start("rpcfilter");
     let mut c = TestClient::new(agent.addr(), [0xF0, 0x51, 0x00, 0x01]);
     c.connect(10 * SECOND);
-    let requester = endpoint(&mut c, k::REQUESTER, "requester");
+    let requester = endpoint(&mut c, k::REQUESTER);
     let spec = xrce_common::wire::ReadSpecification {
         preferred_stream_id: xrce_common::wire::stream_id::BUILTIN_RELIABLE,
         content_filter_expression: Some("a > 1".into()),

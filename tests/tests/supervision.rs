@@ -4,6 +4,8 @@
 
 use std::time::{Duration, Instant};
 
+use xrce_common::session::client::ClientConfig;
+use xrce_common::wire::{object_kind, status, ClientKey, ObjectId};
 use xrce_tests::{
     free_udp_port, hello_world, sigkill, AgentProcess, DdsPeer, Deliveries, TestClient,
 };
@@ -202,7 +204,7 @@ fn a_flood_to_a_stalled_subscriber_stays_within_the_agents_bounds() {
         "--wait-match",
         "--reliable",
         "--timeout",
-        "120",
+        "300",
         "--linger-ms",
         "1000",
     ]);
@@ -226,7 +228,7 @@ fn a_flood_to_a_stalled_subscriber_stays_within_the_agents_bounds() {
     let mut peak = (fe0, w0);
     let mut sent = 0;
     let mut got = Deliveries::default();
-    let end = Instant::now() + 120 * SECOND;
+    let end = Instant::now() + 300 * SECOND;
     let mut flooded = false;
     while Instant::now() < end && !(flooded && got.distinct() == 20) {
         if sent < 20 && other.client.can_send_reliable(0x80) {
@@ -256,5 +258,48 @@ fn a_flood_to_a_stalled_subscriber_stays_within_the_agents_bounds() {
     );
     assert!(w_growth < 96 << 10, "the worker grew by {w_growth} KiB");
     drop(stalled);
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+/// Hard liveliness (eProsima's `uxr_hl` property in CREATE_CLIENT): a client that asks for it
+/// is dropped after that much silence even though the agent has no `--client-dead-time`; a
+/// client that did not ask keeps its session however long it is silent.
+#[test]
+fn a_client_asking_for_hard_liveliness_is_dropped_when_silent_and_only_it() {
+    let port = free_udp_port().to_string();
+    let agent = AgentProcess::launch("hardlive", &["udp4", "-p", &port, "--bind", "127.0.0.1"])
+        .expect("agent");
+    let mut config = ClientConfig::new(ClientKey([0x4C, 0x1F, 0x00, 0x01]));
+    config.hard_liveliness = Some(SECOND);
+    let mut watched = TestClient::with_config(agent.addr(), config);
+    watched.connect(10 * SECOND);
+    let mut other = TestClient::new(agent.addr(), [0x4C, 0x1F, 0x00, 0x02]);
+    other.connect(10 * SECOND);
+    let out = agent.output().clone();
+    let mark = out.len();
+    // Both go silent (their sockets stay open; probes go unanswered).
+    let (_, line) = out
+        .wait_for(mark, "client silent past its dead time", 15 * SECOND)
+        .expect("the client with hard liveliness was not dropped");
+    assert!(
+        line.contains("4C1F0001"),
+        "another client was dropped: {line}"
+    );
+    // Three more of its timeouts: the other one is still there, and answers.
+    std::thread::sleep(3 * SECOND);
+    assert_eq!(
+        out.count("client silent past its dead time"),
+        1,
+        "a client without hard liveliness was dropped"
+    );
+    let req = other
+        .client
+        .delete(Instant::now(), ObjectId::new(9, object_kind::DATAWRITER))
+        .expect("delete");
+    assert_eq!(
+        other.wait_status(req, 10 * SECOND),
+        status::ERR_UNKNOWN_REFERENCE,
+        "the silent client without hard liveliness lost its session"
+    );
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -238,3 +238,59 @@ fn hundreds_of_tcp_sessions_at_once() {
     drop(clients);
     assert!(agent.stop(), "agent did not stop cleanly");
 }
+
+/// `--tcp-idle-timeout`: a connection with nothing in or out for that long is closed (its
+/// session then waits out the closed-session grace), and one whose client keeps talking
+/// stays open.
+#[test]
+fn an_idle_tcp_connection_is_closed_and_a_talking_one_kept() {
+    use std::io::Read;
+    let agent = tcp_agent_with("tcpidle", "tcp4", "127.0.0.1", &["--tcp-idle-timeout", "1"]);
+    let mut idle = TestClient::tcp(agent.addr(), [0x7C, 0x1D, 0, 1]);
+    idle.connect(10 * SECOND);
+    let idle_since = Instant::now();
+    let mut talking = TestClient::tcp(agent.addr(), [0x7C, 0x1D, 0, 2]);
+    talking.connect(10 * SECOND);
+    let mut closed_at = None;
+    let mut buf = [0u8; 1024];
+    let mut last_ping = Instant::now();
+    while closed_at.is_none() && idle_since.elapsed() < 30 * SECOND {
+        // The talking client pings every 200 ms (GET_INFO, answered with INFO).
+        if last_ping.elapsed() >= Duration::from_millis(200) {
+            talking.client.ping();
+            last_ping = Instant::now();
+        }
+        talking.step();
+        // The idle one only watches its connection for the agent's close.
+        let Link::Tcp { stream, .. } = &mut idle.link else {
+            panic!("a TCP link")
+        };
+        match stream.read(&mut buf) {
+            Ok(0) => closed_at = Some(Instant::now()),
+            Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => {}
+            Err(_) => closed_at = Some(Instant::now()),
+        }
+    }
+    let closed_at = closed_at.expect("the idle connection was never closed");
+    assert!(
+        closed_at.duration_since(idle_since) >= SECOND,
+        "closed after {:?}, before its idle timeout (1 s)",
+        closed_at.duration_since(idle_since)
+    );
+    // The talking client is still connected and served: a request of its session answered.
+    let req = talking
+        .client
+        .delete(Instant::now(), ObjectId::new(9, object_kind::DATAWRITER))
+        .expect("delete");
+    assert_eq!(
+        talking.wait_status(req, 10 * SECOND),
+        status::ERR_UNKNOWN_REFERENCE,
+        "the talking client's connection was closed too"
+    );
+    assert!(
+        agent.output().count("tcp_idle_connection") >= 1,
+        "the close was not logged"
+    );
+    assert!(agent.stop(), "agent did not stop cleanly");
+}

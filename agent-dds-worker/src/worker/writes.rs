@@ -402,6 +402,7 @@ impl Worker {
                 if rematch.held.is_empty() {
                     rematch.until = None;
                     rematch.draining = false;
+                    tracing::debug!("holding writer drained");
                     done.push(*key);
                 }
             }
