@@ -704,13 +704,14 @@ impl Server {
         }
     }
 
-    /// Closes connection `i`, counting why if it was refused.
+    /// Closes connection `i`, counting why if it was refused. Counted before the socket is
+    /// closed, so that a peer that sees the close also sees it counted.
     fn close(&mut self, i: usize, reason: Option<Refusal>, now: Instant) {
-        let conn = self.conns.swap_remove(i);
-        drop(conn);
         if let Some(reason) = reason {
             self.refused(reason, now);
         }
+        let conn = self.conns.swap_remove(i);
+        drop(conn);
     }
 
     /// Counts a refusal; logs the first of an episode.
