@@ -26,8 +26,9 @@ checks=(
 )
 
 only=${1:-}
-if [ -n "$only" ] && ! printf '%s\n' "${checks[@]}" | grep -q "^$only "; then
-  echo "fault-check: no fault named '$only' (known: $(printf '%s\n' "${checks[@]}" | awk '{print $1}' | sort -u | tr '\n' ' '))" >&2
+known=$(printf '%s\n' "${checks[@]}" | awk '{print $1}' | sort -u)
+if [ -n "$only" ] && ! awk -v f="$only" '$0 == f { found = 1 } END { exit !found }' <<<"$known"; then
+  echo "fault-check: no fault named '$only' (known: $(tr '\n' ' ' <<<"$known"))" >&2
   exit 2
 fi
 logs=$(mktemp -d)

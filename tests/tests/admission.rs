@@ -251,8 +251,8 @@ fn a_client_over_its_message_quota_is_slowed_and_loses_nothing() {
 
 #[test]
 fn a_client_over_its_byte_quota_is_slowed_and_loses_nothing() {
-    // 40 writes of about 230 bytes each (9.2 KB) at 3,000 bytes per second with a second's
-    // burst: the last cannot be taken before about 2 s after the first.
+    // 40 writes of about 220 bytes each (8.8 KB) at 3,000 bytes per second with a second's
+    // burst: the last cannot be taken before about 1.9 s after the first.
     let message = "b".repeat(200);
     let span = metered_writes(
         "bytequota",
@@ -263,7 +263,7 @@ fn a_client_over_its_byte_quota_is_slowed_and_loses_nothing() {
     );
     assert!(
         span >= Duration::from_millis(1500),
-        "9 KB at 3,000 bytes per second went through in {span:?}"
+        "8.8 KB at 3,000 bytes per second went through in {span:?}"
     );
 }
 

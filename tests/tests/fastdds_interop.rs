@@ -13,7 +13,7 @@ use std::sync::mpsc::{channel, Receiver};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-use xrce_common::wire::{object_kind, RequestId};
+use xrce_common::wire::{object_kind, ObjectId, RequestId};
 use xrce_tests::{
     adder_request, hello_world, workspace, AgentProcess, Deliveries, TestClient, DUPLICATE_GRACE,
 };
@@ -211,9 +211,10 @@ fn an_xrce_requester_gets_each_reply_of_a_fast_dds_replier_once() {
         let until = Instant::now() + Duration::from_millis(200);
         while Instant::now() < until {
             c.step();
-            replies(&mut c, &mut answered);
+            replies(&mut c, req, &mut answered);
         }
     }
+    replier.poll();
     assert!(
         !answered.is_empty(),
         "no reply from Fast DDS within 30 s:\n{}",
@@ -226,13 +227,14 @@ fn an_xrce_requester_gets_each_reply_of_a_fast_dds_replier_once() {
     let end = Instant::now() + 30 * SECOND;
     while expected.keys().any(|id| !answered.contains_key(id)) && Instant::now() < end {
         c.step();
-        replies(&mut c, &mut answered);
+        replies(&mut c, req, &mut answered);
     }
     let grace = Instant::now() + DUPLICATE_GRACE;
     while Instant::now() < grace {
         c.step();
-        replies(&mut c, &mut answered);
+        replies(&mut c, req, &mut answered);
     }
+    replier.poll();
     for (id, sum) in &expected {
         assert_eq!(
             answered.get(id).map(Vec::as_slice),
@@ -249,7 +251,6 @@ fn an_xrce_requester_gets_each_reply_of_a_fast_dds_replier_once() {
         );
     }
     // Fast DDS took each of the ten requests once.
-    replier.poll();
     for i in 0..10u32 {
         let line = format!(" a={i} b=1000");
         let n = replier.seen.iter().filter(|l| l.ends_with(&line)).count();
@@ -263,10 +264,15 @@ fn an_xrce_requester_gets_each_reply_of_a_fast_dds_replier_once() {
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
-/// The requester's side: the sums of every reply received so far, by request id.
-fn replies(c: &mut TestClient, answered: &mut HashMap<RequestId, Vec<u32>>) {
+/// The requester `req`'s side: the sums of every reply received so far, by request id.
+fn replies(c: &mut TestClient, req: ObjectId, answered: &mut HashMap<RequestId, Vec<u32>>) {
     for (_, d) in c.take_data() {
         assert!(d.len() >= 8, "reply too short: {d:?}");
+        assert_eq!(
+            ObjectId([d[2], d[3]]),
+            req,
+            "the BaseObjectRequest names the requester"
+        );
         let sum = u32::from_le_bytes([d[4], d[5], d[6], d[7]]);
         answered
             .entry(RequestId([d[0], d[1]]))

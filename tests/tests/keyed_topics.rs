@@ -10,7 +10,9 @@ use std::time::Duration;
 
 use xrce_common::session::client::ClientEvent;
 use xrce_common::wire::cdr::CdrWriter;
-use xrce_common::wire::sample::{decode_samples, sample_state, SampleInfo, SampleInfoDetail};
+use xrce_common::wire::sample::{
+    decode_samples, encode_samples, sample_state, SampleInfo, SampleInfoDetail, SampleRef,
+};
 use xrce_common::wire::{
     data_format, object_kind, status, stream_id, DataDeliveryControl, Dialect, ObjectId,
     ReadSpecification, VariantExtra,
@@ -457,5 +459,84 @@ fn a_keep_last_reader_keeps_one_sample_per_instance() {
         "the last sample of each instance"
     );
     assert_eq!(writer.wait(30 * SECOND, || c.step()), Some(0));
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+/// PACKED_SAMPLES with SampleInfoDeltas, as a client writes several samples under one
+/// SampleInfo: the worker splits them with the type and publishes each once, in order.
+#[test]
+fn a_packed_write_with_deltas_publishes_each_sample() {
+    let (agent, mut c, w) = keyed_endpoint(
+        "keyedpacked",
+        5,
+        76,
+        object_kind::DATAWRITER,
+        "<reliability><kind>RELIABLE</kind></reliability>",
+    );
+    let reader = DdsPeer::start(&[
+        "read",
+        "--keyed",
+        "--topic",
+        "Square",
+        "--domain",
+        "76",
+        "--count",
+        "3",
+        "--reliable",
+        "--timeout",
+        "40",
+    ]);
+    assert!(
+        reader
+            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
+            .is_some(),
+        "Cyclone never matched the keyed writer"
+    );
+    let samples = [shape("RED", 50), shape("GREEN", 51), shape("BLUE", 52)];
+    let refs: Vec<SampleRef<'_>> = samples
+        .iter()
+        .zip(1u32..)
+        .map(|(data, n)| SampleRef {
+            info: Some(SampleInfo {
+                state: 0,
+                detail: SampleInfoDetail::Both {
+                    sequence_number: n,
+                    session_time_offset: 100 * n,
+                },
+            }),
+            data: data.as_slice(),
+        })
+        .collect();
+    let mut packed = Vec::new();
+    encode_samples(
+        data_format::PACKED_SAMPLES,
+        &refs,
+        true,
+        Dialect::Eprosima,
+        &mut packed,
+    )
+    .expect("packed samples");
+    c.write_reliable_format(w, data_format::PACKED_SAMPLES, &packed);
+    let mut seen = Vec::new();
+    let end = std::time::Instant::now() + 30 * SECOND;
+    let mut complete_at: Option<std::time::Instant> = None;
+    while std::time::Instant::now() < end
+        && complete_at.is_none_or(|t| t.elapsed() < xrce_tests::DUPLICATE_GRACE)
+    {
+        while let Some(l) = reader.line(Duration::from_millis(1)) {
+            if let Some((color, x, state)) = parse_keyed_line(&l) {
+                seen.push((color, x, state));
+            }
+        }
+        c.step();
+        if complete_at.is_none() && seen.len() >= 3 {
+            complete_at = Some(std::time::Instant::now());
+        }
+    }
+    let want: Vec<(String, Option<i64>, String)> = [("RED", 50), ("GREEN", 51), ("BLUE", 52)]
+        .iter()
+        .map(|(c, x)| (c.to_string(), Some(*x), "alive".to_string()))
+        .collect();
+    assert_eq!(seen, want, "what Cyclone read of one PACKED_SAMPLES write");
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -247,8 +247,9 @@ fn an_idle_tcp_connection_is_closed_and_a_talking_one_kept() {
     use std::io::Read;
     let agent = tcp_agent_with("tcpidle", "tcp4", "127.0.0.1", &["--tcp-idle-timeout", "1"]);
     let mut idle = TestClient::tcp(agent.addr(), [0x7C, 0x1D, 0, 1]);
-    idle.connect(10 * SECOND);
+    // Idle from its last message at the latest (the agent's answer may come later).
     let idle_since = Instant::now();
+    idle.connect(10 * SECOND);
     let mut talking = TestClient::tcp(agent.addr(), [0x7C, 0x1D, 0, 2]);
     talking.connect(10 * SECOND);
     let mut closed_at = None;
@@ -273,6 +274,8 @@ fn an_idle_tcp_connection_is_closed_and_a_talking_one_kept() {
         }
     }
     let closed_at = closed_at.expect("the idle connection was never closed");
+    // Its CREATE_CLIENT went out at `idle_since` at the earliest: closed no sooner than a
+    // second after.
     assert!(
         closed_at.duration_since(idle_since) >= SECOND,
         "closed after {:?}, before its idle timeout (1 s)",
