@@ -891,6 +891,39 @@ impl TestClient {
         e
     }
 
+    /// Takes the adder replies this requester (`req`) received so far into `answered` (the
+    /// sums, by request id; a reply repeated shows as a second sum), checking that each
+    /// names the requester.
+    pub fn take_adder_replies(
+        &mut self,
+        req: ObjectId,
+        answered: &mut std::collections::HashMap<RequestId, Vec<u32>>,
+    ) {
+        for (_, d) in self.take_data() {
+            assert!(d.len() >= 8, "reply too short: {d:?}");
+            assert_eq!(
+                ObjectId([d[2], d[3]]),
+                req,
+                "the BaseObjectRequest names the requester"
+            );
+            let sum = u32::from_le_bytes([d[4], d[5], d[6], d[7]]);
+            answered
+                .entry(RequestId([d[0], d[1]]))
+                .or_default()
+                .push(sum);
+        }
+    }
+
+    /// Whether the agent still serves this client's session: the STATUS of a DELETE of an
+    /// object it never created (ERR_UNKNOWN_REFERENCE from a live session), within `d`.
+    pub fn session_answers(&mut self, d: Duration) -> bool {
+        let req = self
+            .client
+            .delete(Instant::now(), ObjectId::new(9, object_kind::DATAWRITER))
+            .expect("delete");
+        self.wait_status(req, d) == xrce_common::wire::status::ERR_UNKNOWN_REFERENCE
+    }
+
     /// WRITE_DATA (FORMAT_DATA) on the reliable stream; returns its request id.
     pub fn write_reliable_id(&mut self, writer: ObjectId, sample: &[u8]) -> RequestId {
         let ok = self.run_until(Duration::from_secs(60), |c| {

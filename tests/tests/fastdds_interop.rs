@@ -13,7 +13,7 @@ use std::sync::mpsc::{channel, Receiver};
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-use xrce_common::wire::{object_kind, ObjectId, RequestId};
+use xrce_common::wire::{object_kind, RequestId};
 use xrce_tests::{
     adder_request, hello_world, workspace, AgentProcess, Deliveries, TestClient, DUPLICATE_GRACE,
 };
@@ -211,7 +211,7 @@ fn an_xrce_requester_gets_each_reply_of_a_fast_dds_replier_once() {
         let until = Instant::now() + Duration::from_millis(200);
         while Instant::now() < until {
             c.step();
-            replies(&mut c, req, &mut answered);
+            c.take_adder_replies(req, &mut answered);
         }
     }
     replier.poll();
@@ -227,12 +227,12 @@ fn an_xrce_requester_gets_each_reply_of_a_fast_dds_replier_once() {
     let end = Instant::now() + 30 * SECOND;
     while expected.keys().any(|id| !answered.contains_key(id)) && Instant::now() < end {
         c.step();
-        replies(&mut c, req, &mut answered);
+        c.take_adder_replies(req, &mut answered);
     }
     let grace = Instant::now() + DUPLICATE_GRACE;
     while Instant::now() < grace {
         c.step();
-        replies(&mut c, req, &mut answered);
+        c.take_adder_replies(req, &mut answered);
     }
     replier.poll();
     for (id, sum) in &expected {
@@ -262,21 +262,4 @@ fn an_xrce_requester_gets_each_reply_of_a_fast_dds_replier_once() {
         );
     }
     assert!(agent.stop(), "agent did not stop cleanly");
-}
-
-/// The requester `req`'s side: the sums of every reply received so far, by request id.
-fn replies(c: &mut TestClient, req: ObjectId, answered: &mut HashMap<RequestId, Vec<u32>>) {
-    for (_, d) in c.take_data() {
-        assert!(d.len() >= 8, "reply too short: {d:?}");
-        assert_eq!(
-            ObjectId([d[2], d[3]]),
-            req,
-            "the BaseObjectRequest names the requester"
-        );
-        let sum = u32::from_le_bytes([d[4], d[5], d[6], d[7]]);
-        answered
-            .entry(RequestId([d[0], d[1]]))
-            .or_default()
-            .push(sum);
-    }
 }

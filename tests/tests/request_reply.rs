@@ -64,7 +64,7 @@ fn replies_reach_the_requester_matched_to_their_requests() {
         while Instant::now() < until {
             serve(&mut replier, rep, &mut seen);
             requester.step();
-            collect(&mut requester, req, &mut answered);
+            requester.take_adder_replies(req, &mut answered);
         }
     }
     assert!(!answered.is_empty(), "no reply within 30 s");
@@ -78,14 +78,14 @@ fn replies_reach_the_requester_matched_to_their_requests() {
     while expected.keys().any(|id| !answered.contains_key(id)) && Instant::now() < end {
         serve(&mut replier, rep, &mut seen);
         requester.step();
-        collect(&mut requester, req, &mut answered);
+        requester.take_adder_replies(req, &mut answered);
     }
     // Then a while longer, so that a late repeated reply is seen.
     let grace = Instant::now() + DUPLICATE_GRACE;
     while Instant::now() < grace {
         serve(&mut replier, rep, &mut seen);
         requester.step();
-        collect(&mut requester, req, &mut answered);
+        requester.take_adder_replies(req, &mut answered);
     }
     for (id, sum) in &expected {
         assert_eq!(
@@ -103,23 +103,6 @@ fn replies_reach_the_requester_matched_to_their_requests() {
         assert_eq!(v.len(), 1, "request {id:?} answered {} times", v.len());
     }
     assert!(agent.stop(), "agent did not stop cleanly");
-}
-
-/// The requester's side: (request id, sums) of every reply received so far.
-fn collect(requester: &mut TestClient, req: ObjectId, answered: &mut HashMap<RequestId, Vec<u32>>) {
-    for (_, d) in requester.take_data() {
-        assert!(d.len() >= 8, "reply too short: {d:?}");
-        assert_eq!(
-            ObjectId([d[2], d[3]]),
-            req,
-            "the BaseObjectRequest names the requester"
-        );
-        let sum = u32::from_le_bytes(d[4..8].try_into().expect("sum"));
-        answered
-            .entry(RequestId([d[0], d[1]]))
-            .or_default()
-            .push(sum);
-    }
 }
 
 #[test]
