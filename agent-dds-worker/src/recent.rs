@@ -12,8 +12,10 @@
 //! its reply queue holds ([`xrce_common::ipc::CHANNEL_DEPTH`]) for samples up to 16 KiB;
 //! of larger samples fewer than can be in flight are kept (the newest).
 
+use std::borrow::Cow;
 use std::collections::VecDeque;
 
+use xrce_common::ipc::Sample;
 use xrce_common::wire::RequestId;
 
 use crate::adoption::EntityKey;
@@ -29,9 +31,13 @@ struct Recent {
     key: EntityKey,
     /// The read request it was taken for.
     request: RequestId,
-    flags: u8,
-    /// The Sample message's body: the sample's identity, then the sample.
-    body: Vec<u8>,
+    sample: Sample<'static>,
+}
+
+impl Recent {
+    fn len(&self) -> usize {
+        self.sample.data.len()
+    }
 }
 
 /// The last samples handed to one front-end, oldest first.
@@ -42,11 +48,10 @@ pub struct RecentSamples {
 }
 
 impl RecentSamples {
-    /// Keeps a sample of reader `key` taken for read `request` (its Sample `flags`, and its
-    /// body as `parts` joined), forgetting the oldest beyond the bounds; a sample larger than
-    /// the byte bound is not kept.
-    pub fn record(&mut self, key: EntityKey, request: RequestId, flags: u8, parts: [&[u8]; 2]) {
-        let len = parts[0].len() + parts[1].len();
+    /// Keeps a sample of reader `key` taken for read `request`, forgetting the oldest beyond
+    /// the bounds; a sample larger than the byte bound is not kept.
+    pub fn record(&mut self, key: EntityKey, request: RequestId, sample: &Sample<'_>) {
+        let len = sample.data.len();
         if len > RECENT_MAX_BYTES {
             return;
         }
@@ -55,34 +60,34 @@ impl RecentSamples {
             let Some(old) = self.entries.pop_front() else {
                 break;
             };
-            self.bytes -= old.body.len();
-            reused = Some(old.body);
+            self.bytes -= old.len();
+            reused = Some(old.sample.data.into_owned());
         }
         // The evicted sample's buffer holds the new one (no allocation per sample once full),
         // unless it is much larger: a large sample's buffer would otherwise circulate under
         // small ones, and the memory held would grow past what `bytes` counts.
-        let mut body = reused
+        let mut data = reused
             .filter(|b| b.capacity() <= 2 * len.max(64))
             .unwrap_or_default();
-        body.clear();
-        body.extend_from_slice(parts[0]);
-        body.extend_from_slice(parts[1]);
-        self.bytes += body.len();
+        data.clear();
+        data.extend_from_slice(&sample.data);
+        self.bytes += data.len();
         self.entries.push_back(Recent {
             key,
             request,
-            flags,
-            body,
+            sample: Sample {
+                data: Cow::Owned(data),
+                ..*sample
+            },
         });
     }
 
-    /// The kept samples of reader `key` taken for read `request`, oldest first: (flags,
-    /// body).
-    pub fn of(&self, key: &EntityKey, request: RequestId) -> Vec<(u8, Vec<u8>)> {
+    /// The kept samples of reader `key` taken for read `request`, oldest first.
+    pub fn of(&self, key: &EntityKey, request: RequestId) -> Vec<Sample<'static>> {
         self.entries
             .iter()
             .filter(|r| r.key == *key && r.request == request)
-            .map(|r| (r.flags, r.body.clone()))
+            .map(|r| r.sample.clone())
             .collect()
     }
 
@@ -93,7 +98,7 @@ impl RecentSamples {
         self.entries.retain(|r| {
             let keep = r.key != *key;
             if !keep {
-                bytes -= r.body.len();
+                bytes -= r.len();
             }
             keep
         });
@@ -119,6 +124,7 @@ impl RecentSamples {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use xrce_common::ipc::SampleIdentity;
     use xrce_common::wire::{ClientKey, ObjectId};
 
     fn key(n: u16) -> EntityKey {
@@ -127,16 +133,26 @@ mod tests {
 
     const READ: RequestId = RequestId([0, 7]);
 
+    fn sample(seq: i64, data: &[u8]) -> Sample<'_> {
+        Sample {
+            identity: SampleIdentity {
+                writer: [1; 16],
+                sequence_number: seq,
+            },
+            data: Cow::Borrowed(data),
+            little_endian: seq % 2 == 0,
+            disposed: seq == 3,
+            unregistered: false,
+        }
+    }
+
     #[test]
     fn the_samples_of_a_reader_come_back_in_order() {
         let mut r = RecentSamples::default();
-        r.record(key(1), READ, 1, [b"id", b"a"]);
-        r.record(key(2), READ, 0, [b"id", b"b"]);
-        r.record(key(1), READ, 3, [b"id", b"c"]);
-        assert_eq!(
-            r.of(&key(1), READ),
-            vec![(1, b"ida".to_vec()), (3, b"idc".to_vec())]
-        );
+        r.record(key(1), READ, &sample(1, b"a"));
+        r.record(key(2), READ, &sample(2, b"b"));
+        r.record(key(1), READ, &sample(3, b"c"));
+        assert_eq!(r.of(&key(1), READ), vec![sample(1, b"a"), sample(3, b"c")]);
         assert!(
             r.of(&key(1), RequestId([0, 8])).is_empty(),
             "another read request gets none"
@@ -144,24 +160,24 @@ mod tests {
         r.forget(&key(1));
         assert!(r.of(&key(1), READ).is_empty());
         assert_eq!(r.len(), 1);
-        assert_eq!(r.bytes(), 3);
+        assert_eq!(r.bytes(), 1);
     }
 
     #[test]
     fn the_oldest_go_beyond_the_count_and_the_byte_bounds() {
         let mut r = RecentSamples::default();
         for i in 0..RECENT_MAX + 10 {
-            r.record(key(1), READ, 0, [&(i as u32).to_le_bytes(), b""]);
+            r.record(key(1), READ, &sample(0, &(i as u32).to_le_bytes()));
         }
         assert_eq!(r.len(), RECENT_MAX);
-        let first = r.of(&key(1), READ)[0].1.clone();
+        let first = r.of(&key(1), READ)[0].data.to_vec();
         assert_eq!(first, 10u32.to_le_bytes().to_vec());
         let big = vec![7u8; RECENT_MAX_BYTES / 2 + 1];
-        r.record(key(2), READ, 0, [&big, b""]);
-        r.record(key(2), READ, 0, [&big, b""]);
+        r.record(key(2), READ, &sample(0, &big));
+        r.record(key(2), READ, &sample(0, &big));
         assert!(r.bytes() <= RECENT_MAX_BYTES);
         assert_eq!(r.of(&key(2), READ).len(), 1, "the older large sample went");
-        r.record(key(3), READ, 0, [&vec![0u8; RECENT_MAX_BYTES + 1], b""]);
+        r.record(key(3), READ, &sample(0, &vec![0u8; RECENT_MAX_BYTES + 1]));
         assert!(
             r.of(&key(3), READ).is_empty(),
             "a sample above the bound is not kept"
@@ -171,11 +187,18 @@ mod tests {
     #[test]
     fn a_large_buffer_is_not_reused_for_small_samples() {
         let mut r = RecentSamples::default();
-        r.record(key(1), READ, 0, [&vec![1u8; 1 << 20], b""]);
+        r.record(key(1), READ, &sample(0, &vec![1u8; 1 << 20]));
         for _ in 0..RECENT_MAX {
-            r.record(key(1), READ, 0, [b"small", b""]);
+            r.record(key(1), READ, &sample(0, b"small"));
         }
-        let held: usize = r.entries.iter().map(|e| e.body.capacity()).sum();
+        let held: usize = r
+            .entries
+            .iter()
+            .map(|e| match &e.sample.data {
+                Cow::Owned(v) => v.capacity(),
+                Cow::Borrowed(b) => b.len(),
+            })
+            .sum();
         assert!(
             held < 256 * RECENT_MAX,
             "{held} bytes held for small samples"

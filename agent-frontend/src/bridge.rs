@@ -19,9 +19,7 @@ use std::time::{Duration, Instant};
 use xrce_common::fault::{self, Fault};
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
 use xrce_common::ipc::{
-    self, IpcHeader, MessageKind, FLAG_DIALECT_SPEC, FLAG_DISPOSED, FLAG_LITTLE_ENDIAN,
-    FLAG_PROGRESS_CAN_WAIT, FLAG_REPLAY, FLAG_STATUS_REQUESTED, FLAG_UNREGISTERED,
-    IN_FLIGHT_WINDOW,
+    self, Encode, Reply, ReplyMessage, Request, RequestMessage, Route, IN_FLIGHT_WINDOW,
 };
 use xrce_common::session::agent::{Agent, DataReply, Operation, OperationSink};
 use xrce_common::session::budget::{BudgetSplit, Episodes, DEFAULT_MEMORY_BUDGET};
@@ -99,7 +97,7 @@ pub const PAUSE_READ_AT: (usize, usize) = (1024, 1 << 20);
 pub const RESUME_READ_AT: (usize, usize) = (256, 256 << 10);
 
 /// Operations in flight below which a best-effort write tells the worker that its progress
-/// can wait ([`FLAG_PROGRESS_CAN_WAIT`]): with most of the window free nothing here waits
+/// can wait ([`RequestMessage::progress_can_wait`]): with most of the window free nothing here waits
 /// for that progress, so the worker need not wake this process for it (the progress is read
 /// on the next wake-up). From a sixth of the window on, progress wakes again, long before
 /// the best-effort share (136) or the window (192) fills.
@@ -145,10 +143,29 @@ enum BestEffortRoute {
     Wait,
 }
 
+/// What a client waits for the STATUS of, by kind of operation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum PendingKind {
+    Create,
+    Delete,
+    Write,
+    Other,
+}
+
+impl PendingKind {
+    fn of(request: &Request<'_>) -> Self {
+        match request {
+            Request::Create { .. } => PendingKind::Create,
+            Request::Delete => PendingKind::Delete,
+            Request::Write { .. } => PendingKind::Write,
+            _ => PendingKind::Other,
+        }
+    }
+}
+
 #[derive(Debug)]
 struct OwnedOp {
-    header: IpcHeader,
-    body: Vec<u8>,
+    message: RequestMessage<'static>,
     retain: bool,
     awaited: Awaited,
 }
@@ -157,8 +174,7 @@ struct OwnedOp {
 struct Retained {
     seq: u64,
     executed_at: Option<Instant>,
-    header: IpcHeader,
-    body: Vec<u8>,
+    message: RequestMessage<'static>,
 }
 
 /// What an entry of a [`ByteQueue`] weighs.
@@ -168,13 +184,13 @@ trait Weighed {
 
 impl Weighed for OwnedOp {
     fn weight(&self) -> usize {
-        IpcHeader::LEN + self.body.len()
+        self.message.encoded_len()
     }
 }
 
 impl Weighed for Retained {
     fn weight(&self) -> usize {
-        IpcHeader::LEN + self.body.len()
+        self.message.encoded_len()
     }
 }
 
@@ -304,7 +320,7 @@ pub struct Bridge {
     best_effort_waiting: WaitingWrites<OwnedOp>,
     retained: ByteQueue<Retained>,
     /// Sent operations whose STATUS a client waits for: seq -> (client, request, kind).
-    pending: HashMap<u64, (ClientKey, BaseObjectRequest, MessageKind)>,
+    pending: HashMap<u64, (ClientKey, BaseObjectRequest, PendingKind)>,
     graphs: HashMap<ClientKey, ObjectGraph>,
     /// Clients whose objects changed, and clients whose reads changed outside of their own
     /// messages, since [`Bridge::take_graph_changes`] (for the session store).
@@ -335,19 +351,17 @@ pub struct Bridge {
     retain_max_bytes: usize,
 }
 
-fn header(
-    kind: MessageKind,
+/// `request` of `client` about the object and XRCE request of `base`.
+fn message(
     frontend_id: u32,
     client: ClientKey,
-    request: BaseObjectRequest,
-) -> IpcHeader {
-    IpcHeader {
-        frontend_id,
-        client_key: client,
-        request_id: request.request_id,
-        object_id: request.object_id,
-        ..IpcHeader::new(kind)
-    }
+    base: BaseObjectRequest,
+    request: Request<'_>,
+) -> RequestMessage<'_> {
+    RequestMessage::new(
+        Route::object(frontend_id, client, base.request_id, base.object_id),
+        request,
+    )
 }
 
 impl Bridge {
@@ -373,10 +387,14 @@ impl Bridge {
         // to late subscribers only when the publisher next acts), so ask: a worker answers
         // every FrontendHello with its WorkerHello on our reply service. Our subscribers
         // exist already, so either this probe or the worker's own announcement reaches us.
-        let mut probe = IpcHeader::new(MessageKind::FrontendHello);
-        probe.frontend_id = frontend_id;
-        probe.incarnation = incarnation;
-        requests.send(&probe, &[])?;
+        let probe = RequestMessage::new(
+            Route {
+                incarnation,
+                ..Route::frontend(frontend_id)
+            },
+            Request::FrontendHello,
+        );
+        requests.send(&probe)?;
         requests.notify()?;
         Ok(Bridge {
             frontend_id,
@@ -508,54 +526,53 @@ impl Bridge {
         self.generation.is_some() && self.in_flight() < IN_FLIGHT_WINDOW
     }
 
-    /// Sends now if the window allows (copying `body` straight into shared memory), else
+    /// Sends now if the window allows (encoding `m` straight into shared memory), else
     /// queues an owned copy.
-    fn submit(&mut self, mut h: IpcHeader, body: &[u8], retain: bool, awaited: Awaited) {
+    fn submit(&mut self, mut m: RequestMessage<'_>, retain: bool, awaited: Awaited) {
         if self.outbox.len() >= OUTBOX_HARD_MAX || self.outbox.bytes >= 4 * self.outbox_max_bytes {
             // Only one message packed with operations gets here past `has_room`.
             self.stats.ops_dropped += 1;
             if self.stats.ops_dropped.is_power_of_two() {
                 tracing::warn!(
-                    client = %h.client_key,
+                    client = %m.route.client_key,
                     dropped = self.stats.ops_dropped,
                     "operation dropped: outbox full"
                 );
             }
             return;
         }
-        h.incarnation = self.incarnation;
+        m.route.incarnation = self.incarnation;
         if self.outbox.is_empty() && self.can_send_now() {
-            h.op_seq = self.next_seq;
-            if self.progress_can_wait(&h, retain, awaited) {
-                h.flags |= FLAG_PROGRESS_CAN_WAIT;
-            }
-            if let Err(e) = self.requests.send(&h, body) {
+            m.route.op_seq = self.next_seq;
+            m.progress_can_wait = self.progress_can_wait(&m.request, retain, awaited);
+            if let Err(e) = self.requests.send(&m) {
                 tracing::warn!(error = %e, "could not hand an operation to the worker; queued");
                 // Sent later from the outbox, with whatever is in flight then.
-                h.flags &= !FLAG_PROGRESS_CAN_WAIT;
+                m.progress_can_wait = false;
                 self.outbox.push_back(OwnedOp {
-                    header: h,
-                    body: body.to_vec(),
+                    message: m.into_owned(),
                     retain,
                     awaited,
                 });
                 return;
             }
-            self.after_send(h, retain, awaited, || body.to_vec());
+            let route = m.route;
+            let kind = PendingKind::of(&m.request);
+            self.after_send(route, kind, retain, awaited, || m.into_owned());
         } else {
             self.outbox.push_back(OwnedOp {
-                header: h,
-                body: body.to_vec(),
+                message: m.into_owned(),
                 retain,
                 awaited,
             });
         }
     }
 
-    /// Whether nothing here will wait for the progress of `h`, sent now: a best-effort
-    /// write no one awaits an answer to, with nothing queued and most of the window free.
-    fn progress_can_wait(&self, h: &IpcHeader, retain: bool, awaited: Awaited) -> bool {
-        h.kind == MessageKind::Write
+    /// Whether nothing here will wait for the progress of `request`, sent now: a
+    /// best-effort write no one awaits an answer to, with nothing queued and most of the
+    /// window free.
+    fn progress_can_wait(&self, request: &Request<'_>, retain: bool, awaited: Awaited) -> bool {
+        request.is_write()
             && !retain
             && awaited == Awaited::No
             && self.best_effort_waiting.is_empty()
@@ -564,32 +581,32 @@ impl Bridge {
 
     fn after_send(
         &mut self,
-        h: IpcHeader,
+        route: Route,
+        kind: PendingKind,
         retain: bool,
         awaited: Awaited,
-        body: impl FnOnce() -> Vec<u8>,
+        message: impl FnOnce() -> RequestMessage<'static>,
     ) {
         self.next_seq += 1;
         self.stats.ops_sent += 1;
         self.dirty = true;
         if retain {
             self.retained.push_back(Retained {
-                seq: h.op_seq,
+                seq: route.op_seq,
                 executed_at: None,
-                header: h,
-                body: body(),
+                message: message(),
             });
         }
         if awaited == Awaited::Yes {
             self.pending.insert(
-                h.op_seq,
+                route.op_seq,
                 (
-                    h.client_key,
+                    route.client_key,
                     BaseObjectRequest {
-                        request_id: h.request_id,
-                        object_id: h.object_id,
+                        request_id: route.request_id,
+                        object_id: route.object_id,
                     },
-                    h.kind,
+                    kind,
                 ),
             );
         }
@@ -615,9 +632,9 @@ impl Bridge {
         let Some(mut op) = self.outbox.pop_front() else {
             return false;
         };
-        op.header.op_seq = self.next_seq;
-        op.header.incarnation = self.incarnation;
-        if let Err(e) = self.requests.send(&op.header, &op.body) {
+        op.message.route.op_seq = self.next_seq;
+        op.message.route.incarnation = self.incarnation;
+        if let Err(e) = self.requests.send(&op.message) {
             tracing::warn!(error = %e, "could not hand an operation to the worker; will retry");
             self.outbox.push_front(op);
             return false;
@@ -632,15 +649,20 @@ impl Bridge {
         let Some(op) = self.best_effort_waiting.front() else {
             return false;
         };
-        let mut header = op.header;
-        header.op_seq = self.next_seq;
-        header.incarnation = self.incarnation;
-        if let Err(e) = self.requests.send(&header, &op.body) {
+        let mut route = op.message.route;
+        route.op_seq = self.next_seq;
+        route.incarnation = self.incarnation;
+        let sent = RequestMessage {
+            route,
+            progress_can_wait: false,
+            request: op.message.request.borrowed(),
+        };
+        if let Err(e) = self.requests.send(&sent) {
             tracing::warn!(error = %e, "could not hand an operation to the worker; will retry");
             return false;
         }
         if let Some(mut op) = self.best_effort_waiting.pop() {
-            op.header = header;
+            op.message.route = route;
             self.sent_owned(op);
         }
         true
@@ -648,12 +670,12 @@ impl Bridge {
 
     fn sent_owned(&mut self, op: OwnedOp) {
         let OwnedOp {
-            header,
-            body,
+            message,
             retain,
             awaited,
         } = op;
-        self.after_send(header, retain, awaited, move || body);
+        let kind = PendingKind::of(&message.request);
+        self.after_send(message.route, kind, retain, awaited, move || message);
     }
 
     /// Handles worker announcements and replies (consuming their wake-ups when their
@@ -674,12 +696,12 @@ impl Bridge {
         }
         let _ = self.announce.drain(|m| hellos.push(m.to_vec()));
         for m in hellos {
-            match IpcHeader::decode(&m) {
-                Ok((h, _))
-                    if h.kind == MessageKind::WorkerHello
-                        && Some(h.generation) != self.generation =>
-                {
-                    self.new_generation(h.generation);
+            match ReplyMessage::decode(&m) {
+                Ok(ReplyMessage {
+                    route,
+                    reply: Reply::WorkerHello,
+                }) if Some(route.generation) != self.generation => {
+                    self.new_generation(route.generation);
                 }
                 Ok(_) => {}
                 Err(e) => {
@@ -725,14 +747,14 @@ impl Bridge {
         let mut awaited_writes: HashMap<u64, (ClientKey, BaseObjectRequest)> = HashMap::new();
         for (seq, (client, req, kind)) in self.pending.drain() {
             match kind {
-                MessageKind::Create => {
+                PendingKind::Create => {
                     awaited.insert((client, req.object_id), req.request_id);
                 }
-                MessageKind::Delete => self.replies_out.push((client, req, ResultStatus::OK)),
-                MessageKind::Write => {
+                PendingKind::Delete => self.replies_out.push((client, req, ResultStatus::OK)),
+                PendingKind::Write => {
                     awaited_writes.insert(seq, (client, req));
                 }
-                _ => {}
+                PendingKind::Other => {}
             }
         }
         let mut writes = Vec::new();
@@ -741,34 +763,31 @@ impl Bridge {
         // session created again with the same key.
         let mut deletes = Vec::new();
         for op in old_outbox {
-            match (op.header.kind, op.awaited) {
-                (MessageKind::Write, _) => writes.push(op),
-                (MessageKind::DeleteClient, _) => deletes.push(op),
-                (MessageKind::Create, Awaited::Yes) => {
-                    awaited.insert(
-                        (op.header.client_key, op.header.object_id),
-                        op.header.request_id,
-                    );
+            let r = op.message.route;
+            match (&op.message.request, op.awaited) {
+                (Request::Write { .. }, _) => writes.push(op),
+                (Request::DeleteClient, _) => deletes.push(op),
+                (Request::Create { .. }, Awaited::Yes) => {
+                    awaited.insert((r.client_key, r.object_id), r.request_id);
                 }
-                (MessageKind::Delete, Awaited::Yes) => self.replies_out.push((
-                    op.header.client_key,
+                (Request::Delete, Awaited::Yes) => self.replies_out.push((
+                    r.client_key,
                     BaseObjectRequest {
-                        request_id: op.header.request_id,
-                        object_id: op.header.object_id,
+                        request_id: r.request_id,
+                        object_id: r.object_id,
                     },
                     ResultStatus::OK,
                 )),
                 _ => {}
             }
         }
-        let mut hello = IpcHeader::new(MessageKind::FrontendHello);
-        hello.frontend_id = self.frontend_id;
-        self.outbox.push_back(OwnedOp {
-            header: hello,
-            body: Vec::new(),
+        let fe = self.frontend_id;
+        let internal = move |request: Request<'static>| OwnedOp {
+            message: RequestMessage::new(Route::frontend(fe), request),
             retain: false,
             awaited: Awaited::No,
-        });
+        };
+        self.outbox.push_back(internal(Request::FrontendHello));
         self.outbox.extend(deletes);
         for (client, graph) in &self.graphs {
             for o in graph.objects() {
@@ -779,17 +798,14 @@ impl Bridge {
                     object_id: o.object_id,
                 };
                 let waited = awaited.get(&(*client, o.object_id)) == Some(&o.request_id);
-                let mut h = header(MessageKind::Create, self.frontend_id, *client, req);
-                h.readers = o.readers_matched;
-                if !waited {
-                    h.flags |= FLAG_REPLAY;
-                }
-                if o.little_endian {
-                    h.flags |= FLAG_LITTLE_ENDIAN;
-                }
+                let create = Request::Create {
+                    description: body.into(),
+                    client_little_endian: o.little_endian,
+                    replay: !waited,
+                    readers_matched: o.readers_matched,
+                };
                 self.outbox.push_back(OwnedOp {
-                    header: h,
-                    body,
+                    message: message(self.frontend_id, *client, req, create),
                     retain: false,
                     awaited: if waited { Awaited::Yes } else { Awaited::No },
                 });
@@ -804,11 +820,12 @@ impl Bridge {
                     request_id: read.request_id,
                     object_id: *reader,
                 };
-                let mut h = header(MessageKind::Read, self.frontend_id, *client, req);
-                h.flags |= FLAG_REPLAY;
+                let read = Request::Read {
+                    spec: body.into(),
+                    replay: true,
+                };
                 self.outbox.push_back(OwnedOp {
-                    header: h,
-                    body,
+                    message: message(self.frontend_id, *client, req, read),
                     retain: false,
                     awaited: Awaited::No,
                 });
@@ -816,20 +833,12 @@ impl Bridge {
         }
         // A worker that kept this front-end's entities (this process took over from a
         // predecessor) removes those the replay did not take back.
-        let mut done = IpcHeader::new(MessageKind::ReplayDone);
-        done.frontend_id = self.frontend_id;
-        self.outbox.push_back(OwnedOp {
-            header: done,
-            body: Vec::new(),
-            retain: false,
-            awaited: Awaited::No,
-        });
+        self.outbox.push_back(internal(Request::ReplayDone));
         for r in self.retained.take() {
             self.stats.writes_resent += 1;
             let waited = awaited_writes.remove(&r.seq).is_some();
             self.outbox.push_back(OwnedOp {
-                header: r.header,
-                body: r.body,
+                message: r.message,
                 retain: true,
                 awaited: if waited { Awaited::Yes } else { Awaited::No },
             });
@@ -848,7 +857,7 @@ impl Bridge {
         m: &[u8],
         agent: &mut Agent<A>,
     ) {
-        let (h, body) = match IpcHeader::decode(m) {
+        let ReplyMessage { route: h, reply } = match ReplyMessage::decode(m) {
             Ok(v) => v,
             Err(e) => {
                 self.stats.ipc_dropped += 1;
@@ -861,7 +870,7 @@ impl Bridge {
             self.stats.predecessor_replies += 1;
             return;
         }
-        if h.kind == MessageKind::WorkerHello {
+        if reply == Reply::WorkerHello {
             if Some(h.generation) != self.generation {
                 self.new_generation(h.generation);
             }
@@ -876,21 +885,15 @@ impl Bridge {
             request_id: h.request_id,
             object_id: h.object_id,
         };
-        match h.kind {
-            MessageKind::Progress => {
+        match reply {
+            Reply::WorkerHello => {}
+            Reply::Progress {
+                executed,
+                acknowledged,
+            } => {
                 self.processed = self.processed.max(h.op_seq);
-                let executed = body
-                    .get(..8)
-                    .and_then(|b| b.try_into().ok())
-                    .map_or(h.op_seq, u64::from_le_bytes)
-                    .min(h.op_seq);
-                if let Some(acked) = body
-                    .get(8..16)
-                    .and_then(|b| b.try_into().ok())
-                    .map(u64::from_le_bytes)
-                {
-                    self.acknowledged = self.acknowledged.max(acked.min(executed));
-                }
+                let executed = executed.min(h.op_seq);
+                self.acknowledged = self.acknowledged.max(acknowledged.min(executed));
                 for r in self.retained.iter_mut() {
                     if r.seq > executed {
                         break;
@@ -898,18 +901,14 @@ impl Bridge {
                     r.executed_at.get_or_insert(now);
                 }
             }
-            MessageKind::Status => {
-                let code = body.first().copied().unwrap_or(status::ERR_DDS_ERROR);
-                let result = ResultStatus {
-                    status: code,
-                    implementation_status: body.get(1).copied().unwrap_or(0),
-                };
+            Reply::Status { result, replay } => {
+                let code = result.status;
                 let waited = self.pending.remove(&h.op_seq);
                 if !status::is_ok(code) {
                     if let Some(g) = self.graphs.get_mut(&h.client_key) {
                         self.objects_changed.insert(h.client_key);
                         self.reads_changed.insert(h.client_key);
-                        if waited.is_some_and(|w| w.2 == MessageKind::Create) {
+                        if waited.is_some_and(|w| w.2 == PendingKind::Create) {
                             let removed = g.remove(h.object_id);
                             self.object_budget.removed(h.client_key, &removed);
                         } else if g
@@ -922,17 +921,14 @@ impl Bridge {
                         }
                     }
                 }
-                if waited.is_some() || (h.flags & FLAG_REPLAY == 0 && !status::is_ok(code)) {
+                if waited.is_some() || (!replay && !status::is_ok(code)) {
                     self.replies_out.push((h.client_key, req, result));
                 } else if !status::is_ok(code) {
                     tracing::warn!(client = %h.client_key, object = ?h.object_id, status = code, "replayed operation failed on the new worker");
                 }
             }
-            MessageKind::Sample => {
-                let Some((identity, body)) = ipc::SampleIdentity::split(body) else {
-                    self.stats.ipc_dropped += 1;
-                    return;
-                };
+            Reply::Sample(sample) => {
+                let identity = sample.identity;
                 // A sample this read delivered before the worker restarted (offered again
                 // by a writer that outlived the worker) is not delivered twice.
                 let read = self
@@ -959,10 +955,10 @@ impl Bridge {
                         (a.spec.preferred_stream_id, a.spec.data_format, a.delivered)
                     });
                 let mut state = 0;
-                if h.flags & FLAG_DISPOSED != 0 {
+                if sample.disposed {
                     state |= sample_state::INSTANCE_DISPOSED;
                 }
-                if h.flags & FLAG_UNREGISTERED != 0 {
+                if sample.unregistered {
                     state |= sample_state::INSTANCE_UNREGISTERED;
                 }
                 if state != 0 && matches!(format, data_format::DATA | data_format::DATA_SEQ) {
@@ -974,8 +970,8 @@ impl Bridge {
                 let reply = DataReply {
                     request: req,
                     format,
-                    sample: body,
-                    little_endian: h.flags & FLAG_LITTLE_ENDIAN != 0,
+                    sample: &sample.data,
+                    little_endian: sample.little_endian,
                     state,
                     sequence_number,
                 };
@@ -996,20 +992,20 @@ impl Bridge {
                     self.paused.insert(key, stream);
                     self.stats.reads_paused += 1;
                     tracing::debug!(client = %h.client_key, reader = ?h.object_id, "read paused: the client is not keeping up");
-                    let pause = header(MessageKind::PauseRead, self.frontend_id, h.client_key, req);
-                    self.submit(pause, &[], false, Awaited::No);
+                    let pause = message(self.frontend_id, h.client_key, req, Request::PauseRead);
+                    self.submit(pause, false, Awaited::No);
                 }
             }
-            MessageKind::WriterMatched => {
+            Reply::WriterMatched { readers } => {
                 if let Some(o) = self
                     .graphs
                     .get_mut(&h.client_key)
                     .and_then(|g| g.get_mut(h.object_id))
                 {
-                    o.readers_matched = h.readers;
+                    o.readers_matched = readers;
                 }
             }
-            MessageKind::ReadEnded => {
+            Reply::ReadEnded => {
                 self.paused.remove(&(h.client_key, h.object_id));
                 if let Some(g) = self.graphs.get_mut(&h.client_key) {
                     let same = g
@@ -1020,10 +1016,6 @@ impl Bridge {
                         self.reads_changed.insert(h.client_key);
                     }
                 }
-            }
-            other => {
-                self.stats.ipc_dropped += 1;
-                tracing::warn!(kind = ?other, "unexpected message on the reply service");
             }
         }
     }
@@ -1050,8 +1042,8 @@ impl Bridge {
                 request_id: RequestId::default(),
                 object_id: reader,
             };
-            let h = header(MessageKind::ResumeRead, self.frontend_id, client, req);
-            self.submit(h, &[], false, Awaited::No);
+            let resume = message(self.frontend_id, client, req, Request::ResumeRead);
+            self.submit(resume, false, Awaited::No);
         }
     }
 
@@ -1116,7 +1108,7 @@ impl Bridge {
             None => self.best_effort_waiting.remove_client(client),
             Some(ids) => self
                 .best_effort_waiting
-                .retain_of(client, |op| !ids.contains(&op.header.object_id)),
+                .retain_of(client, |op| !ids.contains(&op.message.route.object_id)),
         };
         self.stats.ops_dropped += dropped as u64;
     }
@@ -1224,13 +1216,13 @@ impl OperationSink for Bridge {
                 self.graphs.remove(&client);
                 self.object_budget.client_deleted(client);
                 self.drop_waiting_writes(client, None);
-                let h = header(
-                    MessageKind::DeleteClient,
+                let delete = message(
                     fe,
                     client,
                     BaseObjectRequest::default(),
+                    Request::DeleteClient,
                 );
-                self.submit(h, &[], false, Awaited::No);
+                self.submit(delete, false, Awaited::No);
             }
             Operation::Create {
                 client,
@@ -1296,11 +1288,14 @@ impl OperationSink for Bridge {
                         if !self.best_effort_waiting.is_empty() {
                             self.drop_waiting_writes(client, Some(&replaced));
                         }
-                        let mut h = header(MessageKind::Create, fe, client, create.base);
-                        if little_endian {
-                            h.flags |= FLAG_LITTLE_ENDIAN;
-                        }
-                        self.submit(h, &body, false, Awaited::Yes);
+                        let request = Request::Create {
+                            description: body.into(),
+                            client_little_endian: little_endian,
+                            replay: false,
+                            readers_matched: 0,
+                        };
+                        let m = message(fe, client, create.base, request);
+                        self.submit(m, false, Awaited::Yes);
                     }
                 }
             }
@@ -1315,8 +1310,7 @@ impl OperationSink for Bridge {
                 if !removed.is_empty() {
                     self.drop_waiting_writes(client, Some(&removed));
                     self.submit(
-                        header(MessageKind::Delete, fe, client, request),
-                        &[],
+                        message(fe, client, request, Request::Delete),
                         false,
                         Awaited::Yes,
                     );
@@ -1346,22 +1340,25 @@ impl OperationSink for Bridge {
                 }
                 // The worker splits the samples (it knows the types) and, for spec-dialect
                 // clients, answers every write with a STATUS.
-                let mut h = header(MessageKind::Write, fe, client, data.base);
-                h.data_format = data.format;
-                if little_endian {
-                    h.flags |= FLAG_LITTLE_ENDIAN;
-                }
-                let awaited = if dialect == Dialect::Spec {
-                    h.flags |= FLAG_DIALECT_SPEC | FLAG_STATUS_REQUESTED;
+                let status_requested = dialect == Dialect::Spec;
+                let awaited = if status_requested {
                     Awaited::Yes
                 } else {
                     Awaited::No
                 };
+                let write = Request::Write {
+                    data: data.data.into(),
+                    data_format: data.format,
+                    little_endian,
+                    dialect,
+                    status_requested,
+                };
+                let mut m = message(fe, client, data.base, write);
                 let reliable = stream_id::is_reliable(stream);
                 let route = if reliable {
                     Some(BestEffortRoute::Now)
                 } else {
-                    self.best_effort_route(client, IpcHeader::LEN + data.data.len())
+                    self.best_effort_route(client, m.encoded_len())
                 };
                 let Some(route) = route else {
                     // Best-effort data is not held back by flow control: drop it, counted.
@@ -1381,12 +1378,11 @@ impl OperationSink for Bridge {
                     return;
                 };
                 match route {
-                    BestEffortRoute::Now => self.submit(h, data.data, reliable, awaited),
+                    BestEffortRoute::Now => self.submit(m, reliable, awaited),
                     BestEffortRoute::Wait => {
-                        h.incarnation = self.incarnation;
+                        m.route.incarnation = self.incarnation;
                         let op = OwnedOp {
-                            header: h,
-                            body: data.data.to_vec(),
+                            message: m.into_owned(),
                             retain: false,
                             awaited,
                         };
@@ -1447,12 +1443,11 @@ impl OperationSink for Bridge {
                 }
                 let mut body = Vec::new();
                 spec.encode(&mut CdrWriter::new(&mut body, true));
-                self.submit(
-                    header(MessageKind::Read, fe, client, request),
-                    &body,
-                    false,
-                    Awaited::No,
-                );
+                let read = Request::Read {
+                    spec: body.into(),
+                    replay: false,
+                };
+                self.submit(message(fe, client, request, read), false, Awaited::No);
             }
         }
     }

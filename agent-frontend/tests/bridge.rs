@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind};
 use xrce_common::ipc::{
-    self, IpcHeader, MessageKind, SampleIdentity, FLAG_LITTLE_ENDIAN, FLAG_REPLAY,
+    self, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
 };
 use xrce_common::session::agent::{Agent, AgentConfig};
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
@@ -19,6 +19,42 @@ use xrce_common::wire::{
 use xrce_frontend::bridge::Bridge;
 
 const ADDR: u32 = 7;
+
+/// A request as the fake worker took it.
+type Served = RequestMessage<'static>;
+
+/// Whether `m` is a request of kind `name` (one of [`Request::name`]'s).
+fn is(m: &Served, name: &str) -> bool {
+    const KINDS: [&str; 9] = [
+        "FrontendHello",
+        "Create",
+        "Delete",
+        "Write",
+        "Read",
+        "DeleteClient",
+        "PauseRead",
+        "ResumeRead",
+        "ReplayDone",
+    ];
+    assert!(KINDS.contains(&name), "no request kind {name}");
+    m.request.name() == name
+}
+
+/// Whether `m` is part of a replay to a new worker.
+fn replayed(m: &Served) -> bool {
+    matches!(
+        m.request,
+        Request::Create { replay: true, .. } | Request::Read { replay: true, .. }
+    )
+}
+
+/// The sample a write carries (empty for other kinds).
+fn written(m: &Served) -> &[u8] {
+    match &m.request {
+        Request::Write { data, .. } => data,
+        _ => &[],
+    }
+}
 
 /// The worker's side of the IPC contract, driven by the test.
 struct FakeWorker {
@@ -51,54 +87,65 @@ impl FakeWorker {
             generation,
             acknowledge: std::cell::Cell::new(false),
         };
-        let mut hello = IpcHeader::new(MessageKind::WorkerHello);
-        hello.generation = generation;
-        w.announce.send(&hello, &[]).expect("announce");
+        let hello = ReplyMessage::new(
+            Route {
+                generation,
+                ..Route::default()
+            },
+            Reply::WorkerHello,
+        );
+        w.announce.send(&hello).expect("announce");
         w.announce.notify().expect("notify");
         w
     }
 
-    fn reply(&self, mut h: IpcHeader, body: &[u8]) {
-        h.generation = self.generation;
-        self.replies.send(&h, body).expect("reply");
+    fn reply(&self, mut route: Route, reply: Reply<'_>) {
+        route.generation = self.generation;
+        self.replies
+            .send(&ReplyMessage::new(route, reply))
+            .expect("reply");
         self.replies.notify().expect("notify");
     }
 
     /// Every request so far; answers each as the real worker does (a WorkerHello for a
     /// FrontendHello, STATUS OK for creations, reads, deletes), then reports progress.
-    fn serve(&self) -> Vec<(IpcHeader, Vec<u8>)> {
+    fn serve(&self) -> Vec<Served> {
         let mut got = Vec::new();
         let _ = self.requests.drain(|m| {
-            let (h, body) = IpcHeader::decode(m).expect("IPC request");
-            got.push((h, body.to_vec()));
+            got.push(RequestMessage::decode(m).expect("IPC request").into_owned());
         });
         let mut last = 0;
-        for (h, _) in &got {
-            last = last.max(h.op_seq);
-            match h.kind {
-                MessageKind::FrontendHello => {
-                    let mut hello = IpcHeader::new(MessageKind::WorkerHello);
-                    hello.frontend_id = h.frontend_id;
-                    self.reply(hello, &[]);
+        for m in &got {
+            last = last.max(m.route.op_seq);
+            let replay = replayed(m);
+            match m.request {
+                Request::FrontendHello => {
+                    self.reply(Route::frontend(m.route.frontend_id), Reply::WorkerHello)
                 }
-                MessageKind::Create | MessageKind::Delete | MessageKind::Read => self.reply(
-                    IpcHeader {
-                        kind: MessageKind::Status,
-                        ..*h
+                Request::Create { .. } | Request::Delete | Request::Read { .. } => self.reply(
+                    m.route,
+                    Reply::Status {
+                        result: Default::default(),
+                        replay,
                     },
-                    &[0, 0],
                 ),
                 _ => {}
             }
         }
         if last > 0 {
-            let mut p = IpcHeader::new(MessageKind::Progress);
-            p.op_seq = last;
             // Executed through `last`; acknowledged through `last` or nothing.
-            let acked = if self.acknowledge.get() { last } else { 0 };
-            let mut body = last.to_le_bytes().to_vec();
-            body.extend_from_slice(&acked.to_le_bytes());
-            self.reply(p, &body);
+            let acknowledged = if self.acknowledge.get() { last } else { 0 };
+            let route = Route {
+                op_seq: last,
+                ..Route::default()
+            };
+            self.reply(
+                route,
+                Reply::Progress {
+                    executed: last,
+                    acknowledged,
+                },
+            );
         }
         got
     }
@@ -108,18 +155,19 @@ impl FakeWorker {
         &self,
         client: ClientKey,
         reader: ObjectId,
-        read: ipc::IpcHeader,
-        id: SampleIdentity,
+        read: Route,
+        identity: SampleIdentity,
         data: &[u8],
     ) {
-        let mut h = IpcHeader::new(MessageKind::Sample);
-        h.client_key = client;
-        h.object_id = reader;
-        h.request_id = read.request_id;
-        h.flags = FLAG_LITTLE_ENDIAN;
-        let mut body = id.encode().to_vec();
-        body.extend_from_slice(data);
-        self.reply(h, &body);
+        let route = Route::object(0, client, read.request_id, reader);
+        let sample = Sample {
+            identity,
+            data: data.into(),
+            little_endian: true,
+            disposed: false,
+            unregistered: false,
+        };
+        self.reply(route, Reply::Sample(sample));
     }
 }
 
@@ -142,7 +190,7 @@ impl Rig {
     }
 
     /// One round: datagrams both ways, the bridge's IPC, timers.
-    fn step(&mut self, workers: &[&FakeWorker], served: &mut Vec<(IpcHeader, Vec<u8>)>) {
+    fn step(&mut self, workers: &[&FakeWorker], served: &mut Vec<Served>) {
         let now = Instant::now();
         self.deliver(now);
         self.bridge.pump();
@@ -163,8 +211,8 @@ impl Rig {
     fn run(
         &mut self,
         workers: &[&FakeWorker],
-        mut done: impl FnMut(&Rig, &[(IpcHeader, Vec<u8>)]) -> bool,
-    ) -> Vec<(IpcHeader, Vec<u8>)> {
+        mut done: impl FnMut(&Rig, &[Served]) -> bool,
+    ) -> Vec<Served> {
         let mut served = Vec::new();
         let end = Instant::now() + Duration::from_secs(10);
         while Instant::now() < end {
@@ -176,7 +224,7 @@ impl Rig {
         }
         panic!(
             "not done within 10 s; served {:?}",
-            served.iter().map(|(h, _)| h.kind).collect::<Vec<_>>()
+            served.iter().map(|m| m.request.name()).collect::<Vec<_>>()
         );
     }
 
@@ -199,10 +247,7 @@ impl Rig {
         rig.bridge.set_hand_over_at_once(true);
         let [.., w] = rig.create_writer();
         rig.run(&[&worker], |_, s| {
-            s.iter()
-                .filter(|(h, _)| h.kind == MessageKind::Create)
-                .count()
-                == 4
+            s.iter().filter(|m| is(m, "Create")).count() == 4
         });
         (worker, rig, w)
     }
@@ -248,12 +293,9 @@ fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_write
     rig.create(sb, k::SUBSCRIBER, "", VariantExtra::Parent(p));
     rig.create(rd, k::DATAREADER, "<dds/>", VariantExtra::Parent(sb));
     let served = rig.run(&[&first], |_, s| {
-        s.iter()
-            .filter(|(h, _)| h.kind == MessageKind::Create)
-            .count()
-            == 6
+        s.iter().filter(|m| is(m, "Create")).count() == 6
     });
-    assert!(served.iter().all(|(h, _)| h.flags & FLAG_REPLAY == 0));
+    assert!(!served.iter().any(replayed));
     let spec = ReadSpecification {
         preferred_stream_id: stream_id::BUILTIN_RELIABLE,
         delivery_control: Some(DataDeliveryControl {
@@ -267,46 +309,36 @@ fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_write
         .write(Instant::now(), stream_id::BUILTIN_RELIABLE, w, b"kept")
         .expect("write");
     rig.run(&[&first], |_, s| {
-        s.iter().any(|(h, _)| h.kind == MessageKind::Read)
-            && s.iter().any(|(h, _)| h.kind == MessageKind::Write)
+        s.iter().any(|m| is(m, "Read")) && s.iter().any(|m| is(m, "Write"))
     });
     // The worker dies; a new generation announces itself.
     drop(first);
     let second = FakeWorker::start(&inst, 12);
-    let replay = rig.run(&[&second], |_, s| {
-        s.iter().any(|(h, _)| h.kind == MessageKind::Write)
-    });
-    let kinds: Vec<(MessageKind, ObjectId)> =
-        replay.iter().map(|(h, _)| (h.kind, h.object_id)).collect();
-    assert_eq!(kinds[0].0, MessageKind::FrontendHello, "{kinds:?}");
+    let replay = rig.run(&[&second], |_, s| s.iter().any(|m| is(m, "Write")));
+    let kinds: Vec<(&str, ObjectId)> = replay
+        .iter()
+        .map(|m| (m.request.name(), m.route.object_id))
+        .collect();
+    assert_eq!(kinds[0].0, "FrontendHello", "{kinds:?}");
     let creates: Vec<ObjectId> = kinds
         .iter()
-        .filter(|(kind, _)| *kind == MessageKind::Create)
+        .filter(|(kind, _)| *kind == "Create")
         .map(|(_, o)| *o)
         .collect();
     assert_eq!(creates, [p, t, pb, w, sb, rd], "creation order");
-    assert!(replay
-        .iter()
-        .filter(|(h, _)| h.kind == MessageKind::Create)
-        .all(|(h, _)| h.flags & FLAG_REPLAY != 0));
-    let pos = |kind: MessageKind| kinds.iter().position(|(k2, _)| *k2 == kind);
+    assert!(replay.iter().filter(|m| is(m, "Create")).all(replayed));
+    let pos = |kind: &str| kinds.iter().position(|(k2, _)| *k2 == kind);
     let last_create = kinds
         .iter()
-        .rposition(|(kind, _)| *kind == MessageKind::Create)
+        .rposition(|(kind, _)| *kind == "Create")
         .expect("creates");
-    assert!(
-        pos(MessageKind::Read).is_some_and(|r| r > last_create),
-        "{kinds:?}"
-    );
+    assert!(pos("Read").is_some_and(|r| r > last_create), "{kinds:?}");
     let write = replay
         .iter()
-        .find(|(h, _)| h.kind == MessageKind::Write)
+        .find(|m| is(m, "Write"))
         .expect("the retained write resent");
-    assert!(write.1.ends_with(b"kept"));
-    assert!(
-        pos(MessageKind::Write) > pos(MessageKind::Read),
-        "{kinds:?}"
-    );
+    assert!(written(write).ends_with(b"kept"));
+    assert!(pos("Write") > pos("Read"), "{kinds:?}");
     assert_eq!(rig.bridge.stats().replays, 2);
     assert!(rig.bridge.stats().writes_resent >= 1);
     drop((rig, second));
@@ -333,13 +365,11 @@ fn a_replayed_read_does_not_deliver_a_sample_twice() {
         ..Default::default()
     };
     rig.client.read(Instant::now(), rd, spec).expect("read");
-    let served = rig.run(&[&first], |_, s| {
-        s.iter().any(|(h, _)| h.kind == MessageKind::Read)
-    });
+    let served = rig.run(&[&first], |_, s| s.iter().any(|m| is(m, "Read")));
     let read = served
         .iter()
-        .find(|(h, _)| h.kind == MessageKind::Read)
-        .map(|(h, _)| *h)
+        .find(|m| is(m, "Read"))
+        .map(|m| m.route)
         .expect("read");
     let writer = [0x42u8; 16];
     let at = |n: i64| SampleIdentity {
@@ -363,13 +393,11 @@ fn a_replayed_read_does_not_deliver_a_sample_twice() {
     // new sample.
     drop(first);
     let second = FakeWorker::start(&inst, 22);
-    let replay = rig.run(&[&second], |_, s| {
-        s.iter().any(|(h, _)| h.kind == MessageKind::Read)
-    });
+    let replay = rig.run(&[&second], |_, s| s.iter().any(|m| is(m, "Read")));
     let read = replay
         .iter()
-        .find(|(h, _)| h.kind == MessageKind::Read)
-        .map(|(h, _)| *h)
+        .find(|m| is(m, "Read"))
+        .map(|m| m.route)
         .expect("read replayed");
     for n in 1..=4 {
         second.sample(rig.client.config().key, rd, read, at(n), &[n as u8]);
@@ -407,10 +435,7 @@ fn a_write_its_readers_acknowledged_is_not_resent_to_a_new_worker() {
     let mut rig = Rig::connected(&inst, &first, 21);
     let [_, _, _, w] = rig.create_writer();
     rig.run(&[&first], |_, s| {
-        s.iter()
-            .filter(|(h, _)| h.kind == MessageKind::Create)
-            .count()
-            == 4
+        s.iter().filter(|m| is(m, "Create")).count() == 4
     });
     // Acknowledged by the readers: released at once (not after the settle time).
     first.acknowledge.set(true);
@@ -425,17 +450,15 @@ fn a_write_its_readers_acknowledged_is_not_resent_to_a_new_worker() {
         .expect("write");
     rig.run(&[&first], |_, s| {
         s.iter()
-            .any(|(h, b)| h.kind == MessageKind::Write && b.ends_with(b"in flight"))
+            .any(|m| is(m, "Write") && written(m).ends_with(b"in flight"))
     });
     drop(first);
     let second = FakeWorker::start(&inst, 22);
-    let replay = rig.run(&[&second], |_, s| {
-        s.iter().any(|(h, _)| h.kind == MessageKind::Write)
-    });
-    let writes: Vec<&Vec<u8>> = replay
+    let replay = rig.run(&[&second], |_, s| s.iter().any(|m| is(m, "Write")));
+    let writes: Vec<&[u8]> = replay
         .iter()
-        .filter(|(h, _)| h.kind == MessageKind::Write)
-        .map(|(_, b)| b)
+        .filter(|m| is(m, "Write"))
+        .map(written)
         .collect();
     assert_eq!(writes.len(), 1, "only the unacknowledged write is resent");
     assert!(writes[0].ends_with(b"in flight"));
@@ -458,8 +481,8 @@ impl Rig {
     fn serve_until(
         &mut self,
         worker: &FakeWorker,
-        mut done: impl FnMut(&Rig, &[(IpcHeader, Vec<u8>)]) -> bool,
-    ) -> Vec<(IpcHeader, Vec<u8>)> {
+        mut done: impl FnMut(&Rig, &[Served]) -> bool,
+    ) -> Vec<Served> {
         let mut served = Vec::new();
         let end = Instant::now() + Duration::from_secs(10);
         while Instant::now() < end {
@@ -508,11 +531,11 @@ fn best_effort_writes(rig: &mut Rig, now: Instant, w: ObjectId, tag: &str, n: u6
 }
 
 /// The bodies of the WRITE operations among `served`.
-fn write_bodies(served: &[(IpcHeader, Vec<u8>)]) -> Vec<String> {
+fn write_bodies(served: &[Served]) -> Vec<String> {
     served
         .iter()
-        .filter(|(h, _)| h.kind == MessageKind::Write)
-        .map(|(_, b)| String::from_utf8_lossy(b).into_owned())
+        .filter(|m| is(m, "Write"))
+        .map(|m| String::from_utf8_lossy(written(m)).into_owned())
         .collect()
 }
 
@@ -589,7 +612,7 @@ fn waiting_writes_of_a_deleted_writer_are_dropped_not_sent_after_the_delete() {
     rig.deliver(Instant::now());
     assert_eq!(rig.bridge.backlog(), 0);
     assert_eq!(rig.bridge.stats().ops_dropped, 10);
-    let is_delete = |(h, _): &(IpcHeader, Vec<u8>)| h.kind == MessageKind::Delete;
+    let is_delete = |m: &Served| is(m, "Delete");
     let mut served = rig.serve_until(&worker, |_, s| s.iter().any(is_delete));
     let delete = served
         .iter()
@@ -597,9 +620,7 @@ fn waiting_writes_of_a_deleted_writer_are_dropped_not_sent_after_the_delete() {
         .expect("the delete reached the worker");
     served.extend(worker.serve());
     assert!(
-        served[delete..]
-            .iter()
-            .all(|(h, _)| h.kind != MessageKind::Write),
+        served[delete..].iter().all(|m| !is(m, "Write")),
         "a write reached the worker after the delete of its writer"
     );
     assert_eq!(write_bodies(&served).len() as u64, share);
@@ -643,9 +664,7 @@ fn waiting_writes_are_dropped_when_their_worker_is_replaced() {
     // The worker dies with the window full; its successor gets the replay, not stale data.
     drop(first);
     let second = FakeWorker::start(&inst, 30);
-    let replay = rig.run(&[&second], |_, s| {
-        s.iter().any(|(h, _)| h.kind == MessageKind::ReplayDone)
-    });
+    let replay = rig.run(&[&second], |_, s| s.iter().any(|m| is(m, "ReplayDone")));
     assert!(
         write_bodies(&replay).is_empty(),
         "stale best-effort writes replayed"
@@ -817,11 +836,7 @@ fn small_reliable_messages_may_fill_the_window() {
             rig.client.handle_timeout(now);
         }
     }
-    let writes = worker
-        .serve()
-        .iter()
-        .filter(|(h, _)| h.kind == MessageKind::Write)
-        .count() as u64;
+    let writes = worker.serve().iter().filter(|m| is(m, "Write")).count() as u64;
     // Room for two operations a submessage is asked for: all but the last slot fill (the
     // room for the largest message would have stopped them at 145).
     assert!(
@@ -846,12 +861,11 @@ fn reliable_write(rig: &mut Rig, w: ObjectId, body: &[u8]) {
 /// is free; reliable writes and control operations never do.
 #[test]
 fn only_best_effort_writes_with_the_window_mostly_free_let_their_progress_wait() {
-    use xrce_common::ipc::FLAG_PROGRESS_CAN_WAIT;
     use xrce_frontend::bridge::PROGRESS_CAN_WAIT_BELOW;
     let inst = instance("lazy");
     let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 8);
     rig.catch_up(&worker);
-    let can_wait = |h: &IpcHeader| h.flags & FLAG_PROGRESS_CAN_WAIT != 0;
+    let can_wait = |m: &Served| m.progress_can_wait;
     // With the window free: a CREATE (its client waits for the STATUS) and a reliable write
     // (retained until executed) wait for their progress.
     let r = ObjectId::new(2, k::DATAWRITER);
@@ -862,28 +876,22 @@ fn only_best_effort_writes_with_the_window_mostly_free_let_their_progress_wait()
         VariantExtra::Parent(ObjectId::new(1, k::PUBLISHER)),
     );
     rig.deliver(Instant::now());
-    let served = rig.serve_until(&worker, |_, s| {
-        s.iter().any(|(h, _)| h.kind == MessageKind::Create)
-    });
-    assert!(served.iter().all(|(h, _)| !can_wait(h)));
+    let served = rig.serve_until(&worker, |_, s| s.iter().any(|m| is(m, "Create")));
+    assert!(!served.iter().any(can_wait));
     rig.catch_up(&worker);
     reliable_write(&mut rig, w, b"reliable");
     let served = worker.serve();
     assert_eq!(served.len(), 1);
-    assert!(!can_wait(&served[0].0), "a reliable write");
+    assert!(!can_wait(&served[0]), "a reliable write");
     rig.catch_up(&worker);
     // The worker takes nothing meanwhile: the window fills one write at a time.
     let n = PROGRESS_CAN_WAIT_BELOW + 10;
     best_effort_writes(&mut rig, Instant::now(), w, "be", n);
     reliable_write(&mut rig, w, b"reliable");
     let served = worker.serve();
-    let writes: Vec<&IpcHeader> = served
-        .iter()
-        .map(|(h, _)| h)
-        .filter(|h| h.kind == MessageKind::Write)
-        .collect();
+    let writes: Vec<&Served> = served.iter().filter(|m| is(m, "Write")).collect();
     assert_eq!(writes.len() as u64, n + 1);
-    let flagged: Vec<bool> = writes.iter().map(|h| can_wait(h)).collect();
+    let flagged: Vec<bool> = writes.iter().map(|m| can_wait(m)).collect();
     let mut expected = vec![true; PROGRESS_CAN_WAIT_BELOW as usize];
     expected.resize(n as usize + 1, false);
     assert_eq!(

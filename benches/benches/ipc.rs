@@ -13,7 +13,10 @@ use std::time::{Duration, Instant};
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use xrce_common::ipc::shm::{wait_readable, IpcNode, Receiver, Sender, ServiceKind};
-use xrce_common::ipc::{reply_service, request_service, IpcHeader, MessageKind};
+use xrce_common::ipc::{
+    reply_service, request_service, Reply, ReplyMessage, Request, RequestMessage, Route, Sample,
+};
+use xrce_common::wire::Dialect;
 
 const BODY: [u8; 40] = [0x5A; 40];
 
@@ -48,11 +51,20 @@ fn answer(req_rx: &Receiver, rep_tx: &Sender) -> usize {
     req_rx.clear_events();
     let n = req_rx
         .drain(|m| {
-            if let Ok((h, body)) = IpcHeader::decode(m) {
-                let mut r = IpcHeader::new(MessageKind::Sample);
-                r.client_key = h.client_key;
-                r.object_id = h.object_id;
-                let _ = rep_tx.send(&r, body);
+            if let Ok(RequestMessage {
+                route,
+                request: Request::Write { data, .. },
+                ..
+            }) = RequestMessage::decode(m)
+            {
+                let sample = Sample {
+                    identity: Default::default(),
+                    data,
+                    little_endian: true,
+                    disposed: false,
+                    unregistered: false,
+                };
+                let _ = rep_tx.send(&ReplyMessage::new(route, Reply::Sample(sample)));
             }
         })
         .unwrap_or(0);
@@ -62,9 +74,22 @@ fn answer(req_rx: &Receiver, rep_tx: &Sender) -> usize {
     n
 }
 
+/// A write of [`BODY`], as a front-end sends one.
+fn write() -> RequestMessage<'static> {
+    RequestMessage::new(
+        Route::default(),
+        Request::Write {
+            data: BODY[..].into(),
+            data_format: 0,
+            little_endian: true,
+            dialect: Dialect::Eprosima,
+            status_requested: false,
+        },
+    )
+}
+
 fn request(e: &Ends) {
-    let h = IpcHeader::new(MessageKind::Write);
-    let _ = e.req_tx.send(&h, &BODY);
+    let _ = e.req_tx.send(&write());
     let _ = e.req_tx.notify();
 }
 
@@ -118,8 +143,7 @@ fn hop(c: &mut Criterion) {
         b.iter_custom(|iters| {
             let start = Instant::now();
             for _ in 0..iters {
-                let h = IpcHeader::new(MessageKind::Write);
-                let _ = req_tx.send(&h, &BODY);
+                let _ = req_tx.send(&write());
                 let _ = req_tx.notify();
                 let end = Instant::now() + Duration::from_secs(1);
                 loop {

@@ -69,15 +69,18 @@ fn session_store_corpus_and_regressions() {
     replay("session_store", 8, xrce_common::fuzzing::session_store);
 }
 
-/// The session_store seeds are the current encodings of representative records: this fails
-/// when a record format changes and the corpus was not rewritten (with
-/// `XRCE_WRITE_SEEDS=1 cargo test -p xrce-common --test fuzz_corpus session_store_seeds`).
 #[test]
-fn session_store_seeds_are_current() {
-    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../fuzz/corpus/session_store");
+fn ipc_messages_corpus_and_regressions() {
+    replay("ipc_messages", 15, xrce_common::fuzzing::ipc_messages);
+}
+
+/// Checks that the committed seeds of `target` are the current encodings `seeds` gives (or
+/// rewrites them with `XRCE_WRITE_SEEDS=1`): this fails when a format changes and the corpus
+/// was not rewritten.
+fn seeds_are_current(target: &str, seeds: Vec<(String, Vec<u8>)>, least: usize) {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(format!("../fuzz/corpus/{target}"));
     let write = std::env::var_os("XRCE_WRITE_SEEDS").is_some();
-    let seeds = xrce_common::fuzzing::session_store_seeds();
-    assert!(seeds.len() >= 8, "{} seeds", seeds.len());
+    assert!(seeds.len() >= least, "{} seeds", seeds.len());
     for (name, bytes) in seeds {
         let path = dir.join(&name);
         if write {
@@ -89,4 +92,20 @@ fn session_store_seeds_are_current() {
             assert_eq!(committed, bytes, "seed {name} is stale; rewrite the corpus");
         }
     }
+}
+
+/// Rewrite with `XRCE_WRITE_SEEDS=1 cargo test -p xrce-common --test fuzz_corpus seeds`.
+#[test]
+fn session_store_seeds_are_current() {
+    seeds_are_current(
+        "session_store",
+        xrce_common::fuzzing::session_store_seeds(),
+        8,
+    );
+}
+
+/// The IPC seeds: one message of every kind (rewritten as above).
+#[test]
+fn ipc_seeds_are_current() {
+    seeds_are_current("ipc_messages", xrce_common::fuzzing::ipc_seeds(), 15);
 }

@@ -21,15 +21,13 @@ use std::sync::Arc;
 
 use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
 use xrce_common::ipc::status::{ProcessReport, Reporter, Watchdog, WorkerStatus};
-use xrce_common::ipc::{
-    self, IpcHeader, MessageKind, FLAG_DIALECT_SPEC, FLAG_LITTLE_ENDIAN, FLAG_REPLAY,
-    FLAG_STATUS_REQUESTED,
-};
+use xrce_common::ipc::{self, Encode, Reply, ReplyMessage, Request, RequestMessage, Route};
 use xrce_common::wire::cdr::CdrReader;
 use xrce_common::wire::sample::{decode_samples, sample_state};
 use xrce_common::wire::Dialect;
 use xrce_common::wire::{
-    object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, VariantExtra,
+    object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, ResultStatus,
+    VariantExtra,
 };
 
 use crate::acks::{AckTracker, Acknowledging, Outstanding};
@@ -263,9 +261,14 @@ impl Worker {
             reporter: Reporter::new(&config_instance, "worker"),
             watchdog: Watchdog::from_env(),
         };
-        let mut hello = IpcHeader::new(MessageKind::WorkerHello);
-        hello.generation = w.generation;
-        w.announce.send(&hello, &[])?;
+        let hello = ReplyMessage::new(
+            Route {
+                generation: w.generation,
+                ..Route::default()
+            },
+            Reply::WorkerHello,
+        );
+        w.announce.send(&hello)?;
         w.announce.notify()?;
         tracing::info!(generation = w.generation, instance = %w.config.instance, "worker serving");
         Ok(w)

@@ -5,7 +5,7 @@ use super::*;
 
 pub(super) struct FrontendPort {
     pub(super) sender: Sender,
-    /// The front-end process served (see [`IpcHeader::incarnation`]).
+    /// The front-end process served (see [`Route::incarnation`]).
     pub(super) incarnation: u16,
     pub(super) processed: u64,
     pub(super) dirty: bool,
@@ -20,7 +20,7 @@ pub(super) struct FrontendPort {
     /// Messages were published since the front-end was last woken.
     pub(super) unnotified: bool,
     /// The front-end is woken for the next progress message: an operation it sent without
-    /// [`ipc::FLAG_PROGRESS_CAN_WAIT`] was processed, or DDS readers acknowledged writes.
+    /// [`RequestMessage::progress_can_wait`] was processed, or DDS readers acknowledged writes.
     /// Kept while execution stops short of what was processed (held writes), so the progress
     /// that finally covers them wakes it too.
     pub(super) progress_wake_owed: bool,
@@ -111,33 +111,33 @@ impl Worker {
         }
     }
 
-    /// Sends a reply to its front-end, or queues it behind earlier refused ones.
-    pub(super) fn reply(&mut self, h: IpcHeader, body: &[u8]) {
-        self.reply_with(h, body.len(), |b| b.copy_from_slice(body));
-    }
-
-    /// Sends a reply of `len` body bytes that `fill` writes (in place in shared memory when
-    /// the front-end's queue has room), else keeps it in the front-end's backlog.
-    pub(super) fn reply_with(&mut self, mut h: IpcHeader, len: usize, fill: impl Fn(&mut [u8])) {
-        h.generation = self.generation;
-        let incarnation = self.ports.get(&h.frontend_id).map_or(0, |p| p.incarnation);
-        if h.incarnation == 0 {
-            h.incarnation = incarnation;
+    /// Sends a reply to its front-end (encoded in place in shared memory when the
+    /// front-end's queue has room), or queues it behind earlier refused ones.
+    pub(super) fn reply(&mut self, mut route: Route, reply: Reply<'_>) {
+        route.generation = self.generation;
+        let incarnation = self
+            .ports
+            .get(&route.frontend_id)
+            .map_or(0, |p| p.incarnation);
+        if route.incarnation == 0 {
+            route.incarnation = incarnation;
         }
+        let m = ReplyMessage::new(route, reply);
+        let len = m.encoded_len() - ipc::HEADER_LEN;
         if len > ipc::MAX_BODY {
-            tracing::warn!(frontend = h.frontend_id, client = %h.client_key, len, "sample too large for the front-end link; dropped");
+            tracing::warn!(frontend = route.frontend_id, client = %route.client_key, len, "sample too large for the front-end link; dropped");
             return self.count("sample_too_large");
         }
-        let port = match self.port(h.frontend_id) {
+        let port = match self.port(route.frontend_id) {
             Ok(p) => p,
             Err(e) => {
-                tracing::warn!(frontend = h.frontend_id, error = %e, "reply lost");
+                tracing::warn!(frontend = route.frontend_id, error = %e, "reply lost");
                 return self.count("reply_send_failed");
             }
         };
         port.dirty = true;
         if port.backlog.is_empty() {
-            match port.sender.send_with(&h, len, &fill) {
+            match port.sender.send(&m) {
                 Ok(true) => {
                     port.last_delivery = Instant::now();
                     port.unnotified = true;
@@ -148,9 +148,7 @@ impl Worker {
                 Err(e) => tracing::debug!(error = %e, "reply send failed; queued"),
             }
         }
-        let mut m = vec![0u8; IpcHeader::LEN + len];
-        h.write(&mut m, len);
-        fill(&mut m[IpcHeader::LEN..]);
+        let m = m.encode();
         let mut overflow = false;
         while !port.backlog.is_empty()
             && (port.backlog.len() >= BACKLOG_MAX
@@ -168,25 +166,34 @@ impl Worker {
         }
     }
 
-    pub(super) fn status(&mut self, req: &IpcHeader, result: Result<(), OpError>) {
+    /// Answers request `what` on `route` (a replayed one if `replay`) with its result.
+    pub(super) fn status(
+        &mut self,
+        route: Route,
+        what: &'static str,
+        replay: bool,
+        result: Result<(), OpError>,
+    ) {
         let code = match &result {
             Ok(()) => status::OK,
             // Refusals of the worker's bounds (resources, denied) were counted and logged
             // once per episode where they were decided: a client causes them at will.
             Err((code, why)) if matches!(*code, status::ERR_RESOURCES | status::ERR_DENIED) => {
-                tracing::debug!(client = %req.client_key, object = ?req.object_id, kind = ?req.kind, status = code, "{why}");
+                tracing::debug!(client = %route.client_key, object = ?route.object_id, kind = what, status = code, "{why}");
                 *code
             }
             Err((code, why)) => {
-                tracing::warn!(client = %req.client_key, object = ?req.object_id, kind = ?req.kind, status = code, "{why}");
+                tracing::warn!(client = %route.client_key, object = ?route.object_id, kind = what, status = code, "{why}");
                 *code
             }
         };
-        let h = IpcHeader {
-            kind: MessageKind::Status,
-            ..*req
-        };
-        self.reply(h, &[code, 0]);
+        self.reply(
+            route,
+            Reply::Status {
+                result: ResultStatus::new(code),
+                replay,
+            },
+        );
     }
 
     /// Sends refused replies again, then progress; wakes every front-end that got something.
@@ -233,21 +240,26 @@ impl Worker {
                 p.processed.min(oldest.saturating_sub(1))
             });
             if p.dirty && p.backlog.is_empty() {
-                let mut h = IpcHeader::new(MessageKind::Progress);
-                h.frontend_id = *fe;
-                h.generation = generation;
-                h.incarnation = p.incarnation;
-                h.op_seq = p.processed;
+                let route = Route {
+                    generation,
+                    incarnation: p.incarnation,
+                    op_seq: p.processed,
+                    ..Route::frontend(*fe)
+                };
                 // Acknowledged by every matched reliable reader: up to just before the
                 // oldest write still outstanding.
                 let acknowledged = outstanding
                     .get_or_insert_with(|| acks.oldest_outstanding())
                     .get(fe)
                     .map_or(executed, |oldest| executed.min(oldest.saturating_sub(1)));
-                let mut body = [0u8; 16];
-                body[..8].copy_from_slice(&executed.to_le_bytes());
-                body[8..].copy_from_slice(&acknowledged.to_le_bytes());
-                if let Ok(true) = p.sender.send(&h, &body) {
+                let progress = ReplyMessage::new(
+                    route,
+                    Reply::Progress {
+                        executed,
+                        acknowledged,
+                    },
+                );
+                if let Ok(true) = p.sender.send(&progress) {
                     p.dirty = false;
                     sent = true;
                     if p.progress_wake_owed {

@@ -86,7 +86,8 @@ impl Worker {
     pub(super) fn start_read(
         &mut self,
         key: EntityKey,
-        h: &IpcHeader,
+        request_id: xrce_common::wire::RequestId,
+        replay: bool,
         body: &[u8],
     ) -> Result<(), OpError> {
         let reader_type = match self.entities.value(&key) {
@@ -136,7 +137,7 @@ impl Worker {
                 return Ok(());
             }
             Some(d) => ActiveRead {
-                request_id: h.request_id,
+                request_id,
                 remaining: (d.max_samples != u16::MAX).then_some(d.max_samples as u32),
                 deadline: (d.max_elapsed_time != 0)
                     .then(|| Instant::now() + Duration::from_secs(d.max_elapsed_time as u64)),
@@ -147,7 +148,7 @@ impl Worker {
                 data_format: spec.data_format,
             },
             None => ActiveRead {
-                request_id: h.request_id,
+                request_id,
                 remaining: None,
                 deadline: None,
                 one_shot: true,
@@ -158,8 +159,8 @@ impl Worker {
             },
         };
         self.reads.insert(key, read);
-        if h.flags & FLAG_REPLAY != 0 {
-            self.offer_recent(key, h.request_id);
+        if replay {
+            self.offer_recent(key, request_id);
         } else if let Some(r) = self.recent.get_mut(&key.0) {
             // The client has no record of what an earlier read on this reader delivered.
             r.forget(&key);
@@ -205,14 +206,11 @@ impl Worker {
             None => false,
         };
         tracing::info!(client = %key.1, reader = ?key.2, samples = samples.len(), "recent samples offered again to a replayed read");
-        for (flags, body) in &samples {
-            let mut h = IpcHeader::new(MessageKind::Sample);
-            h.frontend_id = key.0;
-            h.client_key = key.1;
-            h.object_id = key.2;
-            h.request_id = request_id;
-            h.flags = *flags;
-            self.reply(h, body);
+        for sample in samples {
+            self.reply(
+                Route::object(key.0, key.1, request_id, key.2),
+                Reply::Sample(sample),
+            );
         }
         if ended {
             self.end_read(key);
@@ -350,15 +348,8 @@ impl Worker {
                         }
                         continue;
                     }
-                    let mut flags = 0;
-                    if taken.disposed {
-                        flags |= ipc::FLAG_DISPOSED;
-                    }
-                    if taken.unregistered {
-                        flags |= ipc::FLAG_UNREGISTERED;
-                    }
                     read.pacing.sent(now, s.body.len());
-                    out.push((s, flags, taken.identity));
+                    out.push((s, taken.disposed, taken.unregistered, taken.identity));
                     limit -= 1;
                     if one_shot {
                         break;
@@ -404,35 +395,26 @@ impl Worker {
         }
         let sent = out.len() as u32;
         self.samples_taken += u64::from(sent);
-        for (s, flags, identity) in out {
-            let mut h = IpcHeader::new(MessageKind::Sample);
-            h.frontend_id = key.0;
-            h.client_key = key.1;
-            h.object_id = key.2;
-            h.request_id = request_id;
-            h.flags = flags
-                | if s.little_endian() {
-                    FLAG_LITTLE_ENDIAN
-                } else {
-                    0
-                };
-            let id = identity.encode();
-            let flags = h.flags;
-            let len = ipc::SAMPLE_IDENTITY_LEN + s.body.len();
-            self.reply_with(h, len, |b| {
-                b[..ipc::SAMPLE_IDENTITY_LEN].copy_from_slice(&id);
-                b[ipc::SAMPLE_IDENTITY_LEN..].copy_from_slice(&s.body);
-            });
+        for (s, disposed, unregistered, identity) in out {
+            let sample = ipc::Sample {
+                identity,
+                data: std::borrow::Cow::Borrowed(&s.body),
+                little_endian: s.little_endian(),
+                disposed,
+                unregistered,
+            };
             // Kept for a successor only if it went (or waits) to the front-end, and can be
             // told from what the front-end delivered already.
-            if len <= ipc::MAX_BODY && identity.is_known() {
-                self.recent.entry(key.0).or_default().record(
-                    key,
-                    request_id,
-                    flags,
-                    [&id, &s.body],
-                );
+            if sample.fits() && identity.is_known() {
+                self.recent
+                    .entry(key.0)
+                    .or_default()
+                    .record(key, request_id, &sample);
             }
+            self.reply(
+                Route::object(key.0, key.1, request_id, key.2),
+                Reply::Sample(sample),
+            );
         }
         let ended = match self.reads.get_mut(&key) {
             Some(r) => {
@@ -452,12 +434,10 @@ impl Worker {
 
     pub(super) fn end_read(&mut self, key: EntityKey) {
         if let Some(r) = self.reads.remove(&key) {
-            let mut h = IpcHeader::new(MessageKind::ReadEnded);
-            h.frontend_id = key.0;
-            h.client_key = key.1;
-            h.object_id = key.2;
-            h.request_id = r.request_id;
-            self.reply(h, &[]);
+            self.reply(
+                Route::object(key.0, key.1, r.request_id, key.2),
+                Reply::ReadEnded,
+            );
         }
     }
 

@@ -9,15 +9,16 @@ impl Worker {
     /// operations run first, on the entities they were meant for); a predecessor's request
     /// that comes after its successor took over is dropped.
     pub(super) fn handle_request(&mut self, bytes: &[u8]) {
-        let (h, body) = match IpcHeader::decode(bytes) {
-            Ok(v) => v,
+        let m = match RequestMessage::decode(bytes) {
+            Ok(m) => m,
             Err(e) => {
                 tracing::warn!(error = %e, "dropped IPC message");
                 return self.count("bad_ipc_message");
             }
         };
-        let fe = h.frontend_id;
-        if self.successors.get(&fe) == Some(&h.incarnation) {
+        let fe = m.route.frontend_id;
+        let incarnation = m.route.incarnation;
+        if self.successors.get(&fe) == Some(&incarnation) {
             return self.deferred.push(bytes.to_vec());
         }
         let current = self
@@ -25,19 +26,20 @@ impl Worker {
             .get(&fe)
             .map(|p| p.incarnation)
             .filter(|i| *i != 0);
-        let greeted = self.greeted.contains(&(fe, h.incarnation));
+        let greeted = self.greeted.contains(&(fe, incarnation));
+        let hello = m.request == Request::FrontendHello;
         match current {
-            Some(c) if c != h.incarnation && h.kind == MessageKind::FrontendHello => {
-                self.successors.insert(fe, h.incarnation);
+            Some(c) if c != incarnation && hello => {
+                self.successors.insert(fe, incarnation);
                 self.deferred.push(bytes.to_vec());
             }
-            Some(c) if c != h.incarnation => self.count("predecessor_operation"),
-            _ if !greeted && h.kind != MessageKind::FrontendHello => {
+            Some(c) if c != incarnation => self.count("predecessor_operation"),
+            _ if !greeted && !hello => {
                 // Sent before the front-end knew this worker (to the one that died): the
                 // front-end replays and resends what matters after its hello.
                 self.count("operation_before_hello");
             }
-            _ => self.process_request(h, body),
+            _ => self.process_request(m),
         }
     }
 
@@ -49,58 +51,63 @@ impl Worker {
         }
         self.successors.clear();
         for m in std::mem::take(&mut self.deferred) {
-            if let Ok((h, body)) = IpcHeader::decode(&m) {
-                self.process_request(h, body);
+            if let Ok(m) = RequestMessage::decode(&m) {
+                self.process_request(m);
             }
         }
     }
 
-    pub(super) fn process_request(&mut self, h: IpcHeader, body: &[u8]) {
-        let key = (h.frontend_id, h.client_key, h.object_id);
-        match h.kind {
-            MessageKind::FrontendHello => {
+    pub(super) fn process_request(&mut self, m: RequestMessage<'_>) {
+        let r = m.route;
+        let key = (r.frontend_id, r.client_key, r.object_id);
+        let what = m.request.name();
+        match m.request {
+            Request::FrontendHello => {
                 tracing::info!(
-                    frontend = h.frontend_id,
-                    incarnation = h.incarnation,
+                    frontend = r.frontend_id,
+                    incarnation = r.incarnation,
                     "front-end (re)connected"
                 );
-                self.greeted.retain(|(fe, _)| *fe != h.frontend_id);
-                self.greeted.insert((h.frontend_id, h.incarnation));
-                self.offer_entities(h.frontend_id);
-                if let Ok(p) = self.port(h.frontend_id) {
+                self.greeted.retain(|(fe, _)| *fe != r.frontend_id);
+                self.greeted.insert((r.frontend_id, r.incarnation));
+                self.offer_entities(r.frontend_id);
+                if let Ok(p) = self.port(r.frontend_id) {
                     // Its operations are numbered from its hello on.
-                    p.incarnation = h.incarnation;
-                    p.processed = h.op_seq;
+                    p.incarnation = r.incarnation;
+                    p.processed = r.op_seq;
                 }
                 // Replies held for a previous incarnation of this front-end mean nothing now.
-                if let Some(p) = self.ports.get_mut(&h.frontend_id) {
+                if let Some(p) = self.ports.get_mut(&r.frontend_id) {
                     p.backlog.clear();
                     p.backlog_bytes = 0;
                     p.deferred.clear();
                 }
-                let mut hello = IpcHeader::new(MessageKind::WorkerHello);
-                hello.frontend_id = h.frontend_id;
-                self.reply(hello, &[]);
+                self.reply(Route::frontend(r.frontend_id), Reply::WorkerHello);
             }
-            MessageKind::ReplayDone => self.end_adoption(h.frontend_id),
-            MessageKind::DeleteClient => {
-                self.remove_where(|c| c.0 == h.frontend_id && c.1 == h.client_key)
+            Request::ReplayDone => self.end_adoption(r.frontend_id),
+            Request::DeleteClient => {
+                self.remove_where(|c| c.0 == r.frontend_id && c.1 == r.client_key)
             }
-            MessageKind::Create => {
-                let r = self.create(
+            Request::Create {
+                description,
+                client_little_endian,
+                replay,
+                readers_matched,
+            } => {
+                let result = self.create(
                     key,
-                    body,
-                    h.flags & FLAG_REPLAY != 0,
-                    h.flags & FLAG_LITTLE_ENDIAN != 0,
-                    h.readers,
+                    &description,
+                    replay,
+                    client_little_endian,
+                    readers_matched,
                 );
-                if r.is_ok() {
-                    tracing::debug!(client = %h.client_key, object = ?h.object_id, replay = h.flags & FLAG_REPLAY != 0, "created");
+                if result.is_ok() {
+                    tracing::debug!(client = %r.client_key, object = ?r.object_id, replay, "created");
                 }
-                self.status(&h, r);
+                self.status(r, what, replay, result);
             }
-            MessageKind::Delete => {
-                let r = if self.entities.contains_key(&key) {
+            Request::Delete => {
+                let result = if self.entities.contains_key(&key) {
                     self.remove_subtree(key);
                     Ok(())
                 } else {
@@ -109,42 +116,44 @@ impl Worker {
                         "delete of an unknown object".into(),
                     ))
                 };
-                self.status(&h, r);
+                self.status(r, what, false, result);
             }
-            MessageKind::Write => {
-                let r = self.write(key, &h, body);
-                if r.is_err() || h.flags & FLAG_STATUS_REQUESTED != 0 {
-                    self.status(&h, r);
+            Request::Write {
+                data,
+                data_format,
+                little_endian,
+                dialect,
+                status_requested,
+            } => {
+                let result = self.write(key, &r, data_format, little_endian, dialect, &data);
+                if result.is_err() || status_requested {
+                    self.status(r, what, false, result);
                 }
             }
-            MessageKind::PauseRead | MessageKind::ResumeRead => {
-                let pause = h.kind == MessageKind::PauseRead;
-                if let Some(r) = self.reads.get_mut(&key) {
-                    r.paused = pause;
+            Request::PauseRead | Request::ResumeRead => {
+                let pause = m.request == Request::PauseRead;
+                if let Some(read) = self.reads.get_mut(&key) {
+                    read.paused = pause;
                     if !pause {
                         self.to_pump.push(key);
                     }
                 }
             }
-            MessageKind::Read => {
-                let r = self.start_read(key, &h, body);
-                if r.is_err() {
-                    self.status(&h, r);
+            Request::Read { spec, replay } => {
+                let result = self.start_read(key, r.request_id, replay, &spec);
+                if result.is_err() {
+                    self.status(r, what, replay, result);
                 } else {
                     self.to_pump.push(key);
                 }
             }
-            other => {
-                tracing::warn!(kind = ?other, "unexpected IPC message kind on the request service");
-                self.count("unexpected_ipc_kind");
-            }
         }
-        if let Ok(p) = self.port(h.frontend_id) {
-            if p.incarnation == h.incarnation {
-                p.processed = p.processed.max(h.op_seq);
+        if let Ok(p) = self.port(r.frontend_id) {
+            if p.incarnation == r.incarnation {
+                p.processed = p.processed.max(r.op_seq);
             }
             p.dirty = true;
-            if h.flags & ipc::FLAG_PROGRESS_CAN_WAIT == 0 {
+            if !m.progress_can_wait {
                 p.progress_wake_owed = true;
             }
         }

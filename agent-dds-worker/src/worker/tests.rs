@@ -167,13 +167,13 @@ impl Harness {
             ..Default::default()
         }
         .encode(&mut CdrWriter::new(&mut body, true));
-        let mut h = IpcHeader::new(MessageKind::Read);
-        h.frontend_id = FE;
-        h.client_key = client;
-        h.object_id = id;
-        h.request_id = xrce_common::wire::RequestId([0, 9]);
         self.worker
-            .start_read((FE, client, id), &h, &body)
+            .start_read(
+                (FE, client, id),
+                xrce_common::wire::RequestId([0, 9]),
+                false,
+                &body,
+            )
             .expect("read");
     }
 
@@ -198,10 +198,13 @@ impl Harness {
         let mut out = Vec::new();
         self.replies
             .drain(|m| {
-                let (h, body) = IpcHeader::decode(m).expect("reply");
-                if h.kind == MessageKind::Sample {
-                    let (id, sample) = ipc::SampleIdentity::split(body).expect("identity");
-                    out.push((id.writer, id.sequence_number, sample.to_vec()));
+                let m = ReplyMessage::decode(m).expect("reply");
+                if let Reply::Sample(s) = m.reply {
+                    out.push((
+                        s.identity.writer,
+                        s.identity.sequence_number,
+                        s.data.to_vec(),
+                    ));
                 }
             })
             .expect("drain");
@@ -488,10 +491,9 @@ impl Harness {
         let mut out = Vec::new();
         self.replies
             .drain(|m| {
-                let (h, body) = IpcHeader::decode(m).expect("reply");
-                if h.kind == MessageKind::Sample {
-                    let (_, sample) = ipc::SampleIdentity::split(body).expect("identity");
-                    out.push((h.client_key, h.request_id.0, sample.to_vec()));
+                let m = ReplyMessage::decode(m).expect("reply");
+                if let Reply::Sample(s) = m.reply {
+                    out.push((m.route.client_key, m.route.request_id.0, s.data.to_vec()));
                 }
             })
             .expect("drain");
@@ -499,15 +501,16 @@ impl Harness {
     }
 
     fn write(&mut self, client: ClientKey, id: ObjectId, request: [u8; 2], body: &[u8]) {
-        let mut h = IpcHeader::new(MessageKind::Write);
-        h.frontend_id = FE;
-        h.client_key = client;
-        h.object_id = id;
-        h.request_id = xrce_common::wire::RequestId(request);
-        h.flags = FLAG_LITTLE_ENDIAN;
-        h.data_format = xrce_common::wire::data_format::DATA;
+        let route = Route::object(FE, client, xrce_common::wire::RequestId(request), id);
         self.worker
-            .write((FE, client, id), &h, body)
+            .write(
+                (FE, client, id),
+                &route,
+                xrce_common::wire::data_format::DATA,
+                true,
+                Dialect::Eprosima,
+                body,
+            )
             .expect("write");
     }
 }
@@ -686,16 +689,29 @@ fn a_flooded_reader_does_not_keep_the_reader_of_another_client_waiting() {
     );
 }
 
+/// A little-endian WRITE_DATA of one bare sample.
+fn write(sample: &[u8]) -> Request<'_> {
+    Request::Write {
+        data: sample.into(),
+        data_format: xrce_common::wire::data_format::DATA,
+        little_endian: true,
+        dialect: Dialect::Eprosima,
+        status_requested: false,
+    }
+}
+
 impl Harness {
     /// Hands the worker a request of the front-end (its current process) and ends the pass.
-    fn request(&mut self, kind: MessageKind, seq: u64, flags: u8, body: &[u8]) {
-        let mut h = IpcHeader::new(kind);
-        h.frontend_id = FE;
-        h.client_key = CLIENT;
-        h.object_id = WRITER;
-        h.op_seq = seq;
-        h.flags = flags;
-        self.worker.process_request(h, body);
+    fn request(&mut self, request: Request<'_>, seq: u64, progress_can_wait: bool) {
+        let route = Route {
+            op_seq: seq,
+            ..Route::object(FE, CLIENT, Default::default(), WRITER)
+        };
+        self.worker.process_request(RequestMessage {
+            route,
+            progress_can_wait,
+            request,
+        });
         self.worker.flush();
     }
 
@@ -705,11 +721,9 @@ impl Harness {
         let mut executed = Vec::new();
         self.replies
             .drain(|m| {
-                let (h, body) = IpcHeader::decode(m).expect("reply");
-                if h.kind == MessageKind::Progress {
-                    let mut n = [0u8; 8];
-                    n.copy_from_slice(&body[..8]);
-                    executed.push(u64::from_le_bytes(n));
+                let m = ReplyMessage::decode(m).expect("reply");
+                if let Reply::Progress { executed: e, .. } = m.reply {
+                    executed.push(e);
                 }
             })
             .expect("drain");
@@ -717,23 +731,22 @@ impl Harness {
     }
 }
 
-/// Progress of an operation sent with FLAG_PROGRESS_CAN_WAIT goes out without waking the
+/// Progress of an operation whose progress can wait goes out without waking the
 /// front-end; progress that covers any other operation wakes it.
 #[test]
 fn progress_wakes_the_front_end_only_for_operations_that_wait_for_it() {
     let mut t = Harness::new(false);
     // Operations that need no reply (a pause of a read that is not there).
-    t.request(MessageKind::PauseRead, 1, ipc::FLAG_PROGRESS_CAN_WAIT, &[]);
+    t.request(Request::PauseRead, 1, true);
     assert_eq!(t.progress(), (vec![1], false));
-    t.request(MessageKind::PauseRead, 2, ipc::FLAG_PROGRESS_CAN_WAIT, &[]);
-    t.request(MessageKind::PauseRead, 3, 0, &[]);
+    t.request(Request::PauseRead, 2, true);
+    t.request(Request::PauseRead, 3, false);
     assert_eq!(t.progress(), (vec![2, 3], true));
     // Nothing new: no message, no wake-up.
     t.worker.flush();
     assert_eq!(t.progress(), (vec![], false));
     // A reply always wakes (a write to a writer that does not exist fails with a STATUS).
-    let flags = ipc::FLAG_PROGRESS_CAN_WAIT | ipc::FLAG_LITTLE_ENDIAN;
-    t.request(MessageKind::Write, 4, flags, &keyed(1, 1));
+    t.request(write(&keyed(1, 1)), 4, true);
     assert_eq!(t.progress(), (vec![4], true));
 }
 
@@ -746,12 +759,7 @@ fn progress_owed_for_a_held_write_wakes_when_the_write_is_executed() {
     // No acknowledgement by DDS readers, which would wake the front-end by itself.
     t.bus.acknowledged.set(false);
     let _ = t.progress();
-    t.request(
-        MessageKind::Write,
-        10,
-        ipc::FLAG_LITTLE_ENDIAN,
-        &keyed(1, 1),
-    );
+    t.request(write(&keyed(1, 1)), 10, false);
     assert!(t.bus.written.borrow().is_empty(), "held");
     assert_eq!(t.progress(), (vec![9], true));
     t.worker.flush();
@@ -771,9 +779,8 @@ fn progress_of_released_writes_that_can_wait_goes_out_without_a_wake_up() {
     let mut t = reader_and_new_writer();
     t.bus.acknowledged.set(false);
     let _ = t.progress();
-    let flags = ipc::FLAG_PROGRESS_CAN_WAIT | ipc::FLAG_LITTLE_ENDIAN;
-    t.request(MessageKind::Write, 1, flags, &keyed(1, 1));
-    t.request(MessageKind::Write, 2, flags, &keyed(2, 1));
+    t.request(write(&keyed(1, 1)), 1, true);
+    t.request(write(&keyed(2, 1)), 2, true);
     assert_eq!(t.progress(), (vec![0, 0], false), "both held");
     // The first held sample goes alone (the second waits for its acknowledgement).
     t.matched_long_ago(CLIENT, WRITER);
@@ -838,12 +845,11 @@ fn the_last_participant_of_a_domain_releases_the_domains_dds_participant() {
     assert!(t.bus.released.borrow().is_empty());
 
     // The last user of domain 5 deletes its participant (a DELETE of the object).
-    let mut h = IpcHeader::new(MessageKind::Delete);
-    h.frontend_id = FE;
-    h.client_key = OTHER;
-    h.object_id = PARTICIPANT;
     t.worker.greeted.insert((FE, 0));
-    t.worker.process_request(h, &[]);
+    t.worker.process_request(RequestMessage::new(
+        Route::object(FE, OTHER, Default::default(), PARTICIPANT),
+        Request::Delete,
+    ));
     assert_eq!(t.backend_domains(), vec![6], "no participant for domain 5");
     assert_eq!(t.bus.released.borrow().as_slice(), &[5]);
     assert_eq!(
@@ -919,19 +925,23 @@ fn a_domain_outside_the_allowed_list_is_denied() {
     assert_eq!(refused.0, status::ERR_DENIED, "{}", refused.1);
     assert_eq!(t.worker.dropped.get("domain_denied"), Some(&1));
     // The reply status is the refusal's.
-    let mut h = IpcHeader::new(MessageKind::Create);
-    h.frontend_id = FE;
-    h.client_key = client(51);
-    h.object_id = PARTICIPANT;
     t.worker.greeted.insert((FE, 0));
-    t.worker.process_request(h, &participant_in(200, "p"));
+    t.worker.process_request(RequestMessage::new(
+        Route::object(FE, client(51), Default::default(), PARTICIPANT),
+        Request::Create {
+            description: participant_in(200, "p").into(),
+            client_little_endian: true,
+            replay: false,
+            readers_matched: 0,
+        },
+    ));
     t.worker.flush();
     let mut statuses = Vec::new();
     t.replies
         .drain(|m| {
-            let (h, body) = IpcHeader::decode(m).expect("reply");
-            if h.kind == MessageKind::Status {
-                statuses.push(body[0]);
+            let m = ReplyMessage::decode(m).expect("reply");
+            if let Reply::Status { result, .. } = m.reply {
+                statuses.push(result.status);
             }
         })
         .expect("drain");
@@ -1066,10 +1076,9 @@ fn a_filter_with_too_many_clauses_is_refused_for_resources() {
         ..Default::default()
     }
     .encode(&mut CdrWriter::new(&mut body, true));
-    let h = IpcHeader::new(MessageKind::Read);
     let refused = t
         .worker
-        .start_read((FE, CLIENT, READER), &h, &body)
+        .start_read((FE, CLIENT, READER), Default::default(), false, &body)
         .expect_err("over the cap");
     assert_eq!(refused.0, status::ERR_RESOURCES);
     assert_eq!(t.dropped("filters_refused"), 2);

@@ -129,15 +129,12 @@ impl Worker {
     pub(super) fn write(
         &mut self,
         key: EntityKey,
-        h: &IpcHeader,
+        route: &Route,
+        data_format: u8,
+        little_endian: bool,
+        dialect: Dialect,
         body: &[u8],
     ) -> Result<(), OpError> {
-        let little_endian = h.flags & FLAG_LITTLE_ENDIAN != 0;
-        let dialect = if h.flags & FLAG_DIALECT_SPEC != 0 {
-            Dialect::Spec
-        } else {
-            Dialect::Eprosima
-        };
         // Without a type description the end of a sample is the end of the submessage, so
         // a sequence can be split only when it holds one sample; with it, the type says
         // where each sample ends.
@@ -154,7 +151,7 @@ impl Worker {
         let sizer_ref = sizer
             .as_ref()
             .map(|f| f as &dyn Fn(&[u8], usize) -> Option<usize>);
-        let samples = decode_samples(h.data_format, body, little_endian, dialect, sizer_ref)
+        let samples = decode_samples(data_format, body, little_endian, dialect, sizer_ref)
             .map_err(|e| (status::ERR_INVALID_DATA, format!("WRITE_DATA: {e}")))?;
         let ends_instance = |s: &xrce_common::wire::sample::SampleRef<'_>| {
             s.info.is_some_and(|i| {
@@ -174,7 +171,7 @@ impl Worker {
                 ));
             }
             for s in samples {
-                service_write(svc, h.request_id, little_endian, s.data)?;
+                service_write(svc, route.request_id, little_endian, s.data)?;
             }
             return Ok(());
         }
@@ -193,7 +190,7 @@ impl Worker {
                 _ => None,
             };
             let data = rebased.as_deref().unwrap_or(s.data);
-            self.write_one(key, h.op_seq, little_endian, data, dispose)?;
+            self.write_one(key, route.op_seq, little_endian, data, dispose)?;
             self.samples_written += 1;
         }
         Ok(())
@@ -441,12 +438,10 @@ impl Worker {
             }
         }
         for ((fe, client, object), n) in changed {
-            let mut h = IpcHeader::new(MessageKind::WriterMatched);
-            h.frontend_id = fe;
-            h.client_key = client;
-            h.object_id = object;
-            h.readers = n;
-            self.reply(h, &[]);
+            self.reply(
+                Route::object(fe, client, Default::default(), object),
+                Reply::WriterMatched { readers: n },
+            );
         }
     }
 

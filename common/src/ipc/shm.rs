@@ -18,7 +18,7 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 
-use super::{IpcHeader, CHANNEL_DEPTH, INITIAL_BODY, MAX_BODY};
+use super::{Encode, CHANNEL_DEPTH, HEADER_LEN, INITIAL_BODY, MAX_BODY};
 
 /// An iceoryx2 failure, with what was being done.
 #[derive(Debug, thiserror::Error)]
@@ -245,7 +245,7 @@ impl IpcNode {
             .publisher_builder()
             // Sized for ordinary samples; a bigger one (up to MAX_BODY) makes the publisher
             // map a larger segment, which receivers follow.
-            .initial_max_slice_len(IpcHeader::LEN + INITIAL_BODY)
+            .initial_max_slice_len(HEADER_LEN + INITIAL_BODY)
             .allocation_strategy(AllocationStrategy::PowerOfTwo)
             .max_loaned_samples(4)
             .backpressure_strategy(BackpressureStrategy::DiscardData)
@@ -474,34 +474,23 @@ pub struct Sender {
 }
 
 impl Sender {
-    /// Publishes `header` and a body of `body_len` bytes that `fill` writes in place.
-    /// Returns whether a receiver took it (false: no receiver, or its queue is full).
-    pub fn send_with(
-        &self,
-        header: &IpcHeader,
-        body_len: usize,
-        fill: impl FnOnce(&mut [u8]),
-    ) -> Result<bool, ShmError> {
-        if body_len > MAX_BODY {
+    /// Publishes `message`, encoded in place in shared memory. Returns whether a receiver
+    /// took it (false: no receiver, or its queue is full).
+    pub fn send(&self, message: &impl Encode) -> Result<bool, ShmError> {
+        let len = message.encoded_len();
+        if len > HEADER_LEN + MAX_BODY {
             return Err(ShmError {
                 what: "send",
-                detail: format!("body of {body_len} bytes exceeds {MAX_BODY}"),
+                detail: format!(
+                    "body of {} bytes exceeds {MAX_BODY}",
+                    len.saturating_sub(HEADER_LEN)
+                ),
             });
         }
-        let mut sample = self
-            .publisher
-            .loan_slice(IpcHeader::LEN + body_len)
-            .map_err(err("loan"))?;
-        let buf = sample.payload_mut();
-        header.write(buf, body_len);
-        fill(&mut buf[IpcHeader::LEN..]);
+        let mut sample = self.publisher.loan_slice(len).map_err(err("loan"))?;
+        message.encode_into(sample.payload_mut());
         let receivers = sample.send().map_err(err("send"))?;
         Ok(receivers > 0)
-    }
-
-    /// Publishes `header` and `body`; returns whether a receiver took it.
-    pub fn send(&self, header: &IpcHeader, body: &[u8]) -> Result<bool, ShmError> {
-        self.send_with(header, body.len(), |b| b.copy_from_slice(body))
     }
 
     /// Publishes a message encoded already (header and body); returns whether a receiver
@@ -575,30 +564,42 @@ impl Receiver {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ipc::MessageKind;
 
     #[test]
     fn bodies_beyond_the_initial_segment_size_get_through() {
+        use crate::ipc::{ReplyMessage, Route, Sample, SampleIdentity};
+        use std::borrow::Cow;
+        let sample = |data: Vec<u8>| {
+            ReplyMessage::new(
+                Route::frontend(1),
+                crate::ipc::Reply::Sample(Sample {
+                    identity: SampleIdentity::default(),
+                    data: Cow::Owned(data),
+                    little_endian: true,
+                    disposed: false,
+                    unregistered: false,
+                }),
+            )
+        };
         let instance = format!("shmtest-{}", std::process::id());
         {
             let node = IpcNode::new(&instance, "test").expect("node");
             let rx = node.receiver("big", ServiceKind::Reply).expect("receiver");
             let tx = node.sender("big", ServiceKind::Reply).expect("sender");
-            let sizes = [10, INITIAL_BODY + 1, 300_000, MAX_BODY, 20];
+            let identity = 24;
+            let sizes = [10, INITIAL_BODY + 1, 300_000, MAX_BODY - identity, 20];
             for (i, n) in sizes.iter().enumerate() {
                 let body: Vec<u8> = (0..*n).map(|k| (k * 7 + i) as u8).collect();
-                let h = IpcHeader::new(MessageKind::Sample);
-                assert!(tx.send(&h, &body).expect("send"), "{n} bytes");
+                let m = sample(body);
+                assert!(tx.send(&m).expect("send"), "{n} bytes");
                 let mut got = Vec::new();
                 rx.drain(|m| got.push(m.to_vec())).expect("drain");
                 assert_eq!(got.len(), 1);
-                let (_, b) = IpcHeader::decode(&got[0]).expect("decodes");
-                assert_eq!(b, &body[..], "{n} bytes");
+                let back = ReplyMessage::decode(&got[0]).expect("decodes");
+                assert_eq!(back, m, "{n} bytes");
             }
-            let too_big = vec![0u8; MAX_BODY + 1];
-            assert!(tx
-                .send(&IpcHeader::new(MessageKind::Sample), &too_big)
-                .is_err());
+            let too_big = sample(vec![0u8; MAX_BODY + 1 - identity]);
+            assert!(tx.send(&too_big).is_err());
         }
         remove_instance_leftovers(&instance);
     }

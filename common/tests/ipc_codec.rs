@@ -1,0 +1,233 @@
+//! The IPC contract's codec: every request and reply survives a round trip, the layout is
+//! the one both ends have spoken since version 6, and what is not a message of the right
+//! direction, version, kind and size is refused.
+
+use std::borrow::Cow;
+
+use xrce_common::ipc::{
+    Encode, IpcError, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
+    HEADER_LEN,
+};
+use xrce_common::wire::{ClientKey, Dialect, ObjectId, RequestId, ResultStatus};
+
+use proptest::prelude::*;
+
+fn route() -> impl Strategy<Value = Route> {
+    (
+        any::<u32>(),
+        any::<u16>(),
+        any::<u32>(),
+        any::<u64>(),
+        any::<[u8; 4]>(),
+        any::<[u8; 2]>(),
+        any::<[u8; 2]>(),
+    )
+        .prop_map(|(f, i, g, s, c, r, o)| Route {
+            frontend_id: f,
+            incarnation: i,
+            generation: g,
+            op_seq: s,
+            client_key: ClientKey(c),
+            request_id: RequestId(r),
+            object_id: ObjectId(o),
+        })
+}
+
+fn bytes() -> impl Strategy<Value = Cow<'static, [u8]>> {
+    proptest::collection::vec(any::<u8>(), 0..64).prop_map(Cow::Owned)
+}
+
+fn request() -> impl Strategy<Value = Request<'static>> {
+    prop_oneof![
+        Just(Request::FrontendHello),
+        (bytes(), any::<bool>(), any::<bool>(), any::<u8>()).prop_map(|(d, le, r, n)| {
+            Request::Create {
+                description: d,
+                client_little_endian: le,
+                replay: r,
+                readers_matched: n,
+            }
+        }),
+        Just(Request::Delete),
+        (
+            bytes(),
+            any::<u8>(),
+            any::<bool>(),
+            any::<bool>(),
+            any::<bool>()
+        )
+            .prop_map(|(d, f, le, spec, st)| Request::Write {
+                data: d,
+                data_format: f,
+                little_endian: le,
+                dialect: if spec {
+                    Dialect::Spec
+                } else {
+                    Dialect::Eprosima
+                },
+                status_requested: st,
+            }),
+        (bytes(), any::<bool>()).prop_map(|(s, r)| Request::Read { spec: s, replay: r }),
+        Just(Request::DeleteClient),
+        Just(Request::PauseRead),
+        Just(Request::ResumeRead),
+        Just(Request::ReplayDone),
+    ]
+}
+
+fn reply() -> impl Strategy<Value = Reply<'static>> {
+    prop_oneof![
+        Just(Reply::WorkerHello),
+        (any::<u8>(), any::<u8>(), any::<bool>()).prop_map(|(s, i, r)| Reply::Status {
+            result: ResultStatus {
+                status: s,
+                implementation_status: i
+            },
+            replay: r,
+        }),
+        (
+            any::<[u8; 16]>(),
+            any::<i64>(),
+            bytes(),
+            any::<bool>(),
+            any::<bool>(),
+            any::<bool>()
+        )
+            .prop_map(|(w, n, d, le, dis, unr)| Reply::Sample(Sample {
+                identity: SampleIdentity {
+                    writer: w,
+                    sequence_number: n,
+                },
+                data: d,
+                little_endian: le,
+                disposed: dis,
+                unregistered: unr,
+            })),
+        (any::<u64>(), any::<u64>()).prop_map(|(e, a)| Reply::Progress {
+            executed: e,
+            acknowledged: a
+        }),
+        Just(Reply::ReadEnded),
+        any::<u8>().prop_map(|n| Reply::WriterMatched { readers: n }),
+    ]
+}
+
+proptest! {
+    #[test]
+    fn requests_round_trip(route in route(), wait in any::<bool>(), request in request()) {
+        let m = RequestMessage { route, progress_can_wait: wait, request };
+        let bytes = m.encode();
+        prop_assert_eq!(bytes.len(), m.encoded_len());
+        prop_assert_eq!(RequestMessage::decode(&bytes), Ok(m));
+        let refused = matches!(ReplyMessage::decode(&bytes), Err(IpcError::Direction(_)));
+        prop_assert!(refused);
+        for cut in [0, HEADER_LEN - 1, bytes.len() - 1] {
+            prop_assert!(RequestMessage::decode(&bytes[..cut]).is_err());
+        }
+    }
+
+    #[test]
+    fn replies_round_trip(route in route(), reply in reply()) {
+        let m = ReplyMessage { route, reply };
+        let bytes = m.encode();
+        prop_assert_eq!(bytes.len(), m.encoded_len());
+        prop_assert_eq!(ReplyMessage::decode(&bytes), Ok(m));
+        let refused = matches!(RequestMessage::decode(&bytes), Err(IpcError::Direction(_)));
+        prop_assert!(refused);
+        let mut longer = bytes.clone();
+        longer.push(0);
+        let refused = matches!(ReplyMessage::decode(&longer), Err(IpcError::Length { .. }));
+        prop_assert!(refused);
+    }
+
+    #[test]
+    fn any_bytes_decode_or_fail_cleanly(buf in proptest::collection::vec(any::<u8>(), 0..128)) {
+        xrce_common::fuzzing::ipc_messages(&buf);
+    }
+}
+
+#[test]
+fn the_layout_is_the_contract() {
+    // A Write as a version-6 front-end lays it out, byte by byte.
+    let m = RequestMessage {
+        route: Route {
+            frontend_id: 7,
+            incarnation: 0xBEEF,
+            generation: 3,
+            op_seq: 1 << 40,
+            client_key: ClientKey([1, 2, 3, 4]),
+            request_id: RequestId([0, 9]),
+            object_id: ObjectId::new(1, 5),
+        },
+        progress_can_wait: true,
+        request: Request::Write {
+            data: Cow::Borrowed(b"body"),
+            data_format: 0x0A,
+            little_endian: true,
+            dialect: Dialect::Spec,
+            status_requested: true,
+        },
+    };
+    let mut expected = b"XRIP".to_vec();
+    expected.extend_from_slice(&[6, 0, 4, 0x01 | 0x04 | 0x08 | 0x40]);
+    expected.extend_from_slice(&7u32.to_le_bytes());
+    expected.extend_from_slice(&3u32.to_le_bytes());
+    expected.extend_from_slice(&(1u64 << 40).to_le_bytes());
+    expected.extend_from_slice(&[1, 2, 3, 4, 0, 9]);
+    expected.extend_from_slice(&ObjectId::new(1, 5).0);
+    expected.extend_from_slice(&4u32.to_le_bytes());
+    expected.extend_from_slice(&[0x0A, 0, 0xEF, 0xBE]);
+    expected.extend_from_slice(b"body");
+    assert_eq!(m.encode(), expected);
+}
+
+#[test]
+fn other_versions_kinds_and_bodies_are_refused() {
+    let hello = RequestMessage::new(Route::frontend(1), Request::FrontendHello).encode();
+    let mut other = hello.clone();
+    other[4] = 1;
+    assert_eq!(RequestMessage::decode(&other), Err(IpcError::Version(1)));
+    let mut bad = hello.clone();
+    bad[0] = b'Y';
+    assert_eq!(RequestMessage::decode(&bad), Err(IpcError::BadMagic));
+    let mut unknown = hello.clone();
+    unknown[6] = 99;
+    assert_eq!(RequestMessage::decode(&unknown), Err(IpcError::Kind(99)));
+    assert_eq!(ReplyMessage::decode(&unknown), Err(IpcError::Kind(99)));
+    // A hello with a body, a Status of one byte, a Progress of 8.
+    let mut with_body = hello.clone();
+    with_body[32] = 1;
+    with_body.push(0);
+    assert_eq!(
+        RequestMessage::decode(&with_body),
+        Err(IpcError::Body { kind: 1, len: 1 })
+    );
+    let status = ReplyMessage::new(
+        Route::frontend(1),
+        Reply::Status {
+            result: ResultStatus::default(),
+            replay: false,
+        },
+    )
+    .encode();
+    let mut short = status[..status.len() - 1].to_vec();
+    short[32] = 1;
+    assert_eq!(
+        ReplyMessage::decode(&short),
+        Err(IpcError::Body { kind: 17, len: 1 })
+    );
+    let progress = ReplyMessage::new(
+        Route::frontend(1),
+        Reply::Progress {
+            executed: 1,
+            acknowledged: 1,
+        },
+    )
+    .encode();
+    let mut short = progress[..progress.len() - 8].to_vec();
+    short[32] = 8;
+    assert_eq!(
+        ReplyMessage::decode(&short),
+        Err(IpcError::Body { kind: 19, len: 8 })
+    );
+}
