@@ -11,8 +11,8 @@ use xrce_common::session::agent::AgentConfig;
 use xrce_common::session::budget::{self, BudgetSplit, Limits};
 use xrce_common::wire::Dialect;
 
-use crate::bridge::Bridge;
 use crate::event_loop::OnServing;
+use crate::relay::Relay;
 use crate::transport::discovery::Discovery;
 use crate::transport::multiserial::{LineDevice, SerialTransport};
 use crate::transport::serial::TtyConfig;
@@ -505,9 +505,10 @@ fn serve<T: Transport>(
         None => None,
     };
     let incarnation = crate::session_store::next_incarnation(&args.instance, args.frontend_id);
-    let mut bridge = Bridge::new(&args.instance, args.frontend_id, incarnation)?;
-    bridge.set_max_objects_per_client(args.admission.max_objects_per_client);
-    bridge.set_memory_budget(args.admission.budget_split());
+    let (link, inbox) = crate::relay::link::open(&args.instance, args.frontend_id, incarnation)?;
+    let mut relay = Relay::new(args.frontend_id, incarnation, link);
+    relay.set_max_objects_per_client(args.admission.max_objects_per_client);
+    relay.set_memory_budget(args.admission.budget_split());
     if let Some(keys) = &config.admission.allowed_keys {
         tracing::info!(keys = keys.len(), "only listed client keys are admitted");
     }
@@ -523,6 +524,6 @@ fn serve<T: Transport>(
         keep_sessions: args.keep_sessions,
     };
     crate::event_loop::run(
-        &place, who, transport, bridge, config, discovery, on_serving,
+        &place, who, transport, relay, inbox, config, discovery, on_serving,
     )
 }

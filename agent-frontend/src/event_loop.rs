@@ -15,7 +15,8 @@ use xrce_common::session::agent::{Agent, AgentConfig};
 
 use xrce_common::ipc::status::{Reporter, Watchdog};
 
-use crate::bridge::Bridge;
+use crate::relay::link::{ShmInbox, ShmLink};
+use crate::relay::Relay;
 use crate::report::StatsReport;
 use crate::session_store::SessionStore;
 use crate::status::Identity;
@@ -47,12 +48,15 @@ pub struct Placement {
     pub keep_sessions: bool,
 }
 
-/// Runs front-end `who` of `place` over `transport` until SIGINT/SIGTERM.
+/// Runs front-end `who` of `place` over `transport` until SIGINT/SIGTERM, relaying to the
+/// worker through `relay` and `inbox`.
+#[allow(clippy::too_many_arguments)]
 pub fn run<T: Transport>(
     place: &Placement,
     who: Identity,
     mut transport: T,
-    mut bridge: Bridge,
+    mut relay: Relay<ShmLink>,
+    inbox: ShmInbox,
     mut config: AgentConfig,
     mut discovery: Option<Discovery>,
     mut on_serving: Option<OnServing>,
@@ -80,14 +84,15 @@ pub fn run<T: Transport>(
         None
     };
     config.track_sessions = store.is_some();
-    bridge.set_hand_over_at_once(store.is_some());
+    relay.set_hand_over_at_once(store.is_some());
     let result = serve(
         &who,
         &mut reporter,
         &mut watchdog,
         &mut store,
         &mut transport,
-        &mut bridge,
+        &mut relay,
+        &inbox,
         &mut config,
         &mut discovery,
         &mut on_serving,
@@ -103,14 +108,15 @@ fn serve<T: Transport>(
     watchdog: &mut Watchdog,
     store: &mut Option<SessionStore>,
     transport: &mut T,
-    bridge: &mut Bridge,
+    relay: &mut Relay<ShmLink>,
+    inbox: &ShmInbox,
     config: &mut AgentConfig,
     discovery: &mut Option<Discovery>,
     on_serving: &mut Option<OnServing>,
 ) -> anyhow::Result<()> {
     config.max_message_size = transport.max_message_size();
     let mut poll = Poll::new()?;
-    let [replies_fd, announce_fd] = bridge.raw_fds();
+    let [replies_fd, announce_fd] = inbox.raw_fds();
     poll.registry()
         .register(&mut SourceFd(&replies_fd), REPLIES, Interest::READABLE)?;
     poll.registry()
@@ -127,7 +133,7 @@ fn serve<T: Transport>(
     let mut discovery_left = true;
     let mut output_stored = Instant::now();
     if let Some(s) = store.as_mut() {
-        let taken = crate::takeover::take_over(s, Instant::now(), &mut agent, bridge, &*transport);
+        let taken = crate::takeover::take_over(s, Instant::now(), &mut agent, relay, &*transport);
         if taken > 0 {
             tracing::info!(
                 sessions = taken,
@@ -136,14 +142,14 @@ fn serve<T: Transport>(
         }
     }
     // Pick up a worker that announced itself before we started.
-    bridge.poll_ipc(Instant::now(), &mut agent, true, true);
-    bridge.pump();
+    inbox.deliver(Instant::now(), relay, &mut agent, true, true);
+    relay.pump();
     loop {
-        if bridge.termination_requested() {
+        if inbox.termination_requested() {
             tracing::info!(transport = name, "termination requested");
             return Ok(());
         }
-        if bridge.generation().is_some() {
+        if relay.generation().is_some() {
             if let Some(f) = on_serving.take() {
                 f();
             }
@@ -154,9 +160,9 @@ fn serve<T: Transport>(
         } else {
             [
                 agent.poll_timeout(),
-                bridge.poll_timeout(),
+                relay.poll_timeout(now),
                 transport.poll_timeout(),
-                report.due(&agent, bridge, transport.stats()),
+                report.due(&agent, relay, transport.stats()),
                 Some(reporter.due()),
                 watchdog.due(),
             ]
@@ -191,29 +197,29 @@ fn serve<T: Transport>(
             agent.set_wall_clock(now, d);
         }
         input_left = transport.receive(now, RECV_BATCH, &mut |from, bytes| {
-            agent.handle_datagram(now, from, bytes, bridge);
+            agent.handle_datagram(now, from, bytes, relay);
             if let Some(s) = store.as_mut() {
-                crate::takeover::persist(s, &mut agent, bridge, false);
+                crate::takeover::persist(s, &mut agent, relay, false);
             }
         });
         while let Some(closed) = transport.poll_closed() {
             agent.endpoint_closed(Instant::now(), closed);
         }
         discovery_left = discovery.as_mut().is_some_and(Discovery::answer_pending);
-        bridge.apply_replies(now, &mut agent);
-        bridge.poll_ipc(now, &mut agent, replies_ready, announce_ready);
-        bridge.resume_reads(&agent);
+        relay.apply_replies(now, &mut agent);
+        inbox.deliver(now, relay, &mut agent, replies_ready, announce_ready);
+        relay.resume_reads(&agent);
         if transport.poll_timeout().is_some_and(|t| t <= now) {
             transport.handle_timeout(now);
             // A timer may have made input ready (a device reopened, accepting resumed).
             input_left = true;
         }
-        agent.handle_timeout(now, bridge);
+        agent.handle_timeout(now, relay);
         // After the timers: what they hand over (a dead client's deletion) goes out now.
-        bridge.pump();
-        report.maybe_log(now, &agent, bridge, name, transport.stats());
+        relay.pump();
+        report.maybe_log(now, &agent, relay, name, transport.stats());
         reporter.maybe_write(now, || {
-            crate::status::report(who, now, &*transport, &agent, bridge)
+            crate::status::report(who, now, &*transport, &agent, relay)
         });
         watchdog.maybe_ping(now);
         match store.as_mut() {
@@ -224,11 +230,11 @@ fn serve<T: Transport>(
                 if with_output {
                     output_stored = now;
                 }
-                crate::takeover::persist(s, &mut agent, bridge, with_output);
+                crate::takeover::persist(s, &mut agent, relay, with_output);
                 s.keep_alive(now);
             }
             None => {
-                let _ = (bridge.take_objects_changed(), bridge.take_reads_changed());
+                let _ = (relay.take_objects_changed(), relay.take_reads_changed());
             }
         }
         while let Some(t) = agent.poll_transmit() {

@@ -1,11 +1,12 @@
 //! The XRCE front-end: terminates one client transport, runs the XRCE sessions of its
 //! clients with the sans-IO core of `xrce_common`, and exchanges operations with the DDS
-//! worker over iceoryx2 ([`bridge`]). It never touches DDS.
+//! worker over iceoryx2 ([`relay`]). It never touches DDS.
 //!
 //! * [`transport`]: the seam between the event loop and each way of reaching clients (UDP,
 //!   TCP, serial lines, pseudoterminals) and the discovery responder;
-//! * [`event_loop`]: the one loop driving a transport, the session core and the bridge;
-//! * [`bridge`]: operations to the worker, replies back, replay after a worker restart;
+//! * [`event_loop`]: the one loop driving a transport, the session core and the relay;
+//! * [`relay`]: operations to the worker, replies back, replay after a worker restart (a
+//!   sans-IO state machine; its iceoryx2 link is [`relay::link`]);
 //! * [`waiting_writes`]: best-effort writes waiting for the worker, shared fairly among
 //!   clients;
 //! * [`cli`]: the front-end's settings and start-up;
@@ -15,10 +16,10 @@
 //!   front-end process after a crash or an upgrade.
 #![deny(unsafe_code)]
 
-pub mod bridge;
 pub mod cli;
 pub mod event_loop;
 pub mod object_budget;
+pub mod relay;
 pub mod report;
 pub mod session_store;
 pub mod status;

@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use xrce_common::session::agent::Agent;
 
-use crate::bridge::Bridge;
+use crate::relay::{Link, Relay};
 use crate::transport::TransportStats;
 
 /// How often changed drop counters are reported.
@@ -28,14 +28,14 @@ impl StatsReport {
         }
     }
 
-    /// Everything counted as not delivered: the core's drops by reason, the bridge's and the
+    /// Everything counted as not delivered: the core's drops by reason, the relay's and the
     /// transport's.
     fn total<A: xrce_common::session::agent::Endpoint>(
         agent: &Agent<A>,
-        bridge: &Bridge,
+        relay: &Relay<impl Link>,
         transport: &TransportStats,
     ) -> u64 {
-        let b = bridge.stats();
+        let b = relay.stats();
         agent.stats().dropped.values().sum::<u64>()
             + b.ops_dropped
             + b.samples_dropped
@@ -49,10 +49,10 @@ impl StatsReport {
     pub fn due<A: xrce_common::session::agent::Endpoint>(
         &self,
         agent: &Agent<A>,
-        bridge: &Bridge,
+        relay: &Relay<impl Link>,
         transport: &TransportStats,
     ) -> Option<Instant> {
-        (Self::total(agent, bridge, transport) != self.last_dropped)
+        (Self::total(agent, relay, transport) != self.last_dropped)
             .then_some(self.last + STATS_PERIOD)
     }
 
@@ -61,18 +61,18 @@ impl StatsReport {
         &mut self,
         now: Instant,
         agent: &Agent<A>,
-        bridge: &Bridge,
+        relay: &Relay<impl Link>,
         transport_name: &str,
         transport: &TransportStats,
     ) {
-        let total = Self::total(agent, bridge, transport);
+        let total = Self::total(agent, relay, transport);
         if total == self.last_dropped || now < self.last + STATS_PERIOD {
             return;
         }
         let s = agent.stats();
         let mut reasons: Vec<_> = s.dropped.iter().collect();
         reasons.sort();
-        let b = bridge.stats();
+        let b = relay.stats();
         tracing::info!(
             transport = transport_name,
             sessions = agent.client_count(),

@@ -10,7 +10,7 @@ use xrce_common::ipc::status::{FrontendStatus, ProcessReport, SessionStatus};
 use xrce_common::session::agent::Agent;
 use xrce_common::wire::Dialect;
 
-use crate::bridge::Bridge;
+use crate::relay::{Link, Relay};
 use crate::transport::Transport;
 
 /// Who this front-end is, for its reports.
@@ -28,10 +28,10 @@ pub fn report<T: Transport>(
     now: Instant,
     transport: &T,
     agent: &Agent<T::Endpoint>,
-    bridge: &Bridge,
+    relay: &Relay<impl Link>,
 ) -> ProcessReport {
     let core = agent.stats();
-    let b = bridge.stats();
+    let b = relay.stats();
     let t = transport.stats();
     let counters: BTreeMap<String, u64> = [
         ("messages_received", core.datagrams_in),
@@ -86,7 +86,7 @@ pub fn report<T: Transport>(
             age_seconds: round_ms(s.age.as_secs_f64()),
             last_heard_seconds: round_ms(s.silent_for.as_secs_f64()),
             detached: s.detached,
-            entities: bridge.object_count(s.key) as u64,
+            entities: relay.object_count(s.key) as u64,
             messages_in: s.counters.messages_in,
             samples_in: s.counters.samples_in,
             samples_out: s.counters.samples_out,
@@ -101,8 +101,8 @@ pub fn report<T: Transport>(
             id: who.id,
             transport: transport.name().into(),
             serving: transport.serving(),
-            connected: bridge.generation().is_some(),
-            generation: bridge.generation(),
+            connected: relay.generation().is_some(),
+            generation: relay.generation(),
             counters,
             dropped,
             sessions,

@@ -20,7 +20,7 @@ use xrce_common::session::agent::Agent;
 use xrce_common::session::graph::ObjectGraph;
 use xrce_common::session::snapshot::SessionSnapshot;
 
-use crate::bridge::Bridge;
+use crate::relay::{Link, Relay};
 use crate::session_store::SessionStore;
 use crate::transport::{StoredEndpoint, Transport};
 
@@ -34,14 +34,14 @@ use crate::transport::{StoredEndpoint, Transport};
 pub fn persist<A: xrce_common::session::agent::Endpoint + StoredEndpoint>(
     store: &mut SessionStore,
     agent: &mut Agent<A>,
-    bridge: &mut Bridge,
+    relay: &mut Relay<impl Link>,
     with_output: bool,
 ) {
     let (mut changed, removed) = agent.take_session_changes(with_output);
     // Objects at once: a CREATE acknowledged must be found by a successor.
-    let objects = bridge.take_objects_changed();
+    let objects = relay.take_objects_changed();
     let reads = if with_output {
-        bridge.take_reads_changed()
+        relay.take_reads_changed()
     } else {
         Vec::new()
     };
@@ -52,7 +52,7 @@ pub fn persist<A: xrce_common::session::agent::Endpoint + StoredEndpoint>(
     changed.sort_unstable();
     changed.dedup();
     for key in objects {
-        if let Some(g) = bridge.graph(key) {
+        if let Some(g) = relay.graph(key) {
             // Not for a client whose connection dies with this process (TCP).
             let storable = agent
                 .snapshot(key, |e| e.stored())
@@ -73,7 +73,7 @@ pub fn persist<A: xrce_common::session::agent::Endpoint + StoredEndpoint>(
             // Its connection dies with this process: nothing to take over.
             continue;
         }
-        let Some(graph) = bridge.graph(key) else {
+        let Some(graph) = relay.graph(key) else {
             continue;
         };
         let snap = snapshot.encode();
@@ -87,13 +87,13 @@ pub fn persist<A: xrce_common::session::agent::Endpoint + StoredEndpoint>(
 }
 
 /// Takes over the sessions a predecessor stored; returns how many. Each goes to the core
-/// (its streams where they were) and its graph to the bridge, before the first worker is
+/// (its streams where they were) and its graph to the relay, before the first worker is
 /// seen, so the replay to it recreates the objects and restarts the reads.
 pub fn take_over<T: Transport>(
     store: &mut SessionStore,
     now: Instant,
     agent: &mut Agent<T::Endpoint>,
-    bridge: &mut Bridge,
+    relay: &mut Relay<impl Link>,
     transport: &T,
 ) -> usize {
     let mut taken = 0;
@@ -112,7 +112,7 @@ pub fn take_over<T: Transport>(
         match endpoint {
             Some(e) if snapshot.key == stored.key && agent.restore(now, &snapshot, e) => {
                 tracing::debug!(client = %snapshot.key, objects = graph.len(), reads = graph.reads().count(), "stored session taken over");
-                bridge.restore_graph(snapshot.key, graph);
+                relay.restore_graph(snapshot.key, graph);
                 taken += 1;
             }
             _ => {

@@ -21,7 +21,7 @@ impl OperationSink for Recorder {
     fn has_room(&self) -> bool {
         !self.full
     }
-    fn operation(&mut self, op: Operation<'_>) {
+    fn operation(&mut self, _now: Instant, op: Operation<'_>) {
         match op {
             Operation::ClientCreated { client, .. } => self.created.push(client),
             Operation::Write { data, .. } => self.writes.push(data.data.to_vec()),

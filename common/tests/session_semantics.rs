@@ -28,7 +28,7 @@ impl OperationSink for Recorder {
     fn has_room(&self) -> bool {
         true
     }
-    fn operation(&mut self, op: Operation<'_>) {
+    fn operation(&mut self, _now: Instant, op: Operation<'_>) {
         self.0.push(match op {
             Operation::ClientCreated { client, .. } => Op::Created(client),
             Operation::ClientDeleted { client } => Op::Deleted(client),
@@ -859,8 +859,8 @@ impl OperationSink for RoomForSmall {
     fn has_room_for(&self, submessages: usize) -> bool {
         submessages <= 2
     }
-    fn operation(&mut self, op: Operation<'_>) {
-        self.0.operation(op)
+    fn operation(&mut self, now: Instant, op: Operation<'_>) {
+        self.0.operation(now, op)
     }
 }
 

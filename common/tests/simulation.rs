@@ -47,7 +47,7 @@ impl OperationSink for EchoSink {
     fn has_room(&self) -> bool {
         self.room
     }
-    fn operation(&mut self, op: Operation<'_>) {
+    fn operation(&mut self, _now: Instant, op: Operation<'_>) {
         if let Operation::Write { client, data, .. } = op {
             self.writes.push((client, data.data.to_vec()));
         }

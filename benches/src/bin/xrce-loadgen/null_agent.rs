@@ -38,7 +38,7 @@ impl OperationSink for Collected {
         true
     }
 
-    fn operation(&mut self, op: Operation<'_>) {
+    fn operation(&mut self, _now: Instant, op: Operation<'_>) {
         match op {
             Operation::Create { client, create, .. } => self.ok.push((client, create.base)),
             Operation::Delete { client, request } => self.ok.push((client, request)),

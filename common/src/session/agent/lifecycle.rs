@@ -112,7 +112,7 @@ impl<A: Endpoint> Agent<A> {
                 .copied()
                 .filter(|k| *k != c.client_key)
             {
-                self.remove_client(other, sink);
+                self.remove_client(now, other, sink);
             }
             // At least 64 (so fragments carry data), at most what the transport carries.
             let mtu = c
@@ -170,7 +170,7 @@ impl<A: Endpoint> Agent<A> {
                 }
                 existing => {
                     if existing.is_some() {
-                        self.remove_client(c.client_key, sink);
+                        self.remove_client(now, c.client_key, sink);
                     }
                     let mut client = ProxyClient::new(
                         c.client_key,
@@ -187,10 +187,13 @@ impl<A: Endpoint> Agent<A> {
                     self.budget.session_added(client.origin);
                     self.clients.insert(c.client_key, client);
                     self.by_addr.insert(src, c.client_key);
-                    sink.operation(Operation::ClientCreated {
-                        client: c.client_key,
-                        origin: src.origin(),
-                    });
+                    sink.operation(
+                        now,
+                        Operation::ClientCreated {
+                            client: c.client_key,
+                            origin: src.origin(),
+                        },
+                    );
                     tracing::info!(client = %c.client_key, session = c.session_id, vendor = %vendor_name(c.vendor_id), version = %format!("{}.{}", c.version[0], c.version[1]), mtu, ?dialect, ?dead_time, first_sequence_number = proxy::first_sequence_number(c.vendor_id), "session created");
                     self.warn_misfit(c, dialect);
                 }
@@ -269,7 +272,12 @@ impl<A: Endpoint> Agent<A> {
         }
     }
 
-    pub(super) fn remove_client(&mut self, key: ClientKey, sink: &mut impl OperationSink) {
+    pub(super) fn remove_client(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        sink: &mut impl OperationSink,
+    ) {
         if let Some(c) = self.clients.remove(&key) {
             self.budget.session_removed(c.origin, c.held);
             if self.config.track_sessions {
@@ -280,7 +288,7 @@ impl<A: Endpoint> Agent<A> {
             if self.by_addr.get(&c.addr) == Some(&key) {
                 self.by_addr.remove(&c.addr);
             }
-            sink.operation(Operation::ClientDeleted { client: key });
+            sink.operation(now, Operation::ClientDeleted { client: key });
             tracing::info!(client = %key, "session deleted");
         }
     }
@@ -294,7 +302,7 @@ impl<A: Endpoint> Agent<A> {
     ) {
         if self.clients.get(&key).is_some_and(|c| c.delete_requested) {
             self.flush_client(now, key);
-            self.remove_client(key, sink);
+            self.remove_client(now, key, sink);
         }
     }
 }

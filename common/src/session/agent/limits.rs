@@ -246,7 +246,7 @@ impl<A: Endpoint> Agent<A> {
         if let Some(previous) = self.episodes.bite(now, "session_evicted") {
             tracing::warn!(client = %victim, previous_episode = previous, "session cap reached: a silent session without objects was deleted for a new one (logged once per episode)");
         }
-        self.remove_client(victim, sink);
+        self.remove_client(now, victim, sink);
         true
     }
 

@@ -206,8 +206,8 @@ pub trait OperationSink {
         let _ = submessages;
         self.has_room()
     }
-    /// Takes one operation.
-    fn operation(&mut self, op: Operation<'_>);
+    /// Takes one operation, at `now` (the time of the call that brought it).
+    fn operation(&mut self, now: Instant, op: Operation<'_>);
 }
 
 /// What one client sent, received and lost.
@@ -824,11 +824,14 @@ impl<A: Endpoint> Agent<A> {
                 if let Some(client) = self.clients.get_mut(&key) {
                     client.has_objects = true;
                 }
-                sink.operation(Operation::Create {
-                    client: key,
-                    create: &c,
-                    little_endian: le,
-                })
+                sink.operation(
+                    now,
+                    Operation::Create {
+                        client: key,
+                        create: &c,
+                        little_endian: le,
+                    },
+                )
             }
             // The client object by its kind, whatever its number: eProsima's client names
             // it OBJECTID_CLIENT (0xFFFE), RTI's nano-client 0x000E (kind CLIENT, id 0);
@@ -854,29 +857,38 @@ impl<A: Endpoint> Agent<A> {
                     c.delete_requested = true;
                 }
             }
-            Payload::Delete(d) => sink.operation(Operation::Delete {
-                client: key,
-                request: d,
-            }),
+            Payload::Delete(d) => sink.operation(
+                now,
+                Operation::Delete {
+                    client: key,
+                    request: d,
+                },
+            ),
             Payload::WriteData(d) => {
                 self.stats.samples_in += 1;
                 if let Some(c) = self.clients.get_mut(&key) {
                     c.counters.samples_in += 1;
                 }
                 let dialect = self.client_dialect(key);
-                sink.operation(Operation::Write {
-                    client: key,
-                    stream_id: stream,
-                    data: d,
-                    little_endian: le,
-                    dialect,
-                })
+                sink.operation(
+                    now,
+                    Operation::Write {
+                        client: key,
+                        stream_id: stream,
+                        data: d,
+                        little_endian: le,
+                        dialect,
+                    },
+                )
             }
-            Payload::ReadData(r) => sink.operation(Operation::Read {
-                client: key,
-                request: r.base,
-                spec: &r.spec,
-            }),
+            Payload::ReadData(r) => sink.operation(
+                now,
+                Operation::Read {
+                    client: key,
+                    request: r.base,
+                    spec: &r.spec,
+                },
+            ),
             Payload::GetInfo(_) if !self.once(Reply::Info) => self.count_drop("repeated_request"),
             Payload::GetInfo(g)
                 if g.base.object_id == ObjectId::AGENT || g.base.object_id == ObjectId::CLIENT =>
@@ -886,11 +898,14 @@ impl<A: Endpoint> Agent<A> {
                     self.reply_info(addr, h, g.base, true, d);
                 }
             }
-            Payload::GetInfo(g) => sink.operation(Operation::GetInfo {
-                client: key,
-                request: g.base,
-                info_mask: g.info_mask,
-            }),
+            Payload::GetInfo(g) => sink.operation(
+                now,
+                Operation::GetInfo {
+                    client: key,
+                    request: g.base,
+                    info_mask: g.info_mask,
+                },
+            ),
             // A client's answer to a liveliness probe: hearing it was the point.
             Payload::Info(_) => {}
             Payload::Acknack(a) => {
@@ -1106,5 +1121,5 @@ impl OperationSink for NullSink {
     fn has_room(&self) -> bool {
         true
     }
-    fn operation(&mut self, _: Operation<'_>) {}
+    fn operation(&mut self, _: Instant, _: Operation<'_>) {}
 }

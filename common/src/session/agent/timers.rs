@@ -104,7 +104,7 @@ impl<A: Endpoint> Agent<A> {
                 tracing::warn!(client = %key, silent_ms = silence.as_millis() as u64, "client silent past its dead time; deleting its session");
                 self.count_drop("client_dead");
             }
-            self.remove_client(key, sink);
+            self.remove_client(now, key, sink);
         }
     }
 }

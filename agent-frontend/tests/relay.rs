@@ -1,14 +1,15 @@
-//! The bridge between a front-end's session core and the DDS worker, on real iceoryx2 shared
-//! memory, against a fake worker that answers as the real one does: what a new worker
-//! generation gets replayed (objects in creation order, reads, retained writes, but not the
-//! writes DDS readers acknowledged), and that a replayed read does not deliver a sample its
-//! client had.
+//! Simulation tests of the front-end's relay: a client, the session core and the relay
+//! exchange in one thread with a fake worker that answers as the real one does, over an
+//! in-memory link (no shared memory): what a new worker generation gets replayed (objects in
+//! creation order, reads, retained writes, but not the writes DDS readers acknowledged),
+//! that a replayed read does not deliver a sample its client had, and how best-effort
+//! writes share the window.
 
+use std::cell::{Cell, RefCell};
 use std::time::{Duration, Instant};
 
-use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind};
 use xrce_common::ipc::{
-    self, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
+    Encode, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
 };
 use xrce_common::session::agent::{Agent, AgentConfig};
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
@@ -16,7 +17,8 @@ use xrce_common::wire::{
     object_kind as k, stream_id, ClientKey, DataDeliveryControl, ObjectId, ObjectVariant,
     ReadSpecification, Representation, VariantExtra,
 };
-use xrce_frontend::bridge::Bridge;
+use xrce_frontend::relay::link::MemoryLink;
+use xrce_frontend::relay::Relay;
 
 const ADDR: u32 = 7;
 
@@ -56,64 +58,54 @@ fn written(m: &Served) -> &[u8] {
     }
 }
 
-/// The worker's side of the IPC contract, driven by the test.
+/// The worker's side of the IPC contract, driven by the test: it takes what the relay sent
+/// over the rig's link and answers as the real worker does.
 struct FakeWorker {
-    _node: IpcNode,
-    requests: Receiver,
-    replies: Sender,
-    announce: Sender,
     generation: u32,
     /// Whether progress reports the writes as acknowledged by DDS readers.
-    acknowledge: std::cell::Cell<bool>,
+    acknowledge: Cell<bool>,
+    /// Its announcement reached the relay.
+    announced: Cell<bool>,
+    /// The relay said hello to it: requests sent before (to a worker that died) are not
+    /// served, as the real worker drops them.
+    greeted: Cell<bool>,
+    /// Replies not yet handed to the relay.
+    replies: RefCell<Vec<Vec<u8>>>,
 }
 
 impl FakeWorker {
-    fn start(instance: &str, generation: u32) -> Self {
-        let node = IpcNode::new(instance, "xrce-dds-worker").expect("worker node");
-        let requests = node
-            .receiver(&ipc::request_service(instance), ServiceKind::Data)
-            .expect("requests");
-        let replies = node
-            .sender(&ipc::reply_service(instance, 0), ServiceKind::Reply)
-            .expect("replies");
-        let announce = node
-            .sender(&ipc::announce_service(instance), ServiceKind::Announce)
-            .expect("announce");
-        let w = FakeWorker {
-            _node: node,
-            requests,
-            replies,
-            announce,
+    fn start(generation: u32) -> Self {
+        FakeWorker {
             generation,
-            acknowledge: std::cell::Cell::new(false),
-        };
-        let hello = ReplyMessage::new(
-            Route {
-                generation,
-                ..Route::default()
-            },
-            Reply::WorkerHello,
-        );
-        w.announce.send(&hello).expect("announce");
-        w.announce.notify().expect("notify");
-        w
+            acknowledge: Cell::new(false),
+            announced: Cell::new(false),
+            greeted: Cell::new(false),
+            replies: RefCell::new(Vec::new()),
+        }
     }
 
     fn reply(&self, mut route: Route, reply: Reply<'_>) {
         route.generation = self.generation;
         self.replies
-            .send(&ReplyMessage::new(route, reply))
-            .expect("reply");
-        self.replies.notify().expect("notify");
+            .borrow_mut()
+            .push(ReplyMessage::new(route, reply).encode());
     }
 
     /// Every request so far; answers each as the real worker does (a WorkerHello for a
     /// FrontendHello, STATUS OK for creations, reads, deletes), then reports progress.
-    fn serve(&self) -> Vec<Served> {
+    fn serve(&self, rig: &mut Rig) -> Vec<Served> {
         let mut got = Vec::new();
-        let _ = self.requests.drain(|m| {
-            got.push(RequestMessage::decode(m).expect("IPC request").into_owned());
-        });
+        for m in rig.relay.link_mut().take() {
+            let m = RequestMessage::decode(&m)
+                .expect("IPC request")
+                .into_owned();
+            if m.request == Request::FrontendHello {
+                self.greeted.set(true);
+            } else if !self.greeted.get() {
+                continue;
+            }
+            got.push(m);
+        }
         let mut last = 0;
         for m in &got {
             last = last.max(m.route.op_seq);
@@ -171,35 +163,55 @@ impl FakeWorker {
     }
 }
 
-/// A client, the session core and the bridge, exchanging until `done` or `d`.
+/// A client, the session core and the relay, exchanging until `done` or `d`.
 struct Rig {
     client: Client,
     agent: Agent<u32>,
-    bridge: Bridge,
+    relay: Relay<MemoryLink>,
     events: Vec<ClientEvent>,
 }
 
 impl Rig {
-    fn new(instance: &str) -> Self {
+    fn new() -> Self {
         Rig {
             client: Client::new(ClientConfig::new(ClientKey([0xB2, 0, 0, 1]))),
             agent: Agent::new(AgentConfig::default()),
-            bridge: Bridge::new(instance, 0, 1).expect("bridge"),
+            relay: Relay::new(0, 1, MemoryLink::default()),
             events: Vec::new(),
         }
     }
 
-    /// One round: datagrams both ways, the bridge's IPC, timers.
+    /// Hands the relay what `workers` announced and answered.
+    fn poll_ipc(&mut self, now: Instant, workers: &[&FakeWorker]) {
+        for w in workers {
+            if !w.announced.replace(true) {
+                let hello = ReplyMessage::new(
+                    Route {
+                        generation: w.generation,
+                        ..Route::default()
+                    },
+                    Reply::WorkerHello,
+                );
+                self.relay.handle_announcement(&hello.encode());
+            }
+            for m in w.replies.take() {
+                self.relay.handle_reply(now, &m, &mut self.agent);
+            }
+        }
+        self.relay.after_replies(now, &mut self.agent);
+    }
+
+    /// One round: datagrams both ways, the relay's IPC, timers.
     fn step(&mut self, workers: &[&FakeWorker], served: &mut Vec<Served>) {
         let now = Instant::now();
         self.deliver(now);
-        self.bridge.pump();
+        self.relay.pump();
         for w in workers {
-            served.extend(w.serve());
+            served.extend(w.serve(self));
         }
-        self.bridge.poll_ipc(now, &mut self.agent, true, true);
-        self.bridge.pump();
-        self.agent.handle_timeout(now, &mut self.bridge);
+        self.poll_ipc(now, workers);
+        self.relay.pump();
+        self.agent.handle_timeout(now, &mut self.relay);
         while let Some(t) = self.agent.poll_transmit() {
             self.client.handle_datagram(now, &t.data);
         }
@@ -228,23 +240,23 @@ impl Rig {
         );
     }
 
-    /// A rig whose bridge sees `worker` (generation `generation`) and whose client is
+    /// A rig whose relay sees `worker` (generation `generation`) and whose client is
     /// connected.
-    fn connected(instance: &str, worker: &FakeWorker, generation: u32) -> Self {
-        let mut rig = Rig::new(instance);
-        rig.run(&[worker], |r, _| r.bridge.generation() == Some(generation));
+    fn connected(worker: &FakeWorker, generation: u32) -> Self {
+        let mut rig = Rig::new();
+        rig.run(&[worker], |r, _| r.relay.generation() == Some(generation));
         rig.client.connect(Instant::now());
         rig.run(&[worker], |r, _| r.client.is_connected());
         rig
     }
 
-    /// A worker, and a rig connected to it whose bridge hands every operation over at once
+    /// A worker, and a rig connected to it whose relay hands every operation over at once
     /// (as in a front-end that stores its sessions: nothing waits in the outbox), with a
     /// data writer the worker has created (its id).
-    fn handing_over_with_writer(instance: &str, generation: u32) -> (FakeWorker, Self, ObjectId) {
-        let worker = FakeWorker::start(instance, generation);
-        let mut rig = Rig::connected(instance, &worker, generation);
-        rig.bridge.set_hand_over_at_once(true);
+    fn handing_over_with_writer(generation: u32) -> (FakeWorker, Self, ObjectId) {
+        let worker = FakeWorker::start(generation);
+        let mut rig = Rig::connected(&worker, generation);
+        rig.relay.set_hand_over_at_once(true);
         let [.., w] = rig.create_writer();
         rig.run(&[&worker], |_, s| {
             s.iter().filter(|m| is(m, "Create")).count() == 4
@@ -278,15 +290,10 @@ impl Rig {
     }
 }
 
-fn instance(tag: &str) -> String {
-    format!("b{}-{tag}", std::process::id() % 100_000)
-}
-
 #[test]
 fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_writes() {
-    let inst = instance("replay");
-    let first = FakeWorker::start(&inst, 11);
-    let mut rig = Rig::connected(&inst, &first, 11);
+    let first = FakeWorker::start(11);
+    let mut rig = Rig::connected(&first, 11);
     let [p, t, pb, w] = rig.create_writer();
     let sb = ObjectId::new(1, k::SUBSCRIBER);
     let rd = ObjectId::new(1, k::DATAREADER);
@@ -313,7 +320,7 @@ fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_write
     });
     // The worker dies; a new generation announces itself.
     drop(first);
-    let second = FakeWorker::start(&inst, 12);
+    let second = FakeWorker::start(12);
     let replay = rig.run(&[&second], |_, s| s.iter().any(|m| is(m, "Write")));
     let kinds: Vec<(&str, ObjectId)> = replay
         .iter()
@@ -339,17 +346,15 @@ fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_write
         .expect("the retained write resent");
     assert!(written(write).ends_with(b"kept"));
     assert!(pos("Write") > pos("Read"), "{kinds:?}");
-    assert_eq!(rig.bridge.stats().replays, 2);
-    assert!(rig.bridge.stats().writes_resent >= 1);
+    assert_eq!(rig.relay.stats().replays, 2);
+    assert!(rig.relay.stats().writes_resent >= 1);
     drop((rig, second));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
 #[test]
 fn a_replayed_read_does_not_deliver_a_sample_twice() {
-    let inst = instance("dedup");
-    let first = FakeWorker::start(&inst, 21);
-    let mut rig = Rig::connected(&inst, &first, 21);
+    let first = FakeWorker::start(21);
+    let mut rig = Rig::connected(&first, 21);
     let p = ObjectId::new(1, k::PARTICIPANT);
     let sb = ObjectId::new(1, k::SUBSCRIBER);
     let rd = ObjectId::new(1, k::DATAREADER);
@@ -392,7 +397,7 @@ fn a_replayed_read_does_not_deliver_a_sample_twice() {
     // A new worker; the writer outlived the old one and offers its history again, then a
     // new sample.
     drop(first);
-    let second = FakeWorker::start(&inst, 22);
+    let second = FakeWorker::start(22);
     let replay = rig.run(&[&second], |_, s| s.iter().any(|m| is(m, "Read")));
     let read = replay
         .iter()
@@ -423,16 +428,14 @@ fn a_replayed_read_does_not_deliver_a_sample_twice() {
     rig.run(&[&second], |r, _| data(r).len() >= 6);
     let got: Vec<u8> = data(&rig).iter().map(|d| d[0]).collect();
     assert_eq!(got, [1, 2, 3, 4, 70, 80], "delivered twice or lost");
-    assert_eq!(rig.bridge.stats().samples_already_delivered, 3);
+    assert_eq!(rig.relay.stats().samples_already_delivered, 3);
     drop((rig, second));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
 #[test]
 fn a_write_its_readers_acknowledged_is_not_resent_to_a_new_worker() {
-    let inst = instance("acked");
-    let first = FakeWorker::start(&inst, 21);
-    let mut rig = Rig::connected(&inst, &first, 21);
+    let first = FakeWorker::start(21);
+    let mut rig = Rig::connected(&first, 21);
     let [_, _, _, w] = rig.create_writer();
     rig.run(&[&first], |_, s| {
         s.iter().filter(|m| is(m, "Create")).count() == 4
@@ -442,7 +445,7 @@ fn a_write_its_readers_acknowledged_is_not_resent_to_a_new_worker() {
     rig.client
         .write(Instant::now(), stream_id::BUILTIN_RELIABLE, w, b"acked")
         .expect("write");
-    rig.run(&[&first], |r, _| r.bridge.stats().writes_acknowledged == 1);
+    rig.run(&[&first], |r, _| r.relay.stats().writes_acknowledged == 1);
     // Executed, not acknowledged: kept.
     first.acknowledge.set(false);
     rig.client
@@ -453,7 +456,7 @@ fn a_write_its_readers_acknowledged_is_not_resent_to_a_new_worker() {
             .any(|m| is(m, "Write") && written(m).ends_with(b"in flight"))
     });
     drop(first);
-    let second = FakeWorker::start(&inst, 22);
+    let second = FakeWorker::start(22);
     let replay = rig.run(&[&second], |_, s| s.iter().any(|m| is(m, "Write")));
     let writes: Vec<&[u8]> = replay
         .iter()
@@ -462,21 +465,20 @@ fn a_write_its_readers_acknowledged_is_not_resent_to_a_new_worker() {
         .collect();
     assert_eq!(writes.len(), 1, "only the unacknowledged write is resent");
     assert!(writes[0].ends_with(b"in flight"));
-    assert_eq!(rig.bridge.stats().writes_acknowledged, 1);
-    assert_eq!(rig.bridge.stats().writes_resent, 1);
+    assert_eq!(rig.relay.stats().writes_acknowledged, 1);
+    assert_eq!(rig.relay.stats().writes_resent, 1);
     drop((rig, second));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
 impl Rig {
-    /// Hands what the client sent to the session core (and so to the bridge).
+    /// Hands what the client sent to the session core (and so to the relay).
     fn deliver(&mut self, now: Instant) {
         while let Some(d) = self.client.poll_transmit() {
-            self.agent.handle_datagram(now, ADDR, &d, &mut self.bridge);
+            self.agent.handle_datagram(now, ADDR, &d, &mut self.relay);
         }
     }
 
-    /// Lets `worker` take what was sent, the bridge see its progress and send what waits,
+    /// Lets `worker` take what was sent, the relay see its progress and send what waits,
     /// until `done` holds for the rig and what the worker took (up to 10 s); returns that.
     fn serve_until(
         &mut self,
@@ -486,10 +488,9 @@ impl Rig {
         let mut served = Vec::new();
         let end = Instant::now() + Duration::from_secs(10);
         while Instant::now() < end {
-            served.extend(worker.serve());
-            self.bridge
-                .poll_ipc(Instant::now(), &mut self.agent, true, true);
-            self.bridge.pump();
+            served.extend(worker.serve(self));
+            self.poll_ipc(Instant::now(), &[worker]);
+            self.relay.pump();
             if done(self, &served) {
                 return served;
             }
@@ -499,18 +500,17 @@ impl Rig {
 
     /// Lets `worker` take everything sent and waiting.
     fn catch_up(&mut self, worker: &FakeWorker) {
-        self.serve_until(worker, |r, _| r.bridge.backlog() == 0);
+        self.serve_until(worker, |r, _| r.relay.backlog() == 0);
         // The last ones sent, and the worker's word that it took them.
-        worker.serve();
-        self.bridge
-            .poll_ipc(Instant::now(), &mut self.agent, true, true);
+        worker.serve(self);
+        self.poll_ipc(Instant::now(), &[worker]);
     }
 }
 
 /// Best-effort writes that go to the worker at once, in hand-over mode.
 fn best_effort_share() -> u64 {
     use xrce_common::ipc::IN_FLIGHT_WINDOW;
-    use xrce_frontend::bridge::{BEST_EFFORT_RESERVE, HAND_OVER_HEADROOM};
+    use xrce_frontend::relay::{BEST_EFFORT_RESERVE, HAND_OVER_HEADROOM};
     IN_FLIGHT_WINDOW - HAND_OVER_HEADROOM - BEST_EFFORT_RESERVE
 }
 
@@ -527,7 +527,7 @@ fn best_effort_writes(rig: &mut Rig, now: Instant, w: ObjectId, tag: &str, n: u6
             .expect("write");
         rig.deliver(now);
     }
-    rig.bridge.pump();
+    rig.relay.pump();
 }
 
 /// The bodies of the WRITE operations among `served`.
@@ -541,9 +541,8 @@ fn write_bodies(served: &[Served]) -> Vec<String> {
 
 #[test]
 fn a_best_effort_flood_leaves_room_for_reliable_writes() {
-    use xrce_frontend::bridge::BEST_EFFORT_WAITING_MAX;
-    let inst = instance("flood");
-    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 5);
+    use xrce_frontend::relay::BEST_EFFORT_WAITING_MAX;
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(5);
     // A worker that takes nothing for a while: best-effort writes fill what they may of
     // the window, a few wait for it, and the rest are dropped, counted.
     let now = Instant::now();
@@ -551,18 +550,18 @@ fn a_best_effort_flood_leaves_room_for_reliable_writes() {
     let waiting = BEST_EFFORT_WAITING_MAX as u64;
     best_effort_writes(&mut rig, now, w, "flood", share + waiting + 100);
     assert_eq!(
-        rig.bridge.stats().ops_dropped,
+        rig.relay.stats().ops_dropped,
         100,
         "the flood beyond the window's share and the waiting queue"
     );
-    assert_eq!(rig.bridge.backlog(), BEST_EFFORT_WAITING_MAX);
+    assert_eq!(rig.relay.backlog(), BEST_EFFORT_WAITING_MAX);
     // A reliable write is still taken at once, ahead of the waiting best-effort writes.
     rig.client
         .write(now, stream_id::BUILTIN_RELIABLE, w, b"urgent")
         .expect("write");
     rig.deliver(now);
-    rig.bridge.pump();
-    let writes = write_bodies(&worker.serve());
+    rig.relay.pump();
+    let writes = write_bodies(&worker.serve(&mut rig));
     let flood = writes.iter().filter(|b| b.starts_with("flood")).count() as u64;
     assert_eq!(flood, share, "best-effort writes in flight");
     assert!(
@@ -570,22 +569,16 @@ fn a_best_effort_flood_leaves_room_for_reliable_writes() {
         "the reliable write was refused behind the flood ({flood} best-effort writes in flight)"
     );
     drop((rig, worker));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
 #[test]
 fn best_effort_writes_wait_out_a_short_worker_stall_in_order() {
-    let inst = instance("stall");
-    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 7);
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(7);
     // The worker stalls while more best-effort writes come than the window's share holds.
     let n = best_effort_share() + 100;
     best_effort_writes(&mut rig, Instant::now(), w, "be", n);
-    assert_eq!(rig.bridge.stats().ops_dropped, 0, "nothing is dropped");
-    assert_eq!(
-        rig.bridge.backlog(),
-        100,
-        "the writes beyond the share wait"
-    );
+    assert_eq!(rig.relay.stats().ops_dropped, 0, "nothing is dropped");
+    assert_eq!(rig.relay.backlog(), 100, "the writes beyond the share wait");
     // It catches up: every write reaches it, once, in the order sent.
     let served = rig.serve_until(&worker, |_, s| write_bodies(s).len() as u64 >= n);
     let got: Vec<String> = write_bodies(&served)
@@ -594,49 +587,45 @@ fn best_effort_writes_wait_out_a_short_worker_stall_in_order() {
         .collect();
     let expected: Vec<String> = (0..n).map(|i| format!("be {i}")).collect();
     assert_eq!(got, expected);
-    assert_eq!(rig.bridge.backlog(), 0);
+    assert_eq!(rig.relay.backlog(), 0);
     drop((rig, worker));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
 #[test]
 fn waiting_writes_of_a_deleted_writer_are_dropped_not_sent_after_the_delete() {
-    let inst = instance("delwait");
-    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 9);
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(9);
     let share = best_effort_share();
     best_effort_writes(&mut rig, Instant::now(), w, "be", share + 10);
-    assert_eq!(rig.bridge.backlog(), 10);
+    assert_eq!(rig.relay.backlog(), 10);
     // The client deletes the writer while ten of its writes wait: the delete goes to the
     // worker now, the ten are dropped (they would reach no writer, or a new one with the id).
     rig.client.delete(Instant::now(), w).expect("delete");
     rig.deliver(Instant::now());
-    assert_eq!(rig.bridge.backlog(), 0);
-    assert_eq!(rig.bridge.stats().ops_dropped, 10);
+    assert_eq!(rig.relay.backlog(), 0);
+    assert_eq!(rig.relay.stats().ops_dropped, 10);
     let is_delete = |m: &Served| is(m, "Delete");
     let mut served = rig.serve_until(&worker, |_, s| s.iter().any(is_delete));
     let delete = served
         .iter()
         .position(is_delete)
         .expect("the delete reached the worker");
-    served.extend(worker.serve());
+    served.extend(worker.serve(&mut rig));
     assert!(
         served[delete..].iter().all(|m| !is(m, "Write")),
         "a write reached the worker after the delete of its writer"
     );
     assert_eq!(write_bodies(&served).len() as u64, share);
     drop((rig, worker));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
 #[test]
 fn waiting_writes_to_an_id_are_dropped_when_it_is_created() {
-    let inst = instance("createwait");
-    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 13);
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(13);
     best_effort_writes(&mut rig, Instant::now(), w, "be", best_effort_share() + 10);
     // Five writes to a writer the client has not created yet wait behind the ten.
     let early = ObjectId::new(2, k::DATAWRITER);
     best_effort_writes(&mut rig, Instant::now(), early, "early", 5);
-    assert_eq!(rig.bridge.backlog(), 15);
+    assert_eq!(rig.relay.backlog(), 15);
     // Its CREATE goes to the worker now: the five must not reach the new writer after it.
     rig.create(
         early,
@@ -646,69 +635,61 @@ fn waiting_writes_to_an_id_are_dropped_when_it_is_created() {
     );
     rig.deliver(Instant::now());
     assert_eq!(
-        rig.bridge.backlog(),
+        rig.relay.backlog(),
         10,
         "only the writes to the new id are dropped"
     );
-    assert_eq!(rig.bridge.stats().ops_dropped, 5);
+    assert_eq!(rig.relay.stats().ops_dropped, 5);
     drop((rig, worker));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
 #[test]
 fn waiting_writes_are_dropped_when_their_worker_is_replaced() {
-    let inst = instance("genwait");
-    let (first, mut rig, w) = Rig::handing_over_with_writer(&inst, 10);
+    let (first, mut rig, w) = Rig::handing_over_with_writer(10);
     best_effort_writes(&mut rig, Instant::now(), w, "be", best_effort_share() + 10);
-    assert_eq!(rig.bridge.backlog(), 10);
+    assert_eq!(rig.relay.backlog(), 10);
     // The worker dies with the window full; its successor gets the replay, not stale data.
     drop(first);
-    let second = FakeWorker::start(&inst, 30);
+    let second = FakeWorker::start(30);
     let replay = rig.run(&[&second], |_, s| s.iter().any(|m| is(m, "ReplayDone")));
     assert!(
         write_bodies(&replay).is_empty(),
         "stale best-effort writes replayed"
     );
-    assert_eq!(rig.bridge.backlog(), 0);
-    assert_eq!(rig.bridge.stats().ops_dropped, 10);
+    assert_eq!(rig.relay.backlog(), 0);
+    assert_eq!(rig.relay.stats().ops_dropped, 10);
     drop((rig, second));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
-/// Overflows the best-effort wait of a bridge whose shedding lasts `hold`, lets the worker
+/// Overflows the best-effort wait of a relay whose shedding lasts `hold`, lets the worker
 /// catch up, then sends ten writes more than the window's share: how many of those wait.
-fn waiting_after_an_overflow(tag: &str, generation: u32, hold: Duration) -> usize {
-    use xrce_frontend::bridge::BEST_EFFORT_WAITING_MAX;
-    let inst = instance(tag);
-    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, generation);
-    rig.bridge.set_best_effort_shed_hold(hold);
+fn waiting_after_an_overflow(generation: u32, hold: Duration) -> usize {
+    use xrce_frontend::relay::BEST_EFFORT_WAITING_MAX;
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(generation);
+    rig.relay.set_best_effort_shed_hold(hold);
     let share = best_effort_share();
     let waiting = BEST_EFFORT_WAITING_MAX as u64;
     best_effort_writes(&mut rig, Instant::now(), w, "flood", share + waiting + 1);
-    assert_eq!(rig.bridge.stats().ops_dropped, 1);
-    assert_eq!(rig.bridge.stats().best_effort_sheds, 1);
+    assert_eq!(rig.relay.stats().ops_dropped, 1);
+    assert_eq!(rig.relay.stats().best_effort_sheds, 1);
     rig.catch_up(&worker);
     best_effort_writes(&mut rig, Instant::now(), w, "after", share + 10);
-    let queued = rig.bridge.backlog();
+    let queued = rig.relay.backlog();
     assert_eq!(
-        rig.bridge.stats().ops_dropped,
+        rig.relay.stats().ops_dropped,
         1 + 10 - queued as u64,
         "what does not wait is dropped"
     );
     drop((rig, worker));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
     queued
 }
 
 #[test]
 fn after_an_overflow_best_effort_writes_are_shed_not_queued_until_the_hold_ends() {
     // Within the hold (an hour: no machine is that slow), nothing beyond the share waits.
-    assert_eq!(
-        waiting_after_an_overflow("shed", 8, Duration::from_secs(3600)),
-        0
-    );
+    assert_eq!(waiting_after_an_overflow(8, Duration::from_secs(3600)), 0);
     // A hold that has ended (none at all) queues again.
-    assert_eq!(waiting_after_an_overflow("unshed", 14, Duration::ZERO), 10);
+    assert_eq!(waiting_after_an_overflow(14, Duration::ZERO), 10);
 }
 
 /// Datagrams between a second client (at `addr`) and the rig's session core, and the rig's
@@ -716,12 +697,12 @@ fn after_an_overflow_best_effort_writes_are_shed_not_queued_until_the_hold_ends(
 fn exchange_with(rig: &mut Rig, worker: &FakeWorker, other: &mut Client, addr: u32) {
     let now = Instant::now();
     while let Some(d) = other.poll_transmit() {
-        rig.agent.handle_datagram(now, addr, &d, &mut rig.bridge);
+        rig.agent.handle_datagram(now, addr, &d, &mut rig.relay);
     }
-    rig.bridge.pump();
-    worker.serve();
-    rig.bridge.poll_ipc(now, &mut rig.agent, true, true);
-    rig.agent.handle_timeout(now, &mut rig.bridge);
+    rig.relay.pump();
+    worker.serve(rig);
+    rig.poll_ipc(now, &[worker]);
+    rig.agent.handle_timeout(now, &mut rig.relay);
     while let Some(t) = rig.agent.poll_transmit() {
         if t.destination == addr {
             other.handle_datagram(now, &t.data);
@@ -733,11 +714,10 @@ fn exchange_with(rig: &mut Rig, worker: &FakeWorker, other: &mut Client, addr: u
 
 #[test]
 fn a_quiet_clients_best_effort_writes_wait_while_a_flooding_client_is_shed() {
-    use xrce_frontend::bridge::BEST_EFFORT_WAITING_MAX;
+    use xrce_frontend::relay::BEST_EFFORT_WAITING_MAX;
     const QUIET: u32 = 8;
-    let inst = instance("fair");
-    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 16);
-    rig.bridge
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(16);
+    rig.relay
         .set_best_effort_shed_hold(Duration::from_secs(3600));
     let mut quiet = Client::new(ClientConfig::new(ClientKey([0xC3, 0, 0, 2])));
     quiet.connect(Instant::now());
@@ -751,8 +731,8 @@ fn a_quiet_clients_best_effort_writes_wait_while_a_flooding_client_is_shed() {
     let share = best_effort_share();
     let waiting = BEST_EFFORT_WAITING_MAX as u64;
     best_effort_writes(&mut rig, Instant::now(), w, "flood", share + waiting + 1);
-    assert_eq!(rig.bridge.stats().ops_dropped, 1);
-    assert_eq!(rig.bridge.stats().best_effort_sheds, 1);
+    assert_eq!(rig.relay.stats().ops_dropped, 1);
+    assert_eq!(rig.relay.stats().best_effort_sheds, 1);
     // The quiet client's writes still wait, each in place of the flood's newest, and the
     // flooder's further writes are dropped.
     let now = Instant::now();
@@ -767,12 +747,12 @@ fn a_quiet_clients_best_effort_writes_wait_while_a_flooding_client_is_shed() {
             .expect("write");
     }
     while let Some(d) = quiet.poll_transmit() {
-        rig.agent.handle_datagram(now, QUIET, &d, &mut rig.bridge);
+        rig.agent.handle_datagram(now, QUIET, &d, &mut rig.relay);
     }
     best_effort_writes(&mut rig, now, w, "late", 5);
-    assert_eq!(rig.bridge.backlog(), BEST_EFFORT_WAITING_MAX);
-    assert_eq!(rig.bridge.stats().ops_dropped, 1 + 10 + 5);
-    assert_eq!(rig.bridge.stats().best_effort_sheds, 1);
+    assert_eq!(rig.relay.backlog(), BEST_EFFORT_WAITING_MAX);
+    assert_eq!(rig.relay.stats().ops_dropped, 1 + 10 + 5);
+    assert_eq!(rig.relay.stats().best_effort_sheds, 1);
     // When the worker catches up, the two take turns: the quiet client's writes arrive
     // among the first waiting ones, in order, not behind the flood's backlog.
     let served = rig.serve_until(&worker, |_, s| {
@@ -806,15 +786,13 @@ fn a_quiet_clients_best_effort_writes_wait_while_a_flooding_client_is_shed() {
     assert_eq!(flood, expected);
     assert!(!bodies.iter().any(|b| b.contains("late ")));
     drop((rig, worker));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
 #[test]
 fn small_reliable_messages_may_fill_the_window() {
     use xrce_common::ipc::IN_FLIGHT_WINDOW;
-    use xrce_frontend::bridge::HAND_OVER_HEADROOM;
-    let inst = instance("small");
-    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 6);
+    use xrce_frontend::relay::HAND_OVER_HEADROOM;
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(6);
     // The worker takes nothing meanwhile; each message carries one WRITE_DATA, so each
     // needs room for one operation, not for the largest message.
     let mut now = Instant::now();
@@ -827,8 +805,8 @@ fn small_reliable_messages_may_fill_the_window() {
         );
         for _ in 0..4 {
             rig.deliver(now);
-            rig.bridge.pump();
-            rig.agent.handle_timeout(now, &mut rig.bridge);
+            rig.relay.pump();
+            rig.agent.handle_timeout(now, &mut rig.relay);
             while let Some(t) = rig.agent.poll_transmit() {
                 rig.client.handle_datagram(now, &t.data);
             }
@@ -836,7 +814,11 @@ fn small_reliable_messages_may_fill_the_window() {
             rig.client.handle_timeout(now);
         }
     }
-    let writes = worker.serve().iter().filter(|m| is(m, "Write")).count() as u64;
+    let writes = worker
+        .serve(&mut rig)
+        .iter()
+        .filter(|m| is(m, "Write"))
+        .count() as u64;
     // Room for two operations a submessage is asked for: all but the last slot fill (the
     // room for the largest message would have stopped them at 145).
     assert!(
@@ -844,26 +826,24 @@ fn small_reliable_messages_may_fill_the_window() {
         "{writes} writes in flight (the largest message needs {HAND_OVER_HEADROOM})"
     );
     drop((rig, worker));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
 
-/// Sends a reliable write of `w` from the rig's client and hands it to the bridge.
+/// Sends a reliable write of `w` from the rig's client and hands it to the relay.
 fn reliable_write(rig: &mut Rig, w: ObjectId, body: &[u8]) {
     let now = Instant::now();
     rig.client
         .write(now, stream_id::BUILTIN_RELIABLE, w, body)
         .expect("write");
     rig.deliver(now);
-    rig.bridge.pump();
+    rig.relay.pump();
 }
 
 /// A best-effort write tells the worker its progress can wait only while most of the window
 /// is free; reliable writes and control operations never do.
 #[test]
 fn only_best_effort_writes_with_the_window_mostly_free_let_their_progress_wait() {
-    use xrce_frontend::bridge::PROGRESS_CAN_WAIT_BELOW;
-    let inst = instance("lazy");
-    let (worker, mut rig, w) = Rig::handing_over_with_writer(&inst, 8);
+    use xrce_frontend::relay::PROGRESS_CAN_WAIT_BELOW;
+    let (worker, mut rig, w) = Rig::handing_over_with_writer(8);
     rig.catch_up(&worker);
     let can_wait = |m: &Served| m.progress_can_wait;
     // With the window free: a CREATE (its client waits for the STATUS) and a reliable write
@@ -880,7 +860,7 @@ fn only_best_effort_writes_with_the_window_mostly_free_let_their_progress_wait()
     assert!(!served.iter().any(can_wait));
     rig.catch_up(&worker);
     reliable_write(&mut rig, w, b"reliable");
-    let served = worker.serve();
+    let served = worker.serve(&mut rig);
     assert_eq!(served.len(), 1);
     assert!(!can_wait(&served[0]), "a reliable write");
     rig.catch_up(&worker);
@@ -888,7 +868,7 @@ fn only_best_effort_writes_with_the_window_mostly_free_let_their_progress_wait()
     let n = PROGRESS_CAN_WAIT_BELOW + 10;
     best_effort_writes(&mut rig, Instant::now(), w, "be", n);
     reliable_write(&mut rig, w, b"reliable");
-    let served = worker.serve();
+    let served = worker.serve(&mut rig);
     let writes: Vec<&Served> = served.iter().filter(|m| is(m, "Write")).collect();
     assert_eq!(writes.len() as u64, n + 1);
     let flagged: Vec<bool> = writes.iter().map(|m| can_wait(m)).collect();
@@ -899,5 +879,4 @@ fn only_best_effort_writes_with_the_window_mostly_free_let_their_progress_wait()
         "flagged while fewer than {PROGRESS_CAN_WAIT_BELOW} were in flight"
     );
     drop((rig, worker));
-    xrce_common::ipc::shm::remove_instance_leftovers(&inst);
 }
