@@ -532,11 +532,12 @@ impl<L: Link> Relay<L> {
         }
     }
 
-    /// When retained writes need another look, or a failed wake-up of the worker is tried
-    /// again.
+    /// When retained writes need another look, or a failed wake-up or send is tried again
+    /// (operations the link refused wait in the outbox while the window has room).
     pub fn poll_timeout(&self, now: Instant) -> Option<Instant> {
         let settle = self.retention.deadline();
-        let retry = self.dirty.then(|| now + Duration::from_millis(1));
+        let refused = !self.outbox.is_empty() && self.can_send_now();
+        let retry = (self.dirty || refused).then(|| now + Duration::from_millis(1));
         settle.into_iter().chain(retry).min()
     }
 
