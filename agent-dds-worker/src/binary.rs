@@ -11,9 +11,8 @@ use xrce_common::wire::binary::{
 };
 use xrce_common::wire::DecodeError;
 
-use crate::xml::{
-    Durability, EndpointDesc, History, OwnershipKind, Period, QosDesc, Reliability, TopicDesc,
-};
+use crate::backend::policies::{Durability, History, OwnershipKind, Period, QosDesc, Reliability};
+use crate::xml::{EndpointDesc, TopicDesc};
 
 /// Reads a participant body (optional domain and QoS profile references, not used yet).
 pub fn parse_participant(body: &[u8], le: bool) -> Result<(), DecodeError> {

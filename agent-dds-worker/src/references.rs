@@ -151,7 +151,10 @@ mod tests {
             .expect("writer");
         let desc = xml::parse_endpoint(w, "data_writer").expect("writer XML");
         assert_eq!(desc.topic.map(|t| t.name), Some("Square".into()));
-        assert_eq!(desc.qos.reliability, Some(xml::Reliability::Reliable));
+        assert_eq!(
+            desc.qos.reliability,
+            Some(crate::backend::policies::Reliability::Reliable)
+        );
         let t = r
             .resolve("Lib::shapetype_topic", "topic")
             .expect("library form");

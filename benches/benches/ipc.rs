@@ -12,13 +12,21 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use xrce_common::ipc::shm::{wait_readable, IpcNode, Receiver, Sender, ServiceKind};
+use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
+use std::os::fd::AsFd;
+use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind};
 use xrce_common::ipc::{
     reply_service, request_service, Reply, ReplyMessage, Request, RequestMessage, Route, Sample,
 };
 use xrce_common::wire::Dialect;
 
 const BODY: [u8; 40] = [0x5A; 40];
+
+/// Waits until `rx` is notified or `timeout_ms` passes, as the worker's loop does.
+fn wait_readable(rx: &Receiver, timeout_ms: u16) {
+    let mut fds = [PollFd::new(rx.as_fd(), PollFlags::POLLIN)];
+    let _ = poll(&mut fds, PollTimeout::from(timeout_ms));
+}
 
 struct Ends {
     req_tx: Sender,
@@ -125,7 +133,7 @@ fn hop(c: &mut Criterion) {
             .expect("reply sender");
         let _ = ready_tx.send(());
         while !stop2.load(Ordering::Relaxed) {
-            let _ = wait_readable(&[req_rx.raw_fd()], 50);
+            wait_readable(&req_rx, 50);
             answer(&req_rx, &rep_tx);
         }
     });
@@ -147,7 +155,7 @@ fn hop(c: &mut Criterion) {
                 let _ = req_tx.notify();
                 let end = Instant::now() + Duration::from_secs(1);
                 loop {
-                    let _ = wait_readable(&[rep_rx.raw_fd()], 100);
+                    wait_readable(&rep_rx, 100);
                     rep_rx.clear_events();
                     let got = rep_rx
                         .drain(|m| {

@@ -4,7 +4,7 @@
 
 use std::cell::{Cell, RefCell};
 use std::collections::VecDeque;
-use std::os::fd::{AsRawFd, RawFd};
+use std::os::fd::{AsFd, BorrowedFd};
 use std::os::unix::net::UnixStream;
 use std::rc::Rc;
 use std::sync::Arc;
@@ -383,8 +383,8 @@ impl DdsBackend for Fake {
         Ok(g)
     }
 
-    fn readiness_fd(&self) -> RawFd {
-        self.wake.0.as_raw_fd()
+    fn readiness_fd(&self) -> BorrowedFd<'_> {
+        self.wake.0.as_fd()
     }
 
     fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()> {

@@ -32,7 +32,7 @@
 
 use std::cell::{Cell, RefCell};
 use std::collections::{BTreeMap, HashMap, VecDeque};
-use std::os::fd::RawFd;
+use std::os::fd::BorrowedFd;
 use std::rc::Rc;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -41,8 +41,8 @@ use super::{
     DdsBackend, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken, Sample,
     SampleIdentity, Taken, TopicSpec,
 };
+use crate::backend::policies::{Durability, History, OwnershipKind, Period, Reliability};
 use crate::types::KeyDescriptor;
-use crate::xml::{Durability, History, OwnershipKind, Period, Reliability};
 
 /// Most samples a reader's local queue keeps when its resource limits set none.
 pub const LOCAL_QUEUE_MAX: usize = 65_536;
@@ -722,7 +722,7 @@ impl DdsBackend for LocalDelivery {
         self.inner.participant_guid(domain)
     }
 
-    fn readiness_fd(&self) -> RawFd {
+    fn readiness_fd(&self) -> BorrowedFd<'_> {
         self.inner.readiness_fd()
     }
 
@@ -765,8 +765,8 @@ impl DdsBackend for LocalDelivery {
 mod tests {
     use super::*;
     use crate::backend::fake::{self, keyed_spec, Fake};
+    use crate::backend::policies::{QosDesc, ResourceLimitsDesc};
     use crate::backend::{DdsConfig, EndpointSide};
-    use crate::xml::{QosDesc, ResourceLimitsDesc};
 
     fn spec(name: &str) -> TopicSpec {
         TopicSpec {

@@ -18,7 +18,7 @@
 //! that is also a well-known DDS port, such as 7401, domain 0's user-data multicast port).
 
 use std::net::IpAddr;
-use std::os::fd::RawFd;
+use std::os::fd::BorrowedFd;
 use std::sync::Arc;
 
 use bytes::Bytes;
@@ -30,6 +30,7 @@ pub mod confine;
 #[cfg(feature = "cyclone")]
 pub mod cyclone;
 pub mod local;
+pub mod policies;
 pub mod ports;
 pub mod qos;
 pub mod rustdds;
@@ -417,7 +418,7 @@ pub trait DdsBackend {
     /// The GUID of the participant the domain's writers live on (the ROS graph names it).
     fn participant_guid(&mut self, domain: u16) -> Result<Guid, String>;
     /// A descriptor that polls readable when some reader may have data.
-    fn readiness_fd(&self) -> RawFd;
+    fn readiness_fd(&self) -> BorrowedFd<'_>;
     /// Adds the tokens of readers that may have data since the last call (never blocks;
     /// a reader may be named without data, and the worker takes from it until empty).
     fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()>;

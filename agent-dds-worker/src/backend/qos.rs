@@ -4,7 +4,9 @@
 
 use std::time::Duration;
 
-use crate::xml::{Durability, History, OwnershipKind, QosDesc, Reliability, ResourceLimitsDesc};
+use crate::backend::policies::{
+    Durability, History, OwnershipKind, QosDesc, Reliability, ResourceLimitsDesc,
+};
 
 /// Which side an endpoint is on; defaults follow the reference agent (Fast DDS): writers
 /// reliable and transient-local, readers best-effort and volatile.

@@ -387,16 +387,11 @@ impl Worker {
             } else {
                 timeout
             };
-            let mut fds = [requests.raw_fd(), self.dds.readiness_fd(), -1];
-            if let Some(s) = &self.services_dds {
-                fds[2] = s.readiness_fd();
-            }
-            let watched = if self.services_dds.is_some() { 3 } else { 2 };
-            let ready = xrce_common::ipc::shm::wait_readable(&fds[..watched], timeout)?;
+            let requests_ready = self.wait(requests, timeout)?;
             let pass = Instant::now();
             // Wake-ups are consumed only when there are some (a system call each time, and
             // the loop runs per sample under load); the queue itself is read every time.
-            if ready & 1 != 0 {
+            if requests_ready {
                 requests.clear_events();
             }
             let taken = requests.drain(|m| self.handle_request(m))?;
@@ -433,6 +428,32 @@ impl Worker {
                     "a worker loop pass took long; front-ends' operations waited meanwhile"
                 );
             }
+        }
+    }
+
+    /// Blocks until the front-ends' requests or a DDS backend's readers may have something,
+    /// `timeout_ms` passes, or a signal arrives (then the caller checks for termination);
+    /// whether the requests' descriptor polled readable.
+    ///
+    /// poll(2), level-triggered, not an edge-triggered poller as the front-end's: the
+    /// backends' descriptors signal a condition (a Cyclone reader queue, a RustDDS poller)
+    /// that each pass drains only up to a batch, and must wake the next wait as long as it
+    /// holds.
+    fn wait(&self, requests: &Receiver, timeout_ms: i32) -> std::io::Result<bool> {
+        use nix::poll::{PollFd, PollFlags, PollTimeout};
+        use std::os::fd::AsFd;
+        let mut fds = vec![
+            PollFd::new(requests.as_fd(), PollFlags::POLLIN),
+            PollFd::new(self.dds.readiness_fd(), PollFlags::POLLIN),
+        ];
+        if let Some(s) = &self.services_dds {
+            fds.push(PollFd::new(s.readiness_fd(), PollFlags::POLLIN));
+        }
+        let timeout = PollTimeout::try_from(timeout_ms.max(0)).unwrap_or(PollTimeout::MAX);
+        match nix::poll::poll(&mut fds, timeout) {
+            Ok(_) => Ok(fds[0].revents().is_some_and(|r| !r.is_empty())),
+            Err(nix::errno::Errno::EINTR) => Ok(false),
+            Err(e) => Err(e.into()),
         }
     }
 

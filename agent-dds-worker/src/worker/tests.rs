@@ -424,7 +424,9 @@ fn shared_writers_share_one_backend_writer_per_qos_and_byte_order() {
     assert_eq!(topic, TOPIC);
     assert_eq!(
         qos.history,
-        crate::xml::History::KeepLast(crate::backend::qos::DEFAULT_DEPTH * SHARE_GROUP as i32)
+        crate::backend::policies::History::KeepLast(
+            crate::backend::qos::DEFAULT_DEPTH * SHARE_GROUP as i32
+        )
     );
     // Transient-local writers keep history for late joiners: never shared.
     let transient = writer_xml(TOPIC, "NO_KEY", "TRANSIENT_LOCAL");
@@ -542,8 +544,14 @@ fn a_reply_reaches_the_requester_that_asked_and_no_other() {
             topic.starts_with("rq/") || topic.starts_with("rr/"),
             "{topic}"
         );
-        assert_eq!(qos.reliability, crate::xml::Reliability::Reliable);
-        assert_eq!(qos.durability, crate::xml::Durability::Volatile);
+        assert_eq!(
+            qos.reliability,
+            crate::backend::policies::Reliability::Reliable
+        );
+        assert_eq!(
+            qos.durability,
+            crate::backend::policies::Durability::Volatile
+        );
     }
     assert_eq!(t.bus.endpoints.borrow().len(), 4);
     t.write(CLIENT, requester, [0, 0x41], &[1, 0, 0, 0, 2, 0, 0, 0]);

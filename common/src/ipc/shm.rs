@@ -9,7 +9,7 @@
 //! and the event sockets, is the private `<runtime>/ipc/` (see [`super::runtime_dir`]);
 //! the shared-memory segments (`xrce_<instance>_*` in `/dev/shm`) are 0600.
 
-use std::os::fd::RawFd;
+use std::os::fd::{AsFd, AsRawFd, BorrowedFd, RawFd};
 
 use iceoryx2::port::backpressure_strategy::BackpressureStrategy;
 use iceoryx2::port::listener::Listener;
@@ -281,44 +281,6 @@ impl IpcNode {
     }
 }
 
-/// Most descriptors [`wait_readable`] watches.
-pub const WAIT_MAX_FDS: usize = 8;
-
-/// Blocks until one of `fds` is readable, `timeout_ms` passes (-1: no timeout) or a signal
-/// arrives (then it returns `Ok` too, so the caller can check for termination). The event
-/// loops of the front-end and the worker wait here on their sockets and IPC listeners.
-/// Returns which are readable (or in error, so that the caller's read reports it): bit `i`
-/// for `fds[i]`; descriptors beyond [`WAIT_MAX_FDS`] are not watched.
-pub fn wait_readable(fds: &[RawFd], timeout_ms: i32) -> std::io::Result<u64> {
-    let mut pollfds = [libc::pollfd {
-        fd: -1,
-        events: 0,
-        revents: 0,
-    }; WAIT_MAX_FDS];
-    debug_assert!(fds.len() <= WAIT_MAX_FDS, "wait_readable watches at most 8");
-    let n = fds.len().min(WAIT_MAX_FDS);
-    for (p, &fd) in pollfds.iter_mut().zip(fds) {
-        p.fd = fd;
-        p.events = libc::POLLIN;
-    }
-    // SAFETY: `pollfds` is a valid, exclusively borrowed array of at least `n` pollfd for
-    // the duration of the call.
-    #[allow(unsafe_code)]
-    let rc = unsafe { libc::poll(pollfds.as_mut_ptr(), n as libc::nfds_t, timeout_ms) };
-    if rc < 0 {
-        let e = std::io::Error::last_os_error();
-        if e.kind() != std::io::ErrorKind::Interrupted {
-            return Err(e);
-        }
-        return Ok(0);
-    }
-    Ok(pollfds[..n]
-        .iter()
-        .enumerate()
-        .filter(|(_, p)| p.revents != 0)
-        .fold(0, |m, (i, _)| m | (1 << i)))
-}
-
 /// Refuses to open an instance whose names in `/dev/shm` are taken by something that is
 /// not this user's regular file: another user could have made it (the names are
 /// predictable) so that the agent maps memory that user reads or writes.
@@ -527,15 +489,23 @@ pub struct Receiver {
     listener: Listener<ipc::Service>,
 }
 
-impl Receiver {
-    /// A file descriptor that becomes readable when a sender notifies.
-    pub fn raw_fd(&self) -> RawFd {
-        // SAFETY: the descriptor stays owned by the listener, which outlives every use the
-        // callers make of it (they only pass it to poll(2) while the receiver exists).
+/// The listener's descriptor, borrowed for as long as the receiver lives.
+impl AsFd for Receiver {
+    fn as_fd(&self) -> BorrowedFd<'_> {
+        // SAFETY: the descriptor is open and owned by the listener, which lives as long as
+        // `self`; the borrow returned cannot outlive `self`, so it cannot outlive the
+        // descriptor (iceoryx2 closes it only when the listener is dropped).
         #[allow(unsafe_code)]
         unsafe {
-            self.listener.file_descriptor().native_handle()
+            BorrowedFd::borrow_raw(self.listener.file_descriptor().native_handle())
         }
+    }
+}
+
+impl Receiver {
+    /// A file descriptor that becomes readable when a sender notifies (see [`AsFd`]).
+    pub fn raw_fd(&self) -> RawFd {
+        self.as_fd().as_raw_fd()
     }
 
     /// Consumes pending wake-ups (otherwise the descriptor stays readable).

@@ -38,7 +38,7 @@
 use std::collections::HashMap;
 use std::ffi::{c_char, c_void, CStr, CString};
 use std::io::{Read, Write};
-use std::os::fd::{AsRawFd, RawFd};
+use std::os::fd::{AsFd, BorrowedFd};
 use std::os::unix::net::UnixStream;
 use std::sync::atomic::{AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -747,8 +747,8 @@ impl Readiness {
     }
 
     /// The descriptor that polls readable when a reader was signalled.
-    pub fn fd(&self) -> RawFd {
-        self.rx.as_raw_fd()
+    pub fn fd(&self) -> BorrowedFd<'_> {
+        self.rx.as_fd()
     }
 
     /// Whether tokens wait in the queue (some were queued on the taking thread, which the

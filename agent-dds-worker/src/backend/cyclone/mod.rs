@@ -13,7 +13,7 @@
 use std::collections::{HashMap, VecDeque};
 use std::fmt::Write as _;
 use std::net::IpAddr;
-use std::os::fd::RawFd;
+use std::os::fd::BorrowedFd;
 use std::rc::{Rc, Weak};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
@@ -649,7 +649,7 @@ impl DdsBackend for Cyclone {
         };
         let topic = self.topic(g, spec)?;
         let raw = ffi::Writer::new(g.entity.handle(), &topic, &qos::to_cyclone(qos)?)?;
-        let reliable = qos.reliability == crate::xml::Reliability::Reliable;
+        let reliable = qos.reliability == crate::backend::policies::Reliability::Reliable;
         let (acks, watcher) = if reliable {
             (
                 self.acks.watch(raw.handle()),
@@ -717,7 +717,7 @@ impl DdsBackend for Cyclone {
         self.participant(domain)?.guid()
     }
 
-    fn readiness_fd(&self) -> RawFd {
+    fn readiness_fd(&self) -> BorrowedFd<'_> {
         self.readiness.fd()
     }
 
@@ -754,9 +754,10 @@ impl DdsBackend for Cyclone {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::os::fd::{AsRawFd, RawFd};
     use crate::backend::fake::{keyed, keyed_spec};
+    use crate::backend::policies::{History, QosDesc, Reliability};
     use crate::backend::EndpointSide;
-    use crate::xml::{History, QosDesc, Reliability};
     use std::time::{Duration, Instant};
 
     fn addr(a: &str) -> IpAddr {
@@ -793,7 +794,7 @@ mod tests {
             if got.len() >= n {
                 break;
             }
-            if woken(dds.readiness_fd()) {
+            if woken(dds.readiness_fd().as_raw_fd()) {
                 dds.ready_readers(&mut tokens).expect("ready");
             }
         }
@@ -846,7 +847,7 @@ mod tests {
         // without a byte through the socket pair, for the loop takes the queue after every
         // pass (listeners on Cyclone's threads write one: ffi's tests).
         assert!(
-            !woken(dds.readiness_fd()),
+            !woken(dds.readiness_fd().as_raw_fd()),
             "no wake-up on the taking thread"
         );
         dds.ready_readers(&mut tokens).expect("ready");

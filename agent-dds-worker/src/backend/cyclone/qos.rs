@@ -1,11 +1,11 @@
 //! Cyclone DDS policies for an endpoint's resolved QoS.
 
 use super::ffi::{self, Qos, INFINITY};
-use crate::backend::EndpointQos;
-use crate::xml::{
+use crate::backend::policies::{
     AccessScope, DestinationOrderKind, Durability, History, LivelinessKind, OwnershipKind, Period,
     Reliability,
 };
+use crate::backend::EndpointQos;
 
 /// Nanoseconds of a period (infinite beyond `i64`).
 fn ns(p: Period) -> i64 {

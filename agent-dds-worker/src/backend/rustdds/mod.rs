@@ -8,7 +8,7 @@
 
 use std::cell::Cell;
 use std::collections::HashMap;
-use std::os::fd::{AsRawFd, RawFd};
+use std::os::fd::{AsFd, BorrowedFd};
 use std::rc::Rc;
 use std::sync::Arc;
 use std::time::Duration;
@@ -361,8 +361,8 @@ impl DdsBackend for RustDds {
         Ok(self.participant(domain, Role::Publish)?.guid().to_bytes())
     }
 
-    fn readiness_fd(&self) -> RawFd {
-        self.poll.as_raw_fd()
+    fn readiness_fd(&self) -> BorrowedFd<'_> {
+        self.poll.registry().as_fd()
     }
 
     fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()> {

@@ -3,11 +3,11 @@
 use rustdds::policy;
 use rustdds::{QosPolicies, QosPolicyBuilder};
 
-use crate::backend::EndpointQos;
-use crate::xml::{
+use crate::backend::policies::{
     AccessScope, DestinationOrderKind, Durability, History, LivelinessKind, OwnershipKind, Period,
     Reliability,
 };
+use crate::backend::EndpointQos;
 
 /// The RustDDS policies of an endpoint.
 pub fn to_rustdds(qos: &EndpointQos) -> QosPolicies {
@@ -105,11 +105,11 @@ mod tests {
 
     #[test]
     fn every_described_policy_reaches_rustdds_and_the_endpoint_overrides_the_topic() {
-        use crate::backend::EndpointSide;
-        use crate::xml::{
+        use crate::backend::policies::{
             AccessScope, DestinationOrderKind, LivelinessKind, OwnershipKind, Period,
             PresentationDesc, QosDesc, ResourceLimitsDesc,
         };
+        use crate::backend::EndpointSide;
         let ms = |v| Period::Finite(std::time::Duration::from_millis(v));
         let topic = QosDesc {
             deadline: Some(ms(100)),

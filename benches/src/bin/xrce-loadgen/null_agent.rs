@@ -6,10 +6,12 @@
 
 use std::collections::HashMap;
 use std::net::{SocketAddr, UdpSocket};
-use std::os::fd::AsRawFd;
+use std::os::fd::AsFd;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
+
+use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
 
 use xrce_common::session::agent::{Agent, AgentConfig, DataReply, Operation, OperationSink};
 use xrce_common::wire::{status, BaseObjectRequest, ClientKey, ResultStatus};
@@ -101,7 +103,8 @@ fn serve(socket: &UdpSocket, stop: &AtomicBool) {
         implementation_status: 0,
     };
     while !stop.load(Ordering::Relaxed) {
-        let _ = xrce_common::ipc::shm::wait_readable(&[socket.as_raw_fd()], 1);
+        let mut fds = [PollFd::new(socket.as_fd(), PollFlags::POLLIN)];
+        let _ = poll(&mut fds, PollTimeout::from(1u8));
         let now = Instant::now();
         let mut c = Collected::default();
         for _ in 0..256 {
