@@ -2,7 +2,7 @@
 //! executes their operations, and streams samples of active reads back.
 //!
 //! It is not an XRCE endpoint: it never sees client datagrams, only the IPC contract of
-//! `xrce_common::ipc`. Samples pass through as serialized bytes. The DDS implementation sits
+//! `xrce_ipc`. Samples pass through as serialized bytes. The DDS implementation sits
 //! behind [`backend`] (Cyclone DDS by default, `backend::cyclone`, and [`backend::rustdds`]).
 //!
 //! # QoS mapping

@@ -9,19 +9,19 @@
 //! none of an earlier one's); the front-end drops those its predecessor had delivered (it
 //! stores the identity of the last sample delivered from each writer before it transmits).
 //! At most [`RECENT_MAX`] samples and [`RECENT_MAX_BYTES`] are kept per front-end: more than
-//! its reply queue holds ([`xrce_common::ipc::CHANNEL_DEPTH`]) for samples up to 16 KiB;
+//! its reply queue holds ([`xrce_ipc::CHANNEL_DEPTH`]) for samples up to 16 KiB;
 //! of larger samples fewer than can be in flight are kept (the newest).
 
 use std::borrow::Cow;
 use std::collections::VecDeque;
 
-use xrce_common::ipc::Sample;
 use xrce_common::wire::RequestId;
+use xrce_ipc::Sample;
 
 use crate::adoption::EntityKey;
 
 /// Most samples kept per front-end.
-pub const RECENT_MAX: usize = 2 * xrce_common::ipc::CHANNEL_DEPTH;
+pub const RECENT_MAX: usize = 2 * xrce_ipc::CHANNEL_DEPTH;
 /// Most bytes of samples kept per front-end.
 pub const RECENT_MAX_BYTES: usize = 4 << 20;
 
@@ -124,8 +124,8 @@ impl RecentSamples {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use xrce_common::ipc::SampleIdentity;
     use xrce_common::wire::{ClientKey, ObjectId};
+    use xrce_ipc::SampleIdentity;
 
     fn key(n: u16) -> EntityKey {
         (0, ClientKey([1, 2, 3, 4]), ObjectId::new(n, 6))

@@ -13,7 +13,7 @@ use mio::unix::SourceFd;
 use mio::{Events, Interest, Poll, Token};
 use xrce_common::session::agent::{Agent, AgentConfig};
 
-use xrce_common::ipc::status::{Reporter, Watchdog};
+use xrce_ipc::status::{Reporter, Watchdog};
 
 use crate::relay::link::{ShmInbox, ShmLink};
 use crate::relay::Relay;

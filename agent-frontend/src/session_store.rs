@@ -2,7 +2,7 @@
 //! killed hard (or replaced by a new binary) is taken over without its clients noticing.
 //!
 //! One directory per front-end (`<runtime>/<instance>/sessions/frontend-<id>/`, in the
-//! agent's private runtime directory: [`xrce_common::ipc::runtime_dir`]), and in it per
+//! agent's private runtime directory: [`xrce_ipc::runtime_dir`]), and in it per
 //! client:
 //!
 //! * `<KEY>.state`: the session core's snapshot
@@ -42,8 +42,8 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use xrce_common::ipc::runtime_dir::{self, LockFile, RuntimeDirError};
 use xrce_common::wire::ClientKey;
+use xrce_ipc::runtime_dir::{self, LockFile, RuntimeDirError};
 
 use crate::sys::mapped_file::MappedFile;
 
@@ -188,7 +188,7 @@ impl SessionStore {
             .ok()
             .and_then(|b| b.try_into().ok().map(u64::from_le_bytes))
             .is_some_and(|ms| {
-                xrce_common::ipc::status::unix_ms().saturating_sub(ms)
+                xrce_ipc::status::unix_ms().saturating_sub(ms)
                     <= TAKE_OVER_WITHIN.as_millis() as u64
             });
         let mut out = Vec::new();
@@ -286,7 +286,7 @@ impl SessionStore {
             return;
         }
         self.next_alive = now + ALIVE_PERIOD;
-        let ms = xrce_common::ipc::status::unix_ms().to_le_bytes();
+        let ms = xrce_ipc::status::unix_ms().to_le_bytes();
         let r = write_atomically(&self.dir.join("alive"), &ms);
         self.note(r, None);
     }
@@ -679,7 +679,7 @@ mod tests {
 
     #[test]
     fn a_state_file_of_another_user_is_not_restored() {
-        if xrce_common::ipc::runtime_dir::euid() != 0 {
+        if xrce_ipc::runtime_dir::euid() != 0 {
             return; // only root can give a file away
         }
         let mut s = store("foreign");
@@ -700,7 +700,7 @@ mod tests {
     fn a_store_locked_by_another_front_end_is_refused() {
         let dir = std::env::temp_dir().join(format!("xrce-store-locked-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
-        xrce_common::ipc::runtime_dir::prepare_private_dir(&dir).expect("dir");
+        xrce_ipc::runtime_dir::prepare_private_dir(&dir).expect("dir");
         // Another open file description: another front-end, as far as flock is concerned.
         let other = LockFile::acquire(&dir.join("lock"), "front-end 0").expect("lock");
         let e = SessionStore::open_at(dir.clone()).expect_err("locked");
@@ -718,7 +718,7 @@ mod tests {
         let key = ClientKey([5, 6, 7, 8]);
         s.save_objects(key, b"o");
         s.save_state(key, b"s");
-        let old = xrce_common::ipc::status::unix_ms() - 2 * TAKE_OVER_WITHIN.as_millis() as u64;
+        let old = xrce_ipc::status::unix_ms() - 2 * TAKE_OVER_WITHIN.as_millis() as u64;
         std::fs::write(s.dir().join("alive"), old.to_le_bytes()).expect("alive");
         let dir = s.dir().to_path_buf();
         assert!(SessionStore::open_at(dir.clone())

@@ -1,14 +1,14 @@
 //! The front-end's status report: its sessions, counters and drops, written every second
 //! from the event loop for `xrce-agent status` and the metrics endpoint (see
-//! [`xrce_common::ipc::status`]). Written from the loop itself, the report's age also tells
+//! [`xrce_ipc::status`]). Written from the loop itself, the report's age also tells
 //! the supervisor's watchdog whether the loop still turns.
 
 use std::collections::BTreeMap;
 use std::time::Instant;
 
-use xrce_common::ipc::status::{FrontendStatus, ProcessReport, SessionStatus};
 use xrce_common::session::agent::Agent;
 use xrce_common::wire::Dialect;
+use xrce_ipc::status::{FrontendStatus, ProcessReport, SessionStatus};
 
 use crate::relay::{Link, Relay};
 use crate::transport::Transport;

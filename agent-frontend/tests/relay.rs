@@ -8,9 +8,6 @@
 use std::cell::{Cell, RefCell};
 use std::time::{Duration, Instant};
 
-use xrce_common::ipc::{
-    Encode, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
-};
 use xrce_common::session::agent::{Agent, AgentConfig};
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
 use xrce_common::wire::{
@@ -19,6 +16,9 @@ use xrce_common::wire::{
 };
 use xrce_frontend::relay::link::MemoryLink;
 use xrce_frontend::relay::Relay;
+use xrce_ipc::{
+    Encode, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
+};
 
 const ADDR: u32 = 7;
 
@@ -509,8 +509,8 @@ impl Rig {
 
 /// Best-effort writes that go to the worker at once, in hand-over mode.
 fn best_effort_share() -> u64 {
-    use xrce_common::ipc::IN_FLIGHT_WINDOW;
     use xrce_frontend::relay::{BEST_EFFORT_RESERVE, HAND_OVER_HEADROOM};
+    use xrce_ipc::IN_FLIGHT_WINDOW;
     IN_FLIGHT_WINDOW - HAND_OVER_HEADROOM - BEST_EFFORT_RESERVE
 }
 
@@ -790,8 +790,8 @@ fn a_quiet_clients_best_effort_writes_wait_while_a_flooding_client_is_shed() {
 
 #[test]
 fn small_reliable_messages_may_fill_the_window() {
-    use xrce_common::ipc::IN_FLIGHT_WINDOW;
     use xrce_frontend::relay::HAND_OVER_HEADROOM;
+    use xrce_ipc::IN_FLIGHT_WINDOW;
     let (worker, mut rig, w) = Rig::handing_over_with_writer(6);
     // The worker takes nothing meanwhile; each message carries one WRITE_DATA, so each
     // needs room for one operation, not for the largest message.

@@ -14,11 +14,11 @@ use std::time::{Duration, Instant};
 use criterion::{criterion_group, criterion_main, Criterion};
 use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
 use std::os::fd::AsFd;
-use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind};
-use xrce_common::ipc::{
+use xrce_common::wire::Dialect;
+use xrce_ipc::shm::{IpcNode, Receiver, Sender, ServiceKind};
+use xrce_ipc::{
     reply_service, request_service, Reply, ReplyMessage, Request, RequestMessage, Route, Sample,
 };
-use xrce_common::wire::Dialect;
 
 const BODY: [u8; 40] = [0x5A; 40];
 

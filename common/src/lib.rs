@@ -4,19 +4,16 @@
 //! * [`session`]: sans-IO state machines: the agent side (client registry, streams,
 //!   reliability) and a client side used by tests and the load generator.
 //! * [`framing`]: byte-stream framers for TCP (length prefix) and serial lines.
-//! * [`ipc`]: the versioned contract between front-ends and the DDS worker.
 //! * [`fault`]: faults injected on purpose (feature `fault-injection`, test builds only).
 //! * [`fuzzing`]: invariant-checking entry points for the fuzz targets and their corpus tests.
 //!
 //! This crate owns no socket, no thread and no clock: callers pass bytes, sources and
-//! `Instant`s in, and take transmits, operations and timer deadlines out. The one exception
-//! is the process plumbing of feature `shm`: [`ipc::shm`], the iceoryx2 ports both processes
-//! use for the contract, and [`ipc::status`], the status reports each process writes.
-#![deny(unsafe_code)]
+//! `Instant`s in, and take transmits, operations and timer deadlines out. The contract between
+//! the agent's processes and its shared memory are the `xrce-ipc` crate's, beside this one.
+#![forbid(unsafe_code)]
 
 pub mod fault;
 pub mod framing;
 pub mod fuzzing;
-pub mod ipc;
 pub mod session;
 pub mod wire;

@@ -69,11 +69,6 @@ fn session_store_corpus_and_regressions() {
     replay("session_store", 8, xrce_common::fuzzing::session_store);
 }
 
-#[test]
-fn ipc_messages_corpus_and_regressions() {
-    replay("ipc_messages", 15, xrce_common::fuzzing::ipc_messages);
-}
-
 /// Checks that the committed seeds of `target` are the current encodings `seeds` gives (or
 /// rewrites them with `XRCE_WRITE_SEEDS=1`): this fails when a format changes and the corpus
 /// was not rewritten.
@@ -102,10 +97,4 @@ fn session_store_seeds_are_current() {
         xrce_common::fuzzing::session_store_seeds(),
         8,
     );
-}
-
-/// The IPC seeds: one message of every kind (rewritten as above).
-#[test]
-fn ipc_seeds_are_current() {
-    seeds_are_current("ipc_messages", xrce_common::fuzzing::ipc_seeds(), 15);
 }

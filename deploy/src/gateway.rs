@@ -310,7 +310,7 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
         }
     }
     if let Some(i) = &file.agent.instance {
-        if !xrce_common::ipc::shm::valid_instance(i) {
+        if !xrce_ipc::shm::valid_instance(i) {
             return Err(c.err(
                 0..0,
                 format!("agent.instance {i:?} must be 1-32 characters of [A-Za-z0-9_-]"),

@@ -13,7 +13,7 @@ use xrce_frontend::cli::TransportKind;
 use crate::cli::{Common, FrontendPlan, DEFAULT_VERBOSITY};
 use crate::gateway::Gateway;
 use crate::{readiness, supervise, verbosity_filter, ChildSpec};
-use xrce_common::ipc::{runtime_dir, status};
+use xrce_ipc::{runtime_dir, status};
 
 /// One front-end of the group.
 #[derive(Debug, Clone)]
@@ -215,10 +215,11 @@ impl Group {
         // one port, bound to different addresses or in different network namespaces, never
         // share one (the instance lock refuses a second agent on the same one).
         let stem = format!("{}-", frontend.label());
-        let instance = common.instance.clone().unwrap_or_else(|| {
-            xrce_common::ipc::derived_instance(&frontend.label(), &frontend.identity())
-        });
-        if !xrce_common::ipc::shm::valid_instance(&instance) {
+        let instance = common
+            .instance
+            .clone()
+            .unwrap_or_else(|| xrce_ipc::derived_instance(&frontend.label(), &frontend.identity()));
+        if !xrce_ipc::shm::valid_instance(&instance) {
             anyhow::bail!("instance name {instance:?} must be 1-32 characters of [A-Za-z0-9_-]");
         }
         if !(common.client_dead_time.is_finite()
@@ -300,7 +301,7 @@ impl Group {
             // Derived from the file (its full path) and the network namespace, as for a
             // command line.
             let file = std::fs::canonicalize(&g.path).unwrap_or_else(|_| g.path.clone());
-            xrce_common::ipc::derived_instance("gw", &file.display().to_string())
+            xrce_ipc::derived_instance("gw", &file.display().to_string())
         });
         let mut env = vec![
             ("XRCE_INSTANCE".to_string(), instance.clone()),
@@ -397,10 +398,7 @@ impl Group {
         let checked = status::ensure_status_dir(&self.instance)
             .map_err(anyhow::Error::from)
             .and_then(|_| {
-                drop(xrce_common::ipc::shm::IpcNode::new(
-                    &self.instance,
-                    "xrce-agent",
-                )?);
+                drop(xrce_ipc::shm::IpcNode::new(&self.instance, "xrce-agent")?);
                 self.preflight()
             });
         if let Err(e) = checked {
@@ -503,25 +501,25 @@ impl Group {
             }
             if !last && !explicit {
                 // Leftovers of earlier agents with this stem that died without cleaning up.
-                for dead in xrce_common::ipc::shm::dead_instances(&stem)
+                for dead in xrce_ipc::shm::dead_instances(&stem)
                     .into_iter()
                     .filter(|d| *d != instance && is_legacy_instance(d, &stem))
                 {
-                    if let Ok(n) = xrce_common::ipc::shm::IpcNode::new(&dead, "xrce-agent") {
+                    if let Ok(n) = xrce_ipc::shm::IpcNode::new(&dead, "xrce-agent") {
                         drop(n);
                     }
-                    xrce_common::ipc::shm::remove_instance_leftovers(&dead);
+                    xrce_ipc::shm::remove_instance_leftovers(&dead);
                     runtime_dir::remove_instance_if_unlocked(&dead);
                     tracing::info!(instance = %dead, "removed shared memory of a dead agent");
                 }
             }
             // Creating a node removes what dead nodes of this instance left in shared memory.
-            match xrce_common::ipc::shm::IpcNode::new(&instance, "xrce-agent") {
+            match xrce_ipc::shm::IpcNode::new(&instance, "xrce-agent") {
                 Ok(n) => drop(n),
                 Err(e) => tracing::warn!(error = %e, "shared-memory cleanup failed"),
             }
             if last {
-                xrce_common::ipc::shm::remove_instance_leftovers(&instance);
+                xrce_ipc::shm::remove_instance_leftovers(&instance);
             }
         };
         // Ready once every front-end reports that it serves (to systemd too, if present).

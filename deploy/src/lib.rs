@@ -23,7 +23,7 @@ use sys::wait_signal;
 
 use nix::sys::signal::{kill, SigSet, Signal};
 use nix::unistd::Pid;
-use xrce_common::ipc::status::{self, ChildStatus, ProcessReport, Reporter, Watchdog};
+use xrce_ipc::status::{self, ChildStatus, ProcessReport, Reporter, Watchdog};
 
 /// One child process the supervisor keeps alive.
 #[derive(Debug, Clone)]

@@ -1,6 +1,6 @@
 //! The metrics endpoint (`--metrics ADDR:PORT`, `[metrics] listen`): a small HTTP server on
 //! its own thread that serves, from the status reports every process of the instance writes
-//! ([`xrce_common::ipc::status`]):
+//! ([`xrce_ipc::status`]):
 //!
 //! * `/metrics`: the Prometheus text exposition (format 0.0.4), encoded by
 //!   `prometheus-client` from a collector that reads the reports on each scrape;
@@ -38,7 +38,7 @@ use prometheus_client::metrics::gauge::ConstGauge;
 use prometheus_client::metrics::MetricType;
 use prometheus_client::registry::Registry;
 use serde::{Deserialize, Serialize};
-use xrce_common::ipc::status::{self, ProcessReport};
+use xrce_ipc::status::{self, ProcessReport};
 
 /// Everything `/status` says: the instance and the reports of its live processes.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -1097,7 +1097,7 @@ fn respond(head: &[u8], registry: &Registry, instance: &str, dir: &std::path::Pa
 mod tests {
     use super::*;
     use std::collections::BTreeMap;
-    use xrce_common::ipc::status::{ChildStatus, FrontendStatus, WorkerStatus};
+    use xrce_ipc::status::{ChildStatus, FrontendStatus, WorkerStatus};
 
     fn snapshot() -> AgentStatus {
         AgentStatus {

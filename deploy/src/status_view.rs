@@ -3,7 +3,7 @@
 //! running agent: its metrics endpoint's `/status` (`--metrics URL`), or the status
 //! reports its processes write on this machine (`--instance NAME`, or every agent of this
 //! user found in its private runtime directory: see
-//! [`xrce_common::ipc::runtime_dir`]).
+//! [`xrce_ipc::runtime_dir`]).
 //!
 //! What it prints comes from other processes, and partly from the network (a client's
 //! peer address, a transport's description), so every string is made printable first
@@ -17,7 +17,7 @@
 use std::fmt::Write as _;
 use std::time::Duration;
 
-use xrce_common::ipc::status::{self, ProcessReport};
+use xrce_ipc::status::{self, ProcessReport};
 
 use crate::metrics::AgentStatus;
 
@@ -209,14 +209,14 @@ fn fetch(args: &StatusArgs) -> anyhow::Result<Vec<AgentStatus>> {
         return Ok(vec![fetch_url(url, args.show_keys)?]);
     }
     if let Some(instance) = &args.instance {
-        if !xrce_common::ipc::shm::valid_instance(instance) {
+        if !xrce_ipc::shm::valid_instance(instance) {
             anyhow::bail!(
                 "instance name {:?} must be 1-32 characters of [A-Za-z0-9_-]",
                 printable(instance)
             );
         }
         // A runtime or instance directory planted by another user is reported, not read.
-        xrce_common::ipc::runtime_dir::check_instance_dir(instance)?;
+        xrce_ipc::runtime_dir::check_instance_dir(instance)?;
         let dir = status::status_dir(instance);
         let s = AgentStatus::read(instance, &dir);
         if s.processes.is_empty() {
@@ -230,7 +230,7 @@ fn fetch(args: &StatusArgs) -> anyhow::Result<Vec<AgentStatus>> {
         }
         return Ok(vec![s]);
     }
-    let found: Vec<AgentStatus> = xrce_common::ipc::runtime_dir::list_instances()?
+    let found: Vec<AgentStatus> = xrce_ipc::runtime_dir::list_instances()?
         .into_iter()
         .map(|(name, dir)| AgentStatus::read(&name, &dir))
         .filter(|s| !s.processes.is_empty())
@@ -240,7 +240,7 @@ fn fetch(args: &StatusArgs) -> anyhow::Result<Vec<AgentStatus>> {
             "no running agent of this user found in {}; for an agent of another user, run \
              this as that user (with its XRCE_RUNTIME_DIR, if set), and for an agent \
              elsewhere, pass --metrics URL",
-            xrce_common::ipc::runtime_dir::runtime_root().0.display()
+            xrce_ipc::runtime_dir::runtime_root().0.display()
         );
     }
     Ok(found)
@@ -453,7 +453,7 @@ pub fn render(agent: &AgentStatus, now_ms: u64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use xrce_common::ipc::status::{ChildStatus, FrontendStatus, SessionStatus};
+    use xrce_ipc::status::{ChildStatus, FrontendStatus, SessionStatus};
 
     #[test]
     fn the_table_lists_processes_and_sessions() {

@@ -1,2 +1,2 @@
 #![no_main]
-libfuzzer_sys::fuzz_target!(|data: &[u8]| xrce_common::fuzzing::ipc_messages(data));
+libfuzzer_sys::fuzz_target!(|data: &[u8]| xrce_ipc::fuzzing::ipc_messages(data));

@@ -400,7 +400,7 @@ impl AgentProcess {
         }
         // The agent's own default: derived from what it serves (and the namespace).
         let instance = instance.unwrap_or_else(|| {
-            xrce_common::ipc::derived_instance(
+            xrce_ipc::derived_instance(
                 &format!("udp4-{port}"),
                 &SocketAddr::new(addr.ip(), port).to_string(),
             )
@@ -505,8 +505,8 @@ impl AgentProcess {
     pub fn stop(self) -> bool {
         let instance = self.instance.clone();
         let clean = self.stop_keeping_sessions();
-        let _ = std::fs::remove_dir_all(xrce_common::ipc::status::sessions_dir(&instance));
-        if let Some(dir) = xrce_common::ipc::status::sessions_dir(&instance).parent() {
+        let _ = std::fs::remove_dir_all(xrce_ipc::status::sessions_dir(&instance));
+        if let Some(dir) = xrce_ipc::status::sessions_dir(&instance).parent() {
             let _ = std::fs::remove_dir(dir);
         }
         clean
@@ -516,12 +516,12 @@ impl AgentProcess {
     /// stay for the next agent of the instance.
     pub fn stop_keeping_sessions(mut self) -> bool {
         let clean = self.terminate();
-        let left = xrce_common::ipc::shm::instance_files(&self.instance);
+        let left = xrce_ipc::shm::instance_files(&self.instance);
         assert!(
             left.is_empty(),
             "stale shared-memory files after stop: {left:?}"
         );
-        let status = xrce_common::ipc::status::status_dir(&self.instance);
+        let status = xrce_ipc::status::status_dir(&self.instance);
         assert!(
             !status.exists(),
             "status reports left after stop in {}",

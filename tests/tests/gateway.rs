@@ -406,6 +406,6 @@ bind = "127.0.0.1"
     );
     drop(frontend);
     assert!(worker.stop_process(), "worker did not stop cleanly");
-    xrce_common::ipc::shm::remove_instance_leftovers(&instance);
+    xrce_ipc::shm::remove_instance_leftovers(&instance);
     let _ = std::fs::remove_dir_all(&dir);
 }

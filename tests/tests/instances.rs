@@ -39,11 +39,11 @@ fn two_agents_on_one_port_do_not_share_their_ipc() {
     );
     assert_ne!(ia[0], ib[0], "two agents on one port share an instance");
     assert!(
-        !xrce_common::ipc::shm::instance_files(&a.instance).is_empty(),
+        !xrce_ipc::shm::instance_files(&a.instance).is_empty(),
         "agent A has no shared memory of its own"
     );
     assert!(
-        !xrce_common::ipc::shm::instance_files(&b.instance).is_empty(),
+        !xrce_ipc::shm::instance_files(&b.instance).is_empty(),
         "agent B has no shared memory of its own"
     );
     // A session with each: every create is answered by that agent's own worker.
@@ -90,7 +90,7 @@ fn a_killed_agents_instance_is_taken_over_and_left_clean_by_the_next_one() {
         std::thread::sleep(Duration::from_millis(10));
     }
     assert!(
-        !xrce_common::ipc::shm::instance_files(&instance).is_empty(),
+        !xrce_ipc::shm::instance_files(&instance).is_empty(),
         "the killed agent left nothing to clean"
     );
     // The same command line derives the same instance: the next agent takes it over (its
@@ -106,7 +106,7 @@ fn a_killed_agents_instance_is_taken_over_and_left_clean_by_the_next_one() {
     c.connect(Duration::from_secs(10));
     c.setup_publisher(17);
     assert!(next.stop());
-    let left = xrce_common::ipc::shm::instance_files(&instance);
+    let left = xrce_ipc::shm::instance_files(&instance);
     assert!(left.is_empty(), "leftovers of the killed agent: {left:?}");
 }
 

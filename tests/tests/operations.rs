@@ -214,9 +214,9 @@ fn a_front_end_whose_loop_stops_is_killed_and_restarted() {
         .child_pid_with("frontend", "udp4")
         .expect("front-end pid");
     // Wait for its first report, so the supervisor knows it reports.
-    let dir = xrce_common::ipc::status::status_dir(agent.instance());
+    let dir = xrce_ipc::status::status_dir(agent.instance());
     let end = Instant::now() + 20 * SECOND;
-    while !xrce_common::ipc::status::read_reports(&dir)
+    while !xrce_ipc::status::read_reports(&dir)
         .iter()
         .any(|r| r.pid == frontend as u32)
     {

@@ -28,7 +28,7 @@ const KEY_NAME: &str = "AAAABBBB";
 const NOBODY: u32 = 65534;
 
 fn euid() -> u32 {
-    xrce_common::ipc::runtime_dir::euid()
+    xrce_ipc::runtime_dir::euid()
 }
 
 fn is_root() -> bool {

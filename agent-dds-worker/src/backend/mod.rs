@@ -22,7 +22,7 @@ use std::os::fd::BorrowedFd;
 use std::sync::Arc;
 
 use bytes::Bytes;
-pub use xrce_common::ipc::SampleIdentity;
+pub use xrce_ipc::SampleIdentity;
 
 use crate::types::KeyDescriptor;
 

@@ -19,9 +19,6 @@ use xrce_common::fault::{self, Fault};
 use std::rc::Rc;
 use std::sync::Arc;
 
-use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
-use xrce_common::ipc::status::{ProcessReport, Reporter, Watchdog, WorkerStatus};
-use xrce_common::ipc::{self, Encode, Reply, ReplyMessage, Request, RequestMessage, Route};
 use xrce_common::wire::cdr::CdrReader;
 use xrce_common::wire::sample::{decode_samples, sample_state};
 use xrce_common::wire::Dialect;
@@ -29,6 +26,9 @@ use xrce_common::wire::{
     object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, ResultStatus,
     VariantExtra,
 };
+use xrce_ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
+use xrce_ipc::status::{ProcessReport, Reporter, Watchdog, WorkerStatus};
+use xrce_ipc::{self as ipc, Encode, Reply, ReplyMessage, Request, RequestMessage, Route};
 
 use crate::acks::{AckTracker, Acknowledging, Outstanding};
 use crate::adoption::{Adoption, Origin};
@@ -376,7 +376,7 @@ impl Worker {
             }
             self.watchdog.maybe_ping(now);
             // At least once per report period: the report's age is the loop's heartbeat.
-            let period = xrce_common::ipc::status::REPORT_PERIOD.as_millis() as i32;
+            let period = xrce_ipc::status::REPORT_PERIOD.as_millis() as i32;
             let timeout = match self.poll_timeout() {
                 t if t < 0 => period,
                 t => t.min(period),

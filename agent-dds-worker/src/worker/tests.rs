@@ -3,9 +3,9 @@
 
 use super::*;
 use crate::backend::fake::{Fake, FakeBus};
-use xrce_common::ipc::shm::ServiceKind;
 use xrce_common::wire::cdr::CdrWriter;
 use xrce_common::wire::{DataDeliveryControl, Representation};
+use xrce_ipc::shm::ServiceKind;
 
 const FE: u32 = 7;
 const CLIENT: ClientKey = ClientKey([0xaa, 0xbb, 0xcc, 0x01]);
@@ -73,7 +73,7 @@ fn variant(kind: u8, xml: &str, extra: VariantExtra) -> Vec<u8> {
 struct Harness {
     worker: Worker,
     bus: Rc<FakeBus>,
-    replies: xrce_common::ipc::shm::Receiver,
+    replies: xrce_ipc::shm::Receiver,
     _node: IpcNode,
 }
 

@@ -8,9 +8,9 @@
 
 use std::time::Instant;
 
-use xrce_common::ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
-use xrce_common::ipc::{self, Encode, Request, RequestMessage, Route};
 use xrce_common::session::agent::{Agent, Endpoint};
+use xrce_ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
+use xrce_ipc::{self as ipc, Encode, Request, RequestMessage, Route};
 
 use super::Relay;
 

@@ -22,7 +22,6 @@
 use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
 
-use xrce_common::ipc::{Request, RequestMessage, Route, IN_FLIGHT_WINDOW};
 use xrce_common::session::agent::{Agent, Endpoint, Operation, OperationSink};
 use xrce_common::session::budget::{BudgetSplit, Episodes, DEFAULT_MEMORY_BUDGET};
 use xrce_common::session::graph::ObjectGraph;
@@ -30,6 +29,7 @@ use xrce_common::wire::cdr::CdrWriter;
 use xrce_common::wire::{
     BaseObjectRequest, ClientKey, ObjectId, ObjectVariant, RequestId, ResultStatus,
 };
+use xrce_ipc::{Request, RequestMessage, Route, IN_FLIGHT_WINDOW};
 
 use crate::object_budget::ObjectBudget;
 use crate::waiting_writes::WaitingWrites;

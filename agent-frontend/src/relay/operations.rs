@@ -5,7 +5,6 @@
 
 use std::time::{Duration, Instant};
 
-use xrce_common::ipc::{Encode, Request};
 use xrce_common::session::agent::{Operation, OperationSink};
 use xrce_common::session::graph::{ActiveRead, CreateDecision, GraphObject, ObjectGraph};
 use xrce_common::wire::cdr::CdrWriter;
@@ -13,6 +12,7 @@ use xrce_common::wire::sample::is_defined_format;
 use xrce_common::wire::{
     status, stream_id, BaseObjectRequest, ClientKey, Dialect, ObjectId, ResultStatus,
 };
+use xrce_ipc::{Encode, Request};
 
 use super::queue::{Awaited, OwnedOp, Weighed};
 use super::{
@@ -20,7 +20,7 @@ use super::{
     HAND_OVER_HEADROOM,
 };
 use crate::waiting_writes::Room;
-use xrce_common::ipc::IN_FLIGHT_WINDOW;
+use xrce_ipc::IN_FLIGHT_WINDOW;
 
 /// GET_INFO mask bit asking for the object's configuration.
 const INFO_CONFIGURATION: u32 = 0x01;

@@ -3,7 +3,7 @@
 
 use std::collections::VecDeque;
 
-use xrce_common::ipc::{Encode, Request, RequestMessage};
+use xrce_ipc::{Encode, Request, RequestMessage};
 
 /// Whether a client waits for the STATUS of an operation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -3,9 +3,9 @@
 use std::collections::HashMap;
 
 use xrce_common::fault::{self, Fault};
-use xrce_common::ipc::{Request, RequestMessage, Route};
 use xrce_common::wire::cdr::CdrWriter;
 use xrce_common::wire::{status, BaseObjectRequest, ClientKey, ObjectId, RequestId, ResultStatus};
+use xrce_ipc::{Request, RequestMessage, Route};
 
 use super::queue::{Awaited, OwnedOp, PendingKind};
 use super::{message, Link, Relay};

@@ -5,10 +5,10 @@
 use std::time::Instant;
 
 use xrce_common::fault::{self, Fault};
-use xrce_common::ipc::{Reply, ReplyMessage, Request};
 use xrce_common::session::agent::{Agent, DataReply, Endpoint};
 use xrce_common::wire::sample::sample_state;
 use xrce_common::wire::{data_format, object_kind, status, stream_id, BaseObjectRequest, ObjectId};
+use xrce_ipc::{Reply, ReplyMessage, Request};
 
 use super::queue::{Awaited, PendingKind};
 use super::{message, Link, Relay, PAUSE_READ_AT};

@@ -7,7 +7,7 @@
 use std::collections::VecDeque;
 use std::time::Instant;
 
-use xrce_common::ipc::{Encode, RequestMessage};
+use xrce_ipc::{Encode, RequestMessage};
 
 use super::queue::{ByteQueue, Weighed};
 use super::{RelayStats, RETAIN_MAX, SETTLE_TIME};

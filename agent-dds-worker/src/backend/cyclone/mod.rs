@@ -754,10 +754,10 @@ impl DdsBackend for Cyclone {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::os::fd::{AsRawFd, RawFd};
     use crate::backend::fake::{keyed, keyed_spec};
     use crate::backend::policies::{History, QosDesc, Reliability};
     use crate::backend::EndpointSide;
+    use std::os::fd::{AsRawFd, RawFd};
     use std::time::{Duration, Instant};
 
     fn addr(a: &str) -> IpAddr {

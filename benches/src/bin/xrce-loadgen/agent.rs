@@ -23,7 +23,7 @@ impl AgentUnderTest {
         let child = Command::new("sh")
             .arg("-c")
             .arg(format!("exec {line}"))
-            .env(xrce_common::ipc::status::STATUS_DIR_ENV, &status_dir)
+            .env(xrce_ipc::status::STATUS_DIR_ENV, &status_dir)
             .spawn()
             .map_err(|e| format!("starting {line:?}: {e}"))?;
         Ok(AgentUnderTest { child, status_dir })
@@ -33,7 +33,7 @@ impl AgentUnderTest {
     /// the front-ends) and the front-ends' other counters, from status reports written after
     /// `since_unix_ms` (waits up to 3 s for them); None for an agent that writes none.
     pub fn counters(&self, since_unix_ms: u64) -> Option<AgentCounters> {
-        use xrce_common::ipc::status::read_reports;
+        use xrce_ipc::status::read_reports;
         let end = Instant::now() + Duration::from_secs(3);
         loop {
             let reports = read_reports(&self.status_dir);

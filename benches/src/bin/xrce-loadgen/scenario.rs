@@ -658,7 +658,7 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     let usage_after = agent.as_ref().and_then(AgentUnderTest::usage);
     let counters = agent
         .as_ref()
-        .and_then(|g| g.counters(xrce_common::ipc::status::unix_ms()));
+        .and_then(|g| g.counters(xrce_ipc::status::unix_ms()));
     let soak_after = killer.as_ref().and_then(|_| usage_after.clone());
     if killer.as_ref().is_some_and(Killer::pending) {
         eprintln!("soak: the run ended before every kill was done (more --samples or a lower --kill-every)");

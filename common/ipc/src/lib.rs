@@ -1,4 +1,7 @@
-//! The contract between front-ends and the DDS worker (version [`IPC_VERSION`]).
+//! The contract between front-ends and the DDS worker (version [`IPC_VERSION`]), and the
+//! process plumbing both sides share: the iceoryx2 link ([`shm`]), the agent's private runtime
+//! directory ([`runtime_dir`]) and the status reports each process writes ([`status`]).
+//! Feature `shm` (default) brings the plumbing; without it, only the messages and their codec.
 //!
 //! The messages are types ([`Request`] and [`Reply`] with their [`Route`]) with one codec in
 //! [`message`]; object descriptions and read specifications travel in their XRCE encoding
@@ -10,6 +13,9 @@
 //! worker generation on [`announce_service`]. Every data service has an event service of the
 //! same name plus `.ev` so receivers block instead of polling.
 
+#![deny(unsafe_code)]
+
+pub mod fuzzing;
 pub mod message;
 #[cfg(feature = "shm")]
 pub mod runtime_dir;
@@ -17,6 +23,9 @@ pub mod runtime_dir;
 pub mod shm;
 #[cfg(feature = "shm")]
 pub mod status;
+#[cfg(feature = "shm")]
+#[allow(unsafe_code)]
+mod sys;
 
 pub use message::{
     Encode, IpcError, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,

@@ -212,53 +212,7 @@ impl RuntimeDirError {
     }
 }
 
-/// The system calls std does not offer, each with its safety argument.
-#[allow(unsafe_code)]
-mod sys {
-    use std::os::fd::AsRawFd;
-
-    /// This process's effective user id.
-    pub fn euid() -> u32 {
-        // SAFETY: geteuid takes no argument, touches no memory and cannot fail.
-        unsafe { libc::geteuid() }
-    }
-
-    /// Takes an exclusive `flock` on `file` without waiting; `Ok(false)` if another open file
-    /// description holds it.
-    pub fn try_flock(file: &std::fs::File) -> std::io::Result<bool> {
-        loop {
-            // SAFETY: the descriptor is open (borrowed from `file` for the call); flock only
-            // changes the lock state of its open file description.
-            let rc = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
-            if rc == 0 {
-                return Ok(true);
-            }
-            let e = std::io::Error::last_os_error();
-            match e.raw_os_error() {
-                Some(libc::EWOULDBLOCK) => return Ok(false),
-                Some(libc::EINTR) => continue,
-                _ => return Err(e),
-            }
-        }
-    }
-
-    /// The file-system type of the file system `file` lives on (`statfs`'s `f_type`).
-    pub fn fs_type(file: &std::fs::File) -> Option<u64> {
-        let mut st = std::mem::MaybeUninit::<libc::statfs>::uninit();
-        // SAFETY: the descriptor is open for the call and `st` is a writable statfs the
-        // kernel fills in completely when the call succeeds (checked before it is read).
-        let rc = unsafe { libc::fstatfs(file.as_raw_fd(), st.as_mut_ptr()) };
-        if rc != 0 {
-            return None;
-        }
-        // SAFETY: fstatfs succeeded, so `st` is initialised.
-        let st = unsafe { st.assume_init() };
-        #[allow(clippy::unnecessary_cast)]
-        Some(st.f_type as u64 & 0xFFFF_FFFF)
-    }
-}
-
-pub use sys::euid;
+pub use crate::sys::euid;
 
 /// The file-system types that keep files in memory (tmpfs, ramfs).
 const MEMORY_FS: [u64; 2] = [0x0102_1994, 0x8584_58f6];
@@ -331,7 +285,7 @@ pub fn ensure_runtime_root() -> Result<PathBuf, RuntimeDirError> {
         prepare_private_dir(&root)?
     };
     static WARNED: std::sync::Once = std::sync::Once::new();
-    if sys::fs_type(&dir).is_some_and(|t| !MEMORY_FS.contains(&t)) {
+    if crate::sys::fs_type(&dir).is_some_and(|t| !MEMORY_FS.contains(&t)) {
         WARNED.call_once(|| {
             tracing::warn!(dir = %root.display(), "the runtime directory is not in memory (tmpfs): session stores map their files there, and a full disk would kill a front-end with SIGBUS instead of an error");
         });
@@ -341,7 +295,7 @@ pub fn ensure_runtime_root() -> Result<PathBuf, RuntimeDirError> {
 
 /// Checks an instance name before it becomes a directory name.
 fn check_instance(instance: &str) -> Result<(), RuntimeDirError> {
-    if super::shm::valid_instance(instance) {
+    if crate::shm::valid_instance(instance) {
         Ok(())
     } else {
         Err(RuntimeDirError::InstanceName(instance.to_string()))
@@ -464,7 +418,7 @@ pub fn list_instances() -> Result<Vec<(String, PathBuf)>, RuntimeDirError> {
         .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
         .filter_map(|e| {
             let name = e.file_name().into_string().ok()?;
-            (name != IPC_DIR && super::shm::valid_instance(&name))
+            (name != IPC_DIR && crate::shm::valid_instance(&name))
                 .then(|| (name, e.path().join("status")))
         })
         .collect();
@@ -498,7 +452,7 @@ fn with_slash(p: PathBuf) -> PathBuf {
 
 /// Longest event-socket file name iceoryx2 makes in its root for an instance (past its
 /// prefix): a listener id (a `u128` in decimal, up to 39 digits) and the suffix.
-pub const IPC_SOCKET_NAME_MAX: usize = 39 + super::shm::EVENT_SUFFIX.len();
+pub const IPC_SOCKET_NAME_MAX: usize = 39 + crate::shm::EVENT_SUFFIX.len();
 /// Longest Unix socket path (`sun_path`, with its terminating NUL).
 const SUN_PATH_MAX: usize = 108;
 
@@ -506,7 +460,7 @@ const SUN_PATH_MAX: usize = 108;
 pub fn ipc_root_fits(root: &Path, instance: &str) -> bool {
     use std::os::unix::ffi::OsStrExt;
     let root_len = root.as_os_str().as_bytes().len() + 1;
-    let prefix_len = super::shm::file_prefix(instance).len();
+    let prefix_len = crate::shm::file_prefix(instance).len();
     root_len + prefix_len + IPC_SOCKET_NAME_MAX < SUN_PATH_MAX
 }
 
@@ -813,7 +767,7 @@ impl LockFile {
         let (file, meta) = regular_file(path, file)?;
         check_owner_mode(path, &meta, 0)?;
         make_private(&file, path)?;
-        if !sys::try_flock(&file).map_err(RuntimeDirError::io("locking", path))? {
+        if !crate::sys::try_flock(&file).map_err(RuntimeDirError::io("locking", path))? {
             let mut text = String::new();
             let _ = (&file).take(32).read_to_string(&mut text);
             return Err(RuntimeDirError::Locked {

@@ -6,7 +6,7 @@
 //! receiver. A [`Receiver`] exposes the file descriptor of its event listener for `poll(2)`.
 //!
 //! Where iceoryx2's files are ([`IpcNode::new`]): its root, with the node and service files
-//! and the event sockets, is the private `<runtime>/ipc/` (see [`super::runtime_dir`]);
+//! and the event sockets, is the private `<runtime>/ipc/` (see [`crate::runtime_dir`]);
 //! the shared-memory segments (`xrce_<instance>_*` in `/dev/shm`) are 0600.
 
 use std::os::fd::{AsFd, AsRawFd, BorrowedFd, RawFd};
@@ -18,7 +18,7 @@ use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
 
-use super::{Encode, CHANNEL_DEPTH, HEADER_LEN, INITIAL_BODY, MAX_BODY};
+use crate::{Encode, CHANNEL_DEPTH, HEADER_LEN, INITIAL_BODY, MAX_BODY};
 
 /// An iceoryx2 failure, with what was being done.
 #[derive(Debug, thiserror::Error)]
@@ -39,7 +39,7 @@ fn err<E: std::fmt::Debug>(what: &'static str) -> impl FnOnce(E) -> ShmError {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ServiceKind {
     /// Operations to the worker: senders keep below the queue depth themselves
-    /// ([`super::IN_FLIGHT_WINDOW`]), so overflow cannot happen; no history.
+    /// ([`crate::IN_FLIGHT_WINDOW`]), so overflow cannot happen; no history.
     Data,
     /// Replies and samples to a front-end: a full queue refuses the message (never
     /// overwrites), and [`Sender::send`] reports it, so the worker can hold it back.
@@ -104,7 +104,7 @@ impl IpcNode {
     /// derived from the instance, so instances never see each other.
     ///
     /// iceoryx2's root (its node and service files and its event sockets, `/tmp/iceoryx2/`
-    /// by default) is the private [`super::runtime_dir::ipc_root`] (0700); its shared-memory
+    /// by default) is the private [`crate::runtime_dir::ipc_root`] (0700); its shared-memory
     /// segments stay in `/dev/shm` (POSIX shared memory has no directory to choose), where
     /// iceoryx2 makes them 0600, except the 16-byte node counter it makes 0666, which is
     /// made 0600 here. Files with this instance's prefix in `/dev/shm` that are not this
@@ -116,12 +116,12 @@ impl IpcNode {
                 detail: format!("{instance:?} is not [A-Za-z0-9_-]{{1,32}}"),
             });
         }
-        let private = |e: super::runtime_dir::RuntimeDirError| ShmError {
+        let private = |e: crate::runtime_dir::RuntimeDirError| ShmError {
             what: "private runtime directory",
             detail: e.to_string(),
         };
-        super::runtime_dir::check_instance_dir(instance).map_err(private)?;
-        let root = super::runtime_dir::ensure_ipc_root(instance).map_err(private)?;
+        crate::runtime_dir::check_instance_dir(instance).map_err(private)?;
+        let root = crate::runtime_dir::ensure_ipc_root(instance).map_err(private)?;
         check_shm_files(instance)?;
         set_log_level(LogLevel::Error);
         let mut config = Config::default();
@@ -228,7 +228,7 @@ impl IpcNode {
         service: &str,
         kind: ServiceKind,
     ) -> Result<iceoryx2::service::port_factory::event::PortFactory<ipc::Service>, ShmError> {
-        let name = ServiceName::new(&super::event_service(service)).map_err(err("service name"))?;
+        let name = ServiceName::new(&crate::event_service(service)).map_err(err("service name"))?;
         self.node
             .service_builder(&name)
             .event()
@@ -290,7 +290,7 @@ fn check_shm_files(instance: &str) -> Result<(), ShmError> {
     let Ok(dir) = std::fs::read_dir(SHM_DIR) else {
         return Ok(());
     };
-    let me = super::runtime_dir::euid();
+    let me = crate::runtime_dir::euid();
     for e in dir.flatten() {
         let named = e
             .file_name()
@@ -347,7 +347,7 @@ fn make_node_counter_private(instance: &str) {
             .open(e.path());
         let Ok(f) = opened else { continue };
         let Ok(m) = f.metadata() else { continue };
-        if m.is_file() && m.uid() == super::runtime_dir::euid() && m.mode() & 0o077 != 0 {
+        if m.is_file() && m.uid() == crate::runtime_dir::euid() && m.mode() & 0o077 != 0 {
             if let Err(err) = f.set_permissions(std::fs::Permissions::from_mode(0o600)) {
                 tracing::debug!(path = %e.path().display(), error = %err, "iceoryx2's node counter stays shared");
             }
@@ -420,7 +420,7 @@ pub fn instance_files(instance: &str) -> Vec<String> {
     };
     let mut out = named(std::path::Path::new(SHM_DIR), "");
     if valid_instance(instance) {
-        let root = super::runtime_dir::ipc_root(instance);
+        let root = crate::runtime_dir::ipc_root(instance);
         for sub in ["", "services/", "nodes/"] {
             out.extend(named(&root.join(sub), &format!("{}{sub}", root.display())));
         }
@@ -492,13 +492,7 @@ pub struct Receiver {
 /// The listener's descriptor, borrowed for as long as the receiver lives.
 impl AsFd for Receiver {
     fn as_fd(&self) -> BorrowedFd<'_> {
-        // SAFETY: the descriptor is open and owned by the listener, which lives as long as
-        // `self`; the borrow returned cannot outlive `self`, so it cannot outlive the
-        // descriptor (iceoryx2 closes it only when the listener is dropped).
-        #[allow(unsafe_code)]
-        unsafe {
-            BorrowedFd::borrow_raw(self.listener.file_descriptor().native_handle())
-        }
+        crate::sys::listener_fd(&self.listener)
     }
 }
 
@@ -537,12 +531,12 @@ mod tests {
 
     #[test]
     fn bodies_beyond_the_initial_segment_size_get_through() {
-        use crate::ipc::{ReplyMessage, Route, Sample, SampleIdentity};
+        use crate::{ReplyMessage, Route, Sample, SampleIdentity};
         use std::borrow::Cow;
         let sample = |data: Vec<u8>| {
             ReplyMessage::new(
                 Route::frontend(1),
-                crate::ipc::Reply::Sample(Sample {
+                crate::Reply::Sample(Sample {
                     identity: SampleIdentity::default(),
                     data: Cow::Owned(data),
                     little_endian: true,

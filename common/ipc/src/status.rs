@@ -2,7 +2,7 @@
 //! the metrics endpoint and the watchdog.
 //!
 //! Every process rewrites its own JSON report in the instance's status directory (in the
-//! private runtime directory, `<runtime>/<instance>/status/`: see [`super::runtime_dir`])
+//! private runtime directory, `<runtime>/<instance>/status/`: see [`crate::runtime_dir`])
 //! about every [`REPORT_PERIOD`], from its event loop: written to a new private temporary
 //! file and renamed, so a reader never sees half a report, and a report that stops changing
 //! means a wedged loop (the supervisor restarts that process). Readers take the reports of
@@ -21,7 +21,7 @@ pub const REPORT_PERIOD: Duration = Duration::from_secs(1);
 /// A report older than this belongs to a process whose loop is stuck.
 pub const STALE_AFTER: Duration = Duration::from_secs(30);
 /// Overrides the directory of the reports (tests, or a system without `/dev/shm`).
-pub const STATUS_DIR_ENV: &str = super::runtime_dir::STATUS_DIR_ENV;
+pub const STATUS_DIR_ENV: &str = crate::runtime_dir::STATUS_DIR_ENV;
 /// Largest report read (a front-end with tens of thousands of sessions writes megabytes).
 pub const MAX_REPORT_BYTES: u64 = 64 << 20;
 
@@ -154,14 +154,14 @@ pub fn unix_ms() -> u64 {
 }
 
 /// The status directory of an instance (a path: nothing is created or checked; see
-/// [`super::runtime_dir::status_dir`]).
+/// [`crate::runtime_dir::status_dir`]).
 pub fn status_dir(instance: &str) -> PathBuf {
-    super::runtime_dir::status_dir(instance)
+    crate::runtime_dir::status_dir(instance)
 }
 
 /// Creates or checks the status directory of an instance (private, ours).
-pub fn ensure_status_dir(instance: &str) -> Result<PathBuf, super::runtime_dir::RuntimeDirError> {
-    super::runtime_dir::ensure_status_dir(instance)
+pub fn ensure_status_dir(instance: &str) -> Result<PathBuf, crate::runtime_dir::RuntimeDirError> {
+    crate::runtime_dir::ensure_status_dir(instance)
 }
 
 /// Where the front-ends of an instance keep their sessions for a successor (see the
@@ -169,14 +169,14 @@ pub fn ensure_status_dir(instance: &str) -> Result<PathBuf, super::runtime_dir::
 /// it to `$XRCE_SESSION_DIR/xrce-sessions-<instance>/`). The supervisor empties it when the
 /// agent starts and stops. A path: nothing is created or checked.
 pub fn sessions_dir(instance: &str) -> PathBuf {
-    super::runtime_dir::sessions_dir(instance)
+    crate::runtime_dir::sessions_dir(instance)
 }
 
 /// The status directories of every instance of this user on this machine (in the runtime
 /// directory), with their instance names; empty when the runtime directory is missing or
-/// cannot be trusted ([`super::runtime_dir::list_instances`] says why).
+/// cannot be trusted ([`crate::runtime_dir::list_instances`] says why).
 pub fn instance_dirs() -> Vec<(String, PathBuf)> {
-    match super::runtime_dir::list_instances() {
+    match crate::runtime_dir::list_instances() {
         Ok(v) => v,
         Err(e) => {
             tracing::warn!(error = %e, "cannot list the agents of this user");
@@ -246,10 +246,10 @@ fn is_zero(v: &u64) -> bool {
 /// missing; if there, it must be a real directory of ours that only we can change): to a new
 /// 0600 temporary file (`O_EXCL | O_NOFOLLOW`), then renamed into place.
 pub fn write_report(dir: &Path, file_stem: &str, report: &ProcessReport) -> std::io::Result<()> {
-    super::runtime_dir::prepare_dir_for_writing(dir).map_err(std::io::Error::other)?;
+    crate::runtime_dir::prepare_dir_for_writing(dir).map_err(std::io::Error::other)?;
     let json = serde_json::to_vec(report).map_err(std::io::Error::other)?;
     let tmp = dir.join(format!(".{file_stem}.{}.tmp", std::process::id()));
-    super::runtime_dir::write_atomically(&dir.join(format!("{file_stem}.json")), &tmp, &json)
+    crate::runtime_dir::write_atomically(&dir.join(format!("{file_stem}.json")), &tmp, &json)
         .map_err(std::io::Error::other)
 }
 
@@ -260,8 +260,8 @@ pub fn remove_report(dir: &Path, file_stem: &str) {
 
 /// The report in `path`, if it is a regular file of ours (opened without following links)
 /// holding one; `Err` says why a file there was not trusted.
-fn read_report(path: &Path) -> Result<Option<ProcessReport>, super::runtime_dir::RuntimeDirError> {
-    let bytes = super::runtime_dir::read_owned(path, MAX_REPORT_BYTES)?;
+fn read_report(path: &Path) -> Result<Option<ProcessReport>, crate::runtime_dir::RuntimeDirError> {
+    let bytes = crate::runtime_dir::read_owned(path, MAX_REPORT_BYTES)?;
     Ok(serde_json::from_slice::<ProcessReport>(&bytes).ok())
 }
 

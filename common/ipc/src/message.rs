@@ -12,8 +12,8 @@
 
 use std::borrow::Cow;
 
-use super::{IPC_MAGIC, IPC_VERSION};
-use crate::wire::{ClientKey, Dialect, ObjectId, RequestId, ResultStatus};
+use crate::{IPC_MAGIC, IPC_VERSION};
+use xrce_common::wire::{ClientKey, Dialect, ObjectId, RequestId, ResultStatus};
 
 /// Bytes in front of every Sample's data: the DDS identity of the sample ([`SampleIdentity`]).
 const SAMPLE_IDENTITY_LEN: usize = 24;
@@ -54,7 +54,7 @@ mod flag {
     pub const DISPOSED: u8 = 0x10;
     /// Sample: it unregisters its instance.
     pub const UNREGISTERED: u8 = 0x20;
-    /// Any request: see [`super::RequestMessage::progress_can_wait`].
+    /// Any request: see [`crate::RequestMessage::progress_can_wait`].
     pub const PROGRESS_CAN_WAIT: u8 = 0x40;
 }
 
@@ -331,9 +331,9 @@ pub struct Sample<'a> {
 }
 
 impl Sample<'_> {
-    /// Whether it fits in a message ([`super::MAX_BODY`]); a larger one is not sent.
+    /// Whether it fits in a message ([`crate::MAX_BODY`]); a larger one is not sent.
     pub fn fits(&self) -> bool {
-        SAMPLE_IDENTITY_LEN + self.data.len() <= super::MAX_BODY
+        SAMPLE_IDENTITY_LEN + self.data.len() <= crate::MAX_BODY
     }
 
     /// A copy that borrows nothing.

@@ -4,11 +4,11 @@
 
 use std::borrow::Cow;
 
-use xrce_common::ipc::{
+use xrce_common::wire::{ClientKey, Dialect, ObjectId, RequestId, ResultStatus};
+use xrce_ipc::{
     Encode, IpcError, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
     HEADER_LEN,
 };
-use xrce_common::wire::{ClientKey, Dialect, ObjectId, RequestId, ResultStatus};
 
 use proptest::prelude::*;
 
@@ -142,7 +142,7 @@ proptest! {
 
     #[test]
     fn any_bytes_decode_or_fail_cleanly(buf in proptest::collection::vec(any::<u8>(), 0..128)) {
-        xrce_common::fuzzing::ipc_messages(&buf);
+        xrce_ipc::fuzzing::ipc_messages(&buf);
     }
 }
 
