@@ -452,3 +452,77 @@ pub fn session_store_seeds() -> Vec<(String, Vec<u8>)> {
     }
     seeds
 }
+
+/// The corpus tests' helpers: every crate with fuzz targets replays their committed inputs
+/// and checks their generated seeds with these (test support: they read and write files and
+/// panic on what is wrong).
+pub mod corpus {
+    use std::path::{Path, PathBuf};
+
+    /// Every input of `target` under the `fuzz` folder: its seed corpus (`corpus/<target>`,
+    /// rebuilt by `fuzz/make_corpus.py` or the seed tests) and its past findings
+    /// (`regressions/<target>`). Both folders must exist: a missing one fails the test instead
+    /// of replaying nothing. Dotfiles (the `.gitkeep` of a target without findings yet) are not
+    /// inputs.
+    pub fn inputs(fuzz: &Path, target: &str) -> Vec<(PathBuf, Vec<u8>)> {
+        let mut out = Vec::new();
+        for dir in [format!("corpus/{target}"), format!("regressions/{target}")] {
+            let path = fuzz.join(&dir);
+            let entries = std::fs::read_dir(&path).unwrap_or_else(|e| {
+                panic!("fuzz/{dir} is missing ({e}): nothing would be replayed")
+            });
+            for e in entries.flatten() {
+                let path = e.path();
+                let hidden = path
+                    .file_name()
+                    .is_some_and(|n| n.to_string_lossy().starts_with('.'));
+                if path.is_file() && !hidden {
+                    let bytes = std::fs::read(&path).expect("readable corpus file");
+                    out.push((path, bytes));
+                }
+            }
+        }
+        out.sort();
+        out
+    }
+
+    /// Runs every input of `target` through `entry`, after checking that there are at least
+    /// `least` (a corpus that went missing would replay nothing).
+    pub fn replay(fuzz: &Path, target: &str, least: usize, entry: fn(&[u8])) {
+        let all = inputs(fuzz, target);
+        assert!(
+            all.len() >= least,
+            "seed corpus of {target} missing: {}",
+            all.len()
+        );
+        for (path, bytes) in all {
+            eprintln!("{}", path.display());
+            entry(&bytes);
+        }
+    }
+
+    /// Checks that the committed seeds of `target` are the current encodings `seeds` gives
+    /// (or rewrites them when `XRCE_WRITE_SEEDS` is set): this fails when a format changes
+    /// and the corpus was not rewritten.
+    pub fn seeds_are_current(
+        fuzz: &Path,
+        target: &str,
+        seeds: Vec<(String, Vec<u8>)>,
+        least: usize,
+    ) {
+        let dir = fuzz.join(format!("corpus/{target}"));
+        let write = std::env::var_os("XRCE_WRITE_SEEDS").is_some();
+        assert!(seeds.len() >= least, "{} seeds", seeds.len());
+        for (name, bytes) in seeds {
+            let path = dir.join(&name);
+            if write {
+                std::fs::create_dir_all(&dir).expect("corpus folder");
+                std::fs::write(&path, &bytes).expect("write seed");
+            } else {
+                let committed = std::fs::read(&path)
+                    .unwrap_or_else(|e| panic!("seed {name} missing ({e}); rewrite the corpus"));
+                assert_eq!(committed, bytes, "seed {name} is stale; rewrite the corpus");
+            }
+        }
+    }
+}
