@@ -2,7 +2,7 @@
 //! and its start-up: open the transport, connect to the worker, run the event loop.
 
 use std::io::Write;
-use std::net::{SocketAddr, TcpListener, UdpSocket};
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -14,10 +14,10 @@ use xrce_common::wire::Dialect;
 use crate::event_loop::OnServing;
 use crate::relay::Relay;
 use crate::transport::discovery::Discovery;
-use crate::transport::multiserial::{LineDevice, SerialTransport};
+use crate::transport::multiserial::LineDevice;
+use crate::transport::registry::{Medium, TransportSpec, TRANSPORTS};
 use crate::transport::serial::TtyConfig;
-use crate::transport::tcp::{TcpConfig, TcpTransport};
-use crate::transport::udp::UdpTransport;
+use crate::transport::tcp::TcpConfig;
 use crate::transport::Transport;
 
 /// The transports a front-end serves.
@@ -40,25 +40,38 @@ pub enum TransportKind {
 }
 
 impl TransportKind {
-    /// The name used on the command line.
+    /// What the front-end knows of it ([`crate::transport::registry`]).
+    pub fn spec(self) -> &'static TransportSpec {
+        // The registry lists the kinds in declaration order (checked by its tests).
+        &TRANSPORTS[self as usize]
+    }
+
+    /// The name used on the command line and in gateway files.
     pub fn name(self) -> &'static str {
-        match self {
-            TransportKind::Udp4 => "udp4",
-            TransportKind::Udp6 => "udp6",
-            TransportKind::Tcp4 => "tcp4",
-            TransportKind::Tcp6 => "tcp6",
-            TransportKind::Serial => "serial",
-            TransportKind::Multiserial => "multiserial",
-            TransportKind::Pseudoterminal => "pseudoterminal",
-        }
+        self.spec().name
+    }
+
+    /// The kind of that name (or of one of its aliases).
+    pub fn by_name(name: &str) -> Option<Self> {
+        TRANSPORTS
+            .iter()
+            .find(|t| t.name == name || t.aliases.contains(&name))
+            .map(|t| t.kind)
+    }
+
+    /// How it reaches clients.
+    pub fn medium(self) -> Medium {
+        self.spec().medium
     }
 
     /// Whether it serves an IP port.
     pub fn is_ip(self) -> bool {
-        matches!(
-            self,
-            TransportKind::Udp4 | TransportKind::Udp6 | TransportKind::Tcp4 | TransportKind::Tcp6
-        )
+        matches!(self.medium(), Medium::Datagrams | Medium::Streams)
+    }
+
+    /// Whether it serves IPv6.
+    pub fn is_ipv6(self) -> bool {
+        self.spec().ipv6
     }
 }
 
@@ -343,7 +356,7 @@ impl FrontendArgs {
     }
 
     /// The address an IP transport serves.
-    fn listen_addr(&self) -> anyhow::Result<SocketAddr> {
+    pub(crate) fn listen_addr(&self) -> anyhow::Result<SocketAddr> {
         self.listen.ok_or_else(|| {
             anyhow::anyhow!(
                 "--listen ADDRESS:PORT is needed for {}",
@@ -353,13 +366,12 @@ impl FrontendArgs {
     }
 
     /// The serial devices, checked for the transport.
-    fn serial_lines(&self) -> anyhow::Result<Vec<LineDevice>> {
-        match (self.transport, self.devices.len()) {
-            (TransportKind::Serial, 1) | (TransportKind::Multiserial, 1..) => {}
-            (TransportKind::Serial, n) => {
-                anyhow::bail!("serial serves exactly one --device, got {n}")
-            }
-            _ => anyhow::bail!("multiserial needs at least one --device"),
+    pub(crate) fn serial_lines(&self) -> anyhow::Result<Vec<LineDevice>> {
+        let name = self.transport.name();
+        match (self.transport.spec().one_device, self.devices.len()) {
+            (true, 1) | (false, 1..) => {}
+            (true, n) => anyhow::bail!("{name} serves exactly one --device, got {n}"),
+            (false, _) => anyhow::bail!("{name} needs at least one --device"),
         }
         if self.devices.len() > u16::MAX as usize {
             anyhow::bail!("at most 65535 devices");
@@ -431,64 +443,12 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
     // Every TCP connection is a descriptor, and so is every stored session's state file.
     raise_fd_limit();
     let on_serving = Some(readiness_reporter());
-    match args.transport {
-        TransportKind::Udp4 | TransportKind::Udp6 => {
-            let addr = args.listen_addr()?;
-            let socket =
-                UdpSocket::bind(addr).map_err(|e| anyhow::anyhow!("binding UDP {addr}: {e}"))?;
-            serve(UdpTransport::new(socket)?, &args, config, on_serving)
-        }
-        TransportKind::Tcp4 | TransportKind::Tcp6 => {
-            let addr = args.listen_addr()?;
-            let listener =
-                TcpListener::bind(addr).map_err(|e| anyhow::anyhow!("binding TCP {addr}: {e}"))?;
-            let tcp = TcpConfig {
-                max_connections: args.max_connections.max(1),
-                max_per_address: args.admission.max_connections_per_address,
-                idle_timeout: (args.admission.tcp_idle_timeout > 0)
-                    .then(|| Duration::from_secs(args.admission.tcp_idle_timeout)),
-                send_buffer: args.tcp_send_buffer.max(1024),
-                ..TcpConfig::default()
-            };
-            serve(TcpTransport::new(listener, tcp)?, &args, config, on_serving)
-        }
-        TransportKind::Serial | TransportKind::Multiserial => {
-            let lines = args.serial_lines()?;
-            if !crate::transport::serial::is_standard_rate(args.baudrate) {
-                tracing::warn!(
-                    baudrate = args.baudrate,
-                    "not a standard baud rate: set as a custom rate"
-                );
-            }
-            let name = args.transport.name();
-            let t = SerialTransport::new(name, lines, xrce_common::framing::serial::MAX_PAYLOAD);
-            serve(t, &args, config, on_serving)
-        }
-        TransportKind::Pseudoterminal => {
-            let (master, slave_path) = match args.pty_fd {
-                Some(fd) => {
-                    let master = crate::sys::owned_fd::inherited(fd)?;
-                    crate::transport::serial::set_nonblocking(&master)?;
-                    (master, args.pty_path.clone().unwrap_or_default())
-                }
-                None => {
-                    let pty = crate::transport::pty::open(args.baudrate)?;
-                    let path = pty.slave_path.display();
-                    println!("Pseudoterminal opened at {path} (dev: {path})");
-                    (pty.master, pty.slave_path)
-                }
-            };
-            let t = SerialTransport::new(
-                "pseudoterminal",
-                vec![LineDevice::Pty { master, slave_path }],
-                xrce_common::framing::serial::MAX_PAYLOAD,
-            );
-            serve(t, &args, config, on_serving)
-        }
-    }
+    (args.transport.spec().serve)(&args, config, on_serving)
 }
 
-fn serve<T: Transport>(
+/// Serves clients over `transport`, opened by its module from `args`: connects to the worker
+/// and runs the event loop until SIGINT/SIGTERM.
+pub(crate) fn serve<T: Transport>(
     transport: T,
     args: &FrontendArgs,
     config: AgentConfig,

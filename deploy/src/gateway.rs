@@ -63,6 +63,7 @@ use serde::Deserialize;
 use toml::Spanned;
 use xrce_common::session::admission::KeyArg;
 use xrce_frontend::cli::{AdmissionArgs, TransportKind};
+use xrce_frontend::transport::registry::{Medium, TRANSPORTS};
 
 use crate::cli::FrontendPlan;
 
@@ -248,20 +249,6 @@ impl Checker<'_> {
     }
 }
 
-fn kind_of(name: &str) -> Option<TransportKind> {
-    use TransportKind as K;
-    Some(match name {
-        "udp4" => K::Udp4,
-        "udp6" => K::Udp6,
-        "tcp4" => K::Tcp4,
-        "tcp6" | "tpc6" => K::Tcp6,
-        "serial" => K::Serial,
-        "multiserial" => K::Multiserial,
-        "pseudoterminal" => K::Pseudoterminal,
-        _ => return None,
-    })
-}
-
 /// Whether sockets bound to `a` and `b` (same port and protocol) would collide: the same
 /// address, a wildcard of the same family, or the IPv6 wildcard (dual-stack) with anything.
 fn overlaps(a: IpAddr, b: IpAddr) -> bool {
@@ -353,12 +340,13 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
         let table = section.span();
         let f = section.get_ref();
         let n = index + 1;
-        let kind = kind_of(f.transport.get_ref()).ok_or_else(|| {
+        let kind = TransportKind::by_name(f.transport.get_ref()).ok_or_else(|| {
             c.err(
                 f.transport.span(),
                 format!(
-                    "frontend {n}: transport {:?} is not one of udp4, udp6, tcp4, tcp6, serial, multiserial, pseudoterminal",
-                    f.transport.get_ref()
+                    "frontend {n}: transport {:?} is not one of {}",
+                    f.transport.get_ref(),
+                    TRANSPORTS.map(|t| t.name).join(", ")
                 ),
             )
         })?;
@@ -399,20 +387,17 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
                 }
             }
         }
-        let is_tcp = matches!(kind, TransportKind::Tcp4 | TransportKind::Tcp6);
+        let is_tcp = kind.medium() == Medium::Streams;
         if let (false, Some(m)) = (is_tcp, &f.max_connections) {
             return Err(here("max_connections", m.span(), "applies to tcp only"));
         }
-        let plan = match kind {
-            TransportKind::Udp4
-            | TransportKind::Udp6
-            | TransportKind::Tcp4
-            | TransportKind::Tcp6 => {
+        let plan = match kind.medium() {
+            Medium::Datagrams | Medium::Streams => {
                 let port = f
                     .port
                     .as_ref()
                     .ok_or_else(|| here("port", table.clone(), "is required"))?;
-                let v6 = matches!(kind, TransportKind::Udp6 | TransportKind::Tcp6);
+                let v6 = kind.is_ipv6();
                 let bind = match &f.bind {
                     Some(b) => {
                         if b.get_ref().is_ipv6() != v6 {
@@ -451,19 +436,18 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
                     max_connections: if is_tcp { max_connections } else { 0 },
                 }
             }
-            TransportKind::Serial | TransportKind::Multiserial => {
-                let list: Vec<(PathBuf, Range<usize>)> = match (kind, &f.device, &f.devices) {
-                    (TransportKind::Serial, Some(d), None) => vec![(d.get_ref().clone(), d.span())],
-                    (TransportKind::Serial, _, Some(d)) => {
+            Medium::SerialLines => {
+                let one = kind.spec().one_device;
+                let list: Vec<(PathBuf, Range<usize>)> = match (one, &f.device, &f.devices) {
+                    (true, Some(d), None) => vec![(d.get_ref().clone(), d.span())],
+                    (true, _, Some(d)) => {
                         return Err(here(
                             "devices",
                             d.span(),
                             "is for multiserial; serial takes `device`",
                         ))
                     }
-                    (TransportKind::Serial, None, None) => {
-                        return Err(here("device", table.clone(), "is required"))
-                    }
+                    (true, None, None) => return Err(here("device", table.clone(), "is required")),
                     (_, Some(d), _) => {
                         return Err(here(
                             "device",
@@ -500,7 +484,7 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
                     flow_control: f.flow_control.as_ref().is_some_and(|b| *b.get_ref()),
                 }
             }
-            TransportKind::Pseudoterminal => FrontendPlan::Pty {
+            Medium::Pseudoterminal => FrontendPlan::Pty {
                 baudrate: f.baudrate.as_ref().map_or(115_200, |b| *b.get_ref()),
             },
         };

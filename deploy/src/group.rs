@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::Duration;
 use xrce_dds_worker::backend::BackendKind;
 
-use xrce_frontend::cli::TransportKind;
+use xrce_frontend::transport::registry::Medium;
 
 use crate::cli::{Common, FrontendPlan, DEFAULT_VERBOSITY};
 use crate::gateway::Gateway;
@@ -139,11 +139,9 @@ fn worker_env(
     let udp_ports: Vec<u16> = frontends
         .iter()
         .filter_map(|f| match f {
-            FrontendPlan::Ip {
-                kind: TransportKind::Udp4 | TransportKind::Udp6,
-                listen,
-                ..
-            } => Some(listen.port()),
+            FrontendPlan::Ip { kind, listen, .. } if kind.medium() == Medium::Datagrams => {
+                Some(listen.port())
+            }
             _ => None,
         })
         .collect();
@@ -361,12 +359,10 @@ impl Group {
     fn preflight(&self) -> anyhow::Result<()> {
         for f in &self.frontends {
             if let FrontendPlan::Ip { kind, listen, .. } = &f.plan {
-                match kind {
-                    TransportKind::Udp4 | TransportKind::Udp6 => {
-                        drop(std::net::UdpSocket::bind(listen).map_err(|e| {
-                            anyhow::anyhow!("front-end {}: cannot bind UDP {listen}: {e}", f.name)
-                        })?)
-                    }
+                match kind.medium() {
+                    Medium::Datagrams => drop(std::net::UdpSocket::bind(listen).map_err(|e| {
+                        anyhow::anyhow!("front-end {}: cannot bind UDP {listen}: {e}", f.name)
+                    })?),
                     _ => drop(std::net::TcpListener::bind(listen).map_err(|e| {
                         anyhow::anyhow!("front-end {}: cannot listen on TCP {listen}: {e}", f.name)
                     })?),

@@ -13,10 +13,14 @@
 //!   devices themselves are opened by [`serial`] (a tty) and [`pty`] (a pseudoterminal);
 //! * [`discovery`] is no transport of sessions but answers multicast agent discovery beside
 //!   one.
+//!
+//! [`registry`] lists them, one line each, with the function of each module that opens it from
+//! the front-end's settings.
 
 pub mod discovery;
 pub mod multiserial;
 pub mod pty;
+pub mod registry;
 pub mod serial;
 pub mod tcp;
 pub mod udp;

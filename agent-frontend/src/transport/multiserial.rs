@@ -559,3 +559,21 @@ impl Transport for SerialTransport {
         ((line as usize) < self.lines.len()).then_some(SerialEndpoint { line, address })
     }
 }
+
+/// The registry's start-up of `serial` and `multiserial`: the `--device` lines at
+/// `--baudrate`, served.
+pub fn serve(
+    args: &crate::cli::FrontendArgs,
+    config: xrce_common::session::agent::AgentConfig,
+    on_serving: Option<crate::event_loop::OnServing>,
+) -> anyhow::Result<()> {
+    let lines = args.serial_lines()?;
+    if !super::serial::is_standard_rate(args.baudrate) {
+        tracing::warn!(
+            baudrate = args.baudrate,
+            "not a standard baud rate: set as a custom rate"
+        );
+    }
+    let t = SerialTransport::new(args.transport.name(), lines, framing::MAX_PAYLOAD);
+    crate::cli::serve(t, args, config, on_serving)
+}

@@ -85,3 +85,32 @@ pub fn slave_is_open(master: &File) -> bool {
         Err(_) => false,
     }
 }
+
+/// The registry's start-up of `pseudoterminal`: serves the pty master the supervisor left
+/// open at `--pty-fd`, or opens a new pseudoterminal and prints its path.
+pub fn serve(
+    args: &crate::cli::FrontendArgs,
+    config: xrce_common::session::agent::AgentConfig,
+    on_serving: Option<crate::event_loop::OnServing>,
+) -> anyhow::Result<()> {
+    use super::multiserial::{LineDevice, SerialTransport};
+    let (master, slave_path) = match args.pty_fd {
+        Some(fd) => {
+            let master = crate::sys::owned_fd::inherited(fd)?;
+            super::serial::set_nonblocking(&master)?;
+            (master, args.pty_path.clone().unwrap_or_default())
+        }
+        None => {
+            let pty = open(args.baudrate)?;
+            let path = pty.slave_path.display();
+            println!("Pseudoterminal opened at {path} (dev: {path})");
+            (pty.master, pty.slave_path)
+        }
+    };
+    let t = SerialTransport::new(
+        "pseudoterminal",
+        vec![LineDevice::Pty { master, slave_path }],
+        xrce_common::framing::serial::MAX_PAYLOAD,
+    );
+    crate::cli::serve(t, args, config, on_serving)
+}

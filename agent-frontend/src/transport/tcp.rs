@@ -758,3 +758,24 @@ impl Transport for TcpTransport {
         None
     }
 }
+
+/// The registry's start-up of `tcp4` and `tcp6`: listens where `--listen` says, with the
+/// connection bounds of the settings, and serves.
+pub fn serve(
+    args: &crate::cli::FrontendArgs,
+    config: xrce_common::session::agent::AgentConfig,
+    on_serving: Option<crate::event_loop::OnServing>,
+) -> anyhow::Result<()> {
+    let addr = args.listen_addr()?;
+    let listener = std::net::TcpListener::bind(addr)
+        .map_err(|e| anyhow::anyhow!("binding TCP {addr}: {e}"))?;
+    let tcp = TcpConfig {
+        max_connections: args.max_connections.max(1),
+        max_per_address: args.admission.max_connections_per_address,
+        idle_timeout: (args.admission.tcp_idle_timeout > 0)
+            .then(|| Duration::from_secs(args.admission.tcp_idle_timeout)),
+        send_buffer: args.tcp_send_buffer.max(1024),
+        ..TcpConfig::default()
+    };
+    crate::cli::serve(TcpTransport::new(listener, tcp)?, args, config, on_serving)
+}

@@ -278,6 +278,18 @@ impl Transport for UdpTransport {
     }
 }
 
+/// The registry's start-up of `udp4` and `udp6`: binds the socket `--listen` names and serves.
+pub fn serve(
+    args: &crate::cli::FrontendArgs,
+    config: xrce_common::session::agent::AgentConfig,
+    on_serving: Option<crate::event_loop::OnServing>,
+) -> anyhow::Result<()> {
+    let addr = args.listen_addr()?;
+    let socket =
+        std::net::UdpSocket::bind(addr).map_err(|e| anyhow::anyhow!("binding UDP {addr}: {e}"))?;
+    crate::cli::serve(UdpTransport::new(socket)?, args, config, on_serving)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
