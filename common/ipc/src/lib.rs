@@ -15,6 +15,7 @@
 
 #![deny(unsafe_code)]
 
+mod codec;
 pub mod fuzzing;
 pub mod message;
 #[cfg(feature = "shm")]
@@ -27,9 +28,9 @@ pub mod status;
 #[allow(unsafe_code)]
 mod sys;
 
+pub use codec::IpcError;
 pub use message::{
-    Encode, IpcError, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
-    HEADER_LEN,
+    Encode, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity, HEADER_LEN,
 };
 
 /// Version of this contract; both sides drop (and log) messages of another version.
