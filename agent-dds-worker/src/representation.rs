@@ -7,18 +7,60 @@ use crate::binary;
 use crate::references::References;
 use crate::xml::{self, TopicDesc};
 
-/// Why an operation failed: the XRCE status and a reason for the log.
-pub type OpError = (u8, String);
+/// Why an operation failed: each variant is the XRCE status the client gets (STATUS_ERR_...),
+/// with what went wrong for the log.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum OpError {
+    /// STATUS_ERR_INVALID_DATA: a representation, sample or read the worker cannot read.
+    #[error("{0}")]
+    InvalidData(String),
+    /// STATUS_ERR_UNKNOWN_REFERENCE: an object, profile or type not there.
+    #[error("{0}")]
+    UnknownReference(String),
+    /// STATUS_ERR_INCOMPATIBLE: an operation this object does not take.
+    #[error("{0}")]
+    Incompatible(String),
+    /// STATUS_ERR_MISMATCH: an object that exists with another description.
+    #[error("{0}")]
+    Mismatch(String),
+    /// STATUS_ERR_RESOURCES: one of the worker's bounds (counted where decided).
+    #[error("{0}")]
+    Resources(String),
+    /// STATUS_ERR_DENIED: refused by the configuration (a domain not allowed).
+    #[error("{0}")]
+    Denied(String),
+    /// STATUS_ERR_DDS_ERROR: the DDS implementation failed.
+    #[error("{0}")]
+    Dds(String),
+}
+
+impl OpError {
+    /// The XRCE status the client gets.
+    pub fn status(&self) -> u8 {
+        match self {
+            OpError::InvalidData(_) => status::ERR_INVALID_DATA,
+            OpError::UnknownReference(_) => status::ERR_UNKNOWN_REFERENCE,
+            OpError::Incompatible(_) => status::ERR_INCOMPATIBLE,
+            OpError::Mismatch(_) => status::ERR_MISMATCH,
+            OpError::Resources(_) => status::ERR_RESOURCES,
+            OpError::Denied(_) => status::ERR_DENIED,
+            OpError::Dds(_) => status::ERR_DDS_ERROR,
+        }
+    }
+
+    /// Whether it is a refusal of one of the worker's bounds or of its configuration (which
+    /// a client causes at will: logged once per episode where it is decided, not per reply).
+    pub fn is_refusal(&self) -> bool {
+        matches!(self, OpError::Resources(_) | OpError::Denied(_))
+    }
+}
 
 fn invalid_xml(e: xml::XmlError) -> OpError {
-    (status::ERR_INVALID_DATA, e.to_string())
+    OpError::InvalidData(e.to_string())
 }
 
 fn invalid_binary(e: xrce_common::wire::DecodeError) -> OpError {
-    (
-        status::ERR_INVALID_DATA,
-        format!("binary representation: {e}"),
-    )
+    OpError::InvalidData(format!("binary representation: {e}"))
 }
 
 /// The XML a representation stands for: its own, or the referenced profile's.
@@ -32,7 +74,7 @@ fn as_xml<'a>(
         Representation::Reference(r) => refs
             .resolve(r, element)
             .map(Some)
-            .map_err(|why| (status::ERR_UNKNOWN_REFERENCE, why)),
+            .map_err(OpError::UnknownReference),
         Representation::Binary(_) => Ok(None),
     }
 }
@@ -103,10 +145,7 @@ pub fn describe_topic(
         (None, Representation::Binary(b)) => {
             binary::parse_topic(b, little_endian).map_err(invalid_binary)
         }
-        (None, _) => Err((
-            status::ERR_INVALID_DATA,
-            "empty topic representation".into(),
-        )),
+        (None, _) => Err(OpError::InvalidData("empty topic representation".into())),
     }
 }
 
@@ -123,16 +162,12 @@ pub fn describe_endpoint(
         (None, Representation::Binary(b)) => {
             binary::parse_endpoint(b, writer, little_endian).map_err(invalid_binary)
         }
-        (None, _) => Err((
-            status::ERR_INVALID_DATA,
-            "empty endpoint representation".into(),
-        )),
+        (None, _) => Err(OpError::InvalidData("empty endpoint representation".into())),
     }?;
     if desc.qos.partitions {
         // A partition is a publisher's or subscriber's policy in DDS; an endpoint's own
         // would need a group of its own, which the worker does not make.
-        return Err((
-            status::ERR_INCOMPATIBLE,
+        return Err(OpError::Incompatible(
             "the PARTITION QoS is a publisher's or subscriber's: give it there, not on a data \
              writer or reader"
                 .into(),
@@ -163,9 +198,8 @@ pub fn describe_service(
             )
             .map_err(invalid_xml)
         }
-        (None, _) => Err((
-            status::ERR_INVALID_DATA,
-            format!("empty {element} representation"),
-        )),
+        (None, _) => Err(OpError::InvalidData(format!(
+            "empty {element} representation"
+        ))),
     }
 }

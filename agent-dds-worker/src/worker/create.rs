@@ -33,23 +33,20 @@ pub(super) fn compile_filter(
     type_name: &str,
 ) -> Result<Filter, OpError> {
     let ty = ty.ok_or_else(|| {
-        (
-            status::ERR_INCOMPATIBLE,
-            format!(
-                "a content filter needs the type of {type_name}: define it in <types>, by a \
+        OpError::Incompatible(format!(
+            "a content filter needs the type of {type_name}: define it in <types>, by a \
                  TYPE object or in the references file"
-            ),
-        )
+        ))
     })?;
     Filter::compile(expression, ty.clone()).map_err(|e| {
         // A bound on the work a client may cause is a refusal for resources; the rest is
         // an invalid expression.
-        let code = if e.is_limit() {
-            status::ERR_RESOURCES
+        let why = format!("content filter {expression:?}: {e}");
+        if e.is_limit() {
+            OpError::Resources(why)
         } else {
-            status::ERR_INVALID_DATA
-        };
-        (code, format!("content filter {expression:?}: {e}"))
+            OpError::InvalidData(why)
+        }
     })
 }
 
@@ -62,15 +59,10 @@ impl Worker {
         little_endian: bool,
         readers: u8,
     ) -> Result<(), OpError> {
-        let variant = ObjectVariant::decode(&mut CdrReader::new(body, true)).map_err(|e| {
-            (
-                status::ERR_INVALID_DATA,
-                format!("object representation: {e}"),
-            )
-        })?;
+        let variant = ObjectVariant::decode(&mut CdrReader::new(body, true))
+            .map_err(|e| OpError::InvalidData(format!("object representation: {e}")))?;
         if variant.kind != key.2.kind() {
-            return Err((
-                status::ERR_INVALID_DATA,
+            return Err(OpError::InvalidData(
                 "object id kind differs from the representation kind".into(),
             ));
         }
@@ -82,11 +74,11 @@ impl Worker {
             self.remove_subtree(key);
         }
         let repr = &variant.representation;
-        let dds_err = |e: String| (status::ERR_DDS_ERROR, e);
+        let dds_err = |e: String| OpError::Dds(e);
         let (parent, kind) = match (variant.kind, variant.extra) {
             (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
                 check_plain(repr, variant.kind, &self.config.references, little_endian)?;
-                let domain = effective_domain(d).map_err(|e| (status::ERR_INVALID_DATA, e))?;
+                let domain = effective_domain(d).map_err(OpError::InvalidData)?;
                 self.admit_domain(domain, key)?;
                 let node = participant_name(repr, &self.config.references, little_endian)
                     .as_deref()
@@ -107,18 +99,15 @@ impl Worker {
                 if !partitions.is_empty() && !self.dds.supports_partitions() {
                     // Refused rather than let the entity's data reach readers outside the
                     // partitions the client asked for.
-                    return Err((
-                        status::ERR_INCOMPATIBLE,
-                        format!(
-                            "the PARTITION QoS is not supported by the {} DDS backend \
+                    return Err(OpError::Incompatible(format!(
+                        "the PARTITION QoS is not supported by the {} DDS backend \
                              (--dds-backend cyclone has partitions)",
-                            self.dds.name()
-                        ),
-                    ));
+                        self.dds.name()
+                    )));
                 }
                 let (_, domain) = self
                     .participant_of(key, p)
-                    .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                    .ok_or(OpError::UnknownReference("no participant".into()))?;
                 let publish = kind == object_kind::PUBLISHER;
                 let group: Rc<dyn DdsGroup> = Rc::from(
                     self.dds
@@ -136,8 +125,7 @@ impl Worker {
                 let publisher = match &self.parent_entity(key, p, object_kind::PUBLISHER)?.kind {
                     EntityKind::Publisher(g) => g.clone(),
                     _ => {
-                        return Err((
-                            status::ERR_UNKNOWN_REFERENCE,
+                        return Err(OpError::UnknownReference(
                             "parent is not a publisher".into(),
                         ))
                     }
@@ -215,8 +203,7 @@ impl Worker {
                 let subscriber = match &self.parent_entity(key, p, object_kind::SUBSCRIBER)?.kind {
                     EntityKind::Subscriber(g) => g.clone(),
                     _ => {
-                        return Err((
-                            status::ERR_UNKNOWN_REFERENCE,
+                        return Err(OpError::UnknownReference(
                             "parent is not a subscriber".into(),
                         ))
                     }
@@ -257,7 +244,7 @@ impl Worker {
                     describe_service(repr, requester, &self.config.references, little_endian)?;
                 let (_, domain) = self
                     .participant_of(key, p)
-                    .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+                    .ok_or(OpError::UnknownReference("no participant".into()))?;
                 let endpoint = self.create_service(&desc, domain, requester, little_endian)?;
                 self.readers.insert(endpoint.token, key);
                 tracing::info!(
@@ -274,27 +261,24 @@ impl Worker {
             (object_kind::TYPE, _) => {
                 let set = match repr {
                     xrce_common::wire::Representation::Xml(x) => {
-                        TypeSet::parse(x).map_err(|e| (status::ERR_INVALID_DATA, e.to_string()))?
+                        TypeSet::parse(x).map_err(|e| OpError::InvalidData(e.to_string()))?
                     }
                     xrce_common::wire::Representation::Reference(r) => {
                         let t = self.config.references.types().get(r).ok_or_else(|| {
-                            (
-                                status::ERR_UNKNOWN_REFERENCE,
-                                format!("type {r:?} is not in the references file"),
-                            )
+                            OpError::UnknownReference(format!(
+                                "type {r:?} is not in the references file"
+                            ))
                         })?;
                         TypeSet::single(t)
                     }
                     xrce_common::wire::Representation::Binary(_) => {
-                        return Err((
-                            status::ERR_INVALID_DATA,
+                        return Err(OpError::InvalidData(
                             "a TYPE object is described by XML or by reference".into(),
                         ))
                     }
                 };
                 if set.is_empty() {
-                    return Err((
-                        status::ERR_INVALID_DATA,
+                    return Err(OpError::InvalidData(
                         "the TYPE representation defines no structure".into(),
                     ));
                 }
@@ -302,10 +286,9 @@ impl Worker {
                 (None, EntityKind::Type(Arc::new(set)))
             }
             (k, _) => {
-                return Err((
-                    status::ERR_INVALID_DATA,
-                    format!("object kind {k:#04x} is not supported yet"),
-                ))
+                return Err(OpError::InvalidData(format!(
+                    "object kind {k:#04x} is not supported yet"
+                )))
             }
         };
         if matches!(&kind, EntityKind::Writer(_, r, _) if r.until.is_some()) {
@@ -341,8 +324,9 @@ impl Worker {
     /// Counts (and logs once per episode) a content filter refused for its size; passes
     /// any error on.
     pub(super) fn filter_refused(&mut self, e: OpError) -> OpError {
-        if e.0 == status::ERR_RESOURCES {
-            self.refused("filters_refused", &e.1);
+        if let OpError::Resources(why) = &e {
+            let why = why.clone();
+            self.refused("filters_refused", &why);
         }
         e
     }
@@ -393,7 +377,7 @@ impl Worker {
     ) -> Result<EndpointTopic, OpError> {
         let (pid, _) = self
             .participant_of(key, parent)
-            .ok_or((status::ERR_UNKNOWN_REFERENCE, "no participant".into()))?;
+            .ok_or(OpError::UnknownReference("no participant".into()))?;
         // A topic object created by the client with the same name carries its QoS.
         if let Some(id) = desc.topic_id {
             let d = match self.entities.value(&(key.0, key.1, id)) {
@@ -402,10 +386,9 @@ impl Worker {
                     ..
                 }) => d.clone(),
                 _ => {
-                    return Err((
-                        status::ERR_UNKNOWN_REFERENCE,
-                        format!("topic {id:?} does not exist"),
-                    ))
+                    return Err(OpError::UnknownReference(format!(
+                        "topic {id:?} does not exist"
+                    )))
                 }
             };
             let (ty, kd) = self.topic_type(key, &d);
@@ -427,19 +410,18 @@ impl Worker {
         });
         let tdesc = match (&desc.topic, existing) {
             (Some(inline), Some(d)) if inline.type_name != d.type_name => {
-                return Err((
-                    status::ERR_MISMATCH,
-                    format!("topic {wanted} exists with type {}", d.type_name),
-                ))
+                return Err(OpError::Mismatch(format!(
+                    "topic {wanted} exists with type {}",
+                    d.type_name
+                )))
             }
             (Some(inline), Some(found)) => found.refined_by(inline),
             (None, Some(found)) => found,
             (Some(inline), None) => inline.clone(),
             (None, None) => {
-                return Err((
-                    status::ERR_UNKNOWN_REFERENCE,
-                    format!("topic {wanted} is unknown"),
-                ))
+                return Err(OpError::UnknownReference(format!(
+                    "topic {wanted} is unknown"
+                )))
             }
         };
         let (ty, kd) = self.topic_type(key, &tdesc);

@@ -49,15 +49,16 @@ impl Worker {
         parent: ObjectId,
         kind: u8,
     ) -> Result<&Entity, OpError> {
-        let e = self.entities.get(&(key.0, key.1, parent)).ok_or((
-            status::ERR_UNKNOWN_REFERENCE,
-            format!("parent {parent:?} does not exist"),
-        ))?;
+        let e = self
+            .entities
+            .get(&(key.0, key.1, parent))
+            .ok_or(OpError::UnknownReference(format!(
+                "parent {parent:?} does not exist"
+            )))?;
         if parent.kind() != kind {
-            return Err((
-                status::ERR_UNKNOWN_REFERENCE,
-                format!("parent {parent:?} is not of kind {kind}"),
-            ));
+            return Err(OpError::UnknownReference(format!(
+                "parent {parent:?} is not of kind {kind}"
+            )));
         }
         Ok(e)
     }

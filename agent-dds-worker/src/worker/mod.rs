@@ -304,7 +304,11 @@ impl Worker {
         self.domains.admit(domain).map_err(|r: DomainRefusal| {
             let why = format!("client {} of front-end {}: {r}", key.1, key.0);
             self.refused(r.reason(), &why);
-            (r.status(), r.to_string())
+            if r.status() == status::ERR_DENIED {
+                OpError::Denied(r.to_string())
+            } else {
+                OpError::Resources(r.to_string())
+            }
         })
     }
 

@@ -178,13 +178,13 @@ impl Worker {
             Ok(()) => status::OK,
             // Refusals of the worker's bounds (resources, denied) were counted and logged
             // once per episode where they were decided: a client causes them at will.
-            Err((code, why)) if matches!(*code, status::ERR_RESOURCES | status::ERR_DENIED) => {
-                tracing::debug!(client = %route.client_key, object = ?route.object_id, kind = what, status = code, "{why}");
-                *code
+            Err(e) if e.is_refusal() => {
+                tracing::debug!(client = %route.client_key, object = ?route.object_id, kind = what, status = e.status(), "{e}");
+                e.status()
             }
-            Err((code, why)) => {
-                tracing::warn!(client = %route.client_key, object = ?route.object_id, kind = what, status = code, "{why}");
-                *code
+            Err(e) => {
+                tracing::warn!(client = %route.client_key, object = ?route.object_id, kind = what, status = e.status(), "{e}");
+                e.status()
             }
         };
         self.reply(

@@ -100,20 +100,19 @@ impl Worker {
                 ..
             }) => None,
             _ => {
-                return Err((
-                    status::ERR_UNKNOWN_REFERENCE,
+                return Err(OpError::UnknownReference(
                     "read from an unknown data reader, requester or replier".into(),
                 ))
             }
         };
         let spec = ReadSpecification::decode(&mut CdrReader::new(body, true))
-            .map_err(|e| (status::ERR_INVALID_DATA, format!("read specification: {e}")))?;
+            .map_err(|e| OpError::InvalidData(format!("read specification: {e}")))?;
         // The front-end puts each sample in the requested format.
         if !xrce_common::wire::sample::is_defined_format(spec.data_format) {
-            return Err((
-                status::ERR_INVALID_DATA,
-                format!("undefined data format {:#04x}", spec.data_format),
-            ));
+            return Err(OpError::InvalidData(format!(
+                "undefined data format {:#04x}",
+                spec.data_format
+            )));
         }
         let filter = match (spec.content_filter_expression.as_deref(), reader_type) {
             (None, _) => None,
@@ -123,8 +122,7 @@ impl Worker {
                     .map_err(|e| self.filter_refused(e))?,
             ),
             (Some(_), None) => {
-                return Err((
-                    status::ERR_INCOMPATIBLE,
+                return Err(OpError::Incompatible(
                     "content filters apply to data readers, not requesters or repliers".into(),
                 ))
             }

@@ -111,8 +111,7 @@ impl Worker {
                     self.remove_subtree(key);
                     Ok(())
                 } else {
-                    Err((
-                        status::ERR_UNKNOWN_REFERENCE,
+                    Err(OpError::UnknownReference(
                         "delete of an unknown object".into(),
                     ))
                 };

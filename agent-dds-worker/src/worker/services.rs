@@ -60,12 +60,11 @@ pub(super) fn service_write(
     data: &[u8],
 ) -> Result<(), OpError> {
     if little_endian != svc.writer.little_endian() {
-        return Err((
-            status::ERR_INVALID_DATA,
+        return Err(OpError::InvalidData(
             "a sample in another byte order than the client's CREATE".into(),
         ));
     }
-    let dds = |e: String| (status::ERR_DDS_ERROR, format!("DDS write: {e}"));
+    let dds = |e: String| OpError::Dds(format!("DDS write: {e}"));
     if svc.requester {
         let sample = Sample::cdr(little_endian, data);
         let id = svc.writer.write_identified(sample, None).map_err(dds)?;
@@ -79,10 +78,9 @@ pub(super) fn service_write(
         }
         Ok(())
     } else {
-        let related = backend::decode_sample_identity(data, little_endian).ok_or((
-            status::ERR_INVALID_DATA,
-            "a reply without the request's SampleIdentity".to_string(),
-        ))?;
+        let related = backend::decode_sample_identity(data, little_endian).ok_or(
+            OpError::InvalidData("a reply without the request's SampleIdentity".to_string()),
+        )?;
         let sample = Sample::cdr(little_endian, data.get(24..).unwrap_or_default());
         svc.writer
             .write_identified(sample, Some(related))
@@ -102,7 +100,7 @@ impl Worker {
         requester: bool,
         little_endian: bool,
     ) -> Result<ServiceEndpoint, OpError> {
-        let dds_err = |e: String| (status::ERR_DDS_ERROR, e);
+        let dds_err = |e: String| OpError::Dds(e);
         let token = self.next_token;
         self.next_token += 1;
         let dds = self.services_backend()?;
@@ -164,10 +162,7 @@ impl Worker {
         }
         if self.services_dds.is_none() {
             let beside = backend::for_services(&self.config.dds).map_err(|e| {
-                (
-                    status::ERR_DDS_ERROR,
-                    format!("no DDS backend for requesters and repliers: {e:#}"),
-                )
+                OpError::Dds(format!("no DDS backend for requesters and repliers: {e:#}"))
             })?;
             tracing::info!(
                 backend = beside.name(),
@@ -178,7 +173,7 @@ impl Worker {
         }
         match self.services_dds.as_deref_mut() {
             Some(dds) => Ok(dds),
-            None => Err((status::ERR_DDS_ERROR, "no DDS backend for services".into())),
+            None => Err(OpError::Dds("no DDS backend for services".into())),
         }
     }
 }

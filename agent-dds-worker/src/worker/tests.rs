@@ -374,7 +374,7 @@ fn disposes_need_a_key_and_reach_the_backend_in_order_with_writes() {
         .worker
         .write_one((FE, CLIENT, WRITER), 1, true, &keyed(1, 1), true)
         .expect_err("a dispose without a key");
-    assert_eq!(err.0, status::ERR_INCOMPATIBLE);
+    assert_eq!(err.status(), status::ERR_INCOMPATIBLE);
     let keyed_writer = ObjectId::new(2, object_kind::DATAWRITER);
     t.writer(
         CLIENT,
@@ -390,7 +390,7 @@ fn disposes_need_a_key_and_reach_the_backend_in_order_with_writes() {
         .worker
         .write_one(key, 2, true, &[1, 2], false)
         .expect_err("not a Keyed");
-    assert_eq!(err.0, status::ERR_INVALID_DATA);
+    assert_eq!(err.status(), status::ERR_INVALID_DATA);
     t.worker
         .write_one(key, 3, true, &keyed(5, 50), false)
         .expect("write");
@@ -615,8 +615,8 @@ fn partitions_are_refused_by_a_backend_without_them_and_on_endpoints() {
             &with_partition,
         )
         .expect_err("partitions refused");
-    assert_eq!(err.0, status::ERR_INCOMPATIBLE);
-    assert!(err.1.contains("PARTITION"), "{}", err.1);
+    assert_eq!(err.status(), status::ERR_INCOMPATIBLE);
+    assert!(err.to_string().contains("PARTITION"), "{}", err);
     // An empty partition list is the default partition: accepted.
     let empty = variant(
         object_kind::PUBLISHER,
@@ -634,7 +634,7 @@ fn partitions_are_refused_by_a_backend_without_them_and_on_endpoints() {
              </data_writer></dds>",
         )
         .expect_err("endpoint partitions refused");
-    assert_eq!(err.0, status::ERR_INCOMPATIBLE);
+    assert_eq!(err.status(), status::ERR_INCOMPATIBLE);
 }
 
 #[test]
@@ -894,7 +894,7 @@ fn a_ninth_distinct_domain_is_refused_for_resources_until_one_is_released() {
     let refused = t
         .create(client(8), PARTICIPANT, &participant_in(30, "p"))
         .expect_err("a 9th domain");
-    assert_eq!(refused.0, status::ERR_RESOURCES, "{}", refused.1);
+    assert_eq!(refused.status(), status::ERR_RESOURCES, "{}", refused);
     assert_eq!(t.worker.dropped.get("domains_refused"), Some(&1));
     assert!(!t
         .worker
@@ -930,7 +930,7 @@ fn a_domain_outside_the_allowed_list_is_denied() {
     let refused = t
         .create(client(50), PARTICIPANT, &participant_in(11, "p"))
         .expect_err("not in the list");
-    assert_eq!(refused.0, status::ERR_DENIED, "{}", refused.1);
+    assert_eq!(refused.status(), status::ERR_DENIED, "{}", refused);
     assert_eq!(t.worker.dropped.get("domain_denied"), Some(&1));
     // The reply status is the refusal's.
     t.worker.greeted.insert((FE, 0));
@@ -1073,8 +1073,8 @@ fn a_filter_with_too_many_clauses_is_refused_for_resources() {
             &filtered_reader_xml("F", &over),
         )
         .expect_err("over the cap");
-    assert_eq!(refused.0, status::ERR_RESOURCES, "{}", refused.1);
-    assert!(refused.1.contains("clauses"), "{}", refused.1);
+    assert_eq!(refused.status(), status::ERR_RESOURCES, "{}", refused);
+    assert!(refused.to_string().contains("clauses"), "{}", refused);
     assert_eq!(t.dropped("filters_refused"), 1);
     // On a READ_DATA of the accepted reader.
     let mut body = Vec::new();
@@ -1088,7 +1088,7 @@ fn a_filter_with_too_many_clauses_is_refused_for_resources() {
         .worker
         .start_read((FE, CLIENT, READER), Default::default(), false, &body)
         .expect_err("over the cap");
-    assert_eq!(refused.0, status::ERR_RESOURCES);
+    assert_eq!(refused.status(), status::ERR_RESOURCES);
     assert_eq!(t.dropped("filters_refused"), 2);
 }
 

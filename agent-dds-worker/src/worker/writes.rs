@@ -152,7 +152,7 @@ impl Worker {
             .as_ref()
             .map(|f| f as &dyn Fn(&[u8], usize) -> Option<usize>);
         let samples = decode_samples(data_format, body, little_endian, dialect, sizer_ref)
-            .map_err(|e| (status::ERR_INVALID_DATA, format!("WRITE_DATA: {e}")))?;
+            .map_err(|e| OpError::InvalidData(format!("WRITE_DATA: {e}")))?;
         let ends_instance = |s: &xrce_common::wire::sample::SampleRef<'_>| {
             s.info.is_some_and(|i| {
                 i.state & (sample_state::INSTANCE_DISPOSED | sample_state::INSTANCE_UNREGISTERED)
@@ -165,8 +165,7 @@ impl Worker {
         }) = self.entities.value_mut(&key)
         {
             if samples.iter().any(ends_instance) {
-                return Err((
-                    status::ERR_INCOMPATIBLE,
+                return Err(OpError::Incompatible(
                     "a requester or replier cannot dispose or unregister".into(),
                 ));
             }
@@ -183,9 +182,8 @@ impl Worker {
             let offset = (s.data.as_ptr() as usize).saturating_sub(body.as_ptr() as usize);
             let rebased = match (&sizer_ty, several && offset % 8 != 0) {
                 (Some(t), true) => Some(
-                    crate::types::rebase(t, s.data, offset, little_endian).map_err(|e| {
-                        (status::ERR_INVALID_DATA, format!("WRITE_DATA sample: {e}"))
-                    })?,
+                    crate::types::rebase(t, s.data, offset, little_endian)
+                        .map_err(|e| OpError::InvalidData(format!("WRITE_DATA sample: {e}")))?,
                 ),
                 _ => None,
             };
@@ -209,31 +207,26 @@ impl Worker {
             ..
         }) = self.entities.value_mut(&key)
         else {
-            return Err((
-                status::ERR_UNKNOWN_REFERENCE,
+            return Err(OpError::UnknownReference(
                 "write to an unknown data writer".into(),
             ));
         };
         if little_endian != w.raw.little_endian() {
             // Without the type the bytes cannot be swapped.
-            return Err((
-                status::ERR_INVALID_DATA,
-                format!(
-                    "a {}-endian sample for a data writer created {}-endian",
-                    if little_endian { "little" } else { "big" },
-                    if w.raw.little_endian() {
-                        "little"
-                    } else {
-                        "big"
-                    },
-                ),
-            ));
+            return Err(OpError::InvalidData(format!(
+                "a {}-endian sample for a data writer created {}-endian",
+                if little_endian { "little" } else { "big" },
+                if w.raw.little_endian() {
+                    "little"
+                } else {
+                    "big"
+                },
+            )));
         }
         let sample = Sample::cdr(little_endian, body);
         if dispose && w.raw.key().is_none() {
             // DDS has no instances on a topic without a key.
-            return Err((
-                status::ERR_INCOMPATIBLE,
+            return Err(OpError::Incompatible(
                 "dispose or unregister on a topic without a key (or whose type is unknown)".into(),
             ));
         }
@@ -242,10 +235,10 @@ impl Worker {
             let whole = k.of_sample(body, little_endian, false);
             if whole.is_err() && !(dispose && k.of_key_payload(body, little_endian, false).is_ok())
             {
-                return Err((
-                    status::ERR_INVALID_DATA,
-                    format!("a sample that is not a {}", k.ty().name),
-                ));
+                return Err(OpError::InvalidData(format!(
+                    "a sample that is not a {}",
+                    k.ty().name
+                )));
             }
         }
         if rematch.until.is_some() {
@@ -281,9 +274,9 @@ impl Worker {
         let done = if dispose {
             w.raw
                 .dispose(&sample)
-                .map_err(|e| (status::ERR_DDS_ERROR, format!("DDS dispose: {e}")))
+                .map_err(|e| OpError::Dds(format!("DDS dispose: {e}")))
         } else {
-            publish(&*w.raw, sample).map_err(|e| (status::ERR_DDS_ERROR, format!("DDS write: {e}")))
+            publish(&*w.raw, sample).map_err(|e| OpError::Dds(format!("DDS write: {e}")))
         };
         if done.is_ok()
             && w.outstanding
