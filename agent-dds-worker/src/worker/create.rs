@@ -83,7 +83,7 @@ impl Worker {
                 let node = participant_name(repr, &self.config.references, little_endian)
                     .as_deref()
                     .and_then(crate::ros_graph::node_name);
-                (None, EntityKind::Participant(domain, node))
+                (None, EntityKind::Participant { domain, node })
             }
             (object_kind::TOPIC, VariantExtra::Parent(p)) => {
                 self.parent_entity(key, p, object_kind::PARTICIPANT)?;
@@ -197,7 +197,14 @@ impl Worker {
                     expected: readers,
                     ..Default::default()
                 };
-                (Some(p), EntityKind::Writer(w, rematch, ty))
+                (
+                    Some(p),
+                    EntityKind::Writer {
+                        writer: w,
+                        rematch,
+                        ty,
+                    },
+                )
             }
             (object_kind::DATAREADER, VariantExtra::Parent(p)) => {
                 let subscriber = match &self.parent_entity(key, p, object_kind::SUBSCRIBER)?.kind {
@@ -226,15 +233,15 @@ impl Worker {
                 self.readers.insert(token, key);
                 (
                     Some(p),
-                    EntityKind::Reader(
-                        r,
+                    EntityKind::Reader {
+                        reader: r,
                         token,
-                        ReaderInfo {
+                        info: ReaderInfo {
                             topic: tdesc.name.clone(),
                             ty,
                             filter,
                         },
-                    ),
+                    },
                 )
             }
             (kind @ (object_kind::REQUESTER | object_kind::REPLIER), VariantExtra::Parent(p)) => {
@@ -291,18 +298,18 @@ impl Worker {
                 )))
             }
         };
-        if matches!(&kind, EntityKind::Writer(_, r, _) if r.until.is_some()) {
+        if matches!(&kind, EntityKind::Writer { rematch: r, .. } if r.until.is_some()) {
             self.holding.insert(key);
         }
         let graph_change = matches!(
             &kind,
-            EntityKind::Participant(_, Some(_))
-                | EntityKind::Writer(..)
-                | EntityKind::Reader(..)
+            EntityKind::Participant { node: Some(_), .. }
+                | EntityKind::Writer { .. }
+                | EntityKind::Reader { .. }
                 | EntityKind::Service(..)
         );
         let joins = match &kind {
-            EntityKind::Participant(d, _) => Some(*d),
+            EntityKind::Participant { domain: d, .. } => Some(*d),
             _ => None,
         };
         let origin = Origin::new(body, little_endian);

@@ -6,7 +6,10 @@ use super::*;
 
 pub(super) enum EntityKind {
     /// A logical XRCE participant in a DDS domain, and the ROS node its name stands for.
-    Participant(u16, Option<ros2_client::NodeName>),
+    Participant {
+        domain: u16,
+        node: Option<ros2_client::NodeName>,
+    },
     /// A topic description; DDS topics are made by the backend when endpoints are.
     Topic(TopicDesc),
     /// A DDS publisher.
@@ -15,11 +18,24 @@ pub(super) enum EntityKind {
     Subscriber(Rc<dyn DdsGroup>),
     /// A type definition (`<types>`) the client's topics can use.
     Type(Arc<TypeSet>),
-    /// A data writer (its DDS writer, possibly shared), its hold state, and its topic's type
-    /// if known.
-    Writer(Rc<DdsWriter>, Rematch, Option<Arc<StructDef>>),
-    /// A data reader, its wake-up token, and what its content filters need.
-    Reader(Box<dyn DdsReader>, ReaderToken, ReaderInfo),
+    /// A data writer.
+    Writer {
+        /// Its DDS writer, possibly shared with other data writers of the domain.
+        writer: Rc<DdsWriter>,
+        /// Whether it holds samples until its readers match again (after a replay).
+        rematch: Rematch,
+        /// Its topic's type, if known (where samples end, for sequence formats).
+        ty: Option<Arc<StructDef>>,
+    },
+    /// A data reader.
+    Reader {
+        /// Its DDS reader.
+        reader: Box<dyn DdsReader>,
+        /// The token its wake-ups name.
+        token: ReaderToken,
+        /// What its content filters need.
+        info: ReaderInfo,
+    },
     /// A requester (publishes requests, reads the replies to them) or a replier (reads
     /// requests, publishes replies).
     Service(Box<ServiceEndpoint>),
@@ -36,7 +52,7 @@ impl Worker {
     /// The domain an entity lives in, if it is part of a participant.
     pub(super) fn domain_of(&self, key: EntityKey) -> Option<u16> {
         match &self.entities.get(&key)?.kind {
-            EntityKind::Participant(d, _) => Some(*d),
+            EntityKind::Participant { domain: d, .. } => Some(*d),
             _ => self
                 .participant_of(key, self.entities.get(&key)?.parent?)
                 .map(|(_, d)| d),
@@ -66,10 +82,10 @@ impl Worker {
     /// The participant entity an object hangs under, and its domain.
     pub(super) fn participant_of(&self, key: EntityKey, id: ObjectId) -> Option<(ObjectId, u16)> {
         let (id, e) = self.entities.ancestor((key.0, key.1), id, |e| {
-            matches!(e.kind, EntityKind::Participant(..))
+            matches!(e.kind, EntityKind::Participant { .. })
         })?;
         match e.kind {
-            EntityKind::Participant(domain, _) => Some((id, domain)),
+            EntityKind::Participant { domain, .. } => Some((id, domain)),
             _ => None,
         }
     }
@@ -104,10 +120,10 @@ impl Worker {
         match e.kind {
             // Its subtree went before it (endpoints before their parents): the last
             // participant of a domain leaves nothing of the worker's in it.
-            EntityKind::Participant(domain, _) if self.domains.leave(domain) => {
+            EntityKind::Participant { domain, .. } if self.domains.leave(domain) => {
                 self.release_domain(domain);
             }
-            EntityKind::Writer(w, _, _) => {
+            EntityKind::Writer { writer: w, .. } => {
                 // The last XRCE writer of a shared DDS writer: forget the entry.
                 if let Some(k) = w.shared.clone() {
                     drop(w);
@@ -120,7 +136,7 @@ impl Worker {
                 }
             }
             // Dropped here, the backend's endpoints are deleted and wake nobody any more.
-            EntityKind::Reader(_, token, _) => {
+            EntityKind::Reader { token, .. } => {
                 self.readers.remove(&token);
             }
             EntityKind::Service(s) => {

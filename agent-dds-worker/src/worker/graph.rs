@@ -39,7 +39,11 @@ impl Worker {
             ),
         > = Default::default();
         for (k, e) in self.entities.iter() {
-            if let EntityKind::Participant(d, Some(name)) = &e.kind {
+            if let EntityKind::Participant {
+                domain: d,
+                node: Some(name),
+            } = &e.kind
+            {
                 if *d == domain {
                     nodes.insert(*k, (name.clone(), Vec::new(), Vec::new()));
                 }
@@ -52,10 +56,12 @@ impl Worker {
         let is_ros = |t: &str| ["rt/", "rq/", "rr/"].iter().any(|p| t.starts_with(p));
         for (k, e) in self.entities.iter() {
             let (writer, reader, ros_topic) = match &e.kind {
-                EntityKind::Writer(w, _, _) => {
+                EntityKind::Writer { writer: w, .. } => {
                     (Some(w.raw.guid()), None, is_ros(w.raw.topic_name()))
                 }
-                EntityKind::Reader(r, _, info) => (None, Some(r.guid()), is_ros(&info.topic)),
+                EntityKind::Reader {
+                    reader: r, info, ..
+                } => (None, Some(r.guid()), is_ros(&info.topic)),
                 EntityKind::Service(s) => (
                     Some(s.writer.guid()),
                     Some(s.reader.guid()),

@@ -519,7 +519,7 @@ impl Worker {
     fn timeout_without_acks(&self) -> i32 {
         if !self.holding.is_empty() {
             let draining = self.holding.iter().any(|k| {
-                matches!(self.entities.value(k), Some(Entity { kind: EntityKind::Writer(_, r, _), .. }) if r.draining)
+                matches!(self.entities.value(k), Some(Entity { kind: EntityKind::Writer { rematch: r, .. }, .. }) if r.draining)
             });
             return if draining { 1 } else { 20 };
         }
@@ -560,13 +560,13 @@ impl Worker {
         let mut entities: std::collections::BTreeMap<String, u64> = Default::default();
         for e in self.entities.values() {
             let kind = match &e.kind {
-                EntityKind::Participant(..) => "participant",
+                EntityKind::Participant { .. } => "participant",
                 EntityKind::Topic(_) => "topic",
                 EntityKind::Publisher(..) => "publisher",
                 EntityKind::Subscriber(..) => "subscriber",
                 EntityKind::Type(_) => "type",
-                EntityKind::Writer(..) => "writer",
-                EntityKind::Reader(..) => "reader",
+                EntityKind::Writer { .. } => "writer",
+                EntityKind::Reader { .. } => "reader",
                 EntityKind::Service(_) => "service",
             };
             *entities.entry(kind.into()).or_default() += 1;

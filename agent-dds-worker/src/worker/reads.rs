@@ -92,7 +92,7 @@ impl Worker {
     ) -> Result<(), OpError> {
         let reader_type = match self.entities.value(&key) {
             Some(Entity {
-                kind: EntityKind::Reader(_, _, info),
+                kind: EntityKind::Reader { info, .. },
                 ..
             }) => Some(info.ty.clone()),
             Some(Entity {
@@ -236,14 +236,13 @@ impl Worker {
             || matches!(
                 self.entities.value(&key),
                 Some(Entity {
-                    kind: EntityKind::Reader(
-                        _,
-                        _,
-                        ReaderInfo {
+                    kind: EntityKind::Reader {
+                        info: ReaderInfo {
                             filter: Some(_),
                             ..
-                        }
-                    ),
+                        },
+                        ..
+                    },
                     ..
                 })
             );
@@ -261,7 +260,7 @@ impl Worker {
         let request_id = read.request_id;
         let (reader, mut service, reader_filter) = match self.entities.value_mut(&key) {
             Some(Entity {
-                kind: EntityKind::Reader(reader, _, info),
+                kind: EntityKind::Reader { reader, info, .. },
                 ..
             }) => (&mut **reader, None, info.filter.as_ref()),
             Some(Entity {

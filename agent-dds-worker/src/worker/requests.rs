@@ -202,7 +202,7 @@ impl Worker {
         if e.origin != Origin::new(body, little_endian) {
             return false;
         }
-        if let EntityKind::Writer(_, rematch, _) = &mut e.kind {
+        if let EntityKind::Writer { rematch, .. } = &mut e.kind {
             // Samples it still holds were numbered by the predecessor: as old as any.
             for h in rematch.held.iter_mut() {
                 h.0 = 0;

@@ -182,7 +182,7 @@ impl Harness {
     fn matched_long_ago(&mut self, client: ClientKey, id: ObjectId) {
         self.worker.release_rematched();
         if let Some(Entity {
-            kind: EntityKind::Writer(_, r, _),
+            kind: EntityKind::Writer { rematch: r, .. },
             ..
         }) = self.worker.entities.value_mut(&(FE, client, id))
         {
@@ -311,7 +311,7 @@ fn a_writer_holds_until_matched_then_its_samples_reach_a_reader_in_order() {
         .expect("w")
         .kind
     {
-        EntityKind::Writer(w, _, _) => w.raw.guid(),
+        EntityKind::Writer { writer: w, .. } => w.raw.guid(),
         _ => unreachable!("a writer"),
     };
     assert_eq!(

@@ -140,7 +140,7 @@ impl Worker {
         // where each sample ends.
         let ty = match self.entities.value(&key) {
             Some(Entity {
-                kind: EntityKind::Writer(_, _, ty),
+                kind: EntityKind::Writer { ty, .. },
                 ..
             }) => ty.clone().map(Ty::Struct),
             _ => None,
@@ -203,7 +203,9 @@ impl Worker {
         dispose: bool,
     ) -> Result<(), OpError> {
         let Some(Entity {
-            kind: EntityKind::Writer(w, rematch, _),
+            kind: EntityKind::Writer {
+                writer: w, rematch, ..
+            },
             ..
         }) = self.entities.value_mut(&key)
         else {
@@ -316,7 +318,10 @@ impl Worker {
         let mut released = Vec::new();
         for key in &self.holding {
             let Some(Entity {
-                kind: EntityKind::Writer(w, rematch, _),
+                kind:
+                    EntityKind::Writer {
+                        writer: w, rematch, ..
+                    },
                 ..
             }) = self.entities.value_mut(key)
             else {
@@ -421,7 +426,10 @@ impl Worker {
         self.next_match_report = now + MATCH_REPORT_PERIOD;
         let mut changed = Vec::new();
         for (key, e) in self.entities.iter_mut() {
-            if let EntityKind::Writer(w, rematch, _) = &mut e.kind {
+            if let EntityKind::Writer {
+                writer: w, rematch, ..
+            } = &mut e.kind
+            {
                 w.poll_matched(now);
                 let n = u8::try_from(w.matched.get()).unwrap_or(u8::MAX);
                 if rematch.reported != Some(n) {
@@ -446,7 +454,7 @@ impl Worker {
             .iter()
             .filter_map(|k| Some((k, self.entities.get(k)?)))
         {
-            if let EntityKind::Writer(_, r, _) = &e.kind {
+            if let EntityKind::Writer { rematch: r, .. } = &e.kind {
                 if let Some((seq, _, _)) = r.held.front() {
                     let v = m.entry(k.0).or_insert(*seq);
                     *v = (*v).min(*seq);
