@@ -76,7 +76,10 @@ impl TransportKind {
 }
 
 /// Settings of a front-end process.
-#[derive(Debug, Clone, clap::Args)]
+/// The supervisor hands a front-end process its settings as this type
+/// ([`FrontendArgs::to_args`]); adding a setting is a field here (the compiler then asks for
+/// its argument in `to_args`).
+#[derive(Debug, Clone, PartialEq, clap::Args)]
 pub struct FrontendArgs {
     /// Agent instance name (all processes of one agent share it).
     #[arg(long, env = "XRCE_INSTANCE", default_value = "default")]
@@ -338,6 +341,83 @@ impl AdmissionArgs {
 }
 
 impl FrontendArgs {
+    /// Every setting at its default (as an empty command line gives them, environment
+    /// variables included).
+    pub fn defaults() -> Self {
+        use clap::{Args, FromArgMatches};
+        let command = FrontendArgs::augment_args(clap::Command::new("frontend"));
+        let matches = command.get_matches_from(["frontend"]);
+        // The empty command line is valid by construction (every argument has a default).
+        FrontendArgs::from_arg_matches(&matches).unwrap_or_else(|e| e.exit())
+    }
+
+    /// These settings as the front-end's command line (what the supervisor runs it with):
+    /// every field, so that the process gets exactly what its supervisor decided whatever
+    /// its environment says.
+    pub fn to_args(&self) -> Vec<String> {
+        let FrontendArgs {
+            instance,
+            frontend_id,
+            name,
+            keep_sessions,
+            transport,
+            listen,
+            devices,
+            baudrate,
+            flow_control,
+            pty_fd,
+            pty_path,
+            discovery,
+            max_connections,
+            tcp_send_buffer,
+            log,
+            dialect,
+            client_dead_time,
+            admission,
+        } = self;
+        let mut a: Vec<String> = Vec::new();
+        let mut arg = |k: &str, v: String| a.extend([k.to_string(), v]);
+        arg("--instance", instance.clone());
+        arg("--frontend-id", frontend_id.to_string());
+        arg("--keep-sessions", keep_sessions.to_string());
+        arg("--transport", transport.name().to_string());
+        arg("--baudrate", baudrate.to_string());
+        arg("--max-connections", max_connections.to_string());
+        arg("--tcp-send-buffer", tcp_send_buffer.to_string());
+        arg("--log", log.clone());
+        arg("--client-dead-time", client_dead_time.to_string());
+        if let Some(n) = name {
+            arg("--name", n.clone());
+        }
+        if let Some(l) = listen {
+            arg("--listen", l.to_string());
+        }
+        for d in devices {
+            arg("--device", d.display().to_string());
+        }
+        if let Some(fd) = pty_fd {
+            arg("--pty-fd", fd.to_string());
+        }
+        if let Some(p) = pty_path {
+            arg("--pty-path", p.display().to_string());
+        }
+        if let Some(port) = discovery {
+            arg("--discovery", port.to_string());
+        }
+        if let Some(d) = dialect {
+            let name = match d {
+                Dialect::Spec => "spec",
+                Dialect::Eprosima => "eprosima",
+            };
+            arg("--dialect", name.to_string());
+        }
+        if *flow_control {
+            a.push("--flow-control".into());
+        }
+        a.extend(admission.to_args());
+        a
+    }
+
     /// The session-core settings these arguments ask for.
     pub fn agent_config(&self) -> anyhow::Result<AgentConfig> {
         let dead = self.client_dead_time;
@@ -486,4 +566,47 @@ pub(crate) fn serve<T: Transport>(
     crate::event_loop::run(
         &place, who, transport, relay, inbox, config, discovery, on_serving,
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::{Args, FromArgMatches};
+
+    fn parse(args: &[String]) -> FrontendArgs {
+        let command = FrontendArgs::augment_args(clap::Command::new("frontend"));
+        let matches = command
+            .try_get_matches_from(std::iter::once("frontend".to_string()).chain(args.to_vec()))
+            .expect("the arguments parse");
+        FrontendArgs::from_arg_matches(&matches).expect("the settings")
+    }
+
+    /// What the supervisor decides is what the process gets: every setting, off its default,
+    /// survives `to_args` and the front-end's parsing.
+    #[test]
+    fn settings_survive_their_command_line() {
+        let mut s = FrontendArgs::defaults();
+        assert_eq!(parse(&s.to_args()), s, "the defaults");
+        s.instance = "gw-1234abcd".into();
+        s.frontend_id = 7;
+        s.name = Some("radio".into());
+        s.keep_sessions = false;
+        s.transport = TransportKind::Multiserial;
+        s.listen = Some("[::1]:8890".parse().expect("address"));
+        s.devices = vec!["/dev/ttyACM0".into(), "/dev/ttyUSB1".into()];
+        s.baudrate = 921_600;
+        s.flow_control = true;
+        s.pty_fd = Some(3);
+        s.pty_path = Some("/dev/pts/9".into());
+        s.discovery = Some(7400);
+        s.max_connections = 12;
+        s.tcp_send_buffer = 4096;
+        s.log = "debug".into();
+        s.dialect = Some(Dialect::Spec);
+        s.client_dead_time = 2.5;
+        s.admission.allow_roaming = true;
+        s.admission.max_sessions = 9;
+        s.admission.max_client_messages_per_second = 40;
+        assert_eq!(parse(&s.to_args()), s);
+    }
 }

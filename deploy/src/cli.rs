@@ -340,18 +340,18 @@ impl FrontendPlan {
         }
     }
 
-    /// The hidden `frontend` subcommand's arguments for this plan (the pty descriptor, if
-    /// any, is added by the caller).
-    pub fn frontend_args(&self) -> Vec<String> {
-        let mut a = vec!["--transport".to_string(), self.kind().name().to_string()];
+    /// Sets what a front-end serves in its settings (the pty descriptor, if any, is set by
+    /// the supervisor when it opens the pseudoterminal).
+    pub fn apply_to(&self, s: &mut xrce_frontend::cli::FrontendArgs) {
+        s.transport = self.kind();
         match self {
             FrontendPlan::Ip {
                 listen,
                 max_connections,
                 ..
             } => {
-                a.extend(["--listen".into(), listen.to_string()]);
-                a.extend(["--max-connections".into(), max_connections.to_string()]);
+                s.listen = Some(*listen);
+                s.max_connections = *max_connections;
             }
             FrontendPlan::Serial {
                 devices,
@@ -359,19 +359,12 @@ impl FrontendPlan {
                 flow_control,
                 ..
             } => {
-                for d in devices {
-                    a.extend(["--device".into(), d.display().to_string()]);
-                }
-                a.extend(["--baudrate".into(), baudrate.to_string()]);
-                if *flow_control {
-                    a.push("--flow-control".into());
-                }
+                s.devices = devices.clone();
+                s.baudrate = *baudrate;
+                s.flow_control = *flow_control;
             }
-            FrontendPlan::Pty { baudrate } => {
-                a.extend(["--baudrate".into(), baudrate.to_string()]);
-            }
+            FrontendPlan::Pty { baudrate } => s.baudrate = *baudrate,
         }
-        a
     }
 }
 

@@ -62,7 +62,7 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 use toml::Spanned;
 use xrce_common::session::admission::KeyArg;
-use xrce_frontend::cli::{AdmissionArgs, TransportKind};
+use xrce_frontend::cli::{AdmissionArgs, FrontendArgs, TransportKind};
 use xrce_frontend::transport::registry::{Medium, TRANSPORTS};
 
 use crate::cli::FrontendPlan;
@@ -171,33 +171,24 @@ pub struct GatewayFrontend {
     /// Seconds of silence before a client's session is deleted (0 = never).
     pub client_dead_time: f64,
     /// Forced protocol dialect.
-    pub dialect: Option<String>,
+    pub dialect: Option<xrce_common::wire::Dialect>,
     /// Allow-list, roaming and quotas of its clients.
     pub admission: AdmissionArgs,
 }
 
 impl GatewayFrontend {
-    /// The hidden `frontend` subcommand's arguments.
-    pub fn frontend_args(&self) -> Vec<String> {
-        let mut a = vec![
-            "--frontend-id".to_string(),
-            self.id.to_string(),
-            "--name".into(),
-            self.name.clone(),
-        ];
-        a.extend(self.plan.frontend_args());
-        if let Some(d) = self.discovery {
-            a.extend(["--discovery".into(), d.to_string()]);
-        }
-        a.extend([
-            "--client-dead-time".into(),
-            self.client_dead_time.to_string(),
-        ]);
-        if let Some(d) = &self.dialect {
-            a.extend(["--dialect".into(), d.clone()]);
-        }
-        a.extend(self.admission.to_args());
-        a
+    /// The front-end process's settings (its instance and log filter are the supervisor's
+    /// to set).
+    pub fn settings(&self) -> FrontendArgs {
+        let mut s = FrontendArgs::defaults();
+        s.frontend_id = self.id;
+        s.name = Some(self.name.clone());
+        self.plan.apply_to(&mut s);
+        s.discovery = self.discovery;
+        s.client_dead_time = self.client_dead_time;
+        s.dialect = self.dialect;
+        s.admission = self.admission.clone();
+        s
     }
 }
 
@@ -542,14 +533,9 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
             None => 0.0,
         };
         let dialect = match &f.dialect {
-            Some(d) if d.get_ref() != "spec" && d.get_ref() != "eprosima" => {
-                return Err(here(
-                    "dialect",
-                    d.span(),
-                    "must be \"spec\" or \"eprosima\"",
-                ))
-            }
-            Some(d) => Some(d.get_ref().clone()),
+            Some(d) => Some(d.get_ref().parse().map_err(|_: String| {
+                here("dialect", d.span(), "must be \"spec\" or \"eprosima\"")
+            })?),
             None => None,
         };
         let mut allow_keys = Vec::new();
@@ -680,7 +666,7 @@ max_client_bytes_per_second = 100000
         assert_eq!(g.frontends[1].id, 1);
         assert_eq!(g.frontends[3].name, "companion");
         assert_eq!(g.frontends[3].id, 7);
-        let args = g.frontends[3].frontend_args();
+        let args = g.frontends[3].settings().to_args();
         assert!(args.windows(2).any(|w| w == ["--max-connections", "50"]));
         assert!(args.windows(2).any(|w| w == ["--dialect", "spec"]));
         assert!(args.windows(2).any(|w| w == ["--client-dead-time", "30"]));
@@ -699,7 +685,8 @@ max_client_bytes_per_second = 100000
             .any(|w| w == ["--max-client-bytes-per-second", "100000"]));
         // The defaults add nothing.
         assert!(!g.frontends[0]
-            .frontend_args()
+            .settings()
+            .to_args()
             .iter()
             .any(|a| a.starts_with("--allow") || a.starts_with("--max-client")));
     }

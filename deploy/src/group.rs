@@ -8,6 +8,7 @@ use std::sync::Arc;
 use std::time::Duration;
 use xrce_dds_worker::backend::BackendKind;
 
+use xrce_frontend::cli::FrontendArgs;
 use xrce_frontend::transport::registry::Medium;
 
 use crate::cli::{Common, FrontendPlan, DEFAULT_VERBOSITY};
@@ -24,8 +25,8 @@ pub struct FrontendLaunch {
     pub id: u32,
     /// What it serves.
     pub plan: FrontendPlan,
-    /// Arguments of the hidden `frontend` subcommand, the pty descriptor aside.
-    pub args: Vec<String>,
+    /// Its settings (the pty descriptor aside, set when the pty is opened).
+    pub settings: FrontendArgs,
 }
 
 /// Whether `name` is an instance name of the kind agents before derived names used: `stem`
@@ -242,29 +243,18 @@ impl Group {
             },
             &[&frontend],
         )?);
-        if let Some(d) = common.dialect {
-            let name = if d == xrce_common::wire::Dialect::Spec {
-                "spec"
-            } else {
-                "eprosima"
-            };
-            env.push(("XRCE_DIALECT".into(), name.into()));
-        }
-        env.push((
-            "XRCE_CLIENT_DEAD_TIME".into(),
-            common.client_dead_time.to_string(),
-        ));
-        let mut args = vec![
-            "--frontend-id".to_string(),
-            "0".into(),
-            "--name".into(),
-            frontend.label(),
-        ];
-        args.extend(frontend.frontend_args());
-        args.extend(common.admission.to_args());
+        let mut settings = FrontendArgs::defaults();
+        settings.instance = instance.clone();
+        settings.log = filter.clone();
+        settings.frontend_id = 0;
+        settings.name = Some(frontend.label());
+        frontend.apply_to(&mut settings);
+        settings.dialect = common.dialect;
+        settings.client_dead_time = common.client_dead_time;
+        settings.admission = common.admission.clone();
         if let Some(port) = common.discovery {
             if frontend.kind().is_ip() {
-                args.extend(["--discovery".into(), port.to_string()]);
+                settings.discovery = Some(port);
             } else {
                 tracing::warn!(
                     transport = frontend.kind().name(),
@@ -285,7 +275,7 @@ impl Group {
                 name: frontend.label(),
                 id: 0,
                 plan: frontend,
-                args,
+                settings,
             }],
         })
     }
@@ -330,11 +320,16 @@ impl Group {
         let frontends = g
             .frontends
             .iter()
-            .map(|f| FrontendLaunch {
-                name: f.name.clone(),
-                id: f.id,
-                plan: f.plan.clone(),
-                args: f.frontend_args(),
+            .map(|f| {
+                let mut settings = f.settings();
+                settings.instance = instance.clone();
+                settings.log = filter.clone();
+                FrontendLaunch {
+                    name: f.name.clone(),
+                    id: f.id,
+                    plan: f.plan.clone(),
+                    settings,
+                }
             })
             .collect();
         Ok(Group {
@@ -416,8 +411,7 @@ impl Group {
         // Kept open for the group's life: a restarted front-end gets the same pty.
         let mut ptys = Vec::new();
         for f in &self.frontends {
-            let mut args = vec!["frontend".to_string()];
-            args.extend(f.args.iter().cloned());
+            let mut settings = f.settings.clone();
             let mut fds = Vec::new();
             if let FrontendPlan::Pty { baudrate } = f.plan {
                 let pty = xrce_frontend::transport::pty::open(baudrate)
@@ -429,7 +423,8 @@ impl Group {
                 let master = Arc::new(crate::high_fd(&pty.master)?);
                 fds.push((master.clone(), 3));
                 ptys.push(master);
-                args.extend(["--pty-fd".into(), "3".into(), "--pty-path".into(), path]);
+                settings.pty_fd = Some(3);
+                settings.pty_path = Some(path.into());
             }
             let (read, write) = readiness::pipe()?;
             fds.push((Arc::new(write), readiness::READY_FD));
@@ -439,7 +434,9 @@ impl Group {
             specs.push(ChildSpec {
                 name: format!("xrce-frontend-{}", f.name),
                 program: exe.clone(),
-                args,
+                args: std::iter::once("frontend".to_string())
+                    .chain(settings.to_args())
+                    .collect(),
                 env,
                 fds,
                 role: "frontend".into(),
@@ -621,7 +618,7 @@ impl Group {
                         "no process {name:?}: the file has `worker` and the front-ends {names:?}"
                     )
                 })?;
-            cmd.arg("frontend").args(&f.args);
+            cmd.arg("frontend").args(f.settings.to_args());
         }
         cmd.envs(self.env.iter().map(|(k, v)| (k, v)));
         if self.memory_limit.is_some() {
