@@ -76,6 +76,18 @@ impl TransportKind {
 }
 
 /// Settings of a front-end process.
+/// The environment variables a front-end reads settings from when its command line does not
+/// give them. A supervisor passes every setting on the command line and removes these from
+/// its front-ends' environment, so that a setting it left unset (a dialect chosen per
+/// session) is not decided by a variable it inherited.
+pub const SETTINGS_ENV: [&str; 5] = [
+    "XRCE_INSTANCE",
+    "XRCE_KEEP_SESSIONS",
+    "XRCE_LOG",
+    "XRCE_DIALECT",
+    "XRCE_CLIENT_DEAD_TIME",
+];
+
 /// The supervisor hands a front-end process its settings as this type
 /// ([`FrontendArgs::to_args`]); adding a setting is a field here (the compiler then asks for
 /// its argument in `to_args`).
@@ -341,13 +353,39 @@ impl AdmissionArgs {
 }
 
 impl FrontendArgs {
-    /// Every setting at its default (as an empty command line gives them, environment
-    /// variables included).
+    /// Every setting at its default, as an empty command line gives them: the environment
+    /// variables the front-end reads ([`SETTINGS_ENV`]) included, unless one of them has a
+    /// value it refuses (then it is ignored, with a warning: a supervisor that decides the
+    /// settings must not stop on them).
     pub fn defaults() -> Self {
         use clap::{Args, FromArgMatches};
         let command = FrontendArgs::augment_args(clap::Command::new("frontend"));
+        match command
+            .try_get_matches_from(["frontend"])
+            .and_then(|m| FrontendArgs::from_arg_matches(&m))
+        {
+            Ok(s) => s,
+            Err(e) => {
+                tracing::warn!(error = %e.kind(), "a front-end setting's environment variable is refused; the built-in defaults apply");
+                Self::built_in()
+            }
+        }
+    }
+
+    /// Every setting at its built-in default, whatever the environment says.
+    pub fn built_in() -> Self {
+        use clap::{Args, FromArgMatches};
+        let mut command = FrontendArgs::augment_args(clap::Command::new("frontend"));
+        let ids: Vec<clap::Id> = command
+            .get_arguments()
+            .map(|a| a.get_id().clone())
+            .collect();
+        for id in ids {
+            command = command.mut_arg(id, |a| a.env(None));
+        }
         let matches = command.get_matches_from(["frontend"]);
-        // The empty command line is valid by construction (every argument has a default).
+        // An empty command line without environment is valid by construction: every
+        // argument has a default (the settings test parses it).
         FrontendArgs::from_arg_matches(&matches).unwrap_or_else(|e| e.exit())
     }
 
@@ -585,7 +623,10 @@ mod tests {
     /// survives `to_args` and the front-end's parsing.
     #[test]
     fn settings_survive_their_command_line() {
-        let mut s = FrontendArgs::defaults();
+        let mut s = FrontendArgs::built_in();
+        assert_eq!(s.instance, "default");
+        assert!(s.keep_sessions);
+        assert_eq!((s.dialect, s.client_dead_time), (None, 0.0));
         assert_eq!(parse(&s.to_args()), s, "the defaults");
         s.instance = "gw-1234abcd".into();
         s.frontend_id = 7;
@@ -604,9 +645,17 @@ mod tests {
         s.log = "debug".into();
         s.dialect = Some(Dialect::Spec);
         s.client_dead_time = 2.5;
+        s.admission.allow_keys = vec!["0xAAAABBBB".parse().expect("key")];
         s.admission.allow_roaming = true;
-        s.admission.max_sessions = 9;
+        s.admission.max_objects_per_client = 33;
         s.admission.max_client_messages_per_second = 40;
+        s.admission.max_client_bytes_per_second = 3000;
+        s.admission.memory_budget_mib = 48;
+        s.admission.max_sessions = 9;
+        s.admission.max_sessions_per_address = 4;
+        s.admission.max_connections_per_address = 5;
+        s.admission.tcp_idle_timeout = 60;
+        s.admission.closed_session_grace = 30;
         assert_eq!(parse(&s.to_args()), s);
     }
 }

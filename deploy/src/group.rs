@@ -8,7 +8,7 @@ use std::sync::Arc;
 use std::time::Duration;
 use xrce_dds_worker::backend::BackendKind;
 
-use xrce_frontend::cli::FrontendArgs;
+use xrce_frontend::cli::{FrontendArgs, SETTINGS_ENV};
 use xrce_frontend::transport::registry::Medium;
 
 use crate::cli::{Common, FrontendPlan, DEFAULT_VERBOSITY};
@@ -27,6 +27,15 @@ pub struct FrontendLaunch {
     pub plan: FrontendPlan,
     /// Its settings (the pty descriptor aside, set when the pty is opened).
     pub settings: FrontendArgs,
+}
+
+/// The group's environment for a front-end: without the variables its settings would come
+/// from (they travel as arguments, [`FrontendArgs::to_args`]).
+fn frontend_env(env: &[(String, String)]) -> Vec<(String, String)> {
+    env.iter()
+        .filter(|(k, _)| !SETTINGS_ENV.contains(&k.as_str()))
+        .cloned()
+        .collect()
 }
 
 /// Whether `name` is an instance name of the kind agents before derived names used: `stem`
@@ -403,6 +412,7 @@ impl Group {
             program: exe.clone(),
             args: vec!["dds-worker".into()],
             env: self.env.clone(),
+            env_remove: Vec::new(),
             fds: Vec::new(),
             role: "worker".into(),
             report: Some("worker".into()),
@@ -429,7 +439,7 @@ impl Group {
             let (read, write) = readiness::pipe()?;
             fds.push((Arc::new(write), readiness::READY_FD));
             ready.push((f.name.clone(), read));
-            let mut env = self.env.clone();
+            let mut env = frontend_env(&self.env);
             env.push(("XRCE_READY_FD".into(), readiness::READY_FD.to_string()));
             specs.push(ChildSpec {
                 name: format!("xrce-frontend-{}", f.name),
@@ -438,6 +448,7 @@ impl Group {
                     .chain(settings.to_args())
                     .collect(),
                 env,
+                env_remove: SETTINGS_ENV.map(String::from).to_vec(),
                 fds,
                 role: "frontend".into(),
                 report: Some(format!("frontend-{}", f.id)),
@@ -619,8 +630,16 @@ impl Group {
                     )
                 })?;
             cmd.arg("frontend").args(f.settings.to_args());
+            for k in SETTINGS_ENV {
+                cmd.env_remove(k);
+            }
         }
-        cmd.envs(self.env.iter().map(|(k, v)| (k, v)));
+        let env = if name == "worker" {
+            self.env.clone()
+        } else {
+            frontend_env(&self.env)
+        };
+        cmd.envs(env);
         if self.memory_limit.is_some() {
             tracing::warn!(
                 process = name,

@@ -36,6 +36,9 @@ pub struct ChildSpec {
     pub args: Vec<String>,
     /// Extra environment.
     pub env: Vec<(String, String)>,
+    /// Variables removed from the environment it inherits (a front-end's settings travel as
+    /// arguments: [`xrce_frontend::cli::SETTINGS_ENV`]).
+    pub env_remove: Vec<String>,
     /// Descriptors the child gets at fixed numbers: (the supervisor's descriptor, its number
     /// in the child). The supervisor keeps them open, so a restarted child gets them again
     /// (a pseudoterminal keeps its path across front-end restarts).
@@ -193,16 +196,25 @@ pub const STABLE_AFTER: Duration = Duration::from_secs(10);
 /// How long children get to stop after SIGTERM before SIGKILL.
 pub const STOP_GRACE: Duration = Duration::from_secs(5);
 
-fn spawn(spec: &ChildSpec) -> std::io::Result<Child> {
+/// The command that starts `spec`'s child (its descriptors aside).
+fn command(spec: &ChildSpec) -> Command {
     let mut cmd = Command::new(&spec.program);
     cmd.args(&spec.args);
     // Readiness and the watchdog reach systemd through the supervisor (NotifyAccess=main).
     cmd.env_remove("NOTIFY_SOCKET");
     cmd.env_remove("WATCHDOG_USEC");
     cmd.env_remove("WATCHDOG_PID");
+    for k in &spec.env_remove {
+        cmd.env_remove(k);
+    }
     for (k, v) in &spec.env {
         cmd.env(k, v);
     }
+    cmd
+}
+
+fn spawn(spec: &ChildSpec) -> std::io::Result<Child> {
+    let mut cmd = command(spec);
     let fds: Vec<(RawFd, RawFd)> = spec
         .fds
         .iter()
@@ -381,12 +393,44 @@ mod tests {
             program: "sleep".into(),
             args: vec!["30".into()],
             env: Vec::new(),
+            env_remove: Vec::new(),
             fds: Vec::new(),
             role: "worker".into(),
             report: None,
         };
         let child = spawn(&spec).expect("sleep runs");
         Supervised::started(spec, child)
+    }
+
+    /// A front-end's settings travel as arguments: the variables they would otherwise come
+    /// from are removed from what it inherits, and never added back.
+    #[test]
+    fn a_child_loses_the_variables_it_must_not_inherit() {
+        let spec = ChildSpec {
+            name: "frontend".into(),
+            program: "true".into(),
+            args: Vec::new(),
+            env: vec![("XRCE_READY_FD".into(), "4".into())],
+            env_remove: xrce_frontend::cli::SETTINGS_ENV.map(String::from).to_vec(),
+            fds: Vec::new(),
+            role: "frontend".into(),
+            report: None,
+        };
+        let cmd = command(&spec);
+        let envs: Vec<(String, Option<String>)> = cmd
+            .get_envs()
+            .map(|(k, v)| {
+                let text = |s: &std::ffi::OsStr| s.to_string_lossy().into_owned();
+                (text(k), v.map(text))
+            })
+            .collect();
+        for k in xrce_frontend::cli::SETTINGS_ENV {
+            assert!(
+                envs.contains(&(k.to_string(), None)),
+                "{k} removed: {envs:?}"
+            );
+        }
+        assert!(envs.contains(&("XRCE_READY_FD".into(), Some("4".into()))));
     }
 
     fn exited_within(c: &mut Supervised, d: Duration) -> bool {
