@@ -199,6 +199,18 @@ fn fast_dds_publishes_and_a_client_reads_every_sample() {
 fn an_xrce_requester_gets_each_reply_of_a_fast_dds_replier_once() {
     let agent = AgentProcess::start("fastdds-rpc");
     let mut replier = FastDds::start("adder_replier", &["-d", "93", "-n", "100000", "-t", "90"]);
+    // Its participant holds its ports before the agent makes one in the domain: two
+    // implementations picking participant ids at once can both take id 0, and then one
+    // never hears the other's unicast discovery (seen once: requests matched at Fast DDS,
+    // none delivered in 30 s).
+    let serving = replier.wait_for("[replier] serving", 30 * SECOND, || {
+        std::thread::sleep(Duration::from_millis(10))
+    });
+    assert!(
+        serving,
+        "the replier did not start:\n{}",
+        replier.transcript()
+    );
     let mut c = TestClient::new(agent.addr(), [0xFA, 0x57, 0xDD, 0x03]);
     c.connect(10 * SECOND);
     let req = c.setup_adder(93, object_kind::REQUESTER);
