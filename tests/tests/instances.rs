@@ -12,17 +12,32 @@ fn two_agents_on_one_port_do_not_share_their_ipc() {
     let port = free_udp_port();
     let a = AgentProcess::start_on(([127, 0, 0, 1], port).into(), None);
     let b = AgentProcess::start_on(([127, 0, 0, 2], port).into(), None);
-    // The instance each agent's processes really use (not the name the harness expects).
+    // The instance each agent's processes really use (not the name the harness expects):
+    // the front-end's `--instance` argument (its settings travel as arguments), the
+    // worker's XRCE_INSTANCE.
     let used = |agent: &AgentProcess| -> Vec<String> {
+        let nul_separated = |path: String| -> Vec<String> {
+            std::fs::read(path)
+                .unwrap_or_default()
+                .split(|b| *b == 0)
+                .map(|p| String::from_utf8_lossy(p).into_owned())
+                .collect()
+        };
         agent
             .child_pids("dds-worker")
             .into_iter()
             .chain(agent.child_pids("frontend"))
             .filter_map(|pid| {
-                let env = std::fs::read(format!("/proc/{pid}/environ")).ok()?;
-                env.split(|b| *b == 0)
-                    .find_map(|kv| kv.strip_prefix(b"XRCE_INSTANCE="))
-                    .map(|v| String::from_utf8_lossy(v).into_owned())
+                let args = nul_separated(format!("/proc/{pid}/cmdline"));
+                let by_argument = args
+                    .iter()
+                    .position(|a| a == "--instance")
+                    .and_then(|i| args.get(i + 1).cloned());
+                by_argument.or_else(|| {
+                    nul_separated(format!("/proc/{pid}/environ"))
+                        .iter()
+                        .find_map(|kv| kv.strip_prefix("XRCE_INSTANCE=").map(String::from))
+                })
             })
             .collect()
     };
