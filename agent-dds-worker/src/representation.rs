@@ -55,6 +55,17 @@ impl OpError {
     }
 }
 
+impl From<crate::backend::BackendError> for OpError {
+    /// Input the backend could not take is the client's fault (INVALID_DATA); anything else
+    /// is DDS's (DDS_ERROR).
+    fn from(e: crate::backend::BackendError) -> Self {
+        match e {
+            crate::backend::BackendError::InvalidInput(m) => OpError::InvalidData(m),
+            other => OpError::Dds(other.to_string()),
+        }
+    }
+}
+
 fn invalid_xml(e: xml::XmlError) -> OpError {
     OpError::InvalidData(e.to_string())
 }

@@ -29,7 +29,9 @@ use std::time::{Duration, Instant};
 
 use ros2_client::NodeName;
 
-use crate::backend::{DdsBackend, DdsGroup, DdsWriter, EndpointQos, Guid, Sample, TopicSpec};
+use crate::backend::{
+    BackendError, DdsBackend, DdsGroup, DdsWriter, EndpointQos, Guid, Sample, TopicSpec,
+};
 
 pub mod entities_info;
 
@@ -288,7 +290,7 @@ impl RosGraph {
         }
     }
 
-    fn make_writer(backend: &mut dyn DdsBackend, domain: u16) -> Result<GraphWriter, String> {
+    fn make_writer(backend: &mut dyn DdsBackend, domain: u16) -> Result<GraphWriter, BackendError> {
         let participant = backend.participant_guid(domain)?;
         let group = backend.create_group(domain, true, &[])?;
         let topic = TopicSpec {
@@ -298,7 +300,7 @@ impl RosGraph {
         };
         let writer = backend
             .create_writer(&*group, &topic, &EndpointQos::ros_discovery_writer(), true)
-            .map_err(|e| format!("ros_discovery_info writer: {e}"))?;
+            .map_err(|e| e.context("ros_discovery_info writer"))?;
         Ok(GraphWriter {
             writer,
             _group: group,
@@ -315,7 +317,7 @@ impl RosGraph {
         domain: u16,
         backend: &mut dyn DdsBackend,
         nodes: DomainNodes,
-    ) -> Result<(), String> {
+    ) -> Result<(), BackendError> {
         use std::collections::hash_map::Entry;
         let layout = self.layout;
         let w = match self.writers.entry(domain) {
@@ -331,7 +333,7 @@ impl RosGraph {
             return Ok(());
         }
         let encoded = encode(w.participant, &nodes, layout)
-            .map_err(|e| format!("ros_discovery_info encoding: {e}"))?;
+            .map_err(|e| BackendError::Dds(format!("ros_discovery_info encoding: {e}")))?;
         if !encoded.omitted.is_empty() {
             tracing::warn!(
                 domain,
@@ -342,7 +344,7 @@ impl RosGraph {
         }
         w.writer
             .write(Sample::cdr(true, &encoded.body))
-            .map_err(|e| format!("ros_discovery_info write: {e}"))?;
+            .map_err(|e| e.context("ros_discovery_info write"))?;
         tracing::info!(
             domain,
             nodes = nodes.nodes.len().saturating_sub(encoded.omitted.len()),

@@ -10,8 +10,8 @@ use std::rc::Rc;
 use std::sync::Arc;
 
 use super::{
-    DdsBackend, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken, Sample,
-    SampleIdentity, Taken, TopicSpec,
+    BackendError, DdsBackend, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken,
+    Sample, SampleIdentity, Taken, TopicSpec,
 };
 use crate::types::KeyDescriptor;
 
@@ -234,13 +234,15 @@ impl DdsWriter for Writer {
     fn key(&self) -> Option<&Arc<KeyDescriptor>> {
         self.key.as_ref()
     }
-    fn write(&self, sample: Sample) -> Result<(), String> {
+    fn write(&self, sample: Sample) -> Result<(), BackendError> {
         self.publish(sample, false, None);
         Ok(())
     }
-    fn dispose(&self, sample: &Sample) -> Result<(), String> {
+    fn dispose(&self, sample: &Sample) -> Result<(), BackendError> {
         if self.key.is_none() {
-            return Err("dispose on a topic without a key".into());
+            return Err(BackendError::InvalidInput(
+                "dispose on a topic without a key".into(),
+            ));
         }
         self.publish(sample.clone(), true, None);
         Ok(())
@@ -249,7 +251,7 @@ impl DdsWriter for Writer {
         &self,
         sample: Sample,
         related: Option<SampleIdentity>,
-    ) -> Result<SampleIdentity, String> {
+    ) -> Result<SampleIdentity, BackendError> {
         Ok(self.publish(sample, false, related))
     }
     fn all_acknowledged(&self) -> bool {
@@ -290,7 +292,7 @@ impl DdsReader for Reader {
     fn guid(&self) -> Guid {
         FakeBus::guid(self.id)
     }
-    fn take_next(&mut self) -> Result<Option<Taken>, String> {
+    fn take_next(&mut self) -> Result<Option<Taken>, BackendError> {
         Ok(self.queue.borrow_mut().pop_front())
     }
 }
@@ -305,7 +307,7 @@ impl DdsBackend for Fake {
         domain: u16,
         publish: bool,
         _partitions: &[String],
-    ) -> Result<Box<dyn DdsGroup>, String> {
+    ) -> Result<Box<dyn DdsGroup>, BackendError> {
         if !self.bus.domains.borrow().contains(&domain) {
             self.bus.domains.borrow_mut().push(domain);
         }
@@ -318,14 +320,18 @@ impl DdsBackend for Fake {
         topic: &TopicSpec,
         qos: &EndpointQos,
         little_endian: bool,
-    ) -> Result<Box<dyn DdsWriter>, String> {
+    ) -> Result<Box<dyn DdsWriter>, BackendError> {
         self.bus
             .endpoints
             .borrow_mut()
             .push((topic.name.clone(), *qos));
         match group.as_any().downcast_ref::<Group>() {
             Some(g) if g.publish => {}
-            _ => return Err("a data writer needs a fake publisher".into()),
+            _ => {
+                return Err(BackendError::ForeignEntity(
+                    "a data writer needs a fake publisher",
+                ))
+            }
         }
         let id = self.bus.next();
         self.bus
@@ -351,14 +357,18 @@ impl DdsBackend for Fake {
         topic: &TopicSpec,
         qos: &EndpointQos,
         token: ReaderToken,
-    ) -> Result<Box<dyn DdsReader>, String> {
+    ) -> Result<Box<dyn DdsReader>, BackendError> {
         self.bus
             .endpoints
             .borrow_mut()
             .push((topic.name.clone(), *qos));
         match group.as_any().downcast_ref::<Group>() {
             Some(g) if !g.publish => {}
-            _ => return Err("a data reader needs a fake subscriber".into()),
+            _ => {
+                return Err(BackendError::ForeignEntity(
+                    "a data reader needs a fake subscriber",
+                ))
+            }
         }
         let id = self.bus.next();
         let queue = Rc::new(RefCell::new(VecDeque::new()));
@@ -377,7 +387,7 @@ impl DdsBackend for Fake {
         }))
     }
 
-    fn participant_guid(&mut self, domain: u16) -> Result<Guid, String> {
+    fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError> {
         let mut g = [0xfb; 16];
         g[14..].copy_from_slice(&domain.to_be_bytes());
         Ok(g)

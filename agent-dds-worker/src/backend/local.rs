@@ -38,8 +38,8 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use super::{
-    DdsBackend, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken, Sample,
-    SampleIdentity, Taken, TopicSpec,
+    BackendError, DdsBackend, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken,
+    Sample, SampleIdentity, Taken, TopicSpec,
 };
 use crate::backend::policies::{Durability, History, OwnershipKind, Period, Reliability};
 use crate::types::KeyDescriptor;
@@ -500,10 +500,10 @@ impl DdsWriter for LocalWriter {
     fn key(&self) -> Option<&Arc<KeyDescriptor>> {
         self.inner.key()
     }
-    fn write(&self, sample: Sample) -> Result<(), String> {
+    fn write(&self, sample: Sample) -> Result<(), BackendError> {
         self.write_identified(sample, None).map(|_| ())
     }
-    fn dispose(&self, sample: &Sample) -> Result<(), String> {
+    fn dispose(&self, sample: &Sample) -> Result<(), BackendError> {
         self.inner.dispose(sample)?;
         let seq = self.last_seq.get() + 1;
         self.last_seq.set(seq);
@@ -550,7 +550,7 @@ impl DdsWriter for LocalWriter {
         &self,
         sample: Sample,
         related: Option<SampleIdentity>,
-    ) -> Result<SampleIdentity, String> {
+    ) -> Result<SampleIdentity, BackendError> {
         let paired = self.paired.borrow();
         let local = (!paired.is_empty()).then(|| sample.clone());
         let identity = self.inner.write_identified(sample, related)?;
@@ -598,7 +598,7 @@ impl Drop for LocalReader {
 }
 
 impl LocalReader {
-    fn take_inner(&mut self) -> Result<Option<Taken>, String> {
+    fn take_inner(&mut self) -> Result<Option<Taken>, BackendError> {
         loop {
             match self.inner.take_next()? {
                 None => {
@@ -616,7 +616,7 @@ impl DdsReader for LocalReader {
     fn guid(&self) -> Guid {
         self.inner.guid()
     }
-    fn take_next(&mut self) -> Result<Option<Taken>, String> {
+    fn take_next(&mut self) -> Result<Option<Taken>, BackendError> {
         self.local_first = !self.local_first;
         if self.local_first {
             if let Some(t) = self.state.queue.borrow_mut().pop() {
@@ -641,7 +641,7 @@ impl DdsBackend for LocalDelivery {
         domain: u16,
         publish: bool,
         partitions: &[String],
-    ) -> Result<Box<dyn DdsGroup>, String> {
+    ) -> Result<Box<dyn DdsGroup>, BackendError> {
         Ok(Box::new(LocalGroup {
             inner: self.inner.create_group(domain, publish, partitions)?,
             partitions: partitions.to_vec(),
@@ -662,9 +662,11 @@ impl DdsBackend for LocalDelivery {
         topic: &TopicSpec,
         qos: &EndpointQos,
         little_endian: bool,
-    ) -> Result<Box<dyn DdsWriter>, String> {
+    ) -> Result<Box<dyn DdsWriter>, BackendError> {
         let Some(g) = group.as_any().downcast_ref::<LocalGroup>() else {
-            return Err("a data writer needs a publisher of this backend".into());
+            return Err(BackendError::ForeignEntity(
+                "a data writer needs a publisher of this backend",
+            ));
         };
         let inner = self
             .inner
@@ -694,9 +696,11 @@ impl DdsBackend for LocalDelivery {
         topic: &TopicSpec,
         qos: &EndpointQos,
         token: ReaderToken,
-    ) -> Result<Box<dyn DdsReader>, String> {
+    ) -> Result<Box<dyn DdsReader>, BackendError> {
         let Some(g) = group.as_any().downcast_ref::<LocalGroup>() else {
-            return Err("a data reader needs a subscriber of this backend".into());
+            return Err(BackendError::ForeignEntity(
+                "a data reader needs a subscriber of this backend",
+            ));
         };
         let inner = self.inner.create_reader(&*g.inner, topic, qos, token)?;
         let id = self.hub.next_id();
@@ -718,7 +722,7 @@ impl DdsBackend for LocalDelivery {
         }))
     }
 
-    fn participant_guid(&mut self, domain: u16) -> Result<Guid, String> {
+    fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError> {
         self.inner.participant_guid(domain)
     }
 

@@ -187,7 +187,7 @@ fn rustdds_delivering_locally(config: DdsConfig) -> anyhow::Result<Box<dyn DdsBa
 /// the configured interfaces ([`confine`]). It fails closed: on an error the caller deletes
 /// the participant (its sockets might take datagrams sent to any address of this host) and
 /// refuses what needed it.
-pub(crate) fn confine_new_sockets(config: &DdsConfig) -> Result<(), String> {
+pub(crate) fn confine_new_sockets(config: &DdsConfig) -> Result<(), BackendError> {
     match confine::confine_udp_sockets(&config.interfaces) {
         Ok(0) => Ok(()),
         Ok(n) => {
@@ -203,9 +203,48 @@ pub(crate) fn confine_new_sockets(config: &DdsConfig) -> Result<(), String> {
                 interfaces = ?config.interfaces,
                 "could not confine a new DDS participant to the DDS interfaces; it is deleted: {e}"
             );
-            Err(format!(
+            Err(BackendError::Placement(format!(
                 "the DDS participant could not be confined to --dds-interface: {e}"
-            ))
+            )))
+        }
+    }
+}
+
+/// Why a backend could not do what the worker asked. The variant says whose the fault is,
+/// which decides the XRCE status a client gets (`OpError`'s `From`): only
+/// [`InvalidInput`](BackendError::InvalidInput) is the client's.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum BackendError {
+    /// The DDS implementation refused or failed the call; the message names the call and
+    /// gives the implementation's reason.
+    #[error("{0}")]
+    Dds(String),
+    /// Input the implementation cannot take: a sample whose key cannot be read, a dispose
+    /// on a topic without a key, a name with a NUL byte.
+    #[error("{0}")]
+    InvalidInput(String),
+    /// DDS cannot go where the configuration puts it: a participant that could not be
+    /// confined to `--dds-interface`, ports the front-ends hold, IPv4 and IPv6 together.
+    #[error("{0}")]
+    Placement(String),
+    /// Something this backend does not do (the worker asks another for it).
+    #[error("{0}")]
+    Unsupported(&'static str),
+    /// An entity made by another backend was passed in (a fault in the worker, not the
+    /// client's).
+    #[error("{0}")]
+    ForeignEntity(&'static str),
+}
+
+impl BackendError {
+    /// The same error, its message preceded by what was being done (`"DDS write"`).
+    pub fn context(self, what: &str) -> Self {
+        match self {
+            BackendError::Dds(m) => BackendError::Dds(format!("{what}: {m}")),
+            BackendError::InvalidInput(m) => BackendError::InvalidInput(format!("{what}: {m}")),
+            BackendError::Placement(m) => BackendError::Placement(format!("{what}: {m}")),
+            BackendError::Unsupported(m) => BackendError::Dds(format!("{what}: {m}")),
+            BackendError::ForeignEntity(m) => BackendError::Dds(format!("{what}: {m}")),
         }
     }
 }
@@ -343,15 +382,15 @@ pub trait DdsWriter {
     /// The key description of a keyed writer.
     fn key(&self) -> Option<&Arc<KeyDescriptor>>;
     /// Publishes a sample (already in the writer's byte order).
-    fn write(&self, sample: Sample) -> Result<(), String>;
+    fn write(&self, sample: Sample) -> Result<(), BackendError>;
     /// Disposes the instance of `sample` (a whole sample, or its key fields alone).
-    fn dispose(&self, sample: &Sample) -> Result<(), String>;
+    fn dispose(&self, sample: &Sample) -> Result<(), BackendError>;
     /// Publishes a sample, optionally as the reply to `related`; returns its identity.
     fn write_identified(
         &self,
         sample: Sample,
         related: Option<SampleIdentity>,
-    ) -> Result<SampleIdentity, String>;
+    ) -> Result<SampleIdentity, BackendError>;
     /// Whether every matched reliable reader acknowledged everything written (true without
     /// any, and for a best-effort writer). Never waits.
     fn all_acknowledged(&self) -> bool;
@@ -372,7 +411,7 @@ pub trait DdsReader {
     fn guid(&self) -> Guid;
     /// Takes the next sample, if any; an error is one sample that could not be taken
     /// (undecodable), the next call goes on.
-    fn take_next(&mut self) -> Result<Option<Taken>, String>;
+    fn take_next(&mut self) -> Result<Option<Taken>, BackendError>;
 }
 
 /// A DDS implementation as the worker uses it.
@@ -387,7 +426,7 @@ pub trait DdsBackend {
         domain: u16,
         publish: bool,
         partitions: &[String],
-    ) -> Result<Box<dyn DdsGroup>, String>;
+    ) -> Result<Box<dyn DdsGroup>, BackendError>;
     /// Whether its groups can have partitions.
     fn supports_partitions(&self) -> bool {
         false
@@ -405,7 +444,7 @@ pub trait DdsBackend {
         topic: &TopicSpec,
         qos: &EndpointQos,
         little_endian: bool,
-    ) -> Result<Box<dyn DdsWriter>, String>;
+    ) -> Result<Box<dyn DdsWriter>, BackendError>;
     /// A data reader in `group` (a subscriber of this backend), whose data wakes the loop
     /// with `token`.
     fn create_reader(
@@ -414,9 +453,9 @@ pub trait DdsBackend {
         topic: &TopicSpec,
         qos: &EndpointQos,
         token: ReaderToken,
-    ) -> Result<Box<dyn DdsReader>, String>;
+    ) -> Result<Box<dyn DdsReader>, BackendError>;
     /// The GUID of the participant the domain's writers live on (the ROS graph names it).
-    fn participant_guid(&mut self, domain: u16) -> Result<Guid, String>;
+    fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError>;
     /// A descriptor that polls readable when some reader may have data.
     fn readiness_fd(&self) -> BorrowedFd<'_>;
     /// Adds the tokens of readers that may have data since the last call (never blocks;
@@ -482,6 +521,32 @@ pub fn decode_sample_identity(b: &[u8], little_endian: bool) -> Option<SampleIde
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::representation::OpError;
+    use xrce_common::wire::status;
+
+    #[test]
+    fn only_input_the_backend_cannot_take_is_the_clients_fault() {
+        let input = BackendError::InvalidInput("key of a Keyed sample: too short".into());
+        let with_context = input.context("DDS write");
+        assert_eq!(
+            with_context,
+            BackendError::InvalidInput("DDS write: key of a Keyed sample: too short".into())
+        );
+        assert_eq!(
+            OpError::from(with_context).status(),
+            status::ERR_INVALID_DATA
+        );
+        for other in [
+            BackendError::Dds("create data writer: out of resources".into()),
+            BackendError::Placement("UDP port 7401 is taken".into()),
+            BackendError::Unsupported("no services here"),
+            BackendError::ForeignEntity("a data writer needs a publisher of this backend"),
+        ] {
+            let op = OpError::from(other.clone().context("DDS write"));
+            assert_eq!(op.status(), status::ERR_DDS_ERROR, "{other:?}");
+            assert!(op.to_string().starts_with("DDS write: "), "{op}");
+        }
+    }
 
     #[test]
     fn sample_identities_round_trip_in_both_byte_orders() {

@@ -74,7 +74,7 @@ impl Worker {
             self.remove_subtree(key);
         }
         let repr = &variant.representation;
-        let dds_err = |e: String| OpError::Dds(e);
+        let dds_err = OpError::from;
         let (parent, kind) = match (variant.kind, variant.extra) {
             (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
                 check_plain(repr, variant.kind, &self.config.references, little_endian)?;

@@ -33,8 +33,8 @@ use xrce_ipc::{self as ipc, Encode, Reply, ReplyMessage, Request, RequestMessage
 use crate::acks::{AckTracker, Acknowledging, Outstanding};
 use crate::adoption::{Adoption, Origin};
 use crate::backend::{
-    self, effective_domain, DdsBackend, DdsConfig, DdsGroup, DdsReader, EndpointQos, EndpointSide,
-    ReaderToken, Sample, TopicSpec,
+    self, effective_domain, BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, EndpointQos,
+    EndpointSide, ReaderToken, Sample, TopicSpec,
 };
 use crate::domains::{DomainPolicy, DomainRefusal, Domains};
 use crate::episodes::Episodes;

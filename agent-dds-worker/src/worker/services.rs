@@ -64,7 +64,7 @@ pub(super) fn service_write(
             "a sample in another byte order than the client's CREATE".into(),
         ));
     }
-    let dds = |e: String| OpError::Dds(format!("DDS write: {e}"));
+    let dds = |e: BackendError| OpError::from(e.context("DDS write"));
     if svc.requester {
         let sample = Sample::cdr(little_endian, data);
         let id = svc.writer.write_identified(sample, None).map_err(dds)?;
@@ -100,7 +100,7 @@ impl Worker {
         requester: bool,
         little_endian: bool,
     ) -> Result<ServiceEndpoint, OpError> {
-        let dds_err = |e: String| OpError::Dds(e);
+        let dds_err = OpError::from;
         let token = self.next_token;
         self.next_token += 1;
         let dds = self.services_backend()?;

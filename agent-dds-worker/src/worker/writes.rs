@@ -276,9 +276,9 @@ impl Worker {
         let done = if dispose {
             w.raw
                 .dispose(&sample)
-                .map_err(|e| OpError::Dds(format!("DDS dispose: {e}")))
+                .map_err(|e| OpError::from(e.context("DDS dispose")))
         } else {
-            publish(&*w.raw, sample).map_err(|e| OpError::Dds(format!("DDS write: {e}")))
+            publish(&*w.raw, sample).map_err(|e| OpError::from(e.context("DDS write")))
         };
         if done.is_ok()
             && w.outstanding
@@ -467,7 +467,7 @@ impl Worker {
 
 /// Writes one sample to DDS: once, unless a fault injected on purpose (`xrce_common::fault`,
 /// test builds only) drops it or writes it twice.
-fn publish(writer: &dyn backend::DdsWriter, sample: Sample) -> Result<(), String> {
+fn publish(writer: &dyn backend::DdsWriter, sample: Sample) -> Result<(), BackendError> {
     if fault::hit(Fault::DdsDrop, 10) {
         return Ok(());
     }

@@ -45,6 +45,7 @@ use std::sync::{Arc, Mutex};
 
 use cyclors as c;
 
+use crate::backend::BackendError;
 use crate::types::KeyDescriptor;
 
 /// A Cyclone entity handle.
@@ -61,16 +62,17 @@ fn retcode(r: c::dds_return_t) -> String {
     unsafe { CStr::from_ptr(p) }.to_string_lossy().into_owned()
 }
 
-fn check(r: c::dds_return_t, what: &str) -> Result<(), String> {
+fn check(r: c::dds_return_t, what: &str) -> Result<(), BackendError> {
     if r < 0 {
-        Err(format!("{what}: {}", retcode(r)))
+        Err(BackendError::Dds(format!("{what}: {}", retcode(r))))
     } else {
         Ok(())
     }
 }
 
-fn cstring(s: &str, what: &str) -> Result<CString, String> {
-    CString::new(s).map_err(|_| format!("{what} {s:?} contains a NUL byte"))
+fn cstring(s: &str, what: &str) -> Result<CString, BackendError> {
+    CString::new(s)
+        .map_err(|_| BackendError::InvalidInput(format!("{what} {s:?} contains a NUL byte")))
 }
 
 /// An owned entity, deleted when dropped.
@@ -78,9 +80,9 @@ fn cstring(s: &str, what: &str) -> Result<CString, String> {
 pub struct Entity(Handle);
 
 impl Entity {
-    fn new(h: Handle, what: &str) -> Result<Self, String> {
+    fn new(h: Handle, what: &str) -> Result<Self, BackendError> {
         if h < 0 {
-            Err(format!("{what}: {}", retcode(h)))
+            Err(BackendError::Dds(format!("{what}: {}", retcode(h))))
         } else {
             Ok(Entity(h))
         }
@@ -92,7 +94,7 @@ impl Entity {
     }
 
     /// Its GUID.
-    pub fn guid(&self) -> Result<[u8; 16], String> {
+    pub fn guid(&self) -> Result<[u8; 16], BackendError> {
         guid_of(self.0)
     }
 }
@@ -104,7 +106,7 @@ impl Drop for Entity {
     }
 }
 
-fn guid_of(h: Handle) -> Result<[u8; 16], String> {
+fn guid_of(h: Handle) -> Result<[u8; 16], BackendError> {
     let mut g = c::dds_guid_t { v: [0; 16] };
     // SAFETY: g is a valid out pointer.
     check(unsafe { c::dds_get_guid(h, &mut g) }, "get GUID")?;
@@ -122,7 +124,7 @@ pub struct Participant {
 impl Participant {
     /// A participant in `domain`, whose domain is configured by `config_xml` (Cyclone's XML
     /// configuration; `None`: Cyclone's defaults and `CYCLONEDDS_URI`).
-    pub fn new(domain: u32, config_xml: Option<&str>) -> Result<Self, String> {
+    pub fn new(domain: u32, config_xml: Option<&str>) -> Result<Self, BackendError> {
         let domain_entity = match config_xml {
             Some(xml) => {
                 let xml = cstring(xml, "configuration")?;
@@ -146,13 +148,17 @@ impl Participant {
     }
 
     /// Its GUID.
-    pub fn guid(&self) -> Result<[u8; 16], String> {
+    pub fn guid(&self) -> Result<[u8; 16], BackendError> {
         self.participant.guid()
     }
 
     /// A publisher (`publish`) or subscriber with the given partitions (none: the default
     /// partition).
-    pub fn create_group(&self, publish: bool, partitions: &[String]) -> Result<Entity, String> {
+    pub fn create_group(
+        &self,
+        publish: bool,
+        partitions: &[String],
+    ) -> Result<Entity, BackendError> {
         let mut qos = Qos::new()?;
         if !partitions.is_empty() {
             qos.partitions(partitions)?;
@@ -181,7 +187,7 @@ impl Participant {
         name: &str,
         type_name: &str,
         key: Option<Arc<KeyDescriptor>>,
-    ) -> Result<Entity, String> {
+    ) -> Result<Entity, BackendError> {
         let cname = cstring(name, "topic name")?;
         let ctype = cstring(type_name, "type name")?;
         let flags = if key.is_none() {
@@ -285,11 +291,11 @@ pub const INFINITY: i64 = i64::MAX;
 
 impl Qos {
     /// An empty QoS (every policy Cyclone's default).
-    pub fn new() -> Result<Self, String> {
+    pub fn new() -> Result<Self, BackendError> {
         // SAFETY: allocates; null on out of memory.
         let q = unsafe { c::dds_create_qos() };
         if q.is_null() {
-            return Err("out of memory creating a QoS".into());
+            return Err(BackendError::Dds("out of memory creating a QoS".into()));
         }
         Ok(Qos(q))
     }
@@ -419,13 +425,14 @@ impl Qos {
     }
 
     /// Partition names.
-    pub fn partitions(&mut self, names: &[String]) -> Result<(), String> {
+    pub fn partitions(&mut self, names: &[String]) -> Result<(), BackendError> {
         let owned = names
             .iter()
             .map(|n| cstring(n, "partition name"))
             .collect::<Result<Vec<_>, _>>()?;
         let mut ptrs: Vec<*const c_char> = owned.iter().map(|s| s.as_ptr()).collect();
-        let n = u32::try_from(ptrs.len()).map_err(|_| "too many partitions")?;
+        let n = u32::try_from(ptrs.len())
+            .map_err(|_| BackendError::InvalidInput("too many partitions".into()))?;
         // SAFETY: n valid C strings, copied by Cyclone.
         unsafe { c::dds_qset_partition(self.0, n, ptrs.as_mut_ptr()) };
         Ok(())
@@ -454,7 +461,7 @@ pub struct Writer {
 
 impl Writer {
     /// A writer in `publisher` on `topic`.
-    pub fn new(publisher: Handle, topic: &Entity, qos: &Qos) -> Result<Self, String> {
+    pub fn new(publisher: Handle, topic: &Entity, qos: &Qos) -> Result<Self, BackendError> {
         // SAFETY: handles are numbers; QoS is live; null listener.
         let h = unsafe { c::dds_create_writer(publisher, topic.handle(), qos.0, std::ptr::null()) };
         let entity = Entity::new(h, "create data writer")?;
@@ -465,7 +472,9 @@ impl Writer {
             "writer's type",
         )?;
         if sertype.is_null() || !is_ours(sertype) {
-            return Err("the topic's type is not a raw-sample type".into());
+            return Err(BackendError::ForeignEntity(
+                "the topic's type is not a raw-sample type",
+            ));
         }
         Ok(Writer {
             entity,
@@ -475,13 +484,13 @@ impl Writer {
     }
 
     /// Its GUID.
-    pub fn guid(&self) -> Result<[u8; 16], String> {
+    pub fn guid(&self) -> Result<[u8; 16], BackendError> {
         self.entity.guid()
     }
 
     /// Writes a sample with representation identifier `encoding` and body `body`; with
     /// `dispose`, disposes the instance whose key payload `body` is instead.
-    pub fn write(&self, encoding: [u8; 2], body: &[u8], dispose: bool) -> Result<(), String> {
+    pub fn write(&self, encoding: [u8; 2], body: &[u8], dispose: bool) -> Result<(), BackendError> {
         let data = encapsulate(encoding, body);
         let kind = if dispose {
             c::ddsi_serdata_kind_SDK_KEY
@@ -581,7 +590,7 @@ impl Reader {
         qos: &Qos,
         readiness: &Readiness,
         token: u64,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, BackendError> {
         let signal = Arc::into_raw(Arc::new(ReaderSignal {
             token,
             queued: AtomicBool::new(false),
@@ -599,7 +608,10 @@ impl Reader {
         if h < 0 {
             // SAFETY: no reader was made, nothing else holds the pointer.
             drop(unsafe { Arc::from_raw(signal) });
-            return Err(format!("create data reader: {}", retcode(h)));
+            return Err(BackendError::Dds(format!(
+                "create data reader: {}",
+                retcode(h)
+            )));
         }
         Ok(Reader {
             handle: h,
@@ -609,12 +621,12 @@ impl Reader {
     }
 
     /// Its GUID.
-    pub fn guid(&self) -> Result<[u8; 16], String> {
+    pub fn guid(&self) -> Result<[u8; 16], BackendError> {
         guid_of(self.handle)
     }
 
     /// Takes up to a batch of samples into `out`; returns how many.
-    pub fn take(&mut self, out: &mut Vec<TakenRaw>) -> Result<usize, String> {
+    pub fn take(&mut self, out: &mut Vec<TakenRaw>) -> Result<usize, BackendError> {
         // Data arriving from now on signals the reader again (what arrived before is taken
         // below).
         // SAFETY: the signal lives as long as the reader.

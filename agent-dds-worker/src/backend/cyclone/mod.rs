@@ -23,8 +23,8 @@ use bytes::Bytes;
 
 use super::ports::{self, ReservedPorts};
 use super::{
-    DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, Encoding, EndpointQos, Guid,
-    ReaderToken, Sample, SampleIdentity, Taken, TopicSpec,
+    BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, Encoding, EndpointQos,
+    Guid, ReaderToken, Sample, SampleIdentity, Taken, TopicSpec,
 };
 use crate::types::KeyDescriptor;
 
@@ -76,10 +76,12 @@ pub fn config_xml(
     interfaces: &[IpAddr],
     uri: Option<&str>,
     data_multicast_offset: Option<u32>,
-) -> Result<String, String> {
+) -> Result<String, BackendError> {
     let v6 = interfaces.iter().filter(|a| a.is_ipv6()).count();
     if v6 != 0 && v6 != interfaces.len() {
-        return Err("Cyclone DDS uses either IPv4 or IPv6 addresses in a domain, not both".into());
+        return Err(BackendError::Placement(
+            "Cyclone DDS uses either IPv4 or IPv6 addresses in a domain, not both".into(),
+        ));
     }
     let mut s = String::new();
     if let Some(u) = uri.map(str::trim).filter(|u| !u.is_empty()) {
@@ -153,7 +155,7 @@ impl Cyclone {
         self.reserved = reserved;
     }
 
-    fn participant(&mut self, domain: u16) -> Result<Rc<ffi::Participant>, String> {
+    fn participant(&mut self, domain: u16) -> Result<Rc<ffi::Participant>, BackendError> {
         if let Some(p) = self.participants.get(&domain) {
             return Ok(p.clone());
         }
@@ -164,15 +166,15 @@ impl Cyclone {
         let plan = ports::plan(domain, &self.reserved, &self.config.interfaces, |p| {
             ports::shareable(p, v6)
         })
-        .map_err(|clash| clash.to_string())?;
+        .map_err(|clash| BackendError::Placement(clash.to_string()))?;
         if let Some(taken) = plan.user_multicast_taken {
             let Some(offset) = plan.data_multicast_offset else {
-                return Err(format!(
+                return Err(BackendError::Placement(format!(
                     "DDS domain {domain}: UDP port {taken}, its user-data multicast port, is \
                      taken (an XRCE port?), and so are its spare ports {}-{}",
                     ports::port_at(domain, *ports::SPARE_OFFSETS.start()).unwrap_or(0),
                     ports::port_at(domain, *ports::SPARE_OFFSETS.end()).unwrap_or(0),
-                ));
+                )));
             };
             tracing::info!(
                 domain,
@@ -191,20 +193,20 @@ impl Cyclone {
         )?;
         let guard = plan.guard(v6);
         let p = ffi::Participant::new(u32::from(domain), Some(&xml))
-            .map_err(|e| format!("{e} (Cyclone DDS's reason is in the worker's log just before)"));
+            .map_err(|e| e.context("Cyclone DDS's reason is in the worker's log just before"));
         // Released before the sockets are confined (it is one of the process's wildcard
         // sockets).
         drop(guard);
         let p = Rc::new(p?);
         // Fails closed: unconfined, the participant (and its domain) is deleted here.
         super::confine_new_sockets(&self.config)
-            .map_err(|e| format!("DDS participant in domain {domain}: {e}"))?;
+            .map_err(|e| e.context(&format!("DDS participant in domain {domain}")))?;
         tracing::info!(domain, "Cyclone DDS participant created");
         self.participants.insert(domain, p.clone());
         Ok(p)
     }
 
-    fn topic(&mut self, group: &Group, spec: &TopicSpec) -> Result<Rc<ffi::Entity>, String> {
+    fn topic(&mut self, group: &Group, spec: &TopicSpec) -> Result<Rc<ffi::Entity>, BackendError> {
         let id = (
             group.domain,
             spec.name.clone(),
@@ -387,7 +389,7 @@ struct Writer {
 
 impl Writer {
     /// Counts a write that succeeded.
-    fn count(&self, done: Result<(), String>) -> Result<(), String> {
+    fn count(&self, done: Result<(), BackendError>) -> Result<(), BackendError> {
         if done.is_ok() {
             match &self.watcher {
                 Some(w) => w.wrote(&self.acks),
@@ -422,31 +424,34 @@ impl DdsWriter for Writer {
     fn key(&self) -> Option<&Arc<KeyDescriptor>> {
         self.key.as_ref()
     }
-    fn write(&self, sample: Sample) -> Result<(), String> {
+    fn write(&self, sample: Sample) -> Result<(), BackendError> {
         self.count(self.raw.write(sample.encoding.0, &sample.body, false))
     }
-    fn dispose(&self, sample: &Sample) -> Result<(), String> {
+    fn dispose(&self, sample: &Sample) -> Result<(), BackendError> {
         let Some(k) = &self.key else {
-            return Err("dispose on a topic without a key".into());
+            return Err(BackendError::InvalidInput(
+                "dispose on a topic without a key".into(),
+            ));
         };
         let (le, xcdr2) = (sample.little_endian(), sample.encoding.is_xcdr2());
         let key = k
             .of_sample(&sample.body, le, xcdr2)
             .or_else(|_| k.of_key_payload(&sample.body, le, xcdr2))
-            .map_err(|e| format!("key of a {} sample: {e}", k.ty().name))?;
+            .map_err(|e| {
+                BackendError::InvalidInput(format!("key of a {} sample: {e}", k.ty().name))
+            })?;
         self.count(self.raw.write(Encoding::cdr(le).0, &key.payload, true))
     }
     fn write_identified(
         &self,
         _sample: Sample,
         _related: Option<SampleIdentity>,
-    ) -> Result<SampleIdentity, String> {
-        Err(
+    ) -> Result<SampleIdentity, BackendError> {
+        Err(BackendError::Unsupported(
             "requesters and repliers are not supported by the Cyclone DDS backend (its C API \
              cannot tell a written sample's identity nor send a related one); the worker \
-             serves them through the backend `backend::for_services` makes"
-                .into(),
-        )
+             serves them through the backend `backend::for_services` makes",
+        ))
     }
     fn all_acknowledged(&self) -> bool {
         self.raw.all_acknowledged()
@@ -494,7 +499,7 @@ impl Reader {
     /// state of an unread sample instead of queueing it (it makes an invalid sample only
     /// when everything of the instance was read), so both forms are reported once per
     /// disposal. An instance left by its writers is not a sample (as with RustDDS).
-    fn refill(&mut self) -> Result<(), String> {
+    fn refill(&mut self) -> Result<(), BackendError> {
         loop {
             self.batch.clear();
             let n = self.raw.take(&mut self.batch)?;
@@ -608,7 +613,7 @@ impl DdsReader for Reader {
     fn guid(&self) -> Guid {
         self.guid
     }
-    fn take_next(&mut self) -> Result<Option<Taken>, String> {
+    fn take_next(&mut self) -> Result<Option<Taken>, BackendError> {
         if self.pending.is_empty() {
             self.refill()?;
         }
@@ -626,7 +631,7 @@ impl DdsBackend for Cyclone {
         domain: u16,
         publish: bool,
         partitions: &[String],
-    ) -> Result<Box<dyn DdsGroup>, String> {
+    ) -> Result<Box<dyn DdsGroup>, BackendError> {
         let participant = self.participant(domain)?;
         let entity = participant.create_group(publish, partitions)?;
         Ok(Box::new(Group {
@@ -643,9 +648,11 @@ impl DdsBackend for Cyclone {
         spec: &TopicSpec,
         qos: &EndpointQos,
         little_endian: bool,
-    ) -> Result<Box<dyn DdsWriter>, String> {
+    ) -> Result<Box<dyn DdsWriter>, BackendError> {
         let Some(g) = group.as_any().downcast_ref::<Group>().filter(|g| g.publish) else {
-            return Err("a data writer needs a Cyclone DDS publisher".into());
+            return Err(BackendError::ForeignEntity(
+                "a data writer needs a Cyclone DDS publisher",
+            ));
         };
         let topic = self.topic(g, spec)?;
         let raw = ffi::Writer::new(g.entity.handle(), &topic, &qos::to_cyclone(qos)?)?;
@@ -676,13 +683,15 @@ impl DdsBackend for Cyclone {
         spec: &TopicSpec,
         qos: &EndpointQos,
         token: ReaderToken,
-    ) -> Result<Box<dyn DdsReader>, String> {
+    ) -> Result<Box<dyn DdsReader>, BackendError> {
         let Some(g) = group
             .as_any()
             .downcast_ref::<Group>()
             .filter(|g| !g.publish)
         else {
-            return Err("a data reader needs a Cyclone DDS subscriber".into());
+            return Err(BackendError::ForeignEntity(
+                "a data reader needs a Cyclone DDS subscriber",
+            ));
         };
         let topic = self.topic(g, spec)?;
         let raw = ffi::Reader::new(
@@ -713,7 +722,7 @@ impl DdsBackend for Cyclone {
         false
     }
 
-    fn participant_guid(&mut self, domain: u16) -> Result<Guid, String> {
+    fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError> {
         self.participant(domain)?.guid()
     }
 

@@ -5,7 +5,7 @@ use crate::backend::policies::{
     AccessScope, DestinationOrderKind, Durability, History, LivelinessKind, OwnershipKind, Period,
     Reliability,
 };
-use crate::backend::EndpointQos;
+use crate::backend::{BackendError, EndpointQos};
 
 /// Nanoseconds of a period (infinite beyond `i64`).
 fn ns(p: Period) -> i64 {
@@ -16,7 +16,7 @@ fn ns(p: Period) -> i64 {
 }
 
 /// The Cyclone policies of an endpoint.
-pub fn to_cyclone(qos: &EndpointQos) -> Result<Qos, String> {
+pub fn to_cyclone(qos: &EndpointQos) -> Result<Qos, BackendError> {
     let mut q = Qos::new()?;
     let d = qos.described;
     q.reliability(match qos.reliability {

@@ -18,8 +18,8 @@ use rustdds::{DomainParticipant, DomainParticipantBuilder, QosPolicies, RTPSEnti
 
 use super::ports::{self, ReservedPorts};
 use super::{
-    DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken, Sample,
-    SampleIdentity, Taken, TopicSpec,
+    BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid,
+    ReaderToken, Sample, SampleIdentity, Taken, TopicSpec,
 };
 use crate::types::KeyDescriptor;
 
@@ -86,7 +86,7 @@ impl RustDds {
     /// [`ports::PortGuard`] holds it meanwhile if not. A taken discovery multicast port
     /// refuses the domain ([`ports::plan`]) instead of leaving it deaf to the others'
     /// announcements.
-    fn participant(&mut self, domain: u16, role: Role) -> Result<DomainParticipant, String> {
+    fn participant(&mut self, domain: u16, role: Role) -> Result<DomainParticipant, BackendError> {
         if let Some(p) = self.participants.get(&(domain, role)) {
             return Ok(p.clone());
         }
@@ -94,7 +94,7 @@ impl RustDds {
         let plan = ports::plan(domain, &self.reserved, &self.config.interfaces, |p| {
             ports::shareable(p, false)
         })
-        .map_err(|clash| clash.to_string())?;
+        .map_err(|clash| BackendError::Placement(clash.to_string()))?;
         if let Some(taken) = plan.user_multicast_taken {
             tracing::info!(
                 domain,
@@ -112,10 +112,14 @@ impl RustDds {
         // Released before the sockets are confined (it is one of the process's wildcard
         // sockets).
         drop(guard);
-        let p = p.map_err(|e| format!("creating DDS participant in domain {domain}: {e:?}"))?;
+        let p = p.map_err(|e| {
+            BackendError::Dds(format!(
+                "creating DDS participant in domain {domain}: {e:?}"
+            ))
+        })?;
         // Fails closed: unconfined, the participant is dropped (deleted) here.
         super::confine_new_sockets(&self.config)
-            .map_err(|e| format!("DDS participant in domain {domain}: {e}"))?;
+            .map_err(|e| e.context(&format!("DDS participant in domain {domain}")))?;
         tracing::info!(domain, ?role, "DDS participant created");
         self.participants.insert((domain, role), p.clone());
         Ok(p)
@@ -123,7 +127,7 @@ impl RustDds {
 }
 
 /// A RustDDS topic on `dp` (RustDDS makes topics per participant).
-fn topic(dp: &DomainParticipant, spec: &TopicSpec) -> Result<rustdds::Topic, String> {
+fn topic(dp: &DomainParticipant, spec: &TopicSpec) -> Result<rustdds::Topic, BackendError> {
     dp.create_topic(
         spec.name.clone(),
         spec.type_name.clone(),
@@ -134,7 +138,7 @@ fn topic(dp: &DomainParticipant, spec: &TopicSpec) -> Result<rustdds::Topic, Str
             TopicKind::NoKey
         },
     )
-    .map_err(|e| format!("create topic: {e:?}"))
+    .map_err(|e| BackendError::Dds(format!("create topic: {e:?}")))
 }
 
 /// A RustDDS publisher or subscriber.
@@ -167,7 +171,7 @@ struct Writer {
 
 impl Writer {
     /// Counts a write that succeeded.
-    fn count<T>(&self, done: Result<T, String>) -> Result<T, String> {
+    fn count<T>(&self, done: Result<T, BackendError>) -> Result<T, BackendError> {
         if done.is_ok() {
             self.written.set(self.written.get() + 1);
         }
@@ -188,17 +192,17 @@ impl DdsWriter for Writer {
     fn key(&self) -> Option<&Arc<KeyDescriptor>> {
         self.raw.key()
     }
-    fn write(&self, sample: Sample) -> Result<(), String> {
+    fn write(&self, sample: Sample) -> Result<(), BackendError> {
         self.count(self.raw.write(RawSample::from(sample)))
     }
-    fn dispose(&self, sample: &Sample) -> Result<(), String> {
+    fn dispose(&self, sample: &Sample) -> Result<(), BackendError> {
         self.count(self.raw.dispose(&RawSample::from(sample.clone())))
     }
     fn write_identified(
         &self,
         sample: Sample,
         related: Option<SampleIdentity>,
-    ) -> Result<SampleIdentity, String> {
+    ) -> Result<SampleIdentity, BackendError> {
         self.count(
             self.raw
                 .write_identified(RawSample::from(sample), related.map(to_rustdds_identity))
@@ -249,8 +253,12 @@ impl DdsReader for Reader {
     fn guid(&self) -> Guid {
         self.raw.guid().to_bytes()
     }
-    fn take_next(&mut self) -> Result<Option<Taken>, String> {
-        let Some(t) = self.raw.take_next().map_err(|e| format!("{e:?}"))? else {
+    fn take_next(&mut self) -> Result<Option<Taken>, BackendError> {
+        let Some(t) = self
+            .raw
+            .take_next()
+            .map_err(|e| BackendError::Dds(format!("{e:?}")))?
+        else {
             return Ok(None);
         };
         Ok(Some(Taken {
@@ -287,19 +295,19 @@ impl DdsBackend for RustDds {
         domain: u16,
         publish: bool,
         _partitions: &[String],
-    ) -> Result<Box<dyn DdsGroup>, String> {
+    ) -> Result<Box<dyn DdsGroup>, BackendError> {
         let none = QosPolicies::qos_none();
         Ok(Box::new(if publish {
             let dp = self.participant(domain, Role::Publish)?;
             let p = dp
                 .create_publisher(&none)
-                .map_err(|e| format!("create publisher: {e:?}"))?;
+                .map_err(|e| BackendError::Dds(format!("create publisher: {e:?}")))?;
             Group::Publisher(p, dp, domain)
         } else {
             let dp = self.participant(domain, Role::Subscribe)?;
             let s = dp
                 .create_subscriber(&none)
-                .map_err(|e| format!("create subscriber: {e:?}"))?;
+                .map_err(|e| BackendError::Dds(format!("create subscriber: {e:?}")))?;
             Group::Subscriber(s, dp, domain)
         }))
     }
@@ -310,10 +318,12 @@ impl DdsBackend for RustDds {
         spec: &TopicSpec,
         qos: &EndpointQos,
         little_endian: bool,
-    ) -> Result<Box<dyn DdsWriter>, String> {
+    ) -> Result<Box<dyn DdsWriter>, BackendError> {
         let Some(Group::Publisher(publisher, dp, _)) = group.as_any().downcast_ref::<Group>()
         else {
-            return Err("a data writer needs a RustDDS publisher".into());
+            return Err(BackendError::ForeignEntity(
+                "a data writer needs a RustDDS publisher",
+            ));
         };
         let t = topic(dp, spec)?;
         let raw = RawWriter::create(
@@ -323,7 +333,7 @@ impl DdsBackend for RustDds {
             little_endian,
             spec.key.clone(),
         )
-        .map_err(|e| format!("create data writer: {e:?}"))?;
+        .map_err(|e| BackendError::Dds(format!("create data writer: {e:?}")))?;
         Ok(Box::new(Writer {
             raw,
             topic_name: spec.name.clone(),
@@ -339,25 +349,28 @@ impl DdsBackend for RustDds {
         spec: &TopicSpec,
         qos: &EndpointQos,
         token: ReaderToken,
-    ) -> Result<Box<dyn DdsReader>, String> {
+    ) -> Result<Box<dyn DdsReader>, BackendError> {
         let Some(Group::Subscriber(subscriber, dp, _)) = group.as_any().downcast_ref::<Group>()
         else {
-            return Err("a data reader needs a RustDDS subscriber".into());
+            return Err(BackendError::ForeignEntity(
+                "a data reader needs a RustDDS subscriber",
+            ));
         };
         let t = topic(dp, spec)?;
         let mut raw = RawReader::create(subscriber, &t, qos::to_rustdds(qos), spec.key.clone())
-            .map_err(|e| format!("create data reader: {e:?}"))?;
-        let token = usize::try_from(token).map_err(|_| "reader token out of range")?;
+            .map_err(|e| BackendError::Dds(format!("create data reader: {e:?}")))?;
+        let token = usize::try_from(token)
+            .map_err(|_| BackendError::Dds("reader token out of range".into()))?;
         self.registry
             .register(&mut raw, Token(token), Interest::READABLE)
-            .map_err(|e| format!("register reader: {e}"))?;
+            .map_err(|e| BackendError::Dds(format!("register reader: {e}")))?;
         Ok(Box::new(Reader {
             raw,
             registry: self.registry.clone(),
         }))
     }
 
-    fn participant_guid(&mut self, domain: u16) -> Result<Guid, String> {
+    fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError> {
         Ok(self.participant(domain, Role::Publish)?.guid().to_bytes())
     }
 

@@ -5,7 +5,7 @@ use rustdds::bytes::Bytes;
 use rustdds::no_key::{Decode, DefaultDecoder, DeserializerAdapter, SerializerAdapter};
 use rustdds::RepresentationIdentifier;
 
-use crate::backend::{Encoding, Sample};
+use crate::backend::{BackendError, Encoding, Sample};
 use crate::types::KeyDescriptor;
 
 /// A serialized sample body (no encapsulation header) and its encoding.
@@ -523,10 +523,12 @@ impl RawWriter {
         }
     }
 
-    fn keyed(k: &KeyDescriptor, sample: RawSample) -> Result<RawKeyed, String> {
+    fn keyed(k: &KeyDescriptor, sample: RawSample) -> Result<RawKeyed, BackendError> {
         let key = k
             .of_sample(&sample.body, sample.little_endian(), false)
-            .map_err(|e| format!("key of a {} sample: {e}", k.ty().name))?;
+            .map_err(|e| {
+                BackendError::InvalidInput(format!("key of a {} sample: {e}", k.ty().name))
+            })?;
         Ok(RawKeyed {
             sample,
             key: RawKey {
@@ -537,39 +539,53 @@ impl RawWriter {
     }
 
     /// Publishes a sample (already in the writer's byte order).
-    pub fn write(&self, sample: RawSample) -> Result<(), String> {
+    pub fn write(&self, sample: RawSample) -> Result<(), BackendError> {
         match self {
-            RawWriter::Le(w) => w.write(sample, None).map_err(|e| e.to_string()),
-            RawWriter::Be(w) => w.write(sample, None).map_err(|e| e.to_string()),
+            RawWriter::Le(w) => w
+                .write(sample, None)
+                .map_err(|e| BackendError::Dds(e.to_string())),
+            RawWriter::Be(w) => w
+                .write(sample, None)
+                .map_err(|e| BackendError::Dds(e.to_string())),
             RawWriter::KeyedLe(w, k) => w
                 .write(Self::keyed(k, sample)?, None)
-                .map_err(|e| e.to_string()),
+                .map_err(|e| BackendError::Dds(e.to_string())),
             RawWriter::KeyedBe(w, k) => w
                 .write(Self::keyed(k, sample)?, None)
-                .map_err(|e| e.to_string()),
+                .map_err(|e| BackendError::Dds(e.to_string())),
         }
     }
 
     /// Disposes the instance of `sample` (a whole sample, or its key fields alone). RustDDS
     /// has no unregister; DDS's default `autodispose_unregistered_instances` makes an
     /// unregister a dispose too, which is what callers do.
-    pub fn dispose(&self, sample: &RawSample) -> Result<(), String> {
+    pub fn dispose(&self, sample: &RawSample) -> Result<(), BackendError> {
         let Some(k) = self.key() else {
-            return Err("dispose on a topic without a key".into());
+            return Err(BackendError::InvalidInput(
+                "dispose on a topic without a key".into(),
+            ));
         };
         let le = sample.little_endian();
         let key = k
             .of_sample(&sample.body, le, false)
             .or_else(|_| k.of_key_payload(&sample.body, le, false))
-            .map_err(|e| format!("key of a {} sample: {e}", k.ty().name))?;
+            .map_err(|e| {
+                BackendError::InvalidInput(format!("key of a {} sample: {e}", k.ty().name))
+            })?;
         let key = RawKey {
             hash: key.hash,
             payload: Bytes::from(key.payload),
         };
         match self {
-            RawWriter::KeyedLe(w, _) => w.dispose(&key, None).map_err(|e| e.to_string()),
-            RawWriter::KeyedBe(w, _) => w.dispose(&key, None).map_err(|e| e.to_string()),
-            _ => Err("dispose on a topic without a key".into()),
+            RawWriter::KeyedLe(w, _) => w
+                .dispose(&key, None)
+                .map_err(|e| BackendError::Dds(e.to_string())),
+            RawWriter::KeyedBe(w, _) => w
+                .dispose(&key, None)
+                .map_err(|e| BackendError::Dds(e.to_string())),
+            _ => Err(BackendError::InvalidInput(
+                "dispose on a topic without a key".into(),
+            )),
         }
     }
 
@@ -578,23 +594,23 @@ impl RawWriter {
         &self,
         sample: RawSample,
         related: Option<rustdds::SampleIdentity>,
-    ) -> Result<rustdds::SampleIdentity, String> {
+    ) -> Result<rustdds::SampleIdentity, BackendError> {
         let opts = rustdds::WriteOptionsBuilder::new()
             .related_sample_identity_opt(related)
             .build();
         match self {
             RawWriter::Le(w) => w
                 .write_with_options(sample, opts)
-                .map_err(|e| e.to_string()),
+                .map_err(|e| BackendError::Dds(e.to_string())),
             RawWriter::Be(w) => w
                 .write_with_options(sample, opts)
-                .map_err(|e| e.to_string()),
+                .map_err(|e| BackendError::Dds(e.to_string())),
             RawWriter::KeyedLe(w, k) => w
                 .write_with_options(Self::keyed(k, sample)?, opts)
-                .map_err(|e| e.to_string()),
+                .map_err(|e| BackendError::Dds(e.to_string())),
             RawWriter::KeyedBe(w, k) => w
                 .write_with_options(Self::keyed(k, sample)?, opts)
-                .map_err(|e| e.to_string()),
+                .map_err(|e| BackendError::Dds(e.to_string())),
         }
     }
 
