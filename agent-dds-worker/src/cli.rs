@@ -2,12 +2,34 @@
 
 use std::net::IpAddr;
 
+use crate::backend::ports::ReservedPorts;
 use crate::backend::{BackendKind, DdsConfig};
 use crate::domains::{DomainPolicy, DomainSet};
 use crate::worker::{Worker, WorkerConfig};
 
-/// Settings of a DDS worker process.
-#[derive(Debug, Clone, clap::Args)]
+/// The environment variables a worker reads settings from when its command line does not
+/// give them. A supervisor passes every setting on the command line
+/// ([`WorkerArgs::to_args`]) and removes these from its worker's environment, so that what it
+/// decided is what the worker runs with, whatever the worker inherited.
+pub const SETTINGS_ENV: [&str; 12] = [
+    "XRCE_INSTANCE",
+    "XRCE_DDS_INTERFACES",
+    "XRCE_DDS_BACKEND",
+    "XRCE_REFS",
+    "XRCE_ROS_GRAPH",
+    "XRCE_ROS_DISTRO",
+    "XRCE_SHARE_WRITERS",
+    "XRCE_FRONTEND_GRACE",
+    "XRCE_DOMAINS",
+    "XRCE_MAX_DOMAINS",
+    "XRCE_RESERVED_PORTS",
+    "XRCE_LOG",
+];
+
+/// Settings of a DDS worker process. The supervisor hands its worker the settings as this
+/// type ([`WorkerArgs::to_args`]); adding a setting is a field here (the compiler then asks
+/// for its argument in `to_args`).
+#[derive(Debug, Clone, PartialEq, clap::Args)]
 pub struct WorkerArgs {
     /// Agent instance name (all processes of one agent share it).
     #[arg(long, env = "XRCE_INSTANCE", default_value = "default")]
@@ -69,9 +91,82 @@ pub struct WorkerArgs {
         value_parser = clap::value_parser!(u16).range(1..=233)
     )]
     pub max_domains: Option<u16>,
+    /// The UDP ports the agent's front-ends serve (comma-separated): DDS leaves them to the
+    /// front-ends, moving off a well-known DDS port such as 7401. The supervisor sets it.
+    #[arg(
+        long = "reserved-ports",
+        env = "XRCE_RESERVED_PORTS",
+        default_value = ""
+    )]
+    pub reserved_ports: ReservedPorts,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_dds_worker=debug`.
     #[arg(long, env = "XRCE_LOG", default_value = "info,rustdds=error")]
     pub log: String,
+}
+
+impl WorkerArgs {
+    /// Every setting as an empty command line gives them: the environment variables the
+    /// worker reads ([`SETTINGS_ENV`]) included, unless one of them has a value it refuses
+    /// (then the built-in defaults apply, with a warning: a supervisor that decides the
+    /// settings must not stop on them). Where a supervisor's own configuration (a gateway
+    /// file) leaves a setting unset, this is where it comes from.
+    pub fn defaults() -> Self {
+        xrce_ipc::settings::from_environment("dds-worker").unwrap_or_else(|e| {
+            tracing::warn!(error = %e.kind(), "a worker setting's environment variable is refused; the built-in defaults apply");
+            Self::built_in()
+        })
+    }
+
+    /// Every setting at its built-in default, whatever the environment says.
+    pub fn built_in() -> Self {
+        xrce_ipc::settings::built_in("dds-worker")
+    }
+
+    /// These settings as the worker's command line (what the supervisor runs it with):
+    /// every field, so that the process gets exactly what its supervisor decided.
+    pub fn to_args(&self) -> Vec<String> {
+        let WorkerArgs {
+            instance,
+            dds_interfaces,
+            dds_backend,
+            refs,
+            ros_graph,
+            ros_distro,
+            share_writers,
+            frontend_grace,
+            domains,
+            max_domains,
+            reserved_ports,
+            log,
+        } = self;
+        let mut a: Vec<String> = Vec::new();
+        let mut arg = |k: &str, v: String| a.extend([k.to_string(), v]);
+        arg("--instance", instance.clone());
+        arg("--dds-backend", dds_backend.as_str().to_string());
+        arg("--ros-graph", ros_graph.to_string());
+        arg("--share-writers", share_writers.to_string());
+        arg("--frontend-grace", frontend_grace.to_string());
+        arg("--log", log.clone());
+        if !dds_interfaces.is_empty() {
+            let list: Vec<String> = dds_interfaces.iter().map(ToString::to_string).collect();
+            arg("--dds-interface", list.join(","));
+        }
+        if let Some(r) = refs {
+            arg("--refs", r.display().to_string());
+        }
+        if let Some(d) = ros_distro {
+            arg("--ros-distro", d.to_string());
+        }
+        if let Some(d) = domains {
+            arg("--domains", d.to_string());
+        }
+        if let Some(n) = max_domains {
+            arg("--max-domains", n.to_string());
+        }
+        // `--reserved-ports=` so that an empty list is a value, not a missing one.
+        a.push(format!("--reserved-ports={reserved_ports}"));
+        a
+    }
 }
 
 /// Runs a worker until SIGINT/SIGTERM.
@@ -108,6 +203,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         dds: DdsConfig {
             interfaces: args.dds_interfaces,
             backend: args.dds_backend,
+            reserved_ports: args.reserved_ports,
         },
         references,
         ros_graph: args.ros_graph,
@@ -159,6 +255,36 @@ mod tests {
     struct Cli {
         #[command(flatten)]
         args: WorkerArgs,
+    }
+
+    /// The supervisor's settings reach the worker exactly: every field through `to_args`
+    /// and back, from the built-in defaults and with every optional setting given.
+    #[test]
+    fn settings_survive_the_command_line() {
+        let parse = |args: Vec<String>| {
+            Cli::try_parse_from(std::iter::once("w".to_string()).chain(args))
+                .expect("the worker parses its own command line")
+                .args
+        };
+        let built_in = WorkerArgs::built_in();
+        assert_eq!(parse(built_in.to_args()), built_in);
+        assert!(built_in.ros_graph && !built_in.share_writers);
+        assert!(built_in.reserved_ports.is_empty());
+        let every = WorkerArgs {
+            instance: "gw-1234abcd".into(),
+            dds_interfaces: vec!["127.0.0.1".parse().expect("address")],
+            dds_backend: BackendKind::Rustdds,
+            refs: Some("/etc/xrce-agent/refs.xml".into()),
+            ros_graph: false,
+            ros_distro: Some(crate::ros_graph::RosDistro::Humble),
+            share_writers: true,
+            frontend_grace: 2.5,
+            domains: Some("0-10,42".parse().expect("domains")),
+            max_domains: Some(4),
+            reserved_ports: ReservedPorts::new([7401, 8888]),
+            log: "debug".into(),
+        };
+        assert_eq!(parse(every.to_args()), every);
     }
 
     #[test]

@@ -75,7 +75,6 @@ impl TransportKind {
     }
 }
 
-/// Settings of a front-end process.
 /// The environment variables a front-end reads settings from when its command line does not
 /// give them. A supervisor passes every setting on the command line and removes these from
 /// its front-ends' environment, so that a setting it left unset (a dialect chosen per
@@ -358,35 +357,15 @@ impl FrontendArgs {
     /// value it refuses (then it is ignored, with a warning: a supervisor that decides the
     /// settings must not stop on them).
     pub fn defaults() -> Self {
-        use clap::{Args, FromArgMatches};
-        let command = FrontendArgs::augment_args(clap::Command::new("frontend"));
-        match command
-            .try_get_matches_from(["frontend"])
-            .and_then(|m| FrontendArgs::from_arg_matches(&m))
-        {
-            Ok(s) => s,
-            Err(e) => {
-                tracing::warn!(error = %e.kind(), "a front-end setting's environment variable is refused; the built-in defaults apply");
-                Self::built_in()
-            }
-        }
+        xrce_ipc::settings::from_environment("frontend").unwrap_or_else(|e| {
+            tracing::warn!(error = %e.kind(), "a front-end setting's environment variable is refused; the built-in defaults apply");
+            Self::built_in()
+        })
     }
 
     /// Every setting at its built-in default, whatever the environment says.
     pub fn built_in() -> Self {
-        use clap::{Args, FromArgMatches};
-        let mut command = FrontendArgs::augment_args(clap::Command::new("frontend"));
-        let ids: Vec<clap::Id> = command
-            .get_arguments()
-            .map(|a| a.get_id().clone())
-            .collect();
-        for id in ids {
-            command = command.mut_arg(id, |a| a.env(None));
-        }
-        let matches = command.get_matches_from(["frontend"]);
-        // An empty command line without environment is valid by construction: every
-        // argument has a default (the settings test parses it).
-        FrontendArgs::from_arg_matches(&matches).unwrap_or_else(|e| e.exit())
+        xrce_ipc::settings::built_in("frontend")
     }
 
     /// These settings as the front-end's command line (what the supervisor runs it with):

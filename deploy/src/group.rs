@@ -6,7 +6,9 @@
 use std::net::IpAddr;
 use std::sync::Arc;
 use std::time::Duration;
+use xrce_dds_worker::backend::ports::ReservedPorts;
 use xrce_dds_worker::backend::BackendKind;
+use xrce_dds_worker::cli::{WorkerArgs, SETTINGS_ENV as WORKER_SETTINGS_ENV};
 
 use xrce_frontend::cli::{FrontendArgs, SETTINGS_ENV};
 use xrce_frontend::transport::registry::Medium;
@@ -27,15 +29,6 @@ pub struct FrontendLaunch {
     pub plan: FrontendPlan,
     /// Its settings (the pty descriptor aside, set when the pty is opened).
     pub settings: FrontendArgs,
-}
-
-/// The group's environment for a front-end: without the variables its settings would come
-/// from (they travel as arguments, [`FrontendArgs::to_args`]).
-fn frontend_env(env: &[(String, String)]) -> Vec<(String, String)> {
-    env.iter()
-        .filter(|(k, _)| !SETTINGS_ENV.contains(&k.as_str()))
-        .cloned()
-        .collect()
 }
 
 /// Whether `name` is an instance name of the kind agents before derived names used: `stem`
@@ -61,8 +54,8 @@ pub struct Group {
     pub stem: String,
     /// Log filter of every process.
     pub filter: String,
-    /// Environment of every process (instance, log, the worker's settings).
-    pub env: Vec<(String, String)>,
+    /// The worker's settings.
+    pub worker: WorkerArgs,
     /// The front-ends.
     pub frontends: Vec<FrontendLaunch>,
     /// Where the metrics endpoint is served, if anywhere.
@@ -106,12 +99,11 @@ fn init_logging(filter: &str) {
         .init();
 }
 
-/// The worker's settings as environment variables.
 /// The domain ids a worker serves (`--domains`, `--max-domains`) and the ROS 2
 /// distribution its graph is laid out for.
 #[derive(Debug, Clone, Default)]
 pub struct WorkerDomains {
-    /// `--ros-distro`; `None`: `ROS_DISTRO` (which the worker inherits), else jazzy.
+    /// `--ros-distro`; `None`: `ROS_DISTRO`, else jazzy.
     pub ros_distro: Option<xrce_dds_worker::ros_graph::RosDistro>,
     /// Domain ids clients may use (`0-10,42`); `None`: any.
     pub domains: Option<String>,
@@ -120,7 +112,12 @@ pub struct WorkerDomains {
     pub max_domains: Option<u16>,
 }
 
-fn worker_env(
+/// What the supervisor decided for its worker: `base` (the worker's defaults) with the
+/// settings given here, each checked now with a clear message rather than in a worker crash
+/// loop, and the UDP ports the front-ends serve reserved from DDS.
+#[allow(clippy::too_many_arguments)]
+fn worker_settings(
+    mut base: WorkerArgs,
     refs: Option<&std::path::Path>,
     dds_interfaces: &[IpAddr],
     ros_graph: bool,
@@ -128,20 +125,37 @@ fn worker_env(
     dds_backend: Option<BackendKind>,
     domains: &WorkerDomains,
     frontends: &[&FrontendPlan],
-) -> anyhow::Result<Vec<(String, String)>> {
-    let mut env = Vec::new();
-    // Checked here, with a clear message, rather than in a worker crash loop (an unknown
-    // ROS_DISTRO stops the worker).
+) -> anyhow::Result<WorkerArgs> {
+    // An unknown ROS_DISTRO would stop the worker.
     let (distro, _) = xrce_dds_worker::ros_graph::RosDistro::resolve(
         domains.ros_distro,
         std::env::var_os("ROS_DISTRO").as_deref(),
     )?;
-    env.push(("XRCE_ROS_DISTRO".into(), distro.to_string()));
+    base.ros_distro = Some(distro);
     if let Some(list) = &domains.domains {
-        // Refused here, with a clear message, rather than in a worker crash loop.
-        list.parse::<xrce_dds_worker::domains::DomainSet>()
-            .map_err(|e| anyhow::anyhow!("--domains {list:?}: {e}"))?;
-        env.push(("XRCE_DOMAINS".into(), list.clone()));
+        base.domains = Some(
+            list.parse::<xrce_dds_worker::domains::DomainSet>()
+                .map_err(|e| anyhow::anyhow!("--domains {list:?}: {e}"))?,
+        );
+    }
+    if let Some(n) = domains.max_domains {
+        if !(1..=233).contains(&n) {
+            anyhow::bail!("--max-domains must be 1 to 233, got {n}");
+        }
+        base.max_domains = Some(n);
+    }
+    if let Some(b) = dds_backend {
+        if !b.is_built() {
+            anyhow::bail!(
+                "this build has no {} DDS backend: build xrce-agent with its default features \
+                 (needs cmake and libclang: deploy/build-deps), or use --dds-backend rustdds",
+                b.as_str()
+            );
+        }
+        base.dds_backend = b;
+    }
+    if !dds_interfaces.is_empty() {
+        base.dds_interfaces = dds_interfaces.to_vec();
     }
     // The UDP ports the front-ends serve: DDS leaves them alone (a well-known DDS port,
     // such as RTI's default XRCE port 7401, domain 0's user multicast port, is moved off),
@@ -155,62 +169,32 @@ fn worker_env(
             _ => None,
         })
         .collect();
+    let dds = xrce_dds_worker::backend::DdsConfig {
+        interfaces: base.dds_interfaces.clone(),
+        backend: base.dds_backend,
+        reserved_ports: ReservedPorts::new(udp_ports.iter().copied()),
+    };
     if !udp_ports.is_empty() {
-        let allowed = domains
-            .domains
-            .as_deref()
-            .map(str::parse::<xrce_dds_worker::domains::DomainSet>)
-            .transpose()
-            .map_err(|e| anyhow::anyhow!("--domains: {e}"))?;
-        xrce_dds_worker::backend::check_reserved_ports(
-            &xrce_dds_worker::backend::DdsConfig {
-                interfaces: dds_interfaces.to_vec(),
-                backend: dds_backend.unwrap_or_default(),
-            },
-            &udp_ports,
-            |d| allowed.as_ref().is_none_or(|s| s.contains(d)),
-        )?;
-        let list: Vec<String> = udp_ports.iter().map(ToString::to_string).collect();
-        env.push(("XRCE_RESERVED_PORTS".into(), list.join(",")));
-    }
-    if let Some(n) = domains.max_domains {
-        if !(1..=233).contains(&n) {
-            anyhow::bail!("--max-domains must be 1 to 233, got {n}");
-        }
-        env.push(("XRCE_MAX_DOMAINS".into(), n.to_string()));
-    }
-    if !dds_interfaces.is_empty() {
-        // The worker refuses to run unconfined; refused here too, before any process starts.
-        xrce_dds_worker::backend::check_config(&xrce_dds_worker::backend::DdsConfig {
-            interfaces: dds_interfaces.to_vec(),
-            backend: dds_backend.unwrap_or_default(),
+        let allowed = base.domains.clone();
+        xrce_dds_worker::backend::check_reserved_ports(&dds, &udp_ports, |d| {
+            allowed.as_ref().is_none_or(|s| s.contains(d))
         })?;
     }
-    if let Some(b) = dds_backend {
-        // Refused here, with a clear message, rather than in a worker crash loop.
-        if !b.is_built() {
-            anyhow::bail!(
-                "this build has no {} DDS backend: build xrce-agent with its default features \
-                 (needs cmake and libclang: deploy/build-deps), or use --dds-backend rustdds",
-                b.as_str()
-            );
-        }
-        env.push(("XRCE_DDS_BACKEND".into(), b.as_str().into()));
+    base.reserved_ports = dds.reserved_ports.clone();
+    if !base.dds_interfaces.is_empty() {
+        // The worker refuses to run unconfined; refused here too, before any process starts.
+        xrce_dds_worker::backend::check_config(&dds)?;
     }
     if let Some(path) = refs {
         // Refuse a bad file here, with a clear message, rather than in a worker crash loop.
         let refs = xrce_dds_worker::references::References::load(path)?;
         let absolute = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
         tracing::info!(path = %absolute.display(), profiles = refs.len(), "references file");
-        env.push(("XRCE_REFS".into(), absolute.display().to_string()));
+        base.refs = Some(absolute);
     }
-    env.push(("XRCE_ROS_GRAPH".into(), ros_graph.to_string()));
-    env.push(("XRCE_SHARE_WRITERS".into(), share_writers.to_string()));
-    if !dds_interfaces.is_empty() {
-        let list: Vec<String> = dds_interfaces.iter().map(ToString::to_string).collect();
-        env.push(("XRCE_DDS_INTERFACES".into(), list.join(",")));
-    }
-    Ok(env)
+    base.ros_graph = ros_graph;
+    base.share_writers = share_writers;
+    Ok(base)
 }
 
 impl Group {
@@ -235,11 +219,8 @@ impl Group {
         {
             anyhow::bail!("--client-dead-time must be 0 to 31536000 seconds (a year)");
         }
-        let mut env = vec![
-            ("XRCE_INSTANCE".to_string(), instance.clone()),
-            ("XRCE_LOG".to_string(), filter.clone()),
-        ];
-        env.extend(worker_env(
+        let mut worker = worker_settings(
+            WorkerArgs::defaults(),
             common.refs.as_deref(),
             &common.dds_interfaces,
             common.ros_graph,
@@ -251,7 +232,9 @@ impl Group {
                 max_domains: common.max_domains,
             },
             &[&frontend],
-        )?);
+        )?;
+        worker.instance = instance.clone();
+        worker.log = filter.clone();
         let mut settings = FrontendArgs::defaults();
         settings.instance = instance.clone();
         settings.log = filter.clone();
@@ -276,7 +259,7 @@ impl Group {
             explicit_instance: common.instance.is_some(),
             stem,
             filter,
-            env,
+            worker,
             metrics: common.metrics,
             memory_limit: common.memory_limit.map(|mib| mib << 20),
             discard_sessions: common.discard_sessions,
@@ -300,11 +283,8 @@ impl Group {
             let file = std::fs::canonicalize(&g.path).unwrap_or_else(|_| g.path.clone());
             xrce_ipc::derived_instance("gw", &file.display().to_string())
         });
-        let mut env = vec![
-            ("XRCE_INSTANCE".to_string(), instance.clone()),
-            ("XRCE_LOG".to_string(), filter.clone()),
-        ];
-        env.extend(worker_env(
+        let mut worker = worker_settings(
+            WorkerArgs::defaults(),
             g.worker.refs.as_ref().map(|r| r.get_ref().as_path()),
             &g.worker.dds_interfaces,
             g.worker.ros_graph.unwrap_or(true),
@@ -322,9 +302,11 @@ impl Group {
                 max_domains: g.worker.max_domains,
             },
             &g.frontends.iter().map(|f| &f.plan).collect::<Vec<_>>(),
-        )?);
+        )?;
+        worker.instance = instance.clone();
+        worker.log = filter.clone();
         if let Some(grace) = g.worker.frontend_grace {
-            env.push(("XRCE_FRONTEND_GRACE".into(), grace.to_string()));
+            worker.frontend_grace = grace;
         }
         let frontends = g
             .frontends
@@ -346,7 +328,7 @@ impl Group {
             explicit_instance: g.agent.instance.is_some(),
             stem,
             filter,
-            env,
+            worker,
             frontends,
             metrics: g.metrics,
             memory_limit: g
@@ -410,9 +392,11 @@ impl Group {
         let mut specs = vec![ChildSpec {
             name: "xrce-dds-worker".into(),
             program: exe.clone(),
-            args: vec!["dds-worker".into()],
-            env: self.env.clone(),
-            env_remove: Vec::new(),
+            args: std::iter::once("dds-worker".to_string())
+                .chain(self.worker.to_args())
+                .collect(),
+            env: Vec::new(),
+            env_remove: WORKER_SETTINGS_ENV.map(String::from).to_vec(),
             fds: Vec::new(),
             role: "worker".into(),
             report: Some("worker".into()),
@@ -439,8 +423,7 @@ impl Group {
             let (read, write) = readiness::pipe()?;
             fds.push((Arc::new(write), readiness::READY_FD));
             ready.push((f.name.clone(), read));
-            let mut env = frontend_env(&self.env);
-            env.push(("XRCE_READY_FD".into(), readiness::READY_FD.to_string()));
+            let env = vec![("XRCE_READY_FD".into(), readiness::READY_FD.to_string())];
             specs.push(ChildSpec {
                 name: format!("xrce-frontend-{}", f.name),
                 program: exe.clone(),
@@ -617,7 +600,10 @@ impl Group {
         }
         let mut cmd = std::process::Command::new(exe);
         if name == "worker" {
-            cmd.arg("dds-worker");
+            cmd.arg("dds-worker").args(self.worker.to_args());
+            for k in WORKER_SETTINGS_ENV {
+                cmd.env_remove(k);
+            }
         } else {
             let f = self
                 .frontends
@@ -634,12 +620,6 @@ impl Group {
                 cmd.env_remove(k);
             }
         }
-        let env = if name == "worker" {
-            self.env.clone()
-        } else {
-            frontend_env(&self.env)
-        };
-        cmd.envs(env);
         if self.memory_limit.is_some() {
             tracing::warn!(
                 process = name,
@@ -689,7 +669,79 @@ fn stall_timeout() -> anyhow::Result<Option<Duration>> {
 
 #[cfg(test)]
 mod tests {
-    use super::is_legacy_instance;
+    use super::*;
+
+    /// What the supervisor decides for its worker reaches it as arguments that override
+    /// whatever the worker's environment says: the front-ends' UDP ports reserved from DDS,
+    /// the resolved ROS distribution, the checked domain list.
+    #[test]
+    fn the_workers_settings_are_decided_by_the_supervisor() {
+        let udp = FrontendPlan::Ip {
+            kind: xrce_frontend::cli::TransportKind::Udp4,
+            listen: "127.0.0.1:7401".parse().expect("address"),
+            max_connections: 0,
+        };
+        let tcp = FrontendPlan::Ip {
+            kind: xrce_frontend::cli::TransportKind::Tcp4,
+            listen: "127.0.0.1:8888".parse().expect("address"),
+            max_connections: 10,
+        };
+        let worker = worker_settings(
+            WorkerArgs::built_in(),
+            None,
+            &["127.0.0.1".parse().expect("address")],
+            false,
+            true,
+            Some(BackendKind::Rustdds),
+            &WorkerDomains {
+                ros_distro: Some(xrce_dds_worker::ros_graph::RosDistro::Humble),
+                domains: Some("0-3".into()),
+                max_domains: Some(2),
+            },
+            &[&udp, &tcp],
+        )
+        .expect("valid settings");
+        // Only the datagram front-end's port: DDS never binds TCP.
+        assert_eq!(worker.reserved_ports, ReservedPorts::new([7401]));
+        assert_eq!(
+            worker.ros_distro,
+            Some(xrce_dds_worker::ros_graph::RosDistro::Humble)
+        );
+        assert_eq!(worker.domains, Some("0-3".parse().expect("domains")));
+        assert_eq!(worker.max_domains, Some(2));
+        assert_eq!(worker.dds_backend, BackendKind::Rustdds);
+        assert!(!worker.ros_graph && worker.share_writers);
+        let args = worker.to_args();
+        assert!(
+            args.contains(&"--reserved-ports=7401".to_string()),
+            "{args:?}"
+        );
+        for bad in [
+            WorkerDomains {
+                domains: Some("0-300".into()),
+                ..WorkerDomains::default()
+            },
+            WorkerDomains {
+                max_domains: Some(0),
+                ..WorkerDomains::default()
+            },
+        ] {
+            assert!(
+                worker_settings(
+                    WorkerArgs::built_in(),
+                    None,
+                    &[],
+                    true,
+                    false,
+                    None,
+                    &bad,
+                    &[]
+                )
+                .is_err(),
+                "{bad:?}"
+            );
+        }
+    }
 
     #[test]
     fn only_pid_named_instances_count_as_leftovers_of_earlier_versions() {

@@ -1166,6 +1166,7 @@ mod tests {
         let config = DdsConfig {
             interfaces: vec!["127.0.0.1".parse().expect("address")],
             backend: crate::backend::BackendKind::Rustdds,
+            ..Default::default()
         };
         let domain = 100 + (std::process::id() % 100) as u16;
         let rustdds =

@@ -47,6 +47,8 @@ pub struct DdsConfig {
     pub interfaces: Vec<IpAddr>,
     /// The DDS implementation.
     pub backend: BackendKind,
+    /// The UDP ports the agent's front-ends serve, which DDS leaves to them ([`ports`]).
+    pub reserved_ports: ports::ReservedPorts,
 }
 
 /// The DDS implementations a worker can use. The default is Cyclone DDS when the build has
@@ -116,8 +118,6 @@ pub fn check_config(config: &DdsConfig) -> anyhow::Result<()> {
     if config.backend == BackendKind::Cyclone {
         cyclone::config_xml(&config.interfaces, None, None).map_err(|e| anyhow::anyhow!("{e}"))?;
     }
-    // A malformed list from the supervisor is refused at start, not at the first participant.
-    ports::ReservedPorts::from_env().map_err(|e| anyhow::anyhow!("{e}"))?;
     Ok(())
 }
 
@@ -125,8 +125,8 @@ pub fn check_config(config: &DdsConfig) -> anyhow::Result<()> {
 /// DDS cannot leave to them: the discovery multicast port of a domain clients may use
 /// (`allowed`, e.g. from `--domains`) while DDS uses multicast (not confined to loopback).
 /// The error names the port, the domain and the ways out. Other well-known DDS ports are
-/// served (the backends move off them: [`ports`]). The worker learns the ports from
-/// [`ports::RESERVED_PORTS_ENV`].
+/// served (the backends move off them: [`ports`]). The worker learns the ports from its
+/// `--reserved-ports` ([`DdsConfig::reserved_ports`]).
 pub fn check_reserved_ports(
     config: &DdsConfig,
     reserved: &[u16],
@@ -140,9 +140,7 @@ pub fn check_reserved_ports(
 /// The backend `config` names, once [`check_config`] accepted the configuration.
 pub fn create(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
     check_config(config)?;
-    if let Ok(reserved) = ports::ReservedPorts::from_env() {
-        ports::log_reserved(&reserved, &config.interfaces);
-    }
+    ports::log_reserved(&config.reserved_ports, &config.interfaces);
     match config.backend {
         BackendKind::Rustdds => rustdds_delivering_locally(config.clone()),
         #[cfg(feature = "cyclone")]

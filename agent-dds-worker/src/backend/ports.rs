@@ -32,7 +32,7 @@
 //!   refused with a message that names the port and the way out ([`Clash`]); a supervisor
 //!   refuses such a configuration before it starts anything ([`check_reserved`]). Confined to
 //!   loopback, DDS discovers by unicast and binds no multicast port that matters.
-//! * The ports the front-ends serve ([`ReservedPorts`], from [`RESERVED_PORTS_ENV`]) are also
+//! * The ports the front-ends serve ([`ReservedPorts`], [`super::DdsConfig::reserved_ports`]) are also
 //!   held by the worker while a participant is being made ([`PortGuard`]), so that DDS does
 //!   not take one that a front-end let go for a moment (a front-end being restarted): the
 //!   front-end could not bind it again while the participant lives.
@@ -46,10 +46,6 @@
 use std::collections::BTreeSet;
 use std::fmt;
 use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
-
-/// The environment variable that names the UDP ports the agent's front-ends serve
-/// (comma-separated, e.g. `7401,8888`), set by the supervisor for its worker.
-pub const RESERVED_PORTS_ENV: &str = "XRCE_RESERVED_PORTS";
 
 /// RTPS 2.5 §9.6.2.3: port base (PB).
 pub const PORT_BASE: u32 = 7400;
@@ -156,6 +152,26 @@ pub fn port_at(domain: u16, offset: u32) -> Option<u16> {
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct ReservedPorts(BTreeSet<u16>);
 
+impl std::str::FromStr for ReservedPorts {
+    type Err = String;
+    fn from_str(list: &str) -> Result<Self, String> {
+        Self::parse(list)
+    }
+}
+
+/// The comma-separated list [`ReservedPorts::parse`] reads (empty for none).
+impl fmt::Display for ReservedPorts {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        for (i, p) in self.0.iter().enumerate() {
+            if i > 0 {
+                f.write_str(",")?;
+            }
+            write!(f, "{p}")?;
+        }
+        Ok(())
+    }
+}
+
 impl ReservedPorts {
     /// Ports from a comma-separated list (`7401,8888`; blanks and empty items ignored).
     pub fn parse(list: &str) -> Result<Self, String> {
@@ -165,25 +181,10 @@ impl ReservedPorts {
                 Ok(p) if p != 0 => {
                     ports.insert(p);
                 }
-                _ => {
-                    return Err(format!(
-                        "{RESERVED_PORTS_ENV}={list:?}: {item:?} is not a UDP port (1-65535)"
-                    ))
-                }
+                _ => return Err(format!("{list:?}: {item:?} is not a UDP port (1-65535)")),
             }
         }
         Ok(ReservedPorts(ports))
-    }
-
-    /// The ports named by [`RESERVED_PORTS_ENV`] (none without it).
-    pub fn from_env() -> Result<Self, String> {
-        match std::env::var(RESERVED_PORTS_ENV) {
-            Ok(list) => Self::parse(&list),
-            Err(std::env::VarError::NotPresent) => Ok(Self::default()),
-            Err(std::env::VarError::NotUnicode(_)) => {
-                Err(format!("{RESERVED_PORTS_ENV} is not a list of UDP ports"))
-            }
-        }
     }
 
     /// These ports.
@@ -501,9 +502,10 @@ mod tests {
         assert_eq!(r.iter().collect::<Vec<_>>(), vec![7401, 8888]);
         assert!(r.contains(7401) && !r.contains(7400));
         assert!(ReservedPorts::parse("").expect("valid").is_empty());
+        assert_eq!(r.to_string().parse::<ReservedPorts>(), Ok(r.clone()));
         for bad in ["x", "0", "70000", "7401;8888", "-1"] {
             let e = ReservedPorts::parse(bad).expect_err(bad);
-            assert!(e.contains(RESERVED_PORTS_ENV), "{e}");
+            assert!(e.contains("is not a UDP port"), "{e}");
         }
         let r = ReservedPorts::new([7401, 7411, 8151, 9000]);
         let d0: Vec<_> = r.in_domain(0).iter().map(|w| w.port).collect();

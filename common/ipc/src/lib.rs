@@ -1,6 +1,7 @@
 //! The contract between front-ends and the DDS worker (version [`IPC_VERSION`]), and the
 //! process plumbing both sides share: the iceoryx2 link ([`shm`]), the agent's private runtime
-//! directory ([`runtime_dir`]) and the status reports each process writes ([`status`]).
+//! directory ([`runtime_dir`]), the status reports each process writes ([`status`]) and how
+//! a supervisor hands its processes their settings ([`settings`]).
 //! Feature `shm` (default) brings the plumbing; without it, only the messages and their codec.
 //!
 //! The messages are types ([`Request`] and [`Reply`] with their [`Route`]) with one codec in
@@ -20,6 +21,8 @@ pub mod fuzzing;
 pub mod message;
 #[cfg(feature = "shm")]
 pub mod runtime_dir;
+#[cfg(feature = "shm")]
+pub mod settings;
 #[cfg(feature = "shm")]
 pub mod shm;
 #[cfg(feature = "shm")]

@@ -21,7 +21,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 
-use super::ports::{self, ReservedPorts};
+use super::ports;
 use super::{
     BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, Encoding, EndpointQos,
     Guid, ReaderToken, Sample, SampleIdentity, Taken, TopicSpec,
@@ -37,8 +37,6 @@ pub struct Cyclone {
     // Declared first: its thread stops before any entity is deleted.
     acks: AckWatcher,
     config: DdsConfig,
-    /// The UDP ports the agent's front-ends serve, which Cyclone must leave to them.
-    reserved: ReservedPorts,
     participants: HashMap<u16, Rc<ffi::Participant>>,
     /// Topics by (domain, name, type name, keyed), shared by their endpoints and deleted
     /// with the last of them.
@@ -137,12 +135,11 @@ pub fn config_xml(
 }
 
 impl Cyclone {
-    /// A backend with no participant yet, leaving the ports named by
-    /// [`ports::RESERVED_PORTS_ENV`] to the front-ends.
+    /// A backend with no participant yet, leaving the ports the configuration reserves
+    /// ([`DdsConfig::reserved_ports`]) to the front-ends.
     pub fn new(config: DdsConfig) -> std::io::Result<Self> {
         Ok(Cyclone {
             config,
-            reserved: ReservedPorts::from_env().map_err(std::io::Error::other)?,
             participants: HashMap::new(),
             topics: HashMap::new(),
             readiness: ffi::Readiness::new()?,
@@ -150,9 +147,10 @@ impl Cyclone {
         })
     }
 
-    /// Leaves these UDP ports to the agent's front-ends (instead of the environment's).
-    pub fn reserve_ports(&mut self, reserved: ReservedPorts) {
-        self.reserved = reserved;
+    /// Leaves these UDP ports to the agent's front-ends (instead of the configuration's).
+    #[cfg(test)]
+    pub fn reserve_ports(&mut self, reserved: ports::ReservedPorts) {
+        self.config.reserved_ports = reserved;
     }
 
     fn participant(&mut self, domain: u16) -> Result<Rc<ffi::Participant>, BackendError> {
@@ -163,9 +161,12 @@ impl Cyclone {
         // family (IPv6 only when every configured address is one).
         let v6 = !self.config.interfaces.is_empty()
             && self.config.interfaces.iter().all(IpAddr::is_ipv6);
-        let plan = ports::plan(domain, &self.reserved, &self.config.interfaces, |p| {
-            ports::shareable(p, v6)
-        })
+        let plan = ports::plan(
+            domain,
+            &self.config.reserved_ports,
+            &self.config.interfaces,
+            |p| ports::shareable(p, v6),
+        )
         .map_err(|clash| BackendError::Placement(clash.to_string()))?;
         if let Some(taken) = plan.user_multicast_taken {
             let Some(offset) = plan.data_multicast_offset else {
@@ -778,6 +779,7 @@ mod tests {
         Cyclone::new(DdsConfig {
             interfaces: vec![addr("127.0.0.1")],
             backend: crate::backend::BackendKind::Cyclone,
+            ..Default::default()
         })
         .expect("backend")
     }
@@ -1031,7 +1033,7 @@ mod tests {
             ports::port_at(98, ports::D3).expect("port"),
         );
         let mut dds = loopback();
-        dds.reserve_ports(ReservedPorts::new([disc, data]));
+        dds.reserve_ports(ports::ReservedPorts::new([disc, data]));
         let _publisher = dds.create_group(98, true, &[]).expect("publisher");
         for p in [disc, data] {
             assert!(

@@ -16,7 +16,7 @@ use std::time::Duration;
 use rustdds::mio1::{Events, Interest, Poll, Registry, Token};
 use rustdds::{DomainParticipant, DomainParticipantBuilder, QosPolicies, RTPSEntity, TopicKind};
 
-use super::ports::{self, ReservedPorts};
+use super::ports;
 use super::{
     BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid,
     ReaderToken, Sample, SampleIdentity, Taken, TopicSpec,
@@ -40,8 +40,6 @@ enum Role {
 /// DDS through RustDDS.
 pub struct RustDds {
     config: DdsConfig,
-    /// The UDP ports the agent's front-ends serve, which RustDDS must leave to them.
-    reserved: ReservedPorts,
     participants: HashMap<(u16, Role), DomainParticipant>,
     poll: Poll,
     /// The poll's registry, shared by every reader for its deregistration (one descriptor).
@@ -58,14 +56,13 @@ impl std::fmt::Debug for RustDds {
 }
 
 impl RustDds {
-    /// A backend with no participant yet, leaving the ports named by
-    /// [`ports::RESERVED_PORTS_ENV`] to the front-ends.
+    /// A backend with no participant yet, leaving the ports the configuration reserves
+    /// ([`DdsConfig::reserved_ports`]) to the front-ends.
     pub fn new(config: DdsConfig) -> std::io::Result<Self> {
         let poll = Poll::new()?;
         let registry = Rc::new(poll.registry().try_clone()?);
         Ok(RustDds {
             config,
-            reserved: ReservedPorts::from_env().map_err(std::io::Error::other)?,
             participants: HashMap::new(),
             poll,
             registry,
@@ -73,9 +70,10 @@ impl RustDds {
         })
     }
 
-    /// Leaves these UDP ports to the agent's front-ends (instead of the environment's).
-    pub fn reserve_ports(&mut self, reserved: ReservedPorts) {
-        self.reserved = reserved;
+    /// Leaves these UDP ports to the agent's front-ends (instead of the configuration's).
+    #[cfg(test)]
+    pub fn reserve_ports(&mut self, reserved: ports::ReservedPorts) {
+        self.config.reserved_ports = reserved;
     }
 
     /// The participant of `domain` for `role`, created on first use.
@@ -91,9 +89,12 @@ impl RustDds {
             return Ok(p.clone());
         }
         // RustDDS's sockets are IPv4.
-        let plan = ports::plan(domain, &self.reserved, &self.config.interfaces, |p| {
-            ports::shareable(p, false)
-        })
+        let plan = ports::plan(
+            domain,
+            &self.config.reserved_ports,
+            &self.config.interfaces,
+            |p| ports::shareable(p, false),
+        )
         .map_err(|clash| BackendError::Placement(clash.to_string()))?;
         if let Some(taken) = plan.user_multicast_taken {
             tracing::info!(
@@ -422,9 +423,10 @@ mod tests {
         let mut dds = RustDds::new(DdsConfig {
             interfaces: vec!["127.0.0.1".parse().expect("address")],
             backend: super::super::BackendKind::Rustdds,
+            ..Default::default()
         })
         .expect("backend");
-        dds.reserve_ports(ReservedPorts::new(reserved.iter().copied()));
+        dds.reserve_ports(ports::ReservedPorts::new(reserved.iter().copied()));
         let _publisher = dds.create_group(99, true, &[]).expect("publisher");
         let _subscriber = dds.create_group(99, false, &[]).expect("subscriber");
         assert_eq!(dds.participants(), 2);
