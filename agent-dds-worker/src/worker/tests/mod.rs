@@ -1,0 +1,470 @@
+//! The worker over the fake backend: what it makes, writes, holds and deletes in DDS for the
+//! XRCE objects of a client, and what reaches the front-end (through real shared memory).
+
+use super::*;
+use crate::backend::fake::{Fake, FakeBus};
+use xrce_common::wire::cdr::CdrWriter;
+use xrce_common::wire::{DataDeliveryControl, Representation};
+use xrce_ipc::shm::ServiceKind;
+
+mod domains;
+mod filters;
+mod progress;
+mod services;
+
+const FE: u32 = 7;
+const CLIENT: ClientKey = ClientKey([0xaa, 0xbb, 0xcc, 0x01]);
+const OTHER: ClientKey = ClientKey([0xaa, 0xbb, 0xcc, 0x02]);
+
+const PARTICIPANT: ObjectId = ObjectId::new(1, object_kind::PARTICIPANT);
+const PUBLISHER: ObjectId = ObjectId::new(1, object_kind::PUBLISHER);
+const SUBSCRIBER: ObjectId = ObjectId::new(1, object_kind::SUBSCRIBER);
+const WRITER: ObjectId = ObjectId::new(1, object_kind::DATAWRITER);
+const READER: ObjectId = ObjectId::new(1, object_kind::DATAREADER);
+const TYPES: ObjectId = ObjectId::new(1, object_kind::TYPE);
+
+const TOPIC: &str = "HelloWorldTopic";
+
+/// A writer on `topic`: keyed ones have the type `Keyed` (defined by the client's TYPE
+/// object), the others a type the worker does not know.
+fn writer_xml(topic: &str, kind: &str, durability: &str) -> String {
+    let ty = type_for(kind);
+    format!(
+        "<dds><data_writer><topic><kind>{kind}</kind><name>{topic}</name>\
+         <dataType>{ty}</dataType></topic><qos><durability><kind>{durability}</kind>\
+         </durability></qos></data_writer></dds>"
+    )
+}
+
+fn reader_xml(topic: &str, kind: &str) -> String {
+    let ty = type_for(kind);
+    format!(
+        "<dds><data_reader><topic><kind>{kind}</kind><name>{topic}</name>\
+         <dataType>{ty}</dataType></topic><qos><reliability><kind>RELIABLE</kind>\
+         </reliability></qos></data_reader></dds>"
+    )
+}
+
+fn type_for(kind: &str) -> &'static str {
+    if kind == "WITH_KEY" {
+        "Keyed"
+    } else {
+        "HelloWorld"
+    }
+}
+
+const KEYED_TYPE: &str = r#"<dds><types><struct name="Keyed">
+    <member name="id" key="true" type="int32"/>
+    <member name="value" type="int32"/>
+  </struct></types></dds>"#;
+
+/// A `Keyed` sample, little endian.
+fn keyed(id: i32, value: i32) -> Vec<u8> {
+    [id.to_le_bytes(), value.to_le_bytes()].concat()
+}
+
+fn variant(kind: u8, xml: &str, extra: VariantExtra) -> Vec<u8> {
+    let mut b = Vec::new();
+    ObjectVariant {
+        kind,
+        representation: Representation::Xml(xml.to_string()),
+        extra,
+    }
+    .encode(&mut CdrWriter::new(&mut b, true));
+    b
+}
+
+/// A worker over a fake backend, and a front-end's end of its reply channel.
+struct Harness {
+    worker: Worker,
+    bus: Rc<FakeBus>,
+    replies: xrce_ipc::shm::Receiver,
+    _node: IpcNode,
+}
+
+impl Harness {
+    fn new(share_writers: bool) -> Self {
+        Self::with(|c| c.share_writers = share_writers)
+    }
+
+    /// A worker over a fake backend with the settings `configure` makes of the defaults.
+    fn with(configure: impl FnOnce(&mut WorkerConfig)) -> Self {
+        static N: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let instance = format!(
+            "wt{}-{}",
+            std::process::id() % 100_000,
+            N.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+        );
+        let (fake, bus) = Fake::new().expect("fake backend");
+        let mut config = WorkerConfig {
+            instance: instance.clone(),
+            dds: DdsConfig::default(),
+            references: Default::default(),
+            ros_graph: false,
+            share_writers: false,
+            frontend_grace: Duration::from_secs(30),
+            domains: DomainPolicy::default(),
+        };
+        configure(&mut config);
+        let worker = Worker::with_backend(config, Box::new(fake)).expect("worker");
+        let node = IpcNode::new(&instance, "test-frontend").expect("node");
+        let replies = node
+            .receiver(&ipc::reply_service(&instance, FE), ServiceKind::Reply)
+            .expect("reply channel");
+        Harness {
+            worker,
+            bus,
+            replies,
+            _node: node,
+        }
+    }
+
+    fn create(&mut self, client: ClientKey, id: ObjectId, body: &[u8]) -> Result<(), OpError> {
+        self.worker.create((FE, client, id), body, false, true, 0)
+    }
+
+    /// A participant with a publisher and a subscriber (and the keyed type).
+    fn participant(&mut self, client: ClientKey) {
+        let p = variant(
+            object_kind::PARTICIPANT,
+            "<dds><participant><rtps><name>p</name></rtps></participant></dds>",
+            VariantExtra::DomainId(3),
+        );
+        self.create(client, PARTICIPANT, &p).expect("participant");
+        let types = variant(object_kind::TYPE, KEYED_TYPE, VariantExtra::None);
+        self.create(client, TYPES, &types).expect("types");
+        for (id, kind) in [
+            (PUBLISHER, object_kind::PUBLISHER),
+            (SUBSCRIBER, object_kind::SUBSCRIBER),
+        ] {
+            let g = variant(kind, "", VariantExtra::Parent(PARTICIPANT));
+            self.create(client, id, &g).expect("group");
+        }
+    }
+
+    fn writer(&mut self, client: ClientKey, id: ObjectId, xml: &str) -> Result<(), OpError> {
+        let body = variant(
+            object_kind::DATAWRITER,
+            xml,
+            VariantExtra::Parent(PUBLISHER),
+        );
+        self.create(client, id, &body)
+    }
+
+    fn reader(&mut self, client: ClientKey, id: ObjectId, xml: &str) -> Result<(), OpError> {
+        let body = variant(
+            object_kind::DATAREADER,
+            xml,
+            VariantExtra::Parent(SUBSCRIBER),
+        );
+        self.create(client, id, &body)
+    }
+
+    /// Starts an unlimited read on a reader.
+    fn read(&mut self, client: ClientKey, id: ObjectId) {
+        let mut body = Vec::new();
+        ReadSpecification {
+            data_format: xrce_common::wire::data_format::DATA,
+            delivery_control: Some(DataDeliveryControl {
+                max_samples: u16::MAX,
+                ..Default::default()
+            }),
+            ..Default::default()
+        }
+        .encode(&mut CdrWriter::new(&mut body, true));
+        self.worker
+            .start_read(
+                (FE, client, id),
+                xrce_common::wire::RequestId([0, 9]),
+                false,
+                &body,
+            )
+            .expect("read");
+    }
+
+    /// Lets a holding writer's readers have matched long enough, then releases (twice: the
+    /// first sample goes alone).
+    fn matched_long_ago(&mut self, client: ClientKey, id: ObjectId) {
+        self.worker.release_rematched();
+        if let Some(Entity {
+            kind: EntityKind::Writer { rematch: r, .. },
+            ..
+        }) = self.worker.entities.value_mut(&(FE, client, id))
+        {
+            r.matched_at = r.matched_at.and_then(|t| t.checked_sub(REMATCH_MARGIN));
+        }
+        // The first sample alone, then (acknowledged) the next batch.
+        self.worker.release_rematched();
+        self.worker.release_rematched();
+    }
+
+    /// The bodies of the samples the front-end got, in order, with their writers.
+    fn samples(&mut self) -> Vec<(backend::Guid, i64, Vec<u8>)> {
+        let mut out = Vec::new();
+        self.replies
+            .drain(|m| {
+                let m = ReplyMessage::decode(m).expect("reply");
+                if let Reply::Sample(s) = m.reply {
+                    out.push((
+                        s.identity.writer,
+                        s.identity.sequence_number,
+                        s.data.to_vec(),
+                    ));
+                }
+            })
+            .expect("drain");
+        out
+    }
+}
+
+/// A client's participant with a reader and a new volatile writer of one topic.
+fn reader_and_new_writer() -> Harness {
+    let mut t = Harness::new(false);
+    t.participant(CLIENT);
+    t.reader(CLIENT, READER, &reader_xml(TOPIC, "NO_KEY"))
+        .expect("reader");
+    t.writer(CLIENT, WRITER, &writer_xml(TOPIC, "NO_KEY", "VOLATILE"))
+        .expect("writer");
+    t
+}
+
+/// A new writer that held `n` samples, matched long enough ago and released, with its
+/// readers not acknowledging.
+fn released_unacknowledged(n: u64) -> Harness {
+    let mut t = reader_and_new_writer();
+    for i in 0..n {
+        t.worker
+            .write_one((FE, CLIENT, WRITER), i, true, &keyed(i as i32, 0), false)
+            .expect("write");
+    }
+    assert!(t.bus.written.borrow().is_empty());
+    t.bus.acknowledged.set(false);
+    t.matched_long_ago(CLIENT, WRITER);
+    t
+}
+
+/// Released held samples: the first alone, the rest only once it was acknowledged (or
+/// after a while), so every remote reader has seen a heartbeat before a burst.
+#[test]
+fn a_released_writer_sends_one_sample_first_and_the_rest_once_it_was_acknowledged() {
+    let mut t = released_unacknowledged(40);
+    assert_eq!(t.bus.samples_on(TOPIC), vec![keyed(0, 0)]);
+    // Not acknowledged yet: the rest waits.
+    t.worker.release_rematched();
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 1);
+    // Acknowledged: the rest goes, in batches, in order.
+    t.bus.acknowledged.set(true);
+    t.worker.release_rematched();
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 1 + RELEASE_BATCH);
+    while !t.worker.holding.is_empty() {
+        t.worker.release_rematched();
+    }
+    assert_eq!(
+        t.bus.samples_on(TOPIC),
+        (0..40).map(|i| keyed(i, 0)).collect::<Vec<_>>()
+    );
+}
+
+/// A reader that never acknowledges holds the release up only so long.
+#[test]
+fn an_unacknowledged_first_sample_holds_the_rest_back_only_briefly() {
+    let mut t = released_unacknowledged(3);
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 1);
+    std::thread::sleep(RELEASE_FIRST_ACK_WAIT);
+    t.worker.release_rematched();
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 3);
+    assert!(t.worker.holding.is_empty());
+}
+
+#[test]
+fn a_writer_holds_until_matched_then_its_samples_reach_a_reader_in_order() {
+    let mut t = reader_and_new_writer();
+    assert_eq!(t.bus.domains.borrow().as_slice(), &[3]);
+    t.read(CLIENT, READER);
+    for i in 0..3 {
+        t.worker
+            .write_one((FE, CLIENT, WRITER), i, true, &keyed(i as i32, 0), false)
+            .expect("write");
+    }
+    // New writers hold their first samples until their readers matched a while.
+    assert!(t.bus.written.borrow().is_empty());
+    assert!(t.worker.holding.contains(&(FE, CLIENT, WRITER)));
+    t.matched_long_ago(CLIENT, WRITER);
+    assert!(t.worker.holding.is_empty());
+    assert_eq!(
+        t.bus.samples_on(TOPIC),
+        (0..3).map(|i| keyed(i, 0)).collect::<Vec<_>>()
+    );
+    // What the reader took goes to the front-end with the writer's identity, in order.
+    t.worker
+        .dds
+        .ready_readers(&mut t.worker.ready)
+        .expect("ready");
+    let tokens: Vec<ReaderToken> = t.worker.ready.drain(..).collect();
+    assert!(!tokens.is_empty());
+    for k in tokens {
+        if let Some(k) = t.worker.readers.get(&k).copied() {
+            t.worker.pump(k);
+        }
+    }
+    t.worker.flush();
+    let got = t.samples();
+    let writer = match &t
+        .worker
+        .entities
+        .value(&(FE, CLIENT, WRITER))
+        .expect("w")
+        .kind
+    {
+        EntityKind::Writer { writer: w, .. } => w.raw.guid(),
+        _ => unreachable!("a writer"),
+    };
+    assert_eq!(
+        got,
+        (0..3)
+            .map(|i| (writer, i64::from(i) + 1, keyed(i, 0)))
+            .collect::<Vec<_>>()
+    );
+    assert_eq!(t.worker.samples_taken, 3);
+}
+
+#[test]
+fn removing_a_client_deletes_every_backend_endpoint_and_index_entry() {
+    let mut t = Harness::new(false);
+    t.participant(CLIENT);
+    t.participant(OTHER);
+    for c in [CLIENT, OTHER] {
+        t.reader(c, READER, &reader_xml(TOPIC, "NO_KEY"))
+            .expect("r");
+        t.writer(c, WRITER, &writer_xml(TOPIC, "NO_KEY", "VOLATILE"))
+            .expect("w");
+        t.read(c, READER);
+    }
+    assert_eq!((t.bus.readers_of(TOPIC), t.bus.writers_of(TOPIC)), (2, 2));
+    t.worker.remove_where(|c| c.1 == CLIENT);
+    assert_eq!((t.bus.readers_of(TOPIC), t.bus.writers_of(TOPIC)), (1, 1));
+    assert_eq!(t.worker.readers.len(), 1);
+    assert_eq!(t.worker.reads.len(), 1);
+    assert!(t.worker.entities.iter().all(|(k, _)| k.1 == OTHER));
+    t.worker.remove_subtree((FE, OTHER, PARTICIPANT));
+    assert_eq!((t.bus.readers_of(TOPIC), t.bus.writers_of(TOPIC)), (0, 0));
+    assert!(t.worker.readers.is_empty() && t.worker.reads.is_empty());
+    assert!(t.worker.holding.is_empty());
+    // The client's TYPE object has no parent and stays until the client goes.
+    assert_eq!(t.worker.entities.len(), 1);
+}
+
+#[test]
+fn a_replaced_reader_is_deleted_in_the_backend_and_its_token_forgotten() {
+    let mut t = Harness::new(false);
+    t.participant(CLIENT);
+    t.reader(CLIENT, READER, &reader_xml(TOPIC, "NO_KEY"))
+        .expect("first");
+    let first: Vec<ReaderToken> = t.worker.readers.keys().copied().collect();
+    t.reader(CLIENT, READER, &reader_xml("Other", "NO_KEY"))
+        .expect("replacement");
+    assert_eq!(t.bus.readers_made.get(), 2);
+    assert_eq!((t.bus.readers_of(TOPIC), t.bus.readers_of("Other")), (0, 1));
+    assert_eq!(t.worker.readers.len(), 1);
+    assert!(!t.worker.readers.contains_key(&first[0]));
+}
+
+#[test]
+fn disposes_need_a_key_and_reach_the_backend_in_order_with_writes() {
+    let mut t = Harness::new(false);
+    t.participant(CLIENT);
+    t.writer(CLIENT, WRITER, &writer_xml(TOPIC, "NO_KEY", "VOLATILE"))
+        .expect("keyless");
+    let err = t
+        .worker
+        .write_one((FE, CLIENT, WRITER), 1, true, &keyed(1, 1), true)
+        .expect_err("a dispose without a key");
+    assert_eq!(err.status(), status::ERR_INCOMPATIBLE);
+    let keyed_writer = ObjectId::new(2, object_kind::DATAWRITER);
+    t.writer(
+        CLIENT,
+        keyed_writer,
+        &writer_xml("Shapes", "WITH_KEY", "VOLATILE"),
+    )
+    .expect("keyed");
+    t.reader(CLIENT, READER, &reader_xml("Shapes", "WITH_KEY"))
+        .expect("reader");
+    let key = (FE, CLIENT, keyed_writer);
+    // A sample that is not of the topic's type is refused at once, not when released.
+    let err = t
+        .worker
+        .write_one(key, 2, true, &[1, 2], false)
+        .expect_err("not a Keyed");
+    assert_eq!(err.status(), status::ERR_INVALID_DATA);
+    t.worker
+        .write_one(key, 3, true, &keyed(5, 50), false)
+        .expect("write");
+    t.worker
+        .write_one(key, 4, true, &keyed(5, 0), true)
+        .expect("dispose");
+    t.matched_long_ago(CLIENT, keyed_writer);
+    let written: Vec<(bool, Vec<u8>)> = t
+        .bus
+        .written
+        .borrow()
+        .iter()
+        .map(|w| (w.dispose, w.sample.body.to_vec()))
+        .collect();
+    assert_eq!(written, vec![(false, keyed(5, 50)), (true, keyed(5, 0))]);
+    // Nothing is held any more.
+    assert!(t.worker.oldest_held().is_empty());
+}
+
+#[test]
+fn shared_writers_share_one_backend_writer_per_qos_and_byte_order() {
+    let mut t = Harness::new(true);
+    t.participant(CLIENT);
+    t.participant(OTHER);
+    let volatile = writer_xml(TOPIC, "NO_KEY", "VOLATILE");
+    t.writer(CLIENT, WRITER, &volatile).expect("first");
+    t.writer(OTHER, WRITER, &volatile).expect("second");
+    assert_eq!(t.bus.writers_made.get(), 1);
+    // The shared DDS writer keeps every client's resend window.
+    let (topic, qos) = t.bus.endpoints.borrow()[0].clone();
+    assert_eq!(topic, TOPIC);
+    assert_eq!(
+        qos.history,
+        crate::backend::policies::History::KeepLast(
+            crate::backend::qos::DEFAULT_DEPTH * SHARE_GROUP as i32
+        )
+    );
+    // Transient-local writers keep history for late joiners: never shared.
+    let transient = writer_xml(TOPIC, "NO_KEY", "TRANSIENT_LOCAL");
+    t.writer(
+        CLIENT,
+        ObjectId::new(2, object_kind::DATAWRITER),
+        &transient,
+    )
+    .expect("third");
+    t.writer(OTHER, ObjectId::new(2, object_kind::DATAWRITER), &transient)
+        .expect("fourth");
+    assert_eq!(t.bus.writers_made.get(), 3);
+    // A big-endian client gets a writer of its own.
+    let body = variant(
+        object_kind::DATAWRITER,
+        &volatile,
+        VariantExtra::Parent(PUBLISHER),
+    );
+    t.worker
+        .create(
+            (FE, OTHER, ObjectId::new(3, object_kind::DATAWRITER)),
+            &body,
+            false,
+            false,
+            0,
+        )
+        .expect("big endian");
+    assert_eq!(t.bus.writers_made.get(), 4);
+    // The shared DDS writer lives while one of its XRCE writers does.
+    t.worker.remove_subtree((FE, CLIENT, WRITER));
+    assert_eq!(t.bus.writers_of(TOPIC), 4);
+    t.worker.remove_subtree((FE, OTHER, WRITER));
+    assert_eq!(t.bus.writers_of(TOPIC), 3);
+    // Only the big-endian writer's entry is left among the shared ones.
+    assert_eq!(t.worker.shared_writers.len(), 1);
+}

@@ -1,0 +1,103 @@
+//! Progress reports to the front-end: which ones wake it and which can wait.
+
+use super::*;
+
+/// A little-endian WRITE_DATA of one bare sample.
+fn write(sample: &[u8]) -> Request<'_> {
+    Request::Write {
+        data: sample.into(),
+        data_format: xrce_common::wire::data_format::DATA,
+        little_endian: true,
+        dialect: Dialect::Eprosima,
+        status_requested: false,
+    }
+}
+
+impl Harness {
+    /// Hands the worker a request of the front-end (its current process) and ends the pass.
+    fn request(&mut self, request: Request<'_>, seq: u64, progress_can_wait: bool) {
+        let route = Route {
+            op_seq: seq,
+            ..Route::object(FE, CLIENT, Default::default(), WRITER)
+        };
+        self.worker.process_request(RequestMessage {
+            route,
+            progress_can_wait,
+            request,
+        });
+        self.worker.flush();
+    }
+
+    /// What the front-end was told executed since the last call (each progress message's
+    /// first number), and whether it was woken for it.
+    fn progress(&mut self) -> (Vec<u64>, bool) {
+        let mut executed = Vec::new();
+        self.replies
+            .drain(|m| {
+                let m = ReplyMessage::decode(m).expect("reply");
+                if let Reply::Progress { executed: e, .. } = m.reply {
+                    executed.push(e);
+                }
+            })
+            .expect("drain");
+        (executed, self.replies.take_events())
+    }
+}
+
+/// Progress of an operation whose progress can wait goes out without waking the
+/// front-end; progress that covers any other operation wakes it.
+#[test]
+fn progress_wakes_the_front_end_only_for_operations_that_wait_for_it() {
+    let mut t = Harness::new(false);
+    // Operations that need no reply (a pause of a read that is not there).
+    t.request(Request::PauseRead, 1, true);
+    assert_eq!(t.progress(), (vec![1], false));
+    t.request(Request::PauseRead, 2, true);
+    t.request(Request::PauseRead, 3, false);
+    assert_eq!(t.progress(), (vec![2, 3], true));
+    // Nothing new: no message, no wake-up.
+    t.worker.flush();
+    assert_eq!(t.progress(), (vec![], false));
+    // A reply always wakes (a write to a writer that does not exist fails with a STATUS).
+    t.request(write(&keyed(1, 1)), 4, true);
+    assert_eq!(t.progress(), (vec![4], true));
+}
+
+/// A write the worker holds (its writer waits for its readers to match again) is not
+/// executed yet: progress that stops short of it still owes the front-end a wake-up, paid
+/// when the write is released; nothing is sent while nothing changes.
+#[test]
+fn progress_owed_for_a_held_write_wakes_when_the_write_is_executed() {
+    let mut t = reader_and_new_writer();
+    // No acknowledgement by DDS readers, which would wake the front-end by itself.
+    t.bus.acknowledged.set(false);
+    let _ = t.progress();
+    t.request(write(&keyed(1, 1)), 10, false);
+    assert!(t.bus.written.borrow().is_empty(), "held");
+    assert_eq!(t.progress(), (vec![9], true));
+    t.worker.flush();
+    assert_eq!(t.progress(), (vec![], false), "nothing new while held");
+    t.matched_long_ago(CLIENT, WRITER);
+    assert_eq!(t.bus.samples_on(TOPIC), vec![keyed(1, 1)]);
+    t.worker.flush();
+    assert_eq!(t.progress(), (vec![10], true), "executed: the owed wake-up");
+    t.worker.flush();
+    assert_eq!(t.progress(), (vec![], false));
+}
+
+/// Held writes whose progress can wait: their progress goes out when they are released,
+/// without a wake-up.
+#[test]
+fn progress_of_released_writes_that_can_wait_goes_out_without_a_wake_up() {
+    let mut t = reader_and_new_writer();
+    t.bus.acknowledged.set(false);
+    let _ = t.progress();
+    t.request(write(&keyed(1, 1)), 1, true);
+    t.request(write(&keyed(2, 1)), 2, true);
+    assert_eq!(t.progress(), (vec![0, 0], false), "both held");
+    // The first held sample goes alone (the second waits for its acknowledgement).
+    t.matched_long_ago(CLIENT, WRITER);
+    assert_eq!(t.bus.samples_on(TOPIC), vec![keyed(1, 1)]);
+    t.worker.flush();
+    assert_eq!(t.progress(), (vec![1], false));
+}

@@ -1,0 +1,138 @@
+//! The link and the replies: requests the link refuses, replies of a predecessor or a dead
+//! worker, creations a dead worker took, the settle time on the caller's clock.
+
+use super::*;
+
+/// The STATUS replies the rig's client got for `object`.
+fn statuses_of(rig: &Rig, object: ObjectId) -> Vec<u8> {
+    rig.events
+        .iter()
+        .filter_map(|e| match e {
+            ClientEvent::Status(r) if r.related.object_id == object => Some(r.result.status),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Requests the link refuses (its shared memory failed) wait in the outbox, the relay asks to
+/// be called again soon, and they go in order once the link works again.
+#[test]
+fn requests_the_link_refuses_wait_and_go_in_order_once_it_works() {
+    let worker = FakeWorker::start(41);
+    let mut rig = Rig::connected(&worker, 41);
+    let [.., w] = rig.create_writer();
+    rig.run(&[&worker], |_, s| {
+        s.iter().filter(|m| is(m, "Create")).count() == 4
+    });
+    rig.relay.link_mut().fail(true);
+    for i in 0..5 {
+        reliable_write(&mut rig, w, format!("w{i}").as_bytes());
+    }
+    assert_eq!(rig.relay.backlog(), 5, "all five wait");
+    let now = Instant::now();
+    assert!(
+        rig.relay
+            .poll_timeout(now)
+            .is_some_and(|t| t <= now + Duration::from_millis(1)),
+        "a retry is asked for"
+    );
+    rig.relay.link_mut().fail(false);
+    let served = rig.run(&[&worker], |_, s| {
+        s.iter().filter(|m| is(m, "Write")).count() >= 5
+    });
+    assert_eq!(write_bodies(&served), ["w0", "w1", "w2", "w3", "w4"]);
+    assert_eq!(rig.relay.backlog(), 0);
+}
+
+/// A reply meant for the front-end process this one took over from, one from a worker
+/// generation no longer served and bytes that are no message change nothing a client sees.
+#[test]
+fn replies_of_a_predecessor_a_dead_worker_or_no_worker_are_not_applied() {
+    use xrce_common::wire::{status, RequestId, ResultStatus};
+    let worker = FakeWorker::start(42);
+    let mut rig = Rig::connected(&worker, 42);
+    let w = ObjectId::new(1, k::DATAWRITER);
+    let failed = |incarnation: u16, generation: u32| {
+        let route = Route {
+            incarnation,
+            generation,
+            op_seq: 1,
+            ..Route::object(0, ClientKey([0xB2, 0, 0, 1]), RequestId([0, 1]), w)
+        };
+        let reply = Reply::Status {
+            result: ResultStatus::new(status::ERR_DDS_ERROR),
+            replay: false,
+        };
+        ReplyMessage::new(route, reply).encode()
+    };
+    let now = Instant::now();
+    let before = rig.relay.stats().clone();
+    rig.relay.handle_reply(now, &failed(9, 42), &mut rig.agent);
+    rig.relay.handle_reply(now, &failed(1, 41), &mut rig.agent);
+    rig.relay
+        .handle_reply(now, b"not a message", &mut rig.agent);
+    rig.relay.after_replies(now, &mut rig.agent);
+    let after = rig.relay.stats();
+    assert_eq!(after.predecessor_replies, before.predecessor_replies + 1);
+    assert_eq!(after.ipc_dropped, before.ipc_dropped + 2);
+    rig.run(&[&worker], |_, _| true);
+    assert!(statuses_of(&rig, w).is_empty(), "{:?}", rig.events);
+}
+
+/// A worker that dies with CREATEs taken and not answered: its successor gets them again as
+/// creations a client waits for (not as a replay), and the client gets one STATUS for each.
+#[test]
+fn creations_a_dead_worker_did_not_answer_are_answered_once_by_its_successor() {
+    let first = FakeWorker::start(43);
+    let mut rig = Rig::connected(&first, 43);
+    let ids = rig.create_writer();
+    let now = Instant::now();
+    rig.deliver(now);
+    rig.relay.pump();
+    let taken = first.serve(&mut rig);
+    assert_eq!(taken.iter().filter(|m| is(m, "Create")).count(), 4);
+    // It dies with its answers.
+    drop(first);
+    let second = FakeWorker::start(44);
+    let replay = rig.run(&[&second], |r, _| {
+        ids.iter().all(|id| !statuses_of(r, *id).is_empty())
+    });
+    let creates: Vec<&Served> = replay.iter().filter(|m| is(m, "Create")).collect();
+    assert_eq!(creates.len(), 4);
+    assert!(
+        !creates.iter().any(|m| replayed(m)),
+        "the client waits for them"
+    );
+    // A while longer: nothing more comes.
+    let end = Instant::now() + Duration::from_millis(200);
+    rig.run(&[&second], |_, _| Instant::now() >= end);
+    for id in ids {
+        assert_eq!(statuses_of(&rig, id), [0], "{id:?}");
+    }
+}
+
+/// Time is the caller's: an executed write no DDS reader acknowledges is released exactly
+/// [`SETTLE_TIME`] after the worker reported it executed, whatever the wall clock says.
+#[test]
+fn an_unacknowledged_write_is_released_after_the_settle_time_on_the_callers_clock() {
+    use xrce_frontend::relay::SETTLE_TIME;
+    let worker = FakeWorker::start(45);
+    let mut rig = Rig::connected(&worker, 45);
+    let [.., w] = rig.create_writer();
+    rig.run(&[&worker], |_, s| {
+        s.iter().filter(|m| is(m, "Create")).count() == 4
+    });
+    reliable_write(&mut rig, w, b"kept");
+    rig.run(&[&worker], |r, s| {
+        s.iter().any(|m| is(m, "Write")) && r.relay.poll_timeout(Instant::now()).is_some()
+    });
+    let now = Instant::now();
+    let release = rig.relay.poll_timeout(now).expect("a settle deadline");
+    assert!(release > now && release <= now + SETTLE_TIME, "{release:?}");
+    rig.relay
+        .after_replies(release - Duration::from_millis(1), &mut rig.agent);
+    assert_eq!(rig.relay.stats().writes_settled_unacknowledged, 0);
+    rig.relay.after_replies(release, &mut rig.agent);
+    assert_eq!(rig.relay.stats().writes_settled_unacknowledged, 1);
+    assert_eq!(rig.relay.poll_timeout(release), None);
+}

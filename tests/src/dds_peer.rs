@@ -1,0 +1,276 @@
+//! The independent DDS peer: Cyclone DDS from PyPI (pinned) in a virtual environment, as a
+//! process whose samples the tests read, and what was delivered to it.
+
+use std::io::{BufRead, BufReader};
+use std::path::PathBuf;
+use std::process::{Child, ChildStdout, Command, Stdio};
+use std::sync::mpsc;
+use std::sync::OnceLock;
+use std::time::{Duration, Instant};
+
+use crate::*;
+
+/// The Python virtual environment with Cyclone DDS, created once under `target/`.
+pub fn cyclone_python() -> PathBuf {
+    static PY: OnceLock<PathBuf> = OnceLock::new();
+    PY.get_or_init(|| {
+        let venv = target_dir().join("cyclonedds-venv");
+        let py = venv.join("bin/python");
+        let lock = std::fs::File::create(target_dir().join("cyclonedds-venv.lock")).expect("lock file");
+        let _guard = nix::fcntl::Flock::lock(lock, nix::fcntl::FlockArg::LockExclusive).expect("flock");
+        let ready = Command::new(&py)
+            .args(["-c", &format!("import cyclonedds, importlib.metadata as m; assert m.version('cyclonedds') == '{CYCLONEDDS_VERSION}'")])
+            .stderr(Stdio::null())
+            .status()
+            .is_ok_and(|s| s.success());
+        if !ready {
+            let st = Command::new("python3").args(["-m", "venv"]).arg(&venv).status().expect("python3 -m venv");
+            assert!(st.success(), "creating the venv failed");
+            let st = Command::new(venv.join("bin/pip"))
+                .args(["install", "--quiet", "--only-binary=:all:", &format!("cyclonedds=={CYCLONEDDS_VERSION}")])
+                .status()
+                .expect("pip install");
+            assert!(st.success(), "installing cyclonedds {CYCLONEDDS_VERSION} failed");
+        }
+        py
+    })
+    .clone()
+}
+
+/// A running `dds_peer.py` (Cyclone DDS) process with its stdout lines on a channel.
+#[derive(Debug)]
+pub struct DdsPeer {
+    child: Child,
+    lines: mpsc::Receiver<String>,
+}
+
+impl DdsPeer {
+    /// Starts `dds_peer.py <args>` pinned to loopback.
+    pub fn start(args: &[&str]) -> Self {
+        let xml = workspace().join("tests/python/cyclonedds-loopback.xml");
+        let mut child = Command::new(cyclone_python())
+            .arg(workspace().join("tests/python/dds_peer.py"))
+            .args(args)
+            .env("CYCLONEDDS_URI", format!("file://{}", xml.display()))
+            .stdout(Stdio::piped())
+            .spawn()
+            .expect("start dds_peer.py");
+        let stdout: ChildStdout = child.stdout.take().expect("stdout");
+        let (tx, lines) = mpsc::channel();
+        std::thread::spawn(move || {
+            for l in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if tx.send(l).is_err() {
+                    break;
+                }
+            }
+        });
+        DdsPeer { child, lines }
+    }
+
+    /// The next output line, waiting up to `d`.
+    pub fn line(&self, d: Duration) -> Option<String> {
+        self.lines.recv_timeout(d).ok()
+    }
+
+    /// Waits for a line starting with `prefix`, while `pump` keeps other parties running.
+    pub fn wait_for(&self, prefix: &str, d: Duration, mut pump: impl FnMut()) -> Option<String> {
+        let end = Instant::now() + d;
+        while Instant::now() < end {
+            pump();
+            if let Ok(l) = self.lines.recv_timeout(Duration::from_millis(2)) {
+                if l.starts_with(prefix) {
+                    return Some(l);
+                }
+            }
+        }
+        None
+    }
+
+    /// Waits for the process to end; returns its exit code.
+    pub fn wait(&mut self, d: Duration, mut pump: impl FnMut()) -> Option<i32> {
+        let end = Instant::now() + d;
+        while Instant::now() < end {
+            pump();
+            if let Ok(Some(s)) = self.child.try_wait() {
+                return s.code();
+            }
+        }
+        None
+    }
+
+    /// All lines received so far.
+    pub fn drain_lines(&self) -> Vec<String> {
+        self.lines.try_iter().collect()
+    }
+}
+
+impl Drop for DdsPeer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Parses a `{"index": i, "message": "..."}` line from the peer.
+pub fn parse_sample_line(l: &str) -> Option<(u32, String)> {
+    let v: serde_json::Value = serde_json::from_str(l).ok()?;
+    let index = u32::try_from(v.get("index")?.as_u64()?).ok()?;
+    Some((index, v.get("message")?.as_str()?.to_string()))
+}
+
+/// Parses a sample line's index and the DDS writer it came from (Cyclone's publication
+/// handle: one per remote writer).
+pub fn parse_sample_writer(l: &str) -> Option<(u32, u64)> {
+    let v: serde_json::Value = serde_json::from_str(l).ok()?;
+    let index = u32::try_from(v.get("index")?.as_u64()?).ok()?;
+    Some((index, v.get("writer")?.as_u64()?))
+}
+
+/// Every delivery of a HelloWorld sample, by index and in arrival order, so that a sample
+/// delivered twice is as visible as one never delivered.
+#[derive(Debug, Clone, Default)]
+pub struct Deliveries {
+    counts: std::collections::BTreeMap<u32, usize>,
+    order: Vec<u32>,
+}
+
+impl Deliveries {
+    /// Records one delivery.
+    pub fn record(&mut self, index: u32) {
+        *self.counts.entry(index).or_default() += 1;
+        self.order.push(index);
+    }
+
+    /// Distinct indices delivered.
+    pub fn distinct(&self) -> usize {
+        self.counts.len()
+    }
+
+    /// Deliveries in all, duplicates included.
+    pub fn total(&self) -> usize {
+        self.order.len()
+    }
+
+    /// Deliveries recorded so far, duplicates included (a mark for [`Deliveries::order_from`]).
+    pub fn order_len(&self) -> usize {
+        self.order.len()
+    }
+
+    /// The indices delivered since `mark` (an earlier [`Deliveries::order_len`]), in order.
+    pub fn order_from(&self, mark: usize) -> Vec<u32> {
+        self.order.get(mark..).unwrap_or_default().to_vec()
+    }
+
+    /// The index delivered last (0 if none).
+    pub fn order_last(&self) -> u32 {
+        self.order.last().copied().unwrap_or(0)
+    }
+
+    /// How often `index` was delivered.
+    pub fn count(&self, index: u32) -> usize {
+        self.counts.get(&index).copied().unwrap_or(0)
+    }
+
+    /// The indices delivered more than once, with their counts.
+    pub fn repeated(&self) -> Vec<(u32, usize)> {
+        self.counts
+            .iter()
+            .filter(|(_, n)| **n > 1)
+            .map(|(i, n)| (*i, *n))
+            .collect()
+    }
+
+    /// Asserts that every index of `expected` arrived exactly once and nothing else did.
+    pub fn assert_exactly_once(&self, expected: impl IntoIterator<Item = u32>, what: &str) {
+        let expected: std::collections::BTreeSet<u32> = expected.into_iter().collect();
+        let missing: Vec<u32> = expected
+            .iter()
+            .copied()
+            .filter(|i| !self.counts.contains_key(i))
+            .collect();
+        let repeated: Vec<(u32, usize)> = self
+            .counts
+            .iter()
+            .filter(|(_, n)| **n > 1)
+            .map(|(i, n)| (*i, *n))
+            .collect();
+        let unexpected: Vec<u32> = self
+            .counts
+            .keys()
+            .copied()
+            .filter(|i| !expected.contains(i))
+            .collect();
+        assert!(
+            missing.is_empty() && repeated.is_empty() && unexpected.is_empty(),
+            "{what}: missing {missing:?}, delivered more than once {repeated:?}, unexpected {unexpected:?}"
+        );
+    }
+
+    /// Asserts that the deliveries came in increasing index order (what a reliable stream
+    /// from one writer promises).
+    pub fn assert_in_order(&self, what: &str) {
+        let inversions: Vec<(u32, u32)> = self
+            .order
+            .windows(2)
+            .filter(|w| w[1] <= w[0])
+            .map(|w| (w[0], w[1]))
+            .collect();
+        assert!(
+            inversions.is_empty(),
+            "{what}: out of order: {inversions:?}"
+        );
+    }
+}
+
+impl Deliveries {
+    /// Runs `pump` (which returns the indices delivered in that round) until `want`
+    /// distinct ones arrived and [`DUPLICATE_GRACE`] passed, or `d` passed.
+    pub fn collect(want: usize, d: Duration, mut pump: impl FnMut() -> Vec<u32>) -> Self {
+        let mut got = Deliveries::default();
+        let end = Instant::now() + d;
+        let mut complete_at: Option<Instant> = None;
+        while Instant::now() < end && complete_at.is_none_or(|t| t.elapsed() < DUPLICATE_GRACE) {
+            for i in pump() {
+                got.record(i);
+            }
+            if complete_at.is_none() && got.distinct() >= want {
+                complete_at = Some(Instant::now());
+            }
+        }
+        got
+    }
+}
+
+/// How long collections keep listening after the last expected sample, so that a duplicate
+/// arriving just after it is seen too.
+pub const DUPLICATE_GRACE: Duration = Duration::from_millis(500);
+
+impl DdsPeer {
+    /// Records the HelloWorld samples a `read` peer prints (checking each message is
+    /// `message`) until `want` distinct ones arrived and [`DUPLICATE_GRACE`] passed, or `d`
+    /// passed, while `pump` keeps other parties running.
+    pub fn collect_deliveries(
+        &self,
+        want: usize,
+        message: &str,
+        d: Duration,
+        mut pump: impl FnMut(),
+    ) -> Deliveries {
+        let mut got = Deliveries::default();
+        let end = Instant::now() + d;
+        let mut complete_at: Option<Instant> = None;
+        while Instant::now() < end && complete_at.is_none_or(|t| t.elapsed() < DUPLICATE_GRACE) {
+            pump();
+            while let Some(l) = self.line(Duration::from_millis(1)) {
+                if let Some((i, m)) = parse_sample_line(&l) {
+                    assert_eq!(m, message, "sample {i} carries another message");
+                    got.record(i);
+                }
+            }
+            if complete_at.is_none() && got.distinct() >= want {
+                complete_at = Some(Instant::now());
+            }
+        }
+        got
+    }
+}
