@@ -135,7 +135,7 @@ fn families(s: &AgentStatus) -> Vec<Family> {
         .processes
         .iter()
         .find_map(|p| p.worker.as_ref().map(|w| w.generation));
-    let per_frontend: [(&str, &'static str, &'static str); 10] = [
+    let per_frontend: [(&str, &'static str, &'static str); 11] = [
         (
             "messages_received",
             "xrce_messages_received",
@@ -175,6 +175,11 @@ fn families(s: &AgentStatus) -> Vec<Family> {
             "replays",
             "xrce_replays",
             "Object graphs replayed to a new DDS worker.",
+        ),
+        (
+            "link_refusals",
+            "xrce_ipc_link_refusals",
+            "Sends and wake-ups the shared-memory link to the worker refused (each retried, with back-off; nothing dropped).",
         ),
         (
             "transport_opened",

@@ -163,7 +163,15 @@ pub struct RelayStats {
     pub objects_over_budget: u64,
     /// Replies meant for the front-end process this one took over from, ignored.
     pub predecessor_replies: u64,
+    /// Sends and wake-ups the link refused (each tried again later, nothing dropped).
+    pub link_refusals: u64,
 }
+
+/// The first retry after the link refused a send or a wake-up; each refusal in a row doubles
+/// it, up to [`LINK_RETRY_MAX`], and one that goes through resets it.
+pub const LINK_RETRY_MIN: Duration = Duration::from_millis(1);
+/// The longest wait between retries of a link that keeps refusing.
+pub const LINK_RETRY_MAX: Duration = Duration::from_millis(250);
 
 /// The front-end's side of the IPC contract: its state between the session core and the
 /// worker.
@@ -204,6 +212,8 @@ pub struct Relay<L> {
     )>,
     /// Requests went out since the worker was last woken (or a wake-up failed).
     dirty: bool,
+    /// Sends and wake-ups the link refused in a row (0: it works).
+    link_failures: u32,
     stats: RelayStats,
     /// Most objects per client.
     max_objects: usize,
@@ -256,6 +266,7 @@ impl<L: Link> Relay<L> {
             infos_out: Vec::new(),
             paused: HashMap::new(),
             dirty: false,
+            link_failures: 0,
             stats: RelayStats::default(),
             max_objects: xrce_common::session::graph::MAX_OBJECTS,
             object_budget: ObjectBudget::new(BudgetSplit::of(DEFAULT_MEMORY_BUDGET).objects),
@@ -448,7 +459,7 @@ impl<L: Link> Relay<L> {
             match self.link.wake() {
                 Ok(()) => self.dirty = false,
                 // Kept dirty: tried again on the next pass.
-                Err(e) => tracing::debug!(error = %e, "worker wake-up failed"),
+                Err(e) => self.link_refused("worker wake-up", &e),
             }
         }
     }
@@ -462,10 +473,11 @@ impl<L: Link> Relay<L> {
         op.message.route.op_seq = self.next_seq;
         op.message.route.incarnation = self.incarnation;
         if let Err(e) = self.link.send(&op.message) {
-            tracing::warn!(error = %e, "could not hand an operation to the worker; will retry");
+            self.link_refused("operation", &e);
             self.outbox.push_front(op);
             return false;
         }
+        self.link_works();
         self.sent_owned(op);
         true
     }
@@ -485,14 +497,46 @@ impl<L: Link> Relay<L> {
             request: op.message.request.borrowed(),
         };
         if let Err(e) = self.link.send(&sent) {
-            tracing::warn!(error = %e, "could not hand an operation to the worker; will retry");
+            self.link_refused("operation", &e);
             return false;
         }
+        self.link_works();
         if let Some(mut op) = self.best_effort_waiting.pop() {
             op.message.route = route;
             self.sent_owned(op);
         }
         true
+    }
+
+    /// Counts a refusal of the link; the first of a run is a warning, the rest debug lines
+    /// (a link that keeps refusing is retried ever more slowly: [`Relay::poll_timeout`]).
+    fn link_refused(&mut self, what: &str, e: &dyn std::fmt::Display) {
+        self.stats.link_refusals += 1;
+        self.link_failures = self.link_failures.saturating_add(1);
+        if self.link_failures == 1 {
+            tracing::warn!(error = %e, "could not hand an {what} to the worker; will retry");
+        } else {
+            tracing::debug!(error = %e, refusals = self.link_failures, "the link still refuses an {what}");
+        }
+    }
+
+    /// A send went through: the next refusal starts a new run.
+    fn link_works(&mut self) {
+        if self.link_failures > 1 {
+            tracing::info!(
+                refusals = self.link_failures,
+                "the link to the worker works again"
+            );
+        }
+        self.link_failures = 0;
+    }
+
+    /// How long to wait before trying a refusing link again.
+    fn link_retry(&self) -> Duration {
+        let doublings = self.link_failures.saturating_sub(1).min(16);
+        LINK_RETRY_MIN
+            .saturating_mul(1 << doublings)
+            .min(LINK_RETRY_MAX)
     }
 
     fn sent_owned(&mut self, op: OwnedOp) {
@@ -533,11 +577,13 @@ impl<L: Link> Relay<L> {
     }
 
     /// When retained writes need another look, or a failed wake-up or send is tried again
-    /// (operations the link refused wait in the outbox while the window has room).
+    /// (operations the link refused wait in the outbox while the window has room): at once
+    /// after [`LINK_RETRY_MIN`], ever more slowly while the link keeps refusing, up to
+    /// [`LINK_RETRY_MAX`].
     pub fn poll_timeout(&self, now: Instant) -> Option<Instant> {
         let settle = self.retention.deadline();
         let refused = !self.outbox.is_empty() && self.can_send_now();
-        let retry = (self.dirty || refused).then(|| now + Duration::from_millis(1));
+        let retry = (self.dirty || refused).then(|| now + self.link_retry());
         settle.into_iter().chain(retry).min()
     }
 

@@ -29,19 +29,37 @@ fn requests_the_link_refuses_wait_and_go_in_order_once_it_works() {
         reliable_write(&mut rig, w, format!("w{i}").as_bytes());
     }
     assert_eq!(rig.relay.backlog(), 5, "all five wait");
+    // A retry is asked for, later after each refusal in a row, never later than the cap.
     let now = Instant::now();
-    assert!(
-        rig.relay
+    let mut waits = Vec::new();
+    for _ in 0..12 {
+        let wait = rig
+            .relay
             .poll_timeout(now)
-            .is_some_and(|t| t <= now + Duration::from_millis(1)),
-        "a retry is asked for"
-    );
+            .map(|t| t - now)
+            .expect("a retry is asked for");
+        waits.push(wait);
+        rig.relay.pump();
+    }
+    assert!(waits.windows(2).all(|w| w[0] <= w[1]), "{waits:?}");
+    assert!(waits[0] < waits[11], "{waits:?}");
+    assert_eq!(waits[11], xrce_frontend::relay::LINK_RETRY_MAX, "{waits:?}");
+    assert!(rig.relay.stats().link_refusals >= 12);
+    assert_eq!(rig.relay.backlog(), 5, "nothing dropped while refused");
     rig.relay.link_mut().fail(false);
     let served = rig.run(&[&worker], |_, s| {
         s.iter().filter(|m| is(m, "Write")).count() >= 5
     });
     assert_eq!(write_bodies(&served), ["w0", "w1", "w2", "w3", "w4"]);
     assert_eq!(rig.relay.backlog(), 0);
+    // Working again: the next refusal is retried at once.
+    rig.relay.link_mut().fail(true);
+    reliable_write(&mut rig, w, b"w5");
+    let now = Instant::now();
+    assert_eq!(
+        rig.relay.poll_timeout(now).map(|t| t - now),
+        Some(xrce_frontend::relay::LINK_RETRY_MIN)
+    );
 }
 
 /// A reply meant for the front-end process this one took over from, one from a worker
