@@ -66,7 +66,7 @@ impl Worker {
                 "object id kind differs from the representation kind".into(),
             ));
         }
-        if self.adoption.claim(&key) && self.adopt(key, body, little_endian) {
+        if self.frontends.adoption.claim(&key) && self.adopt(key, body, little_endian) {
             return Ok(());
         }
         if self.entities.contains_key(&key) {
@@ -167,7 +167,8 @@ impl Worker {
                             outstanding: Outstanding::default(),
                         });
                         if let Some(k) = shared_key {
-                            self.shared_writers
+                            self.writers
+                                .shared
                                 .entry(k)
                                 .or_default()
                                 .push(SharedWriterEntry {
@@ -224,13 +225,12 @@ impl Worker {
                     .transpose()
                     .map_err(|e| self.filter_refused(e))?;
                 let qos = EndpointQos::resolve(EndpointSide::Reader, &tdesc.qos, &desc.qos);
-                let token = self.next_token;
-                self.next_token += 1;
+                let token = self.readers.new_token();
                 let r = self
                     .dds
                     .create_reader(&*subscriber, &topic, &qos, token)
                     .map_err(dds_err)?;
-                self.readers.insert(token, key);
+                self.readers.by_token.insert(token, key);
                 (
                     Some(p),
                     EntityKind::Reader {
@@ -253,7 +253,7 @@ impl Worker {
                     .participant_of(key, p)
                     .ok_or(OpError::UnknownReference("no participant".into()))?;
                 let endpoint = self.create_service(&desc, domain, requester, little_endian)?;
-                self.readers.insert(endpoint.token, key);
+                self.readers.by_token.insert(endpoint.token, key);
                 tracing::info!(
                     frontend = key.0,
                     client = %key.1,
@@ -299,7 +299,7 @@ impl Worker {
             }
         };
         if matches!(&kind, EntityKind::Writer { rematch: r, .. } if r.until.is_some()) {
-            self.holding.insert(key);
+            self.writers.holding.insert(key);
         }
         let graph_change = matches!(
             &kind,

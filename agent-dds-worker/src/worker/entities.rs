@@ -113,40 +113,25 @@ impl Worker {
 
     /// What the worker keeps about an entity besides the tree, dropped with it.
     fn forget_entity(&mut self, key: EntityKey, e: Entity) {
-        self.holding.remove(&key);
-        if let Some(r) = self.recent.get_mut(&key.0) {
+        if let Some(r) = self.frontends.recent.get_mut(&key.0) {
             r.forget(&key);
         }
+        let token = match &e.kind {
+            EntityKind::Reader { token, .. } => Some(*token),
+            EntityKind::Service(s) => Some(s.token),
+            _ => None,
+        };
+        self.readers.forget(key, token);
+        self.writers.holding.remove(&key);
         match e.kind {
             // Its subtree went before it (endpoints before their parents): the last
             // participant of a domain leaves nothing of the worker's in it.
             EntityKind::Participant { domain, .. } if self.domains.leave(domain) => {
                 self.release_domain(domain);
             }
-            EntityKind::Writer { writer: w, .. } => {
-                // The last XRCE writer of a shared DDS writer: forget the entry.
-                if let Some(k) = w.shared.clone() {
-                    drop(w);
-                    if let Some(entries) = self.shared_writers.get_mut(&k) {
-                        entries.retain(|e| e.writer.strong_count() > 0);
-                        if entries.is_empty() {
-                            self.shared_writers.remove(&k);
-                        }
-                    }
-                }
-            }
+            EntityKind::Writer { writer, .. } => self.writers.release(writer),
             // Dropped here, the backend's endpoints are deleted and wake nobody any more.
-            EntityKind::Reader { token, .. } => {
-                self.readers.remove(&token);
-            }
-            EntityKind::Service(s) => {
-                self.readers.remove(&s.token);
-            }
             _ => {}
         }
-        self.reads.remove(&key);
-        self.to_pump.remove(&key);
-        self.pump_again.remove(&key);
-        self.over_budget.remove(&key);
     }
 }

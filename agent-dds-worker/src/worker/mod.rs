@@ -117,7 +117,9 @@ pub struct Worker {
     /// Taken by [`Worker::run`] so requests can be handled straight from shared memory.
     requests: Option<Receiver>,
     announce: Sender,
-    ports: HashMap<u32, FrontendPort>,
+    /// What the worker knows of each front-end: its reply port, its hello, its entities
+    /// while it is gone, its restarted successor.
+    frontends: Frontends,
     /// The DDS implementation.
     dds: Box<dyn DdsBackend>,
     /// Where requesters and repliers live when `dds` cannot serve them (made on the first
@@ -125,55 +127,21 @@ pub struct Worker {
     services_dds: Option<Box<dyn DdsBackend>>,
     /// Every entity, with its parent and an index by client.
     entities: EntityTree<Entity>,
-    /// The entity behind each reader's wake-up token.
-    readers: HashMap<ReaderToken, EntityKey>,
-    next_token: ReaderToken,
-    /// Tokens of readers the backend said may have data (kept to reuse its memory).
-    ready: Vec<ReaderToken>,
-    reads: HashMap<EntityKey, ActiveRead>,
-    /// Readers to pump this pass, first come first served.
-    to_pump: Turns<EntityKey>,
-    /// Readers that had more than one batch: pumped again next pass, behind the readers
-    /// that became ready meanwhile (a flood takes one batch per turn, not every turn).
-    pump_again: Turns<EntityKey>,
-    /// Readers with content filters that got no turn because the pass's filter budget
-    /// ([`crate::filter::PASS_BUDGET`]) was spent: pumped first next pass.
-    over_budget: Turns<EntityKey>,
-    /// What is left of this pass's filter budget.
-    filter_pass_left: u64,
+    /// The DDS readers: their wake-up tokens, active reads and turns.
+    readers: Readers,
     /// The domains in use and the policy admitting new ones.
     domains: Domains,
     /// Refusals logged once per episode.
     episodes: Episodes,
-    /// Writers holding their samples until matched (kept apart so that the loop never scans
-    /// every entity: with thousands of clients that scan dominated the worker's CPU).
-    holding: HashSet<EntityKey>,
-    /// DDS writers with writes their readers may not have acknowledged.
-    acks: AckTracker<DdsWriter>,
-    /// DDS writers shared by XRCE writers (`share_writers`), with the QoS and type they
-    /// were made with; dead entries are pruned on lookup.
-    shared_writers: HashMap<SharedWriterKey, Vec<SharedWriterEntry>>,
+    /// The DDS writers: those holding samples, acknowledgements, shared writers.
+    writers: Writers,
     graph: RosGraph,
-    /// Front-ends with entities whose process is gone, and since when.
-    orphaned: HashMap<u32, Instant>,
     /// When to look for gone front-ends next.
     next_census: Instant,
     /// When the writers' matched counts are next looked at (reported to the front-ends).
     next_match_report: Instant,
-    /// Front-end processes (id, incarnation) that said FrontendHello to this worker: they
-    /// know this generation, and their operations are meant for it (kept apart from the
-    /// reply ports, which the census may drop and recreate).
-    greeted: HashSet<(u32, u16)>,
-    /// Entities of front-ends that said hello again, for their replay to take back.
-    adoption: Adoption,
-    /// The last samples handed to each front-end, for a successor's replayed reads.
-    recent: HashMap<u32, RecentSamples>,
     /// Counters by reason of rejected or failed work.
     pub dropped: HashMap<&'static str, u64>,
-    /// Restarted front-ends (id -> incarnation) whose requests wait for the end of the
-    /// drain, and those requests.
-    successors: HashMap<u32, u16>,
-    deferred: Vec<Vec<u8>>,
     /// Samples accepted for DDS writers (written, or held until readers match).
     samples_written: u64,
     /// Samples taken from DDS readers and sent to front-ends.
@@ -185,6 +153,121 @@ pub struct Worker {
     reporter: Reporter,
     /// Pings systemd's watchdog when the worker is a unit of its own.
     watchdog: Watchdog,
+}
+
+/// The DDS readers the worker made for XRCE readers, and whose turn it is to be read.
+struct Readers {
+    /// The entity behind each reader's wake-up token.
+    by_token: HashMap<ReaderToken, EntityKey>,
+    /// The token the next reader gets.
+    next_token: ReaderToken,
+    /// Tokens of readers the backend said may have data (kept to reuse its memory).
+    ready: Vec<ReaderToken>,
+    /// The reads clients asked for, by reader.
+    reads: HashMap<EntityKey, ActiveRead>,
+    /// Readers to pump this pass, first come first served.
+    to_pump: Turns<EntityKey>,
+    /// Readers that had more than one batch: pumped again next pass, behind the readers
+    /// that became ready meanwhile (a flood takes one batch per turn, not every turn).
+    pump_again: Turns<EntityKey>,
+    /// Readers with content filters that got no turn because the pass's filter budget
+    /// ([`crate::filter::PASS_BUDGET`]) was spent: pumped first next pass.
+    over_budget: Turns<EntityKey>,
+    /// What is left of this pass's filter budget.
+    filter_pass_left: u64,
+}
+
+impl Readers {
+    fn new() -> Self {
+        Readers {
+            by_token: HashMap::new(),
+            next_token: 1,
+            ready: Vec::new(),
+            reads: HashMap::new(),
+            to_pump: Turns::new(),
+            pump_again: Turns::new(),
+            over_budget: Turns::new(),
+            filter_pass_left: crate::filter::PASS_BUDGET,
+        }
+    }
+
+    /// Forgets `key`'s reads and turns, and the wake-up token of its reader (dropped by the
+    /// caller: the backend's reader is deleted and wakes nobody any more).
+    fn forget(&mut self, key: EntityKey, token: Option<ReaderToken>) {
+        if let Some(token) = token {
+            self.by_token.remove(&token);
+        }
+        self.reads.remove(&key);
+        self.to_pump.remove(&key);
+        self.pump_again.remove(&key);
+        self.over_budget.remove(&key);
+    }
+
+    /// A token for a new reader (entered in `by_token` once the reader exists).
+    fn new_token(&mut self) -> ReaderToken {
+        let token = self.next_token;
+        self.next_token += 1;
+        token
+    }
+}
+
+/// The DDS writers the worker made for XRCE writers, and what it watches of them.
+struct Writers {
+    /// Writers holding their samples until matched (kept apart so that the loop never scans
+    /// every entity: with thousands of clients that scan dominated the worker's CPU).
+    holding: HashSet<EntityKey>,
+    /// DDS writers with writes their readers may not have acknowledged.
+    acks: AckTracker<DdsWriter>,
+    /// DDS writers shared by XRCE writers (`share_writers`), with the QoS and type they
+    /// were made with; dead entries are pruned on lookup.
+    shared: HashMap<SharedWriterKey, Vec<SharedWriterEntry>>,
+}
+
+impl Writers {
+    fn new(now: Instant) -> Self {
+        Writers {
+            holding: HashSet::new(),
+            acks: AckTracker::new(now),
+            shared: HashMap::new(),
+        }
+    }
+
+    /// Lets go of an XRCE writer's DDS writer: the last XRCE writer of a shared one takes
+    /// its entry with it.
+    fn release(&mut self, writer: Rc<DdsWriter>) {
+        let Some(k) = writer.shared.clone() else {
+            return;
+        };
+        drop(writer);
+        if let Some(entries) = self.shared.get_mut(&k) {
+            entries.retain(|e| e.writer.strong_count() > 0);
+            if entries.is_empty() {
+                self.shared.remove(&k);
+            }
+        }
+    }
+}
+
+/// What the worker knows of each front-end process.
+#[derive(Default)]
+struct Frontends {
+    /// The reply port of each front-end (by id).
+    ports: HashMap<u32, FrontendPort>,
+    /// Front-ends with entities whose process is gone, and since when.
+    orphaned: HashMap<u32, Instant>,
+    /// Front-end processes (id, incarnation) that said FrontendHello to this worker: they
+    /// know this generation, and their operations are meant for it (kept apart from the
+    /// reply ports, which the census may drop and recreate).
+    greeted: HashSet<(u32, u16)>,
+    /// Entities of front-ends that said hello again, for their replay to take back.
+    adoption: Adoption,
+    /// The last samples handed to each front-end, for a successor's replayed reads.
+    recent: HashMap<u32, RecentSamples>,
+    /// Restarted front-ends (id -> incarnation) whose requests wait for the end of the
+    /// drain.
+    successors: HashMap<u32, u16>,
+    /// Those requests.
+    deferred: Vec<Vec<u8>>,
 }
 
 impl std::fmt::Debug for Worker {
@@ -227,33 +310,18 @@ impl Worker {
             generation,
             requests: Some(requests),
             announce,
-            ports: HashMap::new(),
+            frontends: Frontends::default(),
             dds,
             services_dds: None,
             entities: EntityTree::default(),
-            readers: HashMap::new(),
-            next_token: 1,
-            ready: Vec::new(),
-            reads: HashMap::new(),
-            to_pump: Turns::new(),
-            pump_again: Turns::new(),
-            over_budget: Turns::new(),
-            filter_pass_left: crate::filter::PASS_BUDGET,
+            readers: Readers::new(),
             domains,
             episodes: Episodes::default(),
-            holding: HashSet::new(),
-            acks: AckTracker::new(Instant::now()),
-            shared_writers: HashMap::new(),
+            writers: Writers::new(Instant::now()),
             graph: RosGraph::new(ros_graph),
-            orphaned: HashMap::new(),
             next_census: Instant::now() + CENSUS_PERIOD,
             next_match_report: Instant::now() + MATCH_REPORT_PERIOD,
-            greeted: HashSet::new(),
-            adoption: Adoption::default(),
-            recent: HashMap::new(),
             dropped: HashMap::new(),
-            successors: HashMap::new(),
-            deferred: Vec::new(),
             samples_written: 0,
             samples_taken: 0,
             slow_passes: 0,
@@ -317,7 +385,7 @@ impl Worker {
     fn release_domain(&mut self, domain: u16) {
         // The graph writer is the one thing of the worker left in the domain.
         self.graph.forget(domain);
-        self.shared_writers.retain(|k, _| k.0 != domain);
+        self.writers.shared.retain(|k, _| k.0 != domain);
         self.dds.release_domain(domain);
         if let Some(s) = &mut self.services_dds {
             s.release_domain(domain);
@@ -355,11 +423,11 @@ impl Worker {
                 // it: a supervisor that stops or dies stops them all) and DDS readers have
                 // acknowledged every write, or after DRAIN_MAX whatever is left.
                 let quiet = last_request.elapsed() >= DRAIN_QUIET;
-                let acknowledged = self.acks.outstanding_writes() == 0;
+                let acknowledged = self.writers.acks.outstanding_writes() == 0;
                 if (quiet && acknowledged) || since.elapsed() >= DRAIN_MAX {
                     tracing::info!(
                         drained_ms = since.elapsed().as_millis() as u64,
-                        unacknowledged_writes = self.acks.outstanding_writes(),
+                        unacknowledged_writes = self.writers.acks.outstanding_writes(),
                         "stopping"
                     );
                     return Ok(());
@@ -466,23 +534,23 @@ impl Worker {
     fn pump_readers(&mut self) -> std::io::Result<usize> {
         // Always, not only when its descriptor polled readable: gated that way, every
         // reader stalled (measured with 3 and 100 publishers).
-        self.dds.ready_readers(&mut self.ready)?;
+        self.dds.ready_readers(&mut self.readers.ready)?;
         if let Some(s) = &mut self.services_dds {
-            s.ready_readers(&mut self.ready)?;
+            s.ready_readers(&mut self.readers.ready)?;
         }
         // Readers served a full batch last pass queue behind the others; readers that got no
         // turn for the filter budget go first.
-        for t in self.ready.drain(..) {
-            if let Some(k) = self.readers.get(&t) {
-                if !self.pump_again.contains(k) {
-                    self.to_pump.push(*k);
+        for t in self.readers.ready.drain(..) {
+            if let Some(k) = self.readers.by_token.get(&t) {
+                if !self.readers.pump_again.contains(k) {
+                    self.readers.to_pump.push(*k);
                 }
             }
         }
-        let mut line = std::mem::take(&mut self.over_budget);
-        line.append(&mut self.to_pump);
-        line.append(&mut self.pump_again);
-        self.filter_pass_left = crate::filter::PASS_BUDGET;
+        let mut line = std::mem::take(&mut self.readers.over_budget);
+        line.append(&mut self.readers.to_pump);
+        line.append(&mut self.readers.pump_again);
+        self.readers.filter_pass_left = crate::filter::PASS_BUDGET;
         let pump: Vec<EntityKey> = line.take_all();
         let pumped = pump.len();
         for k in pump {
@@ -497,14 +565,15 @@ impl Worker {
                 .services_dds
                 .as_ref()
                 .is_some_and(|s| s.readers_queued());
-        if !self.to_pump.is_empty()
-            || !self.pump_again.is_empty()
-            || !self.over_budget.is_empty()
+        if !self.readers.to_pump.is_empty()
+            || !self.readers.pump_again.is_empty()
+            || !self.readers.over_budget.is_empty()
             || queued
         {
             return 0;
         }
         let acks = self
+            .writers
             .acks
             .due()
             .map(|d| d.saturating_duration_since(Instant::now()).as_millis() as i32 + 1);
@@ -517,13 +586,14 @@ impl Worker {
     }
 
     fn timeout_without_acks(&self) -> i32 {
-        if !self.holding.is_empty() {
-            let draining = self.holding.iter().any(|k| {
+        if !self.writers.holding.is_empty() {
+            let draining = self.writers.holding.iter().any(|k| {
                 matches!(self.entities.value(k), Some(Entity { kind: EntityKind::Writer { rematch: r, .. }, .. }) if r.draining)
             });
             return if draining { 1 } else { 20 };
         }
         let waiting = self
+            .frontends
             .ports
             .values()
             .filter(|p| !p.backlog.is_empty() || p.dirty || p.unnotified);
@@ -537,9 +607,10 @@ impl Worker {
             };
         }
         let now = Instant::now();
-        let census =
-            (!self.entities.is_empty() || !self.orphaned.is_empty()).then_some(self.next_census);
-        self.reads
+        let census = (!self.entities.is_empty() || !self.frontends.orphaned.is_empty())
+            .then_some(self.next_census);
+        self.readers
+            .reads
             .values()
             .flat_map(|r| [r.deadline, r.pacing.next_at])
             .flatten()
@@ -577,7 +648,7 @@ impl Worker {
             worker: Some(WorkerStatus {
                 generation: self.generation,
                 entities,
-                frontends: self.ports.len() as u64,
+                frontends: self.frontends.ports.len() as u64,
                 samples_written: self.samples_written,
                 samples_taken: self.samples_taken,
                 dropped: {

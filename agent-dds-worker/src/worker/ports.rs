@@ -45,21 +45,21 @@ impl Worker {
         }
         self.next_census = now + CENSUS_PERIOD;
         let served: HashSet<u32> = self.entities.clients().map(|(fe, _)| *fe).collect();
-        if served.is_empty() && self.orphaned.is_empty() {
+        if served.is_empty() && self.frontends.orphaned.is_empty() {
             return;
         }
         let census = self.node.nodes();
-        self.orphaned.retain(|fe, _| served.contains(fe));
+        self.frontends.orphaned.retain(|fe, _| served.contains(fe));
         for fe in served {
             let name = format!("xrce-frontend-{fe}");
             if census.alive.contains(&name) {
-                if self.orphaned.remove(&fe).is_some() {
+                if self.frontends.orphaned.remove(&fe).is_some() {
                     tracing::info!(frontend = fe, "front-end is back");
                 }
                 continue;
             }
             let grace = self.config.frontend_grace;
-            let since = *self.orphaned.entry(fe).or_insert_with(|| {
+            let since = *self.frontends.orphaned.entry(fe).or_insert_with(|| {
                 tracing::warn!(
                     frontend = fe,
                     grace_s = grace.as_secs_f64(),
@@ -75,11 +75,11 @@ impl Worker {
                     "front-end did not come back; deleting its clients' entities"
                 );
                 self.remove_where(|c| c.0 == fe);
-                self.adoption.forget(fe);
-                self.recent.remove(&fe);
-                self.ports.remove(&fe);
-                self.greeted.retain(|(f, _)| *f != fe);
-                self.orphaned.remove(&fe);
+                self.frontends.adoption.forget(fe);
+                self.frontends.recent.remove(&fe);
+                self.frontends.ports.remove(&fe);
+                self.frontends.greeted.retain(|(f, _)| *f != fe);
+                self.frontends.orphaned.remove(&fe);
                 self.count("frontend_gone");
             }
         }
@@ -88,7 +88,7 @@ impl Worker {
     /// The reply port of a front-end, opened on first use.
     pub(super) fn port(&mut self, frontend: u32) -> Result<&mut FrontendPort, ShmError> {
         use std::collections::hash_map::Entry;
-        match self.ports.entry(frontend) {
+        match self.frontends.ports.entry(frontend) {
             Entry::Occupied(e) => Ok(e.into_mut()),
             Entry::Vacant(v) => {
                 let sender = self.node.sender(
@@ -116,6 +116,7 @@ impl Worker {
     pub(super) fn reply(&mut self, mut route: Route, reply: Reply<'_>) {
         route.generation = self.generation;
         let incarnation = self
+            .frontends
             .ports
             .get(&route.frontend_id)
             .map_or(0, |p| p.incarnation);
@@ -201,17 +202,17 @@ impl Worker {
     pub(super) fn flush(&mut self) {
         let generation = self.generation;
         let held = self.oldest_held();
-        let (moved, all) = self.acks.poll(Instant::now());
-        for (fe, p) in self.ports.iter_mut() {
+        let (moved, all) = self.writers.acks.poll(Instant::now());
+        for (fe, p) in self.frontends.ports.iter_mut() {
             if all || moved.contains(fe) {
                 p.dirty = true;
                 p.progress_wake_owed = true;
             }
         }
         // Computed once, and only when a progress message goes out (the loop runs per sample).
-        let acks = &self.acks;
+        let acks = &self.writers.acks;
         let mut outstanding: Option<HashMap<u32, u64>> = None;
-        for (fe, p) in self.ports.iter_mut() {
+        for (fe, p) in self.frontends.ports.iter_mut() {
             // Something the front-end must be woken for went out.
             let mut wake = false;
             let mut sent = false;
@@ -232,7 +233,7 @@ impl Worker {
                 wake = true;
             }
             if p.backlog.is_empty() {
-                self.to_pump.append(&mut p.deferred);
+                self.readers.to_pump.append(&mut p.deferred);
             }
             // Held writes left the queue but are not executed yet: execution stops just
             // before the oldest.

@@ -131,7 +131,7 @@ impl Worker {
         let paused = false;
         let read = match spec.delivery_control {
             Some(d) if d.max_samples == 0 => {
-                self.reads.remove(&key);
+                self.readers.reads.remove(&key);
                 return Ok(());
             }
             Some(d) => ActiveRead {
@@ -156,10 +156,10 @@ impl Worker {
                 data_format: spec.data_format,
             },
         };
-        self.reads.insert(key, read);
+        self.readers.reads.insert(key, read);
         if replay {
             self.offer_recent(key, request_id);
-        } else if let Some(r) = self.recent.get_mut(&key.0) {
+        } else if let Some(r) = self.frontends.recent.get_mut(&key.0) {
             // The client has no record of what an earlier read on this reader delivered.
             r.forget(&key);
         }
@@ -180,6 +180,7 @@ impl Worker {
         request_id: xrce_common::wire::RequestId,
     ) {
         let mut samples = self
+            .frontends
             .recent
             .get(&key.0)
             .map(|r| r.of(&key, request_id))
@@ -187,7 +188,7 @@ impl Worker {
         if samples.is_empty() {
             return;
         }
-        let ended = match self.reads.get_mut(&key) {
+        let ended = match self.readers.reads.get_mut(&key) {
             Some(r) if r.one_shot => {
                 samples.drain(..samples.len() - 1);
                 true
@@ -224,10 +225,15 @@ impl Worker {
     /// the DDS reader for the next pass. A sample whose own evaluation runs out of budget is
     /// treated as not matching, and counted (`content_filter_over_budget`).
     pub(super) fn pump(&mut self, key: EntityKey) {
-        let Some(read) = self.reads.get_mut(&key).filter(|r| !r.paused) else {
+        let Some(read) = self.readers.reads.get_mut(&key).filter(|r| !r.paused) else {
             return;
         };
-        if let Some(p) = self.ports.get_mut(&key.0).filter(|p| !p.backlog.is_empty()) {
+        if let Some(p) = self
+            .frontends
+            .ports
+            .get_mut(&key.0)
+            .filter(|p| !p.backlog.is_empty())
+        {
             // The front-end is congested: leave the samples in the DDS reader for now.
             p.deferred.push(key);
             return;
@@ -246,15 +252,15 @@ impl Worker {
                     ..
                 })
             );
-        if filtering && self.filter_pass_left < EVAL_BUDGET {
+        if filtering && self.readers.filter_pass_left < EVAL_BUDGET {
             // The pass's filter budget is spent: first in line next pass.
-            self.over_budget.push(key);
+            self.readers.over_budget.push(key);
             return;
         }
-        let Some(read) = self.reads.get_mut(&key) else {
+        let Some(read) = self.readers.reads.get_mut(&key) else {
             return;
         };
-        let mut budget = Steps::new(READER_PASS_BUDGET.min(self.filter_pass_left));
+        let mut budget = Steps::new(READER_PASS_BUDGET.min(self.readers.filter_pass_left));
         let mut over_budget = 0u64;
         let mut deferred = false;
         let request_id = read.request_id;
@@ -368,7 +374,8 @@ impl Worker {
         for _ in 0..errors {
             self.count("dds_sample_undecodable");
         }
-        self.filter_pass_left = self.filter_pass_left.saturating_sub(budget.spent());
+        self.readers.filter_pass_left =
+            self.readers.filter_pass_left.saturating_sub(budget.spent());
         if deferred {
             // Not a fault: the reader's samples wait for the next pass.
             self.count("filter_budget_deferrals");
@@ -403,7 +410,8 @@ impl Worker {
             // Kept for a successor only if it went (or waits) to the front-end, and can be
             // told from what the front-end delivered already.
             if sample.fits() && identity.is_known() {
-                self.recent
+                self.frontends
+                    .recent
                     .entry(key.0)
                     .or_default()
                     .record(key, request_id, &sample);
@@ -413,7 +421,7 @@ impl Worker {
                 Reply::Sample(sample),
             );
         }
-        let ended = match self.reads.get_mut(&key) {
+        let ended = match self.readers.reads.get_mut(&key) {
             Some(r) => {
                 if let Some(rem) = r.remaining.as_mut() {
                     *rem = rem.saturating_sub(sent);
@@ -425,12 +433,12 @@ impl Worker {
         if ended {
             self.end_read(key);
         } else if more {
-            self.pump_again.push(key);
+            self.readers.pump_again.push(key);
         }
     }
 
     pub(super) fn end_read(&mut self, key: EntityKey) {
-        if let Some(r) = self.reads.remove(&key) {
+        if let Some(r) = self.readers.reads.remove(&key) {
             self.reply(
                 Route::object(key.0, key.1, r.request_id, key.2),
                 Reply::ReadEnded,
@@ -441,13 +449,14 @@ impl Worker {
     pub(super) fn expire_reads(&mut self) {
         let now = Instant::now();
         // Paced reads whose wait is over take their next samples.
-        for (k, r) in self.reads.iter_mut() {
+        for (k, r) in self.readers.reads.iter_mut() {
             if r.pacing.next_at.is_some_and(|t| t <= now) {
                 r.pacing.next_at = None;
-                self.to_pump.push(*k);
+                self.readers.to_pump.push(*k);
             }
         }
         let expired: Vec<EntityKey> = self
+            .readers
             .reads
             .iter()
             .filter(|(_, r)| r.deadline.is_some_and(|d| d <= now))

@@ -18,20 +18,21 @@ impl Worker {
         };
         let fe = m.route.frontend_id;
         let incarnation = m.route.incarnation;
-        if self.successors.get(&fe) == Some(&incarnation) {
-            return self.deferred.push(bytes.to_vec());
+        if self.frontends.successors.get(&fe) == Some(&incarnation) {
+            return self.frontends.deferred.push(bytes.to_vec());
         }
         let current = self
+            .frontends
             .ports
             .get(&fe)
             .map(|p| p.incarnation)
             .filter(|i| *i != 0);
-        let greeted = self.greeted.contains(&(fe, incarnation));
+        let greeted = self.frontends.greeted.contains(&(fe, incarnation));
         let hello = m.request == Request::FrontendHello;
         match current {
             Some(c) if c != incarnation && hello => {
-                self.successors.insert(fe, incarnation);
-                self.deferred.push(bytes.to_vec());
+                self.frontends.successors.insert(fe, incarnation);
+                self.frontends.deferred.push(bytes.to_vec());
             }
             Some(c) if c != incarnation => self.count("predecessor_operation"),
             _ if !greeted && !hello => {
@@ -46,11 +47,11 @@ impl Worker {
     /// Serves the requests of restarted front-ends held back by [`Self::handle_request`],
     /// once the queue was drained of their predecessors'.
     pub(super) fn serve_successors(&mut self) {
-        if self.deferred.is_empty() {
+        if self.frontends.deferred.is_empty() {
             return;
         }
-        self.successors.clear();
-        for m in std::mem::take(&mut self.deferred) {
+        self.frontends.successors.clear();
+        for m in std::mem::take(&mut self.frontends.deferred) {
             if let Ok(m) = RequestMessage::decode(&m) {
                 self.process_request(m);
             }
@@ -68,8 +69,12 @@ impl Worker {
                     incarnation = r.incarnation,
                     "front-end (re)connected"
                 );
-                self.greeted.retain(|(fe, _)| *fe != r.frontend_id);
-                self.greeted.insert((r.frontend_id, r.incarnation));
+                self.frontends
+                    .greeted
+                    .retain(|(fe, _)| *fe != r.frontend_id);
+                self.frontends
+                    .greeted
+                    .insert((r.frontend_id, r.incarnation));
                 self.offer_entities(r.frontend_id);
                 if let Ok(p) = self.port(r.frontend_id) {
                     // Its operations are numbered from its hello on.
@@ -77,7 +82,7 @@ impl Worker {
                     p.processed = r.op_seq;
                 }
                 // Replies held for a previous incarnation of this front-end mean nothing now.
-                if let Some(p) = self.ports.get_mut(&r.frontend_id) {
+                if let Some(p) = self.frontends.ports.get_mut(&r.frontend_id) {
                     p.backlog.clear();
                     p.backlog_bytes = 0;
                     p.deferred.clear();
@@ -131,10 +136,10 @@ impl Worker {
             }
             Request::PauseRead | Request::ResumeRead => {
                 let pause = m.request == Request::PauseRead;
-                if let Some(read) = self.reads.get_mut(&key) {
+                if let Some(read) = self.readers.reads.get_mut(&key) {
                     read.paused = pause;
                     if !pause {
-                        self.to_pump.push(key);
+                        self.readers.to_pump.push(key);
                     }
                 }
             }
@@ -143,7 +148,7 @@ impl Worker {
                 if result.is_err() {
                     self.status(r, what, replay, result);
                 } else {
-                    self.to_pump.push(key);
+                    self.readers.to_pump.push(key);
                 }
             }
         }
@@ -170,17 +175,17 @@ impl Worker {
                 "front-end came back; its entities are kept for its replay to take back"
             );
         }
-        self.reads.retain(|k, _| k.0 != fe);
-        self.to_pump.retain(|k| k.0 != fe);
-        self.pump_again.retain(|k| k.0 != fe);
-        self.over_budget.retain(|k| k.0 != fe);
-        self.acks.forget_frontend(fe);
-        self.adoption.offer(fe, keys);
+        self.readers.reads.retain(|k, _| k.0 != fe);
+        self.readers.to_pump.retain(|k| k.0 != fe);
+        self.readers.pump_again.retain(|k| k.0 != fe);
+        self.readers.over_budget.retain(|k| k.0 != fe);
+        self.writers.acks.forget_frontend(fe);
+        self.frontends.adoption.offer(fe, keys);
     }
 
     /// The replay of front-end `fe` is complete: what it did not take back goes.
     pub(super) fn end_adoption(&mut self, fe: u32) {
-        let (left, adopted) = self.adoption.finish(fe);
+        let (left, adopted) = self.frontends.adoption.finish(fe);
         let mut removed = 0;
         for k in left {
             if self.entities.contains_key(&k) {
@@ -208,7 +213,7 @@ impl Worker {
                 h.0 = 0;
             }
         }
-        self.adoption.adopted(key.0);
+        self.frontends.adoption.adopted(key.0);
         tracing::debug!(client = %key.1, object = ?key.2, "entity taken back");
         true
     }

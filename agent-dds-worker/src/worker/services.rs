@@ -101,8 +101,7 @@ impl Worker {
         little_endian: bool,
     ) -> Result<ServiceEndpoint, OpError> {
         let dds_err = OpError::from;
-        let token = self.next_token;
-        self.next_token += 1;
+        let token = self.readers.new_token();
         let dds = self.services_backend()?;
         let (out_topic, out_type, in_topic, in_type) = if requester {
             (

@@ -269,7 +269,7 @@ impl Worker {
                     publish(&*w.raw, s)
                 };
                 if done.is_ok() && w.outstanding.record(key.0, s_seq, now, w.raw.writes()) {
-                    self.acks.watch(w);
+                    self.writers.acks.watch(w);
                 }
             }
         }
@@ -284,7 +284,7 @@ impl Worker {
             && w.outstanding
                 .record(key.0, seq, Instant::now(), w.raw.writes())
         {
-            self.acks.watch(w);
+            self.writers.acks.watch(w);
         }
         done
     }
@@ -296,7 +296,7 @@ impl Worker {
         qos: &EndpointQos,
         ty: Option<&Arc<StructDef>>,
     ) -> Option<Rc<DdsWriter>> {
-        let entries = self.shared_writers.get_mut(key)?;
+        let entries = self.writers.shared.get_mut(key)?;
         entries.retain(|e| e.writer.strong_count() > 0);
         let found = entries
             .iter()
@@ -304,7 +304,7 @@ impl Worker {
             .find(|e| &e.qos == qos && e.ty.as_deref() == ty.map(|t| &**t))
             .and_then(|e| e.writer.upgrade());
         if entries.is_empty() {
-            self.shared_writers.remove(key);
+            self.writers.shared.remove(key);
         }
         found
     }
@@ -316,7 +316,7 @@ impl Worker {
         let mut done = Vec::new();
         // Front-ends whose held writes advanced: their progress is sent.
         let mut released = Vec::new();
-        for key in &self.holding {
+        for key in &self.writers.holding {
             let Some(Entity {
                 kind:
                     EntityKind::Writer {
@@ -391,7 +391,7 @@ impl Worker {
                     if done.is_err() {
                         failures += 1;
                     } else if w.outstanding.record(key.0, seq, now, w.raw.writes()) {
-                        self.acks.watch(w);
+                        self.writers.acks.watch(w);
                     }
                 }
                 if rematch.held.is_empty() {
@@ -403,11 +403,11 @@ impl Worker {
             }
         }
         for k in done {
-            self.holding.remove(&k);
+            self.writers.holding.remove(&k);
             released.push(k.0);
         }
         for fe in released {
-            if let Some(p) = self.ports.get_mut(&fe) {
+            if let Some(p) = self.frontends.ports.get_mut(&fe) {
                 p.dirty = true;
             }
         }
@@ -450,6 +450,7 @@ impl Worker {
     pub(super) fn oldest_held(&self) -> HashMap<u32, u64> {
         let mut m: HashMap<u32, u64> = HashMap::new();
         for (k, e) in self
+            .writers
             .holding
             .iter()
             .filter_map(|k| Some((k, self.entities.get(k)?)))

@@ -56,7 +56,7 @@ fn the_last_participant_of_a_domain_releases_the_domains_dds_participant() {
     assert!(t.bus.released.borrow().is_empty());
 
     // The last user of domain 5 deletes its participant (a DELETE of the object).
-    t.worker.greeted.insert((FE, 0));
+    t.worker.frontends.greeted.insert((FE, 0));
     t.worker.process_request(RequestMessage::new(
         Route::object(FE, OTHER, Default::default(), PARTICIPANT),
         Request::Delete,
@@ -136,7 +136,7 @@ fn a_domain_outside_the_allowed_list_is_denied() {
     assert_eq!(refused.status(), status::ERR_DENIED, "{}", refused);
     assert_eq!(t.worker.dropped.get("domain_denied"), Some(&1));
     // The reply status is the refusal's.
-    t.worker.greeted.insert((FE, 0));
+    t.worker.frontends.greeted.insert((FE, 0));
     t.worker.process_request(RequestMessage::new(
         Route::object(FE, client(51), Default::default(), PARTICIPANT),
         Request::Create {

@@ -191,7 +191,7 @@ fn bounded_passes(what: &str, ty: &str, expression: &str, sample: &dyn Fn(usize)
     );
     let last = (FE, CLIENT, ids[n_readers - 1]);
     assert!(
-        t.worker.over_budget.contains(&last),
+        t.worker.readers.over_budget.contains(&last),
         "{what}: the reader without a turn goes first next pass"
     );
     assert_eq!(
@@ -211,5 +211,5 @@ fn bounded_passes(what: &str, ty: &str, expression: &str, sample: &dyn Fn(usize)
         (samples * n_readers) as u64,
         "{what}: every sample was evaluated once, none lost or skipped"
     );
-    assert!(t.worker.over_budget.is_empty() && t.worker.pump_again.is_empty());
+    assert!(t.worker.readers.over_budget.is_empty() && t.worker.readers.pump_again.is_empty());
 }

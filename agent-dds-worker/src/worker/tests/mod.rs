@@ -256,7 +256,7 @@ fn a_released_writer_sends_one_sample_first_and_the_rest_once_it_was_acknowledge
     t.bus.acknowledged.set(true);
     t.worker.release_rematched();
     assert_eq!(t.bus.samples_on(TOPIC).len(), 1 + RELEASE_BATCH);
-    while !t.worker.holding.is_empty() {
+    while !t.worker.writers.holding.is_empty() {
         t.worker.release_rematched();
     }
     assert_eq!(
@@ -273,7 +273,7 @@ fn an_unacknowledged_first_sample_holds_the_rest_back_only_briefly() {
     std::thread::sleep(RELEASE_FIRST_ACK_WAIT);
     t.worker.release_rematched();
     assert_eq!(t.bus.samples_on(TOPIC).len(), 3);
-    assert!(t.worker.holding.is_empty());
+    assert!(t.worker.writers.holding.is_empty());
 }
 
 #[test]
@@ -288,9 +288,9 @@ fn a_writer_holds_until_matched_then_its_samples_reach_a_reader_in_order() {
     }
     // New writers hold their first samples until their readers matched a while.
     assert!(t.bus.written.borrow().is_empty());
-    assert!(t.worker.holding.contains(&(FE, CLIENT, WRITER)));
+    assert!(t.worker.writers.holding.contains(&(FE, CLIENT, WRITER)));
     t.matched_long_ago(CLIENT, WRITER);
-    assert!(t.worker.holding.is_empty());
+    assert!(t.worker.writers.holding.is_empty());
     assert_eq!(
         t.bus.samples_on(TOPIC),
         (0..3).map(|i| keyed(i, 0)).collect::<Vec<_>>()
@@ -298,12 +298,12 @@ fn a_writer_holds_until_matched_then_its_samples_reach_a_reader_in_order() {
     // What the reader took goes to the front-end with the writer's identity, in order.
     t.worker
         .dds
-        .ready_readers(&mut t.worker.ready)
+        .ready_readers(&mut t.worker.readers.ready)
         .expect("ready");
-    let tokens: Vec<ReaderToken> = t.worker.ready.drain(..).collect();
+    let tokens: Vec<ReaderToken> = t.worker.readers.ready.drain(..).collect();
     assert!(!tokens.is_empty());
     for k in tokens {
-        if let Some(k) = t.worker.readers.get(&k).copied() {
+        if let Some(k) = t.worker.readers.by_token.get(&k).copied() {
             t.worker.pump(k);
         }
     }
@@ -343,13 +343,13 @@ fn removing_a_client_deletes_every_backend_endpoint_and_index_entry() {
     assert_eq!((t.bus.readers_of(TOPIC), t.bus.writers_of(TOPIC)), (2, 2));
     t.worker.remove_where(|c| c.1 == CLIENT);
     assert_eq!((t.bus.readers_of(TOPIC), t.bus.writers_of(TOPIC)), (1, 1));
-    assert_eq!(t.worker.readers.len(), 1);
-    assert_eq!(t.worker.reads.len(), 1);
+    assert_eq!(t.worker.readers.by_token.len(), 1);
+    assert_eq!(t.worker.readers.reads.len(), 1);
     assert!(t.worker.entities.iter().all(|(k, _)| k.1 == OTHER));
     t.worker.remove_subtree((FE, OTHER, PARTICIPANT));
     assert_eq!((t.bus.readers_of(TOPIC), t.bus.writers_of(TOPIC)), (0, 0));
-    assert!(t.worker.readers.is_empty() && t.worker.reads.is_empty());
-    assert!(t.worker.holding.is_empty());
+    assert!(t.worker.readers.by_token.is_empty() && t.worker.readers.reads.is_empty());
+    assert!(t.worker.writers.holding.is_empty());
     // The client's TYPE object has no parent and stays until the client goes.
     assert_eq!(t.worker.entities.len(), 1);
 }
@@ -360,13 +360,13 @@ fn a_replaced_reader_is_deleted_in_the_backend_and_its_token_forgotten() {
     t.participant(CLIENT);
     t.reader(CLIENT, READER, &reader_xml(TOPIC, "NO_KEY"))
         .expect("first");
-    let first: Vec<ReaderToken> = t.worker.readers.keys().copied().collect();
+    let first: Vec<ReaderToken> = t.worker.readers.by_token.keys().copied().collect();
     t.reader(CLIENT, READER, &reader_xml("Other", "NO_KEY"))
         .expect("replacement");
     assert_eq!(t.bus.readers_made.get(), 2);
     assert_eq!((t.bus.readers_of(TOPIC), t.bus.readers_of("Other")), (0, 1));
-    assert_eq!(t.worker.readers.len(), 1);
-    assert!(!t.worker.readers.contains_key(&first[0]));
+    assert_eq!(t.worker.readers.by_token.len(), 1);
+    assert!(!t.worker.readers.by_token.contains_key(&first[0]));
 }
 
 #[test]
@@ -466,5 +466,5 @@ fn shared_writers_share_one_backend_writer_per_qos_and_byte_order() {
     t.worker.remove_subtree((FE, OTHER, WRITER));
     assert_eq!(t.bus.writers_of(TOPIC), 3);
     // Only the big-endian writer's entry is left among the shared ones.
-    assert_eq!(t.worker.shared_writers.len(), 1);
+    assert_eq!(t.worker.writers.shared.len(), 1);
 }

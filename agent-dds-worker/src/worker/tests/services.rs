@@ -12,13 +12,14 @@ impl Harness {
     fn pump_ready(&mut self) {
         self.worker
             .dds
-            .ready_readers(&mut self.worker.ready)
+            .ready_readers(&mut self.worker.readers.ready)
             .expect("ready");
         let keys: Vec<EntityKey> = self
             .worker
+            .readers
             .ready
             .drain(..)
-            .filter_map(|t| self.worker.readers.get(&t).copied())
+            .filter_map(|t| self.worker.readers.by_token.get(&t).copied())
             .collect();
         for k in keys {
             self.worker.pump(k);
