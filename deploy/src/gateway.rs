@@ -240,6 +240,67 @@ impl Checker<'_> {
     }
 }
 
+/// The key a value error is about, as the file spells it (`frontend[0].port`), without the
+/// parts `toml::Spanned` adds to the path.
+fn key_path(path: &serde_path_to_error::Path) -> String {
+    use serde_path_to_error::Segment;
+    let mut out = String::new();
+    for segment in path.iter() {
+        match segment {
+            Segment::Seq { index } => out.push_str(&format!("[{index}]")),
+            Segment::Map { key } | Segment::Enum { variant: key } => {
+                if key.starts_with("$__serde_spanned") {
+                    continue;
+                }
+                if !out.is_empty() {
+                    out.push('.');
+                }
+                out.push_str(key);
+            }
+            Segment::Unknown => {}
+        }
+    }
+    out
+}
+
+/// What went wrong with the value of `key`, in the words of the file
+/// (`frontend[0].port: expected a port number 1-65535, got "not a number"`), from serde's
+/// message (`invalid type: string "not a number", expected u16`). Messages of another shape
+/// (an unknown or missing key) are kept, after the key's path.
+fn describe_value_error(key: &str, message: &str) -> String {
+    let leaf = key.rsplit('.').next().unwrap_or(key);
+    let got_expected = message
+        .strip_prefix("invalid type: ")
+        .or_else(|| message.strip_prefix("invalid value: "))
+        .and_then(|m| m.rsplit_once(", expected "));
+    let Some((got, expected)) = got_expected else {
+        return if key.is_empty() {
+            message.to_string()
+        } else {
+            format!("{key}: {message}")
+        };
+    };
+    let got = got
+        .strip_prefix("string ")
+        .or_else(|| got.strip_prefix("integer "))
+        .or_else(|| got.strip_prefix("floating point "))
+        .or_else(|| got.strip_prefix("boolean "))
+        .unwrap_or(got)
+        .trim_matches('`');
+    let expected = match (leaf, expected) {
+        ("port" | "discovery", _) => "a port number 1-65535",
+        (_, "u8") => "a whole number 0-255",
+        (_, "u16") => "a whole number 0-65535",
+        (_, "u32") => "a whole number 0-4294967295",
+        (_, "u64" | "usize") => "a whole number (0 or more)",
+        (_, "f64") => "a number",
+        (_, "a boolean") => "true or false",
+        (_, "a sequence") => "a list ([...])",
+        (_, other) => other,
+    };
+    format!("{key}: expected {expected}, got {got}")
+}
+
 /// Whether sockets bound to `a` and `b` (same port and protocol) would collide: the same
 /// address, a wildcard of the same family, or the IPv6 wildcard (dual-stack) with anything.
 fn overlaps(a: IpAddr, b: IpAddr) -> bool {
@@ -263,12 +324,19 @@ pub fn load(path: &Path) -> Result<Gateway, ConfigError> {
 /// Checks a gateway file's text (`path` names it in errors and anchors relative paths).
 pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
     let c = Checker { path, text };
-    let file: File = toml::from_str(text).map_err(|e| {
-        let line = e.span().map_or(0, |s| line_of(text, s.start));
+    let syntax = |e: toml::de::Error| ConfigError {
+        path: path.display().to_string(),
+        line: e.span().map_or(0, |s| line_of(text, s.start)),
+        message: e.message().to_string(),
+    };
+    let document = toml::Deserializer::parse(text).map_err(syntax)?;
+    let file: File = serde_path_to_error::deserialize(document).map_err(|e| {
+        let key = key_path(e.path());
+        let e = e.into_inner();
         ConfigError {
             path: path.display().to_string(),
-            line,
-            message: e.message().to_string(),
+            line: e.span().map_or(0, |s| line_of(text, s.start)),
+            message: describe_value_error(&key, e.message()),
         }
     })?;
     if let Some(v) = &file.agent.verbose {
@@ -693,6 +761,59 @@ max_client_bytes_per_second = 100000
 
     fn refused(text: &str) -> ConfigError {
         check(text).expect_err("refused")
+    }
+
+    /// A value of the wrong type or out of range is refused naming the key by its path in
+    /// the file, what it expects in words, and what it got.
+    #[test]
+    fn wrong_values_name_the_key_and_what_it_expects() {
+        let cases = [
+            (
+                "[agent]\nverbose = 1\n\n[[frontend]]\ntransport = \"udp4\"\nport = \"not a number\"\n",
+                6,
+                "frontend[0].port: expected a port number 1-65535, got \"not a number\"",
+            ),
+            (
+                "[[frontend]]\ntransport = \"udp4\"\nport = 1\n[[frontend]]\ntransport = \"udp4\"\nport = 70000\n",
+                6,
+                "frontend[1].port: expected a port number 1-65535, got 70000",
+            ),
+            (
+                "[agent]\nverbose = \"loud\"\n",
+                2,
+                "agent.verbose: expected a whole number 0-255, got \"loud\"",
+            ),
+            (
+                "[worker]\nros_graph = \"yes\"\n",
+                2,
+                "worker.ros_graph: expected true or false, got \"yes\"",
+            ),
+            (
+                "[worker]\ndds_interfaces = \"127.0.0.1\"\n",
+                2,
+                "worker.dds_interfaces: expected a list ([...]), got \"127.0.0.1\"",
+            ),
+            (
+                "[[frontend]]\ntransport = \"udp4\"\nport = 1\nclient_dead_time = \"1s\"\n",
+                4,
+                "frontend[0].client_dead_time: expected a number, got \"1s\"",
+            ),
+        ];
+        for (text, line, message) in cases {
+            let e = refused(text);
+            assert_eq!(
+                e.to_string(),
+                format!("gw.toml:{line}: {message}"),
+                "{text}"
+            );
+        }
+        // An unknown key is named by its path, with the keys its table takes.
+        let e = refused("[[frontend]]\ntransport = \"udp4\"\nport = 1\nprot = 2\n");
+        assert!(
+            e.message
+                .starts_with("frontend[0].prot: unknown field `prot`, expected one of"),
+            "{e}"
+        );
     }
 
     #[test]
