@@ -9,12 +9,22 @@ use std::path::{Path, PathBuf};
 
 use clap::{Args, Parser, Subcommand};
 
+/// What this build is (written by `build.rs`).
+pub mod build {
+    include!(concat!(env!("OUT_DIR"), "/version.rs"));
+}
+
 /// DDS-XRCE agent: lets XRCE clients (Micro XRCE-DDS, micro-ROS, PX4) join a DDS data space.
 ///
 /// Either one transport (`xrce-agent udp4 -p 8888`, as MicroXRCEAgent) or a gateway of
 /// several from a file (`xrce-agent --config gateway.toml`).
 #[derive(Debug, Parser)]
-#[command(name = "xrce-agent", version, args_conflicts_with_subcommands = true)]
+#[command(
+    name = "xrce-agent",
+    version = build::SHORT_VERSION,
+    long_version = build::LONG_VERSION,
+    args_conflicts_with_subcommands = true
+)]
 pub struct Cli {
     /// Run a gateway: one DDS worker and one front-end process per `[[frontend]]` of this
     /// TOML file (see deploy/gateway.example.toml).
@@ -508,6 +518,30 @@ mod tests {
 
     fn parse(args: &[&str]) -> Result<Cli, clap::Error> {
         Cli::try_parse_from(std::iter::once("xrce-agent").chain(args.iter().copied()))
+    }
+
+    /// `--version` says the version, the commit and the backends built in; `-V` the first
+    /// two on one line.
+    #[test]
+    fn the_version_names_the_commit_and_the_backends() {
+        use clap::CommandFactory;
+        let mut command = Cli::command();
+        let long = command.render_long_version();
+        let lines: Vec<&str> = long.lines().collect();
+        assert_eq!(
+            lines.first().copied(),
+            Some(concat!("xrce-agent ", env!("CARGO_PKG_VERSION")))
+        );
+        assert!(lines.iter().any(|l| l.starts_with("commit: ")), "{long}");
+        let backends = if cfg!(feature = "cyclone") {
+            "DDS backends: cyclone"
+        } else {
+            "DDS backends: rustdds"
+        };
+        assert!(lines.iter().any(|l| l.starts_with(backends)), "{long}");
+        let short = command.render_version();
+        assert_eq!(short.lines().count(), 1, "{short}");
+        assert!(short.starts_with(concat!("xrce-agent ", env!("CARGO_PKG_VERSION"), " (")));
     }
 
     fn planned(args: &[&str]) -> FrontendPlan {
