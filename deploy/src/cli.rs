@@ -525,7 +525,7 @@ mod tests {
     #[test]
     fn the_version_names_the_commit_and_the_backends() {
         use clap::CommandFactory;
-        let mut command = Cli::command();
+        let command = Cli::command();
         let long = command.render_long_version();
         let lines: Vec<&str> = long.lines().collect();
         assert_eq!(
