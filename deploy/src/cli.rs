@@ -65,6 +65,10 @@ pub enum Command {
     /// Show the live sessions and processes of a running agent (from its metrics endpoint
     /// or the status reports of the agents on this machine).
     Status(crate::status_view::StatusArgs),
+    /// Internal: write the man pages, the shell completions or the command-line reference
+    /// (for packages and docs/).
+    #[command(hide = true)]
+    Generate(crate::docs::GenerateArgs),
     /// Internal: run the DDS worker (started by the supervisor).
     #[command(hide = true)]
     DdsWorker(xrce_dds_worker::cli::WorkerArgs),
@@ -507,7 +511,10 @@ pub fn plan(command: &Command) -> anyhow::Result<Option<(FrontendPlan, Common)>>
             )
             .into());
         }
-        Command::DdsWorker(_) | Command::Frontend(_) | Command::Status(_) => return Ok(None),
+        Command::DdsWorker(_)
+        | Command::Frontend(_)
+        | Command::Status(_)
+        | Command::Generate(_) => return Ok(None),
     }))
 }
 

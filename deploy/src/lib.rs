@@ -10,6 +10,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 pub mod cli;
+pub mod docs;
 pub mod gateway;
 pub mod group;
 pub mod metrics;
