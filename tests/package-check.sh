@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# The Debian package as a user gets it: built by deploy/package (a dev-profile binary and
+# fast compression, to keep CI short; users build the release one), installed with dpkg,
+# then checked from where it installed: `xrce-agent --version` from /usr/bin, the man page,
+# the xrce-agent user and its home, the conffile, `systemd-analyze verify` on every
+# installed unit (template units through an instance), and removed and purged again.
+# Needs root or sudo (dpkg). Leaves the machine as it found it, the xrce-agent user aside
+# (Debian keeps system users).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+sudo=""
+if [ "$(id -u)" -ne 0 ]; then
+    sudo="sudo"
+fi
+fail() { echo "package-check: $*" >&2; exit 1; }
+
+deploy/package --profile dev --fast
+deb=$(ls -t "${CARGO_TARGET_DIR:-target}"/debian/xrce-agent_*.deb | head -1)
+echo "package-check: installing $deb"
+if dpkg -s xrce-agent >/dev/null 2>&1; then
+    fail "xrce-agent is already installed here; remove it first"
+fi
+cleanup() { $sudo dpkg -P xrce-agent >/dev/null 2>&1 || true; }
+trap cleanup EXIT
+$sudo dpkg -i "$deb"
+
+version=$(/usr/bin/xrce-agent --version)
+echo "$version"
+echo "$version" | grep -q '^commit: ' || fail "--version names no commit"
+echo "$version" | grep -q '^DDS backends: cyclone' || fail "--version names no Cyclone DDS backend"
+[ -f /usr/share/man/man1/xrce-agent.1.gz ] || fail "no man page"
+[ -f /usr/share/bash-completion/completions/xrce-agent ] || fail "no bash completion"
+grep -qx '/etc/xrce-agent/gateway.toml' /var/lib/dpkg/info/xrce-agent.conffiles \
+    || fail "the gateway file is not a conffile"
+/usr/bin/xrce-agent --config /etc/xrce-agent/gateway.toml --check >/dev/null \
+    || fail "the installed gateway file does not check"
+getent passwd xrce-agent >/dev/null || fail "no xrce-agent user (sysusers)"
+[ "$(stat -c '%U %a' /var/lib/xrce-agent)" = "xrce-agent 700" ] || fail "/var/lib/xrce-agent not private to xrce-agent (tmpfiles)"
+
+units=0
+for path in /lib/systemd/system/xrce-*.service; do
+    unit=$(basename "$path")
+    case "$unit" in
+        *@.service) unit="${unit%@.service}@instance1.service" ;;
+    esac
+    systemd-analyze verify "/lib/systemd/system/$unit" || fail "systemd-analyze verify $unit"
+    units=$((units + 1))
+done
+[ "$units" -ge 6 ] || fail "only $units units installed"
+echo "package-check: $units units verified"
+
+$sudo dpkg -r xrce-agent
+[ ! -e /usr/bin/xrce-agent ] || fail "the binary stayed after removal"
+[ -f /etc/xrce-agent/gateway.toml ] || fail "the conffile went with dpkg -r (it goes with --purge)"
+$sudo dpkg -P xrce-agent
+[ ! -e /etc/xrce-agent/gateway.toml ] || fail "the conffile stayed after purge"
+trap - EXIT
+echo "package-check: the package installs, checks and removes cleanly"
