@@ -15,6 +15,12 @@ if [ "$(id -u)" -ne 0 ]; then
 fi
 fail() { echo "package-check: $*" >&2; exit 1; }
 
+# systemd-analyze and systemd-sysusers (Debian's systemd package; a container may lack it).
+if ! command -v systemd-analyze >/dev/null 2>&1; then
+    $sudo apt-get update -qq
+    $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends systemd >&2
+fi
+
 deploy/package --profile dev --fast
 deb=$(ls -t "${CARGO_TARGET_DIR:-target}"/debian/xrce-agent_*.deb | head -1)
 echo "package-check: installing $deb"
