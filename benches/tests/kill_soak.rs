@@ -1,7 +1,7 @@
 //! The kill soak's short version in CI (its own test binary, so that no other load runs
 //! beside it): the load generator SIGKILLs the worker and the front-end under paced
 //! reliable load and accounts for every kill. The long version and its numbers are in
-//! BENCHMARKS.md.
+//! docs/benchmarks/history.md.
 
 mod common;
 
