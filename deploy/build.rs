@@ -1,6 +1,6 @@
 //! Writes what `xrce-agent --version` says about this build: the commit it was built from
-//! (`XRCE_AGENT_COMMIT` when set, as a package build from a source tarball does; else git's;
-//! else "unknown"), the DDS backends built in, and the IPC contract's version.
+//! (`XRCE_AGENT_COMMIT` when set, as a build outside a checkout does; else git's; else
+//! "unknown") and the DDS backends built in.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -16,12 +16,18 @@ fn git(args: &[&str]) -> Option<String> {
 
 fn main() {
     println!("cargo:rerun-if-env-changed=XRCE_AGENT_COMMIT");
-    // A new commit (or checkout) changes HEAD or the branch it names.
-    if let Some(dir) = git(&["rev-parse", "--git-dir"]) {
-        let dir = PathBuf::from(dir);
-        println!("cargo:rerun-if-changed={}", dir.join("HEAD").display());
-        if let Some(reference) = git(&["symbolic-ref", "-q", "HEAD"]) {
-            println!("cargo:rerun-if-changed={}", dir.join(reference).display());
+    // A new commit (or checkout) changes HEAD, the branch it names, or the packed refs
+    // (git's own paths for them, right in a worktree too). Only files that exist are named:
+    // cargo reruns the script on every build for one that does not.
+    let mut watched = vec!["HEAD".to_string(), "packed-refs".to_string()];
+    if let Some(reference) = git(&["symbolic-ref", "-q", "HEAD"]) {
+        watched.push(reference);
+    }
+    for name in watched {
+        if let Some(path) = git(&["rev-parse", "--git-path", &name]) {
+            if PathBuf::from(&path).exists() {
+                println!("cargo:rerun-if-changed={path}");
+            }
         }
     }
     // The commit, and its date when git knows it.

@@ -53,6 +53,11 @@ scratch=$("${B[@]}" from scratch 2>/dev/null) || skip "buildah cannot make a con
 containers+=("$scratch")
 "${B[@]}" copy "$scratch" "$rootfs" / >/dev/null
 "${B[@]}" commit -q "$scratch" "$base" >/dev/null
+# Whether buildah can run a command in a container here (the recipe's RUN needs it).
+probe=$("${B[@]}" from -q "$base")
+containers+=("$probe")
+"${B[@]}" run --isolation chroot "$probe" -- true >/dev/null 2>&1 \
+    || skip "buildah cannot run a command in a container here"
 
 # The recipe's runtime stage, as written, but for where its binary comes from.
 ctx="$work/context"

@@ -4,8 +4,9 @@
 # then checked from where it installed: `xrce-agent --version` from /usr/bin, the man page,
 # the xrce-agent user and its home, the conffile, `systemd-analyze verify` on every
 # installed unit (template units through an instance), and removed and purged again.
-# Needs root or sudo (dpkg). Leaves the machine as it found it, the xrce-agent user aside
-# (Debian keeps system users).
+# Needs root or sudo (dpkg). Refuses to run where xrce-agent is installed already (it would
+# remove it). What stays after it: the xrce-agent user and its empty home (Debian keeps
+# system users), and Debian's systemd package if this script installed it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -21,12 +22,12 @@ if ! command -v systemd-analyze >/dev/null 2>&1; then
     $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends systemd >&2
 fi
 
-deploy/package --profile dev --fast
-deb=$(ls -t "${CARGO_TARGET_DIR:-target}"/debian/xrce-agent_*.deb | head -1)
-echo "package-check: installing $deb"
 if dpkg -s xrce-agent >/dev/null 2>&1; then
     fail "xrce-agent is already installed here; remove it first"
 fi
+deploy/package --profile dev --fast
+deb=$(ls -t "${CARGO_TARGET_DIR:-target}"/debian/xrce-agent_*.deb | head -1)
+echo "package-check: installing $deb"
 cleanup() { $sudo dpkg -P xrce-agent >/dev/null 2>&1 || true; }
 trap cleanup EXIT
 $sudo dpkg -i "$deb"
@@ -37,6 +38,9 @@ echo "$version" | grep -q '^commit: ' || fail "--version names no commit"
 echo "$version" | grep -q '^DDS backends: cyclone' || fail "--version names no Cyclone DDS backend"
 [ -f /usr/share/man/man1/xrce-agent.1.gz ] || fail "no man page"
 [ -f /usr/share/bash-completion/completions/xrce-agent ] || fail "no bash completion"
+for doc in README.md BENCHMARKS.md docs/cli.md docs/gateway.md docs/usage.md docs/operations.md; do
+    [ -f "/usr/share/doc/xrce-agent/$doc" ] || fail "no /usr/share/doc/xrce-agent/$doc (the README links to it)"
+done
 grep -qx '/etc/xrce-agent/gateway.toml' /var/lib/dpkg/info/xrce-agent.conffiles \
     || fail "the gateway file is not a conffile"
 /usr/bin/xrce-agent --config /etc/xrce-agent/gateway.toml --check >/dev/null \

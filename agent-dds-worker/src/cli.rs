@@ -106,14 +106,20 @@ pub struct WorkerArgs {
 
 impl WorkerArgs {
     /// Every setting as an empty command line gives them: the environment variables the
-    /// worker reads ([`SETTINGS_ENV`]) included, unless one of them has a value it refuses
-    /// (then the built-in defaults apply, with a warning: a supervisor that decides the
-    /// settings must not stop on them). Where a supervisor's own configuration (a gateway
-    /// file) leaves a setting unset, this is where it comes from.
-    pub fn defaults() -> Self {
-        xrce_ipc::settings::from_environment("dds-worker").unwrap_or_else(|e| {
-            tracing::warn!(error = %e.kind(), "a worker setting's environment variable is refused; the built-in defaults apply");
-            Self::built_in()
+    /// worker reads ([`SETTINGS_ENV`]) included. Where a supervisor's own configuration (a
+    /// gateway file) leaves a setting unset, this is where it comes from. A variable with a
+    /// value the worker refuses is an error, not a fallback to the built-in defaults: among
+    /// them are the ones that confine DDS (`XRCE_DDS_INTERFACES`, `XRCE_DOMAINS`), which must
+    /// never be dropped silently.
+    pub fn from_environment() -> anyhow::Result<Self> {
+        xrce_ipc::settings::from_environment("dds-worker").map_err(|e| {
+            let rendered = e.render().to_string();
+            let why = rendered.lines().next().unwrap_or_default();
+            anyhow::anyhow!(
+                "an environment variable of the DDS worker's settings ({}) is refused: {}",
+                SETTINGS_ENV.join(", "),
+                why.trim_start_matches("error: ")
+            )
         })
     }
 
@@ -139,8 +145,9 @@ impl WorkerArgs {
             reserved_ports,
             log,
         } = self;
+        // `--key=value`: a value that starts with `-` (`-1`, an instance `-gw`) stays a value.
         let mut a: Vec<String> = Vec::new();
-        let mut arg = |k: &str, v: String| a.extend([k.to_string(), v]);
+        let mut arg = |k: &str, v: String| a.push(format!("{k}={v}"));
         arg("--instance", instance.clone());
         arg("--dds-backend", dds_backend.as_str().to_string());
         arg("--ros-graph", ros_graph.to_string());
@@ -163,8 +170,7 @@ impl WorkerArgs {
         if let Some(n) = max_domains {
             arg("--max-domains", n.to_string());
         }
-        // `--reserved-ports=` so that an empty list is a value, not a missing one.
-        a.push(format!("--reserved-ports={reserved_ports}"));
+        arg("--reserved-ports", reserved_ports.to_string());
         a
     }
 }
@@ -285,6 +291,13 @@ mod tests {
             log: "debug".into(),
         };
         assert_eq!(parse(every.to_args()), every);
+        // Values that start with `-` stay values.
+        let dashed = WorkerArgs {
+            instance: "-gw".into(),
+            frontend_grace: -1.0,
+            ..every
+        };
+        assert_eq!(parse(dashed.to_args()), dashed);
     }
 
     #[test]

@@ -392,8 +392,10 @@ impl FrontendArgs {
             client_dead_time,
             admission,
         } = self;
+        // `--key=value`: a value that starts with `-` (an instance or name `-gw`) stays a
+        // value.
         let mut a: Vec<String> = Vec::new();
-        let mut arg = |k: &str, v: String| a.extend([k.to_string(), v]);
+        let mut arg = |k: &str, v: String| a.push(format!("{k}={v}"));
         arg("--instance", instance.clone());
         arg("--frontend-id", frontend_id.to_string());
         arg("--keep-sessions", keep_sessions.to_string());

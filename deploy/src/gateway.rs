@@ -344,6 +344,14 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
             return Err(c.err(v.span(), "agent.verbose must be 0 to 6"));
         }
     }
+    if let Some(g) = file.worker.frontend_grace {
+        if !(g.is_finite() && (0.0..=86_400.0).contains(&g)) {
+            return Err(c.err(
+                0..0,
+                format!("worker.frontend_grace must be 0 to 86400 seconds, got {g}"),
+            ));
+        }
+    }
     if let Some(m) = &file.agent.memory_limit_mib {
         if !(1..=crate::cli::MAX_MEMORY_LIMIT_MIB).contains(m.get_ref()) {
             return Err(c.err(
@@ -456,6 +464,12 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
                     .port
                     .as_ref()
                     .ok_or_else(|| here("port", table.clone(), "is required"))?;
+                if *port.get_ref() == 0 {
+                    return Err(here("port", port.span(), "must be 1 to 65535"));
+                }
+                if let Some(d) = f.discovery.as_ref().filter(|d| *d.get_ref() == 0) {
+                    return Err(here("discovery", d.span(), "must be 1 to 65535"));
+                }
                 let v6 = kind.is_ipv6();
                 let bind = match &f.bind {
                     Some(b) => {

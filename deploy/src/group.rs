@@ -220,7 +220,7 @@ impl Group {
             anyhow::bail!("--client-dead-time must be 0 to 31536000 seconds (a year)");
         }
         let mut worker = worker_settings(
-            WorkerArgs::defaults(),
+            WorkerArgs::from_environment()?,
             common.refs.as_deref(),
             &common.dds_interfaces,
             common.ros_graph,
@@ -284,7 +284,7 @@ impl Group {
             xrce_ipc::derived_instance("gw", &file.display().to_string())
         });
         let mut worker = worker_settings(
-            WorkerArgs::defaults(),
+            WorkerArgs::from_environment()?,
             g.worker.refs.as_ref().map(|r| r.get_ref().as_path()),
             &g.worker.dds_interfaces,
             g.worker.ros_graph.unwrap_or(true),

@@ -321,6 +321,24 @@ fn gateway_files_are_checked_with_the_key_and_line() {
         assert_eq!(run.status.code(), Some(1));
         assert!(String::from_utf8_lossy(&run.stderr).contains(says));
     }
+    // A key the file leaves to the environment, with a value the worker refuses, refuses the
+    // gateway (it confines DDS: never dropped in favour of the built-in defaults).
+    let path = write(
+        &dir,
+        "[[frontend]]\ntransport = \"udp4\"\nport = 1\nbind = \"127.0.0.1\"\n",
+    );
+    let run = xrce_tests::output_within(
+        Command::new(binaries().join("xrce-agent"))
+            .args(["--config", path.to_str().expect("utf-8")])
+            .env("XRCE_DOMAINS", "not-a-domain"),
+        Duration::from_secs(30),
+    );
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert_eq!(run.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("is refused") && stderr.contains("not-a-domain"),
+        "{stderr}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 

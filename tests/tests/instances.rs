@@ -31,8 +31,12 @@ fn two_agents_on_one_port_do_not_share_their_ipc() {
                 let args = nul_separated(format!("/proc/{pid}/cmdline"));
                 let by_argument = args
                     .iter()
-                    .position(|a| a == "--instance")
-                    .and_then(|i| args.get(i + 1).cloned());
+                    .find_map(|a| a.strip_prefix("--instance=").map(String::from))
+                    .or_else(|| {
+                        args.iter()
+                            .position(|a| a == "--instance")
+                            .and_then(|i| args.get(i + 1).cloned())
+                    });
                 by_argument.or_else(|| {
                     nul_separated(format!("/proc/{pid}/environ"))
                         .iter()

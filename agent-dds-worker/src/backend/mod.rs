@@ -235,7 +235,9 @@ pub enum BackendError {
 }
 
 impl BackendError {
-    /// The same error, its message preceded by what was being done (`"DDS write"`).
+    /// The same error, its message preceded by what was being done (`"DDS write"`); the
+    /// kinds whose message is fixed (`Unsupported`, `ForeignEntity`) become `Dds`, which the
+    /// client sees the same way (DDS_ERROR).
     pub fn context(self, what: &str) -> Self {
         match self {
             BackendError::Dds(m) => BackendError::Dds(format!("{what}: {m}")),

@@ -388,7 +388,7 @@ impl<L: Link> Relay<L> {
             m.route.op_seq = self.next_seq;
             m.progress_can_wait = self.progress_can_wait(&m.request, retain, awaited);
             if let Err(e) = self.link.send(&m) {
-                tracing::warn!(error = %e, "could not hand an operation to the worker; queued");
+                self.link_refused("operation", &e);
                 // Sent later from the outbox, with whatever is in flight then.
                 m.progress_can_wait = false;
                 self.outbox.push_back(OwnedOp {
@@ -398,6 +398,7 @@ impl<L: Link> Relay<L> {
                 });
                 return;
             }
+            self.link_works();
             let route = m.route;
             let kind = PendingKind::of(&m.request);
             self.after_send(route, kind, retain, awaited, || m.into_owned());
@@ -457,7 +458,10 @@ impl<L: Link> Relay<L> {
         while self.outbox.is_empty() && self.best_effort_share_free() && self.send_waiting() {}
         if self.dirty {
             match self.link.wake() {
-                Ok(()) => self.dirty = false,
+                Ok(()) => {
+                    self.dirty = false;
+                    self.link_works();
+                }
                 // Kept dirty: tried again on the next pass.
                 Err(e) => self.link_refused("worker wake-up", &e),
             }
@@ -582,7 +586,9 @@ impl<L: Link> Relay<L> {
     /// [`LINK_RETRY_MAX`].
     pub fn poll_timeout(&self, now: Instant) -> Option<Instant> {
         let settle = self.retention.deadline();
-        let refused = !self.outbox.is_empty() && self.can_send_now();
+        // The outbox, or a waiting best-effort write whose send the link refused.
+        let refused = (!self.outbox.is_empty() && self.can_send_now())
+            || (self.link_failures > 0 && !self.best_effort_waiting.is_empty());
         let retry = (self.dirty || refused).then(|| now + self.link_retry());
         settle.into_iter().chain(retry).min()
     }

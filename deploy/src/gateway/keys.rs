@@ -84,7 +84,7 @@ pub const KEYS: &[KeyDoc] = &[
         table: "worker",
         key: "dds_backend",
         value: "`cyclone` or `rustdds`",
-        default: || xrce_dds_worker::backend::BackendKind::default().as_str().into(),
+        default: || "cyclone (rustdds in a build without the `cyclone` feature)".into(),
         meaning: "The DDS implementation. `--dds-backend`.",
     },
     KeyDoc {
