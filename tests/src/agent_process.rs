@@ -145,25 +145,7 @@ impl AgentProcess {
         port: u16,
         env: &[(&str, &str)],
     ) -> Option<Self> {
-        let full: Vec<String> = args.iter().map(|a| a.to_string()).collect();
-        let mut child = Command::new(binaries().join("xrce-agent"))
-            .args(&full)
-            .env(
-                "XRCE_LOG",
-                std::env::var("XRCE_TEST_LOG").unwrap_or_else(|_| "info".into()),
-            )
-            .envs(env.iter().copied())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("start xrce-agent");
-        let output = AgentOutput::default();
-        if let Some(out) = child.stdout.take() {
-            output.collect(out, true);
-        }
-        if let Some(err) = child.stderr.take() {
-            output.collect(err, true);
-        }
+        let (child, output) = spawn_agent(args, env);
         let mut agent = AgentProcess {
             child,
             port,
@@ -245,26 +227,7 @@ impl AgentProcess {
             args.extend(["--instance".to_string(), i.clone()]);
         }
         args.extend(extra.iter().map(|a| a.to_string()));
-        let mut child = Command::new(binaries().join("xrce-agent"))
-            .args(&args)
-            .env(
-                "XRCE_LOG",
-                std::env::var("XRCE_TEST_LOG").unwrap_or_else(|_| "info".into()),
-            )
-            .envs(env.iter().copied())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("start xrce-agent");
-        // Collected (and echoed into the test's captured output, shown if it fails), so a
-        // passing suite prints nothing of its agents' logs.
-        let output = AgentOutput::default();
-        if let Some(out) = child.stdout.take() {
-            output.collect(out, true);
-        }
-        if let Some(err) = child.stderr.take() {
-            output.collect(err, true);
-        }
+        let (child, output) = spawn_agent(&args, env);
         // The agent's own default: derived from what it serves (and the namespace).
         let instance = instance.unwrap_or_else(|| {
             xrce_ipc::derived_instance(
@@ -471,4 +434,29 @@ pub fn sigkill(pid: i32) {
         nix::unistd::Pid::from_raw(pid),
         nix::sys::signal::Signal::SIGKILL,
     );
+}
+
+/// Starts `xrce-agent` with `args` and `env` (its log level from `XRCE_TEST_LOG`, `info` by
+/// default). Its output is collected (and echoed into the test's captured output, shown if
+/// the test fails), so a passing suite prints nothing of its agents' logs.
+fn spawn_agent(args: &[impl AsRef<std::ffi::OsStr>], env: &[(&str, &str)]) -> (Child, AgentOutput) {
+    let mut child = Command::new(binaries().join("xrce-agent"))
+        .args(args)
+        .env(
+            "XRCE_LOG",
+            std::env::var("XRCE_TEST_LOG").unwrap_or_else(|_| "info".into()),
+        )
+        .envs(env.iter().copied())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start xrce-agent");
+    let output = AgentOutput::default();
+    if let Some(out) = child.stdout.take() {
+        output.collect(out, true);
+    }
+    if let Some(err) = child.stderr.take() {
+        output.collect(err, true);
+    }
+    (child, output)
 }

@@ -47,11 +47,8 @@ pub(super) fn check_dir(path: &Path, forbidden: u32) -> Result<File, RuntimeDirE
     Ok(dir)
 }
 
-fn check_owner_mode(
-    path: &Path,
-    meta: &std::fs::Metadata,
-    forbidden: u32,
-) -> Result<(), RuntimeDirError> {
+/// Refuses what another user owns.
+fn check_owner(path: &Path, meta: &std::fs::Metadata) -> Result<(), RuntimeDirError> {
     let me = euid();
     if meta.uid() != me {
         return Err(RuntimeDirError::WrongOwner {
@@ -60,6 +57,15 @@ fn check_owner_mode(
             euid: me,
         });
     }
+    Ok(())
+}
+
+fn check_owner_mode(
+    path: &Path,
+    meta: &std::fs::Metadata,
+    forbidden: u32,
+) -> Result<(), RuntimeDirError> {
+    check_owner(path, meta)?;
     let mode = meta.mode() & 0o7777;
     let loose = mode & forbidden;
     if loose != 0 {
@@ -238,14 +244,7 @@ pub fn open_owned(path: &Path, write: bool) -> Result<File, RuntimeDirError> {
         .custom_flags(open_flags() | libc::O_NONBLOCK)
         .open(path);
     let (file, meta) = regular_file(path, file)?;
-    let me = euid();
-    if meta.uid() != me {
-        return Err(RuntimeDirError::WrongOwner {
-            path: path.to_path_buf(),
-            owner: meta.uid(),
-            euid: me,
-        });
-    }
+    check_owner(path, &meta)?;
     Ok(file)
 }
 
