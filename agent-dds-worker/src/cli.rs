@@ -11,7 +11,7 @@ use crate::worker::{Worker, WorkerConfig};
 /// give them. A supervisor passes every setting on the command line
 /// ([`WorkerArgs::to_args`]) and removes these from its worker's environment, so that what it
 /// decided is what the worker runs with, whatever the worker inherited.
-pub const SETTINGS_ENV: [&str; 12] = [
+pub const SETTINGS_ENV: [&str; 13] = [
     "XRCE_INSTANCE",
     "XRCE_DDS_INTERFACES",
     "XRCE_DDS_BACKEND",
@@ -23,6 +23,7 @@ pub const SETTINGS_ENV: [&str; 12] = [
     "XRCE_DOMAINS",
     "XRCE_MAX_DOMAINS",
     "XRCE_RESERVED_PORTS",
+    "XRCE_ZENOH_TYPE_HASHES",
     "XRCE_LOG",
 ];
 
@@ -99,6 +100,17 @@ pub struct WorkerArgs {
         default_value = ""
     )]
     pub reserved_ports: ReservedPorts,
+    /// With `--dds-backend zenoh` (`-m zenoh`): where the RIHS01 type hashes rmw_zenoh puts
+    /// in its keys are looked up, before `AMENT_PREFIX_PATH` and the built-in table of ROS 2
+    /// Jazzy's common interfaces: ROS installations (an install prefix such as
+    /// `/opt/ros/jazzy`, or its `share` folder) and tables (`pkg/msg/Type RIHS01_...` lines);
+    /// comma-separated or repeated.
+    #[arg(
+        long = "zenoh-type-hashes",
+        env = "XRCE_ZENOH_TYPE_HASHES",
+        value_delimiter = ','
+    )]
+    pub zenoh_type_hashes: Vec<std::path::PathBuf>,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_dds_worker=debug`.
     #[arg(long, env = "XRCE_LOG", default_value = "info,rustdds=error")]
     pub log: String,
@@ -143,6 +155,7 @@ impl WorkerArgs {
             domains,
             max_domains,
             reserved_ports,
+            zenoh_type_hashes,
             log,
         } = self;
         // `--key=value`: a value that starts with `-` (`-1`, an instance `-gw`) stays a value.
@@ -171,6 +184,13 @@ impl WorkerArgs {
             arg("--max-domains", n.to_string());
         }
         arg("--reserved-ports", reserved_ports.to_string());
+        if !zenoh_type_hashes.is_empty() {
+            let list: Vec<String> = zenoh_type_hashes
+                .iter()
+                .map(|p| p.display().to_string())
+                .collect();
+            arg("--zenoh-type-hashes", list.join(","));
+        }
         a
     }
 }
@@ -210,6 +230,9 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
             interfaces: args.dds_interfaces,
             backend: args.dds_backend,
             reserved_ports: args.reserved_ports,
+            zenoh: crate::backend::ZenohSettings {
+                type_hashes: args.zenoh_type_hashes,
+            },
         },
         references,
         ros_graph: args.ros_graph,
@@ -288,6 +311,7 @@ mod tests {
             domains: Some("0-10,42".parse().expect("domains")),
             max_domains: Some(4),
             reserved_ports: ReservedPorts::new([7401, 8888]),
+            zenoh_type_hashes: vec!["/opt/ros/jazzy".into(), "/etc/xrce-agent/hashes.tsv".into()],
             log: "debug".into(),
         };
         assert_eq!(parse(every.to_args()), every);

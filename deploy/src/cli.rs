@@ -84,9 +84,18 @@ pub struct Common {
     /// per-message debug logs. Given, it wins over the XRCE_LOG environment variable.
     #[arg(short = 'v', long = "verbose", value_parser = clap::value_parser!(u8).range(0..=6))]
     pub verbose: Option<u8>,
-    /// Middleware: `dds` (the only one here; `ced` and `rtps` are refused).
+    /// Middleware: `dds` (DDS, through `--dds-backend`) or `zenoh` (a ROS 2 graph on
+    /// rmw_zenoh: its keys, attachments and liveliness tokens; the session connects to a
+    /// Zenoh router at tcp/localhost:7447 unless `ZENOH_SESSION_CONFIG_URI` or
+    /// `ZENOH_CONFIG_OVERRIDE` say otherwise). MicroXRCEAgent's `ced` and `rtps` are refused.
     #[arg(short = 'm', long = "middleware", default_value = "dds")]
     pub middleware: String,
+    /// With `-m zenoh`: where the RIHS01 type hashes of rmw_zenoh's keys are looked up, before
+    /// `AMENT_PREFIX_PATH` and the built-in table of ROS 2 Jazzy's common interfaces: ROS
+    /// installations (`/opt/ros/jazzy` or its `share` folder) and tables (`pkg/msg/Type
+    /// RIHS01_...` lines); comma-separated.
+    #[arg(long = "zenoh-type-hashes", value_delimiter = ',', value_name = "PATH")]
+    pub zenoh_type_hashes: Vec<PathBuf>,
     /// References file: Fast DDS XML profiles that clients may create by reference.
     #[arg(short = 'r', long = "refs")]
     pub refs: Option<PathBuf>,
@@ -382,21 +391,35 @@ impl FrontendPlan {
     }
 }
 
+/// The worker's backend a middleware (`-m`) and `--dds-backend` name together: `zenoh` is
+/// the Zenoh backend (with `--dds-backend` absent or `zenoh`), `dds` the DDS backend
+/// `--dds-backend` names (or the default).
+pub fn backend_for(
+    middleware: &str,
+    dds_backend: Option<xrce_dds_worker::backend::BackendKind>,
+) -> Result<Option<xrce_dds_worker::backend::BackendKind>, Unsupported> {
+    use xrce_dds_worker::backend::BackendKind;
+    match (middleware, dds_backend) {
+        ("dds", b) => Ok(b),
+        ("zenoh", None | Some(BackendKind::Zenoh)) => Ok(Some(BackendKind::Zenoh)),
+        ("zenoh", Some(b)) => Err(Unsupported(format!(
+            "middleware 'zenoh' and the DDS backend '{}' contradict each other: give one",
+            b.as_str()
+        ))),
+        (m @ ("ced" | "rtps"), _) => Err(Unsupported(format!(
+            "middleware '{m}' is not supported by this agent: it serves DDS (-m dds) and Zenoh \
+             (-m zenoh)"
+        ))),
+        (m, _) => Err(Unsupported(format!(
+            "unknown middleware '{m}' (MicroXRCEAgent knows dds, ced and rtps; this agent \
+             serves dds and zenoh)"
+        ))),
+    }
+}
+
 /// Refuses what the reference offers and this agent does not.
 pub fn check_supported(common: &Common) -> Result<(), Unsupported> {
-    match common.middleware.as_str() {
-        "dds" => {}
-        m @ ("ced" | "rtps") => {
-            return Err(Unsupported(format!(
-                "middleware '{m}' is not supported by this agent: it serves DDS only (-m dds)"
-            )))
-        }
-        m => {
-            return Err(Unsupported(format!(
-                "unknown middleware '{m}' (MicroXRCEAgent knows dds, ced and rtps; this agent serves dds)"
-            )))
-        }
-    }
+    backend_for(&common.middleware, common.dds_backend)?;
     if common.p2p.is_some() {
         return Err(Unsupported(
             "-P/--p2p is a mode of the CED middleware, which this agent does not have".into(),

@@ -17,6 +17,8 @@
 //! max_domains = 8                  # optional: most domains in use at once (default 8, or
 //!                                  #   none with `domains`)
 //! dds_backend = "cyclone"          # optional, like --dds-backend (cyclone, the default, or rustdds)
+//! middleware = "dds"               # optional, like -m: dds, or zenoh (an rmw_zenoh graph)
+//! zenoh_type_hashes = ["/opt/ros/jazzy"]  # optional, like --zenoh-type-hashes
 //! frontend_grace = 30              # optional: seconds a gone front-end's clients are kept
 //!
 //! [[frontend]]
@@ -117,6 +119,12 @@ pub struct WorkerSection {
     pub share_writers: Option<bool>,
     /// The DDS implementation, like `--dds-backend` (`rustdds` or `cyclone`).
     pub dds_backend: Option<xrce_dds_worker::backend::BackendKind>,
+    /// The middleware, like `-m`: `dds` or `zenoh`.
+    pub middleware: Option<String>,
+    /// Where rmw_zenoh's type hashes are looked up, like `--zenoh-type-hashes`; relative
+    /// paths against the file's directory.
+    #[serde(default)]
+    pub zenoh_type_hashes: Vec<PathBuf>,
     /// Seconds a gone front-end's entities are kept for it to come back (default 30).
     pub frontend_grace: Option<f64>,
     /// The ROS 2 distribution of the graph's layout, like `--ros-distro`.
@@ -372,6 +380,17 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
         }
     }
     let mut worker = file.worker.clone();
+    if let Some(m) = &file.worker.middleware {
+        crate::cli::backend_for(m, file.worker.dds_backend)
+            .map_err(|e| c.err(0..0, format!("worker.middleware: {e}")))?;
+    }
+    let base = path.parent().unwrap_or(Path::new("."));
+    worker.zenoh_type_hashes = file
+        .worker
+        .zenoh_type_hashes
+        .iter()
+        .map(|p| base.join(p))
+        .collect();
     if let Some(r) = &file.worker.refs {
         let base = path.parent().unwrap_or(Path::new("."));
         let resolved = base.join(r.get_ref());

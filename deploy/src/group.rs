@@ -173,6 +173,7 @@ fn worker_settings(
         interfaces: base.dds_interfaces.clone(),
         backend: base.dds_backend,
         reserved_ports: ReservedPorts::new(udp_ports.iter().copied()),
+        zenoh: Default::default(),
     };
     if !udp_ports.is_empty() {
         let allowed = base.domains.clone();
@@ -195,6 +196,14 @@ fn worker_settings(
     base.ros_graph = ros_graph;
     base.share_writers = share_writers;
     Ok(base)
+}
+
+/// Paths made absolute against the current directory (the worker may run elsewhere).
+fn absolute_paths(paths: &[std::path::PathBuf]) -> Vec<std::path::PathBuf> {
+    paths
+        .iter()
+        .map(|p| std::path::absolute(p).unwrap_or_else(|_| p.clone()))
+        .collect()
 }
 
 impl Group {
@@ -225,7 +234,8 @@ impl Group {
             &common.dds_interfaces,
             common.ros_graph,
             common.share_writers,
-            common.dds_backend,
+            crate::cli::backend_for(&common.middleware, common.dds_backend)
+                .map_err(|e| anyhow::anyhow!("{e}"))?,
             &WorkerDomains {
                 ros_distro: common.ros_distro,
                 domains: common.domains.clone(),
@@ -235,6 +245,7 @@ impl Group {
         )?;
         worker.instance = instance.clone();
         worker.log = filter.clone();
+        worker.zenoh_type_hashes = absolute_paths(&common.zenoh_type_hashes);
         let mut settings = FrontendArgs::defaults();
         settings.instance = instance.clone();
         settings.log = filter.clone();
@@ -289,7 +300,11 @@ impl Group {
             &g.worker.dds_interfaces,
             g.worker.ros_graph.unwrap_or(true),
             g.worker.share_writers.unwrap_or(false),
-            g.worker.dds_backend,
+            crate::cli::backend_for(
+                g.worker.middleware.as_deref().unwrap_or("dds"),
+                g.worker.dds_backend,
+            )
+            .map_err(|e| anyhow::anyhow!("[worker] {e}"))?,
             &WorkerDomains {
                 ros_distro: g
                     .worker
@@ -305,6 +320,9 @@ impl Group {
         )?;
         worker.instance = instance.clone();
         worker.log = filter.clone();
+        if !g.worker.zenoh_type_hashes.is_empty() {
+            worker.zenoh_type_hashes = g.worker.zenoh_type_hashes.clone();
+        }
         if let Some(grace) = g.worker.frontend_grace {
             worker.frontend_grace = grace;
         }

@@ -10,31 +10,42 @@ use std::time::{Duration, Instant};
 
 use crate::*;
 
+/// A Python virtual environment under `target/` with one pinned PyPI package, created (or
+/// repaired) once per test process; returns its interpreter.
+fn python_venv(dir: &str, package: &str, version: &str, module: &str) -> PathBuf {
+    let venv = target_dir().join(dir);
+    let py = venv.join("bin/python");
+    let lock = std::fs::File::create(target_dir().join(format!("{dir}.lock"))).expect("lock file");
+    let _guard = nix::fcntl::Flock::lock(lock, nix::fcntl::FlockArg::LockExclusive).expect("flock");
+    let ready = Command::new(&py)
+        .args(["-c", &format!("import {module}, importlib.metadata as m; assert m.version('{package}') == '{version}'")])
+        .stderr(Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if !ready {
+        let st = Command::new("python3").args(["-m", "venv"]).arg(&venv).status().expect("python3 -m venv");
+        assert!(st.success(), "creating the venv failed");
+        let st = Command::new(venv.join("bin/pip"))
+            .args(["install", "--quiet", "--only-binary=:all:", &format!("{package}=={version}")])
+            .status()
+            .expect("pip install");
+        assert!(st.success(), "installing {package} {version} failed");
+    }
+    py
+}
+
 /// The Python virtual environment with Cyclone DDS, created once under `target/`.
 pub fn cyclone_python() -> PathBuf {
     static PY: OnceLock<PathBuf> = OnceLock::new();
-    PY.get_or_init(|| {
-        let venv = target_dir().join("cyclonedds-venv");
-        let py = venv.join("bin/python");
-        let lock = std::fs::File::create(target_dir().join("cyclonedds-venv.lock")).expect("lock file");
-        let _guard = nix::fcntl::Flock::lock(lock, nix::fcntl::FlockArg::LockExclusive).expect("flock");
-        let ready = Command::new(&py)
-            .args(["-c", &format!("import cyclonedds, importlib.metadata as m; assert m.version('cyclonedds') == '{CYCLONEDDS_VERSION}'")])
-            .stderr(Stdio::null())
-            .status()
-            .is_ok_and(|s| s.success());
-        if !ready {
-            let st = Command::new("python3").args(["-m", "venv"]).arg(&venv).status().expect("python3 -m venv");
-            assert!(st.success(), "creating the venv failed");
-            let st = Command::new(venv.join("bin/pip"))
-                .args(["install", "--quiet", "--only-binary=:all:", &format!("cyclonedds=={CYCLONEDDS_VERSION}")])
-                .status()
-                .expect("pip install");
-            assert!(st.success(), "installing cyclonedds {CYCLONEDDS_VERSION} failed");
-        }
-        py
-    })
-    .clone()
+    PY.get_or_init(|| python_venv("cyclonedds-venv", "cyclonedds", CYCLONEDDS_VERSION, "cyclonedds"))
+        .clone()
+}
+
+/// The Python virtual environment with Zenoh (`eclipse-zenoh`), created once under `target/`.
+pub fn zenoh_python() -> PathBuf {
+    static PY: OnceLock<PathBuf> = OnceLock::new();
+    PY.get_or_init(|| python_venv("zenoh-venv", "eclipse-zenoh", ZENOH_PYTHON_VERSION, "zenoh"))
+        .clone()
 }
 
 /// A running `dds_peer.py` (Cyclone DDS) process with its stdout lines on a channel.
@@ -48,13 +59,30 @@ impl DdsPeer {
     /// Starts `dds_peer.py <args>` pinned to loopback.
     pub fn start(args: &[&str]) -> Self {
         let xml = workspace().join("tests/python/cyclonedds-loopback.xml");
-        let mut child = Command::new(cyclone_python())
+        let mut command = Command::new(cyclone_python());
+        command
             .arg(workspace().join("tests/python/dds_peer.py"))
             .args(args)
-            .env("CYCLONEDDS_URI", format!("file://{}", xml.display()))
+            .env("CYCLONEDDS_URI", format!("file://{}", xml.display()));
+        Self::spawn(command)
+    }
+
+    /// Starts `zenoh_peer.py <args>` (an independent Zenoh peer; its endpoints are loopback
+    /// ones, which the script checks).
+    pub fn zenoh(args: &[&str]) -> Self {
+        let mut command = Command::new(zenoh_python());
+        command.arg(workspace().join("tests/python/zenoh_peer.py")).args(args);
+        Self::spawn(command)
+    }
+
+    /// Runs `command`, its stdout lines on the channel (stdin piped: a peer that waits for
+    /// it to close ends with the test).
+    fn spawn(mut command: Command) -> Self {
+        let mut child = command
+            .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .spawn()
-            .expect("start dds_peer.py");
+            .expect("start a peer");
         let stdout: ChildStdout = child.stdout.take().expect("stdout");
         let (tx, lines) = mpsc::channel();
         std::thread::spawn(move || {

@@ -21,6 +21,9 @@ use xrce_common::wire::{stream_id, DataDeliveryControl, ReadSpecification};
 
 /// The Cyclone DDS release the tests pin.
 pub const CYCLONEDDS_VERSION: &str = "11.0.1";
+/// The independent Zenoh peer's version (PyPI `eclipse-zenoh`; rmw_zenoh 0.2.10/0.6.7 vendor
+/// Zenoh 1.8.0, which PyPI has no wheel of: 1.7.2 speaks the same protocol).
+pub const ZENOH_PYTHON_VERSION: &str = "1.7.2";
 
 /// The workspace root.
 pub fn workspace() -> PathBuf {

@@ -656,6 +656,18 @@ impl DdsBackend for LocalDelivery {
         self.inner.supports_services()
     }
 
+    fn announces_graph(&self) -> bool {
+        self.inner.announces_graph()
+    }
+
+    fn announce_graph(
+        &mut self,
+        domain: u16,
+        nodes: &crate::ros_graph::DomainNodes,
+    ) -> Result<(), BackendError> {
+        self.inner.announce_graph(domain, nodes)
+    }
+
     fn create_writer(
         &mut self,
         group: &dyn DdsGroup,

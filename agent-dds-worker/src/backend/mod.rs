@@ -34,6 +34,8 @@ pub mod policies;
 pub mod ports;
 pub mod qos;
 pub mod rustdds;
+#[cfg(feature = "zenoh")]
+pub mod zenoh;
 
 #[cfg(test)]
 pub mod fake;
@@ -49,6 +51,17 @@ pub struct DdsConfig {
     pub backend: BackendKind,
     /// The UDP ports the agent's front-ends serve, which DDS leaves to them ([`ports`]).
     pub reserved_ports: ports::ReservedPorts,
+    /// The Zenoh backend's settings.
+    pub zenoh: ZenohSettings,
+}
+
+/// The Zenoh backend's settings.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct ZenohSettings {
+    /// `--zenoh-type-hashes`: ROS installations (install prefixes or share folders) and
+    /// hash tables the RIHS01 type hashes are looked up in (before `AMENT_PREFIX_PATH` and
+    /// the built-in table).
+    pub type_hashes: Vec<std::path::PathBuf>,
 }
 
 /// The DDS implementations a worker can use. The default is Cyclone DDS when the build has
@@ -62,6 +75,8 @@ pub enum BackendKind {
     /// Cyclone DDS (built with the `cyclone` feature).
     #[cfg_attr(feature = "cyclone", default)]
     Cyclone,
+    /// Zenoh, as ROS 2's rmw_zenoh uses it (built with the `zenoh` feature; `-m zenoh`).
+    Zenoh,
 }
 
 impl BackendKind {
@@ -70,6 +85,7 @@ impl BackendKind {
         match self {
             BackendKind::Rustdds => "rustdds",
             BackendKind::Cyclone => "cyclone",
+            BackendKind::Zenoh => "zenoh",
         }
     }
 
@@ -78,6 +94,7 @@ impl BackendKind {
         match self {
             BackendKind::Rustdds => true,
             BackendKind::Cyclone => cfg!(feature = "cyclone"),
+            BackendKind::Zenoh => cfg!(feature = "zenoh"),
         }
     }
 }
@@ -150,6 +167,12 @@ pub fn create(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
             "this build has no Cyclone DDS backend: build it with the `cyclone` feature \
              (on by default; needs cmake and libclang: deploy/build-deps), or use \
              --dds-backend rustdds"
+        ),
+        #[cfg(feature = "zenoh")]
+        BackendKind::Zenoh => Ok(Box::new(zenoh::Zenoh::new(config)?)),
+        #[cfg(not(feature = "zenoh"))]
+        BackendKind::Zenoh => anyhow::bail!(
+            "this build has no Zenoh backend: build it with the `zenoh` feature (on by default)"
         ),
     }
 }
@@ -482,6 +505,22 @@ pub trait DdsBackend {
     /// Samples it dropped, by reason, since it started (for the worker's status).
     fn dropped(&self) -> Vec<(&'static str, u64)> {
         Vec::new()
+    }
+    /// Whether it announces the ROS graph itself ([`announce_graph`](DdsBackend::announce_graph),
+    /// as rmw_zenoh's liveliness tokens) rather than through a `ros_discovery_info` writer
+    /// the worker makes on it.
+    fn announces_graph(&self) -> bool {
+        false
+    }
+    /// Announces the ROS nodes of `domain` with their endpoints (the GUIDs of writers and
+    /// readers it made), replacing what it announced for the domain before; called when they
+    /// change. Only asked of a backend that [announces the graph](DdsBackend::announces_graph).
+    fn announce_graph(
+        &mut self,
+        _domain: u16,
+        _nodes: &crate::ros_graph::DomainNodes,
+    ) -> Result<(), BackendError> {
+        Ok(())
     }
 }
 

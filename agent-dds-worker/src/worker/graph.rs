@@ -15,6 +15,14 @@ impl Worker {
         let now = Instant::now();
         for domain in self.graph.due(now) {
             let nodes = self.domain_nodes(domain);
+            if self.dds.announces_graph() {
+                // The backend's own graph (rmw_zenoh's tokens), kept up to date even when
+                // the last node of a domain went.
+                if let Err(e) = self.dds.announce_graph(domain, &nodes) {
+                    tracing::warn!(domain, error = %e, "ROS graph not fully announced");
+                }
+                continue;
+            }
             if nodes.nodes.is_empty() && !self.graph.has_writer(domain) {
                 // No node ever: no graph writer (nor DDS participant) for this domain.
                 continue;

@@ -83,9 +83,23 @@ pub const KEYS: &[KeyDoc] = &[
     KeyDoc {
         table: "worker",
         key: "dds_backend",
-        value: "`cyclone` or `rustdds`",
+        value: "`cyclone`, `rustdds` or `zenoh`",
         default: || "cyclone (rustdds in a build without the `cyclone` feature)".into(),
         meaning: "The DDS implementation. `--dds-backend`.",
+    },
+    KeyDoc {
+        table: "worker",
+        key: "middleware",
+        value: "`dds` or `zenoh`",
+        default: || "dds".into(),
+        meaning: "`zenoh` joins an rmw_zenoh ROS 2 graph instead of DDS (rmw_zenoh's keys, attachments and liveliness tokens; a router at tcp/localhost:7447 unless `ZENOH_SESSION_CONFIG_URI`/`ZENOH_CONFIG_OVERRIDE` say otherwise). `-m`.",
+    },
+    KeyDoc {
+        table: "worker",
+        key: "zenoh_type_hashes",
+        value: "list of paths",
+        default: || "none".into(),
+        meaning: "With `middleware = \"zenoh\"`: ROS installations (`/opt/ros/jazzy` or its `share`) and `pkg/msg/Type RIHS01_...` tables the type hashes are looked up in, before `AMENT_PREFIX_PATH` and the built-in Jazzy table; relative to this file. `--zenoh-type-hashes`.",
     },
     KeyDoc {
         table: "worker",

@@ -1,0 +1,198 @@
+//! Where Zenoh's callback threads leave what arrives for the worker: one bounded queue per
+//! reader, and the list of readers with something new behind one descriptor the worker's
+//! loop polls.
+
+use std::collections::VecDeque;
+use std::io::{Read as _, Write as _};
+use std::os::fd::{AsFd, BorrowedFd};
+use std::os::unix::net::UnixStream;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use crate::backend::{BackendError, ReaderToken, Taken};
+
+/// Locks a mutex whose holder may have panicked (the data stays usable: queues and lists).
+pub(super) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// The readers with something new, and the descriptor that says so.
+#[derive(Debug)]
+pub(super) struct Wakeup {
+    ready: Mutex<Vec<ReaderToken>>,
+    tx: UnixStream,
+    rx: UnixStream,
+}
+
+impl Wakeup {
+    pub(super) fn new() -> std::io::Result<Self> {
+        let (tx, rx) = UnixStream::pair()?;
+        tx.set_nonblocking(true)?;
+        rx.set_nonblocking(true)?;
+        Ok(Wakeup {
+            ready: Mutex::new(Vec::new()),
+            tx,
+            rx,
+        })
+    }
+
+    fn notify(&self, token: ReaderToken) {
+        let mut ready = lock(&self.ready);
+        if ready.is_empty() {
+            // One byte per batch: a full socket buffer already says "ready".
+            let _ = (&self.tx).write(&[1]);
+        }
+        ready.push(token);
+    }
+
+    pub(super) fn fd(&self) -> BorrowedFd<'_> {
+        self.rx.as_fd()
+    }
+
+    /// Moves the ready readers' tokens to `out` and clears the descriptor.
+    pub(super) fn drain(&self, out: &mut Vec<ReaderToken>) -> std::io::Result<()> {
+        let mut buf = [0u8; 256];
+        loop {
+            match (&self.rx).read(&mut buf) {
+                Ok(0) => break,
+                Ok(_) => continue,
+                Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+                Err(e) => return Err(e),
+            }
+        }
+        out.append(&mut lock(&self.ready));
+        Ok(())
+    }
+}
+
+/// What a full queue gives up.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum WhenFull {
+    /// Keep last: the oldest sample goes.
+    DropOldest,
+    /// Keep all (bounded): the new sample goes.
+    DropNewest,
+}
+
+#[derive(Debug)]
+struct Queue {
+    items: VecDeque<Result<Taken, BackendError>>,
+    /// The reader's token is in the ready list (or it is being drained).
+    listed: bool,
+}
+
+/// One reader's queue.
+#[derive(Debug)]
+pub(super) struct Inbox {
+    queue: Mutex<Queue>,
+    capacity: usize,
+    when_full: WhenFull,
+    token: ReaderToken,
+    wakeup: Arc<Wakeup>,
+    dropped: Arc<AtomicU64>,
+}
+
+impl Inbox {
+    pub(super) fn new(
+        token: ReaderToken,
+        capacity: usize,
+        when_full: WhenFull,
+        wakeup: Arc<Wakeup>,
+        dropped: Arc<AtomicU64>,
+    ) -> Self {
+        Inbox {
+            queue: Mutex::new(Queue {
+                items: VecDeque::new(),
+                listed: false,
+            }),
+            capacity: capacity.max(1),
+            when_full,
+            token,
+            wakeup,
+            dropped,
+        }
+    }
+
+    /// Queues what arrived and wakes the worker if the reader was not listed yet.
+    pub(super) fn push(&self, item: Result<Taken, BackendError>) {
+        let mut q = lock(&self.queue);
+        if q.items.len() >= self.capacity {
+            if self.dropped.fetch_add(1, Ordering::Relaxed) == 0 {
+                tracing::warn!(
+                    capacity = self.capacity,
+                    "a Zenoh reader's queue is full: samples are dropped (its history depth, \
+                     or its resource limits for keep-all; counted in the worker's status)"
+                );
+            }
+            match self.when_full {
+                WhenFull::DropOldest => {
+                    q.items.pop_front();
+                }
+                WhenFull::DropNewest => return,
+            }
+        }
+        q.items.push_back(item);
+        if !q.listed {
+            q.listed = true;
+            self.wakeup.notify(self.token);
+        }
+    }
+
+    /// The next item; when there is none, the reader is listed again on the next push.
+    pub(super) fn pop(&self) -> Option<Result<Taken, BackendError>> {
+        let mut q = lock(&self.queue);
+        let item = q.items.pop_front();
+        if item.is_none() {
+            q.listed = false;
+        }
+        item
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::backend::{Sample, SampleIdentity};
+
+    fn taken(n: u8) -> Result<Taken, BackendError> {
+        Ok(Taken {
+            sample: Sample::cdr(true, &[n]),
+            identity: SampleIdentity::default(),
+            related: None,
+            disposed: false,
+            unregistered: false,
+        })
+    }
+
+    fn body(t: Option<Result<Taken, BackendError>>) -> Option<u8> {
+        t.and_then(Result::ok).map(|t| t.sample.body[0])
+    }
+
+    #[test]
+    fn a_reader_is_listed_once_until_drained_and_its_queue_is_bounded() {
+        let wakeup = Arc::new(Wakeup::new().expect("socket pair"));
+        let dropped = Arc::new(AtomicU64::new(0));
+        let last = Inbox::new(7, 2, WhenFull::DropOldest, wakeup.clone(), dropped.clone());
+        let all = Inbox::new(8, 2, WhenFull::DropNewest, wakeup.clone(), dropped.clone());
+        for n in 1..=3 {
+            last.push(taken(n));
+            all.push(taken(n));
+        }
+        let mut ready = Vec::new();
+        wakeup.drain(&mut ready).expect("drain");
+        assert_eq!(ready, vec![7, 8]);
+        assert_eq!(dropped.load(Ordering::Relaxed), 2);
+        assert_eq!(body(last.pop()), Some(2));
+        assert_eq!(body(last.pop()), Some(3));
+        assert_eq!(body(all.pop()), Some(1));
+        assert_eq!(body(all.pop()), Some(2));
+        assert!(last.pop().is_none() && all.pop().is_none());
+        ready.clear();
+        wakeup.drain(&mut ready).expect("drain");
+        assert!(ready.is_empty(), "nothing new, no wake-up");
+        last.push(taken(4));
+        wakeup.drain(&mut ready).expect("drain");
+        assert_eq!(ready, vec![7], "drained readers are listed again");
+    }
+}

@@ -1,0 +1,802 @@
+//! The Zenoh backend (`-m zenoh`): the worker's writers and readers become the publishers,
+//! subscriptions, services and clients of an rmw_zenoh ROS 2 graph, so that XRCE devices
+//! join a graph of ROS 2 nodes on rmw_zenoh, through a Zenoh router and past one LAN.
+//!
+//! What it does as rmw_zenoh 0.2.10 (Jazzy) and 0.6.7 (Kilted) do ([`naming`]):
+//! * a data writer is a zenoh-ext advanced publisher on `<domain>/<topic>/<type>/<hash>`,
+//!   with a cache of its history depth and publisher detection when transient local, and
+//!   every sample carries the attachment (sequence number, source time, GID) and the CDR
+//!   encapsulation header in front of the client's body;
+//! * a data reader is an advanced subscriber on the same key, which for transient local asks
+//!   the publishers' caches for their history (late joiners get it);
+//! * a requester's request is a query on the service's key with the attachment, its reply
+//!   goes to the requester's reader; a replier's reader is a queryable, and its reply
+//!   answers the query the request came with;
+//! * the ROS nodes the worker finds ([`DdsBackend::announce_graph`]) and their endpoints are
+//!   liveliness tokens `@ros2_lv/...`, so `ros2 node list` and `ros2 topic info` on
+//!   rmw_zenoh see them.
+//!
+//! One Zenoh session serves every domain (the domain is the first chunk of each key), made
+//! at start as rmw_zenoh makes a node's ([`session`]). Type hashes come from [`type_hashes`].
+//!
+//! Differences from rmw_zenoh, by design: an endpoint's GID is the session's id and the
+//! endpoint's number (rmw_zenoh hashes the endpoint's token, which names its node; the
+//! backend makes an endpoint before it knows its node), unique all the same; a dispose has no
+//! Zenoh counterpart (ROS topics have no instances) and is refused.
+
+use std::cell::RefCell;
+use std::collections::{BTreeMap, HashMap};
+use std::os::fd::BorrowedFd;
+use std::rc::Rc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use bytes::Bytes;
+use zenoh::Wait as _;
+use zenoh_ext::{AdvancedPublisherBuilderExt as _, AdvancedSubscriberBuilderExt as _};
+
+use super::policies::{Durability, History, Reliability};
+use super::{
+    BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, Encoding, EndpointQos,
+    Guid, ReaderToken, Sample, SampleIdentity, Taken, TopicSpec,
+};
+use crate::ros_graph::DomainNodes;
+use crate::types::KeyDescriptor;
+
+mod graph;
+mod inbox;
+pub mod naming;
+pub mod session;
+pub mod type_hashes;
+
+use inbox::{lock, Inbox, Wakeup, WhenFull};
+use naming::{Attachment, EntityKind, RosName};
+
+/// How long a request waits for replies (rmw_zenoh's `queries_default_timeout`).
+const QUERY_TIMEOUT: Duration = Duration::from_secs(600);
+
+/// Requests a replier keeps waiting for their reply (the oldest are answered with nothing).
+const PENDING_QUERIES_MAX: usize = 4096;
+
+/// Largest reader queue, whatever history or resource limits a client asks for.
+const READER_QUEUE_MAX: usize = 10_000;
+
+/// Counters of what the backend dropped or refused (shared with callback threads).
+#[derive(Debug, Default)]
+struct Dropped {
+    queue_full: Arc<AtomicU64>,
+    requests_without_attachment: AtomicU64,
+    replies_without_request: AtomicU64,
+    pending_requests_evicted: AtomicU64,
+}
+
+/// The Zenoh backend.
+pub struct Zenoh {
+    session: zenoh::Session,
+    zid: String,
+    zid_bytes: [u8; 16],
+    wakeup: Arc<Wakeup>,
+    hashes: type_hashes::TypeHashes,
+    next_id: u64,
+    domains: BTreeMap<u16, ()>,
+    /// What the graph needs to know of each live endpoint, by GUID.
+    endpoints: Rc<RefCell<HashMap<Guid, graph::Endpoint>>>,
+    graph: graph::Tokens,
+    /// The service a requester's or replier's writer was just made for: its reader, made
+    /// next, joins it.
+    last_service: Option<(u16, String, Arc<ServiceLink>)>,
+    dropped: Arc<Dropped>,
+}
+
+impl std::fmt::Debug for Zenoh {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Zenoh")
+            .field("zid", &self.zid)
+            .field("domains", &self.domains.len())
+            .finish()
+    }
+}
+
+fn zenoh_err(what: &str) -> impl Fn(zenoh::Error) -> BackendError + '_ {
+    move |e| BackendError::Dds(format!("{what}: {e}"))
+}
+
+impl Zenoh {
+    /// Opens the session as rmw_zenoh opens a node's (`ZENOH_SESSION_CONFIG_URI`,
+    /// `ZENOH_CONFIG_OVERRIDE`, else a peer connecting to `tcp/localhost:7447`).
+    pub fn new(config: &DdsConfig) -> anyhow::Result<Self> {
+        let env = |name: &str| std::env::var(name).ok();
+        let zconfig = session::config(
+            env(session::CONFIG_URI_ENV).as_deref(),
+            env(session::CONFIG_OVERRIDE_ENV).as_deref(),
+        )?;
+        let hashes = type_hashes::TypeHashes::new(
+            &config.zenoh.type_hashes,
+            env("AMENT_PREFIX_PATH").as_deref(),
+        )?;
+        let session = zenoh::open(zconfig)
+            .wait()
+            .map_err(|e| anyhow::anyhow!("cannot open the Zenoh session: {e}"))?;
+        let zid_value = session.zid();
+        let zid = zid_value.to_string();
+        let zid_bytes = zid_value.to_le_bytes();
+        tracing::info!(
+            zid = %zid,
+            built_in_hashes = hashes.built_in_len(),
+            "Zenoh session open (rmw_zenoh 0.2.10/0.6.7 conventions)"
+        );
+        Ok(Zenoh {
+            session,
+            zid,
+            zid_bytes,
+            wakeup: Arc::new(Wakeup::new()?),
+            hashes,
+            next_id: 0,
+            domains: BTreeMap::new(),
+            endpoints: Rc::default(),
+            graph: graph::Tokens::default(),
+            last_service: None,
+            dropped: Arc::default(),
+        })
+    }
+
+    /// The session's Zenoh id, as tokens carry it.
+    pub fn zid(&self) -> &str {
+        &self.zid
+    }
+
+    fn next_id(&mut self) -> u64 {
+        let id = self.next_id;
+        self.next_id += 1;
+        id
+    }
+
+    /// An endpoint's GID: the session id's first 8 bytes and the endpoint's number.
+    fn gid(&self, id: u64) -> Guid {
+        let mut g = [0u8; 16];
+        g[..8].copy_from_slice(&self.zid_bytes[..8]);
+        g[8..].copy_from_slice(&id.to_le_bytes());
+        g
+    }
+
+    /// The key and graph entry of an endpoint on `spec` in `domain`.
+    fn resolve(
+        &mut self,
+        domain: u16,
+        spec: &TopicSpec,
+        qos: &EndpointQos,
+        kind: EntityKind,
+        id: u64,
+    ) -> Result<(RosName, String, graph::Endpoint), BackendError> {
+        let name = RosName::from_dds(&spec.name);
+        let type_name = if name.is_service() {
+            naming::service_type_name(&spec.type_name)
+        } else {
+            spec.type_name.clone()
+        };
+        let (hash, _) = self.hashes.lookup(&type_name);
+        let key = naming::data_key(domain, &name, &type_name, &hash)
+            .map_err(|e| BackendError::InvalidInput(format!("topic {:?}: {e}", spec.name)))?;
+        let endpoint = graph::Endpoint {
+            kind,
+            id,
+            name: name.qualified(),
+            type_name,
+            hash,
+            qos: naming::qos_text(qos),
+        };
+        Ok((name, key, endpoint))
+    }
+
+    fn group_domain(group: &dyn DdsGroup, publish: bool) -> Result<u16, BackendError> {
+        match group.as_any().downcast_ref::<Group>() {
+            Some(g) if g.publish == publish => Ok(g.domain),
+            _ => Err(BackendError::ForeignEntity(
+                "an endpoint needs a publisher or subscriber of the Zenoh backend",
+            )),
+        }
+    }
+
+    fn inbox(&self, token: ReaderToken, qos: &EndpointQos) -> Arc<Inbox> {
+        let (capacity, when_full) = match qos.history {
+            History::KeepLast(d) => (usize::try_from(d).unwrap_or(1), WhenFull::DropOldest),
+            History::KeepAll => (
+                qos.resource_limits
+                    .map(|r| usize::try_from(r.max_samples).unwrap_or(READER_QUEUE_MAX))
+                    .unwrap_or(super::qos::KEEP_ALL_READER_SAMPLES as usize),
+                WhenFull::DropNewest,
+            ),
+        };
+        Arc::new(Inbox::new(
+            token,
+            capacity.clamp(1, READER_QUEUE_MAX),
+            when_full,
+            self.wakeup.clone(),
+            self.dropped.queue_full.clone(),
+        ))
+    }
+
+    /// The link between a service's writer and the reader made right after it.
+    fn service_link(&mut self, domain: u16, service: &str) -> Arc<ServiceLink> {
+        match self.last_service.take() {
+            Some((d, s, link)) if d == domain && s == service => link,
+            _ => Arc::new(ServiceLink::default()),
+        }
+    }
+}
+
+/// A publisher or subscriber: Zenoh has no groups, so it only says which domain.
+#[derive(Debug)]
+struct Group {
+    domain: u16,
+    publish: bool,
+}
+
+impl DdsGroup for Group {
+    fn domain(&self) -> u16 {
+        self.domain
+    }
+    fn as_any(&self) -> &dyn std::any::Any {
+        self
+    }
+}
+
+/// What joins a requester's writer to its reader (replies) and a replier's reader to its
+/// writer (the queries its replies answer).
+#[derive(Default)]
+struct ServiceLink {
+    replies: Mutex<Option<Arc<Inbox>>>,
+    queries: Mutex<PendingQueries>,
+}
+
+/// Queries waiting for their reply, by the client's GID and sequence number.
+#[derive(Default)]
+struct PendingQueries {
+    by_id: HashMap<([u8; 16], i64), zenoh::query::Query>,
+    order: std::collections::VecDeque<([u8; 16], i64)>,
+}
+
+/// Removes an endpoint from the graph when it goes.
+struct GraphEntry {
+    guid: Guid,
+    endpoints: Rc<RefCell<HashMap<Guid, graph::Endpoint>>>,
+}
+
+impl Drop for GraphEntry {
+    fn drop(&mut self) {
+        self.endpoints.borrow_mut().remove(&self.guid);
+    }
+}
+
+fn now_ns() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
+        .unwrap_or(0)
+}
+
+/// The payload rmw_zenoh sends: the CDR encapsulation header, then the body.
+fn payload(sample: &Sample) -> Vec<u8> {
+    let mut p = Vec::with_capacity(4 + sample.body.len());
+    p.extend_from_slice(&sample.encoding.0);
+    p.extend_from_slice(&[0, 0]);
+    p.extend_from_slice(&sample.body);
+    p
+}
+
+/// A received payload as a sample: its encapsulation header read, the body after it.
+fn sample_of(payload: &[u8]) -> Result<Sample, BackendError> {
+    match payload {
+        [a, b, _, _, body @ ..] => Ok(Sample {
+            encoding: Encoding([*a, *b]),
+            body: Bytes::copy_from_slice(body),
+        }),
+        _ => Err(BackendError::InvalidInput(format!(
+            "a Zenoh payload of {} bytes, shorter than a CDR encapsulation header",
+            payload.len()
+        ))),
+    }
+}
+
+fn taken_of(
+    payload: &[u8],
+    attachment: Option<Attachment>,
+    related: Option<SampleIdentity>,
+) -> Result<Taken, BackendError> {
+    let sample = sample_of(payload)?;
+    let identity = attachment
+        .map(|a| SampleIdentity {
+            writer: a.gid,
+            sequence_number: a.sequence_number,
+        })
+        .unwrap_or_default();
+    Ok(Taken {
+        sample,
+        identity,
+        related,
+        disposed: false,
+        unregistered: false,
+    })
+}
+
+fn attachment_of(bytes: Option<&zenoh::bytes::ZBytes>) -> Option<Attachment> {
+    bytes.and_then(|b| Attachment::decode(&b.to_bytes()))
+}
+
+/// How a writer sends.
+enum Sender {
+    /// A topic's advanced publisher.
+    Publisher(zenoh_ext::AdvancedPublisher<'static>),
+    /// A requester's querier: a request is a query; replies go to the link's reader.
+    Querier(zenoh::query::Querier<'static>, Arc<ServiceLink>),
+    /// A replier's writer: a reply answers the pending query of its request.
+    Replies(zenoh::key_expr::KeyExpr<'static>, Arc<ServiceLink>),
+}
+
+struct Writer {
+    sender: Sender,
+    gid: Guid,
+    topic_name: String,
+    little_endian: bool,
+    key: Option<Arc<KeyDescriptor>>,
+    seq: std::cell::Cell<i64>,
+    _graph: Option<GraphEntry>,
+    dropped: Arc<Dropped>,
+}
+
+impl Writer {
+    fn attachment(&self, sequence_number: i64) -> zenoh::bytes::ZBytes {
+        let a = Attachment {
+            sequence_number,
+            source_timestamp: now_ns(),
+            gid: self.gid,
+        };
+        zenoh::bytes::ZBytes::from(a.encode().to_vec())
+    }
+}
+
+impl DdsWriter for Writer {
+    fn guid(&self) -> Guid {
+        self.gid
+    }
+    fn topic_name(&self) -> &str {
+        &self.topic_name
+    }
+    fn little_endian(&self) -> bool {
+        self.little_endian
+    }
+    fn key(&self) -> Option<&Arc<KeyDescriptor>> {
+        self.key.as_ref()
+    }
+    fn write(&self, sample: Sample) -> Result<(), BackendError> {
+        self.write_identified(sample, None).map(drop)
+    }
+    fn dispose(&self, _sample: &Sample) -> Result<(), BackendError> {
+        Err(BackendError::Unsupported(
+            "Zenoh has no instances to dispose (ROS topics have no keys)",
+        ))
+    }
+    fn write_identified(
+        &self,
+        sample: Sample,
+        related: Option<SampleIdentity>,
+    ) -> Result<SampleIdentity, BackendError> {
+        let seq = self.seq.get() + 1;
+        match &self.sender {
+            Sender::Publisher(p) => {
+                p.put(payload(&sample))
+                    .attachment(self.attachment(seq))
+                    .wait()
+                    .map_err(zenoh_err("Zenoh put"))?;
+            }
+            Sender::Querier(querier, link) => {
+                let link = link.clone();
+                let writer = self.gid;
+                querier
+                    .get()
+                    .payload(payload(&sample))
+                    .attachment(self.attachment(seq))
+                    .callback(move |reply: zenoh::query::Reply| {
+                        let Ok(s) = reply.result() else { return };
+                        let Some(inbox) = lock(&link.replies).clone() else {
+                            return;
+                        };
+                        let attachment = attachment_of(s.attachment());
+                        let related = attachment.map(|a| SampleIdentity {
+                            writer,
+                            sequence_number: a.sequence_number,
+                        });
+                        inbox.push(taken_of(&s.payload().to_bytes(), attachment, related));
+                    })
+                    .wait()
+                    .map_err(zenoh_err("Zenoh query"))?;
+            }
+            Sender::Replies(key, link) => {
+                let related = related.ok_or(BackendError::InvalidInput(
+                    "a reply without the request it answers".into(),
+                ))?;
+                let query = lock(&link.queries)
+                    .by_id
+                    .remove(&(related.writer, related.sequence_number));
+                let Some(query) = query else {
+                    self.dropped
+                        .replies_without_request
+                        .fetch_add(1, Ordering::Relaxed);
+                    tracing::debug!(
+                        seq = related.sequence_number,
+                        "a reply to a request no longer waiting (answered, timed out or \
+                         evicted): dropped"
+                    );
+                    return Ok(SampleIdentity {
+                        writer: self.gid,
+                        sequence_number: seq,
+                    });
+                };
+                let a = Attachment {
+                    sequence_number: related.sequence_number,
+                    source_timestamp: now_ns(),
+                    gid: related.writer,
+                };
+                query
+                    .reply(key.clone(), payload(&sample))
+                    .attachment(zenoh::bytes::ZBytes::from(a.encode().to_vec()))
+                    .wait()
+                    .map_err(zenoh_err("Zenoh reply"))?;
+            }
+        }
+        self.seq.set(seq);
+        Ok(SampleIdentity {
+            writer: self.gid,
+            sequence_number: seq,
+        })
+    }
+    fn all_acknowledged(&self) -> bool {
+        // Zenoh has no acknowledgements to wait for: a put is done once sent.
+        true
+    }
+    fn writes(&self) -> u64 {
+        u64::try_from(self.seq.get()).unwrap_or(0)
+    }
+    fn acknowledged_writes(&self) -> u64 {
+        self.writes()
+    }
+    fn matched_readers(&self) -> usize {
+        let matching = match &self.sender {
+            Sender::Publisher(p) => p.matching_status().wait().map(|m| m.matching()),
+            Sender::Querier(q, _) => q.matching_status().wait().map(|m| m.matching()),
+            Sender::Replies(..) => Ok(true),
+        };
+        usize::from(matching.unwrap_or(false))
+    }
+}
+
+/// What keeps a reader's Zenoh side alive.
+enum Receiver {
+    Subscriber(#[allow(dead_code)] zenoh_ext::AdvancedSubscriber<()>),
+    Queryable(#[allow(dead_code)] zenoh::query::Queryable<()>),
+    /// A requester's reader: replies come through the link.
+    Replies(Arc<ServiceLink>),
+}
+
+struct Reader {
+    inbox: Arc<Inbox>,
+    gid: Guid,
+    receiver: Receiver,
+    _graph: Option<GraphEntry>,
+}
+
+impl Drop for Reader {
+    fn drop(&mut self) {
+        if let Receiver::Replies(link) = &self.receiver {
+            lock(&link.replies).take();
+        }
+    }
+}
+
+impl DdsReader for Reader {
+    fn guid(&self) -> Guid {
+        self.gid
+    }
+    fn take_next(&mut self) -> Result<Option<Taken>, BackendError> {
+        self.inbox.pop().transpose()
+    }
+}
+
+impl DdsBackend for Zenoh {
+    fn name(&self) -> &'static str {
+        "zenoh"
+    }
+
+    fn create_group(
+        &mut self,
+        domain: u16,
+        publish: bool,
+        partitions: &[String],
+    ) -> Result<Box<dyn DdsGroup>, BackendError> {
+        if !partitions.is_empty() {
+            return Err(BackendError::Unsupported("Zenoh has no partitions"));
+        }
+        self.domains.insert(domain, ());
+        Ok(Box::new(Group { domain, publish }))
+    }
+
+    fn create_writer(
+        &mut self,
+        group: &dyn DdsGroup,
+        spec: &TopicSpec,
+        qos: &EndpointQos,
+        little_endian: bool,
+    ) -> Result<Box<dyn DdsWriter>, BackendError> {
+        let domain = Self::group_domain(group, true)?;
+        let id = self.next_id();
+        let gid = self.gid(id);
+        let kind = match RosName::from_dds(&spec.name) {
+            RosName::Request(_) => EntityKind::Client,
+            RosName::Reply(_) => EntityKind::Service,
+            _ => EntityKind::Publisher,
+        };
+        let (name, key, endpoint) = self.resolve(domain, spec, qos, kind, id)?;
+        let key = zenoh::key_expr::KeyExpr::try_from(key)
+            .map_err(|e| BackendError::InvalidInput(format!("key expression: {e}")))?;
+        let mut in_graph = true;
+        let sender = match name {
+            RosName::Request(service) => {
+                let link = Arc::new(ServiceLink::default());
+                self.last_service = Some((domain, service, link.clone()));
+                let querier = self
+                    .session
+                    .declare_querier(key)
+                    .target(zenoh::query::QueryTarget::AllComplete)
+                    .consolidation(zenoh::query::ConsolidationMode::None)
+                    .timeout(QUERY_TIMEOUT)
+                    .wait()
+                    .map_err(zenoh_err("Zenoh querier"))?;
+                Sender::Querier(querier, link)
+            }
+            RosName::Reply(service) => {
+                // The replier's reader (made next) holds the queryable and its token.
+                in_graph = false;
+                let link = Arc::new(ServiceLink::default());
+                self.last_service = Some((domain, service, link.clone()));
+                Sender::Replies(key, link)
+            }
+            _ => {
+                let reliable = qos.reliability == Reliability::Reliable;
+                let congestion = if reliable && matches!(qos.history, History::KeepAll) {
+                    zenoh::qos::CongestionControl::Block
+                } else {
+                    zenoh::qos::CongestionControl::Drop
+                };
+                let builder = self
+                    .session
+                    .declare_publisher(key)
+                    .congestion_control(congestion)
+                    .reliability(if reliable {
+                        zenoh::qos::Reliability::Reliable
+                    } else {
+                        zenoh::qos::Reliability::BestEffort
+                    })
+                    .advanced();
+                let publisher = if qos.durability != Durability::Volatile {
+                    let depth = match qos.history {
+                        History::KeepLast(d) => usize::try_from(d).unwrap_or(1).max(1),
+                        History::KeepAll => super::qos::KEEP_ALL_READER_SAMPLES as usize,
+                    };
+                    let b = builder
+                        .cache(zenoh_ext::CacheConfig::default().max_samples(depth))
+                        .publisher_detection();
+                    if reliable {
+                        b.sample_miss_detection(
+                            zenoh_ext::MissDetectionConfig::default()
+                                .sporadic_heartbeat(Duration::from_millis(500)),
+                        )
+                        .wait()
+                    } else {
+                        b.wait()
+                    }
+                } else {
+                    builder.wait()
+                };
+                Sender::Publisher(publisher.map_err(zenoh_err("Zenoh publisher"))?)
+            }
+        };
+        let graph = in_graph.then(|| {
+            self.endpoints.borrow_mut().insert(gid, endpoint);
+            GraphEntry {
+                guid: gid,
+                endpoints: self.endpoints.clone(),
+            }
+        });
+        Ok(Box::new(Writer {
+            sender,
+            gid,
+            topic_name: spec.name.clone(),
+            little_endian,
+            key: spec.key.clone(),
+            seq: std::cell::Cell::new(0),
+            _graph: graph,
+            dropped: self.dropped.clone(),
+        }))
+    }
+
+    fn create_reader(
+        &mut self,
+        group: &dyn DdsGroup,
+        spec: &TopicSpec,
+        qos: &EndpointQos,
+        token: ReaderToken,
+    ) -> Result<Box<dyn DdsReader>, BackendError> {
+        let domain = Self::group_domain(group, false)?;
+        let id = self.next_id();
+        let gid = self.gid(id);
+        let kind = match RosName::from_dds(&spec.name) {
+            RosName::Request(_) => EntityKind::Service,
+            RosName::Reply(_) => EntityKind::Client,
+            _ => EntityKind::Subscription,
+        };
+        let (name, key, endpoint) = self.resolve(domain, spec, qos, kind, id)?;
+        let key = zenoh::key_expr::KeyExpr::try_from(key)
+            .map_err(|e| BackendError::InvalidInput(format!("key expression: {e}")))?;
+        let inbox = self.inbox(token, qos);
+        let mut in_graph = true;
+        let receiver = match name {
+            RosName::Request(service) => {
+                let link = self.service_link(domain, &service);
+                let (inbox2, link2, dropped) =
+                    (inbox.clone(), link.clone(), self.dropped.clone());
+                let queryable = self
+                    .session
+                    .declare_queryable(key)
+                    .complete(true)
+                    .callback(move |query: zenoh::query::Query| {
+                        let Some(a) = attachment_of(query.attachment()) else {
+                            dropped
+                                .requests_without_attachment
+                                .fetch_add(1, Ordering::Relaxed);
+                            return;
+                        };
+                        let body = query.payload().map(|p| p.to_bytes().to_vec());
+                        let taken = taken_of(&body.unwrap_or_default(), Some(a), None);
+                        let id = (a.gid, a.sequence_number);
+                        {
+                            let mut q = lock(&link2.queries);
+                            q.by_id.insert(id, query);
+                            q.order.push_back(id);
+                            while q.order.len() > PENDING_QUERIES_MAX {
+                                if let Some(old) = q.order.pop_front() {
+                                    if q.by_id.remove(&old).is_some() {
+                                        dropped
+                                            .pending_requests_evicted
+                                            .fetch_add(1, Ordering::Relaxed);
+                                    }
+                                }
+                            }
+                            // Answered ones leave `by_id` only; forget them in order too.
+                            if q.order.len() > 2 * q.by_id.len() + 64 {
+                                let PendingQueries { by_id, order } = &mut *q;
+                                order.retain(|k| by_id.contains_key(k));
+                            }
+                        }
+                        inbox2.push(taken);
+                    })
+                    .wait()
+                    .map_err(zenoh_err("Zenoh queryable"))?;
+                Receiver::Queryable(queryable)
+            }
+            RosName::Reply(service) => {
+                in_graph = false;
+                let link = self.service_link(domain, &service);
+                *lock(&link.replies) = Some(inbox.clone());
+                Receiver::Replies(link)
+            }
+            _ => {
+                let inbox2 = inbox.clone();
+                let builder = self
+                    .session
+                    .declare_subscriber(key)
+                    .callback(move |s: zenoh::sample::Sample| {
+                        let attachment = attachment_of(s.attachment());
+                        inbox2.push(taken_of(&s.payload().to_bytes(), attachment, None));
+                    })
+                    .advanced();
+                let subscriber = if qos.durability != Durability::Volatile {
+                    let depth = match qos.history {
+                        History::KeepLast(d) => usize::try_from(d).unwrap_or(1).max(1),
+                        History::KeepAll => super::qos::KEEP_ALL_READER_SAMPLES as usize,
+                    };
+                    let b = builder
+                        .history(
+                            zenoh_ext::HistoryConfig::default()
+                                .detect_late_publishers()
+                                .max_samples(depth),
+                        )
+                        .subscriber_detection()
+                        .query_timeout(Duration::from_secs(u32::MAX as u64));
+                    if qos.reliability == Reliability::Reliable {
+                        b.recovery(zenoh_ext::RecoveryConfig::default().heartbeat())
+                            .wait()
+                    } else {
+                        b.wait()
+                    }
+                } else {
+                    builder.wait()
+                };
+                Receiver::Subscriber(subscriber.map_err(zenoh_err("Zenoh subscriber"))?)
+            }
+        };
+        let graph = in_graph.then(|| {
+            self.endpoints.borrow_mut().insert(gid, endpoint);
+            GraphEntry {
+                guid: gid,
+                endpoints: self.endpoints.clone(),
+            }
+        });
+        Ok(Box::new(Reader {
+            inbox,
+            gid,
+            receiver,
+            _graph: graph,
+        }))
+    }
+
+    fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError> {
+        let mut g = [0u8; 16];
+        g[..14].copy_from_slice(&self.zid_bytes[..14]);
+        g[14..].copy_from_slice(&domain.to_be_bytes());
+        Ok(g)
+    }
+
+    fn readiness_fd(&self) -> BorrowedFd<'_> {
+        self.wakeup.fd()
+    }
+
+    fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()> {
+        self.wakeup.drain(out)
+    }
+
+    fn participants(&self) -> usize {
+        self.domains.len()
+    }
+
+    fn participant_domains(&self) -> Vec<u16> {
+        self.domains.keys().copied().collect()
+    }
+
+    fn release_domain(&mut self, domain: u16) {
+        self.domains.remove(&domain);
+        self.graph.forget(domain);
+    }
+
+    fn announces_graph(&self) -> bool {
+        true
+    }
+
+    fn announce_graph(&mut self, domain: u16, nodes: &DomainNodes) -> Result<(), BackendError> {
+        let endpoints = self.endpoints.borrow();
+        let wanted = self
+            .graph
+            .wanted(domain, &self.zid, nodes, &endpoints, &mut self.next_id);
+        drop(endpoints);
+        self.graph.apply(domain, wanted, &self.session)
+    }
+
+    fn dropped(&self) -> Vec<(&'static str, u64)> {
+        let d = &self.dropped;
+        vec![
+            ("zenoh_reader_queue_full", d.queue_full.load(Ordering::Relaxed)),
+            (
+                "zenoh_request_without_attachment",
+                d.requests_without_attachment.load(Ordering::Relaxed),
+            ),
+            (
+                "zenoh_reply_without_request",
+                d.replies_without_request.load(Ordering::Relaxed),
+            ),
+            (
+                "zenoh_request_evicted",
+                d.pending_requests_evicted.load(Ordering::Relaxed),
+            ),
+        ]
+    }
+}

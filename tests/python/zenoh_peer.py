@@ -1,0 +1,198 @@
+#!/usr/bin/env python3
+"""An independent Zenoh peer for the end-to-end tests (eclipse-zenoh from PyPI, pinned).
+
+It plays what the tests need of a ROS 2 graph on rmw_zenoh, written from rmw_zenoh's
+conventions, not from the agent's code: a router, a subscription and a publisher on a data
+key (payload: CDR encapsulation header and body; attachment: sequence number, source
+timestamp, GID, serialized with zenoh-ext's own serializer), a watcher of the graph's
+liveliness tokens, a service client (a query with the attachment) and a transient-local
+subscription (zenoh-ext's advanced subscriber with history, as rmw_zenoh makes one).
+
+Every subcommand prints one line per event on stdout, flushed:
+  READY                          the entity exists
+  SAMPLE {"key", "payload", "attachment"}   a sample (hex)
+  TOKEN PUT|DELETE <key>         a liveliness token came or went
+  REPLY {"key", "payload", "attachment"}    a reply to a query
+  SENT <i>                       a sample was put
+Exit codes: 0 done, 2 usage, 3 timeout.
+"""
+
+import argparse
+import json
+import struct
+import sys
+import threading
+import time
+
+import zenoh
+import zenoh.ext as zext
+
+
+def out(line):
+    print(line, flush=True)
+
+
+def session(args, mode="client"):
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    if args.connect:
+        conf.insert_json5("connect/endpoints", json.dumps([args.connect]))
+    if getattr(args, "listen", None):
+        conf.insert_json5("listen/endpoints", json.dumps([args.listen]))
+    else:
+        conf.insert_json5("listen/endpoints", "[]")
+    return zenoh.open(conf)
+
+
+def attachment(seq, gid):
+    """rmw_zenoh's attachment, by zenoh-ext's serializer: (i64 seq, i64 ns, [u8; 16])."""
+    return zext.z_serialize((zext.Int64(seq), zext.Int64(time.time_ns()), bytes(gid)))
+
+
+def cdr_string(text):
+    """A std_msgs/String sample as rmw_zenoh sends it: CDR_LE header, length, text, NUL."""
+    data = text.encode() + b"\0"
+    return b"\x00\x01\x00\x00" + struct.pack("<I", len(data)) + data
+
+
+def sample_json(s):
+    att = s.attachment
+    return json.dumps(
+        {
+            "key": str(s.key_expr),
+            "payload": s.payload.to_bytes().hex(),
+            "attachment": att.to_bytes().hex() if att is not None else None,
+        }
+    )
+
+
+def wait(deadline, done):
+    while time.monotonic() < deadline:
+        if done.wait(0.05):
+            return True
+    return False
+
+
+def cmd_router(args):
+    _s = session(args, mode="router")
+    out("READY")
+    # Until the test closes stdin (or kills it).
+    sys.stdin.read()
+    return 0
+
+
+def cmd_sub(args):
+    s = session(args)
+    got = [0]
+    done = threading.Event()
+
+    def on_sample(sample):
+        out("SAMPLE " + sample_json(sample))
+        got[0] += 1
+        if got[0] >= args.count:
+            done.set()
+
+    if args.transient_local:
+        _sub = zext.declare_advanced_subscriber(
+            s,
+            args.key,
+            on_sample,
+            history=zext.HistoryConfig(detect_late_publishers=True, max_samples=args.count),
+            subscriber_detection=True,
+        )
+    else:
+        _sub = s.declare_subscriber(args.key, on_sample)
+    out("READY")
+    if not wait(time.monotonic() + args.timeout, done):
+        print(f"TIMEOUT got={got[0]}", file=sys.stderr)
+        return 3
+    return 0
+
+
+def cmd_pub(args):
+    s = session(args)
+    pub = s.declare_publisher(args.key)
+    out("READY")
+    gid = bytes(range(0xA0, 0xB0))
+    time.sleep(args.delay_ms / 1000)
+    for i in range(1, args.count + 1):
+        pub.put(cdr_string(f"{args.message} {i}"), attachment=attachment(i, gid))
+        out(f"SENT {i}")
+        time.sleep(args.interval_ms / 1000)
+    time.sleep(0.5)
+    return 0
+
+
+def cmd_tokens(args):
+    s = session(args)
+    seen = set()
+    done = threading.Event()
+
+    def on_token(sample):
+        kind = "PUT" if sample.kind == zenoh.SampleKind.PUT else "DELETE"
+        key = str(sample.key_expr)
+        out(f"TOKEN {kind} {key}")
+        if kind == "PUT":
+            seen.add(key)
+
+    _sub = s.liveliness().declare_subscriber(args.key, on_token, history=True)
+    out("READY")
+    wait(time.monotonic() + args.timeout, done)
+    return 0
+
+
+def cmd_call(args):
+    """A service client: one query per request, as rmw_zenoh's client sends it."""
+    s = session(args)
+    querier = s.declare_querier(
+        args.key,
+        target=zenoh.QueryTarget.ALL_COMPLETE,
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=args.timeout,
+    )
+    out("READY")
+    time.sleep(args.delay_ms / 1000)
+    gid = bytes(range(0xC0, 0xD0))
+    for i in range(1, args.count + 1):
+        payload = bytes.fromhex(args.payload)
+        for reply in querier.get(payload=payload, attachment=attachment(i, gid)):
+            if reply.ok is not None:
+                out("REPLY " + sample_json(reply.ok))
+            else:
+                out("REPLY_ERROR " + reply.err.payload.to_string())
+    return 0
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    for name in ["router", "sub", "pub", "tokens", "call"]:
+        c = sub.add_parser(name)
+        c.add_argument("--connect", default=None)
+        c.add_argument("--listen", default=None)
+        c.add_argument("--key", default="**")
+        c.add_argument("--count", type=int, default=1)
+        c.add_argument("--timeout", type=float, default=30.0)
+        c.add_argument("--interval-ms", type=int, default=100)
+        c.add_argument("--delay-ms", type=int, default=0)
+        c.add_argument("--message", default="hello")
+        c.add_argument("--payload", default="")
+        c.add_argument("--transient-local", action="store_true")
+    args = p.parse_args()
+    for ep in [args.connect, args.listen]:
+        # Loopback only: the tests never reach past this host.
+        if ep and not (ep.startswith("tcp/127.0.0.1:") or ep.startswith("tcp/[::1]:")):
+            print(f"{ep}: only loopback endpoints", file=sys.stderr)
+            return 2
+    return {
+        "router": cmd_router,
+        "sub": cmd_sub,
+        "pub": cmd_pub,
+        "tokens": cmd_tokens,
+        "call": cmd_call,
+    }[args.cmd](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
