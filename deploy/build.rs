@@ -47,8 +47,15 @@ fn main() {
     } else {
         "rustdds (RustDDS, the default; built without the cyclone feature)"
     };
+    let middlewares = if std::env::var_os("CARGO_FEATURE_ZENOH").is_some() {
+        "dds, zenoh (rmw_zenoh 0.2.10/0.6.7 conventions)"
+    } else {
+        "dds (built without the zenoh feature)"
+    };
     let version = std::env::var("CARGO_PKG_VERSION").unwrap_or_default();
-    let long = format!("{version}\ncommit: {long_commit}\nDDS backends: {backends}");
+    let long = format!(
+        "{version}\ncommit: {long_commit}\nDDS backends: {backends}\nmiddlewares: {middlewares}"
+    );
     let out = PathBuf::from(std::env::var("OUT_DIR").expect("cargo sets OUT_DIR"));
     std::fs::write(
         out.join("version.rs"),

@@ -274,7 +274,7 @@ pub struct CanfdArgs {
 pub const DEFAULT_VERBOSITY: u8 = 4;
 
 /// A usage error with the reference's exit status (2).
-#[derive(Debug, thiserror::Error)]
+#[derive(Debug, PartialEq, Eq, thiserror::Error)]
 #[error("{0}")]
 pub struct Unsupported(pub String);
 
@@ -569,6 +569,12 @@ mod tests {
             "DDS backends: rustdds"
         };
         assert!(lines.iter().any(|l| l.starts_with(backends)), "{long}");
+        let middlewares = if cfg!(feature = "zenoh") {
+            "middlewares: dds, zenoh"
+        } else {
+            "middlewares: dds ("
+        };
+        assert!(lines.iter().any(|l| l.starts_with(middlewares)), "{long}");
         let short = command.render_version();
         assert_eq!(short.lines().count(), 1, "{short}");
         assert!(short.starts_with(concat!("xrce-agent ", env!("CARGO_PKG_VERSION"), " (")));
@@ -683,6 +689,31 @@ mod tests {
             other => panic!("{other:?}"),
         }
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn middleware_zenoh_chooses_the_zenoh_backend() {
+        use xrce_dds_worker::backend::BackendKind;
+        assert_eq!(backend_for("zenoh", None), Ok(Some(BackendKind::Zenoh)));
+        assert_eq!(
+            backend_for("zenoh", Some(BackendKind::Zenoh)),
+            Ok(Some(BackendKind::Zenoh))
+        );
+        assert!(backend_for("zenoh", Some(BackendKind::Cyclone)).is_err());
+        assert_eq!(backend_for("dds", None), Ok(None));
+        assert_eq!(
+            backend_for("dds", Some(BackendKind::Rustdds)),
+            Ok(Some(BackendKind::Rustdds))
+        );
+        let e = backend_for("mqtt", None).expect_err("unknown");
+        assert!(e.to_string().contains("dds and zenoh"), "{e}");
+        let cli = parse(&["udp4", "-p", "1", "-m", "zenoh", "--zenoh-type-hashes", "/a,/b"])
+            .expect("parses");
+        let (_, common) = plan(cli.command.as_ref().expect("a command"))
+            .expect("plan")
+            .expect("transport");
+        assert!(check_supported(&common).is_ok());
+        assert_eq!(common.zenoh_type_hashes.len(), 2);
     }
 
     #[test]

@@ -94,11 +94,14 @@ def cmd_sub(args):
             done.set()
 
     if args.transient_local:
+        # As rmw_zenoh makes a reliable transient-local subscription: history from the
+        # publishers' caches (late publishers too), and recovery of missed samples.
         _sub = zext.declare_advanced_subscriber(
             s,
             args.key,
             on_sample,
             history=zext.HistoryConfig(detect_late_publishers=True, max_samples=args.count),
+            recovery=zext.RecoveryConfig(heartbeat=True),
             subscriber_detection=True,
         )
     else:
