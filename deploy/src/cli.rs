@@ -707,8 +707,16 @@ mod tests {
         );
         let e = backend_for("mqtt", None).expect_err("unknown");
         assert!(e.to_string().contains("dds and zenoh"), "{e}");
-        let cli = parse(&["udp4", "-p", "1", "-m", "zenoh", "--zenoh-type-hashes", "/a,/b"])
-            .expect("parses");
+        let cli = parse(&[
+            "udp4",
+            "-p",
+            "1",
+            "-m",
+            "zenoh",
+            "--zenoh-type-hashes",
+            "/a,/b",
+        ])
+        .expect("parses");
         let (_, common) = plan(cli.command.as_ref().expect("a command"))
             .expect("plan")
             .expect("transport");

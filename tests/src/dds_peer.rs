@@ -23,10 +23,19 @@ fn python_venv(dir: &str, package: &str, version: &str, module: &str) -> PathBuf
         .status()
         .is_ok_and(|s| s.success());
     if !ready {
-        let st = Command::new("python3").args(["-m", "venv"]).arg(&venv).status().expect("python3 -m venv");
+        let st = Command::new("python3")
+            .args(["-m", "venv"])
+            .arg(&venv)
+            .status()
+            .expect("python3 -m venv");
         assert!(st.success(), "creating the venv failed");
         let st = Command::new(venv.join("bin/pip"))
-            .args(["install", "--quiet", "--only-binary=:all:", &format!("{package}=={version}")])
+            .args([
+                "install",
+                "--quiet",
+                "--only-binary=:all:",
+                &format!("{package}=={version}"),
+            ])
             .status()
             .expect("pip install");
         assert!(st.success(), "installing {package} {version} failed");
@@ -37,8 +46,15 @@ fn python_venv(dir: &str, package: &str, version: &str, module: &str) -> PathBuf
 /// The Python virtual environment with Cyclone DDS, created once under `target/`.
 pub fn cyclone_python() -> PathBuf {
     static PY: OnceLock<PathBuf> = OnceLock::new();
-    PY.get_or_init(|| python_venv("cyclonedds-venv", "cyclonedds", CYCLONEDDS_VERSION, "cyclonedds"))
-        .clone()
+    PY.get_or_init(|| {
+        python_venv(
+            "cyclonedds-venv",
+            "cyclonedds",
+            CYCLONEDDS_VERSION,
+            "cyclonedds",
+        )
+    })
+    .clone()
 }
 
 /// The Python virtual environment with Zenoh (`eclipse-zenoh`), created once under `target/`.
@@ -71,7 +87,9 @@ impl DdsPeer {
     /// ones, which the script checks).
     pub fn zenoh(args: &[&str]) -> Self {
         let mut command = Command::new(zenoh_python());
-        command.arg(workspace().join("tests/python/zenoh_peer.py")).args(args);
+        command
+            .arg(workspace().join("tests/python/zenoh_peer.py"))
+            .args(args);
         Self::spawn(command)
     }
 

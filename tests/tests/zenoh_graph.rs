@@ -16,8 +16,7 @@ use xrce_tests::{free_tcp_port, AgentProcess, DdsPeer, TestClient};
 const SECOND: Duration = Duration::from_secs(1);
 const DOMAIN: i16 = 7;
 const STRING: &str = "std_msgs::msg::dds_::String_";
-const STRING_HASH: &str =
-    "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18";
+const STRING_HASH: &str = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18";
 const ADD_TWO_INTS: &str = "example_interfaces::srv::dds_::AddTwoInts_";
 const ADD_TWO_INTS_HASH: &str =
     "RIHS01_e118de6bf5eeb66a2491b5bda11202e7b68f198d6f67922cf30364858239c81a";
@@ -118,12 +117,37 @@ fn create_talker(c: &mut TestClient, flags: u16) -> (ObjectId, ObjectId) {
         }),
     };
     let steps = [
-        (p, k::PARTICIPANT, participant.encode(true), VariantExtra::DomainId(DOMAIN)),
+        (
+            p,
+            k::PARTICIPANT,
+            participant.encode(true),
+            VariantExtra::DomainId(DOMAIN),
+        ),
         (t, k::TOPIC, topic.encode(true), VariantExtra::Parent(p)),
-        (publisher, k::PUBLISHER, GroupBinary::default().encode(true), VariantExtra::Parent(p)),
-        (subscriber, k::SUBSCRIBER, GroupBinary::default().encode(true), VariantExtra::Parent(p)),
-        (w, k::DATAWRITER, endpoint.encode(true, true), VariantExtra::Parent(publisher)),
-        (r, k::DATAREADER, endpoint.encode(false, true), VariantExtra::Parent(subscriber)),
+        (
+            publisher,
+            k::PUBLISHER,
+            GroupBinary::default().encode(true),
+            VariantExtra::Parent(p),
+        ),
+        (
+            subscriber,
+            k::SUBSCRIBER,
+            GroupBinary::default().encode(true),
+            VariantExtra::Parent(p),
+        ),
+        (
+            w,
+            k::DATAWRITER,
+            endpoint.encode(true, true),
+            VariantExtra::Parent(publisher),
+        ),
+        (
+            r,
+            k::DATAREADER,
+            endpoint.encode(false, true),
+            VariantExtra::Parent(subscriber),
+        ),
     ];
     for (id, kind, body, extra) in steps {
         assert_eq!(
@@ -161,7 +185,18 @@ fn chatter_key() -> String {
 fn an_xrce_node_joins_an_rmw_zenoh_graph_and_survives_a_worker_kill() {
     let g = start_graph("zenoh");
     let tokens = peer(&g, &["tokens", "--key", "@ros2_lv/**", "--timeout", "180"]);
-    let sub = peer(&g, &["sub", "--key", &chatter_key(), "--count", "100", "--timeout", "180"]);
+    let sub = peer(
+        &g,
+        &[
+            "sub",
+            "--key",
+            &chatter_key(),
+            "--count",
+            "100",
+            "--timeout",
+            "180",
+        ],
+    );
     let mut c = TestClient::new(g.agent.addr(), [0x2E, 0x40, 0x00, 0x01]);
     c.connect(10 * SECOND);
     let (w, r) = create_talker(&mut c, qos_flags::RELIABLE | qos_flags::HISTORY_KEEP_LAST);
@@ -172,9 +207,9 @@ fn an_xrce_node_joins_an_rmw_zenoh_graph_and_survives_a_worker_kill() {
     let publisher = format!("/MP/%/%/talker/%chatter/{STRING}/{STRING_HASH}/::,5:,:,:,,");
     let subscription = format!("/MS/%/%/talker/%chatter/{STRING}/{STRING_HASH}/::,5:,:,:,,");
     let seen = |lines: &[String], part: &str| {
-        lines.iter().any(|l| {
-            l.starts_with(&format!("TOKEN PUT @ros2_lv/{DOMAIN}/")) && l.ends_with(part)
-        })
+        lines
+            .iter()
+            .any(|l| l.starts_with(&format!("TOKEN PUT @ros2_lv/{DOMAIN}/")) && l.ends_with(part))
     };
     let mut token_lines = Vec::new();
     let ok = wait_lines(&mut c, &tokens, &mut token_lines, 30 * SECOND, |l| {
@@ -185,38 +220,68 @@ fn an_xrce_node_joins_an_rmw_zenoh_graph_and_survives_a_worker_kill() {
     // XRCE -> Zenoh: rmw_zenoh's payload (encapsulation header, body) and attachment.
     let mut sample_lines = Vec::new();
     let mut sent = 0u32;
-    let ok = wait_lines(&mut c, &sub, &mut sample_lines, 30 * SECOND, |l| l.len() >= 3);
-    assert!(ok || sample_lines.is_empty(), "no sample expected before any write");
+    let ok = wait_lines(&mut c, &sub, &mut sample_lines, 30 * SECOND, |l| {
+        l.len() >= 3
+    });
+    assert!(
+        ok || sample_lines.is_empty(),
+        "no sample expected before any write"
+    );
     for i in 1..=3 {
         c.write_reliable(w, &string_body(&format!("hello {i}")));
         sent += 1;
     }
-    let ok = wait_lines(&mut c, &sub, &mut sample_lines, 30 * SECOND, |l| l.len() >= 3);
+    let ok = wait_lines(&mut c, &sub, &mut sample_lines, 30 * SECOND, |l| {
+        l.len() >= 3
+    });
     assert!(ok, "samples at the Zenoh subscriber: {sample_lines:#?}");
     let mut gid = None;
     for (i, l) in sample_lines.iter().enumerate() {
         let (key, payload, attachment) = parse_sample(l, "SAMPLE ").expect("a sample line");
         assert_eq!(key, chatter_key());
         let body = string_body(&format!("hello {}", i + 1));
-        assert_eq!(hex(&payload), format!("00010000{}", hex(&body)), "payload {l}");
+        assert_eq!(
+            hex(&payload),
+            format!("00010000{}", hex(&body)),
+            "payload {l}"
+        );
         let a = attachment.expect("rmw_zenoh's attachment");
         assert_eq!(a.len(), 33, "attachment {l}");
-        assert_eq!(i64::from_le_bytes(a[..8].try_into().expect("8")), i as i64 + 1);
+        assert_eq!(
+            i64::from_le_bytes(a[..8].try_into().expect("8")),
+            i as i64 + 1
+        );
         let ts = i64::from_le_bytes(a[8..16].try_into().expect("8"));
         let now = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .expect("clock")
             .as_nanos() as i64;
-        assert!((now - ts).abs() < 60_000_000_000, "source timestamp {ts} vs now {now}");
+        assert!(
+            (now - ts).abs() < 60_000_000_000,
+            "source timestamp {ts} vs now {now}"
+        );
         assert_eq!(a[16], 16, "the GID's length");
-        assert!(gid.is_none_or(|g: [u8; 16]| g == a[17..]), "one GID per publisher");
+        assert!(
+            gid.is_none_or(|g: [u8; 16]| g == a[17..]),
+            "one GID per publisher"
+        );
         gid = Some(a[17..].try_into().expect("16"));
     }
 
     // Zenoh -> XRCE: a publisher as rmw_zenoh's, heard by the client's reader.
     let _publisher = peer(
         &g,
-        &["pub", "--key", &chatter_key(), "--count", "3", "--message", "from zenoh", "--delay-ms", "300"],
+        &[
+            "pub",
+            "--key",
+            &chatter_key(),
+            "--count",
+            "3",
+            "--message",
+            "from zenoh",
+            "--delay-ms",
+            "300",
+        ],
     );
     // The client's reader hears its own writer too (as a reader of an rmw_zenoh node does,
     // without `ignore_local_publications`): only the peer's samples are counted here.
@@ -239,14 +304,23 @@ fn an_xrce_node_joins_an_rmw_zenoh_graph_and_survives_a_worker_kill() {
     // A worker killed: restarted, the node replayed onto Zenoh, samples flow again.
     let workers = g.agent.child_pids("dds-worker");
     assert_eq!(workers.len(), 1, "one worker");
-    nix::sys::signal::kill(nix::unistd::Pid::from_raw(workers[0]), nix::sys::signal::SIGKILL)
-        .expect("kill the worker");
+    nix::sys::signal::kill(
+        nix::unistd::Pid::from_raw(workers[0]),
+        nix::sys::signal::SIGKILL,
+    )
+    .expect("kill the worker");
     // Counted by text: the subscriber hears the peer's publisher on the key as well.
     let text = |l: &String| {
         parse_sample(l, "SAMPLE ")
             .map(|(_, p, _)| String::from_utf8_lossy(p.get(8..).unwrap_or_default()).to_string())
     };
-    let after = |lines: &[String]| lines.iter().filter_map(text).filter(|t| t.starts_with("after ")).count();
+    let after = |lines: &[String]| {
+        lines
+            .iter()
+            .filter_map(text)
+            .filter(|t| t.starts_with("after "))
+            .count()
+    };
     let end = Instant::now() + 60 * SECOND;
     let mut next = Instant::now();
     while after(&sample_lines) < 2 && Instant::now() < end {
@@ -255,16 +329,28 @@ fn an_xrce_node_joins_an_rmw_zenoh_graph_and_survives_a_worker_kill() {
             c.write_reliable(w, &string_body(&format!("after {sent}")));
             next = Instant::now() + Duration::from_millis(300);
         }
-        wait_lines(&mut c, &sub, &mut sample_lines, Duration::from_millis(100), |_| false);
+        wait_lines(
+            &mut c,
+            &sub,
+            &mut sample_lines,
+            Duration::from_millis(100),
+            |_| false,
+        );
     }
     assert!(
         after(&sample_lines) >= 2,
         "samples after the worker restart: {sample_lines:#?}"
     );
     let ok = wait_lines(&mut c, &tokens, &mut token_lines, 30 * SECOND, |l| {
-        l.iter().filter(|x| x.starts_with("TOKEN PUT") && x.ends_with(&publisher)).count() >= 2
+        l.iter()
+            .filter(|x| x.starts_with("TOKEN PUT") && x.ends_with(&publisher))
+            .count()
+            >= 2
     });
-    assert!(ok, "the publisher's token again after the restart: {token_lines:#?}");
+    assert!(
+        ok,
+        "the publisher's token again after the restart: {token_lines:#?}"
+    );
 
     // The participant deleted: its tokens go.
     let del = c
@@ -273,8 +359,10 @@ fn an_xrce_node_joins_an_rmw_zenoh_graph_and_survives_a_worker_kill() {
         .expect("delete");
     assert_eq!(c.wait_status(del, 10 * SECOND), status::OK);
     let ok = wait_lines(&mut c, &tokens, &mut token_lines, 30 * SECOND, |l| {
-        l.iter().any(|x| x.starts_with("TOKEN DELETE") && x.ends_with(&node))
-            && l.iter().any(|x| x.starts_with("TOKEN DELETE") && x.ends_with(&publisher))
+        l.iter()
+            .any(|x| x.starts_with("TOKEN DELETE") && x.ends_with(&node))
+            && l.iter()
+                .any(|x| x.starts_with("TOKEN DELETE") && x.ends_with(&publisher))
     });
     assert!(ok, "the tokens withdrawn: {token_lines:#?}");
     drop(g.router);
@@ -292,7 +380,12 @@ fn a_zenoh_client_calls_an_xrce_replier() {
         qos_profile_reference: Some("adder".into()),
     };
     assert_eq!(
-        c.create_as(p, k::PARTICIPANT, Representation::Binary(participant.encode(true)), VariantExtra::DomainId(DOMAIN)),
+        c.create_as(
+            p,
+            k::PARTICIPANT,
+            Representation::Binary(participant.encode(true)),
+            VariantExtra::DomainId(DOMAIN)
+        ),
         status::OK
     );
     let replier = ObjectId::new(1, k::REPLIER);
@@ -301,24 +394,45 @@ fn a_zenoh_client_calls_an_xrce_replier() {
         reply_type=\"example_interfaces::srv::dds_::AddTwoInts_Response_\">\
         <request_topic_name>rq/add_two_intsRequest</request_topic_name>\
         <reply_topic_name>rr/add_two_intsReply</reply_topic_name></replier></dds>";
-    assert_eq!(c.create(replier, k::REPLIER, xml, VariantExtra::Parent(p)), status::OK);
+    assert_eq!(
+        c.create(replier, k::REPLIER, xml, VariantExtra::Parent(p)),
+        status::OK
+    );
     c.read_unlimited(replier);
     let tokens = peer(&g, &["tokens", "--key", "@ros2_lv/**", "--timeout", "60"]);
     let server = format!("/SS/%/%/adder/%add_two_ints/{ADD_TWO_INTS}/{ADD_TWO_INTS_HASH}/");
     let mut token_lines = Vec::new();
     let ok = wait_lines(&mut c, &tokens, &mut token_lines, 30 * SECOND, |l| {
-        l.iter().any(|x| x.starts_with("TOKEN PUT") && x.contains(&server))
+        l.iter()
+            .any(|x| x.starts_with("TOKEN PUT") && x.contains(&server))
     });
     assert!(ok, "the service's token: {token_lines:#?}");
 
     // Two requests {a, b} (int64), CDR with its header, as rmw_zenoh's client sends them.
     let request = |a: i64, b: i64| {
-        hex(&[vec![0, 1, 0, 0], a.to_le_bytes().to_vec(), b.to_le_bytes().to_vec()].concat())
+        hex(&[
+            vec![0, 1, 0, 0],
+            a.to_le_bytes().to_vec(),
+            b.to_le_bytes().to_vec(),
+        ]
+        .concat())
     };
     let key = format!("{DOMAIN}/add_two_ints/{ADD_TWO_INTS}/{ADD_TWO_INTS_HASH}");
     let client = peer(
         &g,
-        &["call", "--key", &key, "--count", "2", "--payload", &request(40, 2), "--delay-ms", "300", "--timeout", "30"],
+        &[
+            "call",
+            "--key",
+            &key,
+            "--count",
+            "2",
+            "--payload",
+            &request(40, 2),
+            "--delay-ms",
+            "300",
+            "--timeout",
+            "30",
+        ],
     );
     let mut replies = Vec::new();
     let mut answered = 0;
@@ -338,15 +452,33 @@ fn a_zenoh_client_calls_an_xrce_replier() {
         }
         replies.iter().filter(|l| l.starts_with("REPLY ")).count() >= 2
     });
-    assert!(ok, "replies at the Zenoh client ({answered} answered): {replies:#?}");
-    for (i, l) in replies.iter().filter(|l| l.starts_with("REPLY ")).enumerate() {
+    assert!(
+        ok,
+        "replies at the Zenoh client ({answered} answered): {replies:#?}"
+    );
+    for (i, l) in replies
+        .iter()
+        .filter(|l| l.starts_with("REPLY "))
+        .enumerate()
+    {
         let (rkey, payload, attachment) = parse_sample(l, "REPLY ").expect("a reply line");
         assert_eq!(rkey, key);
-        assert_eq!(hex(&payload), format!("00010000{}", hex(&42i64.to_le_bytes())));
+        assert_eq!(
+            hex(&payload),
+            format!("00010000{}", hex(&42i64.to_le_bytes()))
+        );
         let a = attachment.expect("the reply's attachment");
         assert_eq!(a.len(), 33);
-        assert_eq!(i64::from_le_bytes(a[..8].try_into().expect("8")), i as i64 + 1, "the request's sequence number");
-        assert_eq!(&a[17..], &(0xC0..0xD0).collect::<Vec<u8>>()[..], "the client's GID");
+        assert_eq!(
+            i64::from_le_bytes(a[..8].try_into().expect("8")),
+            i as i64 + 1,
+            "the request's sequence number"
+        );
+        assert_eq!(
+            &a[17..],
+            &(0xC0..0xD0).collect::<Vec<u8>>()[..],
+            "the client's GID"
+        );
     }
     drop(g.router);
     assert!(g.agent.stop(), "agent did not stop cleanly");
@@ -357,7 +489,8 @@ fn a_late_zenoh_subscription_gets_a_transient_local_history() {
     let g = start_graph("zenohtl");
     let mut c = TestClient::new(g.agent.addr(), [0x2E, 0x40, 0x00, 0x03]);
     c.connect(10 * SECOND);
-    let flags = qos_flags::RELIABLE | qos_flags::HISTORY_KEEP_LAST | qos_flags::DURABILITY_TRANSIENT_LOCAL;
+    let flags =
+        qos_flags::RELIABLE | qos_flags::HISTORY_KEEP_LAST | qos_flags::DURABILITY_TRANSIENT_LOCAL;
     let (w, _) = create_talker(&mut c, flags);
     for i in 1..=3 {
         c.write_reliable(w, &string_body(&format!("kept {i}")));
@@ -366,7 +499,16 @@ fn a_late_zenoh_subscription_gets_a_transient_local_history() {
     c.run_until(SECOND, |_| false);
     let late = peer(
         &g,
-        &["sub", "--key", &chatter_key(), "--count", "3", "--timeout", "30", "--transient-local"],
+        &[
+            "sub",
+            "--key",
+            &chatter_key(),
+            "--count",
+            "3",
+            "--timeout",
+            "30",
+            "--transient-local",
+        ],
     );
     let mut lines = Vec::new();
     let ok = wait_lines(&mut c, &late, &mut lines, 30 * SECOND, |l| l.len() >= 3);

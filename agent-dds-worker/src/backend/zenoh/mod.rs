@@ -643,8 +643,7 @@ impl DdsBackend for Zenoh {
         let receiver = match name {
             RosName::Request(service) => {
                 let link = self.service_link(domain, &service);
-                let (inbox2, link2, dropped) =
-                    (inbox.clone(), link.clone(), self.dropped.clone());
+                let (inbox2, link2, dropped) = (inbox.clone(), link.clone(), self.dropped.clone());
                 let queryable = self
                     .session
                     .declare_queryable(key)
@@ -784,7 +783,10 @@ impl DdsBackend for Zenoh {
     fn dropped(&self) -> Vec<(&'static str, u64)> {
         let d = &self.dropped;
         vec![
-            ("zenoh_reader_queue_full", d.queue_full.load(Ordering::Relaxed)),
+            (
+                "zenoh_reader_queue_full",
+                d.queue_full.load(Ordering::Relaxed),
+            ),
             (
                 "zenoh_request_without_attachment",
                 d.requests_without_attachment.load(Ordering::Relaxed),

@@ -90,7 +90,12 @@ fn check_chunks(s: &str) -> Result<(), NameError> {
 /// The key expression of a topic or service: `<domain>/<name>/<type>/<hash>`, the name without
 /// its outer slashes (inner ones kept), as rmw_zenoh's publishers, subscriptions, services and
 /// clients all use it (no wildcard: another type or hash is another key).
-pub fn data_key(domain: u16, name: &RosName, type_name: &str, hash: &str) -> Result<String, NameError> {
+pub fn data_key(
+    domain: u16,
+    name: &RosName,
+    type_name: &str,
+    hash: &str,
+) -> Result<String, NameError> {
     let topic = name.stripped();
     check_chunks(topic)?;
     if type_name.contains('/') {
@@ -302,7 +307,10 @@ mod tests {
 
     #[test]
     fn micro_ros_names_map_to_ros_names() {
-        assert_eq!(RosName::from_dds("rt/chatter"), RosName::Topic("chatter".into()));
+        assert_eq!(
+            RosName::from_dds("rt/chatter"),
+            RosName::Topic("chatter".into())
+        );
         assert_eq!(
             RosName::from_dds("rq/add_two_intsRequest"),
             RosName::Request("add_two_ints".into())
@@ -311,16 +319,30 @@ mod tests {
             RosName::from_dds("rr/ns/add_two_intsReply"),
             RosName::Reply("ns/add_two_ints".into())
         );
-        assert_eq!(RosName::from_dds("HelloWorldTopic"), RosName::Plain("HelloWorldTopic".into()));
-        assert_eq!(RosName::from_dds("rq/oddname"), RosName::Plain("rq/oddname".into()));
-        assert_eq!(RosName::from_dds("rt/ns/chatter").qualified(), "/ns/chatter");
+        assert_eq!(
+            RosName::from_dds("HelloWorldTopic"),
+            RosName::Plain("HelloWorldTopic".into())
+        );
+        assert_eq!(
+            RosName::from_dds("rq/oddname"),
+            RosName::Plain("rq/oddname".into())
+        );
+        assert_eq!(
+            RosName::from_dds("rt/ns/chatter").qualified(),
+            "/ns/chatter"
+        );
     }
 
     #[test]
     fn data_keys_are_rmw_zenohs() {
         let hash = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18";
         assert_eq!(
-            data_key(0, &RosName::from_dds("rt/chatter"), "std_msgs::msg::dds_::String_", hash),
+            data_key(
+                0,
+                &RosName::from_dds("rt/chatter"),
+                "std_msgs::msg::dds_::String_",
+                hash
+            ),
             Ok(format!("0/chatter/std_msgs::msg::dds_::String_/{hash}"))
         );
         assert_eq!(
@@ -328,7 +350,10 @@ mod tests {
             Ok("7/robot1/cmd_vel/T/H".to_string())
         );
         for bad in ["rt/a//b", "rt/*", "rt/a/$x", "rt/", "rt/a?b", "rt/a#"] {
-            assert!(data_key(0, &RosName::from_dds(bad), "T", "H").is_err(), "{bad}");
+            assert!(
+                data_key(0, &RosName::from_dds(bad), "T", "H").is_err(),
+                "{bad}"
+            );
         }
         assert!(data_key(0, &RosName::from_dds("rt/a"), "x/y", "H").is_err());
     }

@@ -58,12 +58,10 @@ pub fn config(
     overrides: Option<&str>,
 ) -> Result<zenoh::Config, SessionConfigError> {
     let mut config = match uri.filter(|u| !u.is_empty()) {
-        Some(path) => {
-            zenoh::Config::from_file(path).map_err(|e| SessionConfigError::File {
-                path: path.to_string(),
-                reason: e.to_string(),
-            })?
-        }
+        Some(path) => zenoh::Config::from_file(path).map_err(|e| SessionConfigError::File {
+            path: path.to_string(),
+            reason: e.to_string(),
+        })?,
         None => {
             let mut c = zenoh::Config::default();
             let defaults = [
@@ -74,7 +72,10 @@ pub fn config(
                 ("scouting/multicast/enabled", "false".to_string()),
                 // Samples carry source timestamps in their attachment; Zenoh's own are not
                 // needed, but rmw_zenoh's routers and peers enable them: so does the agent.
-                ("timestamping/enabled", "{ router: true, peer: true, client: true }".to_string()),
+                (
+                    "timestamping/enabled",
+                    "{ router: true, peer: true, client: true }".to_string(),
+                ),
             ];
             for (key, value) in defaults {
                 c.insert_json5(key, &value)

@@ -54,7 +54,9 @@ pub struct TypeHashes {
 /// Whether `s` is a RIHS01 hash as rmw_zenoh writes it.
 pub fn is_rihs01(s: &str) -> bool {
     s.strip_prefix("RIHS01_").is_some_and(|h| {
-        h.len() == 64 && h.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+        h.len() == 64
+            && h.bytes()
+                .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
     })
 }
 
@@ -107,7 +109,11 @@ impl TypeHashes {
                     .insert(n.to_string(), (h.to_string(), path.clone()));
             }
         }
-        for prefix in ament.unwrap_or_default().split(':').filter(|p| !p.is_empty()) {
+        for prefix in ament
+            .unwrap_or_default()
+            .split(':')
+            .filter(|p| !p.is_empty())
+        {
             hashes.folders.push(PathBuf::from(prefix));
         }
         Ok(hashes)
@@ -248,7 +254,7 @@ mod tests {
         )
         .expect("write");
         let ament = format!("/nonexistent:{}", dir.display());
-        let mut h = TypeHashes::new(&[table.clone()], Some(&ament)).expect("hashes");
+        let mut h = TypeHashes::new(std::slice::from_ref(&table), Some(&ament)).expect("hashes");
         assert_eq!(
             h.lookup("my_msgs::msg::dds_::Thing_"),
             (mine, Source::Description(msg.join("Thing.json")))
