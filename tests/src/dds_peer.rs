@@ -93,6 +93,17 @@ impl DdsPeer {
         Self::spawn(command)
     }
 
+    /// Starts `zenoh_peer.py <args>` in the network namespace `netns` (`ip netns exec`).
+    pub fn zenoh_in(netns: &str, args: &[&str]) -> Self {
+        let mut command = Command::new("ip");
+        command
+            .args(["netns", "exec", netns])
+            .arg(zenoh_python())
+            .arg(workspace().join("tests/python/zenoh_peer.py"))
+            .args(args);
+        Self::spawn(command)
+    }
+
     /// Runs `command`, its stdout lines on the channel (stdin piped: a peer that waits for
     /// it to close ends with the test).
     fn spawn(mut command: Command) -> Self {

@@ -522,3 +522,191 @@ fn a_late_zenoh_subscription_gets_a_transient_local_history() {
     drop(g.router);
     assert!(g.agent.stop(), "agent did not stop cleanly");
 }
+
+/// Set, to `writer` or `reader`, in the environment of this test binary started again inside
+/// a network namespace by [`devices_on_two_lans_meet_through_one_router`].
+const LAN_ROLE: &str = "XRCE_TEST_ZENOH_LAN_ROLE";
+/// The router's endpoint as seen from that namespace.
+const LAN_ROUTER: &str = "XRCE_TEST_ZENOH_LAN_ROUTER";
+
+/// Network namespaces made for one test, deleted with it.
+struct Namespaces(Vec<String>);
+
+impl Drop for Namespaces {
+    fn drop(&mut self) {
+        for n in &self.0 {
+            let _ = std::process::Command::new("ip")
+                .args(["netns", "del", n])
+                .status();
+        }
+    }
+}
+
+fn ip(args: &[&str]) {
+    let st = std::process::Command::new("ip")
+        .args(args)
+        .status()
+        .expect("run ip");
+    assert!(st.success(), "ip {args:?} failed");
+}
+
+/// Two agents on `-m zenoh` in two network namespaces ("LANs") that reach each other only
+/// through a Zenoh router in a third (no IP route between them): a client's samples on one
+/// LAN reach a client's reader on the other, as rmw_zenoh nodes across a router do.
+/// Needs root (`ip netns`), as the suite's other namespace tests.
+#[test]
+fn devices_on_two_lans_meet_through_one_router() {
+    if let Ok(role) = std::env::var(LAN_ROLE) {
+        let router = std::env::var(LAN_ROUTER).expect("the router's endpoint");
+        ip(&["link", "set", "lo", "up"]);
+        return lan_role(&role, &router);
+    }
+    // Built (and Zenoh's Python installed) out here, where the network is.
+    xrce_tests::binaries();
+    xrce_tests::zenoh_python();
+    let tag = std::process::id() % 100_000;
+    let names: Vec<String> = ["a", "b", "r"]
+        .iter()
+        .map(|n| format!("xrce-z{n}-{tag}"))
+        .collect();
+    for n in &names {
+        let st = std::process::Command::new("ip")
+            .args(["netns", "add", n])
+            .status();
+        assert!(
+            st.is_ok_and(|s| s.success()),
+            "`ip netns add` failed: this test needs root (CAP_SYS_ADMIN) and iproute2"
+        );
+    }
+    let ns = Namespaces(names);
+    let (a, b, r) = (&ns.0[0], &ns.0[1], &ns.0[2]);
+    for (lan, host, subnet) in [(a, "a", 1), (b, "b", 2)] {
+        let (outer, inner) = (format!("xz{host}{tag}"), format!("xr{host}{tag}"));
+        ip(&[
+            "link", "add", &outer, "type", "veth", "peer", "name", &inner,
+        ]);
+        ip(&["link", "set", &outer, "netns", lan]);
+        ip(&["link", "set", &inner, "netns", r]);
+        ip(&[
+            "-n",
+            lan,
+            "addr",
+            "add",
+            &format!("10.231.{subnet}.2/24"),
+            "dev",
+            &outer,
+        ]);
+        ip(&[
+            "-n",
+            r,
+            "addr",
+            "add",
+            &format!("10.231.{subnet}.1/24"),
+            "dev",
+            &inner,
+        ]);
+        ip(&["-n", lan, "link", "set", &outer, "up"]);
+        ip(&["-n", r, "link", "set", &inner, "up"]);
+    }
+    ip(&["-n", r, "link", "set", "lo", "up"]);
+    let router = DdsPeer::zenoh_in(
+        r,
+        &[
+            "router",
+            "--private-namespace",
+            "--listen",
+            "tcp/10.231.1.1:7447",
+            "--listen",
+            "tcp/10.231.2.1:7447",
+        ],
+    );
+    assert!(
+        router.wait_for("READY", 30 * SECOND, || {}).is_some(),
+        "the router did not start in its namespace"
+    );
+    let exe = std::env::current_exe().expect("the test binary");
+    let start = |lan: &str, role: &str, subnet: u8| {
+        std::process::Command::new("ip")
+            .args(["netns", "exec", lan])
+            .arg(&exe)
+            .args([
+                "devices_on_two_lans_meet_through_one_router",
+                "--exact",
+                "--nocapture",
+                "--test-threads",
+                "1",
+            ])
+            .env(LAN_ROLE, role)
+            .env(LAN_ROUTER, format!("tcp/10.231.{subnet}.1:7447"))
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .expect("start the test in its namespace")
+    };
+    let mut writer = start(a, "writer", 1);
+    let reader = start(b, "reader", 2);
+    let out = reader.wait_with_output().expect("the reader's output");
+    // Its stdin closed, the writer stops its agent and ends (killed, it would leave the agent
+    // running).
+    drop(writer.stdin.take());
+    let end = Instant::now() + 30 * SECOND;
+    while writer.try_wait().ok().flatten().is_none() && Instant::now() < end {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let _ = writer.kill();
+    let _ = writer.wait();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    eprintln!("{stdout}");
+    assert!(out.status.success(), "the reader on LAN b failed");
+    assert!(stdout.contains("1 passed"), "the reader did not run");
+    assert!(stdout.contains("RECEIVED 3"), "{stdout}");
+    drop(router);
+}
+
+/// One side of [`devices_on_two_lans_meet_through_one_router`], inside its namespace.
+fn lan_role(role: &str, router: &str) {
+    let overrides =
+        format!("connect/endpoints=[\"{router}\"];listen/endpoints=[\"tcp/127.0.0.1:0\"]");
+    let agent = AgentProcess::start_with_env(
+        &format!("lan{role}"),
+        &[
+            ("XRCE_DDS_BACKEND", "zenoh"),
+            ("ZENOH_CONFIG_OVERRIDE", &overrides),
+        ],
+    );
+    let mut c = TestClient::new(agent.addr(), [0x2E, 0x40, 0x00, 0x10]);
+    c.connect(10 * SECOND);
+    let (w, r) = create_talker(&mut c, qos_flags::RELIABLE | qos_flags::HISTORY_KEEP_LAST);
+    if role == "writer" {
+        // Until the outer test has seen the reader through and closes this one's stdin.
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let eof = stop.clone();
+        std::thread::spawn(move || {
+            let _ = std::io::Read::read_to_end(&mut std::io::stdin(), &mut Vec::new());
+            eof.store(true, std::sync::atomic::Ordering::Relaxed);
+        });
+        let end = Instant::now() + 120 * SECOND;
+        let mut i = 0;
+        while Instant::now() < end && !stop.load(std::sync::atomic::Ordering::Relaxed) {
+            i += 1;
+            c.write_reliable(w, &string_body(&format!("from lan a {i}")));
+            c.run_until(Duration::from_millis(200), |_| false);
+        }
+        assert!(agent.stop(), "agent did not stop cleanly");
+        return;
+    }
+    c.read_unlimited(r);
+    let mut got = Vec::new();
+    let ok = c.run_until(90 * SECOND, |c| {
+        c.step();
+        got.extend(
+            c.take_data()
+                .into_iter()
+                .filter(|(_, d)| d.get(4..14) == Some(&b"from lan a"[..])),
+        );
+        got.len() >= 3
+    });
+    assert!(ok, "samples from the other LAN: {got:?}");
+    println!("RECEIVED {}", got.len().min(3));
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
