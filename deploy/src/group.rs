@@ -175,7 +175,8 @@ fn worker_settings(
         reserved_ports: ReservedPorts::new(udp_ports.iter().copied()),
         zenoh: Default::default(),
     };
-    if !udp_ports.is_empty() {
+    // Zenoh does not use the UDP ports of DDS.
+    if !udp_ports.is_empty() && base.dds_backend != BackendKind::Zenoh {
         let allowed = base.domains.clone();
         xrce_dds_worker::backend::check_reserved_ports(&dds, &udp_ports, |d| {
             allowed.as_ref().is_none_or(|s| s.contains(d))
@@ -246,6 +247,9 @@ impl Group {
         worker.instance = instance.clone();
         worker.log = filter.clone();
         worker.zenoh_type_hashes = absolute_paths(&common.zenoh_type_hashes);
+        if worker.dds_backend == BackendKind::Zenoh {
+            xrce_dds_worker::backend::check_zenoh(&worker.zenoh_type_hashes)?;
+        }
         let mut settings = FrontendArgs::defaults();
         settings.instance = instance.clone();
         settings.log = filter.clone();
@@ -321,7 +325,10 @@ impl Group {
         worker.instance = instance.clone();
         worker.log = filter.clone();
         if !g.worker.zenoh_type_hashes.is_empty() {
-            worker.zenoh_type_hashes = g.worker.zenoh_type_hashes.clone();
+            worker.zenoh_type_hashes = absolute_paths(&g.worker.zenoh_type_hashes);
+        }
+        if worker.dds_backend == BackendKind::Zenoh {
+            xrce_dds_worker::backend::check_zenoh(&worker.zenoh_type_hashes)?;
         }
         if let Some(grace) = g.worker.frontend_grace {
             worker.frontend_grace = grace;

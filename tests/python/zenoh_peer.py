@@ -13,6 +13,7 @@ Every subcommand prints one line per event on stdout, flushed:
   SAMPLE {"key", "payload", "attachment"}   a sample (hex)
   TOKEN PUT|DELETE <key>         a liveliness token came or went
   REPLY {"key", "payload", "attachment"}    a reply to a query
+  REQUEST <seq> <a> <b> <gid>    a request served
   SENT <i>                       a sample was put
 Exit codes: 0 done, 2 usage, 3 timeout.
 """
@@ -48,6 +49,11 @@ def session(args, mode="client"):
 def attachment(seq, gid):
     """rmw_zenoh's attachment, by zenoh-ext's serializer: (i64 seq, i64 ns, [u8; 16])."""
     return zext.z_serialize((zext.Int64(seq), zext.Int64(time.time_ns()), bytes(gid)))
+
+
+def attachment_fields(att):
+    """(seq, timestamp, gid) of an attachment, by zenoh-ext's deserializer."""
+    return zext.z_deserialize(tuple[zext.Int64, zext.Int64, bytes], att)
 
 
 def cdr_string(text):
@@ -167,10 +173,42 @@ def cmd_call(args):
     return 0
 
 
+def cmd_serve(args):
+    """A service server as rmw_zenoh's: a complete queryable on the service's key; each
+    request {int64 a, int64 b} is answered with {int64 sum} on the same key, its attachment
+    the request's sequence number and client GID."""
+    s = session(args)
+    answered = [0]
+    done = threading.Event()
+
+    def on_query(query):
+        att = query.attachment
+        if att is None:
+            out("REQUEST_WITHOUT_ATTACHMENT")
+            return
+        seq, _ts, gid = attachment_fields(att)
+        body = query.payload.to_bytes()
+        a, b = struct.unpack("<qq", body[4:20])
+        out(f"REQUEST {int(seq)} {a} {b} {bytes(gid).hex()}")
+        reply = b"\x00\x01\x00\x00" + struct.pack("<q", a + b)
+        query.reply(args.key, reply, attachment=attachment(int(seq), bytes(gid)))
+        answered[0] += 1
+        if answered[0] >= args.count:
+            done.set()
+
+    _q = s.declare_queryable(args.key, on_query, complete=True)
+    out("READY")
+    if not wait(time.monotonic() + args.timeout, done):
+        print(f"TIMEOUT answered={answered[0]}", file=sys.stderr)
+        return 3
+    time.sleep(0.5)
+    return 0
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="cmd", required=True)
-    for name in ["router", "sub", "pub", "tokens", "call"]:
+    for name in ["router", "sub", "pub", "tokens", "call", "serve"]:
         c = sub.add_parser(name)
         c.add_argument("--connect", default=None)
         c.add_argument("--listen", action="append", default=None)
@@ -200,6 +238,7 @@ def main():
         "pub": cmd_pub,
         "tokens": cmd_tokens,
         "call": cmd_call,
+        "serve": cmd_serve,
     }[args.cmd](args)
 
 

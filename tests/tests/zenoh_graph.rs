@@ -166,7 +166,7 @@ fn wait_lines(
     peer: &DdsPeer,
     lines: &mut Vec<String>,
     d: Duration,
-    wanted: impl Fn(&[String]) -> bool,
+    mut wanted: impl FnMut(&[String]) -> bool,
 ) -> bool {
     c.run_until(d, |c| {
         while let Some(l) = peer.line(Duration::from_millis(1)) {
@@ -220,13 +220,6 @@ fn an_xrce_node_joins_an_rmw_zenoh_graph_and_survives_a_worker_kill() {
     // XRCE -> Zenoh: rmw_zenoh's payload (encapsulation header, body) and attachment.
     let mut sample_lines = Vec::new();
     let mut sent = 0u32;
-    let ok = wait_lines(&mut c, &sub, &mut sample_lines, 30 * SECOND, |l| {
-        l.len() >= 3
-    });
-    assert!(
-        ok || sample_lines.is_empty(),
-        "no sample expected before any write"
-    );
     for i in 1..=3 {
         c.write_reliable(w, &string_body(&format!("hello {i}")));
         sent += 1;
@@ -341,28 +334,43 @@ fn an_xrce_node_joins_an_rmw_zenoh_graph_and_survives_a_worker_kill() {
         after(&sample_lines) >= 2,
         "samples after the worker restart: {sample_lines:#?}"
     );
+    // The tokens again, from the new worker's session (another Zenoh id).
+    let zid_of = |l: &str| l.split('/').nth(2).map(str::to_string);
+    let first_zid = token_lines
+        .iter()
+        .find(|x| x.starts_with("TOKEN PUT") && x.ends_with(&publisher))
+        .and_then(|l| zid_of(l))
+        .expect("the first publisher token's zid");
+    let mut new_zid = None;
     let ok = wait_lines(&mut c, &tokens, &mut token_lines, 30 * SECOND, |l| {
-        l.iter()
+        new_zid = l
+            .iter()
             .filter(|x| x.starts_with("TOKEN PUT") && x.ends_with(&publisher))
-            .count()
-            >= 2
+            .filter_map(|x| zid_of(x))
+            .find(|z| *z != first_zid);
+        new_zid.is_some()
     });
     assert!(
         ok,
-        "the publisher's token again after the restart: {token_lines:#?}"
+        "the publisher's token from the restarted worker: {token_lines:#?}"
     );
+    let new_zid = new_zid.expect("a new zid");
 
-    // The participant deleted: its tokens go.
+    // The participant deleted: the new session's tokens go.
+    let mark = token_lines.len();
     let del = c
         .client
         .delete(Instant::now(), ObjectId::new(1, k::PARTICIPANT))
         .expect("delete");
     assert_eq!(c.wait_status(del, 10 * SECOND), status::OK);
+    let withdrawn = |l: &[String], part: &str| {
+        l[mark..].iter().any(|x| {
+            x.starts_with(&format!("TOKEN DELETE @ros2_lv/{DOMAIN}/{new_zid}/"))
+                && x.ends_with(part)
+        })
+    };
     let ok = wait_lines(&mut c, &tokens, &mut token_lines, 30 * SECOND, |l| {
-        l.iter()
-            .any(|x| x.starts_with("TOKEN DELETE") && x.ends_with(&node))
-            && l.iter()
-                .any(|x| x.starts_with("TOKEN DELETE") && x.ends_with(&publisher))
+        withdrawn(l, &node) && withdrawn(l, &publisher) && withdrawn(l, &subscription)
     });
     assert!(ok, "the tokens withdrawn: {token_lines:#?}");
     drop(g.router);
@@ -519,6 +527,86 @@ fn a_late_zenoh_subscription_gets_a_transient_local_history() {
         .map(|(_, p, _)| String::from_utf8_lossy(&p[8..p.len() - 1]).to_string())
         .collect();
     assert_eq!(texts, ["kept 1", "kept 2", "kept 3"]);
+    drop(g.router);
+    assert!(g.agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn an_xrce_requester_calls_a_zenoh_service() {
+    let g = start_graph("zenohcli");
+    let key = format!("{DOMAIN}/add_two_ints/{ADD_TWO_INTS}/{ADD_TWO_INTS_HASH}");
+    let server = peer(
+        &g,
+        &["serve", "--key", &key, "--count", "3", "--timeout", "60"],
+    );
+    let mut c = TestClient::new(g.agent.addr(), [0x2E, 0x40, 0x00, 0x04]);
+    c.connect(10 * SECOND);
+    let p = ObjectId::new(1, k::PARTICIPANT);
+    let participant = ParticipantBinary {
+        domain_reference: None,
+        qos_profile_reference: Some("caller".into()),
+    };
+    assert_eq!(
+        c.create_as(
+            p,
+            k::PARTICIPANT,
+            Representation::Binary(participant.encode(true)),
+            VariantExtra::DomainId(DOMAIN)
+        ),
+        status::OK
+    );
+    let requester = ObjectId::new(1, k::REQUESTER);
+    let xml = "<dds><requester profile_name=\"add\" service_name=\"/add_two_ints\" \
+        request_type=\"example_interfaces::srv::dds_::AddTwoInts_Request_\" \
+        reply_type=\"example_interfaces::srv::dds_::AddTwoInts_Response_\">\
+        <request_topic_name>rq/add_two_intsRequest</request_topic_name>\
+        <reply_topic_name>rr/add_two_intsReply</reply_topic_name></requester></dds>";
+    assert_eq!(
+        c.create(requester, k::REQUESTER, xml, VariantExtra::Parent(p)),
+        status::OK
+    );
+    c.read_unlimited(requester);
+    // Three requests at once: the replies may come in any order, each to its request.
+    let mut ids = std::collections::HashMap::new();
+    for (a, b) in [(1i64, 2i64), (30, 12), (-5, 5)] {
+        let body = [a.to_le_bytes(), b.to_le_bytes()].concat();
+        let id = c.write_reliable_id(requester, &body);
+        ids.insert(id, a + b);
+    }
+    let mut sums = std::collections::HashMap::new();
+    let mut served = Vec::new();
+    let ok = c.run_until(40 * SECOND, |c| {
+        c.step();
+        for (_, d) in c.take_data() {
+            // The BaseObjectRequest of the request, then {sum}.
+            assert_eq!(d.len(), 4 + 8, "{d:?}");
+            assert_eq!(ObjectId([d[2], d[3]]), requester);
+            let id = xrce_common::wire::RequestId([d[0], d[1]]);
+            let sum = i64::from_le_bytes(d[4..12].try_into().expect("8"));
+            assert!(sums.insert(id, sum).is_none(), "a reply twice for {id:?}");
+        }
+        while let Some(l) = server.line(Duration::from_millis(1)) {
+            served.push(l);
+        }
+        sums.len() >= 3
+    });
+    assert!(
+        ok,
+        "replies at the XRCE requester: {sums:?}, served {served:?}"
+    );
+    assert_eq!(sums, ids, "each reply answers its own request");
+    // The server saw rmw_zenoh's request attachment: sequence numbers 1..3, one client GID.
+    let requests: Vec<Vec<&str>> = served
+        .iter()
+        .filter(|l| l.starts_with("REQUEST "))
+        .map(|l| l.split(' ').collect())
+        .collect();
+    let mut seqs: Vec<&str> = requests.iter().map(|r| r[1]).collect();
+    seqs.sort();
+    assert_eq!(seqs, ["1", "2", "3"], "{served:?}");
+    assert!(requests
+        .iter()
+        .all(|r| r[4] == requests[0][4] && r[4].len() == 32));
     drop(g.router);
     assert!(g.agent.stop(), "agent did not stop cleanly");
 }

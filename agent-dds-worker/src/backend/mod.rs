@@ -138,6 +138,27 @@ pub fn check_config(config: &DdsConfig) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Refuses, before anything starts, what would stop a Zenoh backend at its start: a Zenoh
+/// configuration (`ZENOH_SESSION_CONFIG_URI`, `ZENOH_CONFIG_OVERRIDE`) it cannot use, or a
+/// `--zenoh-type-hashes` path that is neither a folder nor a readable table.
+pub fn check_zenoh(type_hashes: &[std::path::PathBuf]) -> anyhow::Result<()> {
+    #[cfg(feature = "zenoh")]
+    {
+        let env = |name: &str| std::env::var(name).ok();
+        zenoh::session::config(
+            env(zenoh::session::CONFIG_URI_ENV).as_deref(),
+            env(zenoh::session::CONFIG_OVERRIDE_ENV).as_deref(),
+        )?;
+        zenoh::type_hashes::TypeHashes::new(type_hashes, None)?;
+        Ok(())
+    }
+    #[cfg(not(feature = "zenoh"))]
+    {
+        let _ = type_hashes;
+        anyhow::bail!("this build has no Zenoh backend: build it with the `zenoh` feature")
+    }
+}
+
 /// Refuses, before anything starts, UDP ports the front-ends are to serve (`reserved`) that
 /// DDS cannot leave to them: the discovery multicast port of a domain clients may use
 /// (`allowed`, e.g. from `--domains`) while DDS uses multicast (not confined to loopback).

@@ -75,9 +75,18 @@ pub(super) enum WhenFull {
     DropNewest,
 }
 
+/// Most bytes of sample bodies one reader's queue holds, whatever its depth: a remote
+/// publisher's large samples cannot make the worker hold more.
+pub(super) const MAX_QUEUED_BYTES: usize = 16 << 20;
+
+fn size(item: &Result<Taken, BackendError>) -> usize {
+    item.as_ref().map_or(0, |t| t.sample.body.len())
+}
+
 #[derive(Debug)]
 struct Queue {
     items: VecDeque<Result<Taken, BackendError>>,
+    bytes: usize,
     /// The reader's token is in the ready list (or it is being drained).
     listed: bool,
 }
@@ -104,6 +113,7 @@ impl Inbox {
         Inbox {
             queue: Mutex::new(Queue {
                 items: VecDeque::new(),
+                bytes: 0,
                 listed: false,
             }),
             capacity: capacity.max(1),
@@ -117,21 +127,36 @@ impl Inbox {
     /// Queues what arrived and wakes the worker if the reader was not listed yet.
     pub(super) fn push(&self, item: Result<Taken, BackendError>) {
         let mut q = lock(&self.queue);
-        if q.items.len() >= self.capacity {
+        let new = size(&item);
+        if new > MAX_QUEUED_BYTES {
+            self.dropped.fetch_add(1, Ordering::Relaxed);
+            tracing::warn!(
+                bytes = new,
+                "a Zenoh sample larger than a reader's queue: dropped"
+            );
+            return;
+        }
+        while q.items.len() >= self.capacity || q.bytes + new > MAX_QUEUED_BYTES {
             if self.dropped.fetch_add(1, Ordering::Relaxed) == 0 {
                 tracing::warn!(
                     capacity = self.capacity,
+                    max_bytes = MAX_QUEUED_BYTES,
                     "a Zenoh reader's queue is full: samples are dropped (its history depth, \
-                     or its resource limits for keep-all; counted in the worker's status)"
+                     or its resource limits for keep-all, or 16 MiB; counted in the worker's \
+                     status)"
                 );
             }
-            match self.when_full {
-                WhenFull::DropOldest => {
-                    q.items.pop_front();
-                }
-                WhenFull::DropNewest => return,
+            let oldest = match self.when_full {
+                WhenFull::DropOldest => q.items.pop_front(),
+                WhenFull::DropNewest => None,
+            };
+            match oldest {
+                Some(old) => q.bytes -= size(&old),
+                // Keep-all: the new one goes.
+                None => return,
             }
         }
+        q.bytes += new;
         q.items.push_back(item);
         if !q.listed {
             q.listed = true;
@@ -143,8 +168,9 @@ impl Inbox {
     pub(super) fn pop(&self) -> Option<Result<Taken, BackendError>> {
         let mut q = lock(&self.queue);
         let item = q.items.pop_front();
-        if item.is_none() {
-            q.listed = false;
+        match &item {
+            Some(i) => q.bytes -= size(i),
+            None => q.listed = false,
         }
         item
     }
@@ -194,5 +220,40 @@ mod tests {
         last.push(taken(4));
         wakeup.drain(&mut ready).expect("drain");
         assert_eq!(ready, vec![7], "drained readers are listed again");
+    }
+
+    #[test]
+    fn a_queue_holds_at_most_its_byte_budget() {
+        let wakeup = Arc::new(Wakeup::new().expect("socket pair"));
+        let dropped = Arc::new(AtomicU64::new(0));
+        let q = Inbox::new(1, 1000, WhenFull::DropOldest, wakeup, dropped.clone());
+        let big = |n: u8| {
+            Ok(Taken {
+                sample: Sample::cdr(true, &vec![n; MAX_QUEUED_BYTES / 3]),
+                identity: SampleIdentity::default(),
+                related: None,
+                disposed: false,
+                unregistered: false,
+            })
+        };
+        for n in 1..=4 {
+            q.push(big(n));
+        }
+        assert_eq!(dropped.load(Ordering::Relaxed), 1, "the oldest made room");
+        assert_eq!(body(q.pop()), Some(2));
+        q.push(Ok(Taken {
+            sample: Sample::cdr(true, &vec![9; MAX_QUEUED_BYTES + 1]),
+            identity: SampleIdentity::default(),
+            related: None,
+            disposed: false,
+            unregistered: false,
+        }));
+        assert_eq!(
+            body(q.pop()),
+            Some(3),
+            "a sample over the whole budget is dropped"
+        );
+        assert_eq!(body(q.pop()), Some(4));
+        assert!(q.pop().is_none());
     }
 }

@@ -76,6 +76,7 @@ pub struct Zenoh {
     session: zenoh::Session,
     zid: String,
     zid_bytes: [u8; 16],
+    salt: u64,
     wakeup: Arc<Wakeup>,
     hashes: type_hashes::TypeHashes,
     next_id: u64,
@@ -84,8 +85,8 @@ pub struct Zenoh {
     endpoints: Rc<RefCell<HashMap<Guid, graph::Endpoint>>>,
     graph: graph::Tokens,
     /// The service a requester's or replier's writer was just made for: its reader, made
-    /// next, joins it.
-    last_service: Option<(u16, String, Arc<ServiceLink>)>,
+    /// next, joins it (the worker makes a requester's or replier's writer, then its reader).
+    last_service: Option<PendingService>,
     dropped: Arc<Dropped>,
 }
 
@@ -130,6 +131,12 @@ impl Zenoh {
             session,
             zid,
             zid_bytes,
+            salt: {
+                use std::hash::{BuildHasher as _, Hasher as _};
+                let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+                h.write_u32(std::process::id());
+                h.finish()
+            },
             wakeup: Arc::new(Wakeup::new()?),
             hashes,
             next_id: 0,
@@ -152,10 +159,13 @@ impl Zenoh {
         id
     }
 
-    /// An endpoint's GID: the session id's first 8 bytes and the endpoint's number.
+    /// An endpoint's GID: 8 bytes of the session id mixed with a number random to this
+    /// process (a restarted worker's GIDs differ even with a configured Zenoh id, so its
+    /// sequence numbers, from 1 again, are not taken for repeats), and the endpoint's number.
     fn gid(&self, id: u64) -> Guid {
         let mut g = [0u8; 16];
-        g[..8].copy_from_slice(&self.zid_bytes[..8]);
+        let zid = u64::from_le_bytes(self.zid_bytes[..8].try_into().unwrap_or_default());
+        g[..8].copy_from_slice(&(zid ^ self.salt).to_le_bytes());
         g[8..].copy_from_slice(&id.to_le_bytes());
         g
     }
@@ -217,11 +227,24 @@ impl Zenoh {
         ))
     }
 
-    /// The link between a service's writer and the reader made right after it.
-    fn service_link(&mut self, domain: u16, service: &str) -> Arc<ServiceLink> {
+    /// The link of the service whose writer was made just before this reader: a requester's
+    /// (`requester`, its writer on `rq/<s>Request`, this reader on `rr/<s>Reply`) or a
+    /// replier's. Anything else on those topics is refused: on Zenoh they exist only as the
+    /// two halves of a service (a reader alone could never be answered, or answer).
+    fn service_link(
+        &mut self,
+        domain: u16,
+        service: &str,
+        requester: bool,
+    ) -> Result<Arc<ServiceLink>, BackendError> {
         match self.last_service.take() {
-            Some((d, s, link)) if d == domain && s == service => link,
-            _ => Arc::new(ServiceLink::default()),
+            Some(p) if p.domain == domain && p.service == service && p.requester == requester => {
+                Ok(p.link)
+            }
+            _ => Err(BackendError::Unsupported(
+                "on Zenoh, rq/ and rr/ topics are services: only a requester or replier (its \
+                 request and reply topics rq/<name>Request and rr/<name>Reply) may use them",
+            )),
         }
     }
 }
@@ -240,6 +263,14 @@ impl DdsGroup for Group {
     fn as_any(&self) -> &dyn std::any::Any {
         self
     }
+}
+
+/// A service's writer waiting for its reader.
+struct PendingService {
+    domain: u16,
+    service: String,
+    requester: bool,
+    link: Arc<ServiceLink>,
 }
 
 /// What joins a requester's writer to its reader (replies) and a replier's reader to its
@@ -407,7 +438,10 @@ impl DdsWriter for Writer {
                             writer,
                             sequence_number: a.sequence_number,
                         });
-                        inbox.push(taken_of(&s.payload().to_bytes(), attachment, related));
+                        // The reply's own identity stays unknown: its attachment names the
+                        // request (the client's GID and sequence number), and replies may come
+                        // in any order, which the front-end would take for repeats.
+                        inbox.push(taken_of(&s.payload().to_bytes(), None, related));
                     })
                     .wait()
                     .map_err(zenoh_err("Zenoh query"))?;
@@ -543,7 +577,6 @@ impl DdsBackend for Zenoh {
         let sender = match name {
             RosName::Request(service) => {
                 let link = Arc::new(ServiceLink::default());
-                self.last_service = Some((domain, service, link.clone()));
                 let querier = self
                     .session
                     .declare_querier(key)
@@ -552,22 +585,31 @@ impl DdsBackend for Zenoh {
                     .timeout(QUERY_TIMEOUT)
                     .wait()
                     .map_err(zenoh_err("Zenoh querier"))?;
+                self.last_service = Some(PendingService {
+                    domain,
+                    service,
+                    requester: true,
+                    link: link.clone(),
+                });
                 Sender::Querier(querier, link)
             }
             RosName::Reply(service) => {
                 // The replier's reader (made next) holds the queryable and its token.
                 in_graph = false;
                 let link = Arc::new(ServiceLink::default());
-                self.last_service = Some((domain, service, link.clone()));
+                self.last_service = Some(PendingService {
+                    domain,
+                    service,
+                    requester: false,
+                    link: link.clone(),
+                });
                 Sender::Replies(key, link)
             }
             _ => {
                 let reliable = qos.reliability == Reliability::Reliable;
-                let congestion = if reliable && matches!(qos.history, History::KeepAll) {
-                    zenoh::qos::CongestionControl::Block
-                } else {
-                    zenoh::qos::CongestionControl::Drop
-                };
+                // rmw_zenoh blocks a keep-all reliable publisher on congestion; here one slow
+                // subscriber would stall the worker and every client: the agent drops.
+                let congestion = zenoh::qos::CongestionControl::Drop;
                 let builder = self
                     .session
                     .declare_publisher(key)
@@ -642,7 +684,7 @@ impl DdsBackend for Zenoh {
         let mut in_graph = true;
         let receiver = match name {
             RosName::Request(service) => {
-                let link = self.service_link(domain, &service);
+                let link = self.service_link(domain, &service, false)?;
                 let (inbox2, link2, dropped) = (inbox.clone(), link.clone(), self.dropped.clone());
                 let queryable = self
                     .session
@@ -660,8 +702,9 @@ impl DdsBackend for Zenoh {
                         let id = (a.gid, a.sequence_number);
                         {
                             let mut q = lock(&link2.queries);
-                            q.by_id.insert(id, query);
-                            q.order.push_back(id);
+                            if q.by_id.insert(id, query).is_none() {
+                                q.order.push_back(id);
+                            }
                             while q.order.len() > PENDING_QUERIES_MAX {
                                 if let Some(old) = q.order.pop_front() {
                                     if q.by_id.remove(&old).is_some() {
@@ -685,7 +728,7 @@ impl DdsBackend for Zenoh {
             }
             RosName::Reply(service) => {
                 in_graph = false;
-                let link = self.service_link(domain, &service);
+                let link = self.service_link(domain, &service, true)?;
                 *lock(&link.replies) = Some(inbox.clone());
                 Receiver::Replies(link)
             }

@@ -276,9 +276,14 @@ impl Attachment {
 pub fn ros_type_name(dds_type: &str) -> Option<String> {
     let parts: Vec<&str> = dds_type.split("::").collect();
     match parts.as_slice() {
-        [pkg, kind @ ("msg" | "srv" | "action"), "dds_", name] if !pkg.is_empty() => {
+        [pkg, kind @ ("msg" | "srv" | "action"), "dds_", name] => {
             let name = name.strip_suffix('_')?;
-            if name.is_empty() {
+            // ROS package and type names: letters, digits, underscores (the name becomes a
+            // path in a ROS installation: nothing else may reach the file system).
+            let identifier = |s: &str| {
+                !s.is_empty() && s.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_')
+            };
+            if !identifier(pkg) || !identifier(name) {
                 return None;
             }
             Some(format!("{pkg}/{kind}/{name}"))
@@ -452,6 +457,9 @@ mod tests {
         );
         assert_eq!(ros_type_name("HelloWorld"), None);
         assert_eq!(ros_type_name("a::msg::dds_::_"), None);
+        assert_eq!(ros_type_name("..::msg::dds_::x_"), None);
+        assert_eq!(ros_type_name("a/../../etc::msg::dds_::passwd_"), None);
+        assert_eq!(ros_type_name("a::msg::dds_::b/c_"), None);
         assert_eq!(
             service_type_name("example_interfaces::srv::dds_::AddTwoInts_Request_"),
             "example_interfaces::srv::dds_::AddTwoInts_"

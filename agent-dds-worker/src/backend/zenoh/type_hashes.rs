@@ -171,6 +171,11 @@ impl TypeHashes {
 
 fn read_bounded(path: &Path) -> Result<String, String> {
     use std::io::Read as _;
+    // A regular file only: opening a FIFO would block the worker.
+    let meta = std::fs::metadata(path).map_err(|e| e.to_string())?;
+    if !meta.is_file() {
+        return Err("not a regular file".into());
+    }
     let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
     let mut text = String::new();
     file.take(MAX_FILE)

@@ -35,6 +35,64 @@ pub struct DdsReader {
     thread: Option<std::thread::JoinHandle<Result<(), String>>>,
 }
 
+/// What a reader counted so far: which measured samples and probes it saw, and when.
+pub struct Tally {
+    seen: Vec<bool>,
+    heard: Vec<bool>,
+    probes: Arc<AtomicUsize>,
+    counts: DdsCounts,
+}
+
+impl Tally {
+    fn new(samples: u32, publishers: usize, probes: Arc<AtomicUsize>) -> Result<Self, String> {
+        Ok(Tally {
+            seen: vec![false; samples as usize],
+            heard: vec![false; publishers + 1],
+            probes,
+            counts: DdsCounts {
+                received: 0,
+                duplicates: 0,
+                last_rx: None,
+                latencies: hdrhistogram::Histogram::new_with_bounds(1, 60_000_000_000, 3)
+                    .map_err(|e| e.to_string())?,
+            },
+        })
+    }
+
+    /// Counts one sample body (sequence number, send time relative to `base`, padding).
+    fn count(&mut self, body: &[u8], base: Instant) {
+        let now_ns = base.elapsed().as_nanos() as u64;
+        let (Some(seq), Some(ts)) = (body.get(..4), body.get(4..12)) else {
+            return;
+        };
+        let seq = u32::from_le_bytes([seq[0], seq[1], seq[2], seq[3]]);
+        let publishers = self.heard.len() - 1;
+        if is_probe(seq, publishers) {
+            let i = (u32::MAX - seq) as usize;
+            if i < self.heard.len() && !self.heard[i] {
+                self.heard[i] = true;
+                self.probes.fetch_add(1, Ordering::Relaxed);
+            }
+            return;
+        }
+        let Some(slot) = self.seen.get_mut(seq as usize) else {
+            return;
+        };
+        let c = &mut self.counts;
+        if *slot {
+            c.duplicates += 1;
+            return;
+        }
+        *slot = true;
+        c.received += 1;
+        c.last_rx = Some(Instant::now());
+        let mut t = [0u8; 8];
+        t.copy_from_slice(ts);
+        let ns = now_ns.saturating_sub(u64::from_le_bytes(t)).max(1);
+        let _ = c.latencies.record(ns.min(60_000_000_000));
+    }
+}
+
 /// Probe samples carry `u32::MAX - publisher` as their sequence number.
 pub fn is_probe(seq: u32, publishers: usize) -> bool {
     seq > u32::MAX - publishers as u32 - 1
@@ -81,50 +139,80 @@ impl DdsReader {
                 .register(&mut reader, Token(0), Interest::READABLE)
                 .map_err(|e| e.to_string())?;
             let mut events = Events::with_capacity(8);
-            let mut seen = vec![false; samples as usize];
-            let mut heard = vec![false; publishers + 1];
-            let mut c = DdsCounts {
-                received: 0,
-                duplicates: 0,
-                last_rx: None,
-                latencies: hdrhistogram::Histogram::new_with_bounds(1, 60_000_000_000, 3)
-                    .map_err(|e| e.to_string())?,
-            };
+            let mut tally = Tally::new(samples, publishers, probes2)?;
             while !stop2.load(Ordering::Relaxed) {
                 let _ = poll.poll(&mut events, Some(Duration::from_millis(50)));
                 while let Ok(Some(s)) = reader.take_next_sample() {
-                    let now_ns = base.elapsed().as_nanos() as u64;
-                    let body = &s.value().body;
-                    let (Some(seq), Some(ts)) = (body.get(..4), body.get(4..12)) else {
-                        continue;
-                    };
-                    let seq = u32::from_le_bytes([seq[0], seq[1], seq[2], seq[3]]);
-                    if is_probe(seq, publishers) {
-                        let i = (u32::MAX - seq) as usize;
-                        if i < heard.len() && !heard[i] {
-                            heard[i] = true;
-                            probes2.fetch_add(1, Ordering::Relaxed);
-                        }
-                        continue;
-                    }
-                    let Some(slot) = seen.get_mut(seq as usize) else {
-                        continue;
-                    };
-                    if *slot {
-                        c.duplicates += 1;
-                        continue;
-                    }
-                    *slot = true;
-                    c.received += 1;
-                    c.last_rx = Some(Instant::now());
-                    let mut t = [0u8; 8];
-                    t.copy_from_slice(ts);
-                    let ns = now_ns.saturating_sub(u64::from_le_bytes(t)).max(1);
-                    let _ = c.latencies.record(ns.min(60_000_000_000));
+                    tally.count(&s.value().body, base);
                 }
             }
+            let c = tally.counts;
             if let Ok(mut g) = counts2.lock() {
                 *g = Some(c);
+            }
+            Ok(())
+        });
+        Ok(DdsReader {
+            stop,
+            probes,
+            counts,
+            thread: Some(thread),
+        })
+    }
+
+    /// Starts a Zenoh reader instead (`--zenoh-router`): a Zenoh router of its own listening
+    /// on `endpoint`, which an agent on `-m zenoh` connects to, subscribing to the load
+    /// topic's key in `domain` (`<domain>/LoadTopic/Load/*`: any type hash). Payloads carry
+    /// the CDR encapsulation header before the body.
+    pub fn start_zenoh(
+        endpoint: &str,
+        domain: u16,
+        samples: u32,
+        publishers: usize,
+        base: Instant,
+    ) -> Result<Self, String> {
+        use zenoh::Wait as _;
+        let stop = Arc::new(AtomicBool::new(false));
+        let probes = Arc::new(AtomicUsize::new(0));
+        let counts = Arc::new(Mutex::new(None));
+        let mut config = zenoh::Config::default();
+        for (k, v) in [
+            ("mode", "\"router\"".to_string()),
+            ("listen/endpoints", format!("[\"{endpoint}\"]")),
+            ("scouting/multicast/enabled", "false".to_string()),
+        ] {
+            config
+                .insert_json5(k, &v)
+                .map_err(|e| format!("Zenoh configuration {k}: {e}"))?;
+        }
+        let session = zenoh::open(config)
+            .wait()
+            .map_err(|e| format!("Zenoh router: {e}"))?;
+        let tally = Arc::new(Mutex::new(Tally::new(samples, publishers, probes.clone())?));
+        let in_callback = tally.clone();
+        let subscriber = session
+            .declare_subscriber(format!("{domain}/LoadTopic/Load/*"))
+            .callback(move |s: zenoh::sample::Sample| {
+                let payload = s.payload().to_bytes();
+                if let (Some(body), Ok(mut t)) = (payload.get(4..), in_callback.lock()) {
+                    t.count(body, base);
+                }
+            })
+            .wait()
+            .map_err(|e| format!("Zenoh subscriber: {e}"))?;
+        let (stop2, counts2) = (stop.clone(), counts.clone());
+        let thread = std::thread::spawn(move || -> Result<(), String> {
+            while !stop2.load(Ordering::Relaxed) {
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            drop(subscriber);
+            let _ = session.close().wait();
+            let t = Arc::try_unwrap(tally)
+                .map_err(|_| "the Zenoh reader's tally is still shared".to_string())?
+                .into_inner()
+                .map_err(|_| "Zenoh reader counts poisoned".to_string())?;
+            if let Ok(mut g) = counts2.lock() {
+                *g = Some(t.counts);
             }
             Ok(())
         });

@@ -169,11 +169,28 @@ pub struct Args {
     /// Count the samples that reach DDS with an independent RustDDS reader in this process.
     #[arg(long = "dds-reader", default_value_t = true, action = clap::ArgAction::Set)]
     pub dds_reader: bool,
+    /// Count the samples that reach Zenoh instead, for an agent on `-m zenoh` (give it with
+    /// `--agent-args "-m zenoh"`): the generator runs a Zenoh router listening on this
+    /// endpoint (e.g. `tcp/127.0.0.1:7447`), which the agent is told to connect to
+    /// (`ZENOH_CONFIG_OVERRIDE`, unless set already), and subscribes there.
+    #[arg(long = "zenoh-router", value_name = "ENDPOINT")]
+    pub zenoh_router: Option<String>,
 }
 
 fn main() -> Result<(), String> {
     let a = Args::parse();
     raise_fd_limit();
+    if let Some(endpoint) = &a.zenoh_router {
+        if std::env::var_os("ZENOH_CONFIG_OVERRIDE").is_none() {
+            // Before any thread starts: the agents this process starts inherit it.
+            std::env::set_var(
+                "ZENOH_CONFIG_OVERRIDE",
+                format!(
+                    "connect/endpoints=[\"{endpoint}\"];listen/endpoints=[\"tcp/127.0.0.1:0\"]"
+                ),
+            );
+        }
+    }
     if let Some(other) = &a.compare_with {
         return compare(&a, other);
     }

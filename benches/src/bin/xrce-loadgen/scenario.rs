@@ -125,7 +125,11 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
         .and_then(|a| a.settled_usage(Duration::from_secs(5)));
     let bodies = Bodies::new(a);
     let base = Instant::now();
-    let dds = if a.dds_reader && !a.null_agent {
+    let dds = if let (Some(endpoint), false) = (&a.zenoh_router, a.null_agent) {
+        Some(DdsReader::start_zenoh(
+            endpoint, domain, samples, publishers, base,
+        )?)
+    } else if a.dds_reader && !a.null_agent {
         Some(DdsReader::start(
             domain,
             "LoadTopic",
