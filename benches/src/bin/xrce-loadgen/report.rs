@@ -105,6 +105,9 @@ pub struct DdsReport {
     pub bytes_per_second: f64,
     /// Client → agent → DDS.
     pub latency_us: Percentiles,
+    /// Who counted: "DDS (independent RustDDS reader)" or "Zenoh (independent Zenoh
+    /// subscriber, through its router)".
+    pub counted_by: &'static str,
 }
 
 /// The agent's resource use in the measured phase.
@@ -208,7 +211,8 @@ pub fn print_report(report: &Report) {
     );
     if let Some(d) = &report.dds {
         println!(
-            "  into DDS (independent RustDDS reader): {} of {} = {:.0} samples/s ({:.1} MB/s), {} lost, {} duplicates; latency us: p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}",
+            "  into {}: {} of {} = {:.0} samples/s ({:.1} MB/s), {} lost, {} duplicates; latency us: p50 {:.0}  p90 {:.0}  p99 {:.0}  p99.9 {:.0}  max {:.0}",
+            d.counted_by,
             d.received,
             report.sent,
             d.samples_per_second,

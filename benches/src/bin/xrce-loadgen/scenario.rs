@@ -475,6 +475,11 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
                 samples_per_second: c.received as f64 / secs,
                 bytes_per_second: c.received as f64 * payload as f64 / secs,
                 latency_us: Percentiles::of(&c.latencies),
+                counted_by: if a.zenoh_router.is_some() {
+                    "Zenoh (independent Zenoh subscriber, through its router)"
+                } else {
+                    "DDS (independent RustDDS reader)"
+                },
             })
         }
         None => None,
