@@ -184,6 +184,10 @@ pub fn node_name(participant_name: &str) -> Option<NodeName> {
 pub struct DomainNodes {
     /// (node, writer GUIDs, reader GUIDs), in a stable order.
     pub nodes: Vec<(NodeName, Vec<Guid>, Vec<Guid>)>,
+    /// Which XRCE participant each node is (same order; a number stable while it lives), so
+    /// that a backend announcing nodes itself keeps a node's identity when another node of
+    /// the same name comes or goes. Empty where nobody needs it.
+    pub participants: Vec<u64>,
 }
 
 /// A domain's graph writer (with its publisher), its participant's GUID, and what it last
@@ -305,7 +309,7 @@ impl RosGraph {
             writer,
             _group: group,
             participant,
-            last: DomainNodes { nodes: vec![] },
+            last: DomainNodes::default(),
         })
     }
 
@@ -402,6 +406,7 @@ mod tests {
                 vec![[1; 16], [2; 16]],
                 vec![[3; 16]],
             )],
+            participants: vec![],
         };
         for (layout, n) in [(GidLayout::Octets24, 24), (GidLayout::Octets16, 16)] {
             let gid = |b: u8| {

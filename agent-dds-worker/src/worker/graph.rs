@@ -2,6 +2,14 @@
 
 use super::*;
 
+/// A number for an XRCE participant, stable while it lives (its key hashed).
+fn participant_number(key: &EntityKey) -> u64 {
+    use std::hash::{Hash as _, Hasher as _};
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    key.hash(&mut h);
+    h.finish()
+}
+
 impl Worker {
     /// Publishes the ROS graph in the `ros_discovery_info` layout of `distro` (24-octet GIDs
     /// for Humble, 16 for Iron and later). Called once before [`Worker::run`]; the worker's
@@ -88,16 +96,13 @@ impl Worker {
                 }
             }
         }
-        DomainNodes {
-            nodes: nodes
-                .into_iter()
-                .filter(|(k, _)| ros.contains(k))
-                .map(|(_, (n, mut w, mut r))| {
-                    w.sort();
-                    r.sort();
-                    (n, w, r)
-                })
-                .collect(),
+        let mut out = DomainNodes::default();
+        for (k, (n, mut w, mut r)) in nodes.into_iter().filter(|(k, _)| ros.contains(k)) {
+            w.sort();
+            r.sort();
+            out.nodes.push((n, w, r));
+            out.participants.push(participant_number(&k));
         }
+        out
     }
 }

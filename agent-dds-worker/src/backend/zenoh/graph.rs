@@ -21,9 +21,9 @@ pub(super) struct Endpoint {
     pub(super) qos: String,
 }
 
-/// A node as the worker lists it: namespace, name, and which of the domain's nodes of that
-/// name it is (two XRCE participants may carry one name).
-type NodeKey = (u16, String, String, usize);
+/// A node as the worker lists it: its domain and its XRCE participant's number (two
+/// participants may carry one name; each keeps its id while it lives).
+type NodeKey = (u16, u64);
 
 /// The tokens declared, by domain, and the ids given to nodes.
 #[derive(Default)]
@@ -44,14 +44,13 @@ impl Tokens {
         next_id: &mut u64,
     ) -> BTreeSet<String> {
         let mut wanted = BTreeSet::new();
-        let mut seen: HashMap<(String, String), usize> = HashMap::new();
         let mut live = BTreeSet::new();
-        for (node, writers, readers) in &nodes.nodes {
+        for (i, (node, writers, readers)) in nodes.nodes.iter().enumerate() {
             let (ns, name) = (node.namespace().to_string(), node.base_name().to_string());
-            let nth = seen.entry((ns.clone(), name.clone())).or_default();
-            let key = (domain, ns.clone(), name.clone(), *nth);
-            *nth += 1;
-            let id = *self.node_ids.entry(key.clone()).or_insert_with(|| {
+            // Without participants' numbers (not from the worker), the node's place.
+            let participant = nodes.participants.get(i).copied().unwrap_or(i as u64);
+            let key = (domain, participant);
+            let id = *self.node_ids.entry(key).or_insert_with(|| {
                 let id = *next_id;
                 *next_id += 1;
                 id
@@ -133,5 +132,83 @@ impl Tokens {
     pub(super) fn forget(&mut self, domain: u16) {
         self.declared.remove(&domain);
         self.node_ids.retain(|k, _| k.0 != domain);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ros_graph::node_name;
+
+    fn nodes(list: &[(&str, u64, Vec<Guid>)]) -> DomainNodes {
+        DomainNodes {
+            nodes: list
+                .iter()
+                .map(|(n, _, w)| (node_name(n).expect("name"), w.clone(), vec![]))
+                .collect(),
+            participants: list.iter().map(|(_, p, _)| *p).collect(),
+        }
+    }
+
+    #[test]
+    fn a_node_keeps_its_id_and_tokens_while_others_of_its_name_come_and_go() {
+        let mut t = Tokens::default();
+        let mut next = 100;
+        let publisher = Endpoint {
+            kind: EntityKind::Publisher,
+            id: 7,
+            name: "/chatter".into(),
+            type_name: "std_msgs::msg::dds_::String_".into(),
+            hash: "H".into(),
+            qos: "::,:,:,:,,".into(),
+        };
+        let endpoints: HashMap<Guid, Endpoint> = [([1; 16], publisher)].into_iter().collect();
+        let both = t.wanted(
+            3,
+            "z",
+            &nodes(&[
+                ("/robot/talker", 11, vec![]),
+                ("/robot/talker", 22, vec![[1; 16]]),
+            ]),
+            &endpoints,
+            &mut next,
+        );
+        assert_eq!(both.len(), 3, "{both:#?}");
+        assert!(both.contains("@ros2_lv/3/z/101/7/MP/%/%robot/talker/%chatter/std_msgs::msg::dds_::String_/H/::,:,:,:,,"));
+        // The first participant goes: the second keeps node id 101 and its tokens.
+        let one = t.wanted(
+            3,
+            "z",
+            &nodes(&[("/robot/talker", 22, vec![[1; 16]])]),
+            &endpoints,
+            &mut next,
+        );
+        assert!(one.is_subset(&both), "{one:#?}");
+        assert_eq!(one.len(), 2);
+        // It comes back as a new participant: a new id, never 100 again.
+        let again = t.wanted(
+            3,
+            "z",
+            &nodes(&[
+                ("/robot/talker", 33, vec![]),
+                ("/robot/talker", 22, vec![[1; 16]]),
+            ]),
+            &endpoints,
+            &mut next,
+        );
+        assert!(
+            again.contains("@ros2_lv/3/z/102/102/NN/%/%robot/talker"),
+            "{again:#?}"
+        );
+        assert!(!again.iter().any(|k| k.contains("/100/")));
+        // An endpoint the backend does not know (another backend's, or gone) has no token.
+        let unknown = t.wanted(
+            3,
+            "z",
+            &nodes(&[("/robot/talker", 22, vec![[9; 16]])]),
+            &endpoints,
+            &mut next,
+        );
+        assert_eq!(unknown.len(), 1);
     }
 }
