@@ -159,6 +159,41 @@ fn create_talker(c: &mut TestClient, flags: u16) -> (ObjectId, ObjectId) {
     (w, r)
 }
 
+/// The node `node` in DOMAIN with an AddTwoInts requester or replier (`kind`) on micro-ROS's
+/// topic names, an unlimited read started on it.
+fn create_adder(c: &mut TestClient, node: &str, kind: u8) -> ObjectId {
+    let p = ObjectId::new(1, k::PARTICIPANT);
+    let participant = ParticipantBinary {
+        domain_reference: None,
+        qos_profile_reference: Some(node.into()),
+    };
+    assert_eq!(
+        c.create_as(
+            p,
+            k::PARTICIPANT,
+            Representation::Binary(participant.encode(true)),
+            VariantExtra::DomainId(DOMAIN)
+        ),
+        status::OK
+    );
+    let element = if kind == k::REQUESTER {
+        "requester"
+    } else {
+        "replier"
+    };
+    let xml = format!(
+        "<dds><{element} profile_name=\"add\" service_name=\"/add_two_ints\" \
+         request_type=\"example_interfaces::srv::dds_::AddTwoInts_Request_\" \
+         reply_type=\"example_interfaces::srv::dds_::AddTwoInts_Response_\">\
+         <request_topic_name>rq/add_two_intsRequest</request_topic_name>\
+         <reply_topic_name>rr/add_two_intsReply</reply_topic_name></{element}></dds>"
+    );
+    let e = ObjectId::new(1, kind);
+    assert_eq!(c.create(e, kind, &xml, VariantExtra::Parent(p)), status::OK);
+    c.read_unlimited(e);
+    e
+}
+
 /// Waits until every one of `wanted` appears among the lines `peer` printed (kept in
 /// `lines`), pumping the client.
 fn wait_lines(
@@ -382,31 +417,7 @@ fn a_zenoh_client_calls_an_xrce_replier() {
     let g = start_graph("zenohsrv");
     let mut c = TestClient::new(g.agent.addr(), [0x2E, 0x40, 0x00, 0x02]);
     c.connect(10 * SECOND);
-    let p = ObjectId::new(1, k::PARTICIPANT);
-    let participant = ParticipantBinary {
-        domain_reference: None,
-        qos_profile_reference: Some("adder".into()),
-    };
-    assert_eq!(
-        c.create_as(
-            p,
-            k::PARTICIPANT,
-            Representation::Binary(participant.encode(true)),
-            VariantExtra::DomainId(DOMAIN)
-        ),
-        status::OK
-    );
-    let replier = ObjectId::new(1, k::REPLIER);
-    let xml = "<dds><replier profile_name=\"add\" service_name=\"/add_two_ints\" \
-        request_type=\"example_interfaces::srv::dds_::AddTwoInts_Request_\" \
-        reply_type=\"example_interfaces::srv::dds_::AddTwoInts_Response_\">\
-        <request_topic_name>rq/add_two_intsRequest</request_topic_name>\
-        <reply_topic_name>rr/add_two_intsReply</reply_topic_name></replier></dds>";
-    assert_eq!(
-        c.create(replier, k::REPLIER, xml, VariantExtra::Parent(p)),
-        status::OK
-    );
-    c.read_unlimited(replier);
+    let replier = create_adder(&mut c, "adder", k::REPLIER);
     let tokens = peer(&g, &["tokens", "--key", "@ros2_lv/**", "--timeout", "60"]);
     let server = format!("/SS/%/%/adder/%add_two_ints/{ADD_TWO_INTS}/{ADD_TWO_INTS_HASH}/");
     let mut token_lines = Vec::new();
@@ -541,31 +552,7 @@ fn an_xrce_requester_calls_a_zenoh_service() {
     );
     let mut c = TestClient::new(g.agent.addr(), [0x2E, 0x40, 0x00, 0x04]);
     c.connect(10 * SECOND);
-    let p = ObjectId::new(1, k::PARTICIPANT);
-    let participant = ParticipantBinary {
-        domain_reference: None,
-        qos_profile_reference: Some("caller".into()),
-    };
-    assert_eq!(
-        c.create_as(
-            p,
-            k::PARTICIPANT,
-            Representation::Binary(participant.encode(true)),
-            VariantExtra::DomainId(DOMAIN)
-        ),
-        status::OK
-    );
-    let requester = ObjectId::new(1, k::REQUESTER);
-    let xml = "<dds><requester profile_name=\"add\" service_name=\"/add_two_ints\" \
-        request_type=\"example_interfaces::srv::dds_::AddTwoInts_Request_\" \
-        reply_type=\"example_interfaces::srv::dds_::AddTwoInts_Response_\">\
-        <request_topic_name>rq/add_two_intsRequest</request_topic_name>\
-        <reply_topic_name>rr/add_two_intsReply</reply_topic_name></requester></dds>";
-    assert_eq!(
-        c.create(requester, k::REQUESTER, xml, VariantExtra::Parent(p)),
-        status::OK
-    );
-    c.read_unlimited(requester);
+    let requester = create_adder(&mut c, "caller", k::REQUESTER);
     // Three requests at once: the replies may come in any order, each to its request.
     let mut ids = std::collections::HashMap::new();
     for (a, b) in [(1i64, 2i64), (30, 12), (-5, 5)] {
