@@ -91,6 +91,15 @@ struct Queue {
     listed: bool,
 }
 
+/// What [`Inbox::push`] did.
+#[derive(Debug)]
+pub(super) struct Pushed {
+    /// The item is in the queue.
+    pub(super) queued: bool,
+    /// Older items given up for it.
+    pub(super) evicted: Vec<Result<Taken, BackendError>>,
+}
+
 /// One reader's queue.
 #[derive(Debug)]
 pub(super) struct Inbox {
@@ -124,17 +133,23 @@ impl Inbox {
         }
     }
 
-    /// Queues what arrived and wakes the worker if the reader was not listed yet.
-    pub(super) fn push(&self, item: Result<Taken, BackendError>) {
+    /// Queues what arrived and wakes the worker if the reader was not listed yet. Returns
+    /// whether it was queued, and what was given up for it (keep-last: the oldest), so that a
+    /// replier can let go of the queries of requests that will never be delivered.
+    pub(super) fn push(&self, item: Result<Taken, BackendError>) -> Pushed {
         let mut q = lock(&self.queue);
         let new = size(&item);
+        let mut evicted = Vec::new();
         if new > MAX_QUEUED_BYTES {
             self.dropped.fetch_add(1, Ordering::Relaxed);
             tracing::warn!(
                 bytes = new,
                 "a Zenoh sample larger than a reader's queue: dropped"
             );
-            return;
+            return Pushed {
+                queued: false,
+                evicted,
+            };
         }
         while q.items.len() >= self.capacity || q.bytes + new > MAX_QUEUED_BYTES {
             if self.dropped.fetch_add(1, Ordering::Relaxed) == 0 {
@@ -151,9 +166,17 @@ impl Inbox {
                 WhenFull::DropNewest => None,
             };
             match oldest {
-                Some(old) => q.bytes -= size(&old),
+                Some(old) => {
+                    q.bytes -= size(&old);
+                    evicted.push(old);
+                }
                 // Keep-all: the new one goes.
-                None => return,
+                None => {
+                    return Pushed {
+                        queued: false,
+                        evicted,
+                    }
+                }
             }
         }
         q.bytes += new;
@@ -161,6 +184,10 @@ impl Inbox {
         if !q.listed {
             q.listed = true;
             self.wakeup.notify(self.token);
+        }
+        Pushed {
+            queued: true,
+            evicted,
         }
     }
 

@@ -29,7 +29,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::os::fd::BorrowedFd;
 use std::rc::Rc;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
 use bytes::Bytes;
@@ -47,17 +47,16 @@ use crate::types::KeyDescriptor;
 mod graph;
 mod inbox;
 pub mod naming;
+mod services;
 pub mod session;
 pub mod type_hashes;
 
 use inbox::{lock, Inbox, Wakeup, WhenFull};
 use naming::{Attachment, EntityKind, RosName};
+use services::{PendingService, ServiceLink};
 
 /// How long a request waits for replies (rmw_zenoh's `queries_default_timeout`).
 const QUERY_TIMEOUT: Duration = Duration::from_secs(600);
-
-/// Requests a replier keeps waiting for their reply (the oldest are answered with nothing).
-const PENDING_QUERIES_MAX: usize = 4096;
 
 /// Largest reader queue, whatever history or resource limits a client asks for.
 const READER_QUEUE_MAX: usize = 10_000;
@@ -67,6 +66,8 @@ const READER_QUEUE_MAX: usize = 10_000;
 struct Dropped {
     queue_full: Arc<AtomicU64>,
     requests_without_attachment: AtomicU64,
+    requests_unqueued: AtomicU64,
+    requests_refused_in_flight: AtomicU64,
     replies_without_request: AtomicU64,
     pending_requests_evicted: AtomicU64,
 }
@@ -232,12 +233,12 @@ impl Zenoh {
     /// replier's. Anything else on those topics is refused: on Zenoh they exist only as the
     /// two halves of a service (a reader alone could never be answered, or answer).
     fn service_link(
-        &mut self,
+        pending: Option<PendingService>,
         domain: u16,
         service: &str,
         requester: bool,
     ) -> Result<Arc<ServiceLink>, BackendError> {
-        match self.last_service.take() {
+        match pending {
             Some(p) if p.domain == domain && p.service == service && p.requester == requester => {
                 Ok(p.link)
             }
@@ -263,29 +264,6 @@ impl DdsGroup for Group {
     fn as_any(&self) -> &dyn std::any::Any {
         self
     }
-}
-
-/// A service's writer waiting for its reader.
-struct PendingService {
-    domain: u16,
-    service: String,
-    requester: bool,
-    link: Arc<ServiceLink>,
-}
-
-/// What joins a requester's writer to its reader (replies) and a replier's reader to its
-/// writer (the queries its replies answer).
-#[derive(Default)]
-struct ServiceLink {
-    replies: Mutex<Option<Arc<Inbox>>>,
-    queries: Mutex<PendingQueries>,
-}
-
-/// Queries waiting for their reply, by the client's GID and sequence number.
-#[derive(Default)]
-struct PendingQueries {
-    by_id: HashMap<([u8; 16], i64), zenoh::query::Query>,
-    order: std::collections::VecDeque<([u8; 16], i64)>,
 }
 
 /// Removes an endpoint from the graph when it goes.
@@ -422,26 +400,35 @@ impl DdsWriter for Writer {
                     .map_err(zenoh_err("Zenoh put"))?;
             }
             Sender::Querier(querier, link) => {
+                let Some(in_flight) = link.start_request() else {
+                    self.dropped
+                        .requests_refused_in_flight
+                        .fetch_add(1, Ordering::Relaxed);
+                    return Err(BackendError::Dds(format!(
+                        "{} requests already wait for their replies in Zenoh",
+                        services::IN_FLIGHT_MAX
+                    )));
+                };
                 let link = link.clone();
-                let writer = self.gid;
+                // The request this query carries: its replies answer it, whatever a replier
+                // puts in their attachments.
+                let related = SampleIdentity {
+                    writer: self.gid,
+                    sequence_number: seq,
+                };
                 querier
                     .get()
                     .payload(payload(&sample))
                     .attachment(self.attachment(seq))
                     .callback(move |reply: zenoh::query::Reply| {
+                        let _in_flight = &in_flight;
                         let Ok(s) = reply.result() else { return };
                         let Some(inbox) = lock(&link.replies).clone() else {
                             return;
                         };
-                        let attachment = attachment_of(s.attachment());
-                        let related = attachment.map(|a| SampleIdentity {
-                            writer,
-                            sequence_number: a.sequence_number,
-                        });
-                        // The reply's own identity stays unknown: its attachment names the
-                        // request (the client's GID and sequence number), and replies may come
-                        // in any order, which the front-end would take for repeats.
-                        inbox.push(taken_of(&s.payload().to_bytes(), None, related));
+                        // The reply's own identity stays unknown: replies may come in any
+                        // order, which the front-end would take for repeats.
+                        inbox.push(taken_of(&s.payload().to_bytes(), None, Some(related)));
                     })
                     .wait()
                     .map_err(zenoh_err("Zenoh query"))?;
@@ -450,9 +437,7 @@ impl DdsWriter for Writer {
                 let related = related.ok_or(BackendError::InvalidInput(
                     "a reply without the request it answers".into(),
                 ))?;
-                let query = lock(&link.queries)
-                    .by_id
-                    .remove(&(related.writer, related.sequence_number));
+                let query = lock(&link.queries).take(&(related.writer, related.sequence_number));
                 let Some(query) = query else {
                     self.dropped
                         .replies_without_request
@@ -562,6 +547,8 @@ impl DdsBackend for Zenoh {
         qos: &EndpointQos,
         little_endian: bool,
     ) -> Result<Box<dyn DdsWriter>, BackendError> {
+        // A service's reader comes right after its writer: nothing older may pair.
+        self.last_service = None;
         let domain = Self::group_domain(group, true)?;
         let id = self.next_id();
         let gid = self.gid(id);
@@ -669,6 +656,8 @@ impl DdsBackend for Zenoh {
         qos: &EndpointQos,
         token: ReaderToken,
     ) -> Result<Box<dyn DdsReader>, BackendError> {
+        // Only the reader made right after a service's writer may pair with it.
+        let pending = self.last_service.take();
         let domain = Self::group_domain(group, false)?;
         let id = self.next_id();
         let gid = self.gid(id);
@@ -684,7 +673,7 @@ impl DdsBackend for Zenoh {
         let mut in_graph = true;
         let receiver = match name {
             RosName::Request(service) => {
-                let link = self.service_link(domain, &service, false)?;
+                let link = Self::service_link(pending, domain, &service, false)?;
                 let (inbox2, link2, dropped) = (inbox.clone(), link.clone(), self.dropped.clone());
                 let queryable = self
                     .session
@@ -698,29 +687,31 @@ impl DdsBackend for Zenoh {
                             return;
                         };
                         let body = query.payload().map(|p| p.to_bytes().to_vec());
-                        let taken = taken_of(&body.unwrap_or_default(), Some(a), None);
+                        let body = body.unwrap_or_default();
+                        let taken = match taken_of(&body, Some(a), None) {
+                            Ok(t) => t,
+                            Err(_) => {
+                                // Unreadable: the query ends unanswered at once.
+                                dropped.requests_unqueued.fetch_add(1, Ordering::Relaxed);
+                                return;
+                            }
+                        };
                         let id = (a.gid, a.sequence_number);
-                        {
-                            let mut q = lock(&link2.queries);
-                            if q.by_id.insert(id, query).is_none() {
-                                q.order.push_back(id);
-                            }
-                            while q.order.len() > PENDING_QUERIES_MAX {
-                                if let Some(old) = q.order.pop_front() {
-                                    if q.by_id.remove(&old).is_some() {
-                                        dropped
-                                            .pending_requests_evicted
-                                            .fetch_add(1, Ordering::Relaxed);
-                                    }
-                                }
-                            }
-                            // Answered ones leave `by_id` only; forget them in order too.
-                            if q.order.len() > 2 * q.by_id.len() + 64 {
-                                let PendingQueries { by_id, order } = &mut *q;
-                                order.retain(|k| by_id.contains_key(k));
-                            }
+                        // Kept before the request is queued: the worker may answer at once.
+                        let evicted = lock(&link2.queries).insert(id, body.len(), query);
+                        dropped
+                            .pending_requests_evicted
+                            .fetch_add(evicted as u64, Ordering::Relaxed);
+                        let pushed = inbox2.push(Ok(taken));
+                        let mut queries = lock(&link2.queries);
+                        if !pushed.queued {
+                            dropped.requests_unqueued.fetch_add(1, Ordering::Relaxed);
+                            queries.take(&id);
                         }
-                        inbox2.push(taken);
+                        // Requests given up for it will never be answered: let them go.
+                        for old in pushed.evicted.into_iter().flatten() {
+                            queries.take(&(old.identity.writer, old.identity.sequence_number));
+                        }
                     })
                     .wait()
                     .map_err(zenoh_err("Zenoh queryable"))?;
@@ -728,11 +719,18 @@ impl DdsBackend for Zenoh {
             }
             RosName::Reply(service) => {
                 in_graph = false;
-                let link = self.service_link(domain, &service, true)?;
+                let link = Self::service_link(pending, domain, &service, true)?;
                 *lock(&link.replies) = Some(inbox.clone());
                 Receiver::Replies(link)
             }
             _ => {
+                if let Some(p) = pending {
+                    tracing::warn!(
+                        service = %p.service,
+                        "a requester's or replier's reader is not on its rr/ or rq/ topic: \
+                         on Zenoh it cannot serve the service"
+                    );
+                }
                 let inbox2 = inbox.clone();
                 let builder = self
                     .session
@@ -833,6 +831,14 @@ impl DdsBackend for Zenoh {
             (
                 "zenoh_request_without_attachment",
                 d.requests_without_attachment.load(Ordering::Relaxed),
+            ),
+            (
+                "zenoh_request_not_queued",
+                d.requests_unqueued.load(Ordering::Relaxed),
+            ),
+            (
+                "zenoh_request_in_flight_refused",
+                d.requests_refused_in_flight.load(Ordering::Relaxed),
             ),
             (
                 "zenoh_reply_without_request",

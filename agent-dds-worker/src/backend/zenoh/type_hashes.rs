@@ -171,12 +171,16 @@ impl TypeHashes {
 
 fn read_bounded(path: &Path) -> Result<String, String> {
     use std::io::Read as _;
-    // A regular file only: opening a FIFO would block the worker.
-    let meta = std::fs::metadata(path).map_err(|e| e.to_string())?;
-    if !meta.is_file() {
+    use std::os::unix::fs::OpenOptionsExt as _;
+    // Opened without blocking (a FIFO would block the worker), then a regular file only.
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)
+        .map_err(|e| e.to_string())?;
+    if !file.metadata().map_err(|e| e.to_string())?.is_file() {
         return Err("not a regular file".into());
     }
-    let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
     let mut text = String::new();
     file.take(MAX_FILE)
         .read_to_string(&mut text)

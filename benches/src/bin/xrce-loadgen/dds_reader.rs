@@ -207,12 +207,17 @@ impl DdsReader {
             }
             drop(subscriber);
             let _ = session.close().wait();
-            let t = Arc::try_unwrap(tally)
-                .map_err(|_| "the Zenoh reader's tally is still shared".to_string())?
-                .into_inner()
-                .map_err(|_| "Zenoh reader counts poisoned".to_string())?;
+            // A callback that was running as the subscriber went may still hold the tally:
+            // take its counts under the lock.
+            let counts = {
+                let mut t = tally
+                    .lock()
+                    .map_err(|_| "Zenoh reader counts poisoned".to_string())?;
+                let empty = Tally::new(0, 0, Arc::new(AtomicUsize::new(0)))?;
+                std::mem::replace(&mut *t, empty).counts
+            };
             if let Ok(mut g) = counts2.lock() {
-                *g = Some(t.counts);
+                *g = Some(counts);
             }
             Ok(())
         });
