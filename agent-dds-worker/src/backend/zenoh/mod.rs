@@ -44,6 +44,7 @@ use super::{
 use crate::ros_graph::DomainNodes;
 use crate::types::KeyDescriptor;
 
+mod endpoints;
 mod graph;
 mod inbox;
 pub mod naming;
@@ -51,6 +52,7 @@ mod services;
 pub mod session;
 pub mod type_hashes;
 
+use endpoints::{attachment_of, taken_of};
 use inbox::{lock, Inbox, Wakeup, WhenFull};
 use naming::{Attachment, EntityKind, RosName};
 use services::{PendingService, ServiceLink};
@@ -200,6 +202,15 @@ impl Zenoh {
         Ok((name, key, endpoint))
     }
 
+    /// Puts an endpoint in the graph for as long as the returned entry lives.
+    fn graph_entry(&self, guid: Guid, endpoint: graph::Endpoint) -> GraphEntry {
+        self.endpoints.borrow_mut().insert(guid, endpoint);
+        GraphEntry {
+            guid,
+            endpoints: self.endpoints.clone(),
+        }
+    }
+
     fn group_domain(group: &dyn DdsGroup, publish: bool) -> Result<u16, BackendError> {
         match group.as_any().downcast_ref::<Group>() {
             Some(g) if g.publish == publish => Ok(g.domain),
@@ -278,59 +289,23 @@ impl Drop for GraphEntry {
     }
 }
 
-fn now_ns() -> i64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
-        .unwrap_or(0)
-}
-
-/// The payload rmw_zenoh sends: the CDR encapsulation header, then the body.
-fn payload(sample: &Sample) -> Vec<u8> {
-    let mut p = Vec::with_capacity(4 + sample.body.len());
-    p.extend_from_slice(&sample.encoding.0);
-    p.extend_from_slice(&[0, 0]);
-    p.extend_from_slice(&sample.body);
-    p
-}
-
-/// A received payload as a sample: its encapsulation header read, the body after it.
-fn sample_of(payload: &[u8]) -> Result<Sample, BackendError> {
-    match payload {
-        [a, b, _, _, body @ ..] => Ok(Sample {
-            encoding: Encoding([*a, *b]),
-            body: Bytes::copy_from_slice(body),
-        }),
-        _ => Err(BackendError::InvalidInput(format!(
-            "a Zenoh payload of {} bytes, shorter than a CDR encapsulation header",
-            payload.len()
-        ))),
+/// The history a transient-local publisher caches, or subscriber asks for: its depth
+/// (keep-all: [`super::qos::KEEP_ALL_READER_SAMPLES`]), at most [`READER_QUEUE_MAX`], so that
+/// a client's QoS cannot make the worker cache without bound.
+fn history_depth(qos: &EndpointQos) -> usize {
+    match qos.history {
+        History::KeepLast(d) => usize::try_from(d).unwrap_or(1),
+        History::KeepAll => super::qos::KEEP_ALL_READER_SAMPLES as usize,
     }
+    .clamp(1, READER_QUEUE_MAX)
 }
 
-fn taken_of(
-    payload: &[u8],
-    attachment: Option<Attachment>,
-    related: Option<SampleIdentity>,
-) -> Result<Taken, BackendError> {
-    let sample = sample_of(payload)?;
-    let identity = attachment
-        .map(|a| SampleIdentity {
-            writer: a.gid,
-            sequence_number: a.sequence_number,
-        })
-        .unwrap_or_default();
-    Ok(Taken {
-        sample,
-        identity,
-        related,
-        disposed: false,
-        unregistered: false,
-    })
-}
-
-fn attachment_of(bytes: Option<&zenoh::bytes::ZBytes>) -> Option<Attachment> {
-    bytes.and_then(|b| Attachment::decode(&b.to_bytes()))
+/// Counts one drop in `counter` and says so in the log on the first one (the counter, in the
+/// worker's status and metrics, tells how many followed).
+fn count_drop(counter: &AtomicU64, what: &str) {
+    if counter.fetch_add(1, Ordering::Relaxed) == 0 {
+        tracing::warn!("{what} (further ones counted in the worker's status)");
+    }
 }
 
 /// How a writer sends.
@@ -354,142 +329,6 @@ struct Writer {
     dropped: Arc<Dropped>,
 }
 
-impl Writer {
-    fn attachment(&self, sequence_number: i64) -> zenoh::bytes::ZBytes {
-        let a = Attachment {
-            sequence_number,
-            source_timestamp: now_ns(),
-            gid: self.gid,
-        };
-        zenoh::bytes::ZBytes::from(a.encode().to_vec())
-    }
-}
-
-impl DdsWriter for Writer {
-    fn guid(&self) -> Guid {
-        self.gid
-    }
-    fn topic_name(&self) -> &str {
-        &self.topic_name
-    }
-    fn little_endian(&self) -> bool {
-        self.little_endian
-    }
-    fn key(&self) -> Option<&Arc<KeyDescriptor>> {
-        self.key.as_ref()
-    }
-    fn write(&self, sample: Sample) -> Result<(), BackendError> {
-        self.write_identified(sample, None).map(drop)
-    }
-    fn dispose(&self, _sample: &Sample) -> Result<(), BackendError> {
-        Err(BackendError::Unsupported(
-            "Zenoh has no instances to dispose (ROS topics have no keys)",
-        ))
-    }
-    fn write_identified(
-        &self,
-        sample: Sample,
-        related: Option<SampleIdentity>,
-    ) -> Result<SampleIdentity, BackendError> {
-        let seq = self.seq.get() + 1;
-        match &self.sender {
-            Sender::Publisher(p) => {
-                p.put(payload(&sample))
-                    .attachment(self.attachment(seq))
-                    .wait()
-                    .map_err(zenoh_err("Zenoh put"))?;
-            }
-            Sender::Querier(querier, link) => {
-                let Some(in_flight) = link.start_request() else {
-                    self.dropped
-                        .requests_refused_in_flight
-                        .fetch_add(1, Ordering::Relaxed);
-                    return Err(BackendError::Dds(format!(
-                        "{} requests already wait for their replies in Zenoh",
-                        services::IN_FLIGHT_MAX
-                    )));
-                };
-                let link = link.clone();
-                // The request this query carries: its replies answer it, whatever a replier
-                // puts in their attachments.
-                let related = SampleIdentity {
-                    writer: self.gid,
-                    sequence_number: seq,
-                };
-                querier
-                    .get()
-                    .payload(payload(&sample))
-                    .attachment(self.attachment(seq))
-                    .callback(move |reply: zenoh::query::Reply| {
-                        let _in_flight = &in_flight;
-                        let Ok(s) = reply.result() else { return };
-                        let Some(inbox) = lock(&link.replies).clone() else {
-                            return;
-                        };
-                        // The reply's own identity stays unknown: replies may come in any
-                        // order, which the front-end would take for repeats.
-                        inbox.push(taken_of(&s.payload().to_bytes(), None, Some(related)));
-                    })
-                    .wait()
-                    .map_err(zenoh_err("Zenoh query"))?;
-            }
-            Sender::Replies(key, link) => {
-                let related = related.ok_or(BackendError::InvalidInput(
-                    "a reply without the request it answers".into(),
-                ))?;
-                let query = lock(&link.queries).take(&(related.writer, related.sequence_number));
-                let Some(query) = query else {
-                    self.dropped
-                        .replies_without_request
-                        .fetch_add(1, Ordering::Relaxed);
-                    tracing::debug!(
-                        seq = related.sequence_number,
-                        "a reply to a request no longer waiting (answered, timed out or \
-                         evicted): dropped"
-                    );
-                    return Ok(SampleIdentity {
-                        writer: self.gid,
-                        sequence_number: seq,
-                    });
-                };
-                let a = Attachment {
-                    sequence_number: related.sequence_number,
-                    source_timestamp: now_ns(),
-                    gid: related.writer,
-                };
-                query
-                    .reply(key.clone(), payload(&sample))
-                    .attachment(zenoh::bytes::ZBytes::from(a.encode().to_vec()))
-                    .wait()
-                    .map_err(zenoh_err("Zenoh reply"))?;
-            }
-        }
-        self.seq.set(seq);
-        Ok(SampleIdentity {
-            writer: self.gid,
-            sequence_number: seq,
-        })
-    }
-    fn all_acknowledged(&self) -> bool {
-        // Zenoh has no acknowledgements to wait for: a put is done once sent.
-        true
-    }
-    fn writes(&self) -> u64 {
-        u64::try_from(self.seq.get()).unwrap_or(0)
-    }
-    fn acknowledged_writes(&self) -> u64 {
-        self.writes()
-    }
-    fn matched_readers(&self) -> usize {
-        let matching = match &self.sender {
-            Sender::Publisher(p) => p.matching_status().wait().map(|m| m.matching()),
-            Sender::Querier(q, _) => q.matching_status().wait().map(|m| m.matching()),
-            Sender::Replies(..) => Ok(true),
-        };
-        usize::from(matching.unwrap_or(false))
-    }
-}
-
 /// What keeps a reader's Zenoh side alive.
 enum Receiver {
     Subscriber(#[allow(dead_code)] zenoh_ext::AdvancedSubscriber<()>),
@@ -503,23 +342,6 @@ struct Reader {
     gid: Guid,
     receiver: Receiver,
     _graph: Option<GraphEntry>,
-}
-
-impl Drop for Reader {
-    fn drop(&mut self) {
-        if let Receiver::Replies(link) = &self.receiver {
-            lock(&link.replies).take();
-        }
-    }
-}
-
-impl DdsReader for Reader {
-    fn guid(&self) -> Guid {
-        self.gid
-    }
-    fn take_next(&mut self) -> Result<Option<Taken>, BackendError> {
-        self.inbox.pop().transpose()
-    }
 }
 
 impl DdsBackend for Zenoh {
@@ -608,10 +430,7 @@ impl DdsBackend for Zenoh {
                     })
                     .advanced();
                 let publisher = if qos.durability != Durability::Volatile {
-                    let depth = match qos.history {
-                        History::KeepLast(d) => usize::try_from(d).unwrap_or(1).max(1),
-                        History::KeepAll => super::qos::KEEP_ALL_READER_SAMPLES as usize,
-                    };
+                    let depth = history_depth(qos);
                     let b = builder
                         .cache(zenoh_ext::CacheConfig::default().max_samples(depth))
                         .publisher_detection();
@@ -630,13 +449,7 @@ impl DdsBackend for Zenoh {
                 Sender::Publisher(publisher.map_err(zenoh_err("Zenoh publisher"))?)
             }
         };
-        let graph = in_graph.then(|| {
-            self.endpoints.borrow_mut().insert(gid, endpoint);
-            GraphEntry {
-                guid: gid,
-                endpoints: self.endpoints.clone(),
-            }
-        });
+        let graph = in_graph.then(|| self.graph_entry(gid, endpoint));
         Ok(Box::new(Writer {
             sender,
             gid,
@@ -681,9 +494,10 @@ impl DdsBackend for Zenoh {
                     .complete(true)
                     .callback(move |query: zenoh::query::Query| {
                         let Some(a) = attachment_of(query.attachment()) else {
-                            dropped
-                                .requests_without_attachment
-                                .fetch_add(1, Ordering::Relaxed);
+                            count_drop(
+                                &dropped.requests_without_attachment,
+                                "a Zenoh request without rmw_zenoh's attachment: not answered",
+                            );
                             return;
                         };
                         let body = query.payload().map(|p| p.to_bytes().to_vec());
@@ -692,20 +506,33 @@ impl DdsBackend for Zenoh {
                             Ok(t) => t,
                             Err(_) => {
                                 // Unreadable: the query ends unanswered at once.
-                                dropped.requests_unqueued.fetch_add(1, Ordering::Relaxed);
+                                count_drop(
+                                    &dropped.requests_unqueued,
+                                    "an unreadable Zenoh request: not answered",
+                                );
                                 return;
                             }
                         };
                         let id = (a.gid, a.sequence_number);
                         // Kept before the request is queued: the worker may answer at once.
                         let evicted = lock(&link2.queries).insert(id, body.len(), query);
-                        dropped
-                            .pending_requests_evicted
-                            .fetch_add(evicted as u64, Ordering::Relaxed);
+                        if evicted > 0 {
+                            count_drop(
+                                &dropped.pending_requests_evicted,
+                                "a replier holds 4,096 requests (or 64 MiB) waiting for replies: \
+                                 the oldest go unanswered",
+                            );
+                            dropped
+                                .pending_requests_evicted
+                                .fetch_add(evicted as u64 - 1, Ordering::Relaxed);
+                        }
                         let pushed = inbox2.push(Ok(taken));
                         let mut queries = lock(&link2.queries);
                         if !pushed.queued {
-                            dropped.requests_unqueued.fetch_add(1, Ordering::Relaxed);
+                            count_drop(
+                                &dropped.requests_unqueued,
+                                "a Zenoh request dropped by its replier's full queue: not answered",
+                            );
                             queries.take(&id);
                         }
                         // Requests given up for it will never be answered: let them go.
@@ -741,10 +568,7 @@ impl DdsBackend for Zenoh {
                     })
                     .advanced();
                 let subscriber = if qos.durability != Durability::Volatile {
-                    let depth = match qos.history {
-                        History::KeepLast(d) => usize::try_from(d).unwrap_or(1).max(1),
-                        History::KeepAll => super::qos::KEEP_ALL_READER_SAMPLES as usize,
-                    };
+                    let depth = history_depth(qos);
                     let b = builder
                         .history(
                             zenoh_ext::HistoryConfig::default()
@@ -765,13 +589,7 @@ impl DdsBackend for Zenoh {
                 Receiver::Subscriber(subscriber.map_err(zenoh_err("Zenoh subscriber"))?)
             }
         };
-        let graph = in_graph.then(|| {
-            self.endpoints.borrow_mut().insert(gid, endpoint);
-            GraphEntry {
-                guid: gid,
-                endpoints: self.endpoints.clone(),
-            }
-        });
+        let graph = in_graph.then(|| self.graph_entry(gid, endpoint));
         Ok(Box::new(Reader {
             inbox,
             gid,
