@@ -9,9 +9,13 @@
 //! use while at least one XRCE participant lives in it; when the last one is deleted the
 //! worker releases the domain's DDS participants, so its threads and sockets go back.
 //!
-//! A refusal is answered `STATUS_ERR_DENIED` (a domain outside `--domains`) or
-//! `STATUS_ERR_RESOURCES` (the cap), counted (`domain_denied`, `domains_refused`) and logged
-//! once per episode ([`crate::episodes`]).
+//! A domain whose discovery multicast port a front-end serves XRCE on (`-p 22150` is domain
+//! 59's) cannot have a DDS participant that discovers by multicast: it is refused too, and
+//! the agent serves every other domain, as MicroXRCEAgent does on such a port.
+//!
+//! A refusal is answered `STATUS_ERR_DENIED` (a domain outside `--domains`, or one whose
+//! discovery port is taken) or `STATUS_ERR_RESOURCES` (the cap), counted (`domain_denied`,
+//! `domain_port_clash`, `domains_refused`) and logged once per episode ([`crate::episodes`]).
 
 use std::collections::BTreeMap;
 use std::fmt;
@@ -122,6 +126,9 @@ pub struct DomainPolicy {
     pub allowed: Option<DomainSet>,
     /// At most this many distinct domains in use at once (None: no cap).
     pub max_in_use: Option<usize>,
+    /// Domains DDS cannot serve, with why (their discovery multicast port is an XRCE port
+    /// of this agent: [`crate::backend::ports::unservable_domains`]).
+    pub unservable: BTreeMap<u16, String>,
 }
 
 impl Default for DomainPolicy {
@@ -130,6 +137,7 @@ impl Default for DomainPolicy {
         DomainPolicy {
             allowed: None,
             max_in_use: Some(DEFAULT_MAX_DOMAINS),
+            unservable: BTreeMap::new(),
         }
     }
 }
@@ -147,6 +155,7 @@ impl DomainPolicy {
         DomainPolicy {
             allowed,
             max_in_use,
+            unservable: BTreeMap::new(),
         }
     }
 }
@@ -175,13 +184,23 @@ pub enum DomainRefusal {
         /// The cap.
         max: usize,
     },
+    /// DDS cannot serve the domain on this host while the agent serves XRCE where it is.
+    #[error("domain {domain} cannot be served: {why}")]
+    PortClash {
+        /// The domain asked for.
+        domain: u16,
+        /// The clash, with the ways out.
+        why: String,
+    },
 }
 
 impl DomainRefusal {
     /// The XRCE status a refused CREATE gets.
     pub fn status(&self) -> u8 {
         match self {
-            DomainRefusal::NotAllowed { .. } => status::ERR_DENIED,
+            DomainRefusal::NotAllowed { .. } | DomainRefusal::PortClash { .. } => {
+                status::ERR_DENIED
+            }
             DomainRefusal::TooMany { .. } => status::ERR_RESOURCES,
         }
     }
@@ -191,6 +210,7 @@ impl DomainRefusal {
         match self {
             DomainRefusal::NotAllowed { .. } => "domain_denied",
             DomainRefusal::TooMany { .. } => "domains_refused",
+            DomainRefusal::PortClash { .. } => "domain_port_clash",
         }
     }
 }
@@ -225,6 +245,12 @@ impl Domains {
                     allowed: allowed.to_string(),
                 });
             }
+        }
+        if let Some(why) = self.policy.unservable.get(&domain) {
+            return Err(DomainRefusal::PortClash {
+                domain,
+                why: why.clone(),
+            });
         }
         match self.policy.max_in_use {
             Some(max) if self.users.len() >= max => Err(DomainRefusal::TooMany {

@@ -208,6 +208,9 @@ fn serve<T: Transport>(
         discovery_left = discovery.as_mut().is_some_and(Discovery::answer_pending);
         relay.apply_replies(now, &mut agent);
         inbox.deliver(now, relay, &mut agent, replies_ready, announce_ready);
+        if relay.take_generation_change() {
+            agent.announce_streams(now);
+        }
         relay.resume_reads(&agent);
         if transport.poll_timeout().is_some_and(|t| t <= now) {
             transport.handle_timeout(now);

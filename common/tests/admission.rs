@@ -348,3 +348,39 @@ fn a_claim_answered_by_a_client_new_at_the_old_port_goes_through_once_it_creates
     assert_eq!(statuses(&drain(&mut agent)), [(ELSEWHERE, status::OK)]);
     assert_eq!(agent.stats().dropped("takeover_refused"), 0);
 }
+
+/// A board that reset and came back from a new port asks once and waits (eProsima's client:
+/// a second for STATUS_AGENT): once the probe of the session's old endpoint went unanswered
+/// for the probe wait, the core answers that CREATE_CLIENT itself, without waiting for the
+/// client's next attempt.
+#[test]
+fn a_claim_whose_probe_goes_unanswered_is_granted_without_a_retry() {
+    let (mut agent, mut rec, t0) = agent_with(Admission::default());
+    let ms = |n| t0 + Duration::from_millis(n);
+    agent.handle_datagram(ms(0), ELSEWHERE, &create_client(KEY), &mut rec);
+    assert!(statuses(&drain(&mut agent)).is_empty(), "answered before probing");
+    let due = agent.poll_timeout().expect("the claim's timer");
+    assert!(due <= ms(300), "due {:?} after the claim", due - t0);
+    agent.handle_timeout(ms(200), &mut rec);
+    assert!(statuses(&drain(&mut agent)).is_empty(), "answered too early");
+    agent.handle_timeout(ms(300), &mut rec);
+    assert_eq!(statuses(&drain(&mut agent)), [(ELSEWHERE, status::OK)]);
+    // The session moved: the client's writes from its new port are taken.
+    agent.handle_datagram(ms(310), ELSEWHERE, &write(0, b"after the reset"), &mut rec);
+    assert_eq!(rec.writes, [b"after the reset".to_vec()]);
+}
+
+#[test]
+fn a_claim_whose_probe_is_answered_is_not_granted_by_the_timer() {
+    let (mut agent, mut rec, t0) = agent_with(Admission::default());
+    let ms = |n| t0 + Duration::from_millis(n);
+    agent.handle_datagram(ms(0), ELSEWHERE, &create_client(KEY), &mut rec);
+    drain(&mut agent);
+    agent.handle_datagram(ms(50), HOME, &write(0, b"alive"), &mut rec);
+    drain(&mut agent);
+    agent.handle_timeout(ms(300), &mut rec);
+    let out = drain(&mut agent);
+    assert!(statuses(&out).is_empty(), "the session moved from a live client");
+    // And the claim's timer does not fire again and again.
+    assert!(agent.poll_timeout().is_none_or(|t| t > ms(300)));
+}

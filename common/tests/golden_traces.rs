@@ -41,6 +41,11 @@ fn datagrams() -> Vec<(String, String, Vec<u8>)> {
     out
 }
 
+/// Traces of clients that do not clear their buffers: the alignment padding of their messages
+/// carries leftover bytes (micro-ROS's second round of CREATEs), so only the meaning
+/// round-trips there.
+const UNCLEARED_PADDING: [&str; 1] = ["microros-reset.txt"];
+
 #[test]
 fn every_captured_datagram_round_trips() {
     let all = datagrams();
@@ -68,6 +73,15 @@ fn every_captured_datagram_round_trips() {
             bytes.len(),
             again.len()
         );
+        if UNCLEARED_PADDING.contains(&file.as_str()) && bytes[..again.len()] != again[..] {
+            // Only padding differs: our encoder writes zeros there.
+            assert_eq!(
+                Message::decode(&again).expect("decode again"),
+                msg,
+                "{file} {dir}: re-encoding changes the message"
+            );
+            continue;
+        }
         assert_eq!(
             &bytes[..again.len()],
             &again[..],

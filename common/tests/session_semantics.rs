@@ -14,6 +14,9 @@ use xrce_common::wire::*;
 #[path = "session_semantics/sizes_and_pacing.rs"]
 mod sizes_and_pacing;
 
+#[path = "session_semantics/lifecycle.rs"]
+mod lifecycle;
+
 /// What the core asked of the DDS side, owned.
 #[derive(Debug, Clone, PartialEq, Eq)]
 enum Op {

@@ -158,8 +158,9 @@ fn worker_settings(
         base.dds_interfaces = dds_interfaces.to_vec();
     }
     // The UDP ports the front-ends serve: DDS leaves them alone (a well-known DDS port,
-    // such as RTI's default XRCE port 7401, domain 0's user multicast port, is moved off),
-    // and one it cannot leave is refused here, before anything starts.
+    // such as RTI's default XRCE port 7401, domain 0's user multicast port, is moved off);
+    // one it cannot leave, a domain's discovery multicast port, costs that domain only (the
+    // worker warns at start and refuses the domain's participants).
     let udp_ports: Vec<u16> = frontends
         .iter()
         .filter_map(|f| match f {
@@ -175,13 +176,6 @@ fn worker_settings(
         reserved_ports: ReservedPorts::new(udp_ports.iter().copied()),
         zenoh: Default::default(),
     };
-    // Zenoh does not use the UDP ports of DDS.
-    if !udp_ports.is_empty() && base.dds_backend != BackendKind::Zenoh {
-        let allowed = base.domains.clone();
-        xrce_dds_worker::backend::check_reserved_ports(&dds, &udp_ports, |d| {
-            allowed.as_ref().is_none_or(|s| s.contains(d))
-        })?;
-    }
     base.reserved_ports = dds.reserved_ports.clone();
     if !base.dds_interfaces.is_empty() {
         // The worker refuses to run unconfined; refused here too, before any process starts.

@@ -8,6 +8,9 @@ Subcommands:
                                         built-in publication/subscription topics
   --keyed (both)                        use the keyed ShapesDemoTypes::ShapeType {@key string
                                         color; long x, y, shapesize} instead of HelloWorld
+  --ros-string (read, write)            use ROS 2's std_msgs/String (std_msgs::msg::dds_::String_
+                                        {string data}), what micro-ROS's talker publishes; a
+                                        sample's index is the number that ends its text
 
 Output protocol (stdout, one line each, flushed):
   READY                  reader (read) / writer (write) exists
@@ -66,6 +69,8 @@ def parse_args(argv):
                         help="read or write in this partition (default: the default partition)")
     common.add_argument("--keyed", action="store_true",
                         help="keyed ShapeType samples instead of HelloWorld")
+    common.add_argument("--ros-string", action="store_true",
+                        help="std_msgs::msg::dds_::String_ samples instead of HelloWorld")
     common.add_argument("--history", type=int, default=0,
                         help="KEEP_LAST depth (default: KEEP_ALL for read, --count for write)")
 
@@ -138,6 +143,18 @@ def main(argv=None):
         y: int32
         shapesize: int32
 
+    @dataclass
+    @annotate.final
+    class RosString(IdlStruct, typename="std_msgs::msg::dds_::String_"):
+        data: str
+
+    def as_hello(s):
+        """A sample as the HelloWorld lines print it (a ROS string's index ends its text)."""
+        if isinstance(s, HelloWorld):
+            return s.index, s.message
+        tail = s.data.rsplit(" ", 1)[-1]
+        return (int(tail) if tail.isdigit() else -1), s.data
+
     start = time.monotonic()
     deadline = start + args.timeout
 
@@ -153,7 +170,11 @@ def main(argv=None):
     dp = DomainParticipant(args.domain)
     if args.cmd == "graph":
         return graph(args, dp, remaining_ns)
-    topic = Topic(dp, args.topic, ShapeType if args.keyed else HelloWorld)
+    if args.keyed and args.ros_string:
+        eprint("error: --keyed and --ros-string exclude each other")
+        return EXIT_USAGE
+    sample_type = ShapeType if args.keyed else RosString if args.ros_string else HelloWorld
+    topic = Topic(dp, args.topic, sample_type)
     waitset = WaitSet(dp)
 
     if args.cmd == "read":
@@ -201,9 +222,10 @@ def main(argv=None):
                     if got >= args.count:
                         break
                     continue
-                if not isinstance(s, HelloWorld):  # invalid sample (e.g. dispose / no writers)
+                if not isinstance(s, (HelloWorld, RosString)):  # invalid (dispose, no writers)
                     continue
-                out(json.dumps({"index": int(s.index), "message": s.message,
+                index, message = as_hello(s)
+                out(json.dumps({"index": int(index), "message": message,
                                 "writer": int(s.sample_info.publication_handle)}))
                 got += 1
                 if got >= args.count:
@@ -221,8 +243,9 @@ def main(argv=None):
             linger_end = time.monotonic() + args.linger_ms / 1000.0
             while True:
                 for s in reader.take(N=64, condition=cond):
-                    if isinstance(s, HelloWorld):
-                        out(json.dumps({"index": int(s.index), "message": s.message,
+                    if isinstance(s, (HelloWorld, RosString)):
+                        index, message = as_hello(s)
+                        out(json.dumps({"index": int(index), "message": message,
                                         "writer": int(s.sample_info.publication_handle)}))
                 left = linger_end - time.monotonic()
                 if left <= 0:
@@ -271,6 +294,8 @@ def main(argv=None):
         if args.keyed:
             colors = args.colors.split(",")
             writer.write(ShapeType(color=colors[i % len(colors)], x=i, y=2 * i, shapesize=30))
+        elif args.ros_string:
+            writer.write(RosString(data=f"{args.message * args.message_repeat} {i}"))
         else:
             writer.write(HelloWorld(index=i, message=args.message * args.message_repeat))
         out(f"SENT {i}")

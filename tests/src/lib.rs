@@ -12,6 +12,7 @@ use std::sync::OnceLock;
 mod agent_process;
 mod client;
 mod dds_peer;
+pub mod impaired;
 pub mod link;
 pub use agent_process::*;
 pub use client::*;

@@ -65,6 +65,23 @@ impl Link {
         Link::Udp(socket)
     }
 
+    /// A UDP socket bound to exactly `local` (a port a client used before: a board whose
+    /// UDP stack always sends from the same port) connected to `agent`.
+    pub fn udp_at(agent: SocketAddr, local: SocketAddr) -> std::io::Result<Self> {
+        let socket = UdpSocket::bind(local)?;
+        socket.connect(agent)?;
+        socket.set_nonblocking(true)?;
+        Ok(Link::Udp(socket))
+    }
+
+    /// The local address of a UDP link.
+    pub fn local_udp_addr(&self) -> Option<SocketAddr> {
+        match self {
+            Link::Udp(s) => s.local_addr().ok(),
+            _ => None,
+        }
+    }
+
     /// A TCP connection to `agent`.
     pub fn tcp(agent: SocketAddr) -> std::io::Result<Self> {
         let stream = TcpStream::connect_timeout(&agent, Duration::from_secs(5))?;
@@ -211,7 +228,7 @@ fn wait_readable(fd: &impl AsFd, wait: Duration) -> bool {
     matches!(poll(&mut fds, PollTimeout::from(ms)), Ok(n) if n > 0)
 }
 
-fn set_nonblocking(file: &File) {
+pub(crate) fn set_nonblocking(file: &File) {
     use nix::fcntl::{fcntl, FcntlArg, OFlag};
     if let Ok(flags) = fcntl(file, FcntlArg::F_GETFL) {
         let flags = OFlag::from_bits_truncate(flags) | OFlag::O_NONBLOCK;

@@ -2,8 +2,11 @@
 //! defaults to port 7401, domain 0's user-data multicast port (RTPS: 7400 + 250 × domain + 1):
 //! served there, the agent's DDS used to fail to bind it at the first publisher
 //! (STATUS_ERR_DDS_ERROR), while eProsima's agent, whose Fast DDS listens for user data by
-//! unicast only, works. Now the port is served in both directions, and a port DDS cannot do
-//! without (7400, domain 0's discovery multicast port) is refused at start, saying why.
+//! unicast only, works. Now the port is served in both directions, and DDS's spare port for
+//! it stays off the ports nano-client binds by default (7402, 7403), so that client and agent
+//! share one host. A port DDS cannot do without (a domain's discovery multicast port: 7400,
+//! or `-p 22150`, domain 59's) costs that domain only, as with MicroXRCEAgent: the agent
+//! starts, says why at start, and refuses that domain's participants.
 //!
 //! The clash exists only where DDS uses multicast, which the rest of the suite never lets it
 //! do (DDS pinned to loopback). So each test runs its body in a private network namespace
@@ -17,9 +20,11 @@ use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
+use xrce_common::wire::{object_kind, status, ObjectId, VariantExtra};
 use xrce_tests::{
     binaries, cyclone_python, dds_backend, hello_world, output_within, parse_sample_line,
-    unique_instance, workspace, AgentProcess, DdsPeer, Deliveries, TestClient,
+    unique_instance,
+    workspace, xml, AgentProcess, DdsPeer, Deliveries, TestClient,
 };
 
 const SECOND: Duration = Duration::from_secs(1);
@@ -85,8 +90,8 @@ fn namespace_ready() -> bool {
 /// interface, as an independent DDS application on a LAN would run. It shares the agent's
 /// host, so domain 0's user-data multicast port is the XRCE port for it too: like any Cyclone
 /// DDS application beside an agent served on 7401, it receives user-data multicast on another
-/// port (offset 3: 7403 in domain 0; the agent's Cyclone takes offset 2), which it
-/// announces.
+/// port (offset 5: 7405 in domain 0; the agent's Cyclone takes offset 9, and 7402-7403 stay
+/// free for nano-client), which it announces.
 struct MulticastPeer {
     child: Child,
     lines: mpsc::Receiver<String>,
@@ -97,7 +102,7 @@ impl MulticastPeer {
         let xml = "<CycloneDDS><Domain id=\"any\"><General><Interfaces>\
                    <NetworkInterface name=\"lo\" multicast=\"true\"/></Interfaces>\
                    <AllowMulticast>true</AllowMulticast></General><Discovery><Ports>\
-                   <MulticastDataOffset>3</MulticastDataOffset></Ports></Discovery>\
+                   <MulticastDataOffset>5</MulticastDataOffset></Ports></Discovery>\
                    </Domain></CycloneDDS>";
         let mut child = Command::new(cyclone_python())
             .arg(workspace().join("tests/python/dds_peer.py"))
@@ -245,6 +250,17 @@ fn serves_a_publisher_and_a_subscriber(port: u16, domain: i16) {
         reader.wait_for("MATCHED 1", 30 * SECOND, || publ.step()),
         "the Cyclone reader never matched the agent's writer"
     );
+    // With the agent's DDS in the domain, the ports a nano-client on this host binds by
+    // default are free for it (exclusively, as it binds them).
+    if port == 7401 {
+        for client_port in [7402, 7403] {
+            let bound = std::net::UdpSocket::bind(("0.0.0.0", client_port));
+            assert!(
+                bound.is_ok(),
+                "UDP port {client_port}, nano-client's default, is taken: {bound:?}"
+            );
+        }
+    }
     let message = format!("on {port}");
     for i in 0..20 {
         publ.write_reliable(w, &hello_world(i, &message));
@@ -289,55 +305,48 @@ fn serves_a_publisher_and_a_subscriber(port: u16, domain: i16) {
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
-/// The supervisor refuses before it starts anything: it checks the UDP ports its front-ends
-/// will serve with `xrce_dds_worker::backend::check_reserved_ports` (and passes them to the
-/// worker in `XRCE_RESERVED_PORTS`).
+/// `-p 22150` is domain 59's discovery multicast port: MicroXRCEAgent serves every domain
+/// but 59 there, and so does this agent (it used to refuse to start). It warns at start,
+/// naming the clash and the ways out, and answers a participant in domain 59 STATUS_ERR_DENIED.
 #[test]
-fn discovery_port_7400_is_refused_at_start_naming_the_clash_and_the_way_out() {
+fn a_discovery_port_serves_every_domain_but_its_own() {
     if std::env::var_os(INSIDE).is_some() {
-        inner_discovery_port_7400_is_refused_at_start_naming_the_clash_and_the_way_out();
+        inner_a_discovery_port_serves_every_domain_but_its_own();
     } else {
-        in_private_network(
-            "discovery_port_7400_is_refused_at_start_naming_the_clash_and_the_way_out",
-        );
+        in_private_network("a_discovery_port_serves_every_domain_but_its_own");
     }
 }
 
-fn inner_discovery_port_7400_is_refused_at_start_naming_the_clash_and_the_way_out() {
+fn inner_a_discovery_port_serves_every_domain_but_its_own() {
     if !namespace_ready() {
         return;
     }
-    let backend = dds_backend();
-    let instance = unique_instance("clash7400");
-    let out = output_within(
-        Command::new(binaries().join("xrce-agent")).args([
-            "udp4",
-            "-p",
-            "7400",
-            "--dds-backend",
-            &backend,
-            "--instance",
-            &instance,
-        ]),
-        20 * SECOND,
-    );
-    let text =
-        String::from_utf8_lossy(&out.stderr).to_string() + &String::from_utf8_lossy(&out.stdout);
-    assert!(
-        !out.status.success(),
-        "started on domain 0's discovery port: {text}"
-    );
+    let agent = agent_on(22150, &[]);
+    let warning = agent
+        .output()
+        .wait_for(0, "DDS participants in domain 59 will be refused", 10 * SECOND)
+        .map(|(_, l)| l)
+        .expect("no warning at start about domain 59");
     for part in [
-        "UDP port 7400",
-        "domain 0's discovery multicast port",
+        "UDP port 22150",
+        "domain 59's discovery multicast port",
         "--dds-interface 127.0.0.1",
         "--domains",
     ] {
-        assert!(
-            text.contains(part),
-            "{part:?} missing from the refusal: {text}"
-        );
+        assert!(warning.contains(part), "{part:?} missing from: {warning}");
     }
+    let mut c = TestClient::new(agent.addr(), [0x74, 0x02, 0x00, 0x01]);
+    c.connect(10 * SECOND);
+    let refused = c.create(
+        ObjectId::new(9, object_kind::PARTICIPANT),
+        object_kind::PARTICIPANT,
+        xml::PARTICIPANT,
+        VariantExtra::DomainId(59),
+    );
+    assert_eq!(refused, status::ERR_DENIED, "a participant in domain 59");
+    // Every other domain is served: a whole publisher in domain 1 (each STATUS asserted OK).
+    c.setup_publisher(1);
+    assert!(agent.stop(), "agent did not stop cleanly");
 }
 
 #[test]

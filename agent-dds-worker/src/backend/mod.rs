@@ -159,20 +159,14 @@ pub fn check_zenoh(type_hashes: &[std::path::PathBuf]) -> anyhow::Result<()> {
     }
 }
 
-/// Refuses, before anything starts, UDP ports the front-ends are to serve (`reserved`) that
-/// DDS cannot leave to them: the discovery multicast port of a domain clients may use
-/// (`allowed`, e.g. from `--domains`) while DDS uses multicast (not confined to loopback).
-/// The error names the port, the domain and the ways out. Other well-known DDS ports are
-/// served (the backends move off them: [`ports`]). The worker learns the ports from its
-/// `--reserved-ports` ([`DdsConfig::reserved_ports`]).
-pub fn check_reserved_ports(
-    config: &DdsConfig,
-    reserved: &[u16],
-    allowed: impl Fn(u16) -> bool,
-) -> anyhow::Result<()> {
-    let reserved = ports::ReservedPorts::new(reserved.iter().copied());
-    ports::check_reserved(&reserved, &config.interfaces, allowed)
-        .map_err(|clash| anyhow::anyhow!("{clash}"))
+/// The domains DDS cannot serve with this configuration, with why: those whose discovery
+/// multicast port a front-end serves XRCE on ([`ports::unservable_domains`]; none with Zenoh,
+/// which uses no DDS port).
+pub fn unservable_domains(config: &DdsConfig) -> std::collections::BTreeMap<u16, String> {
+    if config.backend == BackendKind::Zenoh {
+        return Default::default();
+    }
+    ports::unservable_domains(&config.reserved_ports, &config.interfaces)
 }
 
 /// The backend `config` names, once [`check_config`] accepted the configuration.

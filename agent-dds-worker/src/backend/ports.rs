@@ -29,9 +29,10 @@
 //!   unicast. Either way the domain works and stays interoperable.
 //! * The discovery multicast port taken, with multicast in use (DDS not confined to loopback
 //!   addresses): the domain's participant could not hear the others' announcements, so it is
-//!   refused with a message that names the port and the way out ([`Clash`]); a supervisor
-//!   refuses such a configuration before it starts anything ([`check_reserved`]). Confined to
-//!   loopback, DDS discovers by unicast and binds no multicast port that matters.
+//!   refused with a message that names the port and the way out ([`Clash`]); when the port
+//!   is one the agent serves, the worker warns at start and refuses that domain's
+//!   participants ([`unservable_domains`]), and serves the others. Confined to loopback, DDS
+//!   discovers by unicast and binds no multicast port that matters.
 //! * The ports the front-ends serve ([`ReservedPorts`], [`super::DdsConfig::reserved_ports`]) are also
 //!   held by the worker while a participant is being made ([`PortGuard`]), so that DDS does
 //!   not take one that a front-end let go for a moment (a front-end being restarted): the
@@ -64,6 +65,14 @@ pub const D3: u32 = 11;
 /// Offsets within a domain's 250 ports that no participant of any domain uses by default:
 /// where Cyclone's user-data multicast goes when its own port is taken.
 pub const SPARE_OFFSETS: std::ops::RangeInclusive<u32> = 2..=9;
+
+/// Ports XRCE clients bind by default on the agent's host (SITL, a developer's laptop), which
+/// the spare user-data multicast port must not take: RTI's nano-client binds 7402
+/// (`NANO_XRCE_TRANSPORT_UDP_CLIENT_PORT_DEFAULT`) beside its agent's 7401, and its examples
+/// a second client on 7403. A Cyclone socket there (shared, with `SO_REUSEADDR`) makes the
+/// client's own exclusive bind fail. The spare offsets are also tried from the top (9 down
+/// to 2), away from the start of the range where such defaults sit.
+pub const CLIENT_DEFAULT_PORTS: [u16; 2] = [7402, 7403];
 
 /// What a well-known port is to its domain.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -249,7 +258,7 @@ impl fmt::Display for Clash {
                 self.port
             )?;
         }
-        let spare = port_at(d, *SPARE_OFFSETS.start()).unwrap_or(7402);
+        let spare = port_at(d, *SPARE_OFFSETS.end()).unwrap_or(7409);
         write!(
             f,
             ": a DDS participant in domain {d} must listen there to discover the others by \
@@ -316,35 +325,38 @@ pub fn plan(
     }
     if let Some(data) = port_at(domain, D2).filter(|p| taken(*p)) {
         out.user_multicast_taken = Some(data);
-        let spare = SPARE_OFFSETS;
-        out.data_multicast_offset = spare
-            .into_iter()
-            .find(|o| port_at(domain, *o).is_some_and(|p| !taken(p)));
+        out.data_multicast_offset = SPARE_OFFSETS.rev().find(|o| {
+            port_at(domain, *o).is_some_and(|p| !taken(p) && !CLIENT_DEFAULT_PORTS.contains(&p))
+        });
     }
     Ok(out)
 }
 
-/// Refuses reserved ports that are the discovery multicast port of a domain clients may use
-/// (`allowed`) while DDS uses multicast with these `interfaces`: what a supervisor checks
-/// before it starts anything, so that the operator learns of the clash at once instead of
-/// from a client's failed participant. Other clashes are not refused: [`plan`] serves them.
-pub fn check_reserved(
+/// The domains DDS cannot serve while the front-ends hold these reserved ports, with why:
+/// those whose discovery multicast port is one of them, while DDS uses multicast with these
+/// `interfaces`. The worker refuses their participants with STATUS_ERR_DENIED
+/// ([`crate::domains::DomainRefusal::PortClash`]) and serves every other domain, as
+/// MicroXRCEAgent does on such a port (`-p 22150` costs domain 59 only); it warns at start
+/// ([`log_reserved`]). Other clashes cost no domain: [`plan`] serves them.
+pub fn unservable_domains(
     reserved: &ReservedPorts,
     interfaces: &[IpAddr],
-    allowed: impl Fn(u16) -> bool,
-) -> Result<(), Clash> {
+) -> std::collections::BTreeMap<u16, String> {
     if !multicast_possible(interfaces) {
-        return Ok(());
+        return Default::default();
     }
-    for w in reserved.iter().filter_map(WellKnownPort::of) {
-        if w.role == PortRole::DiscoveryMulticast && allowed(w.domain) {
-            return Err(Clash {
+    reserved
+        .iter()
+        .filter_map(WellKnownPort::of)
+        .filter(|w| w.role == PortRole::DiscoveryMulticast)
+        .map(|w| {
+            let clash = Clash {
                 port: w,
                 ours: true,
-            });
-        }
-    }
-    Ok(())
+            };
+            (w.domain, clash.to_string())
+        })
+        .collect()
 }
 
 /// Whether a DDS multicast socket could bind `port` on the wildcard address of its family
@@ -529,22 +541,31 @@ mod tests {
         let r = ReservedPorts::new([7401]);
         let p = plan(0, &r, &[], free).expect("served");
         assert_eq!(p.user_multicast_taken, Some(7401));
-        assert_eq!(p.data_multicast_offset, Some(2));
+        // From the top of the spare offsets: 7409, away from nano-client's 7402 and 7403.
+        assert_eq!(p.data_multicast_offset, Some(9));
         assert_eq!(p.guarded, vec![7401]);
-        // The spare port taken too: the next one.
-        let r = ReservedPorts::new([8151, 8152]);
+        // The spare port taken too: the next one down.
+        let r = ReservedPorts::new([8151, 8159]);
         let p = plan(3, &r, &[ip("192.0.2.7")], free).expect("served");
         assert_eq!(
             (p.user_multicast_taken, p.data_multicast_offset),
-            (Some(8151), Some(3))
+            (Some(8151), Some(8))
         );
         // Held by someone else (not reserved): found by the probe.
         let p = plan(4, &ReservedPorts::default(), &[], |port| port != 8401).expect("served");
         assert_eq!(
             (p.user_multicast_taken, p.data_multicast_offset),
-            (Some(8401), Some(2))
+            (Some(8401), Some(9))
         );
         assert!(p.guarded.is_empty());
+        // In domain 0 the clients' default ports are never the spare, even when it is the
+        // last one left.
+        let r = ReservedPorts::new([7401, 7404, 7405, 7406, 7407, 7408, 7409]);
+        let p = plan(0, &r, &[], free).expect("served");
+        assert_eq!(
+            (p.user_multicast_taken, p.data_multicast_offset),
+            (Some(7401), None)
+        );
         // Other domains are untouched, and so is every domain confined to loopback.
         let r = ReservedPorts::new([7401]);
         let p = plan(1, &r, &[], free).expect("served");
@@ -579,7 +600,7 @@ mod tests {
             "serves XRCE",
             "domain 0's discovery multicast port",
             "-p",
-            "7402",
+            "7409",
             "--dds-interface 127.0.0.1",
             "--domains",
         ] {
@@ -592,11 +613,12 @@ mod tests {
         );
         // Confined to loopback, discovery goes by unicast: served.
         assert!(plan(0, &r, &[ip("127.0.0.1")], |_| false).is_ok());
-        // At start: refused only for a domain clients may use.
-        assert!(check_reserved(&r, &[], |_| true).is_err());
-        assert!(check_reserved(&r, &[], |d| d != 0).is_ok());
-        assert!(check_reserved(&r, &[ip("127.0.0.1")], |_| true).is_ok());
-        assert!(check_reserved(&ReservedPorts::new([7401, 7411]), &[], |_| true).is_ok());
+        // The worker's start: that domain only is unservable, and none confined to loopback.
+        let r = ReservedPorts::new([7400, 22150, 7401, 7411]);
+        let unservable = unservable_domains(&r, &[]);
+        assert_eq!(unservable.keys().copied().collect::<Vec<_>>(), vec![0, 59]);
+        assert!(unservable[&59].contains("UDP port 22150"), "{unservable:?}");
+        assert!(unservable_domains(&r, &[ip("127.0.0.1")]).is_empty());
     }
 
     #[test]

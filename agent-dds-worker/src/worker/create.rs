@@ -69,10 +69,17 @@ impl Worker {
         if self.frontends.adoption.claim(&key) && self.adopt(key, body, little_endian) {
             return Ok(());
         }
-        if self.entities.contains_key(&key) {
-            // The front-end decides creation modes; here an existing object is replaced.
+        // The front-end decides creation modes; here an existing object is replaced. A data
+        // writer's samples still held for its readers to match are carried to its successor
+        // (written once, in order, when it matched); what it wrote and its readers have not
+        // acknowledged is still delivered by its retiring DDS writer.
+        let carried = if self.entities.contains_key(&key) {
+            let carried = self.take_held(key);
             self.remove_subtree(key);
-        }
+            carried
+        } else {
+            Default::default()
+        };
         let repr = &variant.representation;
         let dds_err = OpError::from;
         let (parent, kind) = match (variant.kind, variant.extra) {
@@ -298,8 +305,18 @@ impl Worker {
                 )))
             }
         };
-        if matches!(&kind, EntityKind::Writer { rematch: r, .. } if r.until.is_some()) {
-            self.writers.holding.insert(key);
+        let mut kind = kind;
+        if let EntityKind::Writer { rematch, .. } = &mut kind {
+            if !carried.is_empty() {
+                rematch.held_bytes = carried.iter().map(|(_, s, _)| s.body.len()).sum();
+                rematch.held = carried;
+                rematch
+                    .until
+                    .get_or_insert_with(|| Instant::now() + NEW_WRITER_HOLD_MAX);
+            }
+            if rematch.until.is_some() {
+                self.writers.holding.insert(key);
+            }
         }
         let graph_change = matches!(
             &kind,
@@ -326,6 +343,21 @@ impl Worker {
             }
         }
         Ok(())
+    }
+
+    /// Takes the samples a data writer holds for its readers to match (none for another
+    /// kind of entity).
+    fn take_held(&mut self, key: EntityKey) -> std::collections::VecDeque<(u64, Sample, bool)> {
+        match self.entities.value_mut(&key) {
+            Some(Entity {
+                kind: EntityKind::Writer { rematch, .. },
+                ..
+            }) => {
+                rematch.held_bytes = 0;
+                std::mem::take(&mut rematch.held)
+            }
+            _ => Default::default(),
+        }
     }
 
     /// Counts (and logs once per episode) a content filter refused for its size; passes

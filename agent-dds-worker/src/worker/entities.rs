@@ -129,7 +129,19 @@ impl Worker {
             EntityKind::Participant { domain, .. } if self.domains.leave(domain) => {
                 self.release_domain(domain);
             }
-            EntityKind::Writer { writer, .. } => self.writers.release(writer),
+            EntityKind::Writer {
+                writer, mut rematch, ..
+            } => {
+                // Samples it still held for its readers to match go out now (a replaced
+                // writer's were carried to its successor before): the client was told they
+                // were written.
+                let now = Instant::now();
+                let held = std::mem::take(&mut rematch.held);
+                if !held.is_empty() {
+                    self.publish_held(key, &writer, held, now);
+                }
+                self.writers.retire(writer, now)
+            }
             // Dropped here, the backend's endpoints are deleted and wake nobody any more.
             _ => {}
         }

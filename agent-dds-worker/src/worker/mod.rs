@@ -221,7 +221,18 @@ struct Writers {
     /// DDS writers shared by XRCE writers (`share_writers`), with the QoS and type they
     /// were made with; dead entries are pruned on lookup.
     shared: HashMap<SharedWriterKey, Vec<SharedWriterEntry>>,
+    /// DDS writers of XRCE writers deleted or replaced while their readers had not
+    /// acknowledged every write, and since when: kept (and watched) until they have, at most
+    /// [`crate::acks::ACK_GIVE_UP`], so that what the client was told is written reaches
+    /// the readers (a DDS writer deleted at once takes its unacknowledged samples with it).
+    retiring: std::collections::VecDeque<(Rc<DdsWriter>, Instant)>,
+    /// Retiring writers let go before their readers acknowledged, for want of room.
+    retired_early: u64,
 }
+
+/// Most DDS writers kept retiring at once (each is a DDS entity a client made the worker
+/// hold a while longer); beyond, the oldest goes at once (counted, logged).
+pub(super) const MAX_RETIRING: usize = 1024;
 
 impl Writers {
     fn new(now: Instant) -> Self {
@@ -229,6 +240,49 @@ impl Writers {
             holding: HashSet::new(),
             acks: AckTracker::new(now),
             shared: HashMap::new(),
+            retiring: std::collections::VecDeque::new(),
+            retired_early: 0,
+        }
+    }
+
+    /// Lets go of the DDS writer of an XRCE writer that was deleted or replaced: kept until
+    /// its readers acknowledged what was written through it ([`Writers::retiring`]).
+    fn retire(&mut self, writer: Rc<DdsWriter>, now: Instant) {
+        if writer.outstanding.len() == 0 {
+            return self.release(writer);
+        }
+        self.retiring.push_back((writer, now));
+        if self.retiring.len() > MAX_RETIRING {
+            if let Some((w, _)) = self.retiring.pop_front() {
+                self.retired_early += 1;
+                if self.retired_early.is_power_of_two() {
+                    tracing::warn!(
+                        retiring = MAX_RETIRING,
+                        let_go = self.retired_early,
+                        "a deleted data writer's DDS writer let go before its readers \
+                         acknowledged everything: too many deleted writers waiting (their \
+                         last samples may not reach every reader)"
+                    );
+                }
+                self.release(w);
+            }
+        }
+    }
+
+    /// Lets go of the retiring writers whose readers acknowledged everything, or that
+    /// waited [`crate::acks::ACK_GIVE_UP`].
+    fn prune_retiring(&mut self, now: Instant) {
+        let limit = now.checked_sub(crate::acks::ACK_GIVE_UP).unwrap_or(now);
+        let mut done = Vec::new();
+        self.retiring.retain(|(w, since)| {
+            let keep = w.outstanding.len() > 0 && *since > limit;
+            if !keep {
+                done.push(w.clone());
+            }
+            keep
+        });
+        for w in done {
+            self.release(w);
         }
     }
 
@@ -282,8 +336,9 @@ impl std::fmt::Debug for Worker {
 impl Worker {
     /// Opens the IPC services, then announces a new generation; DDS through the backend
     /// `config.dds` names.
-    pub fn new(config: WorkerConfig) -> anyhow::Result<Self> {
+    pub fn new(mut config: WorkerConfig) -> anyhow::Result<Self> {
         let dds = backend::create(&config.dds)?;
+        config.domains.unservable = backend::unservable_domains(&config.dds);
         Self::with_backend(config, dds)
     }
 

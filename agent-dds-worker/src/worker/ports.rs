@@ -202,7 +202,11 @@ impl Worker {
     pub(super) fn flush(&mut self) {
         let generation = self.generation;
         let held = self.oldest_held();
-        let (moved, all) = self.writers.acks.poll(Instant::now());
+        let now = Instant::now();
+        let (moved, all) = self.writers.acks.poll(now);
+        if !self.writers.retiring.is_empty() {
+            self.writers.prune_retiring(now);
+        }
         for (fe, p) in self.frontends.ports.iter_mut() {
             if all || moved.contains(fe) {
                 p.dirty = true;

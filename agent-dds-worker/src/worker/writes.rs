@@ -260,19 +260,20 @@ impl Worker {
             );
             rematch.until = None;
             rematch.draining = false;
-            let now = Instant::now();
             rematch.held_bytes = 0;
-            for (s_seq, s, d) in rematch.held.drain(..) {
-                let done = if d {
-                    w.raw.dispose(&s)
-                } else {
-                    publish(&*w.raw, s)
-                };
-                if done.is_ok() && w.outstanding.record(key.0, s_seq, now, w.raw.writes()) {
-                    self.writers.acks.watch(w);
-                }
-            }
+            let held = std::mem::take(&mut rematch.held);
+            let w = w.clone();
+            self.publish_held(key, &w, held, Instant::now());
         }
+        let Some(Entity {
+            kind: EntityKind::Writer { writer: w, .. },
+            ..
+        }) = self.entities.value_mut(&key)
+        else {
+            return Err(OpError::UnknownReference(
+                "write to an unknown data writer".into(),
+            ));
+        };
         let done = if dispose {
             w.raw
                 .dispose(&sample)
@@ -287,6 +288,35 @@ impl Worker {
             self.writers.acks.watch(w);
         }
         done
+    }
+
+    /// Writes `held` samples through `w` at once, in order (a holding writer that stops
+    /// waiting for its readers, or one deleted while holding).
+    pub(super) fn publish_held(
+        &mut self,
+        key: EntityKey,
+        w: &Rc<DdsWriter>,
+        held: std::collections::VecDeque<(u64, Sample, bool)>,
+        now: Instant,
+    ) {
+        let mut failures = 0;
+        for (seq, s, dispose) in held {
+            let done = if dispose {
+                w.raw.dispose(&s)
+            } else {
+                publish(&*w.raw, s)
+            };
+            match done {
+                Ok(()) if w.outstanding.record(key.0, seq, now, w.raw.writes()) => {
+                    self.writers.acks.watch(w)
+                }
+                Ok(()) => {}
+                Err(_) => failures += 1,
+            }
+        }
+        for _ in 0..failures {
+            self.count("dds_write_failed");
+        }
     }
 
     /// A live shared DDS writer made with this QoS and type, if any (dead entries pruned).

@@ -186,6 +186,8 @@ pub struct Relay<L> {
     /// Where requests go.
     link: L,
     generation: Option<u32>,
+    /// A new generation was seen since [`Relay::take_generation_change`].
+    generation_changed: bool,
     next_seq: u64,
     processed: u64,
     outbox: ByteQueue<OwnedOp>,
@@ -249,6 +251,7 @@ impl<L: Link> Relay<L> {
             hand_over_at_once: false,
             link,
             generation: None,
+            generation_changed: false,
             next_seq: 1,
             processed: 0,
             outbox: ByteQueue::default(),
@@ -352,6 +355,13 @@ impl<L: Link> Relay<L> {
     /// The worker generation served, if any.
     pub fn generation(&self) -> Option<u32> {
         self.generation
+    }
+
+    /// Whether a new worker generation took the replay since the last call: the caller then
+    /// tells the clients where their streams stand ([`Agent::announce_streams`]), so that
+    /// what was refused while no worker served is sent again at once.
+    pub fn take_generation_change(&mut self) -> bool {
+        std::mem::take(&mut self.generation_changed)
     }
 
     /// Operations waiting to be sent (the outbox and the best-effort writes waiting).

@@ -57,7 +57,14 @@ impl<L: Link> Relay<L> {
                 let graph = self.graphs.entry(client).or_default();
                 let id = create.base.object_id;
                 let max = self.max_objects;
-                match graph.decide_create(id, &create.variant, create.reuse, create.replace, max) {
+                match graph.decide_create(
+                    id,
+                    &create.variant,
+                    little_endian,
+                    create.reuse,
+                    create.replace,
+                    max,
+                ) {
                     CreateDecision::Reply(code) => {
                         if code == status::ERR_RESOURCES && graph.len() >= max {
                             self.stats.objects_over_quota += 1;

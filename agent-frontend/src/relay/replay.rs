@@ -24,6 +24,7 @@ impl<L: Link> Relay<L> {
             "worker generation seen; replaying sessions"
         );
         self.generation = Some(generation);
+        self.generation_changed = true;
         self.processed = self.next_seq - 1;
         self.stats.replays += 1;
         // The new worker starts every read unpaused.

@@ -345,6 +345,24 @@ impl Client {
         Ok(request_id)
     }
 
+    /// Ends the session as eProsima's `uxr_delete_session` does: a DELETE of the client
+    /// object on stream 0 (outside the reliable streams, so it can be sent again as it is),
+    /// request id LOGOUT (0x0002); the STATUS comes back on stream 0. Sent again by the
+    /// caller until answered; the session counts as ended from the first.
+    pub fn delete_session(&mut self, _now: Instant) -> Result<RequestId, ClientError> {
+        let request_id = RequestId::from_u16(0x0002);
+        let p = Payload::Delete(BaseObjectRequest {
+            request_id,
+            object_id: ObjectId::CLIENT,
+        });
+        let header = MessageHeader::new(self.config.session_id, stream_id::NONE, 0, self.config.key);
+        let mut b = MessageBuilder::new(header);
+        b.push(&p, self.config.little_endian)
+            .map_err(|_| ClientError::TooLarge)?;
+        self.transmits.push_back(b.finish());
+        Ok(request_id)
+    }
+
     /// WRITE_DATA in FORMAT_DATA on `stream`.
     pub fn write(
         &mut self,

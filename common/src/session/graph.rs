@@ -6,6 +6,7 @@
 use std::collections::HashMap;
 
 use crate::wire::cdr::{CdrReader, CdrWriter};
+use crate::wire::equivalence::same_meaning;
 use crate::wire::{status, DecodeError, ObjectId, ObjectVariant, ReadSpecification, RequestId};
 
 /// What to do with a CREATE, given what exists.
@@ -138,12 +139,14 @@ impl ObjectGraph {
         self.reads.iter()
     }
 
-    /// Decides a CREATE per the creation-mode table; a new object beyond `max_objects` is
-    /// refused with STATUS_ERR_RESOURCES (replacing one is not).
+    /// Decides a CREATE (sent in the byte order `little_endian`) per the creation-mode table;
+    /// a new object beyond `max_objects` is refused with STATUS_ERR_RESOURCES (replacing one
+    /// is not). REUSE compares descriptions by meaning ([`same_meaning`]), not bytes.
     pub fn decide_create(
         &self,
         id: ObjectId,
         variant: &ObjectVariant,
+        little_endian: bool,
         reuse: bool,
         replace: bool,
         max_objects: usize,
@@ -154,7 +157,7 @@ impl ObjectGraph {
             }
             return CreateDecision::Create;
         };
-        let matches = existing.variant == *variant;
+        let matches = same_meaning(&existing.variant, existing.little_endian, variant, little_endian);
         match (reuse, replace) {
             (false, false) => CreateDecision::Reply(status::ERR_ALREADY_EXISTS),
             (false, true) => CreateDecision::Replace,
@@ -416,7 +419,7 @@ mod tests {
         let mut g = ObjectGraph::default();
         let p = obj(1, k::PARTICIPANT, None);
         assert_eq!(
-            g.decide_create(p.object_id, &p.variant, false, false, MAX_OBJECTS),
+            g.decide_create(p.object_id, &p.variant, true, false, false, MAX_OBJECTS),
             CreateDecision::Create
         );
         g.insert(p.clone());
@@ -424,27 +427,27 @@ mod tests {
         other.representation = Representation::Xml("<y/>".into());
         let id = p.object_id;
         assert_eq!(
-            g.decide_create(id, &p.variant, false, false, MAX_OBJECTS),
+            g.decide_create(id, &p.variant, true, false, false, MAX_OBJECTS),
             CreateDecision::Reply(status::ERR_ALREADY_EXISTS)
         );
         assert_eq!(
-            g.decide_create(id, &other, false, true, MAX_OBJECTS),
+            g.decide_create(id, &other, true, false, true, MAX_OBJECTS),
             CreateDecision::Replace
         );
         assert_eq!(
-            g.decide_create(id, &p.variant, true, false, MAX_OBJECTS),
+            g.decide_create(id, &p.variant, true, true, false, MAX_OBJECTS),
             CreateDecision::Reply(status::OK_MATCHED)
         );
         assert_eq!(
-            g.decide_create(id, &other, true, false, MAX_OBJECTS),
+            g.decide_create(id, &other, true, true, false, MAX_OBJECTS),
             CreateDecision::Reply(status::ERR_MISMATCH)
         );
         assert_eq!(
-            g.decide_create(id, &p.variant, true, true, MAX_OBJECTS),
+            g.decide_create(id, &p.variant, true, true, true, MAX_OBJECTS),
             CreateDecision::Reply(status::OK_MATCHED)
         );
         assert_eq!(
-            g.decide_create(id, &other, true, true, MAX_OBJECTS),
+            g.decide_create(id, &other, true, true, true, MAX_OBJECTS),
             CreateDecision::Replace
         );
     }
@@ -460,6 +463,7 @@ mod tests {
             g.decide_create(
                 one_more.object_id,
                 &one_more.variant,
+                true,
                 false,
                 false,
                 MAX_OBJECTS
@@ -469,7 +473,7 @@ mod tests {
         // Replacing an existing object is still allowed.
         let first = obj(0, k::PARTICIPANT, None);
         assert_eq!(
-            g.decide_create(first.object_id, &first.variant, false, true, MAX_OBJECTS),
+            g.decide_create(first.object_id, &first.variant, true, false, true, MAX_OBJECTS),
             CreateDecision::Replace
         );
     }

@@ -225,6 +225,11 @@ impl ReliableInput {
         self.expected
     }
 
+    /// Whether `s` is behind what was taken (a copy of a message already processed).
+    pub fn is_behind(&self, s: u16) -> bool {
+        s.wrapping_sub(self.expected) >= 0x8000
+    }
+
     /// Classifies an arriving sequence number (and notes it as announced).
     pub fn classify(&mut self, s: u16) -> Arrival {
         let d = s.wrapping_sub(self.expected);
@@ -345,6 +350,11 @@ impl BestEffortInput {
                 true
             }
         }
+    }
+
+    /// Whether a message with this sequence number would be refused as stale.
+    pub fn is_stale(&self, s: u16) -> bool {
+        matches!(self.last, Some(l) if !seq::lt(l, s))
     }
 
     /// Forgets the last sequence number (RESET).

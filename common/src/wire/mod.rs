@@ -5,6 +5,7 @@
 //! decoder reads, so decoded captures re-encode to the same bytes.
 
 pub mod binary;
+pub mod equivalence;
 pub mod cdr;
 pub mod header;
 pub mod info;

@@ -26,14 +26,14 @@ impl<A: Endpoint> Agent<A> {
             Some(k) => k,
             None => match self.by_addr.get(&src) {
                 Some(k) => *k,
-                None => return self.drop_input("no_client", bytes),
+                None => return self.answer_orphan(src, header, hlen, bytes, "no_client"),
             },
         };
         let Some(client) = self.clients.get_mut(&key) else {
-            return self.drop_input("no_client", bytes);
+            return self.answer_orphan(src, header, hlen, bytes, "no_client");
         };
         if client.session_id != header.session_id {
-            return self.drop_input("wrong_session", bytes);
+            return self.answer_orphan(src, header, hlen, bytes, "wrong_session");
         }
         if client.addr != src {
             // Only a key in the header names a session from another endpoint.
@@ -100,6 +100,24 @@ impl<A: Endpoint> Agent<A> {
             }
         }
         let stream = header.stream_id;
+        if client.restart_suspected && stream != stream_id::NONE {
+            client.restart_suspected = false;
+            let first = client.first_seq;
+            let from_the_start = header.sequence_nr == first
+                && if stream_id::is_reliable(stream) {
+                    client.reliable_in.get(&stream).is_some_and(|i| i.is_behind(first))
+                } else {
+                    client.best_effort_in.get(&stream).is_some_and(|i| i.is_stale(first))
+                };
+            if from_the_start {
+                client.reset_streams();
+                client.established_at = now;
+                tracing::info!(client = %key, stream, "the CREATE_CLIENT taken for a duplicate was the client's restart: its streams start again");
+            }
+        }
+        let Some(client) = self.clients.get_mut(&key) else {
+            return;
+        };
         if stream != stream_id::NONE {
             client.streams_used = true;
         }

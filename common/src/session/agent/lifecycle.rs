@@ -79,12 +79,14 @@ impl<A: Endpoint> Agent<A> {
         let result = if result != status::OK {
             result
         } else if self.clients.contains_key(&c.client_key) {
-            match self.takeover(now, c.client_key, src) {
+            match self.takeover(now, c.client_key, src, c) {
                 limits::Takeover::Allow => status::OK,
                 limits::Takeover::Probing => {
-                    // Unanswered: the client asks again (eProsima's every second), and by
-                    // then its session's endpoint has answered the probe or not.
+                    // Unanswered for now: once the probe wait is over and the session's
+                    // endpoint stayed silent, the core answers it itself (`grant_claims`);
+                    // if the endpoint answered, the client's next attempt is refused.
                     self.count_drop("takeover_probing");
+                    self.schedule(c.client_key);
                     tracing::info!(client = %c.client_key, from = ?src, "CREATE_CLIENT for a live session from another endpoint: probing the session's endpoint before moving it");
                     return;
                 }
@@ -139,6 +141,7 @@ impl<A: Endpoint> Agent<A> {
                             < self.config.duplicate_create_guard;
                     if stale {
                         self.stats.count("duplicate_create_client");
+                        existing.restart_suspected = true;
                     } else {
                         existing.reset_streams();
                         existing.established_at = now;
@@ -221,6 +224,54 @@ impl<A: Endpoint> Agent<A> {
         let mut b = MessageBuilder::new(reply_header);
         let _ = b.push(&payload, true);
         self.push_transmit(src, b.finish());
+    }
+
+    /// A message for a session the agent does not have (`reason` says how it missed): a
+    /// DELETE of the client is answered STATUS_OK in the message's own header, as the
+    /// reference agent does, so a client whose first STATUS was lost does not wait out its
+    /// retries for a session that is already gone; a GET_INFO (PX4's and micro-ROS's ping in
+    /// session) is answered "no session" at once. Everything else is dropped, counted under
+    /// `reason`. At most one reply of each kind per datagram, none longer than what came
+    /// in: nothing to amplify.
+    pub(super) fn answer_orphan(
+        &mut self,
+        src: A,
+        header: MessageHeader,
+        hlen: usize,
+        bytes: &[u8],
+        reason: &'static str,
+    ) {
+        let mut answered = false;
+        for raw in Submessages::new(bytes, hlen) {
+            let Ok(raw) = raw else { break };
+            match raw.decode() {
+                Ok(Payload::Delete(d))
+                    if d.object_id.kind() == crate::wire::object_kind::CLIENT
+                        && self.once(Reply::Status) =>
+                {
+                    let mut b = MessageBuilder::new(header);
+                    let reply = BaseObjectReply {
+                        related: d,
+                        result: ResultStatus::OK,
+                    };
+                    let _ = b.push(&Payload::Status(reply), raw.little_endian());
+                    self.stats.count("delete_without_session");
+                    tracing::debug!(?src, session = header.session_id, "DELETE of a session the agent does not have: answered STATUS_OK");
+                    self.push_transmit(src, b.finish());
+                    answered = true;
+                }
+                Ok(Payload::GetInfo(g)) if self.once(Reply::Info) => {
+                    let dialect = self.config.dialect.unwrap_or_default();
+                    self.stats.count("info_without_session");
+                    self.reply_info(src, header, g.base, false, dialect);
+                    answered = true;
+                }
+                _ => {}
+            }
+        }
+        if !answered {
+            self.drop_input(reason, bytes);
+        }
     }
 
     pub(super) fn reply_info(

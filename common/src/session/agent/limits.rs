@@ -18,7 +18,7 @@ const TAKEOVER_MEMORY: Duration = Duration::from_secs(10);
 const DENY_AFTER: Duration = Duration::from_secs(2);
 
 /// Another endpoint's claim on a session (a CREATE_CLIENT with its key).
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub(super) struct Claim<A> {
     /// Who claims it.
     pub(super) claimant: A,
@@ -26,6 +26,18 @@ pub(super) struct Claim<A> {
     pub(super) first: Instant,
     /// When the session's endpoint was last probed for it.
     pub(super) probed: Instant,
+    /// The claimant's CREATE_CLIENT, answered by the core itself once the probe went
+    /// unanswered for the probe wait: a client that reset and came back from a new port gets
+    /// its session then, inside its first attempt's wait (eProsima's client waits 1 s for
+    /// STATUS_AGENT), instead of at its next attempt.
+    pub(super) request: Option<Box<CreateClientPayload>>,
+}
+
+impl<A> Claim<A> {
+    /// When the core answers the claim itself, if it still has to.
+    pub(super) fn answer_due(&self, wait: Duration) -> Option<Instant> {
+        self.request.as_ref().map(|_| self.probed + wait)
+    }
 }
 
 /// What a CREATE_CLIENT with a live session's key from another endpoint may do.
@@ -255,7 +267,13 @@ impl<A: Endpoint> Agent<A> {
     /// only if it stays silent for the probe wait (a client that restarted from a new port
     /// asks again a second later and gets it); one that keeps answering for [`DENY_AFTER`]
     /// keeps it, and the claimant is refused.
-    pub(super) fn takeover(&mut self, now: Instant, key: ClientKey, src: A) -> Takeover {
+    pub(super) fn takeover(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        src: A,
+        request: &CreateClientPayload,
+    ) -> Takeover {
         if self.config.admission.allow_roaming {
             return Takeover::Allow;
         }
@@ -267,22 +285,24 @@ impl<A: Endpoint> Agent<A> {
             return Takeover::Allow;
         }
         let since = |t: Instant| now.saturating_duration_since(t);
-        let claim = match c.takeover {
+        let request = Some(Box::new(request.clone()));
+        let claim = match c.takeover.take() {
             Some(claim) if claim.claimant == src && since(claim.probed) < TAKEOVER_MEMORY => {
                 if c.last_heard <= claim.probed {
                     if since(claim.probed) >= wait {
-                        c.takeover = None;
                         return Takeover::Allow;
                     }
+                    // The latest request is the one answered.
+                    c.takeover = Some(Claim { request, ..claim });
                     return Takeover::Probing;
                 }
                 if since(claim.first) >= DENY_AFTER {
-                    c.takeover = None;
                     return Takeover::Refuse;
                 }
                 // Alive so far: probed again, asked again.
                 Claim {
                     probed: now,
+                    request,
                     ..claim
                 }
             }
@@ -290,6 +310,7 @@ impl<A: Endpoint> Agent<A> {
                 claimant: src,
                 first: now,
                 probed: now,
+                request,
             },
         };
         c.takeover = Some(claim);

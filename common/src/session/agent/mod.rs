@@ -250,16 +250,19 @@ pub struct SessionInfo<A> {
 /// Drop reasons that lose nothing: a reliable message refused for lack of room in the agent
 /// or among the messages held for a gap (not acknowledged: the client sends it again), and a
 /// copy of a message already taken, a reliable message refused or an early one given up
-/// for the memory budget (not acknowledged either), and a CREATE_CLIENT left unanswered
-/// while the session's current endpoint is probed. (A rate-quota refusal is counted: on a
+/// for the memory budget (not acknowledged either), a CREATE_CLIENT left unanswered
+/// while the session's current endpoint is probed, and a DELETE or GET_INFO for a session the
+/// agent does not have (answered, not dropped: counted to show how often it happens). (A rate-quota refusal is counted: on a
 /// best-effort stream it is lost.)
-pub const NOT_LOST: [&str; 6] = [
+pub const NOT_LOST: [&str; 8] = [
     "backpressure",
     "early_buffer_full",
     "duplicate",
     "memory_budget",
     "early_evicted",
     "takeover_probing",
+    "delete_without_session",
+    "info_without_session",
 ];
 
 /// Counters of what the core did and dropped.
@@ -365,6 +368,8 @@ pub struct Agent<A> {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Reply {
     Info,
+    /// A STATUS to a DELETE of a session the agent does not have.
+    Status,
     Timestamp,
     Acknack(u8),
     Retransmit(u8),
@@ -456,7 +461,8 @@ impl<A: Endpoint> Agent<A> {
         let Some(c) = self.clients.get_mut(&key) else {
             return;
         };
-        if let Some(due) = c.next_due(self.config.limits.reassembly_timeout) {
+        let limits = &self.config.limits;
+        if let Some(due) = c.next_due(limits.reassembly_timeout, limits.takeover_probe_wait) {
             if c.timer.is_none_or(|t| due < t) {
                 c.timer = Some(due);
                 self.timers.push(Reverse((due, key)));

@@ -76,10 +76,45 @@ impl<A: Endpoint> Agent<A> {
         })
     }
 
+    /// Tells every client at once where its reliable streams stand: an ACKNACK of each input
+    /// stream (what was taken, what is missing) and a HEARTBEAT of each output stream with
+    /// something unacknowledged. For a front-end whose worker came back (a new generation
+    /// took the replay): messages refused meanwhile wait for the client's own next
+    /// HEARTBEAT otherwise, and a client whose library gives up on a confirmation window
+    /// (eProsima's example publisher ends its session when a sample stays unconfirmed for a
+    /// second) gives up instead.
+    pub fn announce_streams(&mut self, now: Instant) {
+        let keys: Vec<ClientKey> = self
+            .clients
+            .values()
+            .filter(|c| !c.detached)
+            .map(|c| c.key)
+            .collect();
+        for key in keys {
+            self.announce_client(now, key);
+        }
+    }
+
+    /// [`Self::announce_streams`] for one client.
+    fn announce_client(&mut self, now: Instant, key: ClientKey) {
+        let Some(c) = self.clients.get_mut(&key) else {
+            return;
+        };
+        if c.reliable_out.values().any(|s| s.reliable.heartbeat().is_some()) {
+            c.heartbeat_due = Some(now);
+        }
+        let inputs: Vec<u8> = c.reliable_in.keys().copied().collect();
+        for stream in inputs {
+            self.send_acknack(now, key, stream, AckCause::Heartbeat);
+        }
+        self.schedule(key);
+    }
+
     /// Takes over a session a front-end that died stored (its object graph is the bridge's
     /// business): the client goes on where it was. Its reliable output streams first ask
-    /// the client where it is (a HEARTBEAT now); a session of this key that exists already
-    /// is kept instead.
+    /// the client where it is (a HEARTBEAT now), and its input streams tell it what was taken
+    /// (an ACKNACK now, so it resumes at once instead of at its next HEARTBEAT); a session of
+    /// this key that exists already is kept instead.
     pub fn restore(&mut self, now: Instant, snapshot: &SessionSnapshot, endpoint: A) -> bool {
         if self.clients.contains_key(&snapshot.key) || self.clients.len() >= self.config.max_clients
         {
@@ -150,7 +185,7 @@ impl<A: Endpoint> Agent<A> {
         self.account(snapshot.key);
         // Output that waited for window room goes out as room allows.
         self.flush_client(now, snapshot.key);
-        self.schedule(snapshot.key);
+        self.announce_client(now, snapshot.key);
         tracing::info!(client = %snapshot.key, session = snapshot.session_id, ?endpoint, "session taken over from the previous front-end");
         true
     }

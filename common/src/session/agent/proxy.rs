@@ -46,6 +46,11 @@ pub(super) struct ProxyClient<A> {
     pub(super) established_at: Instant,
     /// Whether the client sent anything on a stream since then.
     pub(super) streams_used: bool,
+    /// A CREATE_CLIENT repeating the session came soon after it was established (taken for
+    /// a duplicate, its streams kept): if the client's next message on a stream is numbered
+    /// from the start again, behind what was taken, it was the client's restart after all
+    /// (a board that reset at once), and the streams start again then.
+    pub(super) restart_suspected: bool,
     pub(super) dialect: Dialect,
     /// Silence after which the client is dead (hard liveliness or the configured dead time).
     pub(super) dead_time: Option<Duration>,
@@ -118,6 +123,7 @@ impl<A: Origin> ProxyClient<A> {
             delete_requested: false,
             established_at: now,
             streams_used: false,
+            restart_suspected: false,
             dialect,
             dead_time,
             detached: false,
@@ -148,12 +154,17 @@ impl<A: Origin> ProxyClient<A> {
         self.reassembly_at.clear();
         self.heartbeat_due = None;
         self.streams_used = false;
+        self.restart_suspected = false;
         self.last_acknack.clear();
     }
 
     /// When this client's timers have something to do next: a HEARTBEAT, a liveliness
     /// probe, or (detached: nobody to probe) the end of its dead time.
-    pub(super) fn next_due(&self, reassembly_timeout: Duration) -> Option<Instant> {
+    pub(super) fn next_due(
+        &self,
+        reassembly_timeout: Duration,
+        takeover_probe_wait: Duration,
+    ) -> Option<Instant> {
         let liveliness = if self.detached {
             self.dead_time
                 .map(|d| self.closed_at.unwrap_or(self.last_heard) + d)
@@ -165,10 +176,15 @@ impl<A: Origin> ProxyClient<A> {
             .values()
             .min()
             .map(|at| *at + reassembly_timeout);
+        let claim = self
+            .takeover
+            .as_ref()
+            .and_then(|c| c.answer_due(takeover_probe_wait));
         [
             self.heartbeat_due.filter(|_| !self.detached),
             liveliness,
             stale,
+            claim,
         ]
         .into_iter()
         .flatten()

@@ -23,11 +23,24 @@ impl<A: Endpoint> Agent<A> {
                 due_clients.push(key);
             }
         }
+        let probe_wait = self.config.limits.takeover_probe_wait;
+        let mut grants = Vec::new();
         for key in &due_clients {
             self.drop_stale_reassemblies(now, *key);
             let Some(c) = self.clients.get_mut(key) else {
                 continue;
             };
+            if let Some(claim) = c.takeover.as_mut() {
+                if claim.answer_due(probe_wait).is_some_and(|d| d <= now) {
+                    // Answered once: by the grant, or (the endpoint spoke meanwhile) by the
+                    // claimant's next attempt, which is refused.
+                    if let Some(request) = claim.request.take() {
+                        if c.last_heard <= claim.probed {
+                            grants.push((claim.claimant, request));
+                        }
+                    }
+                }
+            }
             if let Some(dead_time) = c.dead_time {
                 // Detached, the time runs from the close (it may have been silent long
                 // before without being dead).
@@ -95,6 +108,10 @@ impl<A: Endpoint> Agent<A> {
         }
         for (a, m) in out {
             self.push_transmit(a, m);
+        }
+        for (claimant, request) in grants {
+            tracing::debug!(client = %request.client_key, to = ?claimant, "the session's endpoint stayed silent through the probe: the session moves");
+            self.create_client(now, claimant, &request, sink);
         }
         for (key, silence, detached) in dead {
             if detached {

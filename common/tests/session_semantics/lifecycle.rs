@@ -1,0 +1,226 @@
+//! Clients that reset: a CREATE_CLIENT for a known key with the same session id (streams start
+//! again, objects stay) or another (a new session, the old one's objects go), a DELETE for a
+//! session the agent no longer has, and a session taken over that tells its client where its
+//! streams stand.
+
+use super::*;
+
+fn create_client_with(session_id: u8) -> Vec<u8> {
+    let mut b = MessageBuilder::new(MessageHeader::new(0x00, 0, 0, KEY));
+    b.push(
+        &Payload::CreateClient(CreateClientPayload {
+            cookie: XRCE_COOKIE,
+            version: XRCE_VERSION,
+            vendor_id: VENDOR_EPROSIMA,
+            client_key: KEY,
+            session_id,
+            properties: None,
+            mtu: Some(512),
+        }),
+        true,
+    )
+    .expect("encode");
+    b.finish()
+}
+
+/// A WRITE_DATA on reliable stream 0x80 of session 0x01, numbered `seq`.
+fn write(seq: u16) -> Vec<u8> {
+    in_session(
+        stream_id::BUILTIN_RELIABLE,
+        seq,
+        Payload::WriteData(DataPayload {
+            base: BaseObjectRequest {
+                request_id: RequestId::from_u16(0x100 + seq),
+                object_id: ObjectId::new(1, object_kind::DATAWRITER),
+            },
+            format: data_format::DATA,
+            data: &[1, 2, 3, 4],
+        }),
+    )
+}
+
+fn writes(rec: &Recorder) -> usize {
+    rec.0.iter().filter(|o| matches!(o, Op::Write(..))).count()
+}
+
+#[test]
+fn the_same_session_again_restarts_its_streams_and_keeps_its_objects() {
+    let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
+    for seq in 0..5 {
+        agent.handle_datagram(t0, ADDR, &write(seq), &mut rec);
+    }
+    assert_eq!(writes(&rec), 5);
+    // The board resets: same key, same session, after the duplicate guard.
+    let later = t0 + Duration::from_secs(2);
+    agent.handle_datagram(later, ADDR, &create_client_with(0x01), &mut rec);
+    drain(&mut agent);
+    assert!(
+        !rec.0.iter().any(|o| matches!(o, Op::Deleted(_))),
+        "the objects stay: {:?}",
+        rec.0
+    );
+    // Its streams start at 0 again: message 0 is new, not a duplicate.
+    agent.handle_datagram(later, ADDR, &write(0), &mut rec);
+    assert_eq!(writes(&rec), 6, "the new incarnation's first write was dropped");
+}
+
+#[test]
+fn another_session_id_starts_a_new_session_without_the_old_objects() {
+    let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
+    agent.handle_datagram(t0, ADDR, &write(0), &mut rec);
+    agent.handle_datagram(t0, ADDR, &create_client_with(0x02), &mut rec);
+    assert_eq!(
+        rec.0[rec.0.len() - 2..],
+        [Op::Deleted(KEY), Op::Created(KEY)],
+        "the old session's objects go with it"
+    );
+}
+
+/// eProsima's `uxr_delete_session`: DELETE of the client object on stream 0, request id
+/// LOGOUT, retried each second until a STATUS comes.
+fn delete_session(session_id: u8) -> Vec<u8> {
+    let mut b = MessageBuilder::new(MessageHeader::new(session_id, 0, 0, KEY));
+    b.push(
+        &Payload::Delete(BaseObjectRequest {
+            request_id: RequestId::from_u16(2),
+            object_id: ObjectId::CLIENT,
+        }),
+        true,
+    )
+    .expect("encode");
+    b.finish()
+}
+
+#[test]
+fn a_delete_for_a_session_the_agent_no_longer_has_is_answered() {
+    let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
+    agent.handle_datagram(t0, ADDR, &delete_session(0x01), &mut rec);
+    agent.handle_timeout(t0, &mut rec);
+    let first = drain(&mut agent);
+    assert!(!agent.has_client(KEY), "the session ended");
+    // The first STATUS is lost; the client sends its DELETE again.
+    agent.handle_datagram(t0 + Duration::from_secs(1), ADDR, &delete_session(0x01), &mut rec);
+    let again = drain(&mut agent);
+    assert_eq!(again.len(), 1, "one answer");
+    // The reference agent's answer: STATUS_OK in the DELETE's own header.
+    let m = Message::decode(&again[0].data).expect("decodes");
+    assert_eq!(m.header.session_id, 0x01);
+    assert_eq!(m.header.stream_id, 0);
+    assert_eq!(m.header.client_key, Some(KEY));
+    match &m.submessages[..] {
+        [s] => match &s.payload {
+            Payload::Status(r) => {
+                assert_eq!(r.related.object_id, ObjectId::CLIENT);
+                assert_eq!(r.related.request_id, RequestId::from_u16(2));
+                assert_eq!(r.result.status, status::OK);
+            }
+            other => panic!("not a STATUS: {other:?}"),
+        },
+        other => panic!("one submessage expected: {other:?}"),
+    }
+    assert!(again[0].data.len() <= delete_session(0x01).len() + 4, "no amplification");
+    assert_eq!(agent.stats().dropped("delete_without_session"), 1);
+    assert_eq!(agent.stats().lost_total, 0, "an answered DELETE loses nothing");
+    assert!(!first.is_empty());
+    // Without a key in the header and from an endpoint without a session: answered too.
+    let mut b = MessageBuilder::new(MessageHeader::new(0x81, 0, 0, KEY));
+    b.push(
+        &Payload::Delete(BaseObjectRequest {
+            request_id: RequestId::from_u16(2),
+            object_id: ObjectId::CLIENT,
+        }),
+        true,
+    )
+    .expect("encode");
+    agent.handle_datagram(t0, 99, &b.finish(), &mut rec);
+    assert_eq!(drain(&mut agent).len(), 1);
+    // Anything else for no session is dropped, unanswered.
+    agent.handle_datagram(t0, 99, &write(7), &mut rec);
+    assert!(drain(&mut agent).is_empty());
+}
+
+#[test]
+fn a_ping_in_a_session_the_agent_does_not_have_says_so_at_once() {
+    let mut agent: Agent<u32> = Agent::new(AgentConfig::default());
+    let mut rec = Recorder::default();
+    let t0 = Instant::now();
+    let ping = in_session(
+        0,
+        0,
+        Payload::GetInfo(GetInfoPayload {
+            base: BaseObjectRequest {
+                request_id: RequestId::from_u16(0x0A),
+                object_id: ObjectId::AGENT,
+            },
+            info_mask: 0x02,
+        }),
+    );
+    agent.handle_datagram(t0, ADDR, &ping, &mut rec);
+    let out = drain(&mut agent);
+    let infos: Vec<_> = payloads(&out)
+        .into_iter()
+        .filter_map(|p| match p {
+            Payload::Info(i) => Some(i.reply.result.implementation_status),
+            _ => None,
+        })
+        .collect();
+    // PX4 and micro-ROS read "no session" (0) and create theirs again.
+    assert_eq!(infos, [0]);
+}
+
+#[test]
+fn a_session_taken_over_tells_its_client_where_its_streams_stand() {
+    let (mut agent, mut rec, t0) = connected(
+        AgentConfig {
+            track_sessions: true,
+            ..AgentConfig::default()
+        },
+        VENDOR_EPROSIMA,
+        None,
+    );
+    for seq in 0..3 {
+        agent.handle_datagram(t0, ADDR, &write(seq), &mut rec);
+    }
+    drain(&mut agent);
+    let snapshot = agent
+        .snapshot(KEY, |a| a.to_le_bytes().to_vec())
+        .expect("a snapshot");
+    // A successor front-end takes the session over: an ACKNACK goes out at once.
+    let mut next: Agent<u32> = Agent::new(AgentConfig::default());
+    assert!(next.restore(t0, &snapshot, ADDR));
+    next.handle_timeout(t0, &mut rec);
+    let acks: Vec<_> = payloads(&drain(&mut next))
+        .into_iter()
+        .filter_map(|p| match p {
+            Payload::Acknack(a) => Some((a.stream_id, a.first_unacked_seq_num)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(acks, [(stream_id::BUILTIN_RELIABLE, 3)]);
+    // And again when a new worker took the replay.
+    next.announce_streams(t0 + Duration::from_millis(50));
+    assert_eq!(payloads(&drain(&mut next)).len(), 1);
+}
+
+/// A board that resets right after it connected sends a CREATE_CLIENT the agent cannot tell
+/// from a network duplicate (same endpoint, same session, within the duplicate guard): its
+/// next message, numbered from the start again, tells.
+#[test]
+fn a_restart_right_after_the_session_began_is_told_from_a_duplicate_by_what_follows() {
+    let (mut agent, mut rec, t0) = connected(AgentConfig::default(), VENDOR_EPROSIMA, None);
+    let ms = |n| t0 + Duration::from_millis(n);
+    for seq in 0..3 {
+        agent.handle_datagram(ms(10), ADDR, &write(seq), &mut rec);
+    }
+    // A duplicate: the client goes on numbering from 3, and a late copy of 0 stays a copy.
+    agent.handle_datagram(ms(100), ADDR, &create_client_with(0x01), &mut rec);
+    agent.handle_datagram(ms(110), ADDR, &write(3), &mut rec);
+    agent.handle_datagram(ms(120), ADDR, &write(0), &mut rec);
+    assert_eq!(writes(&rec), 4, "a duplicate CREATE_CLIENT reset the streams");
+    // A restart: the next message is numbered 0 again, behind what was taken.
+    agent.handle_datagram(ms(200), ADDR, &create_client_with(0x01), &mut rec);
+    agent.handle_datagram(ms(210), ADDR, &write(0), &mut rec);
+    agent.handle_datagram(ms(220), ADDR, &write(1), &mut rec);
+    assert_eq!(writes(&rec), 6, "the restarted client's messages were taken for copies");
+    assert!(!rec.0.iter().any(|o| matches!(o, Op::Deleted(_))));
+}
