@@ -358,11 +358,17 @@ fn a_claim_whose_probe_goes_unanswered_is_granted_without_a_retry() {
     let (mut agent, mut rec, t0) = agent_with(Admission::default());
     let ms = |n| t0 + Duration::from_millis(n);
     agent.handle_datagram(ms(0), ELSEWHERE, &create_client(KEY), &mut rec);
-    assert!(statuses(&drain(&mut agent)).is_empty(), "answered before probing");
+    assert!(
+        statuses(&drain(&mut agent)).is_empty(),
+        "answered before probing"
+    );
     let due = agent.poll_timeout().expect("the claim's timer");
     assert!(due <= ms(300), "due {:?} after the claim", due - t0);
     agent.handle_timeout(ms(200), &mut rec);
-    assert!(statuses(&drain(&mut agent)).is_empty(), "answered too early");
+    assert!(
+        statuses(&drain(&mut agent)).is_empty(),
+        "answered too early"
+    );
     agent.handle_timeout(ms(300), &mut rec);
     assert_eq!(statuses(&drain(&mut agent)), [(ELSEWHERE, status::OK)]);
     // The session moved: the client's writes from its new port are taken.
@@ -380,7 +386,10 @@ fn a_claim_whose_probe_is_answered_is_not_granted_by_the_timer() {
     drain(&mut agent);
     agent.handle_timeout(ms(300), &mut rec);
     let out = drain(&mut agent);
-    assert!(statuses(&out).is_empty(), "the session moved from a live client");
+    assert!(
+        statuses(&out).is_empty(),
+        "the session moved from a live client"
+    );
     // And the claim's timer does not fire again and again.
     assert!(agent.poll_timeout().is_none_or(|t| t > ms(300)));
 }

@@ -120,12 +120,22 @@ pub struct ImpairedUdp {
 impl ImpairedUdp {
     /// A relay to `agent`; clients send to [`ImpairedUdp::addr`].
     pub fn start(agent: SocketAddr, impairment: Impairment) -> Self {
+        Self::start_on(agent, 0, impairment)
+    }
+
+    /// A relay to `agent` listening on loopback port `port` (0: any free one).
+    pub fn start_on(agent: SocketAddr, port: u16, impairment: Impairment) -> Self {
         let local = if agent.is_ipv4() {
             "127.0.0.1:0"
         } else {
             "[::1]:0"
         };
-        let front = UdpSocket::bind(local).expect("bind the relay");
+        let ip: std::net::IpAddr = if agent.is_ipv4() {
+            std::net::Ipv4Addr::LOCALHOST.into()
+        } else {
+            std::net::Ipv6Addr::LOCALHOST.into()
+        };
+        let front = UdpSocket::bind(SocketAddr::new(ip, port)).expect("bind the relay");
         front.set_nonblocking(true).expect("non-blocking");
         let addr = front.local_addr().expect("relay address");
         let shared = Arc::new(Mutex::new(Shared {

@@ -23,8 +23,7 @@ use std::time::{Duration, Instant};
 use xrce_common::wire::{object_kind, status, ObjectId, VariantExtra};
 use xrce_tests::{
     binaries, cyclone_python, dds_backend, hello_world, output_within, parse_sample_line,
-    unique_instance,
-    workspace, xml, AgentProcess, DdsPeer, Deliveries, TestClient,
+    unique_instance, workspace, xml, AgentProcess, DdsPeer, Deliveries, TestClient,
 };
 
 const SECOND: Duration = Duration::from_secs(1);
@@ -324,7 +323,11 @@ fn inner_a_discovery_port_serves_every_domain_but_its_own() {
     let agent = agent_on(22150, &[]);
     let warning = agent
         .output()
-        .wait_for(0, "DDS participants in domain 59 will be refused", 10 * SECOND)
+        .wait_for(
+            0,
+            "DDS participants in domain 59 will be refused",
+            10 * SECOND,
+        )
         .map(|(_, l)| l)
         .expect("no warning at start about domain 59");
     for part in [

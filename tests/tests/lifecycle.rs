@@ -25,8 +25,8 @@ use std::time::{Duration, Instant};
 
 use xrce_common::session::client::{ClientConfig, ClientEvent};
 use xrce_common::wire::{
-    object_kind, status, stream_id, BaseObjectRequest, ClientKey, CreatePayload, Message,
-    ObjectId, Payload, ReadSpecification, Representation, VariantExtra,
+    object_kind, status, stream_id, BaseObjectRequest, ClientKey, CreatePayload, Message, ObjectId,
+    Payload, ReadSpecification, Representation, VariantExtra,
 };
 use xrce_tests::impaired::{Direction, ImpairedUdp, Impairment, NoisyLine};
 use xrce_tests::link::Link;
@@ -62,7 +62,10 @@ fn micro_ros_rounds(domain: i16) -> Vec<Vec<Setup>> {
     let text = std::fs::read_to_string(path).expect("the micro-ROS trace");
     let mut ports: Vec<String> = Vec::new();
     let mut rounds: Vec<Vec<Setup>> = Vec::new();
-    for line in text.lines().filter(|l| !l.starts_with('#') && !l.is_empty()) {
+    for line in text
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.is_empty())
+    {
         let f: Vec<&str> = line.split_whitespace().collect();
         if f[1] != "C>A" {
             continue;
@@ -108,9 +111,7 @@ fn talker_writer(setup: &[Setup]) -> ObjectId {
     setup
         .iter()
         .find_map(|s| match s {
-            Setup::Create(c) if c.variant.kind == object_kind::DATAWRITER => {
-                Some(c.base.object_id)
-            }
+            Setup::Create(c) if c.variant.kind == object_kind::DATAWRITER => Some(c.base.object_id),
             _ => None,
         })
         .expect("a data writer")
@@ -354,13 +355,12 @@ fn talker_resets(wire: Wire, domain: i16, resets: &[Reset], per_round: u32) {
         let created = reset_at.elapsed();
         // A TCP session ends with its connection when its front-end dies (a new
         // front-end has no connection to take over): there the objects are created again.
-        let want = if round == 0
-            || (wire == Wire::Tcp && resets[round - 1] == Reset::FrontEndKilled)
-        {
-            status::OK
-        } else {
-            status::OK_MATCHED
-        };
+        let want =
+            if round == 0 || (wire == Wire::Tcp && resets[round - 1] == Reset::FrontEndKilled) {
+                status::OK
+            } else {
+                status::OK_MATCHED
+            };
         assert_eq!(
             statuses,
             vec![want; statuses.len()],
@@ -615,7 +615,9 @@ fn a_px4_flight_controller_keeps_its_session_through_an_agent_restart_and_its_ow
             pongs += c
                 .events
                 .iter()
-                .filter(|e| matches!(e, ClientEvent::Info(i) if i.result.implementation_status == 1))
+                .filter(
+                    |e| matches!(e, ClientEvent::Info(i) if i.result.implementation_status == 1),
+                )
                 .count();
             c.events.retain(|e| !matches!(e, ClientEvent::Info(_)));
             drain(&reader, &mut got);
@@ -634,7 +636,10 @@ fn a_px4_flight_controller_keeps_its_session_through_an_agent_restart_and_its_ow
                         .any(|e| matches!(e, ClientEvent::Info(i) if i.result.implementation_status == 1))
                 });
             }
-            assert!(pong, "the session was not taken over: the ping says no session");
+            assert!(
+                pong,
+                "the session was not taken over: the ping says no session"
+            );
             println!(
                 "RECOVERY px4 agent restart: ping in session answered {} ms after the kill",
                 restarted.elapsed().as_millis()
@@ -747,14 +752,18 @@ fn through_impaired_link(impairment: Impairment, domain: i16, what: &str, n: u32
         ),
     );
     let _ = c.run_until(5 * SECOND, |_| {
-        reader.line(Duration::ZERO).is_some_and(|l| l.starts_with("MATCHED"))
+        reader
+            .line(Duration::ZERO)
+            .is_some_and(|l| l.starts_with("MATCHED"))
     });
     for i in 0..n {
         c.write_reliable(w, &xrce_tests::hello_world(i, what));
     }
     let mut got = Deliveries::default();
     let end = Instant::now() + 120 * SECOND;
-    while Instant::now() < end && (got.distinct() < n as usize || c.client.unacked(stream_id::BUILTIN_RELIABLE) > 0) {
+    while Instant::now() < end
+        && (got.distinct() < n as usize || c.client.unacked(stream_id::BUILTIN_RELIABLE) > 0)
+    {
         c.step();
         drain(&reader, &mut got);
     }
@@ -799,9 +808,11 @@ fn a_link_that_duplicates_and_reorders_loses_and_repeats_nothing() {
 #[test]
 fn a_serial_line_that_flips_bits_loses_and_repeats_nothing() {
     let line = NoisyLine::open(1.0 / 400.0, 11);
-    let agent =
-        AgentProcess::launch("life-noisy", &["serial", "--dev", &line.agent_path, "-b", "115200"])
-            .expect("the serial agent did not start");
+    let agent = AgentProcess::launch(
+        "life-noisy",
+        &["serial", "--dev", &line.agent_path, "-b", "115200"],
+    )
+    .expect("the serial agent did not start");
     let rounds = micro_ros_rounds(146);
     let writer = talker_writer(&rounds[0]);
     let reader = chatter_reader(30, 146);
@@ -829,7 +840,10 @@ fn a_serial_line_that_flips_bits_loses_and_repeats_nothing() {
         drain(&reader, &mut got);
     }
     let (bytes, flipped) = line.counts();
-    assert!(flipped > 0, "no bit flipped in {bytes} bytes: the line is not noisy");
+    assert!(
+        flipped > 0,
+        "no bit flipped in {bytes} bytes: the line is not noisy"
+    );
     got.assert_exactly_once(0..30, "strings over a noisy serial line");
     got.assert_in_order("strings over a noisy serial line");
     drop(agent);
@@ -853,7 +867,10 @@ fn an_agent_that_comes_back_tells_its_clients_where_their_streams_stand() {
     c.connect(10 * SECOND);
     let w = c.setup_publisher(149);
     c.write_reliable(w, &xrce_tests::hello_world(0, "before"));
-    assert!(c.run_until(5 * SECOND, |c| c.client.unacked(stream_id::BUILTIN_RELIABLE) == 0));
+    assert!(c.run_until(5 * SECOND, |c| c
+        .client
+        .unacked(stream_id::BUILTIN_RELIABLE)
+        == 0));
     let killed = Instant::now();
     rig.before_reset(Reset::AgentRestarted);
     // Silent: nothing sent, only what arrives is looked at.
@@ -861,7 +878,9 @@ fn an_agent_that_comes_back_tells_its_clients_where_their_streams_stand() {
     let mut told = None;
     while told.is_none() && killed.elapsed() < 10 * SECOND {
         for m in c.link.receive(Duration::from_millis(10), &mut buf) {
-            let Ok(msg) = Message::decode(&m) else { continue };
+            let Ok(msg) = Message::decode(&m) else {
+                continue;
+            };
             if msg
                 .submessages
                 .iter()

@@ -87,6 +87,15 @@ fn big_fragmented_samples_get_the_reference_agents_replies() {
     replay("big-fragmented.txt");
 }
 
+/// micro-ROS's creation pattern (binary, REPLACE|REUSE, a replier), a reset without DELETE,
+/// and the same objects created again from a new port with the same key and session, with
+/// other bytes in their padding: every CREATE of the second round answered STATUS_OK_MATCHED,
+/// byte for byte as the reference agent answered.
+#[test]
+fn a_micro_ros_reset_gets_the_reference_agents_replies() {
+    replay("microros-reset.txt");
+}
+
 /// The captures use DDS domain 0 and the same topic: one replay at a time.
 static DOMAIN_0: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
@@ -188,6 +197,28 @@ fn replay(name: &str) {
         }
         clients[i].1.send(&l.bytes).expect("send");
         receive(&mut rx, Duration::ZERO);
+        // CREATE_CLIENT: as the real client, sent again each second until STATUS_AGENT
+        // comes (a session at another endpoint is probed before it moves).
+        if l.bytes.get(4) == Some(&0x00) {
+            let is_agent_status = |d: &Vec<u8>| d.get(4) == Some(&0x04);
+            let before = rx[i].iter().filter(|d| is_agent_status(d)).count();
+            let mut attempts = 1;
+            loop {
+                let wait = Instant::now() + Duration::from_secs(1);
+                let answered = |rx: &Vec<Vec<Vec<u8>>>| {
+                    rx[i].iter().filter(|d| is_agent_status(d)).count() > before
+                };
+                while !answered(&rx) && Instant::now() < wait {
+                    receive(&mut rx, Duration::from_millis(5));
+                }
+                if answered(&rx) {
+                    break;
+                }
+                assert!(attempts < 10, "{name}: CREATE_CLIENT never answered");
+                attempts += 1;
+                clients[i].1.send(&l.bytes).expect("send");
+            }
+        }
     }
     wait_for(
         &mut rx,

@@ -130,7 +130,9 @@ impl Worker {
                 self.release_domain(domain);
             }
             EntityKind::Writer {
-                writer, mut rematch, ..
+                writer,
+                mut rematch,
+                ..
             } => {
                 // Samples it still held for its readers to match go out now (a replaced
                 // writer's were carried to its successor before): the client was told they

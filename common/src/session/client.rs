@@ -355,7 +355,8 @@ impl Client {
             request_id,
             object_id: ObjectId::CLIENT,
         });
-        let header = MessageHeader::new(self.config.session_id, stream_id::NONE, 0, self.config.key);
+        let header =
+            MessageHeader::new(self.config.session_id, stream_id::NONE, 0, self.config.key);
         let mut b = MessageBuilder::new(header);
         b.push(&p, self.config.little_endian)
             .map_err(|_| ClientError::TooLarge)?;

@@ -157,7 +157,12 @@ impl ObjectGraph {
             }
             return CreateDecision::Create;
         };
-        let matches = same_meaning(&existing.variant, existing.little_endian, variant, little_endian);
+        let matches = same_meaning(
+            &existing.variant,
+            existing.little_endian,
+            variant,
+            little_endian,
+        );
         match (reuse, replace) {
             (false, false) => CreateDecision::Reply(status::ERR_ALREADY_EXISTS),
             (false, true) => CreateDecision::Replace,
@@ -473,7 +478,14 @@ mod tests {
         // Replacing an existing object is still allowed.
         let first = obj(0, k::PARTICIPANT, None);
         assert_eq!(
-            g.decide_create(first.object_id, &first.variant, true, false, true, MAX_OBJECTS),
+            g.decide_create(
+                first.object_id,
+                &first.variant,
+                true,
+                false,
+                true,
+                MAX_OBJECTS
+            ),
             CreateDecision::Replace
         );
     }

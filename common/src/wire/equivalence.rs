@@ -58,9 +58,10 @@ fn same_binary(kind: u8, x: &[u8], x_le: bool, y: &[u8], y_le: bool) -> bool {
                 EndpointBinary::decode(y, writer, y_le),
             )
         }
-        object_kind::REQUESTER | object_kind::REPLIER => {
-            both(ServiceBinary::decode(x, x_le), ServiceBinary::decode(y, y_le))
-        }
+        object_kind::REQUESTER | object_kind::REPLIER => both(
+            ServiceBinary::decode(x, x_le),
+            ServiceBinary::decode(y, y_le),
+        ),
         _ => false,
     }
 }
@@ -198,9 +199,19 @@ mod tests {
                 Representation::Binary(e.encode(true, le)),
             )
         };
-        assert!(!same_meaning(&w(&qos(10), true), true, &w(&qos(5), true), true));
+        assert!(!same_meaning(
+            &w(&qos(10), true),
+            true,
+            &w(&qos(5), true),
+            true
+        ));
         // The same writer sent big-endian by another build of the client.
-        assert!(same_meaning(&w(&qos(10), true), true, &w(&qos(10), false), false));
+        assert!(same_meaning(
+            &w(&qos(10), true),
+            true,
+            &w(&qos(10), false),
+            false
+        ));
         // Bytes that do not decode match only themselves.
         let junk = variant(object_kind::DATAWRITER, Representation::Binary(vec![1, 2]));
         assert!(same_meaning(&junk, true, &junk.clone(), true));
@@ -216,7 +227,12 @@ mod tests {
                  <dataType>HelloWorld</dataType>\n</topic>\n  </data_writer>\n</dds>\n";
         let x = |s: &str| variant(object_kind::DATAWRITER, Representation::Xml(s.into()));
         assert!(same_meaning(&x(a), true, &x(b), true));
-        assert!(!same_meaning(&x(a), true, &x(&a.replace("NO_KEY", "WITH_KEY")), true));
+        assert!(!same_meaning(
+            &x(a),
+            true,
+            &x(&a.replace("NO_KEY", "WITH_KEY")),
+            true
+        ));
         // Order of elements counts, order of attributes does not.
         let p = "<dds><participant><rtps a=\"1\" b=\"2\"><name>n</name></rtps></participant></dds>";
         let q = "<dds><participant><rtps b='2' a='1'><name>n</name></rtps></participant></dds>";
@@ -231,7 +247,10 @@ mod tests {
     #[test]
     fn different_forms_kinds_or_parents_differ() {
         let xml = variant(object_kind::DATAWRITER, Representation::Xml("<a/>".into()));
-        let by_ref = variant(object_kind::DATAWRITER, Representation::Reference("a".into()));
+        let by_ref = variant(
+            object_kind::DATAWRITER,
+            Representation::Reference("a".into()),
+        );
         assert!(!same_meaning(&xml, true, &by_ref, true));
         let mut other_parent = xml.clone();
         other_parent.extra = VariantExtra::Parent(ObjectId::new(2, object_kind::PUBLISHER));

@@ -5,8 +5,8 @@
 //! decoder reads, so decoded captures re-encode to the same bytes.
 
 pub mod binary;
-pub mod equivalence;
 pub mod cdr;
+pub mod equivalence;
 pub mod header;
 pub mod info;
 pub mod payload;

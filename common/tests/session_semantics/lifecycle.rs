@@ -61,7 +61,11 @@ fn the_same_session_again_restarts_its_streams_and_keeps_its_objects() {
     );
     // Its streams start at 0 again: message 0 is new, not a duplicate.
     agent.handle_datagram(later, ADDR, &write(0), &mut rec);
-    assert_eq!(writes(&rec), 6, "the new incarnation's first write was dropped");
+    assert_eq!(
+        writes(&rec),
+        6,
+        "the new incarnation's first write was dropped"
+    );
 }
 
 #[test]
@@ -99,7 +103,12 @@ fn a_delete_for_a_session_the_agent_no_longer_has_is_answered() {
     let first = drain(&mut agent);
     assert!(!agent.has_client(KEY), "the session ended");
     // The first STATUS is lost; the client sends its DELETE again.
-    agent.handle_datagram(t0 + Duration::from_secs(1), ADDR, &delete_session(0x01), &mut rec);
+    agent.handle_datagram(
+        t0 + Duration::from_secs(1),
+        ADDR,
+        &delete_session(0x01),
+        &mut rec,
+    );
     let again = drain(&mut agent);
     assert_eq!(again.len(), 1, "one answer");
     // The reference agent's answer: STATUS_OK in the DELETE's own header.
@@ -118,9 +127,16 @@ fn a_delete_for_a_session_the_agent_no_longer_has_is_answered() {
         },
         other => panic!("one submessage expected: {other:?}"),
     }
-    assert!(again[0].data.len() <= delete_session(0x01).len() + 4, "no amplification");
+    assert!(
+        again[0].data.len() <= delete_session(0x01).len() + 4,
+        "no amplification"
+    );
     assert_eq!(agent.stats().dropped("delete_without_session"), 1);
-    assert_eq!(agent.stats().lost_total, 0, "an answered DELETE loses nothing");
+    assert_eq!(
+        agent.stats().lost_total,
+        0,
+        "an answered DELETE loses nothing"
+    );
     assert!(!first.is_empty());
     // Without a key in the header and from an endpoint without a session: answered too.
     let mut b = MessageBuilder::new(MessageHeader::new(0x81, 0, 0, KEY));
@@ -216,11 +232,19 @@ fn a_restart_right_after_the_session_began_is_told_from_a_duplicate_by_what_foll
     agent.handle_datagram(ms(100), ADDR, &create_client_with(0x01), &mut rec);
     agent.handle_datagram(ms(110), ADDR, &write(3), &mut rec);
     agent.handle_datagram(ms(120), ADDR, &write(0), &mut rec);
-    assert_eq!(writes(&rec), 4, "a duplicate CREATE_CLIENT reset the streams");
+    assert_eq!(
+        writes(&rec),
+        4,
+        "a duplicate CREATE_CLIENT reset the streams"
+    );
     // A restart: the next message is numbered 0 again, behind what was taken.
     agent.handle_datagram(ms(200), ADDR, &create_client_with(0x01), &mut rec);
     agent.handle_datagram(ms(210), ADDR, &write(0), &mut rec);
     agent.handle_datagram(ms(220), ADDR, &write(1), &mut rec);
-    assert_eq!(writes(&rec), 6, "the restarted client's messages were taken for copies");
+    assert_eq!(
+        writes(&rec),
+        6,
+        "the restarted client's messages were taken for copies"
+    );
     assert!(!rec.0.iter().any(|o| matches!(o, Op::Deleted(_))));
 }

@@ -105,9 +105,15 @@ impl<A: Endpoint> Agent<A> {
             let first = client.first_seq;
             let from_the_start = header.sequence_nr == first
                 && if stream_id::is_reliable(stream) {
-                    client.reliable_in.get(&stream).is_some_and(|i| i.is_behind(first))
+                    client
+                        .reliable_in
+                        .get(&stream)
+                        .is_some_and(|i| i.is_behind(first))
                 } else {
-                    client.best_effort_in.get(&stream).is_some_and(|i| i.is_stale(first))
+                    client
+                        .best_effort_in
+                        .get(&stream)
+                        .is_some_and(|i| i.is_stale(first))
                 };
             if from_the_start {
                 client.reset_streams();

@@ -256,7 +256,11 @@ impl<A: Endpoint> Agent<A> {
                     };
                     let _ = b.push(&Payload::Status(reply), raw.little_endian());
                     self.stats.count("delete_without_session");
-                    tracing::debug!(?src, session = header.session_id, "DELETE of a session the agent does not have: answered STATUS_OK");
+                    tracing::debug!(
+                        ?src,
+                        session = header.session_id,
+                        "DELETE of a session the agent does not have: answered STATUS_OK"
+                    );
                     self.push_transmit(src, b.finish());
                     answered = true;
                 }

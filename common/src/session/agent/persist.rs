@@ -100,7 +100,10 @@ impl<A: Endpoint> Agent<A> {
         let Some(c) = self.clients.get_mut(&key) else {
             return;
         };
-        if c.reliable_out.values().any(|s| s.reliable.heartbeat().is_some()) {
+        if c.reliable_out
+            .values()
+            .any(|s| s.reliable.heartbeat().is_some())
+        {
             c.heartbeat_due = Some(now);
         }
         let inputs: Vec<u8> = c.reliable_in.keys().copied().collect();
