@@ -220,21 +220,15 @@ fn relay(
         let mut idle = true;
         while let Ok((n, from)) = front.recv_from(&mut buf) {
             idle = false;
-            if !paths.contains_key(&from) {
-                let Ok(back) = UdpSocket::bind(local) else {
+            if let std::collections::hash_map::Entry::Vacant(v) = paths.entry(from) {
+                let Some(back) = path_to(agent, local) else {
                     continue;
                 };
-                if back.connect(agent).is_err() || back.set_nonblocking(true).is_err() {
-                    continue;
-                }
-                paths.insert(
-                    from,
-                    Path {
-                        back,
-                        held_to_agent: None,
-                        held_to_client: None,
-                    },
-                );
+                v.insert(Path {
+                    back,
+                    held_to_agent: None,
+                    held_to_client: None,
+                });
             }
             if let Some(p) = paths.get_mut(&from) {
                 let Path {
@@ -285,6 +279,14 @@ fn relay(
             std::thread::sleep(Duration::from_micros(200));
         }
     }
+}
+
+/// A client endpoint's own socket towards the agent.
+fn path_to(agent: SocketAddr, local: &str) -> Option<UdpSocket> {
+    let back = UdpSocket::bind(local).ok()?;
+    back.connect(agent).ok()?;
+    back.set_nonblocking(true).ok()?;
+    Some(back)
 }
 
 /// One datagram through the impairments: dropped, sent, sent twice, or held for reordering
@@ -390,7 +392,7 @@ impl NoisyLine {
                             c.0 += n as u64;
                             c.1 += flipped;
                         }
-                        let _ = write_all(&mut to, &buf[..n]);
+                        write_all(&mut to, &buf[..n]);
                     }
                     if idle {
                         std::thread::sleep(Duration::from_micros(300));

@@ -376,7 +376,7 @@ fn talker_resets(wire: Wire, domain: i16, resets: &[Reset], per_round: u32) {
         }
         let first = next;
         let mut in_dds = None;
-        let mut look = |got: &mut Deliveries, in_dds: &mut Option<Duration>| {
+        let look = |got: &mut Deliveries, in_dds: &mut Option<Duration>| {
             drain(&reader, got);
             if in_dds.is_none() && got.count(first) > 0 {
                 *in_dds = Some(reset_at.elapsed());

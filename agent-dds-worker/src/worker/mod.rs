@@ -248,7 +248,7 @@ impl Writers {
     /// Lets go of the DDS writer of an XRCE writer that was deleted or replaced: kept until
     /// its readers acknowledged what was written through it ([`Writers::retiring`]).
     fn retire(&mut self, writer: Rc<DdsWriter>, now: Instant) {
-        if writer.outstanding.len() == 0 {
+        if writer.outstanding.is_empty() {
             return self.release(writer);
         }
         self.retiring.push_back((writer, now));
@@ -275,7 +275,7 @@ impl Writers {
         let limit = now.checked_sub(crate::acks::ACK_GIVE_UP).unwrap_or(now);
         let mut done = Vec::new();
         self.retiring.retain(|(w, since)| {
-            let keep = w.outstanding.len() > 0 && *since > limit;
+            let keep = !w.outstanding.is_empty() && *since > limit;
             if !keep {
                 done.push(w.clone());
             }
