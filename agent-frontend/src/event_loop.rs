@@ -205,6 +205,9 @@ fn serve<T: Transport>(
         while let Some(closed) = transport.poll_closed() {
             agent.endpoint_closed(Instant::now(), closed);
         }
+        while let Some(gone) = transport.poll_unreachable() {
+            agent.endpoint_unreachable(now, gone, relay);
+        }
         discovery_left = discovery.as_mut().is_some_and(Discovery::answer_pending);
         relay.apply_replies(now, &mut agent);
         inbox.deliver(now, relay, &mut agent, replies_ready, announce_ready);

@@ -393,3 +393,23 @@ fn a_claim_whose_probe_is_answered_is_not_granted_by_the_timer() {
     // And the claim's timer does not fire again and again.
     assert!(agent.poll_timeout().is_none_or(|t| t > ms(300)));
 }
+
+/// The session's old endpoint is a closed port: its host answers the probe with ICMP port
+/// unreachable, and the claim is granted then, not after the probe wait.
+#[test]
+fn a_claim_on_a_session_whose_port_is_closed_is_granted_at_once() {
+    let (mut agent, mut rec, t0) = agent_with(Admission::default());
+    let ms = |n| t0 + Duration::from_millis(n);
+    agent.handle_datagram(ms(0), ELSEWHERE, &create_client(KEY), &mut rec);
+    assert!(statuses(&drain(&mut agent)).is_empty());
+    // Another endpoint's ICMP says nothing about this session.
+    agent.endpoint_unreachable(ms(1), 99, &mut rec);
+    assert!(statuses(&drain(&mut agent)).is_empty());
+    agent.endpoint_unreachable(ms(2), HOME, &mut rec);
+    assert_eq!(statuses(&drain(&mut agent)), [(ELSEWHERE, status::OK)]);
+    // Without a claim, the session stays where it is (its client may come back).
+    let (mut agent, mut rec, t0) = agent_with(Admission::default());
+    agent.endpoint_unreachable(t0, HOME, &mut rec);
+    agent.handle_datagram(t0, HOME, &write(0, b"still here"), &mut rec);
+    assert_eq!(rec.writes, [b"still here".to_vec()]);
+}

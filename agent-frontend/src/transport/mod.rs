@@ -18,6 +18,7 @@
 //! the front-end's settings.
 
 pub mod discovery;
+pub mod icmp;
 pub mod multiserial;
 pub mod pty;
 pub mod registry;
@@ -69,6 +70,13 @@ pub trait Transport {
 
     /// An endpoint that is gone for good since the last call (a closed connection).
     fn poll_closed(&mut self) -> Option<Self::Endpoint>;
+
+    /// An endpoint whose host said nothing listens there any more (UDP: ICMP port
+    /// unreachable) since the last call. The session there is kept (its client may come
+    /// back); a claim on it from a new endpoint needs no longer wait for the probe.
+    fn poll_unreachable(&mut self) -> Option<Self::Endpoint> {
+        None
+    }
 
     /// When [`Self::handle_timeout`] is due (devices waited for, reopened or probed).
     fn poll_timeout(&self) -> Option<Instant>;

@@ -41,6 +41,9 @@ pub struct UdpTransport {
     /// What the last batch read: length and source of each datagram.
     got: Vec<(usize, Result<SocketAddr, &'static str>)>,
     readable: bool,
+    /// The error queue has something to read ([`super::icmp`]).
+    errors_pending: bool,
+    unreachable: super::icmp::Unreachable,
     stats: TransportStats,
 }
 
@@ -59,6 +62,7 @@ impl UdpTransport {
         }
         tracing::debug!(recv = ?sock.recv_buffer_size(), send = ?sock.send_buffer_size(), "socket buffers");
         let local = socket.local_addr()?;
+        super::icmp::enable(std::os::fd::AsFd::as_fd(&socket), local.is_ipv6());
         Ok(UdpTransport {
             socket: mio::net::UdpSocket::from_std(socket),
             local,
@@ -67,6 +71,8 @@ impl UdpTransport {
             got: Vec::with_capacity(RECV_BATCH),
             // Datagrams may have arrived before registration: look once.
             readable: true,
+            errors_pending: false,
+            unreachable: Default::default(),
             stats: TransportStats::default(),
         })
     }
@@ -118,7 +124,7 @@ impl UdpTransport {
 }
 
 /// The IP address and port of a datagram's source.
-fn socket_addr(a: &SockaddrStorage) -> Option<SocketAddr> {
+pub(super) fn socket_addr(a: &SockaddrStorage) -> Option<SocketAddr> {
     if let Some(v4) = a.as_sockaddr_in() {
         return Some(SocketAddr::V4((*v4).into()));
     }
@@ -150,6 +156,9 @@ impl Transport for UdpTransport {
         if event.is_readable() || event.is_error() {
             self.readable = true;
         }
+        if event.is_error() {
+            self.errors_pending = true;
+        }
     }
 
     fn receive(
@@ -158,6 +167,10 @@ impl Transport for UdpTransport {
         budget: usize,
         deliver: &mut dyn FnMut(SocketAddr, &[u8]),
     ) -> bool {
+        if std::mem::take(&mut self.errors_pending) {
+            self.unreachable
+                .read(std::os::fd::AsFd::as_fd(&self.socket));
+        }
         if !self.readable {
             return false;
         }
@@ -193,11 +206,20 @@ impl Transport for UdpTransport {
                     break;
                 }
                 Err(nix::errno::Errno::EINTR) => {}
+                Err(
+                    nix::errno::Errno::ECONNREFUSED
+                    | nix::errno::Errno::EHOSTUNREACH
+                    | nix::errno::Errno::ENETUNREACH,
+                ) => {
+                    // An ICMP error (IP_RECVERR reports it once on the next read too): what
+                    // it says is in the error queue.
+                    self.unreachable
+                        .read(std::os::fd::AsFd::as_fd(&self.socket));
+                }
                 Err(e) => {
-                    // Not expected on an unconnected socket without IP_RECVERR (ICMP
-                    // errors are not reported on it), but keep reading past a stray one.
-                    // Errors that repeat mean the socket itself fails: wait for the next
-                    // readiness rather than spin.
+                    // Not expected, but keep reading past a stray one. Errors that repeat
+                    // mean the socket itself fails: wait for the next readiness rather
+                    // than spin.
                     tracing::debug!(error = %e, "recvmmsg");
                     errors += 1;
                     if errors >= 16 {
@@ -233,6 +255,10 @@ impl Transport for UdpTransport {
 
     fn poll_closed(&mut self) -> Option<SocketAddr> {
         None
+    }
+
+    fn poll_unreachable(&mut self) -> Option<SocketAddr> {
+        self.unreachable.next()
     }
 
     fn poll_timeout(&self) -> Option<Instant> {

@@ -348,6 +348,37 @@ impl<A: Endpoint> Agent<A> {
         }
     }
 
+    /// Tells the core that `endpoint`'s host says nothing listens there any more (UDP: an
+    /// ICMP port unreachable, typically in answer to a takeover probe). A claim on the
+    /// session there from a new endpoint (a client that reset and came back from a new
+    /// port) is granted at once instead of after the probe wait. The session itself is kept
+    /// as it is: a UDP session outlives its client's silence, as with the reference agent.
+    pub fn endpoint_unreachable(
+        &mut self,
+        now: Instant,
+        endpoint: A,
+        sink: &mut impl OperationSink,
+    ) {
+        let Some(key) = self.by_addr.get(&endpoint).copied() else {
+            return;
+        };
+        let Some(c) = self.clients.get_mut(&key) else {
+            return;
+        };
+        let Some(claim) = c.takeover.as_mut() else {
+            return;
+        };
+        if c.addr != endpoint || c.last_heard > claim.probed {
+            return;
+        }
+        claim.endpoint_gone = true;
+        if let Some(request) = claim.request.take() {
+            let claimant = claim.claimant;
+            tracing::debug!(client = %key, to = ?claimant, "the session's endpoint is closed (ICMP port unreachable): the session moves");
+            self.create_client(now, claimant, &request, sink);
+        }
+    }
+
     /// Removes a client that asked for its own deletion, after its STATUS went out.
     pub(super) fn finish_client(
         &mut self,

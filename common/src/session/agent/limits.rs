@@ -31,6 +31,9 @@ pub(super) struct Claim<A> {
     /// its session then, inside its first attempt's wait (eProsima's client waits 1 s for
     /// STATUS_AGENT), instead of at its next attempt.
     pub(super) request: Option<Box<CreateClientPayload>>,
+    /// The session's endpoint's host said nothing listens there any more (ICMP port
+    /// unreachable, in answer to the probe): the claim needs no longer wait.
+    pub(super) endpoint_gone: bool,
 }
 
 impl<A> Claim<A> {
@@ -289,7 +292,7 @@ impl<A: Endpoint> Agent<A> {
         let claim = match c.takeover.take() {
             Some(claim) if claim.claimant == src && since(claim.probed) < TAKEOVER_MEMORY => {
                 if c.last_heard <= claim.probed {
-                    if since(claim.probed) >= wait {
+                    if since(claim.probed) >= wait || claim.endpoint_gone {
                         return Takeover::Allow;
                     }
                     // The latest request is the one answered.
@@ -311,6 +314,7 @@ impl<A: Endpoint> Agent<A> {
                 first: now,
                 probed: now,
                 request,
+                endpoint_gone: false,
             },
         };
         c.takeover = Some(claim);
