@@ -102,7 +102,7 @@ impl Unreachable {
     }
 
     /// The next endpoint found unreachable.
-    pub fn next(&mut self) -> Option<SocketAddr> {
+    pub fn pop(&mut self) -> Option<SocketAddr> {
         self.pending.pop_front()
     }
 }
@@ -135,7 +135,7 @@ mod tests {
         let mut found = None;
         while found.is_none() && Instant::now() < end {
             u.read(socket.as_fd());
-            found = u.next();
+            found = u.pop();
             std::thread::sleep(Duration::from_millis(5));
         }
         assert_eq!(found, Some(closed));

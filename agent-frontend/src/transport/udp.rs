@@ -258,7 +258,7 @@ impl Transport for UdpTransport {
     }
 
     fn poll_unreachable(&mut self) -> Option<SocketAddr> {
-        self.unreachable.next()
+        self.unreachable.pop()
     }
 
     fn poll_timeout(&self) -> Option<Instant> {
