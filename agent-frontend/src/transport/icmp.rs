@@ -140,8 +140,8 @@ mod tests {
         }
         assert_eq!(found, Some(closed));
         assert!(same_host(
-            "127.0.0.1".parse().unwrap(),
-            "::ffff:127.0.0.1".parse().unwrap()
+            "127.0.0.1".parse().expect("an address"),
+            "::ffff:127.0.0.1".parse().expect("an address")
         ));
     }
 }
