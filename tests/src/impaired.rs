@@ -92,6 +92,8 @@ pub type DropRule = Box<dyn FnMut(Direction, &[u8]) -> bool + Send>;
 pub struct RelayCounts {
     /// Datagrams received from clients and from the agent.
     pub received: u64,
+    /// Of those, from the agent.
+    pub from_agent: u64,
     /// Dropped by chance.
     pub lost: u64,
     /// Dropped by a rule.
@@ -303,6 +305,9 @@ fn pass(
         return;
     };
     s.counts.received += 1;
+    if dir == Direction::ToClient {
+        s.counts.from_agent += 1;
+    }
     let ruled = s.rules.iter_mut().any(|r| r(dir, bytes));
     if ruled {
         s.counts.ruled_out += 1;

@@ -229,6 +229,18 @@ struct Rig {
     line: Option<xrce_tests::PtyPair>,
 }
 
+impl Drop for Rig {
+    /// Stops the agent and removes its stored sessions (a test's agent leaves none behind).
+    fn drop(&mut self) {
+        if let Some(agent) = self.agent.take() {
+            let clean = agent.stop();
+            if !std::thread::panicking() {
+                assert!(clean, "the agent did not stop cleanly");
+            }
+        }
+    }
+}
+
 impl Rig {
     fn start(wire: Wire) -> Self {
         match wire {
@@ -479,7 +491,7 @@ fn a_micro_ros_board_that_resets_keeps_publishing_over_serial() {
 fn a_data_writer_replaced_by_a_new_description_loses_and_repeats_nothing() {
     let rounds = micro_ros_rounds(142);
     let writer = talker_writer(&rounds[0]);
-    let mut rig = Rig::start(Wire::Udp);
+    let rig = Rig::start(Wire::Udp);
     let reader = chatter_reader(20, 142);
     let mut c = TestClient::on_link(rig.link(None, false), micro_ros_config());
     assert!(set_up_talker(&mut c, &rounds[0])
@@ -533,7 +545,6 @@ fn a_data_writer_replaced_by_a_new_description_loses_and_repeats_nothing() {
     }
     got.assert_exactly_once(0..20, "strings around a replaced writer");
     got.assert_in_order("strings around a replaced writer");
-    rig.before_reset(Reset::NewPort);
 }
 
 /// PX4's uxrce_dds_client: a session-less ping until the agent answers, everything created
@@ -711,6 +722,7 @@ fn a_delete_whose_reply_was_lost_is_answered_again() {
     assert!(done, "the DELETE was never answered");
     assert_eq!(attempts, 2, "answered at the second attempt");
     assert_eq!(relay.counts().ruled_out, 1);
+    assert!(agent.stop(), "the agent did not stop cleanly");
 }
 
 /// A reliable publisher through a link that loses, duplicates and reorders: every sample
@@ -779,6 +791,7 @@ fn through_impaired_link(impairment: Impairment, domain: i16, what: &str, n: u32
     }
     got.assert_exactly_once(0..n, what);
     got.assert_in_order(what);
+    assert!(agent.stop(), "the agent did not stop cleanly");
 }
 
 #[test]
@@ -846,7 +859,7 @@ fn a_serial_line_that_flips_bits_loses_and_repeats_nothing() {
     );
     got.assert_exactly_once(0..30, "strings over a noisy serial line");
     got.assert_in_order("strings over a noisy serial line");
-    drop(agent);
+    assert!(agent.stop(), "the agent did not stop cleanly");
 }
 
 /// A front-end that takes sessions over tells each client at once where its reliable
@@ -895,5 +908,4 @@ fn an_agent_that_comes_back_tells_its_clients_where_their_streams_stand() {
         "RECOVERY agent restart: the client was told where its stream stands {} ms after the kill",
         told.as_millis()
     );
-    drop(rig);
 }

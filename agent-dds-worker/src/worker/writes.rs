@@ -264,16 +264,21 @@ impl Worker {
             let held = std::mem::take(&mut rematch.held);
             let w = w.clone();
             self.publish_held(key, &w, held, Instant::now());
+            return self.publish_one(key, &w, seq, sample, dispose);
         }
-        let Some(Entity {
-            kind: EntityKind::Writer { writer: w, .. },
-            ..
-        }) = self.entities.value_mut(&key)
-        else {
-            return Err(OpError::UnknownReference(
-                "write to an unknown data writer".into(),
-            ));
-        };
+        let w = w.clone();
+        self.publish_one(key, &w, seq, sample, dispose)
+    }
+
+    /// Writes one sample (or dispose) through `w` and records it for acknowledgement.
+    fn publish_one(
+        &mut self,
+        key: EntityKey,
+        w: &Rc<DdsWriter>,
+        seq: u64,
+        sample: Sample,
+        dispose: bool,
+    ) -> Result<(), OpError> {
         let done = if dispose {
             w.raw
                 .dispose(&sample)
