@@ -85,6 +85,9 @@ pub fn run<T: Transport>(
     };
     config.track_sessions = store.is_some();
     relay.set_hand_over_at_once(store.is_some());
+    // Who started this process: it is gone when it died (its death is what asks this one to
+    // stop, PR_SET_PDEATHSIG), not when it stops the agent on purpose.
+    let supervisor = nix::unistd::getppid();
     let result = serve(
         &who,
         &mut reporter,
@@ -97,6 +100,11 @@ pub fn run<T: Transport>(
         &mut discovery,
         &mut on_serving,
     );
+    if result.is_ok() {
+        // The transport is still open here (and this process's report still says it runs,
+        // so that a successor waits for it).
+        hold_for_successor(instance, supervisor);
+    }
     reporter.remove();
     result
 }
@@ -246,5 +254,34 @@ fn serve<T: Transport>(
         while let Some(t) = agent.poll_transmit() {
             transport.send(t.destination, &t.data);
         }
+    }
+}
+
+/// Longest a front-end whose supervisor died holds its transport for a successor.
+const SUCCESSOR_HOLD: Duration = Duration::from_secs(2);
+
+/// After the supervisor died (not after a stop it asked for): keeps the transport open,
+/// reading nothing, until a new supervisor of the instance waits for this process to stop
+/// ([`xrce_ipc::runtime_dir::successor_waiting`]) or [`SUCCESSOR_HOLD`] passed. Its clients'
+/// datagrams meanwhile land in a socket that is still there instead of drawing ICMP port
+/// unreachable errors: eProsima's client counts each such error as a wait of its own, so a
+/// sample written just before the crash would run out of its confirmation window before
+/// the restarted agent could answer (clients resend what was not acknowledged). The
+/// session store is already final: nothing is taken meanwhile.
+fn hold_for_successor(instance: &str, supervisor: nix::unistd::Pid) {
+    if nix::unistd::getppid() == supervisor {
+        return;
+    }
+    tracing::info!(
+        "the supervisor is gone: the clients' port is held until its successor starts (at most {} s)",
+        SUCCESSOR_HOLD.as_secs()
+    );
+    let end = Instant::now() + SUCCESSOR_HOLD;
+    while Instant::now() < end {
+        if xrce_ipc::runtime_dir::successor_waiting(instance) {
+            tracing::info!("a successor waits: letting the port go");
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(5));
     }
 }

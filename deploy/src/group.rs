@@ -590,14 +590,20 @@ impl Group {
             return;
         }
         tracing::info!(processes = ?first, "processes of the previous agent of this instance are still stopping; waiting for them");
-        let end = std::time::Instant::now() + PREDECESSOR_WAIT;
-        while std::time::Instant::now() < end {
-            std::thread::sleep(Duration::from_millis(50));
-            if live().is_empty() {
-                return;
-            }
+        // Front-ends whose supervisor died hold their ports for this one: they may go now.
+        if let Err(e) = runtime_dir::announce_successor(&self.instance) {
+            tracing::debug!(error = %e, "successor marker not written: the old front-ends go after their hold");
         }
-        tracing::warn!(processes = ?live(), "processes of the previous agent still run; starting anyway (the new ones retry until they are gone)");
+        let end = std::time::Instant::now() + PREDECESSOR_WAIT;
+        let mut gone = false;
+        while !gone && std::time::Instant::now() < end {
+            std::thread::sleep(Duration::from_millis(10));
+            gone = live().is_empty();
+        }
+        runtime_dir::clear_successor(&self.instance);
+        if !gone {
+            tracing::warn!(processes = ?live(), "processes of the previous agent still run; starting anyway (the new ones retry until they are gone)");
+        }
     }
 
     /// Replaces this process with one of the group's (`worker`, or a front-end by name), for

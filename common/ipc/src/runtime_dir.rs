@@ -305,6 +305,33 @@ pub fn instance_dir(instance: &str) -> PathBuf {
     runtime_root().0.join(instance)
 }
 
+/// The file a new supervisor of `instance` keeps while it waits for its predecessor's
+/// processes to stop (pure): a front-end whose supervisor died holds its port until this
+/// appears ([`successor_waiting`]), so that its clients' datagrams meanwhile are not answered
+/// with ICMP errors (some client libraries count each as a wait, and give up the sooner).
+pub fn successor_marker(instance: &str) -> PathBuf {
+    instance_dir(instance).join("successor")
+}
+
+/// Whether a successor supervisor of `instance` waits ([`successor_marker`]; in the private
+/// instance directory, where only this user creates files).
+pub fn successor_waiting(instance: &str) -> bool {
+    std::fs::symlink_metadata(successor_marker(instance)).is_ok_and(|m| m.is_file())
+}
+
+/// Says that a successor waits (a new 0600 file, never through a link), until
+/// [`clear_successor`].
+pub fn announce_successor(instance: &str) -> Result<(), RuntimeDirError> {
+    let path = successor_marker(instance);
+    let _ = std::fs::remove_file(&path);
+    files::create_temp(&path).map(drop)
+}
+
+/// Takes the successor's marker away.
+pub fn clear_successor(instance: &str) {
+    let _ = std::fs::remove_file(successor_marker(instance));
+}
+
 /// Creates or checks the runtime directory and the directory of `instance` in it.
 pub fn ensure_instance_dir(instance: &str) -> Result<PathBuf, RuntimeDirError> {
     check_instance(instance)?;
