@@ -260,6 +260,9 @@ fn serve<T: Transport>(
 /// Longest a front-end whose supervisor died holds its transport for a successor.
 const SUCCESSOR_HOLD: Duration = Duration::from_secs(2);
 
+/// How many times (5 ms apart) a stopping front-end looks whether its supervisor is gone.
+const PARENT_LOOKS: u32 = 20;
+
 /// After the supervisor died (not after a stop it asked for): keeps the transport open,
 /// reading nothing, until a new supervisor of the instance waits for this process to stop
 /// ([`xrce_ipc::runtime_dir::successor_waiting`]) or [`SUCCESSOR_HOLD`] passed. Its clients'
@@ -269,8 +272,21 @@ const SUCCESSOR_HOLD: Duration = Duration::from_secs(2);
 /// the restarted agent could answer (clients resend what was not acknowledged). The
 /// session store is already final: nothing is taken meanwhile.
 fn hold_for_successor(instance: &str, supervisor: nix::unistd::Pid) {
-    if nix::unistd::getppid() == supervisor {
-        return;
+    // The death signal comes when the thread that started this process ends, which may be a
+    // moment before its whole process is gone and this one handed to another parent: look
+    // for a short while (a supervisor that stops the agent on purpose stays, and the stop
+    // costs this wait).
+    let gone = || {
+        nix::unistd::getppid() != supervisor
+            || !xrce_ipc::status::is_alive(supervisor.as_raw().unsigned_abs())
+    };
+    let mut looked = 0;
+    while !gone() {
+        if looked == PARENT_LOOKS {
+            return;
+        }
+        looked += 1;
+        std::thread::sleep(Duration::from_millis(5));
     }
     tracing::info!(
         "the supervisor is gone: the clients' port is held until its successor starts (at most {} s)",

@@ -909,3 +909,45 @@ fn an_agent_that_comes_back_tells_its_clients_where_their_streams_stand() {
         told.as_millis()
     );
 }
+
+/// A front-end whose supervisor died keeps its port until the next supervisor starts:
+/// datagrams meanwhile land in a socket, not on a closed port (whose ICMP errors eProsima's
+/// client counts as time waited, so that it gave up before the agent was back), and the
+/// next supervisor does not wait out the hold: it says it is there, and the port is let go.
+#[test]
+fn a_front_end_whose_supervisor_died_holds_its_port_for_the_successor() {
+    let addr: SocketAddr = ([127, 0, 0, 1], free_udp_port()).into();
+    let old = AgentProcess::start_on(addr, None);
+    let probe = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+    probe.connect(addr).expect("connect");
+    probe
+        .set_read_timeout(Some(Duration::from_millis(100)))
+        .expect("timeout");
+    sigkill(old.pid() as i32);
+    std::thread::sleep(Duration::from_millis(300));
+    // Nothing answers, and nothing refuses: a closed port would draw ECONNREFUSED here.
+    for _ in 0..3 {
+        probe.send(b"ping?").expect("send");
+        let mut buf = [0u8; 64];
+        match probe.recv(&mut buf) {
+            Err(e) => assert!(
+                matches!(
+                    e.kind(),
+                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
+                ),
+                "the port was closed while the successor was not there yet: {e}"
+            ),
+            Ok(n) => panic!("the dying front-end answered: {:?}", &buf[..n]),
+        }
+    }
+    let from = old.output().len();
+    let next = AgentProcess::start_on(addr, None);
+    assert!(
+        old.output()
+            .wait_for(from, "a successor waits: letting the port go", 10 * SECOND)
+            .is_some(),
+        "the old front-end did not see its successor"
+    );
+    assert!(next.stop(), "the successor did not stop cleanly");
+    drop(old);
+}
