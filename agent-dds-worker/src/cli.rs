@@ -243,6 +243,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
             30.0
         }),
         domains,
+        bounds: crate::bounds::WorkerBounds::default(),
     })?;
     worker.set_ros_distro(ros_distro);
     if args.ros_graph {

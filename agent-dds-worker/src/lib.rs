@@ -65,6 +65,7 @@ pub mod acks;
 pub mod adoption;
 pub mod backend;
 pub mod binary;
+pub mod bounds;
 pub mod cli;
 pub mod domains;
 pub mod episodes;

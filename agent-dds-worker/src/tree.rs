@@ -91,6 +91,11 @@ impl<T> EntityTree<T> {
         self.nodes.contains_key(key)
     }
 
+    /// How many entities one client has.
+    pub fn count_of(&self, client: &(u32, ClientKey)) -> usize {
+        self.by_client.get(client).map_or(0, HashSet::len)
+    }
+
     /// How many entities there are.
     pub fn len(&self) -> usize {
         self.nodes.len()

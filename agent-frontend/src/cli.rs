@@ -144,9 +144,11 @@ pub struct FrontendArgs {
     #[arg(long, env = "XRCE_DIALECT")]
     pub dialect: Option<Dialect>,
     /// Seconds of silence after which a client's session and its DDS entities are deleted
-    /// (probed with GET_INFO from a quarter of it on); 0 keeps silent sessions for ever.
-    /// Clients built with hard liveliness use their own timeout.
-    #[arg(long, env = "XRCE_CLIENT_DEAD_TIME", default_value_t = 0.0)]
+    /// (probed with GET_INFO from a quarter of it on: a client that answers keeps its
+    /// session); 0 keeps silent sessions for ever (as MicroXRCEAgent). Clients built with
+    /// hard liveliness use their own timeout. The default, six hours, lets sessions of
+    /// clients gone for good (and their entities, replayed to every new worker) end.
+    #[arg(long, env = "XRCE_CLIENT_DEAD_TIME", default_value_t = DEFAULT_CLIENT_DEAD_TIME)]
     pub client_dead_time: f64,
     #[command(flatten)]
     pub admission: AdmissionArgs,
@@ -202,6 +204,11 @@ pub struct AdmissionArgs {
     /// Most sessions from one source address (a serial line counts as one address).
     #[arg(long = "max-sessions-per-address", value_name = "N", default_value_t = budget::DEFAULT_MAX_SESSIONS_PER_ORIGIN, value_parser = at_least_one)]
     pub max_sessions_per_address: usize,
+    /// New sessions one source address may start per second (a second's worth at once);
+    /// beyond, its CREATE_CLIENTs go unanswered until the rate falls (the client retries).
+    /// 0: no limit.
+    #[arg(long = "new-sessions-per-second", value_name = "N", default_value_t = budget::DEFAULT_NEW_SESSIONS_PER_SECOND)]
+    pub new_sessions_per_second: u32,
     /// TCP: most connections from one source address; more are closed as they arrive.
     #[arg(long = "max-connections-per-address", value_name = "N", default_value_t = DEFAULT_TCP_PER_ADDRESS, value_parser = at_least_one)]
     pub max_connections_per_address: usize,
@@ -215,6 +222,8 @@ pub struct AdmissionArgs {
     pub closed_session_grace: u64,
 }
 
+/// Default `--client-dead-time`: six hours.
+pub const DEFAULT_CLIENT_DEAD_TIME: f64 = 21_600.0;
 /// Default `--memory-budget` in MiB.
 pub const DEFAULT_MEMORY_BUDGET_MIB: usize = budget::DEFAULT_MEMORY_BUDGET >> 20;
 /// Default `--max-connections-per-address`.
@@ -235,6 +244,7 @@ impl Default for AdmissionArgs {
             memory_budget_mib: DEFAULT_MEMORY_BUDGET_MIB,
             max_sessions: budget::DEFAULT_MAX_SESSIONS,
             max_sessions_per_address: budget::DEFAULT_MAX_SESSIONS_PER_ORIGIN,
+            new_sessions_per_second: budget::DEFAULT_NEW_SESSIONS_PER_SECOND,
             max_connections_per_address: DEFAULT_TCP_PER_ADDRESS,
             tcp_idle_timeout: DEFAULT_TCP_IDLE_SECS,
             closed_session_grace: DEFAULT_CLOSED_GRACE_SECS,
@@ -311,6 +321,11 @@ impl AdmissionArgs {
                 d.max_sessions_per_address as u64,
             ),
             (
+                "--new-sessions-per-second",
+                u64::from(self.new_sessions_per_second),
+                u64::from(d.new_sessions_per_second),
+            ),
+            (
                 "--max-connections-per-address",
                 self.max_connections_per_address as u64,
                 d.max_connections_per_address as u64,
@@ -344,6 +359,7 @@ impl AdmissionArgs {
         Limits {
             memory_budget: self.budget_split().core,
             max_sessions_per_origin: self.max_sessions_per_address,
+            new_sessions_per_second: self.new_sessions_per_second,
             detached_grace: (self.closed_session_grace > 0)
                 .then(|| Duration::from_secs(self.closed_session_grace.min(31_536_000))),
             ..Limits::default()
@@ -607,7 +623,10 @@ mod tests {
         let mut s = FrontendArgs::built_in();
         assert_eq!(s.instance, "default");
         assert!(s.keep_sessions);
-        assert_eq!((s.dialect, s.client_dead_time), (None, 0.0));
+        assert_eq!(
+            (s.dialect, s.client_dead_time),
+            (None, DEFAULT_CLIENT_DEAD_TIME)
+        );
         assert_eq!(parse(&s.to_args()), s, "the defaults");
         s.instance = "gw-1234abcd".into();
         s.frontend_id = 7;

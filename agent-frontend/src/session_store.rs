@@ -65,6 +65,63 @@ const STATE_FILE_LEN: u64 = 2 * SLOT;
 /// Largest objects file read back (object descriptions of one client).
 const MAX_OBJECTS_FILE: u64 = 64 << 20;
 
+/// What the session stores of one instance hold on disk (every front-end's), as a sweep
+/// or `xrce-agent status` sees them.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct StoredSessions {
+    /// Clients with a stored session.
+    pub clients: usize,
+    /// Bytes the stores take (allocated blocks: the state files are sparse).
+    pub bytes: u64,
+    /// When a front-end of the instance last said it was alive (Unix ms), if one did.
+    pub last_alive_ms: Option<u64>,
+}
+
+impl StoredSessions {
+    /// Whether no restart can take these sessions over any more: the last front-end alive
+    /// stopped longer than [`TAKE_OVER_WITHIN`] before `now_ms` (a running one says so every
+    /// second).
+    pub fn expired(&self, now_ms: u64) -> bool {
+        self.last_alive_ms
+            .is_none_or(|ms| now_ms.saturating_sub(ms) > TAKE_OVER_WITHIN.as_millis() as u64)
+    }
+}
+
+/// The session stores of `instance` ([`runtime_dir::sessions_dir`]): looked at, not
+/// changed; only this user's regular files are counted.
+pub fn inspect(instance: &str) -> StoredSessions {
+    use std::os::unix::fs::MetadataExt;
+    let mut out = StoredSessions::default();
+    let Ok(stores) = std::fs::read_dir(runtime_dir::sessions_dir(instance)) else {
+        return out;
+    };
+    let me = runtime_dir::euid();
+    for store in stores.flatten() {
+        let dir = store.path();
+        if !store.file_type().is_ok_and(|t| t.is_dir()) {
+            continue;
+        }
+        let alive = runtime_dir::read_owned(&dir.join("alive"), 8)
+            .ok()
+            .and_then(|b| b.try_into().ok().map(u64::from_le_bytes));
+        out.last_alive_ms = out.last_alive_ms.max(alive);
+        let Ok(files) = std::fs::read_dir(&dir) else {
+            continue;
+        };
+        for f in files.flatten() {
+            let Ok(m) = std::fs::symlink_metadata(f.path()) else {
+                continue;
+            };
+            if !m.is_file() || m.uid() != me {
+                continue;
+            }
+            out.bytes += m.blocks() * 512;
+            out.clients += usize::from(f.path().extension().is_some_and(|e| e == "state"));
+        }
+    }
+    out
+}
+
 /// Slice-by-16 tables: a subscriber's record (its reads' delivered marks) is rewritten on
 /// every loop pass, and the byte-wise table made the checksum a twentieth of the front-end's
 /// CPU with 100 clients.

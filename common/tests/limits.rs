@@ -285,3 +285,129 @@ fn fragments_after_a_stalled_reassembly_are_not_taken_for_a_message() {
     a.handle_datagram(t1, ep, &last, &mut NullSink);
     assert_eq!(a.stats().dropped("reassembly_discarded"), 2);
 }
+
+/// A reliable message (stream 0x80, sequence `seq`) asking for participant `n`.
+fn create_participant(k: ClientKey, seq: u16, n: u16) -> (Vec<u8>, BaseObjectRequest) {
+    let base = BaseObjectRequest {
+        request_id: RequestId(n.to_be_bytes()),
+        object_id: ObjectId::new(n, object_kind::PARTICIPANT),
+    };
+    let mut b = MessageBuilder::new(MessageHeader::new(0x01, 0x80, seq, k));
+    b.push(
+        &Payload::Create(CreatePayload {
+            base,
+            variant: ObjectVariant {
+                kind: object_kind::PARTICIPANT,
+                representation: Representation::Reference("default_xrce_participant".into()),
+                extra: VariantExtra::DomainId(0),
+            },
+            reuse: false,
+            replace: false,
+        }),
+        true,
+    )
+    .expect("encode");
+    (b.finish(), base)
+}
+
+#[test]
+fn thousands_of_hosts_with_one_silent_session_each_cannot_lock_a_new_host_out() {
+    let mut a = agent(Limits::default(), 64);
+    let t0 = Instant::now();
+    for host in 0..64 {
+        assert_eq!(
+            connect(&mut a, t0, Ep(host, 7000), key(host)),
+            Some(status::OK)
+        );
+    }
+    // Every host holds one session, as many as the newcomer's would: only the rule of the
+    // most silent session anywhere makes room.
+    let later = t0 + Duration::from_secs(2);
+    assert_eq!(
+        connect(&mut a, later, Ep(1000, 7000), key(1000)),
+        Some(status::OK)
+    );
+    assert_eq!(a.stats().dropped("session_evicted"), 1);
+    assert!(
+        !a.has_client(key(0)),
+        "the most silent (then lowest key) went"
+    );
+    assert_eq!(a.client_count(), 64);
+}
+
+#[test]
+fn a_refused_create_does_not_pin_a_session_but_a_created_object_does() {
+    let mut a = agent(Limits::default(), 2);
+    let t0 = Instant::now();
+    let (refused, holder) = (key(1), key(2));
+    assert_eq!(connect(&mut a, t0, Ep(1, 1), refused), Some(status::OK));
+    assert_eq!(connect(&mut a, t0, Ep(2, 1), holder), Some(status::OK));
+    // One asks for an object and is refused; the other's is created.
+    let (m, base) = create_participant(refused, 0, 1);
+    a.handle_datagram(t0, Ep(1, 1), &m, &mut NullSink);
+    a.send_status(t0, refused, base, ResultStatus::new(status::ERR_RESOURCES))
+        .expect("session");
+    let (m, base) = create_participant(holder, 0, 1);
+    a.handle_datagram(t0, Ep(2, 1), &m, &mut NullSink);
+    // Still waiting for its STATUS: not evictable either.
+    assert_eq!(
+        connect(&mut a, t0 + Duration::from_secs(2), Ep(3, 1), key(3)),
+        Some(status::OK),
+        "the refused one's session makes room"
+    );
+    assert!(!a.has_client(refused));
+    assert!(a.has_client(holder));
+    a.send_status(t0, holder, base, ResultStatus::new(status::OK))
+        .expect("session");
+    // Now the newcomer's session (no objects) is the one that goes, never the holder's.
+    assert_eq!(
+        connect(&mut a, t0 + Duration::from_secs(4), Ep(4, 1), key(4)),
+        Some(status::OK)
+    );
+    assert!(a.has_client(holder));
+    assert!(!a.has_client(key(3)));
+}
+
+#[test]
+fn a_datagram_packed_with_create_clients_gets_one_reply() {
+    let mut a = agent(Limits::default(), 8192);
+    let t0 = Instant::now();
+    let mut packed = create_client(key(0));
+    for i in 1..2000 {
+        let one = create_client(key(i));
+        packed.extend_from_slice(&one[8..]);
+    }
+    a.handle_datagram(t0, Ep(1, 1), &packed, &mut NullSink);
+    let out = drain(&mut a);
+    assert_eq!(out.len(), 1, "one datagram in, one reply out");
+    assert!(out[0].data.len() <= 64, "{} bytes", out[0].data.len());
+    assert_eq!(a.client_count(), 1);
+    assert_eq!(a.stats().dropped("overpacked_datagram"), 1);
+}
+
+#[test]
+fn an_address_starts_new_sessions_at_a_bounded_rate() {
+    let mut a = agent(
+        Limits {
+            new_sessions_per_second: 100,
+            ..Limits::default()
+        },
+        8192,
+    );
+    let t0 = Instant::now();
+    // 150 clients of one host at once: a second's worth is served, the rest unanswered.
+    let answered = (0..150)
+        .filter(|i| connect(&mut a, t0, Ep(1, *i as u16), key(*i)) == Some(status::OK))
+        .count();
+    assert_eq!(answered, 100);
+    assert_eq!(a.stats().dropped("session_creation_rate"), 50);
+    // Another host is not concerned; an existing session's retry is not a new session.
+    assert_eq!(connect(&mut a, t0, Ep(2, 1), key(500)), Some(status::OK));
+    assert_eq!(connect(&mut a, t0, Ep(1, 0), key(0)), Some(status::OK));
+    // Half a second later, half a second's worth more.
+    let later = t0 + Duration::from_millis(500);
+    let answered = (100..150)
+        .filter(|i| connect(&mut a, later, Ep(1, *i as u16), key(*i)) == Some(status::OK))
+        .count();
+    assert_eq!(answered, 50);
+}

@@ -65,6 +65,10 @@ pub enum Command {
     /// Show the live sessions and processes of a running agent (from its metrics endpoint
     /// or the status reports of the agents on this machine).
     Status(crate::status_view::StatusArgs),
+    /// Internal: remove a stopped instance's session store once no restart can take its
+    /// sessions over (left behind by a stopping supervisor).
+    #[command(hide = true)]
+    Sweep(crate::sweep::SweepArgs),
     /// Internal: write the man pages, the shell completions or the command-line reference
     /// (for packages and docs/).
     #[command(hide = true)]
@@ -126,11 +130,13 @@ pub struct Common {
     #[arg(long, env = "XRCE_DIALECT")]
     pub dialect: Option<xrce_common::wire::Dialect>,
     /// Seconds of silence after which a client's session and entities are deleted; silent
-    /// clients are probed with GET_INFO first. 0 (default) keeps them, like MicroXRCEAgent.
+    /// clients are probed with GET_INFO first (one that answers keeps its session). 0 keeps
+    /// them for ever, like MicroXRCEAgent; the default, six hours, ends the sessions of
+    /// clients gone for good.
     #[arg(
         long = "client-dead-time",
         env = "XRCE_CLIENT_DEAD_TIME",
-        default_value_t = 0.0
+        default_value_t = xrce_frontend::cli::DEFAULT_CLIENT_DEAD_TIME
     )]
     pub client_dead_time: f64,
     /// Announce XRCE participants named like ROS 2 nodes that have an endpoint on a ROS topic
@@ -537,6 +543,7 @@ pub fn plan(command: &Command) -> anyhow::Result<Option<(FrontendPlan, Common)>>
         Command::DdsWorker(_)
         | Command::Frontend(_)
         | Command::Status(_)
+        | Command::Sweep(_)
         | Command::Generate(_) => return Ok(None),
     }))
 }

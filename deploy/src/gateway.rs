@@ -29,7 +29,7 @@
 //! bind = "0.0.0.0"                 # optional, udp and tcp
 //! discovery = 7400                 # optional, udp and tcp
 //! max_connections = 2000           # optional, tcp
-//! client_dead_time = 0.0           # optional, seconds (any transport)
+//! client_dead_time = 21600.0       # optional, seconds (any transport; 0: never)
 //! dialect = "eprosima"             # optional: spec or eprosima (any transport)
 //! allow_keys = ["0xAAAABBBB"]      # optional: only these client keys (default: any)
 //! allow_roaming = false            # optional: sessions follow clients to new endpoints
@@ -39,6 +39,7 @@
 //! memory_budget_mib = 64           # optional: what clients may make it hold (any transport)
 //! max_sessions = 8192              # optional
 //! max_sessions_per_address = 2048  # optional (a serial line is one address)
+//! new_sessions_per_second = 1000   # optional, per address; 0: no limit
 //! max_connections_per_address = 256  # optional, tcp
 //! tcp_idle_timeout = 300           # optional, tcp, seconds, 0 = none
 //! closed_session_grace = 60        # optional, tcp, seconds, 0 = keep for ever
@@ -160,6 +161,7 @@ struct FrontendSection {
     memory_budget_mib: Option<Spanned<usize>>,
     max_sessions: Option<Spanned<usize>>,
     max_sessions_per_address: Option<Spanned<usize>>,
+    new_sessions_per_second: Option<u32>,
     max_connections_per_address: Option<Spanned<usize>>,
     tcp_idle_timeout: Option<u64>,
     closed_session_grace: Option<u64>,
@@ -631,7 +633,7 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
                 ))
             }
             Some(d) => *d.get_ref(),
-            None => 0.0,
+            None => xrce_frontend::cli::DEFAULT_CLIENT_DEAD_TIME,
         };
         let dialect = match &f.dialect {
             Some(d) => Some(d.get_ref().parse().map_err(|_: String| {
@@ -689,6 +691,9 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
                 "max_sessions_per_address",
                 d.max_sessions_per_address,
             )?,
+            new_sessions_per_second: f
+                .new_sessions_per_second
+                .unwrap_or(d.new_sessions_per_second),
             max_connections_per_address: at_least_one(
                 &f.max_connections_per_address,
                 "max_connections_per_address",

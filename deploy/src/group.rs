@@ -11,6 +11,7 @@ use xrce_dds_worker::backend::BackendKind;
 use xrce_dds_worker::cli::{WorkerArgs, SETTINGS_ENV as WORKER_SETTINGS_ENV};
 
 use xrce_frontend::cli::{FrontendArgs, SETTINGS_ENV};
+use xrce_frontend::session_store;
 use xrce_frontend::transport::registry::Medium;
 
 use crate::cli::{Common, FrontendPlan, DEFAULT_VERBOSITY};
@@ -389,6 +390,13 @@ impl Group {
     pub fn supervise(self) -> anyhow::Result<()> {
         let lock = runtime_dir::lock_instance(&self.instance)?;
         self.wait_for_predecessor();
+        // What dead nodes of the last run left under its names is cleaned up (creating a
+        // node does), then this run draws names of its own: names seen in /dev/shm before
+        // are no use for planting files (docs/security.md).
+        if let Err(e) = xrce_ipc::shm::IpcNode::new(&self.instance, "xrce-agent") {
+            tracing::debug!(error = %e, "the last run's shared memory was not cleaned up");
+        }
+        runtime_dir::renew_secret(&self.instance, runtime_dir::SHM_TOKEN)?;
         if self.discard_sessions {
             let n = runtime_dir::clear_sessions(&self.instance);
             tracing::info!(
@@ -475,20 +483,7 @@ impl Group {
             // Sessions are handed from a front-end to its restarted successor; a new agent
             // (and a stopped one) has none. (A store whose front-end still runs, a child of
             // a supervisor killed hard that is still stopping, is kept.)
-            if last {
-                // The sessions stay for the next agent of this instance (a restart, an
-                // upgrade): its front-ends take them over. The rest goes.
-                let held = lock
-                    .lock()
-                    .unwrap_or_else(std::sync::PoisonError::into_inner)
-                    .take();
-                match held {
-                    Some(l) => runtime_dir::remove_instance_dir(&instance, l),
-                    None => {
-                        let _ = std::fs::remove_dir_all(&dir);
-                    }
-                }
-            } else {
+            if !last {
                 status::remove_dead_reports(&dir);
                 if !explicit {
                     // Directories of agents of earlier versions with this stem, named by
@@ -526,10 +521,40 @@ impl Group {
             }
             if last {
                 xrce_ipc::shm::remove_instance_leftovers(&instance);
+                // The sessions stay for the next agent of this instance (a restart, an
+                // upgrade): its front-ends take them over. The rest goes; a sweeper left
+                // behind removes the sessions too once no restart can take them over.
+                if session_store::inspect(&instance).clients > 0 {
+                    crate::sweep::leave_sweeper(&instance);
+                }
+                let held = lock
+                    .lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .take();
+                match held {
+                    Some(l) => runtime_dir::remove_instance_dir(&instance, l),
+                    None => {
+                        let _ = std::fs::remove_dir_all(&dir);
+                    }
+                }
+            } else {
+                // Stores that stopped agents of this user left, past their adoption window.
+                crate::sweep::sweep(Some(&instance));
             }
         };
         // Ready once every front-end reports that it serves (to systemd too, if present).
+        let swept = self.instance.clone();
         let report_ready = move || {
+            // Then every minute (a thread started with the stop signals blocked).
+            let spawned = std::thread::Builder::new()
+                .name("sweep".into())
+                .spawn(move || loop {
+                    std::thread::sleep(crate::sweep::SWEEP_PERIOD);
+                    crate::sweep::sweep(Some(&swept));
+                });
+            if let Err(e) = spawned {
+                tracing::debug!(error = %e, "no periodic sweep");
+            }
             readiness::watch(ready, Duration::from_secs(30), || {
                 tracing::info!("agent ready");
                 if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {

@@ -16,6 +16,7 @@ pub mod group;
 pub mod metrics;
 pub mod readiness;
 pub mod status_view;
+pub mod sweep;
 #[allow(unsafe_code)]
 mod sys;
 

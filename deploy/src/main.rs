@@ -58,6 +58,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             Command::DdsWorker(args) => xrce_dds_worker::cli::run(args),
             Command::Frontend(args) => xrce_frontend::cli::run(args),
             Command::Status(args) => xrce_agent::status_view::run(&args),
+            Command::Sweep(args) => xrce_agent::sweep::run(&args),
             Command::Generate(args) => xrce_agent::docs::run(&args),
             _ => Ok(()),
         };

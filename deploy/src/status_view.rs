@@ -171,10 +171,53 @@ fn escape_unprintables(json: &str) -> String {
     out
 }
 
+/// The stores of stopped agents: how many clients, how big, and when they go.
+fn render_left(left: &[crate::sweep::Left], now_ms: u64) -> String {
+    let window = xrce_frontend::session_store::TAKE_OVER_WITHIN.as_secs();
+    let mut out = String::new();
+    if left.is_empty() {
+        return out;
+    }
+    out.push_str("\nstored sessions of stopped agents (kept for a restart to take over):\n");
+    for l in left {
+        let since = l
+            .stored
+            .last_alive_ms
+            .map(|ms| now_ms.saturating_sub(ms) / 1000);
+        let when = match since {
+            Some(s) if s <= window => format!("stopped {s} s ago, removed after {window} s"),
+            Some(s) => {
+                format!("stopped {s} s ago, past the {window} s window: removed by the next sweep")
+            }
+            None => "never alive: removed by the next sweep".to_string(),
+        };
+        let _ = writeln!(
+            out,
+            "  {}: {} client(s), {} KiB ({when})",
+            printable(&l.instance),
+            l.stored.clients,
+            l.stored.bytes.div_ceil(1024)
+        );
+    }
+    out
+}
+
 /// Runs `xrce-agent status`.
 pub fn run(args: &StatusArgs) -> anyhow::Result<()> {
+    let local = args.metrics.is_none() && args.instance.is_none();
     loop {
-        let mut agents = fetch(args)?;
+        // What stopped agents of this user left in memory (their stored sessions), shown
+        // under the table of the running ones.
+        let left = if local && !args.json {
+            crate::sweep::stopped_instances(None)
+        } else {
+            Vec::new()
+        };
+        let mut agents = match fetch(args) {
+            Ok(a) => a,
+            Err(_) if !left.is_empty() => Vec::new(),
+            Err(e) => return Err(e),
+        };
         for a in &mut agents {
             sanitize(a, args.show_keys);
         }
@@ -187,11 +230,13 @@ pub fn run(args: &StatusArgs) -> anyhow::Result<()> {
                 serde_json::to_string_pretty(&agents)?
             })
         } else {
-            agents
+            let mut out = agents
                 .iter()
                 .map(|a| render(a, status::unix_ms()))
                 .collect::<Vec<_>>()
-                .join("\n")
+                .join("\n");
+            out.push_str(&render_left(&left, status::unix_ms()));
+            out
         };
         if !args.watch {
             println!("{out}");

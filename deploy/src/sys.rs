@@ -61,3 +61,16 @@ pub fn wait_signal(set: &SigSet, timeout: Duration) -> Option<Signal> {
         None
     }
 }
+
+/// Makes a child the leader of a session of its own (`setsid` between fork and exec): no
+/// terminal, not in the supervisor's process group, so that it outlives the supervisor.
+pub fn detach(cmd: &mut Command) {
+    // SAFETY: the closure makes one async-signal-safe call and does not allocate.
+    unsafe {
+        cmd.pre_exec(|| {
+            nix::unistd::setsid()
+                .map(drop)
+                .map_err(std::io::Error::from)
+        });
+    }
+}

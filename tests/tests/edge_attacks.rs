@@ -265,6 +265,76 @@ fn a_session_flood_from_one_address_leaves_room_for_others() {
 }
 
 #[test]
+fn thousands_of_addresses_with_one_silent_session_each_do_not_lock_a_new_one_out() {
+    // The default cap (8192 sessions): one CREATE_CLIENT from each of 8192 addresses of
+    // 127.0.0.0/8, then silence. Every address holds one session, as many as a newcomer's
+    // would, so only "the most silent session without objects, anywhere" makes room.
+    let agent = AgentProcess::start("lockout");
+    let mut refused = 0;
+    for i in 0..8192u32 {
+        let from = IpAddr::from([127, 2 + (i >> 8) as u8, (i & 0xFF) as u8, 1]);
+        let key = ClientKey((0x0C00_0000 + i).to_be_bytes());
+        let (_, st) = raw_session(agent.addr(), from, key, SECOND);
+        refused += usize::from(st != Some(status::OK));
+    }
+    assert_eq!(refused, 0, "the cap bit before 8192 sessions");
+    std::thread::sleep(Duration::from_millis(1200));
+    let (_, st) = raw_session(
+        agent.addr(),
+        ip("127.200.0.1"),
+        ClientKey(*b"NEW1"),
+        2 * SECOND,
+    );
+    assert_eq!(st, Some(status::OK), "a new address was locked out");
+    let got = exchange(
+        agent.addr(),
+        "127.0.0.2",
+        "127.0.0.3",
+        (*b"GEN5", *b"GEN6"),
+        77,
+        10,
+    );
+    assert_exactly_once(&got, 10);
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn a_datagram_packed_with_create_clients_gets_one_reply() {
+    let agent = AgentProcess::start("packed");
+    let s = UdpSocket::bind("127.0.0.1:0").expect("bind");
+    s.connect(agent.addr()).expect("connect");
+    s.set_read_timeout(Some(Duration::from_millis(200)))
+        .expect("timeout");
+    // 2,000 CREATE_CLIENTs with as many keys behind one header, sent 60 times.
+    let mut packed = create_client(ClientKey(*b"PK00"));
+    for i in 1..2000u32 {
+        let one = create_client(ClientKey((0x0B00_0000 + i).to_be_bytes()));
+        packed.extend_from_slice(&one[8..]);
+    }
+    assert!(packed.len() < 65_000);
+    for _ in 0..60 {
+        s.send(&packed).expect("send");
+    }
+    let (mut replies, mut bytes) = (0usize, 0usize);
+    let mut buf = [0u8; 2048];
+    let end = Instant::now() + SECOND;
+    while Instant::now() < end {
+        if let Ok(n) = s.recv(&mut buf) {
+            replies += 1;
+            bytes += n;
+        }
+    }
+    assert!(replies <= 60, "{replies} replies to 60 datagrams");
+    assert!(replies >= 1, "not even the first request was answered");
+    assert!(
+        bytes <= 60 * 64,
+        "{bytes} bytes out for 60 datagrams of {} bytes",
+        packed.len()
+    );
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
 fn a_live_session_is_not_taken_over_and_a_restarted_client_gets_it_back() {
     let agent = AgentProcess::start("takeover");
     let key = *b"OWNR";
@@ -354,19 +424,27 @@ fn a_live_session_is_not_taken_over_and_a_restarted_client_gets_it_back() {
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
+/// A TCP agent on a free port with `extra` arguments, and its address; this process may then
+/// open as many descriptors as its hard limit allows (hundreds of connections).
+fn tcp_agent(tag: &str, extra: &[&str]) -> (AgentProcess, SocketAddr) {
+    use nix::sys::resource::{getrlimit, setrlimit, Resource};
+    let port = free_tcp_port();
+    let port_arg = port.to_string();
+    let mut args = vec!["tcp4", "-p", &port_arg, "--bind", "127.0.0.1"];
+    args.extend_from_slice(extra);
+    let agent = AgentProcess::launch(tag, &args).expect("TCP agent");
+    let (_, hard) = getrlimit(Resource::RLIMIT_NOFILE).expect("getrlimit");
+    setrlimit(Resource::RLIMIT_NOFILE, hard, hard).expect("setrlimit");
+    (agent, SocketAddr::new(ip("127.0.0.1"), port))
+}
+
 #[test]
 fn a_tcp_flood_of_unfinished_frames_from_one_address_does_not_lock_others_out() {
-    let port = free_tcp_port();
-    let args = ["tcp4", "-p", &port.to_string(), "--bind", "127.0.0.1"];
-    let agent = AgentProcess::launch("tcpflood", &args).expect("TCP agent");
-    let addr = SocketAddr::new(ip("127.0.0.1"), port);
+    let (agent, addr) = tcp_agent("tcpflood", &[]);
     let fe = frontend_pid(&agent);
     let before = rss_kib(fe);
     // 2,100 connections from one address, each holding one byte of a length prefix.
-    use nix::sys::resource::{getrlimit, setrlimit, Resource};
     use std::io::Write;
-    let (_, hard) = getrlimit(Resource::RLIMIT_NOFILE).expect("getrlimit");
-    setrlimit(Resource::RLIMIT_NOFILE, hard, hard).expect("setrlimit");
     let mut flood: Vec<TcpStream> = Vec::new();
     // A connection the listen backlog has no room for yet is tried again (the agent accepts
     // and closes the refused ones as fast as it can; a loaded test machine is slower).
@@ -416,5 +494,52 @@ fn a_tcp_flood_of_unfinished_frames_from_one_address_does_not_lock_others_out() 
         }
     }
     assert_eq!(open, 0, "{open} flooding connections still open");
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
+
+#[test]
+fn unfinished_large_frames_from_many_connections_stay_within_the_memory_budget() {
+    // A small budget (8 MiB: 2 MiB of it for TCP buffers) so that a few hundred
+    // connections exceed it many times over; the default's mechanism is the same.
+    let (agent, addr) = tcp_agent("tcpbudget", &["--memory-budget", "8"]);
+    let fe = frontend_pid(&agent);
+    let before = rss_kib(fe);
+    use std::io::Write;
+    // 400 connections from 8 addresses, each 64,000 bytes into a frame of 65,000.
+    let mut flood: Vec<TcpStream> = Vec::new();
+    let mut frame = 65_000u16.to_le_bytes().to_vec();
+    frame.resize(2 + 64_000, 0x5A);
+    for i in 0..400u32 {
+        let from = IpAddr::from([127, 0, 1, (i % 8) as u8 + 1]);
+        let socket = socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None)
+            .expect("socket");
+        socket.bind(&SocketAddr::new(from, 0).into()).expect("bind");
+        if socket.connect_timeout(&addr.into(), SECOND).is_err() {
+            continue;
+        }
+        let mut s: TcpStream = socket.into();
+        s.set_write_timeout(Some(SECOND)).expect("timeout");
+        let _ = s.write_all(&frame);
+        flood.push(s);
+    }
+    assert!(flood.len() > 300, "only {} connections made", flood.len());
+    std::thread::sleep(2 * SECOND);
+    let grown = rss_kib(fe).saturating_sub(before);
+    eprintln!(
+        "front-end grew by {grown} KiB with {} connections of unfinished 65,000-byte frames",
+        flood.len()
+    );
+    assert!(
+        grown < 8 << 10,
+        "the front-end grew by {grown} KiB, more than its 8 MiB budget"
+    );
+    assert!(agent.output().count("TCP buffers over their share") >= 1);
+    // A client from another address is served.
+    let mut c = TestClient::on_link(
+        Link::tcp_from(addr, ip("127.0.0.2")).expect("connect"),
+        ClientConfig::new(ClientKey(*b"TCP2")),
+    );
+    c.connect(5 * SECOND);
+    drop(flood);
     assert!(agent.stop(), "agent did not stop cleanly");
 }

@@ -150,9 +150,11 @@ fn shm_files(instance: &str) -> Vec<PathBuf> {
 
 #[test]
 fn an_agents_files_are_private_to_its_user() {
-    let dir = scratch("private");
+    // Short names: iceoryx2's event sockets must fit 108 bytes under `<rt>/ipc/` (with the
+    // instance's name and the random part of its names), or its root moves to /dev/shm.
+    let dir = scratch("pv");
     let rt = dir.join("rt");
-    let agent = start_agent("pf-private", &rt);
+    let agent = start_agent("p", &rt);
     let instance = agent.instance().to_string();
     let _client = client_with_objects(&agent, &rt, 93);
     // Wait for the status reports too (every second).
@@ -581,4 +583,91 @@ fn a_second_front_end_or_agent_on_the_instance_is_refused_and_the_first_keeps_it
     );
     assert!(agent.stop_process());
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn files_planted_in_dev_shm_under_an_instance_s_names_do_not_stop_its_next_start() {
+    if !is_root() {
+        eprintln!("needs root to plant files as another user: checked by CI, which runs as root");
+        return;
+    }
+    let instance = unique_instance("pf-shm");
+    let addr: std::net::SocketAddr = ([127, 0, 0, 1], xrce_tests::free_udp_port()).into();
+    // A first run shows its names in /dev/shm to every local user.
+    let first = AgentProcess::start_with(addr, Some(instance.clone()), &[]);
+    let seen = shm_files(&instance);
+    assert!(!seen.is_empty(), "the agent has no shared memory");
+    assert!(
+        first.stop_keeping_sessions(),
+        "first agent did not stop cleanly"
+    );
+    // Another user plants files under every name it saw, and under the instance's prefix
+    // alone (what the names were before they had a random part).
+    let mut planted: Vec<PathBuf> = seen.clone();
+    planted.push(PathBuf::from(format!(
+        "/dev/shm/xrce_{instance}_node.planted.global_mgmt"
+    )));
+    for p in &planted {
+        std::fs::write(p, b"planted").expect("plant");
+        std::os::unix::fs::chown(p, Some(NOBODY), Some(NOBODY)).expect("chown");
+    }
+    // The next start serves all the same.
+    let second = AgentProcess::start_with(addr, Some(instance.clone()), &[]);
+    let mut c = TestClient::new(second.addr(), *b"PLNT");
+    c.connect(10 * SECOND);
+    c.setup_publisher(99);
+    for p in &planted {
+        let m = std::fs::symlink_metadata(p).expect("the planted file is left alone");
+        assert_eq!(m.uid(), NOBODY);
+        std::fs::remove_file(p).expect("remove planted");
+    }
+    assert!(second.stop(), "second agent did not stop cleanly");
+}
+
+#[test]
+fn full_client_keys_in_status_are_shown_only_to_the_agents_own_user() {
+    if !is_root() {
+        eprintln!("needs root to run a process as another user: checked by CI, which runs as root");
+        return;
+    }
+    let port = free_udp_port().to_string();
+    let listen = format!("127.0.0.1:{}", xrce_tests::free_tcp_port());
+    let agent = AgentProcess::launch(
+        "pf-keys",
+        &[
+            "udp4",
+            "-p",
+            &port,
+            "--bind",
+            "127.0.0.1",
+            "--metrics",
+            &listen,
+        ],
+    )
+    .expect("agent");
+    let mut c = TestClient::new(agent.addr(), KEY);
+    c.connect(10 * SECOND);
+    c.setup_publisher(96);
+    let status = |out: std::process::Output| String::from_utf8_lossy(&out.stdout).into_owned();
+    let wanted = ["status", "--metrics", &listen, "--json", "--show-keys"];
+    // The agent's own user sees the key whole (once the front-end reported the session).
+    assert!(
+        wait_until(10 * SECOND, || {
+            let mut cmd = Command::new(binaries().join("xrce-agent"));
+            cmd.args(wanted);
+            status(output_within(&mut cmd, 10 * SECOND)).contains("0xAAAABBBB")
+        }),
+        "the agent's own user did not get the key whole"
+    );
+    // Another local user asking the same gets it redacted.
+    let exe = binaries().join("xrce-agent").display().to_string();
+    let mut as_other = vec![exe.as_str()];
+    as_other.extend(wanted);
+    let other = status(as_nobody(&as_other));
+    assert!(other.contains("0x****BBBB"), "{other}");
+    assert!(
+        !other.contains("0xAAAABBBB"),
+        "another user got the key: {other}"
+    );
+    assert!(agent.stop(), "agent did not stop cleanly");
 }

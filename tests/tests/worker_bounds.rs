@@ -2,12 +2,13 @@
 //! options at most 8 distinct DDS domains are in use at once (a 9th is refused with
 //! STATUS_ERR_RESOURCES), a worker killed and restarted takes every domain in use back from
 //! the front-end's replay, and deleting the last participant of each domain gives the
-//! domains' threads back.
+//! domains' threads back. And a client's QoS cannot grow the worker (issue 43): a KEEP_ALL
+//! reader with unlimited resource limits that never reads keeps a bounded cache.
 
 use std::time::{Duration, Instant};
 
 use xrce_common::wire::{object_kind as k, status, ObjectId, VariantExtra};
-use xrce_tests::{sigkill, xml, AgentProcess, TestClient};
+use xrce_tests::{sigkill, xml, AgentProcess, DdsPeer, TestClient};
 
 /// Threads of process `pid`.
 fn threads(pid: i32) -> usize {
@@ -132,4 +133,75 @@ fn a_ninth_domain_is_refused_the_domains_survive_a_restart_and_deleted_ones_give
         ninth.create(another, k::PARTICIPANT, xml::PARTICIPANT, beyond),
         status::OK
     );
+}
+
+/// Resident memory of a process, in KiB.
+fn rss_kib(pid: i32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        .unwrap_or(0)
+}
+
+#[test]
+fn a_keep_all_reader_with_unlimited_resources_that_never_reads_keeps_the_worker_bounded() {
+    let domain = 98;
+    let agent = AgentProcess::start("keepall");
+    let worker = *agent
+        .child_pids("dds-worker")
+        .first()
+        .expect("the worker process");
+    let mut c = TestClient::new(agent.addr(), *b"KALL");
+    c.connect(Duration::from_secs(10));
+    // KEEP_ALL and an empty <resourceLimitsQos/> (every limit unlimited), and no READ_DATA:
+    // every sample stays in the DDS reader's cache unless the worker bounds it.
+    let reader = "<dds><data_reader><topic><kind>NO_KEY</kind><name>HelloWorldTopic</name>\
+        <dataType>HelloWorld</dataType></topic><qos><historyQos><kind>KEEP_ALL_HISTORY_QOS\
+        </kind></historyQos><resourceLimitsQos/></qos></data_reader></dds>";
+    c.setup_chain(domain, k::SUBSCRIBER, k::DATAREADER, reader);
+    let before = rss_kib(worker);
+    // 150,000 samples of about 1 KiB from an independent Cyclone DDS participant.
+    let domain_arg = domain.to_string();
+    let mut peer = DdsPeer::start(&[
+        "write",
+        "--domain",
+        &domain_arg,
+        "--best-effort",
+        "--wait-match",
+        "--count",
+        "150000",
+        "--interval-ms",
+        "0",
+        "--message",
+        "x",
+        "--message-repeat",
+        "1024",
+        "--linger-ms",
+        "500",
+        "--timeout",
+        "60",
+    ]);
+    assert_eq!(
+        peer.wait(Duration::from_secs(180), || {
+            c.step();
+        }),
+        Some(0),
+        "the DDS writer did not finish"
+    );
+    run_all(std::slice::from_mut(&mut c), Duration::from_secs(1), || {
+        false
+    });
+    let grown = rss_kib(worker).saturating_sub(before);
+    eprintln!("worker grew by {grown} KiB for 150,000 samples of 1 KiB not read");
+    assert!(
+        grown < 64 << 10,
+        "the worker grew by {grown} KiB: the reader's cache is not bounded"
+    );
+    assert!(
+        agent.output().count("QoS clamped") >= 1,
+        "the clamp was not logged"
+    );
+    assert!(agent.stop(), "agent did not stop cleanly");
 }

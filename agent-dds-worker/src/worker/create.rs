@@ -78,8 +78,10 @@ impl Worker {
             self.remove_subtree(key);
             carried
         } else {
+            self.room_for_entity(key)?;
             Default::default()
         };
+        let mut samples = 0;
         let repr = &variant.representation;
         let dds_err = OpError::from;
         let (parent, kind) = match (variant.kind, variant.extra) {
@@ -139,7 +141,8 @@ impl Worker {
                 };
                 let desc = describe_endpoint(repr, true, &self.config.references, little_endian)?;
                 let (topic, tdesc, ty) = self.endpoint_topic(key, p, &desc)?;
-                let qos = EndpointQos::resolve(EndpointSide::Writer, &tdesc.qos, &desc.qos);
+                let mut qos = EndpointQos::resolve(EndpointSide::Writer, &tdesc.qos, &desc.qos);
+                samples = self.bound_endpoint(key, &mut qos, &topic)?;
                 let domain = publisher.domain();
                 let shared_key: Option<SharedWriterKey> =
                     (self.config.share_writers && qos.shareable()).then(|| {
@@ -231,7 +234,8 @@ impl Worker {
                     .map(|f| compile_filter(f, ty.as_ref(), &tdesc.type_name))
                     .transpose()
                     .map_err(|e| self.filter_refused(e))?;
-                let qos = EndpointQos::resolve(EndpointSide::Reader, &tdesc.qos, &desc.qos);
+                let mut qos = EndpointQos::resolve(EndpointSide::Reader, &tdesc.qos, &desc.qos);
+                samples = self.bound_endpoint(key, &mut qos, &topic)?;
                 let token = self.readers.new_token();
                 let r = self
                     .dds
@@ -330,7 +334,16 @@ impl Worker {
             _ => None,
         };
         let origin = Origin::new(body, little_endian);
-        self.entities.insert(key, parent, Entity { kind, origin });
+        self.holdings.reserve((key.0, key.1), samples);
+        self.entities.insert(
+            key,
+            parent,
+            Entity {
+                kind,
+                origin,
+                samples,
+            },
+        );
         if let Some(d) = joins {
             if self.domains.join(d) {
                 let in_use = self.domains.in_use().count();
@@ -343,6 +356,66 @@ impl Worker {
             }
         }
         Ok(())
+    }
+
+    /// Whether the client of `key` may have one more entity ([`WorkerBounds`]); a refusal
+    /// is counted and logged once per episode.
+    fn room_for_entity(&mut self, key: EntityKey) -> Result<(), OpError> {
+        let b = self.config.bounds;
+        let over = if self.entities.count_of(&(key.0, key.1)) >= b.entities_per_client {
+            Some((OverBound::EntitiesPerClient, b.entities_per_client))
+        } else if self.entities.len() >= b.entities_total {
+            Some((OverBound::EntitiesTotal, b.entities_total))
+        } else {
+            None
+        };
+        match over {
+            None => Ok(()),
+            Some((o, n)) => {
+                let why = format!(
+                    "entity refused: {} ({n}) reached (client {})",
+                    o.reason(),
+                    key.1
+                );
+                self.refused(o.reason(), &why);
+                Err(OpError::Resources(why))
+            }
+        }
+    }
+
+    /// Clamps a data writer's or reader's QoS to the bounds (logged once per episode when
+    /// the client asked for more) and checks that the samples it may then keep fit its
+    /// client's share and the worker's total; returns them, to be reserved.
+    fn bound_endpoint(
+        &mut self,
+        key: EntityKey,
+        qos: &mut EndpointQos,
+        topic: &TopicSpec,
+    ) -> Result<u32, OpError> {
+        let bounds = self.config.bounds;
+        let asked = (qos.history, qos.resource_limits);
+        let clamped = crate::bounds::clamp(qos, topic.key.is_some(), &bounds);
+        if clamped.changed {
+            self.count("qos_clamped");
+            if self.episodes.refused("qos_clamped", Instant::now()) {
+                tracing::warn!(client = %key.1, topic = %topic.name, ?asked, history = ?qos.history, resource_limits = ?qos.resource_limits, "endpoint QoS clamped to the worker's bounds: its cache keeps at most {} samples (further clamps are counted, not logged, until the episode ends)", clamped.samples);
+            }
+        }
+        if let Err(o) = self
+            .holdings
+            .check((key.0, key.1), clamped.samples, &bounds)
+        {
+            let why = format!(
+                "endpoint refused: its cache of {} samples exceeds {} (client {}, {} held in all)",
+                clamped.samples,
+                o.reason(),
+                key.1,
+                self.holdings.total()
+            );
+            self.refused(o.reason(), &why);
+            return Err(OpError::Resources(why));
+        }
+        Ok(clamped.samples)
     }
 
     /// Takes the samples a data writer holds for its readers to match (none for another

@@ -46,6 +46,8 @@ pub(super) struct Entity {
     pub(super) kind: EntityKind,
     /// What it was created from (a restarted front-end's replay of the same adopts it).
     pub(super) origin: Origin,
+    /// Samples reserved for its cache ([`crate::bounds`]; 0 for entities without one).
+    pub(super) samples: u32,
 }
 
 impl Worker {
@@ -113,6 +115,7 @@ impl Worker {
 
     /// What the worker keeps about an entity besides the tree, dropped with it.
     fn forget_entity(&mut self, key: EntityKey, e: Entity) {
+        self.holdings.release((key.0, key.1), e.samples);
         if let Some(r) = self.frontends.recent.get_mut(&key.0) {
             r.forget(&key);
         }

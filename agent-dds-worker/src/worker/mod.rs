@@ -36,6 +36,7 @@ use crate::backend::{
     self, effective_domain, BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, EndpointQos,
     EndpointSide, ReaderToken, Sample, TopicSpec,
 };
+use crate::bounds::{Holdings, OverBound, WorkerBounds};
 use crate::domains::{DomainPolicy, DomainRefusal, Domains};
 use crate::episodes::Episodes;
 use crate::filter::{Filter, Steps, Verdict};
@@ -86,6 +87,9 @@ pub struct WorkerConfig {
     pub frontend_grace: Duration,
     /// Which DDS domains clients may use, and how many at once ([`crate::domains`]).
     pub domains: DomainPolicy,
+    /// What clients may make the worker hold: entities, and the samples of their caches
+    /// ([`crate::bounds`]).
+    pub bounds: WorkerBounds,
 }
 
 /// A loop pass longer than this is logged (front-ends' operations wait meanwhile, and a
@@ -133,6 +137,8 @@ pub struct Worker {
     domains: Domains,
     /// Refusals logged once per episode.
     episodes: Episodes,
+    /// The samples each client's endpoints may keep, reserved against the bounds.
+    holdings: Holdings<(u32, ClientKey)>,
     /// The DDS writers: those holding samples, acknowledgements, shared writers.
     writers: Writers,
     graph: RosGraph,
@@ -372,6 +378,7 @@ impl Worker {
             readers: Readers::new(),
             domains,
             episodes: Episodes::default(),
+            holdings: Holdings::default(),
             writers: Writers::new(Instant::now()),
             graph: RosGraph::new(ros_graph),
             next_census: Instant::now() + CENSUS_PERIOD,

@@ -47,6 +47,10 @@ pub struct TcpConfig {
     /// A message must arrive whole this long after its first bytes, or its connection is
     /// closed: trickling a byte now and then holds nothing.
     pub frame_limit: Duration,
+    /// Bytes every connection's receive and send buffers may hold together; beyond, the
+    /// connections of the address holding the most are closed, the largest first (counted
+    /// as `tcp_memory_budget`). A share of the front-end's `--memory-budget`.
+    pub memory_budget: usize,
 }
 
 impl Default for TcpConfig {
@@ -60,6 +64,7 @@ impl Default for TcpConfig {
             idle_timeout: Some(Duration::from_secs(300)),
             first_message_limit: FIRST_MESSAGE_LIMIT,
             frame_limit: FRAME_LIMIT,
+            memory_budget: DEFAULT_BUFFER_BUDGET,
         }
     }
 }
@@ -104,6 +109,8 @@ struct Connection {
     frame_started: Option<Instant>,
     /// Whole messages received.
     delivered: u64,
+    /// Bytes of its buffers as last counted in the transport's total.
+    weight: usize,
 }
 
 impl Connection {
@@ -169,6 +176,8 @@ pub struct TcpTransport {
     per_address: HashMap<OriginId, usize>,
     /// Refusals logged once per episode.
     episodes: xrce_common::session::budget::Episodes,
+    /// Bytes of every connection's buffers ([`TcpConfig::memory_budget`]).
+    held: usize,
 }
 
 /// Why a connection was closed by us (counted as drops; a peer's own close is not one).
@@ -180,6 +189,10 @@ const STALLED: &str = "tcp_stalled_message";
 const IDLE: &str = "tcp_idle_connection";
 const PER_ADDRESS: &str = "tcp_connection_refused_per_address";
 const DISPLACED: &str = "tcp_connection_displaced";
+
+/// Default [`TcpConfig::memory_budget`]: a quarter of the default `--memory-budget`.
+pub const DEFAULT_BUFFER_BUDGET: usize = 16 << 20;
+const OVER_BUDGET: &str = "tcp_memory_budget";
 
 /// Bytes read from one connection per loop pass before the others get a turn.
 pub const READ_BUDGET: usize = 256 << 10;
@@ -229,6 +242,7 @@ impl TcpTransport {
             stats: TransportStats::default(),
             per_address: HashMap::new(),
             episodes: Default::default(),
+            held: 0,
         })
     }
 
@@ -242,13 +256,57 @@ impl TcpTransport {
         self.live
     }
 
-    /// Bytes held in the connections' receive and send buffers.
+    /// Bytes held in the connections' receive and send buffers (what
+    /// [`TcpConfig::memory_budget`] bounds).
     pub fn buffered_capacity(&self) -> usize {
         self.slots
             .iter()
             .flatten()
             .map(|c| c.decoder.capacity() + c.out.capacity())
             .sum()
+    }
+
+    /// Counts a connection's buffers again after they may have grown or shrunk.
+    fn reweigh(&mut self, slot: u32) {
+        if let Some(c) = self.slots.get_mut(slot as usize).and_then(Option::as_mut) {
+            let now = c.decoder.capacity() + c.out.capacity();
+            self.held = self.held - c.weight + now;
+            c.weight = now;
+        }
+    }
+
+    /// Keeps the buffers within [`TcpConfig::memory_budget`]: while over it, closes the
+    /// connection holding the most of the address holding the most (a flood of frames that
+    /// never end, from one place, pays first; a client elsewhere keeps its connection).
+    fn keep_within_budget(&mut self) {
+        while self.held > self.config.memory_budget {
+            let mut by_origin: HashMap<OriginId, usize> = HashMap::new();
+            for c in self.slots.iter().flatten() {
+                *by_origin.entry(ip_origin(c.peer.ip())).or_default() += c.weight;
+            }
+            let Some((&busiest, &bytes)) = by_origin.iter().max_by_key(|(o, b)| (**b, **o)) else {
+                return;
+            };
+            let victim = self
+                .slots
+                .iter()
+                .enumerate()
+                .filter_map(|(slot, c)| c.as_ref().map(|c| (slot, c)))
+                .filter(|(_, c)| ip_origin(c.peer.ip()) == busiest)
+                .max_by_key(|(_, c)| (c.weight, std::cmp::Reverse(c.opened_at)))
+                .map(|(slot, _)| slot as u32);
+            let Some(victim) = victim else {
+                return;
+            };
+            if self.episodes.bite(Instant::now(), OVER_BUDGET).is_some() {
+                tracing::warn!(from = %busiest, held_by_it = bytes, held = self.held, budget = self.config.memory_budget, "TCP buffers over their share of the memory budget: the largest connection of the address holding the most closed (logged once per episode)");
+            }
+            self.close(
+                victim,
+                Some(OVER_BUDGET),
+                "its address held the most of the TCP buffers' memory budget",
+            );
+        }
     }
 
     fn token(&self, slot: u32) -> Token {
@@ -275,6 +333,7 @@ impl TcpTransport {
         self.free.push(slot);
         self.live -= 1;
         self.stats.closed += 1;
+        self.held -= c.weight;
         let host = ip_origin(c.peer.ip());
         if let Some(n) = self.per_address.get_mut(&host) {
             *n -= 1;
@@ -416,6 +475,7 @@ impl TcpTransport {
                 last_output: Instant::now(),
                 frame_started: None,
                 delivered: 0,
+                weight: 0,
             };
             let token = self.token(slot);
             if let Some(r) = &self.registry {
@@ -503,6 +563,7 @@ impl TcpTransport {
         if let Some(c) = self.slots.get_mut(slot as usize).and_then(Option::as_mut) {
             c.delivered += delivered as u64;
         }
+        self.reweigh(slot);
         if let Some((reason, detail)) = close {
             self.close(slot, reason, &detail);
             return (delivered, false);
@@ -574,6 +635,7 @@ impl Transport for TcpTransport {
                 }
                 Ok(()) => {}
             }
+            self.reweigh(slot);
         }
     }
 
@@ -597,6 +659,7 @@ impl Transport for TcpTransport {
             };
             let (n, left) = self.read_connection(slot, budget, deliver);
             budget = budget.saturating_sub(n);
+            self.keep_within_budget();
             match self.slots.get_mut(slot as usize).and_then(Option::as_mut) {
                 Some(_) if left => self.ready.push_back(slot),
                 Some(c) => c.queued = false,
@@ -678,6 +741,8 @@ impl Transport for TcpTransport {
                     }
                 }
             }
+            self.reweigh(to.slot);
+            self.keep_within_budget();
         }
         self.stats.messages_out += 1;
     }
@@ -775,7 +840,12 @@ pub fn serve(
         idle_timeout: (args.admission.tcp_idle_timeout > 0)
             .then(|| Duration::from_secs(args.admission.tcp_idle_timeout)),
         send_buffer: args.tcp_send_buffer.max(1024),
+        // Half the session core's share of --memory-budget: the connections' buffers hold
+        // what the core would otherwise (messages on their way in and out).
+        memory_budget: config.limits.memory_budget / 2,
         ..TcpConfig::default()
     };
+    let mut config = config;
+    config.limits.memory_budget -= tcp.memory_budget;
     crate::cli::serve(TcpTransport::new(listener, tcp)?, args, config, on_serving)
 }

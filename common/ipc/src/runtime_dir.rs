@@ -20,6 +20,7 @@
 //! ```text
 //! <runtime>/<instance>/              0700, the instance's directory
 //! <runtime>/<instance>/agent.lock    0600, held (flock) by the instance's supervisor
+//! <runtime>/<instance>/shm-token     0600, the random part of its shared-memory names
 //! <runtime>/<instance>/sessions/frontend-<id>/   0700, a front-end's session store, its lock
 //! <runtime>/<instance>/status/       0700, the processes' status reports (0600 files)
 //! <runtime>/ipc/                     0700, iceoryx2's root (node and service files, sockets)
@@ -332,6 +333,100 @@ pub fn clear_successor(instance: &str) {
     let _ = std::fs::remove_file(successor_marker(instance));
 }
 
+/// A random secret of an instance, kept in its private directory: its name there, and its
+/// length in hex digits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Secret {
+    /// File name in the instance's directory.
+    pub file: &'static str,
+    /// Hex digits.
+    pub len: usize,
+}
+
+/// The random part of an instance's names in `/dev/shm` and iceoryx2's root. `/dev/shm` is
+/// shared by every local user and its names are visible to all: with a part nobody else can
+/// read beforehand, no one can plant files under the names an instance is about to take. A
+/// supervisor draws a new one at each start ([`renew_secret`]), so names seen during an
+/// earlier run are no use. Short: iceoryx2's socket paths must fit 108 bytes.
+pub const SHM_TOKEN: Secret = Secret {
+    file: "shm-token",
+    len: 8,
+};
+
+/// The file holding `secret` of `instance` (pure).
+pub fn secret_file(instance: &str, secret: Secret) -> PathBuf {
+    instance_dir(instance).join(secret.file)
+}
+
+/// `secret` of `instance`: read from the private instance directory, or made there if none
+/// is (the first process of an instance makes it, exclusively; the others read it).
+pub fn secret(instance: &str, secret: Secret) -> Result<String, RuntimeDirError> {
+    use std::os::unix::fs::OpenOptionsExt;
+    ensure_instance_dir(instance)?;
+    let path = secret_file(instance, secret);
+    for _ in 0..50 {
+        match files::read_owned(&path, 256) {
+            Ok(b) => match parse_secret(&b, secret.len) {
+                Some(t) => return Ok(t),
+                // Being written by the process that made it.
+                None => std::thread::sleep(std::time::Duration::from_millis(2)),
+            },
+            Err(RuntimeDirError::Io { source, .. })
+                if source.kind() == std::io::ErrorKind::NotFound =>
+            {
+                let token = new_secret(secret.len)?;
+                let made = std::fs::OpenOptions::new()
+                    .write(true)
+                    .create_new(true)
+                    .mode(FILE_MODE)
+                    .custom_flags(libc::O_NOFOLLOW | libc::O_CLOEXEC)
+                    .open(&path);
+                match made {
+                    Ok(mut f) => {
+                        use std::io::Write;
+                        f.write_all(token.as_bytes())
+                            .map_err(RuntimeDirError::io("writing", &path))?;
+                        return Ok(token);
+                    }
+                    Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+                    Err(e) => return Err(RuntimeDirError::io("creating", &path)(e)),
+                }
+            }
+            Err(e) => return Err(e),
+        }
+    }
+    // Still no valid secret: one written half by a process that died; replace it.
+    renew_secret(instance, secret)
+}
+
+/// Draws a new `secret` for `instance`, for the processes started from now on (a
+/// supervisor's first steps, while it holds the instance's lock).
+pub fn renew_secret(instance: &str, secret: Secret) -> Result<String, RuntimeDirError> {
+    ensure_instance_dir(instance)?;
+    let path = secret_file(instance, secret);
+    let token = new_secret(secret.len)?;
+    let tmp = instance_dir(instance).join(format!(".{}.{}", secret.file, std::process::id()));
+    files::write_atomically(&path, &tmp, token.as_bytes())?;
+    Ok(token)
+}
+
+fn parse_secret(b: &[u8], len: usize) -> Option<String> {
+    let t = std::str::from_utf8(b).ok()?.trim();
+    (t.len() == len && t.bytes().all(|c| c.is_ascii_hexdigit())).then(|| t.to_ascii_lowercase())
+}
+
+fn new_secret(len: usize) -> Result<String, RuntimeDirError> {
+    let mut bytes = vec![0u8; len.div_ceil(2)];
+    getrandom::getrandom(&mut bytes).map_err(|e| RuntimeDirError::Io {
+        action: "drawing random bytes for",
+        path: PathBuf::from("a secret"),
+        source: std::io::Error::other(e.to_string()),
+    })?;
+    let mut hex: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+    hex.truncate(len);
+    Ok(hex)
+}
+
 /// Creates or checks the runtime directory and the directory of `instance` in it.
 pub fn ensure_instance_dir(instance: &str) -> Result<PathBuf, RuntimeDirError> {
     check_instance(instance)?;
@@ -485,7 +580,8 @@ const SUN_PATH_MAX: usize = 108;
 pub fn ipc_root_fits(root: &Path, instance: &str) -> bool {
     use std::os::unix::ffi::OsStrExt;
     let root_len = root.as_os_str().as_bytes().len() + 1;
-    let prefix_len = crate::shm::file_prefix(instance).len();
+    // The instance's prefix, its random part and the `_` after it.
+    let prefix_len = crate::shm::file_prefix(instance).len() + SHM_TOKEN.len + 1;
     root_len + prefix_len + IPC_SOCKET_NAME_MAX < SUN_PATH_MAX
 }
 
@@ -569,6 +665,7 @@ pub fn remove_instance(instance: &str, lock: LockFile) {
 pub fn remove_instance_dir(instance: &str, lock: LockFile) {
     let dir = instance_dir(instance);
     let _ = std::fs::remove_dir_all(dir.join("status"));
+    let _ = std::fs::remove_file(dir.join(SHM_TOKEN.file));
     let _ = std::fs::remove_file(lock.path());
     let _ = std::fs::remove_dir(&dir);
     drop(lock);

@@ -91,9 +91,16 @@ pub fn valid_instance(instance: &str) -> bool {
 /// that the socket paths (108 bytes at most) fit under a private runtime directory.
 pub const EVENT_SUFFIX: &str = ".ev";
 
-/// The prefix of every file iceoryx2 makes for `instance`, in its root and in `/dev/shm`.
+/// The prefix of every file iceoryx2 makes for `instance`, in its root and in `/dev/shm`,
+/// whatever its random part ([`node_prefix`]): what a clean-up looks for.
 pub fn file_prefix(instance: &str) -> String {
     format!("xrce_{instance}_")
+}
+
+/// The prefix of the files iceoryx2 makes for `instance` in this run: [`file_prefix`] and
+/// the instance's random part ([`crate::runtime_dir::SHM_TOKEN`]).
+pub fn node_prefix(instance: &str, token: &str) -> String {
+    format!("xrce_{instance}_{token}_")
 }
 
 /// The directory of POSIX shared memory (where `shm_open` puts its objects).
@@ -122,11 +129,13 @@ impl IpcNode {
         };
         crate::runtime_dir::check_instance_dir(instance).map_err(private)?;
         let root = crate::runtime_dir::ensure_ipc_root(instance).map_err(private)?;
-        check_shm_files(instance)?;
+        let token =
+            crate::runtime_dir::secret(instance, crate::runtime_dir::SHM_TOKEN).map_err(private)?;
+        let prefix = node_prefix(instance, &token);
+        check_shm_files(&prefix)?;
         set_log_level(LogLevel::Error);
         let mut config = Config::default();
-        config.global.prefix =
-            FileName::new(file_prefix(instance).as_bytes()).map_err(err("prefix"))?;
+        config.global.prefix = FileName::new(prefix.as_bytes()).map_err(err("prefix"))?;
         {
             use std::os::unix::ffi::OsStrExt;
             let root = Path::new(root.as_os_str().as_bytes()).map_err(err("root path"))?;
@@ -139,7 +148,7 @@ impl IpcNode {
             .config(&config)
             .create::<ipc::Service>()
             .map_err(err("create node"))?;
-        make_node_counter_private(instance);
+        make_node_counter_private(&prefix);
         Ok(IpcNode { node })
     }
 
@@ -281,12 +290,13 @@ impl IpcNode {
     }
 }
 
-/// Refuses to open an instance whose names in `/dev/shm` are taken by something that is
-/// not this user's regular file: another user could have made it (the names are
-/// predictable) so that the agent maps memory that user reads or writes.
-fn check_shm_files(instance: &str) -> Result<(), ShmError> {
+/// Refuses to open an instance whose names of this run (`prefix`, its random part
+/// included) in `/dev/shm` are taken by something that is not this user's regular file:
+/// someone who saw them could have made it so that the agent maps memory that user reads
+/// or writes. Files of another user under the instance's other names (an earlier run's,
+/// or planted under a guess) are not the instance's and are left alone.
+fn check_shm_files(prefix: &str) -> Result<(), ShmError> {
     use std::os::unix::fs::MetadataExt;
-    let prefix = file_prefix(instance);
     let Ok(dir) = std::fs::read_dir(SHM_DIR) else {
         return Ok(());
     };
@@ -295,7 +305,7 @@ fn check_shm_files(instance: &str) -> Result<(), ShmError> {
         let named = e
             .file_name()
             .to_str()
-            .is_some_and(|n| n.starts_with(&prefix));
+            .is_some_and(|n| n.starts_with(prefix));
         if !named {
             continue;
         }
@@ -308,7 +318,7 @@ fn check_shm_files(instance: &str) -> Result<(), ShmError> {
                 detail: format!(
                     "{} is {} of uid {} (this user is uid {me}): another user may have \
                      planted it to read or forge this instance's messages; remove it (as its \
-                     owner or root), or use another --instance",
+                     owner or root), or start the agent again (a new start draws new names)",
                     e.path().display(),
                     if m.is_file() {
                         "a file"
@@ -327,9 +337,8 @@ fn check_shm_files(instance: &str) -> Result<(), ShmError> {
 /// `/dev/shm`) readable and writable by everyone, for processes of other users in the same
 /// iceoryx2 domain; an agent's processes all run as one user, so it is made 0600 (opened
 /// without following links, and only if it is ours).
-fn make_node_counter_private(instance: &str) {
+fn make_node_counter_private(prefix: &str) {
     use std::os::unix::fs::{MetadataExt, OpenOptionsExt, PermissionsExt};
-    let prefix = file_prefix(instance);
     let Ok(dir) = std::fs::read_dir(SHM_DIR) else {
         return;
     };
@@ -337,7 +346,7 @@ fn make_node_counter_private(instance: &str) {
         let counter = e
             .file_name()
             .to_str()
-            .is_some_and(|n| n.starts_with(&prefix) && n.ends_with(".global_mgmt"));
+            .is_some_and(|n| n.starts_with(prefix) && n.ends_with(".global_mgmt"));
         if !counter {
             continue;
         }

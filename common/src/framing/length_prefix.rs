@@ -49,7 +49,7 @@ impl LengthPrefixDecoder {
 
     /// Bytes of memory the decoder holds.
     pub fn capacity(&self) -> usize {
-        self.buf.len()
+        self.buf.capacity()
     }
 
     /// Whether the stream broke the framing (an over-long message); nothing more decodes.
@@ -79,7 +79,11 @@ impl LengthPrefixDecoder {
             let want = (self.tail + READ_CHUNK).max(self.buf.len());
             let limit = self.max_message + PREFIX_LEN + READ_CHUNK;
             if want > self.buf.len() {
-                self.buf.resize(want.min(limit), 0);
+                // Grown by what arrives, exactly (no doubling): what it holds is what it
+                // says it holds.
+                let new_len = want.min(limit);
+                self.buf.reserve_exact(new_len - self.buf.len());
+                self.buf.resize(new_len, 0);
             }
         }
         &mut self.buf[self.tail..]

@@ -12,6 +12,7 @@ use std::time::Instant;
 
 pub use ipnet::IpNet;
 
+use crate::session::budget::OriginId;
 use crate::wire::ClientKey;
 
 /// Admission settings of a front-end's sessions.
@@ -243,8 +244,63 @@ impl Bucket {
         self.tokens >= i128::from(n).min(self.rate) * TOKEN
     }
 
+    fn is_full(&self) -> bool {
+        self.tokens >= self.rate * TOKEN
+    }
+
     fn take(&mut self, n: u64) {
         self.tokens -= i128::from(n) * TOKEN;
+    }
+}
+
+/// Origins whose creation rate is remembered at most; past it, origins with a full bucket
+/// (nothing to remember) are forgotten, then all (a flood of forged sources gains at most a
+/// fresh second's worth for each).
+const MAX_METERED_ORIGINS: usize = 65_536;
+
+/// How fast each origin (host) starts new sessions: a token bucket per origin, a second's
+/// worth of burst.
+#[derive(Debug, Clone)]
+pub struct CreationMeter {
+    per_second: u32,
+    buckets: HashMap<OriginId, Bucket>,
+}
+
+impl CreationMeter {
+    /// A meter allowing `per_second` new sessions per origin (0: unlimited).
+    pub fn new(per_second: u32) -> Self {
+        CreationMeter {
+            per_second,
+            buckets: HashMap::new(),
+        }
+    }
+
+    /// Charges one new session to `origin` if its bucket has a token.
+    pub fn admit(&mut self, now: Instant, origin: OriginId) -> bool {
+        if self.per_second == 0 {
+            return true;
+        }
+        if !self.buckets.contains_key(&origin) && self.buckets.len() >= MAX_METERED_ORIGINS {
+            self.buckets.retain(|_, b| {
+                b.refill(now);
+                !b.is_full()
+            });
+            if self.buckets.len() >= MAX_METERED_ORIGINS {
+                self.buckets.clear();
+            }
+        }
+        let rate = u64::from(self.per_second);
+        let bucket = self
+            .buckets
+            .entry(origin)
+            .or_insert_with(|| Bucket::new(rate, now));
+        bucket.refill(now);
+        if bucket.has(1) {
+            bucket.take(1);
+            true
+        } else {
+            false
+        }
     }
 }
 

@@ -99,6 +99,10 @@ pub struct Limits {
     /// How long the session's current endpoint has to answer a liveliness probe before a
     /// CREATE_CLIENT with its key from another endpoint may move it there.
     pub takeover_probe_wait: Duration,
+    /// New sessions one origin may start per second (a second's worth at once); beyond,
+    /// CREATE_CLIENTs that would start one (or replace another key's session at their
+    /// endpoint) go unanswered, counted as `session_creation_rate`. 0: no limit.
+    pub new_sessions_per_second: u32,
 }
 
 /// Default [`Limits::memory_budget`]: 64 MiB, which a small gateway can spare.
@@ -107,6 +111,9 @@ pub const DEFAULT_MEMORY_BUDGET: usize = 64 << 20;
 pub const DEFAULT_MAX_SESSIONS_PER_ORIGIN: usize = 2048;
 /// Default most sessions of one front-end.
 pub const DEFAULT_MAX_SESSIONS: usize = 8192;
+/// Default [`Limits::new_sessions_per_second`]: far above any fleet's reconnection storm
+/// from one host, far below a flood.
+pub const DEFAULT_NEW_SESSIONS_PER_SECOND: u32 = 1000;
 
 impl Default for Limits {
     fn default() -> Self {
@@ -116,6 +123,7 @@ impl Default for Limits {
             reassembly_timeout: Duration::from_secs(5),
             detached_grace: Some(Duration::from_secs(60)),
             takeover_probe_wait: Duration::from_millis(300),
+            new_sessions_per_second: DEFAULT_NEW_SESSIONS_PER_SECOND,
         }
     }
 }

@@ -217,8 +217,8 @@ pub const KEYS: &[KeyDoc] = &[
         table: "frontend",
         key: "client_dead_time",
         value: "seconds",
-        default: || format!("{} (never)", frontend().client_dead_time),
-        meaning: "Delete the session and entities of a client silent this long (probed first). `--client-dead-time`.",
+        default: || frontend().client_dead_time.to_string(),
+        meaning: "Delete the session and entities of a client silent this long (probed first; 0: never). `--client-dead-time`.",
     },
     KeyDoc {
         table: "frontend",
@@ -282,6 +282,13 @@ pub const KEYS: &[KeyDoc] = &[
         value: "1 or more",
         default: || frontend().admission.max_sessions_per_address.to_string(),
         meaning: "Most sessions from one address (a serial line is one address). `--max-sessions-per-address`.",
+    },
+    KeyDoc {
+        table: "frontend",
+        key: "new_sessions_per_second",
+        value: "0 or more",
+        default: || frontend().admission.new_sessions_per_second.to_string(),
+        meaning: "New sessions one address may start per second; beyond, CREATE_CLIENTs go unanswered until the rate falls (0: no limit). `--new-sessions-per-second`.",
     },
     KeyDoc {
         table: "frontend",

@@ -470,7 +470,18 @@ impl Server {
                         Head::Pending => return Next::Keep,
                         Head::Gone => return Next::Close(None),
                         Head::Complete(end) => {
-                            respond(buf.get(..end).unwrap_or_default(), registry, instance, dir)
+                            let stream = &conn.stream;
+                            let own_user = || match (stream.peer_addr(), stream.local_addr()) {
+                                (Ok(peer), Ok(local)) => peer_is_own_user(peer, local),
+                                _ => false,
+                            };
+                            respond(
+                                buf.get(..end).unwrap_or_default(),
+                                registry,
+                                instance,
+                                dir,
+                                &own_user,
+                            )
                         }
                         Head::TooLarge => {
                             // Counted now; the answer still goes out.
@@ -665,7 +676,34 @@ fn response(code: u16, reason: &str, body: &str, content_type: &str) -> Vec<u8> 
 }
 
 /// The response to a request head (request line and headers, from the peer: anything).
-fn respond(head: &[u8], registry: &Registry, instance: &str, dir: &std::path::Path) -> Vec<u8> {
+/// Whether the process at `peer` (a TCP connection to `local`) runs as this process's user:
+/// its socket's owner in the kernel's table of this network namespace (`/proc/net/tcp`,
+/// `tcp6`). Not found (another host, another namespace): no.
+fn peer_is_own_user(peer: SocketAddr, local: SocketAddr) -> bool {
+    let canonical = |a: SocketAddr| match a {
+        SocketAddr::V6(v6) => match v6.ip().to_ipv4_mapped() {
+            Some(v4) => SocketAddr::new(v4.into(), v6.port()),
+            None => a,
+        },
+        v4 => v4,
+    };
+    let (peer, local) = (canonical(peer), canonical(local));
+    let me = xrce_ipc::runtime_dir::euid();
+    [procfs::net::tcp(), procfs::net::tcp6()]
+        .into_iter()
+        .flatten()
+        .flatten()
+        .find(|e| canonical(e.local_address) == peer && canonical(e.remote_address) == local)
+        .is_some_and(|e| e.uid == me)
+}
+
+fn respond(
+    head: &[u8],
+    registry: &Registry,
+    instance: &str,
+    dir: &std::path::Path,
+    own_user: &dyn Fn() -> bool,
+) -> Vec<u8> {
     let line_end = head.iter().position(|&b| b == b'\n').unwrap_or(head.len());
     let line = head.get(..line_end).unwrap_or_default();
     let Ok(line) = std::str::from_utf8(line) else {
@@ -709,10 +747,13 @@ fn respond(head: &[u8], registry: &Registry, instance: &str, dir: &std::path::Pa
         }
         "/status" => {
             let mut snapshot = AgentStatus::read(instance, dir);
-            // Client keys are the clients' credentials: shown only when asked for.
+            // Client keys are the clients' credentials: shown only when asked for, and only
+            // to a process of the agent's own user (whoever else may connect to a loopback
+            // port gets them redacted, as with the default).
             let show_keys = target
                 .split_once('?')
-                .is_some_and(|(_, q)| q.split('&').any(|p| p == "keys=show"));
+                .is_some_and(|(_, q)| q.split('&').any(|p| p == "keys=show"))
+                && own_user();
             if !show_keys {
                 snapshot.redact_keys();
             }

@@ -104,6 +104,7 @@ impl Harness {
             share_writers: false,
             frontend_grace: Duration::from_secs(30),
             domains: DomainPolicy::default(),
+            bounds: crate::bounds::WorkerBounds::default(),
         };
         configure(&mut config);
         let worker = Worker::with_backend(config, Box::new(fake)).expect("worker");

@@ -22,7 +22,11 @@ impl<A: Endpoint> Agent<A> {
         match payload {
             Payload::Create(c) => {
                 if let Some(client) = self.clients.get_mut(&key) {
-                    client.has_objects = true;
+                    if client.pending_creates.len() < proxy::MAX_PENDING_CREATES {
+                        client.pending_creates.push(c.base.object_id);
+                    } else {
+                        client.has_objects = true;
+                    }
                 }
                 sink.operation(
                     now,

@@ -233,9 +233,11 @@ impl<A: Endpoint> Agent<A> {
         self.send_acknack(now, key, stream, cause);
     }
 
-    /// Delivers messages that arrived early and are now next, while the sink has room. One
-    /// that finds no room is dropped unacknowledged (false is returned): the ACKNACK that
-    /// answers the client's next HEARTBEAT asks for it again.
+    /// Delivers messages that arrived early and are now next, while the sink has room and,
+    /// for a FRAGMENT, the memory budget has room for the reassembly's growth (the early
+    /// message's own bytes are no longer held once taken). One that finds no room is dropped
+    /// unacknowledged (false is returned): the ACKNACK that answers the client's next
+    /// HEARTBEAT asks for it again.
     pub(super) fn deliver_ready(
         &mut self,
         now: Instant,
@@ -260,8 +262,28 @@ impl<A: Endpoint> Agent<A> {
             };
             if !room_for(sink, &next, hlen) {
                 self.count_drop("backpressure");
+                self.account(key);
                 return false;
             }
+            let kept = fragment_bytes(&next, hlen);
+            if kept > 0 {
+                self.account(key);
+                let growth = self
+                    .clients
+                    .get(&key)
+                    .and_then(|c| c.reassembly.get(&stream))
+                    .map_or(kept, |r| r.growth_for(kept));
+                if growth > 0 && !self.make_room(now, key, growth, "memory_budget") {
+                    return false;
+                }
+            }
+            let Some(input) = self
+                .clients
+                .get_mut(&key)
+                .and_then(|c| c.reliable_in.get_mut(&stream))
+            else {
+                return true;
+            };
             input.advance();
             self.process(now, key, &next, hlen, sink);
         }

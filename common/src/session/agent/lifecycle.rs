@@ -4,6 +4,10 @@
 use super::*;
 
 impl<A: Endpoint> Agent<A> {
+    /// A datagram without a session (session id 0x00 or 0x80): CREATE_CLIENT and GET_INFO.
+    /// One request per datagram is acted on, the first; what else it packs is dropped
+    /// (counted as `overpacked_datagram`): one datagram in, at most one reply out, so a
+    /// forged source cannot turn the agent into an amplifier.
     pub(super) fn handle_sessionless(
         &mut self,
         now: Instant,
@@ -13,7 +17,10 @@ impl<A: Endpoint> Agent<A> {
         bytes: &[u8],
         sink: &mut impl OperationSink,
     ) {
-        for raw in Submessages::new(bytes, hlen) {
+        for (i, raw) in Submessages::new(bytes, hlen).enumerate() {
+            if i > 0 {
+                return self.drop_input("overpacked_datagram", bytes);
+            }
             let raw = match raw {
                 Ok(r) => r,
                 Err(e) => return self.drop_input(e.reason(), bytes),
@@ -43,7 +50,7 @@ impl<A: Endpoint> Agent<A> {
                     self.reply_info(src, header, g.base, false, dialect)
                 }
                 Payload::GetInfo(_) => self.count_drop("repeated_request"),
-                _ => self.drop_input("no_session", bytes),
+                _ => return self.drop_input("no_session", bytes),
             }
         }
     }
@@ -98,6 +105,14 @@ impl<A: Endpoint> Agent<A> {
                     status::ERR_DENIED
                 }
             }
+        } else if !self.creations.admit(now, src.origin()) {
+            // Unanswered: the client tries again; an answer would make the agent a
+            // reflector for forged sources, and each new session costs the worker work.
+            self.count_drop("session_creation_rate");
+            if let Some(previous) = self.episodes.bite(now, "session_creation_rate") {
+                tracing::warn!(client = %c.client_key, from = ?src, per_second = self.config.limits.new_sessions_per_second, previous_episode = previous, "CREATE_CLIENT dropped: its address starts new sessions faster than --new-sessions-per-second (logged once per episode)");
+            }
+            return;
         } else if self.by_addr.get(&src).is_some_and(|k| *k != c.client_key)
             || self.admit_session(now, src, sink)
         {

@@ -204,8 +204,12 @@ impl<A: Endpoint> Agent<A> {
     }
 
     /// Whether a new session from `src` fits the session caps, after evicting, if need
-    /// be, the most silent session without objects of the origin with the most sessions.
-    /// On `false` the refusal is counted and logged.
+    /// be, a silent session without objects: at the per-origin cap one of the newcomer's
+    /// origin; at the front-end's cap one of the origin with the most sessions if it holds
+    /// more than the newcomer's would (a flood from one host pays first), else the most
+    /// silent one anywhere, whatever its origin holds (thousands of hosts with one silent
+    /// session each cannot lock a new host out). On `false` the refusal is counted and
+    /// logged.
     pub(super) fn admit_session(
         &mut self,
         now: Instant,
@@ -214,7 +218,9 @@ impl<A: Endpoint> Agent<A> {
     ) -> bool {
         let origin = src.origin();
         let per_origin = self.config.limits.max_sessions_per_origin;
-        if self.budget.sessions_of(origin) >= per_origin && !self.evict_session(now, origin, sink) {
+        if self.budget.sessions_of(origin) >= per_origin
+            && !self.evict_session(now, Some(origin), sink)
+        {
             self.refuse_session(now, "session_cap_per_address", origin);
             return false;
         }
@@ -222,8 +228,8 @@ impl<A: Endpoint> Agent<A> {
             let busiest = self.budget.busiest_origin();
             let evicted = busiest.is_some_and(|(o, n)| {
                 (o == origin || n > self.budget.sessions_of(origin) + 1)
-                    && self.evict_session(now, o, sink)
-            });
+                    && self.evict_session(now, Some(o), sink)
+            }) || self.evict_session(now, None, sink);
             if !evicted {
                 self.refuse_session(now, "session_cap", origin);
                 return false;
@@ -239,18 +245,20 @@ impl<A: Endpoint> Agent<A> {
         }
     }
 
-    /// Evicts the most silent session without objects of `origin` (silent for at least
-    /// [`EVICTABLE_SILENCE`]); whether there was one.
+    /// Evicts the most silent session without objects (none created, none being created)
+    /// of `origin`, or of any origin with `None`, silent for at least
+    /// [`EVICTABLE_SILENCE`]; whether there was one.
     fn evict_session(
         &mut self,
         now: Instant,
-        origin: OriginId,
+        origin: Option<OriginId>,
         sink: &mut impl OperationSink,
     ) -> bool {
         let victim = self
             .clients
             .values()
-            .filter(|c| c.origin == origin && !c.has_objects)
+            .filter(|c| origin.is_none_or(|o| c.origin == o))
+            .filter(|c| !c.has_objects && c.pending_creates.is_empty())
             .filter(|c| now.saturating_duration_since(c.last_heard) >= EVICTABLE_SILENCE)
             .min_by_key(|c| (c.last_heard, c.key))
             .map(|c| c.key);

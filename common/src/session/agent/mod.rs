@@ -21,7 +21,7 @@ use std::fmt::Debug;
 use std::hash::Hash;
 use std::time::{Duration, Instant};
 
-use super::admission::{Admission, KeyCheck, Metered, RateMeter};
+use super::admission::{Admission, CreationMeter, KeyCheck, Metered, RateMeter};
 use super::budget::{Budget, Decision, Episodes, Limits, Origin, OriginId};
 use super::fragment::{fragments, Reassembly};
 use super::snapshot::{OutputSnapshot, SessionSnapshot};
@@ -361,6 +361,8 @@ pub struct Agent<A> {
     budget: Budget,
     /// Refusals logged once per episode.
     episodes: Episodes,
+    /// New sessions each origin may start per second.
+    creations: CreationMeter,
 }
 
 /// Replies the agent makes at most once per datagram, so that one datagram packed with
@@ -393,6 +395,7 @@ impl<A: Endpoint> Agent<A> {
             removed: Vec::new(),
             budget: Budget::new(config.limits.memory_budget),
             episodes: Episodes::default(),
+            creations: CreationMeter::new(config.limits.new_sessions_per_second),
             config,
         }
     }

@@ -201,8 +201,17 @@ impl<A: Endpoint> Agent<A> {
         request: BaseObjectRequest,
         result: ResultStatus,
     ) -> Result<(), SendError> {
-        if !self.clients.contains_key(&key) {
+        let Some(c) = self.clients.get_mut(&key) else {
             return Err(SendError::NoClient);
+        };
+        // The answer to a CREATE: a session holds objects once one was created.
+        if let Some(i) = c
+            .pending_creates
+            .iter()
+            .position(|o| *o == request.object_id)
+        {
+            c.pending_creates.swap_remove(i);
+            c.has_objects |= status::is_ok(result.status);
         }
         self.queue_status(key, request, result);
         self.flush_client(now, key);

@@ -2,6 +2,10 @@
 
 use super::*;
 
+/// Most CREATEs of one session waiting for their STATUS that are told apart; beyond, the
+/// session is taken as one with objects.
+pub(super) const MAX_PENDING_CREATES: usize = 32;
+
 /// A reliable output stream and the submessages waiting for its window.
 #[derive(Debug)]
 pub(super) struct OutStream {
@@ -64,8 +68,12 @@ pub(super) struct ProxyClient<A> {
     pub(super) origin: OriginId,
     /// Bytes the core holds for it, as last accounted in the budget.
     pub(super) held: usize,
-    /// Whether it ever asked for an object (sessions without are evicted first).
+    /// Whether one of its CREATEs succeeded (sessions without objects are evicted first; a
+    /// refused CREATE does not count, so refusals cannot pin a session).
     pub(super) has_objects: bool,
+    /// Objects whose CREATE waits for its STATUS (bounded by [`MAX_PENDING_CREATES`]:
+    /// beyond, the session counts as having objects); a session with one is not evicted.
+    pub(super) pending_creates: Vec<ObjectId>,
     /// When each reliable input stream's unfinished reassembly last gained a fragment.
     pub(super) reassembly_at: HashMap<u8, Instant>,
     /// Another endpoint's claim on the session (CREATE_CLIENT with its key), and when the
@@ -132,6 +140,7 @@ impl<A: Origin> ProxyClient<A> {
             origin: addr.origin(),
             held: 0,
             has_objects: false,
+            pending_creates: Vec::new(),
             reassembly_at: HashMap::new(),
             takeover: None,
             attached_dead_time: None,
