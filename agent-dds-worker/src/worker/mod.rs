@@ -55,6 +55,7 @@ mod entities;
 mod graph;
 mod ports;
 mod reads;
+mod replay_guard;
 mod requests;
 mod services;
 #[cfg(test)]
@@ -65,6 +66,7 @@ use create::*;
 use entities::*;
 use ports::*;
 use reads::*;
+use replay_guard::ReplayGuard;
 use services::*;
 use writes::*;
 
@@ -139,6 +141,8 @@ pub struct Worker {
     episodes: Episodes,
     /// The samples each client's endpoints may keep, reserved against the bounds.
     holdings: Holdings<(u32, ClientKey)>,
+    /// Replays under way, and the clients whose replay crashed the last worker.
+    replay_guard: ReplayGuard,
     /// The DDS writers: those holding samples, acknowledgements, shared writers.
     writers: Writers,
     graph: RosGraph,
@@ -364,6 +368,7 @@ impl Worker {
         let generation = (nanos ^ std::process::id().rotate_left(16)) | 1;
         let ros_graph = config.ros_graph;
         let config_instance = config.instance.clone();
+        let replay_guard = ReplayGuard::open(&config.instance);
         let domains = Domains::new(config.domains.clone());
         let w = Worker {
             config,
@@ -379,6 +384,7 @@ impl Worker {
             domains,
             episodes: Episodes::default(),
             holdings: Holdings::default(),
+            replay_guard,
             writers: Writers::new(Instant::now()),
             graph: RosGraph::new(ros_graph),
             next_census: Instant::now() + CENSUS_PERIOD,

@@ -88,8 +88,12 @@ impl Worker {
                     p.deferred.clear();
                 }
                 self.reply(Route::frontend(r.frontend_id), Reply::WorkerHello);
+                self.replay_guard.begin(r.frontend_id);
             }
-            Request::ReplayDone => self.end_adoption(r.frontend_id),
+            Request::ReplayDone => {
+                self.replay_guard.end(r.frontend_id);
+                self.end_adoption(r.frontend_id)
+            }
             Request::DeleteClient => {
                 self.remove_where(|c| c.0 == r.frontend_id && c.1 == r.client_key)
             }
@@ -99,13 +103,23 @@ impl Worker {
                 replay,
                 readers_matched,
             } => {
-                let result = self.create(
-                    key,
-                    &description,
-                    replay,
-                    client_little_endian,
-                    readers_matched,
-                );
+                let result = if self.replay_guard.refuses(r.frontend_id, r.client_key) {
+                    let why = format!(
+                        "replayed object of client {} refused: the last worker died while \
+                         replaying this client's objects",
+                        r.client_key
+                    );
+                    self.refused("replay_crash", &why);
+                    Err(OpError::Resources(why))
+                } else {
+                    self.create(
+                        key,
+                        &description,
+                        replay,
+                        client_little_endian,
+                        readers_matched,
+                    )
+                };
                 if result.is_ok() {
                     tracing::debug!(client = %r.client_key, object = ?r.object_id, replay, "created");
                 }

@@ -188,6 +188,13 @@ impl Zenoh {
         } else {
             spec.type_name.clone()
         };
+        if type_name.len() > type_hashes::MAX_TYPE_NAME {
+            return Err(BackendError::InvalidInput(format!(
+                "type name of {} bytes: at most {} (a ROS type's is far shorter)",
+                type_name.len(),
+                type_hashes::MAX_TYPE_NAME
+            )));
+        }
         let (hash, _) = self.hashes.lookup(&type_name);
         let key = naming::data_key(domain, &name, &type_name, &hash)
             .map_err(|e| BackendError::InvalidInput(format!("topic {:?}: {e}", spec.name)))?;

@@ -49,7 +49,21 @@ pub struct TypeHashes {
     tables: HashMap<String, (String, PathBuf)>,
     built_in: HashMap<String, String>,
     found: HashMap<String, (String, Source)>,
+    /// Bytes of the names and hashes in `found` ([`MAX_FOUND_BYTES`]).
+    found_bytes: usize,
+    /// Unknown types whose warning was logged (bounded; beyond, they are counted only).
+    warned: std::collections::HashSet<String>,
+    /// Unknown types not warned about (past [`MAX_WARNED`]).
+    unwarned: u64,
 }
+
+/// Longest DDS type name looked up: a ROS type's (`pkg::msg::dds_::Name_`) is far shorter;
+/// a longer one is refused at creation before anything is looked up.
+pub const MAX_TYPE_NAME: usize = 256;
+/// Bytes of names and hashes remembered from lookups; past it, lookups are not cached.
+const MAX_FOUND_BYTES: usize = 4 << 20;
+/// Unknown types warned about by name, one line each; the rest are counted.
+const MAX_WARNED: usize = 256;
 
 /// Whether `s` is a RIHS01 hash as rmw_zenoh writes it.
 pub fn is_rihs01(s: &str) -> bool {
@@ -124,27 +138,56 @@ impl TypeHashes {
         self.built_in.len()
     }
 
-    /// The hash of a DDS type name and where it came from.
+    /// The hash of a DDS type name and where it came from. A name that is not a ROS type's
+    /// (`pkg::msg::dds_::Name_`) or longer than [`MAX_TYPE_NAME`] has none, and is neither
+    /// searched for nor remembered: what a client names costs nothing beyond its check.
     pub fn lookup(&mut self, dds_type: &str) -> (String, Source) {
         if let Some(found) = self.found.get(dds_type) {
             return found.clone();
         }
-        let found = self.search(dds_type);
+        let ros_type = dds_type.len() <= MAX_TYPE_NAME && ros_type_name(dds_type).is_some();
+        let found = if ros_type {
+            self.search(dds_type)
+        } else {
+            (NOT_SUPPORTED.to_string(), Source::Unknown)
+        };
         match &found.1 {
-            Source::Unknown => tracing::warn!(
-                type_name = dds_type,
-                "no RIHS01 hash known for this type: its key expressions end in \
-                 TypeHashNotSupported, which ROS 2 nodes on rmw_zenoh (Jazzy and later) do not \
-                 match; point --zenoh-type-hashes at the ROS installation's share folder, or \
-                 source it (AMENT_PREFIX_PATH)"
-            ),
+            Source::Unknown => self.warn_unknown(dds_type),
             source => tracing::debug!(type_name = dds_type, hash = %found.0, ?source, "type hash"),
         }
-        // Bounded by the types clients name, which the worker's entity limits bound.
-        if self.found.len() < 65_536 {
+        let cost = dds_type.len() + found.0.len();
+        if ros_type && self.found_bytes + cost <= MAX_FOUND_BYTES {
+            self.found_bytes += cost;
             self.found.insert(dds_type.to_string(), found.clone());
         }
         found
+    }
+
+    /// One warning per unknown type (its name cut to [`MAX_TYPE_NAME`] characters), for the
+    /// first [`MAX_WARNED`] of them; the others are counted in the last line's total.
+    fn warn_unknown(&mut self, dds_type: &str) {
+        let shown: String = dds_type.chars().take(MAX_TYPE_NAME).collect();
+        if self.warned.contains(&shown) {
+            return;
+        }
+        if self.warned.len() >= MAX_WARNED {
+            self.unwarned += 1;
+            if self.unwarned.is_power_of_two() {
+                tracing::warn!(
+                    unknown_types_not_logged = self.unwarned,
+                    "more types without a RIHS01 hash (logged at powers of two)"
+                );
+            }
+            return;
+        }
+        tracing::warn!(
+            type_name = %shown,
+            "no RIHS01 hash known for this type: its key expressions end in \
+             TypeHashNotSupported, which ROS 2 nodes on rmw_zenoh (Jazzy and later) do not \
+             match; point --zenoh-type-hashes at the ROS installation's share folder, or \
+             source it (AMENT_PREFIX_PATH)"
+        );
+        self.warned.insert(shown);
     }
 
     fn search(&self, dds_type: &str) -> (String, Source) {
@@ -237,6 +280,26 @@ mod tests {
             assert!(is_rihs01(hash), "{name}");
             assert!(name.split('/').count() == 3, "{name}");
         }
+    }
+
+    #[test]
+    fn names_a_client_invents_are_neither_searched_nor_remembered() {
+        let mut h = TypeHashes::new(&[], None).expect("hashes");
+        let huge = format!("pkg::msg::dds_::{}_", "x".repeat(900 << 10));
+        assert_eq!(
+            h.lookup(&huge),
+            (NOT_SUPPORTED.to_string(), Source::Unknown)
+        );
+        for i in 0..1000 {
+            h.lookup(&format!("Invented{i}"));
+        }
+        assert!(h.found.is_empty(), "{} remembered", h.found.len());
+        assert_eq!(h.warned.len(), MAX_WARNED);
+        assert!(h.warned.iter().all(|w| w.len() <= MAX_TYPE_NAME));
+        // Known ROS types are remembered, within the bound in bytes.
+        h.lookup("std_msgs::msg::dds_::String_");
+        assert_eq!(h.found.len(), 1);
+        assert!(h.found_bytes <= MAX_FOUND_BYTES);
     }
 
     #[test]
