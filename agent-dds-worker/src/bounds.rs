@@ -150,6 +150,9 @@ pub enum OverBound {
     EntitiesTotal,
     /// The client's endpoints keep [`WorkerBounds::samples_per_client`] samples.
     SamplesPerClient,
+    /// Past half of [`WorkerBounds::samples_total`], the front-end's clients keep their
+    /// front-end's equal share of it.
+    SamplesPerFrontend,
     /// Every endpoint together keeps [`WorkerBounds::samples_total`] samples.
     SamplesTotal,
 }
@@ -161,52 +164,92 @@ impl OverBound {
             OverBound::EntitiesPerClient => "entities_per_client",
             OverBound::EntitiesTotal => "entities_total",
             OverBound::SamplesPerClient => "samples_per_client",
+            OverBound::SamplesPerFrontend => "samples_per_frontend",
             OverBound::SamplesTotal => "samples_total",
         }
     }
 }
 
-/// The samples reserved by each client's endpoints, and in all.
-#[derive(Debug, Default)]
-pub struct Holdings<C> {
-    by_client: HashMap<C, u64>,
+/// The samples reserved by each client's endpoints, by each front-end's (a group of
+/// clients), and in all. Shared as a front-end's memory budget is: below half the total a
+/// front-end takes what its clients ask for (within the per-client bound); beyond, each
+/// front-end holding samples is entitled to an equal share, so one front-end's clients
+/// cannot take the worker from the others'.
+#[derive(Debug)]
+pub struct Holdings<G, C> {
+    by_client: HashMap<(G, C), u64>,
+    by_group: HashMap<G, u64>,
     total: u64,
 }
 
-impl<C: std::hash::Hash + Eq + Copy> Holdings<C> {
-    /// Whether `samples` more fit `client`'s share and the total.
-    pub fn check(&self, client: C, samples: u32, bounds: &WorkerBounds) -> Result<(), OverBound> {
-        let held = self.by_client.get(&client).copied().unwrap_or(0);
-        if held + u64::from(samples) > bounds.samples_per_client {
+impl<G, C> Default for Holdings<G, C> {
+    fn default() -> Self {
+        Holdings {
+            by_client: HashMap::new(),
+            by_group: HashMap::new(),
+            total: 0,
+        }
+    }
+}
+
+impl<G: std::hash::Hash + Eq + Copy, C: std::hash::Hash + Eq + Copy> Holdings<G, C> {
+    /// Whether `samples` more fit the share of `client` (of front-end `group`), its
+    /// front-end's and the total.
+    pub fn check(
+        &self,
+        group: G,
+        client: C,
+        samples: u32,
+        bounds: &WorkerBounds,
+    ) -> Result<(), OverBound> {
+        let more = u64::from(samples);
+        let held = self.by_client.get(&(group, client)).copied().unwrap_or(0);
+        if held + more > bounds.samples_per_client {
             return Err(OverBound::SamplesPerClient);
         }
-        if self.total + u64::from(samples) > bounds.samples_total {
+        if self.total + more > bounds.samples_total {
             return Err(OverBound::SamplesTotal);
+        }
+        if self.total + more > bounds.samples_total / 2 {
+            let group_held = self.by_group.get(&group).copied().unwrap_or(0);
+            let groups = self.by_group.len() + usize::from(group_held == 0);
+            let share = bounds.samples_total / groups.max(1) as u64;
+            if group_held + more > share {
+                return Err(OverBound::SamplesPerFrontend);
+            }
         }
         Ok(())
     }
 
-    /// Reserves `samples` for `client`.
-    pub fn reserve(&mut self, client: C, samples: u32) {
+    /// Reserves `samples` for `client` of front-end `group`.
+    pub fn reserve(&mut self, group: G, client: C, samples: u32) {
         if samples == 0 {
             return;
         }
-        *self.by_client.entry(client).or_default() += u64::from(samples);
+        *self.by_client.entry((group, client)).or_default() += u64::from(samples);
+        *self.by_group.entry(group).or_default() += u64::from(samples);
         self.total += u64::from(samples);
     }
 
     /// Gives back what [`Self::reserve`] took.
-    pub fn release(&mut self, client: C, samples: u32) {
+    pub fn release(&mut self, group: G, client: C, samples: u32) {
         if samples == 0 {
             return;
         }
-        if let Some(h) = self.by_client.get_mut(&client) {
-            *h = h.saturating_sub(u64::from(samples));
+        let less = u64::from(samples);
+        if let Some(h) = self.by_client.get_mut(&(group, client)) {
+            *h = h.saturating_sub(less);
             if *h == 0 {
-                self.by_client.remove(&client);
+                self.by_client.remove(&(group, client));
             }
         }
-        self.total = self.total.saturating_sub(u64::from(samples));
+        if let Some(h) = self.by_group.get_mut(&group) {
+            *h = h.saturating_sub(less);
+            if *h == 0 {
+                self.by_group.remove(&group);
+            }
+        }
+        self.total = self.total.saturating_sub(less);
     }
 
     /// Samples reserved in all.
@@ -310,13 +353,34 @@ mod tests {
             ..WorkerBounds::default()
         };
         let mut h = Holdings::default();
-        assert_eq!(h.check(1, 60, &b), Ok(()));
-        h.reserve(1, 60);
-        assert_eq!(h.check(1, 60, &b), Err(OverBound::SamplesPerClient));
-        h.reserve(2, 80);
-        assert_eq!(h.check(3, 20, &b), Err(OverBound::SamplesTotal));
-        h.release(1, 60);
-        assert_eq!(h.check(3, 20, &b), Ok(()));
+        assert_eq!(h.check(0, 1, 60, &b), Ok(()));
+        h.reserve(0, 1, 60);
+        assert_eq!(h.check(0, 1, 60, &b), Err(OverBound::SamplesPerClient));
+        h.reserve(0, 2, 80);
+        assert_eq!(h.check(0, 3, 20, &b), Err(OverBound::SamplesTotal));
+        h.release(0, 1, 60);
+        assert_eq!(h.check(0, 3, 20, &b), Ok(()));
         assert_eq!(h.total(), 80);
+    }
+
+    #[test]
+    fn past_half_the_total_each_front_end_keeps_to_its_share() {
+        let b = WorkerBounds {
+            samples_per_client: 1000,
+            samples_total: 1000,
+            ..WorkerBounds::default()
+        };
+        let mut h = Holdings::default();
+        // Alone, a front-end may go past half.
+        h.reserve(1, 1, 400);
+        assert_eq!(h.check(1, 2, 300, &b), Ok(()));
+        h.reserve(1, 2, 300);
+        // A second front-end is entitled to half: the first may not grow further...
+        assert_eq!(h.check(2, 9, 200, &b), Ok(()));
+        h.reserve(2, 9, 200);
+        assert_eq!(h.check(1, 3, 50, &b), Err(OverBound::SamplesPerFrontend));
+        // ...while the second still may, up to its half.
+        assert_eq!(h.check(2, 9, 100, &b), Ok(()));
+        assert_eq!(h.check(2, 9, 301, &b), Err(OverBound::SamplesTotal));
     }
 }

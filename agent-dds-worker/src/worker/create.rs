@@ -334,7 +334,7 @@ impl Worker {
             _ => None,
         };
         let origin = Origin::new(body, little_endian);
-        self.holdings.reserve((key.0, key.1), samples);
+        self.holdings.reserve(key.0, key.1, samples);
         self.entities.insert(
             key,
             parent,
@@ -401,10 +401,7 @@ impl Worker {
                 tracing::warn!(client = %key.1, topic = %topic.name, ?asked, history = ?qos.history, resource_limits = ?qos.resource_limits, "endpoint QoS clamped to the worker's bounds: its cache keeps at most {} samples (further clamps are counted, not logged, until the episode ends)", clamped.samples);
             }
         }
-        if let Err(o) = self
-            .holdings
-            .check((key.0, key.1), clamped.samples, &bounds)
-        {
+        if let Err(o) = self.holdings.check(key.0, key.1, clamped.samples, &bounds) {
             let why = format!(
                 "endpoint refused: its cache of {} samples exceeds {} (client {}, {} held in all)",
                 clamped.samples,

@@ -115,7 +115,7 @@ impl Worker {
 
     /// What the worker keeps about an entity besides the tree, dropped with it.
     fn forget_entity(&mut self, key: EntityKey, e: Entity) {
-        self.holdings.release((key.0, key.1), e.samples);
+        self.holdings.release(key.0, key.1, e.samples);
         if let Some(r) = self.frontends.recent.get_mut(&key.0) {
             r.forget(&key);
         }

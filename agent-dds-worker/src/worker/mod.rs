@@ -140,7 +140,7 @@ pub struct Worker {
     /// Refusals logged once per episode.
     episodes: Episodes,
     /// The samples each client's endpoints may keep, reserved against the bounds.
-    holdings: Holdings<(u32, ClientKey)>,
+    holdings: Holdings<u32, ClientKey>,
     /// Replays under way, and the clients whose replay crashed the last worker.
     replay_guard: ReplayGuard,
     /// The DDS writers: those holding samples, acknowledgements, shared writers.
