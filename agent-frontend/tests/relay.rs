@@ -11,8 +11,8 @@ use std::time::{Duration, Instant};
 use xrce_common::session::agent::{Agent, AgentConfig};
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
 use xrce_common::wire::{
-    object_kind as k, stream_id, ClientKey, DataDeliveryControl, ObjectId, ObjectVariant,
-    ReadSpecification, Representation, VariantExtra,
+    object_kind as k, status, stream_id, ClientKey, DataDeliveryControl, ObjectId, ObjectVariant,
+    ReadSpecification, Representation, ResultStatus, VariantExtra,
 };
 use xrce_frontend::relay::link::MemoryLink;
 use xrce_frontend::relay::Relay;
@@ -76,6 +76,8 @@ struct FakeWorker {
     greeted: Cell<bool>,
     /// Replies not yet handed to the relay.
     replies: RefCell<Vec<Vec<u8>>>,
+    /// Refuses replayed objects as a worker does whose predecessor died replaying them.
+    refuse_replays: Cell<bool>,
 }
 
 impl FakeWorker {
@@ -86,6 +88,7 @@ impl FakeWorker {
             announced: Cell::new(false),
             greeted: Cell::new(false),
             replies: RefCell::new(Vec::new()),
+            refuse_replays: Cell::new(false),
         }
     }
 
@@ -119,6 +122,16 @@ impl FakeWorker {
                 Request::FrontendHello => {
                     self.reply(Route::frontend(m.route.frontend_id), Reply::WorkerHello)
                 }
+                Request::Create { .. } if replay && self.refuse_replays.get() => self.reply(
+                    m.route,
+                    Reply::Status {
+                        result: ResultStatus {
+                            status: status::ERR_RESOURCES,
+                            implementation_status: xrce_ipc::REPLAY_REFUSED,
+                        },
+                        replay,
+                    },
+                ),
                 Request::Create { .. } | Request::Delete | Request::Read { .. } => self.reply(
                     m.route,
                     Reply::Status {
@@ -529,4 +542,25 @@ fn reliable_write(rig: &mut Rig, w: ObjectId, body: &[u8]) {
         .expect("write");
     rig.deliver(now);
     rig.relay.pump();
+}
+
+#[test]
+fn a_client_whose_replay_crashed_the_last_worker_has_its_session_ended() {
+    let first = FakeWorker::start(21);
+    let mut rig = Rig::connected(&first, 21);
+    rig.create_writer();
+    rig.run(&[&first], |_, s| {
+        s.iter().filter(|m| is(m, "Create")).count() == 4
+    });
+    let key = ClientKey([0xB2, 0, 0, 1]);
+    assert!(rig.agent.has_client(key));
+    // The next worker refuses the client's objects: its predecessor died replaying them.
+    let second = FakeWorker::start(22);
+    second.refuse_replays.set(true);
+    let served = rig.run(&[&second], |r, _| !r.agent.has_client(key));
+    assert!(served.iter().any(|m| is(m, "Create")));
+    assert_eq!(rig.agent.stats().dropped("replay_crash"), 1);
+    // And the worker is told the session is gone (its entities, if any, go with it).
+    let told = rig.run(&[&second], |_, s| s.iter().any(|m| is(m, "DeleteClient")));
+    assert!(told.iter().any(|m| m.route.client_key == key));
 }

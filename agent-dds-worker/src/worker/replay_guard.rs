@@ -7,8 +7,9 @@
 //! whose objects are being created is written down in the private instance directory
 //! (`replaying-<front-end>`, rewritten when the client changes, removed at `ReplayDone`);
 //! a worker that finds such a file at its start refuses that client's replayed objects
-//! (STATUS_ERR_RESOURCES, counted as `replay_crash`, logged), and the front-end drops them
-//! from the client's session. Everyone else is replayed as usual.
+//! (STATUS_ERR_RESOURCES with [`xrce_ipc::REPLAY_REFUSED`], counted as `replay_crash`,
+//! logged), and the front-end ends the client's session: the client finds it gone and
+//! creates it again. Everyone else is replayed as usual.
 
 use std::collections::{HashMap, HashSet};
 use std::path::PathBuf;

@@ -103,23 +103,27 @@ impl Worker {
                 replay,
                 readers_matched,
             } => {
-                let result = if self.replay_guard.refuses(r.frontend_id, r.client_key) {
+                if self.replay_guard.refuses(r.frontend_id, r.client_key) {
                     let why = format!(
-                        "replayed object of client {} refused: the last worker died while \
-                         replaying this client's objects",
+                        "replayed objects of client {} refused, its session ended: the last \
+                         worker died while replaying them",
                         r.client_key
                     );
                     self.refused("replay_crash", &why);
-                    Err(OpError::Resources(why))
-                } else {
-                    self.create(
-                        key,
-                        &description,
-                        replay,
-                        client_little_endian,
-                        readers_matched,
-                    )
-                };
+                    let result = ResultStatus {
+                        status: status::ERR_RESOURCES,
+                        implementation_status: ipc::REPLAY_REFUSED,
+                    };
+                    self.reply(r, Reply::Status { result, replay });
+                    return;
+                }
+                let result = self.create(
+                    key,
+                    &description,
+                    replay,
+                    client_little_endian,
+                    readers_matched,
+                );
                 if result.is_ok() {
                     tracing::debug!(client = %r.client_key, object = ?r.object_id, replay, "created");
                 }

@@ -203,6 +203,8 @@ pub struct Relay<L> {
     objects_changed: HashSet<ClientKey>,
     reads_changed: HashSet<ClientKey>,
     replies_out: Vec<(ClientKey, BaseObjectRequest, ResultStatus)>,
+    /// Sessions to end: their replay crashed a worker ([`xrce_ipc::REPLAY_REFUSED`]).
+    sessions_to_end: HashSet<ClientKey>,
     /// Reads paused because their client does not keep up: (client, reader) -> stream.
     paused: HashMap<(ClientKey, ObjectId), u8>,
     /// INFO replies decided here (GET_INFO about a client's objects).
@@ -266,6 +268,7 @@ impl<L: Link> Relay<L> {
             objects_changed: HashSet::new(),
             reads_changed: HashSet::new(),
             replies_out: Vec::new(),
+            sessions_to_end: HashSet::new(),
             infos_out: Vec::new(),
             paused: HashMap::new(),
             dirty: false,
@@ -610,6 +613,12 @@ impl<L: Link> Relay<L> {
         }
         for (client, req, result, config) in self.infos_out.drain(..) {
             let _ = agent.send_info(now, client, req, result, config.as_ref());
+        }
+        // Ended rather than kept without the objects its client believes it has: the client
+        // finds its session gone (a ping, a write) and creates it again.
+        let ending: Vec<ClientKey> = self.sessions_to_end.drain().collect();
+        for client in ending {
+            agent.end_session(now, client, "replay_crash", self);
         }
     }
 }

@@ -83,6 +83,9 @@ impl<L: Link> Relay<L> {
             Reply::Status { result, replay } => {
                 let code = result.status;
                 let waited = self.pending.remove(&h.op_seq);
+                if replay && result.implementation_status == xrce_ipc::REPLAY_REFUSED {
+                    self.sessions_to_end.insert(h.client_key);
+                }
                 if !status::is_ok(code) {
                     if let Some(g) = self.graphs.get_mut(&h.client_key) {
                         self.objects_changed.insert(h.client_key);

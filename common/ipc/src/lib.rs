@@ -33,7 +33,8 @@ mod sys;
 
 pub use codec::IpcError;
 pub use message::{
-    Encode, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity, HEADER_LEN,
+    Encode, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
+    HEADER_LEN, REPLAY_REFUSED,
 };
 
 /// Version of this contract; both sides drop (and log) messages of another version.

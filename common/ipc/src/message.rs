@@ -268,13 +268,19 @@ impl Sample<'_> {
     }
 }
 
+/// Implementation status of a STATUS refusing a replayed object: its client's replay was
+/// under way when the last worker died ([`Reply::Status`]).
+pub const REPLAY_REFUSED: u8 = 0xC1;
+
 /// What the worker tells a front-end.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Reply<'a> {
     /// A new worker generation is serving (on the announce service, and in answer to every
     /// [`Request::FrontendHello`]).
     WorkerHello,
-    /// The result of a Create, Delete, Read, or of a Write that failed or asked for one.
+    /// The result of a Create, Delete, Read, or of a Write that failed or asked for one. A
+    /// replayed object refused because its client's replay crashed the last worker carries
+    /// [`REPLAY_REFUSED`] as its implementation status: the front-end ends that session.
     Status {
         /// The XRCE result.
         result: ResultStatus,

@@ -342,6 +342,25 @@ impl<A: Endpoint> Agent<A> {
         }
     }
 
+    /// Ends a client's session from outside the protocol (its objects could not be given
+    /// back to a new worker, say): deleted as a dead one is, counted under `reason`. Whether
+    /// it had one.
+    pub fn end_session(
+        &mut self,
+        now: Instant,
+        key: ClientKey,
+        reason: &'static str,
+        sink: &mut impl OperationSink,
+    ) -> bool {
+        if !self.clients.contains_key(&key) {
+            return false;
+        }
+        self.count_drop(reason);
+        tracing::warn!(client = %key, reason, "session ended by the agent");
+        self.remove_client(now, key, sink);
+        true
+    }
+
     pub(super) fn remove_client(
         &mut self,
         now: Instant,
