@@ -39,7 +39,7 @@ pub struct WorkerBounds {
 /// Default [`WorkerBounds::samples_per_endpoint`] (4 MiB of 1 KiB samples).
 pub const DEFAULT_SAMPLES_PER_ENDPOINT: i32 = 4096;
 /// Default [`WorkerBounds::instances_per_endpoint`].
-pub const DEFAULT_INSTANCES_PER_ENDPOINT: i32 = 4096;
+pub const DEFAULT_INSTANCES_PER_ENDPOINT: i32 = 1024;
 /// Default [`WorkerBounds::samples_per_client`] (64 MiB of 1 KiB samples).
 pub const DEFAULT_SAMPLES_PER_CLIENT: u64 = 65_536;
 /// Default [`WorkerBounds::samples_total`] (1 GiB of 1 KiB samples).
@@ -114,7 +114,13 @@ pub fn clamp(qos: &mut EndpointQos, keyed: bool, bounds: &WorkerBounds) -> Clamp
     } else {
         asked.max_instances
     };
-    let max_samples = limit(asked.max_samples, per_endpoint);
+    // Unlimited samples on a keyed keep-last endpoint: its depth times its instances.
+    let max_samples = match depth {
+        Some(d) if keyed && asked.max_samples < 1 => {
+            per_endpoint.min(d.saturating_mul(instances.max(1)))
+        }
+        _ => limit(asked.max_samples, per_endpoint),
+    };
     // DDS wants a depth within the samples per instance, and those within the samples.
     // (Unlimited per instance is the depth for keep-last: the history bounds it already.)
     let per_instance = match asked.max_samples_per_instance {
@@ -324,10 +330,16 @@ mod tests {
         let c = clamp(&mut q, true, &b);
         assert!(c.changed);
         let r = q.resource_limits.expect("limits");
-        assert_eq!(r.max_instances, 4096);
+        assert_eq!(r.max_instances, 1024);
         assert_eq!(r.max_samples, 4096);
         assert_eq!(r.max_samples_per_instance, 64);
         assert_eq!(c.samples, 4096);
+        // Keep-last 1: one sample per instance, so no more than the instances.
+        let mut q = reader(History::KeepLast(1), None);
+        let c = clamp(&mut q, true, &b);
+        assert_eq!(c.samples, 1024);
+        let r = q.resource_limits.expect("limits");
+        assert_eq!((r.max_samples, r.max_samples_per_instance), (1024, 1));
     }
 
     #[test]

@@ -49,8 +49,9 @@ pub fn sweep(except: Option<&str>) -> Vec<Left> {
         if !left.stored.expired(now) {
             continue;
         }
+        // (Its shared memory went with its last process: a clean-up by prefix here could
+        // touch another instance whose name begins with this one's.)
         if runtime_dir::remove_instance_if_unlocked(&left.instance) {
-            xrce_ipc::shm::remove_instance_leftovers(&left.instance);
             tracing::info!(instance = %left.instance, clients = left.stored.clients, bytes = left.stored.bytes, "removed the session store of a stopped agent: past the adoption window, no restart can take its sessions over");
             removed.push(left);
         }

@@ -134,11 +134,17 @@ impl EndpointQos {
     /// The same QoS with `times` the keep-last depth (a shared writer's: every client keeps
     /// the resend window of a writer of its own).
     pub fn deeper(&self, times: usize) -> Self {
+        let times = i32::try_from(times).unwrap_or(i32::MAX);
         match self.history {
             History::KeepLast(depth) => EndpointQos {
-                history: History::KeepLast(
-                    depth.saturating_mul(i32::try_from(times).unwrap_or(i32::MAX)),
-                ),
+                history: History::KeepLast(depth.saturating_mul(times)),
+                // The limits scale with it: a depth beyond the samples per instance is a
+                // policy DDS refuses as inconsistent.
+                resource_limits: self.resource_limits.map(|r| ResourceLimitsDesc {
+                    max_samples: r.max_samples.saturating_mul(times),
+                    max_instances: r.max_instances,
+                    max_samples_per_instance: r.max_samples_per_instance.saturating_mul(times),
+                }),
                 ..*self
             },
             History::KeepAll => *self,

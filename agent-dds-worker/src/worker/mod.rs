@@ -508,6 +508,7 @@ impl Worker {
                     "termination requested; executing what the front-ends handed over first"
                 );
                 draining = Some(Instant::now());
+                self.replay_guard.stopping();
             }
             let now = Instant::now();
             if now >= self.reporter.due() {

@@ -67,6 +67,8 @@ impl Worker {
                 );
                 now
             });
+            // A replay from a front-end that is gone did not crash this worker.
+            self.replay_guard.end(fe);
             if now.saturating_duration_since(since) >= grace {
                 let clients = self.entities.clients().filter(|(f, _)| *f == fe).count();
                 tracing::warn!(

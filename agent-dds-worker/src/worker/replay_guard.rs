@@ -69,12 +69,22 @@ impl ReplayGuard {
         self.replaying.insert(fe, None);
     }
 
-    /// Front-end `fe`'s replay is over.
+    /// Front-end `fe`'s replay is over (or the front-end is gone): its suspects were refused
+    /// once, which ended their sessions; what they create from now on is theirs again.
     pub(crate) fn end(&mut self, fe: u32) {
+        self.suspects.retain(|(f, _)| *f != fe);
         if let Some(Some(_)) = self.replaying.remove(&fe) {
             if let Some(dir) = &self.dir {
                 let _ = std::fs::remove_file(dir.join(format!("{MARKER}{fe}")));
             }
+        }
+    }
+
+    /// The worker stops of its own accord: the replays under way did not crash it.
+    pub(crate) fn stopping(&mut self) {
+        let under_way: Vec<u32> = self.replaying.keys().copied().collect();
+        for fe in under_way {
+            self.end(fe);
         }
     }
 

@@ -142,7 +142,8 @@ impl Connection {
         if self.out_start == self.out.len() {
             self.out.clear();
             self.out_start = 0;
-            if self.out.capacity() > 64 << 10 {
+            // What an idle connection keeps counts in the buffers' budget: little.
+            if self.out.capacity() > 4 << 10 {
                 self.out = Vec::new();
             }
         } else if self.out_start > self.out.len() / 2 {

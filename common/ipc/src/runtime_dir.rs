@@ -611,8 +611,19 @@ pub use files::{
 /// Takes the supervisor's lock of `instance` (creating the instance's directory): a second
 /// supervisor of the same instance is refused before it removes or reads anything.
 pub fn lock_instance(instance: &str) -> Result<LockFile, RuntimeDirError> {
-    let dir = ensure_instance_dir(instance)?;
-    LockFile::acquire(&dir.join(AGENT_LOCK), "another xrce-agent")
+    // Another agent's sweep may hold a stopped instance's lock for a moment while it
+    // removes what no restart can take over: tried for half a second before refusing.
+    let mut tries = 0;
+    loop {
+        let dir = ensure_instance_dir(instance)?;
+        match LockFile::acquire(&dir.join(AGENT_LOCK), "another xrce-agent") {
+            Err(RuntimeDirError::Locked { .. }) if tries < 25 => {
+                tries += 1;
+                std::thread::sleep(std::time::Duration::from_millis(20));
+            }
+            other => return other,
+        }
+    }
 }
 
 /// Removes the session stores of `instance` whose front-end is gone (its lock is free), for

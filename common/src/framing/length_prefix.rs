@@ -15,7 +15,7 @@ pub const MAX_MESSAGE: usize = u16::MAX as usize;
 /// Room offered to each socket read at least.
 const READ_CHUNK: usize = 2048;
 /// A buffer this large or larger is given back when it empties.
-const SHRINK_ABOVE: usize = 16 << 10;
+const SHRINK_ABOVE: usize = READ_CHUNK + 1;
 
 /// Splits a TCP byte stream into XRCE messages.
 #[derive(Debug)]
