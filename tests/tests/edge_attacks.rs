@@ -13,22 +13,12 @@ use xrce_common::wire::{
     flags, status, stream_id, submessage_id, ClientKey, CreateClientPayload, Message,
     MessageBuilder, MessageHeader, Payload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
 };
-use xrce_tests::{free_tcp_port, hello_world, AgentProcess, Link, TestClient};
+use xrce_tests::{free_tcp_port, hello_world, rss_kib, AgentProcess, Link, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 
 fn ip(s: &str) -> IpAddr {
     s.parse().expect("address")
-}
-
-/// Resident memory of a process, in KiB.
-fn rss_kib(pid: i32) -> u64 {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        .unwrap_or(0)
 }
 
 fn frontend_pid(agent: &AgentProcess) -> i32 {

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use xrce_common::session::client::ClientConfig;
 use xrce_common::wire::ClientKey;
 use xrce_tests::{
-    free_udp_port, hello_world, sigkill, AgentProcess, DdsPeer, Deliveries, TestClient,
+    free_udp_port, hello_world, rss_kib, sigkill, AgentProcess, DdsPeer, Deliveries, TestClient,
 };
 
 const SECOND: Duration = Duration::from_secs(1);
@@ -154,18 +154,6 @@ fn udp6_client_publishes_cyclone_reads_each_sample_once() {
     got.assert_exactly_once(0..20, "a UDP/IPv6 client");
     got.assert_in_order("a UDP/IPv6 client");
     assert!(agent.stop(), "agent did not stop cleanly");
-}
-
-/// Resident memory of a process, KiB.
-fn rss_kib(pid: i32) -> u64 {
-    std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("VmRSS:"))
-                .and_then(|v| v.split_whitespace().next()?.parse().ok())
-        })
-        .unwrap_or(0)
 }
 
 /// Samples of the flood: about 1 KB each, 117 MiB in all, more than either bound below, so

@@ -8,7 +8,7 @@
 use std::time::{Duration, Instant};
 
 use xrce_common::wire::{object_kind as k, status, ObjectId, VariantExtra};
-use xrce_tests::{sigkill, xml, AgentProcess, DdsPeer, TestClient};
+use xrce_tests::{rss_kib, sigkill, xml, AgentProcess, DdsPeer, TestClient};
 
 /// Threads of process `pid`.
 fn threads(pid: i32) -> usize {
@@ -133,16 +133,6 @@ fn a_ninth_domain_is_refused_the_domains_survive_a_restart_and_deleted_ones_give
         ninth.create(another, k::PARTICIPANT, xml::PARTICIPANT, beyond),
         status::OK
     );
-}
-
-/// Resident memory of a process, in KiB.
-fn rss_kib(pid: i32) -> u64 {
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap_or_default();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        .unwrap_or(0)
 }
 
 #[test]

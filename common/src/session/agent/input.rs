@@ -204,11 +204,7 @@ impl<A: Endpoint> Agent<A> {
                 // A FRAGMENT makes the core keep its bytes until the last one: room for
                 // them first, or the message is not acknowledged and comes again.
                 let kept = fragment_bytes(bytes, hlen);
-                let growth = self
-                    .clients
-                    .get(&key)
-                    .and_then(|c| c.reassembly.get(&stream))
-                    .map_or(kept, |r| r.growth_for(kept));
+                let growth = self.reassembly_growth(key, stream, kept);
                 if growth > 0 && !self.make_room(now, key, growth, "memory_budget") {
                     cause = AckCause::Refused;
                 } else if room_for(sink, bytes, hlen) {
@@ -231,6 +227,14 @@ impl<A: Endpoint> Agent<A> {
             }
         }
         self.send_acknack(now, key, stream, cause);
+    }
+
+    /// Bytes of memory a stream's reassembly takes on if it collects `kept` more.
+    fn reassembly_growth(&self, key: ClientKey, stream: u8, kept: usize) -> usize {
+        self.clients
+            .get(&key)
+            .and_then(|c| c.reassembly.get(&stream))
+            .map_or(kept, |r| r.growth_for(kept))
     }
 
     /// Delivers messages that arrived early and are now next, while the sink has room and,
@@ -268,11 +272,7 @@ impl<A: Endpoint> Agent<A> {
             let kept = fragment_bytes(&next, hlen);
             if kept > 0 {
                 self.account(key);
-                let growth = self
-                    .clients
-                    .get(&key)
-                    .and_then(|c| c.reassembly.get(&stream))
-                    .map_or(kept, |r| r.growth_for(kept));
+                let growth = self.reassembly_growth(key, stream, kept);
                 if growth > 0 && !self.make_room(now, key, growth, "memory_budget") {
                     return false;
                 }
