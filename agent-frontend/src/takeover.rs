@@ -58,7 +58,13 @@ pub fn persist<A: xrce_common::session::agent::Endpoint + StoredEndpoint>(
                 .snapshot(key, |e| e.stored())
                 .is_some_and(|s| !s.endpoint.is_empty());
             if storable {
-                store.save_objects(key, &g.encode_objects());
+                // No objects, no file.
+                let encoded = if g.is_empty() {
+                    Vec::new()
+                } else {
+                    g.encode_objects()
+                };
+                store.save_objects(key, &encoded);
                 if !changed.contains(&key) {
                     changed.push(key);
                 }
@@ -83,6 +89,7 @@ pub fn persist<A: xrce_common::session::agent::Endpoint + StoredEndpoint>(
         record.extend_from_slice(&snap);
         record.extend_from_slice(&reads);
         store.save_state(key, &record);
+        agent.set_stored_bytes(key, store.client_bytes(key) as usize);
     }
 }
 
@@ -100,7 +107,13 @@ pub fn take_over<T: Transport>(
     for stored in store.take_over() {
         let parsed = split_record(&stored.state).and_then(|(snap, reads)| {
             let snapshot = SessionSnapshot::decode(snap).ok()?;
-            let graph = ObjectGraph::decode(&stored.objects, reads).ok()?;
+            // No objects file: no objects.
+            let objects = if stored.objects.is_empty() {
+                ObjectGraph::default().encode_objects()
+            } else {
+                stored.objects
+            };
+            let graph = ObjectGraph::decode(&objects, reads).ok()?;
             Some((snapshot, graph))
         });
         let Some((snapshot, graph)) = parsed else {
@@ -113,6 +126,7 @@ pub fn take_over<T: Transport>(
             Some(e) if snapshot.key == stored.key && agent.restore(now, &snapshot, e) => {
                 tracing::debug!(client = %snapshot.key, objects = graph.len(), reads = graph.reads().count(), "stored session taken over");
                 relay.restore_graph(snapshot.key, graph);
+                agent.set_stored_bytes(snapshot.key, store.client_bytes(snapshot.key) as usize);
                 taken += 1;
             }
             _ => {

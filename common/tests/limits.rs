@@ -411,3 +411,41 @@ fn an_address_starts_new_sessions_at_a_bounded_rate() {
         .count();
     assert_eq!(answered, 50);
 }
+
+#[test]
+fn what_the_session_store_takes_for_a_client_counts_in_its_share() {
+    let budget = 1 << 20;
+    let mut a = agent(
+        Limits {
+            memory_budget: budget,
+            ..Limits::default()
+        },
+        100,
+    );
+    let t0 = Instant::now();
+    let (ea, eb) = (Ep(1, 1), Ep(2, 1));
+    let (ka, kb) = (key(1), key(2));
+    assert_eq!(connect(&mut a, t0, ea, ka), Some(status::OK));
+    assert_eq!(connect(&mut a, t0, eb, kb), Some(status::OK));
+    // A's stored records and objects take 700 KiB: past half the budget, and over its
+    // half share.
+    a.set_stored_bytes(ka, 700 << 10);
+    assert_eq!(a.memory_held().0, 700 << 10);
+    a.handle_datagram(t0, ea, &fragment(ka, 0, 4096), &mut NullSink);
+    assert_eq!(
+        acked_up_to(&drain(&mut a), ea),
+        Some(0),
+        "A over its share: not taken"
+    );
+    assert_eq!(a.stats().dropped("memory_budget"), 1);
+    a.handle_datagram(t0, eb, &fragment(kb, 0, 4096), &mut NullSink);
+    assert_eq!(
+        acked_up_to(&drain(&mut a), eb),
+        Some(1),
+        "B within its share"
+    );
+    // Its store shrank: A is served again.
+    a.set_stored_bytes(ka, 0);
+    a.handle_datagram(t0, ea, &fragment(ka, 0, 4096), &mut NullSink);
+    assert_eq!(acked_up_to(&drain(&mut a), ea), Some(1));
+}

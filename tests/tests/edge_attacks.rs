@@ -254,6 +254,23 @@ fn a_session_flood_from_one_address_leaves_room_for_others() {
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
+/// Bytes of memory the session stores of `instance` take (allocated blocks of every file).
+fn stored_bytes(instance: &str) -> u64 {
+    use std::os::unix::fs::MetadataExt;
+    let dir = xrce_ipc::runtime_dir::sessions_dir(instance);
+    let mut total = 0;
+    for store in std::fs::read_dir(dir).expect("sessions dir").flatten() {
+        for f in std::fs::read_dir(store.path())
+            .into_iter()
+            .flatten()
+            .flatten()
+        {
+            total += f.metadata().map_or(0, |m| m.blocks() * 512);
+        }
+    }
+    total
+}
+
 #[test]
 fn thousands_of_addresses_with_one_silent_session_each_do_not_lock_a_new_one_out() {
     // The default cap (8192 sessions): one CREATE_CLIENT from each of 8192 addresses of
@@ -269,6 +286,13 @@ fn thousands_of_addresses_with_one_silent_session_each_do_not_lock_a_new_one_out
     }
     assert_eq!(refused, 0, "the cap bit before 8192 sessions");
     std::thread::sleep(Duration::from_millis(1200));
+    // Their stored sessions take a page each (the store grows with what a session holds).
+    let stored = stored_bytes(agent.instance());
+    eprintln!("8192 silent sessions: {} KiB stored", stored >> 10);
+    assert!(
+        stored <= 8193 * 4096 + (64 << 10),
+        "the store holds {stored} bytes for 8192 silent sessions"
+    );
     let (_, st) = raw_session(
         agent.addr(),
         ip("127.200.0.1"),

@@ -60,6 +60,11 @@ impl MappedFile {
         })
     }
 
+    /// Bytes mapped (the file's length when it was mapped).
+    pub fn mapped_len(&self) -> usize {
+        self.map.len()
+    }
+
     /// Copies `bytes` into the file at `offset`. Fails, writing nothing, if they do not fit
     /// or the file system cannot allocate the pages they go to (a full tmpfs).
     pub fn write_at(&mut self, offset: usize, bytes: &[u8]) -> std::io::Result<()> {

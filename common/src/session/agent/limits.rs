@@ -70,7 +70,20 @@ impl<A: Endpoint> Agent<A> {
                         .sum::<usize>()
             })
             .sum();
-        reassembly + early + output
+        reassembly + early + output + c.stored
+    }
+
+    /// Tells the core how many bytes the front-end's session store takes for a client
+    /// beyond the page every session has (its records grow with what it holds, and its
+    /// objects are stored): counted in the budget as the client's.
+    pub fn set_stored_bytes(&mut self, key: ClientKey, bytes: usize) {
+        let Some(c) = self.clients.get_mut(&key) else {
+            return;
+        };
+        if c.stored != bytes {
+            c.stored = bytes;
+            self.account(key);
+        }
     }
 
     /// Brings the budget's books up to date with what a client holds now.

@@ -68,6 +68,9 @@ pub(super) struct ProxyClient<A> {
     pub(super) origin: OriginId,
     /// Bytes the core holds for it, as last accounted in the budget.
     pub(super) held: usize,
+    /// Bytes the front-end's session store takes for it beyond its first page
+    /// ([`Agent::set_stored_bytes`]); part of `held`.
+    pub(super) stored: usize,
     /// Whether one of its CREATEs succeeded (sessions without objects are evicted first; a
     /// refused CREATE does not count, so refusals cannot pin a session).
     pub(super) has_objects: bool,
@@ -139,6 +142,7 @@ impl<A: Origin> ProxyClient<A> {
             last_acknack: HashMap::new(),
             origin: addr.origin(),
             held: 0,
+            stored: 0,
             has_objects: false,
             pending_creates: Vec::new(),
             reassembly_at: HashMap::new(),
