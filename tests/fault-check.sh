@@ -34,20 +34,26 @@ fi
 logs=$(mktemp -d)
 trap 'rm -rf "$logs"' EXIT
 
-# Builds the test binaries once (each builds the agent, with fault injection, on its first
-# run: the control runs below).
-if ! cargo test --locked -p xrce-tests --no-run -q >"$logs/build" 2>&1; then
+# The tests and the agent (with fault injection) as `cargo test --workspace` (README's test
+# command) builds them: after it, nothing is built again (tests/e2e-binaries).
+declare -A exe=()
+if ! tests/e2e-binaries >"$logs/binaries" 2>"$logs/build"; then
   tail -n 30 "$logs/build"
   echo "fault-check: building the tests failed" >&2
   exit 1
 fi
+while read -r name path; do exe[$name]=$path; done <"$logs/binaries"
 
 run() { # fault binary name log -> exit status of the test
   local fault=$1 bin=$2 name=$3 log=$4
+  if [ -z "${exe[$bin]:-}" ]; then
+    echo "fault-check: no test binary $bin" >"$log"
+    return 1
+  fi
   if [ "$fault" = none ]; then
-    env -u XRCE_FAULT cargo test --locked -q -p xrce-tests --test "$bin" -- --exact "$name" >"$log" 2>&1
+    (cd tests && env -u XRCE_FAULT "${exe[$bin]}" --exact "$name") >"$log" 2>&1
   else
-    XRCE_FAULT=$fault cargo test --locked -q -p xrce-tests --test "$bin" -- --exact "$name" >"$log" 2>&1
+    (cd tests && XRCE_FAULT=$fault "${exe[$bin]}" --exact "$name") >"$log" 2>&1
   fi
 }
 

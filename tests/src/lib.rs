@@ -48,33 +48,39 @@ pub fn dds_backend() -> String {
     std::env::var("XRCE_DDS_BACKEND").unwrap_or_else(|_| "cyclone".into())
 }
 
-/// Builds the agent's binaries once per test process; returns their directory.
+/// Makes sure the agent's binaries are built, once per test process; returns their directory.
+///
+/// They are those `cargo test --workspace` builds (the command README.md gives): the same
+/// invocation again is a no-op after it, and builds them for a test run some other way
+/// (`cargo test -p xrce-tests`). Built with the faults tests/fault-check.sh injects (the
+/// dev-dependencies of this crate turn the feature on) and both DDS backends;
+/// XRCE_DDS_BACKEND=rustdds runs the suite against RustDDS (the agents inherit the variable).
+/// With XRCE_TEST_RELEASE set, release builds are made and used instead (benchmarks).
 pub fn binaries() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let release = std::env::var("XRCE_TEST_RELEASE").is_ok();
         let mut cmd = Command::new(cargo);
-        cmd.current_dir(workspace()).args([
-            "build",
-            "--bins",
-            "-p",
-            "xrce-agent",
-            "-p",
-            "xrce-frontend",
-            "-p",
-            "xrce-dds-worker",
-            // Faults injected on purpose when XRCE_FAULT names one (tests/fault-check.sh);
-            // inert otherwise. Release builds of the agent never have this feature.
-            "--features",
-            "xrce-agent/fault-injection,xrce-frontend/fault-injection,xrce-dds-worker/fault-injection",
-        ]);
+        cmd.current_dir(workspace());
         if release {
-            cmd.arg("--release");
+            cmd.args([
+                "build",
+                "--release",
+                "--bins",
+                "-p",
+                "xrce-agent",
+                "-p",
+                "xrce-frontend",
+                "-p",
+                "xrce-dds-worker",
+                "--features",
+                "xrce-agent/fault-injection,xrce-frontend/fault-injection,xrce-dds-worker/fault-injection",
+            ]);
+        } else {
+            cmd.args(["test", "--workspace", "--no-run", "--quiet"]);
         }
-        // Built with their default features: both DDS backends. XRCE_DDS_BACKEND=rustdds runs
-        // the suite against RustDDS (the agents inherit the variable).
-        let st = cmd.status().expect("run cargo build");
+        let st = cmd.status().expect("run cargo");
         assert!(st.success(), "building the agent binaries failed");
         target_dir().join(if release { "release" } else { "debug" })
     })
