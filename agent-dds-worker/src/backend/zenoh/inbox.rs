@@ -6,7 +6,7 @@ use std::collections::VecDeque;
 use std::io::{Read as _, Write as _};
 use std::os::fd::{AsFd, BorrowedFd};
 use std::os::unix::net::UnixStream;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use crate::backend::{BackendError, ReaderToken, Taken};
@@ -79,6 +79,44 @@ pub(super) enum WhenFull {
 /// publisher's large samples cannot make the worker hold more.
 pub(super) const MAX_QUEUED_BYTES: usize = 16 << 20;
 
+/// Most bytes of sample bodies all the readers' queues of the backend hold together: however
+/// many readers clients make, what arrives for them while they do not read stays within it.
+pub(super) const MAX_ALL_QUEUED_BYTES: usize = 64 << 20;
+
+/// Bytes queued in every reader's queue together, against their limit.
+#[derive(Debug)]
+pub(super) struct QueuedBytes {
+    held: AtomicUsize,
+    limit: usize,
+}
+
+impl QueuedBytes {
+    pub(super) fn new(limit: usize) -> Self {
+        QueuedBytes {
+            held: AtomicUsize::new(0),
+            limit,
+        }
+    }
+
+    fn fits(&self, more: usize) -> bool {
+        self.held.load(Ordering::Relaxed) + more <= self.limit
+    }
+
+    fn add(&self, n: usize) {
+        self.held.fetch_add(n, Ordering::Relaxed);
+    }
+
+    fn sub(&self, n: usize) {
+        self.held.fetch_sub(n, Ordering::Relaxed);
+    }
+}
+
+impl Default for QueuedBytes {
+    fn default() -> Self {
+        QueuedBytes::new(MAX_ALL_QUEUED_BYTES)
+    }
+}
+
 fn size(item: &Result<Taken, BackendError>) -> usize {
     item.as_ref().map_or(0, |t| t.sample.body.len())
 }
@@ -109,6 +147,7 @@ pub(super) struct Inbox {
     token: ReaderToken,
     wakeup: Arc<Wakeup>,
     dropped: Arc<AtomicU64>,
+    all: Arc<QueuedBytes>,
 }
 
 impl Inbox {
@@ -118,6 +157,7 @@ impl Inbox {
         when_full: WhenFull,
         wakeup: Arc<Wakeup>,
         dropped: Arc<AtomicU64>,
+        all: Arc<QueuedBytes>,
     ) -> Self {
         Inbox {
             queue: Mutex::new(Queue {
@@ -130,6 +170,7 @@ impl Inbox {
             token,
             wakeup,
             dropped,
+            all,
         }
     }
 
@@ -151,14 +192,18 @@ impl Inbox {
                 evicted,
             };
         }
-        while q.items.len() >= self.capacity || q.bytes + new > MAX_QUEUED_BYTES {
+        while q.items.len() >= self.capacity
+            || q.bytes + new > MAX_QUEUED_BYTES
+            || !self.all.fits(new)
+        {
             if self.dropped.fetch_add(1, Ordering::Relaxed) == 0 {
                 tracing::warn!(
                     capacity = self.capacity,
                     max_bytes = MAX_QUEUED_BYTES,
+                    max_bytes_all_readers = self.all.limit,
                     "a Zenoh reader's queue is full: samples are dropped (its history depth, \
-                     or its resource limits for keep-all, or 16 MiB; counted in the worker's \
-                     status)"
+                     or its resource limits for keep-all, or 16 MiB, or 64 MiB for every \
+                     reader's queue together; counted in the worker's status)"
                 );
             }
             let oldest = match self.when_full {
@@ -168,9 +213,11 @@ impl Inbox {
             match oldest {
                 Some(old) => {
                     q.bytes -= size(&old);
+                    self.all.sub(size(&old));
                     evicted.push(old);
                 }
-                // Keep-all: the new one goes.
+                // Keep-all, or nothing of its own left to give up while the other readers'
+                // queues hold the rest: the new one goes.
                 None => {
                     return Pushed {
                         queued: false,
@@ -180,6 +227,7 @@ impl Inbox {
             }
         }
         q.bytes += new;
+        self.all.add(new);
         q.items.push_back(item);
         if !q.listed {
             q.listed = true;
@@ -196,7 +244,10 @@ impl Inbox {
         let mut q = lock(&self.queue);
         let item = q.items.pop_front();
         match &item {
-            Some(i) => q.bytes -= size(i),
+            Some(i) => {
+                q.bytes -= size(i);
+                self.all.sub(size(i));
+            }
             None => q.listed = false,
         }
         item
@@ -226,8 +277,23 @@ mod tests {
     fn a_reader_is_listed_once_until_drained_and_its_queue_is_bounded() {
         let wakeup = Arc::new(Wakeup::new().expect("socket pair"));
         let dropped = Arc::new(AtomicU64::new(0));
-        let last = Inbox::new(7, 2, WhenFull::DropOldest, wakeup.clone(), dropped.clone());
-        let all = Inbox::new(8, 2, WhenFull::DropNewest, wakeup.clone(), dropped.clone());
+        let pool = Arc::new(QueuedBytes::default());
+        let last = Inbox::new(
+            7,
+            2,
+            WhenFull::DropOldest,
+            wakeup.clone(),
+            dropped.clone(),
+            pool.clone(),
+        );
+        let all = Inbox::new(
+            8,
+            2,
+            WhenFull::DropNewest,
+            wakeup.clone(),
+            dropped.clone(),
+            pool,
+        );
         for n in 1..=3 {
             last.push(taken(n));
             all.push(taken(n));
@@ -253,7 +319,14 @@ mod tests {
     fn a_queue_holds_at_most_its_byte_budget() {
         let wakeup = Arc::new(Wakeup::new().expect("socket pair"));
         let dropped = Arc::new(AtomicU64::new(0));
-        let q = Inbox::new(1, 1000, WhenFull::DropOldest, wakeup, dropped.clone());
+        let q = Inbox::new(
+            1,
+            1000,
+            WhenFull::DropOldest,
+            wakeup,
+            dropped.clone(),
+            Arc::default(),
+        );
         let big = |n: u8| {
             Ok(Taken {
                 sample: Sample::cdr(true, &vec![n; MAX_QUEUED_BYTES / 3]),
@@ -282,5 +355,57 @@ mod tests {
         );
         assert_eq!(body(q.pop()), Some(4));
         assert!(q.pop().is_none());
+    }
+
+    #[test]
+    fn every_reader_together_holds_at_most_the_shared_limit() {
+        // 100 readers that never read, 1,000 samples of 10 KiB each offered to every one:
+        // 1 GB offered, the limit (1 MiB here) held.
+        let wakeup = Arc::new(Wakeup::new().expect("socket pair"));
+        let dropped = Arc::new(AtomicU64::new(0));
+        let pool = Arc::new(QueuedBytes::new(1 << 20));
+        let readers: Vec<Inbox> = (0..100)
+            .map(|t| {
+                let when_full = if t % 2 == 0 {
+                    WhenFull::DropOldest
+                } else {
+                    WhenFull::DropNewest
+                };
+                Inbox::new(
+                    t,
+                    1000,
+                    when_full,
+                    wakeup.clone(),
+                    dropped.clone(),
+                    pool.clone(),
+                )
+            })
+            .collect();
+        let sample = || {
+            Ok(Taken {
+                sample: Sample::cdr(true, &[7; 10 << 10]),
+                identity: SampleIdentity::default(),
+                related: None,
+                disposed: false,
+                unregistered: false,
+            })
+        };
+        for _ in 0..1000 {
+            for r in &readers {
+                r.push(sample());
+            }
+        }
+        assert!(pool.held.load(Ordering::Relaxed) <= 1 << 20);
+        assert!(dropped.load(Ordering::Relaxed) > 0);
+        // What the readers take gives the room back.
+        let mut taken = 0;
+        for r in &readers {
+            while r.pop().is_some() {
+                taken += 1;
+            }
+        }
+        assert!(taken > 0 && taken <= (1 << 20) / (10 << 10));
+        assert_eq!(pool.held.load(Ordering::Relaxed), 0);
+        assert!(readers[1].push(sample()).queued, "room again");
     }
 }

@@ -67,6 +67,8 @@ const READER_QUEUE_MAX: usize = 10_000;
 #[derive(Debug, Default)]
 struct Dropped {
     queue_full: Arc<AtomicU64>,
+    /// Bytes queued for every reader together ([`inbox::MAX_ALL_QUEUED_BYTES`]).
+    queued: Arc<inbox::QueuedBytes>,
     requests_without_attachment: AtomicU64,
     requests_unqueued: AtomicU64,
     requests_refused_in_flight: AtomicU64,
@@ -243,6 +245,7 @@ impl Zenoh {
             when_full,
             self.wakeup.clone(),
             self.dropped.queue_full.clone(),
+            self.dropped.queued.clone(),
         ))
     }
 
