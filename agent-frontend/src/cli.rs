@@ -108,7 +108,7 @@ pub struct FrontendArgs {
     /// The transport served.
     #[arg(long, value_enum, default_value = "udp4")]
     pub transport: TransportKind,
-    /// Address and port served by udp4/udp6/tcp4/tcp6, e.g. 0.0.0.0:8888 or [::]:8888.
+    /// Address and port served by udp4/udp6/tcp4/tcp6, e.g. `0.0.0.0:8888` or `[::]:8888`.
     #[arg(long, visible_alias = "udp")]
     pub listen: Option<SocketAddr>,
     /// Serial device (serial: one; multiserial: repeat the option, one per device).

@@ -9,7 +9,7 @@
 //!   ([`xrce_common::session::snapshot::SessionSnapshot`]: streams' positions, endpoint) and
 //!   the client's active reads with their delivered marks. It changes with almost every
 //!   message, so it is rewritten in place, through a memory mapping of the file (no system
-//!   call: [`crate::sys::mapped_file`]), alternating between two slots (the two halves of the
+//!   call: `sys::mapped_file`), alternating between two slots (the two halves of the
 //!   file), each with a sequence number and a CRC over the whole record: a copy cut short by
 //!   the kill leaves the other slot whole.
 //! * `<KEY>.objects`: the client's objects (their XRCE descriptions), rewritten (temporary

@@ -36,7 +36,7 @@
 //!
 //! The filter program is built by [`Program::allowing`] (pure, unit-tested with an
 //! interpreter of the instructions it uses); the `unsafe` code, borrowing a descriptor the
-//! DDS library owns, is in [`sys`].
+//! DDS library owns, is in `sys`.
 
 use std::net::{IpAddr, SocketAddr};
 use std::os::fd::{BorrowedFd, RawFd};

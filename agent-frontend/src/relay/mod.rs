@@ -8,13 +8,13 @@
 //!   unprocessed by the worker at once, so its queue never overflows; the rest wait in a
 //!   bounded outbox (best-effort writes in a short queue of their own, shared fairly among
 //!   the clients: [`crate::waiting_writes`]);
-//! * [`retention`]: writes that came on reliable streams are kept until the worker has
+//! * `retention`: writes that came on reliable streams are kept until the worker has
 //!   executed them and their DDS readers acknowledged them (or a settle time passed);
-//! * [`replay`]: when a new worker generation is announced, the graphs are replayed in
+//! * `replay`: when a new worker generation is announced, the graphs are replayed in
 //!   creation order, reads re-issued and retained writes sent again, before anything new;
-//! * [`operations`]: the client object mirror ([`ObjectGraph`] per client, quotas, GET_INFO)
+//! * `operations`: the client object mirror ([`ObjectGraph`] per client, quotas, GET_INFO)
 //!   and the routing of writes;
-//! * [`replies`]: the worker's replies applied to the session core.
+//! * `replies`: the worker's replies applied to the session core.
 //!
 //! When the outbox or the retention is full, [`OperationSink::has_room`] says no: the agent
 //! core then stops acknowledging reliable messages and clients send them again later.

@@ -294,7 +294,7 @@ impl<L: Link> Relay<L> {
     }
 
     /// How long a client's best-effort writes are shed, not queued, after it overflowed
-    /// their waiting queue (default [`BEST_EFFORT_SHED_HOLD`]).
+    /// their waiting queue (default `BEST_EFFORT_SHED_HOLD`).
     pub fn set_best_effort_shed_hold(&mut self, hold: Duration) {
         self.best_effort_waiting.set_hold(hold);
     }
@@ -309,8 +309,8 @@ impl<L: Link> Relay<L> {
     /// Where a best-effort write of `client` weighing `weight` goes now, if anywhere: as
     /// [`OperationSink::has_room`], less the share kept for reliable and control operations
     /// ([`BEST_EFFORT_RESERVE`], [`BEST_EFFORT_OUTBOX_MAX`]), plus, in hand-over mode, a
-    /// short wait unless the client is shed for overflowing it ([`BEST_EFFORT_WAITING_MAX`],
-    /// [`BEST_EFFORT_SHED_HOLD`]).
+    /// short wait unless the client is shed for overflowing it (`BEST_EFFORT_WAITING_MAX`,
+    /// `BEST_EFFORT_SHED_HOLD`).
     pub(super) fn best_effort_route(
         &mut self,
         now: Instant,

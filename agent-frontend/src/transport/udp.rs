@@ -1,7 +1,7 @@
 //! UDP over IPv4 or IPv6: one socket, one XRCE message per datagram, clients known by their
 //! source address. A datagram goes from the socket buffer to the session core without a copy.
 //!
-//! Datagrams are read [`RECV_BATCH`] at a time with one `recvmmsg(2)`: under load that is one
+//! Datagrams are read `RECV_BATCH` at a time with one `recvmmsg(2)`: under load that is one
 //! system call for many clients' messages, and a batch that comes back short says the socket
 //! is empty, so the loop does not make the extra read that would only find it so (mio's
 //! readiness is edge-triggered, and every datagram that arrives later raises a new edge).

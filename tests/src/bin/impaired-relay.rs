@@ -7,7 +7,7 @@
 //!                [--reorder 0.2] [--seed N] [--drop-first-delete-status]
 //! ```
 //!
-//! Clients send to 127.0.0.1:<listen-port>; each client endpoint reaches the agent from a
+//! Clients send to `127.0.0.1:<listen-port>`; each client endpoint reaches the agent from a
 //! port of its own. On SIGINT/SIGTERM (or stdin closing) it prints what it did and exits.
 
 use std::io::Read;

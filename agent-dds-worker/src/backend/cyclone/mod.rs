@@ -1,6 +1,6 @@
 //! The Cyclone DDS backend (feature `cyclone`): one participant per domain, which delivers
 //! between the agent's own writers and readers inside the process; topics of raw samples
-//! with the worker's own key extraction ([`ffi`]'s sertype), so keyed topics keep their
+//! with the worker's own key extraction (`ffi`'s sertype), so keyed topics keep their
 //! instances; readiness through reader listeners and a socket pair.
 //!
 //! Sample identities: the writer's GUID and sequence number, read off the DATA submessage for

@@ -252,7 +252,7 @@ impl rustdds::with_key::DeserializerAdapter<RawKeyed> for RawKeyedLe {
     }
 }
 
-/// Decodes keyed samples with the type description of [`READING_KEY`].
+/// Decodes keyed samples with the type description of `READING_KEY`.
 #[derive(Debug, Clone)]
 pub struct RawKeyedDecoder;
 
