@@ -59,7 +59,10 @@
 //! loop), and `--dds-interface`, which fails closed ([`backend::confine`]). Refusals are
 //! counted by reason in the worker's `dropped` counters (`xrce_dropped_total` in
 //! `/metrics`) and logged once per episode ([`episodes`]).
-#![deny(unsafe_code)] // the exceptions: backend::cyclone::ffi (feature `cyclone`), and one function of backend::confine
+#![deny(unsafe_code)]
+// the exceptions: backend::cyclone::ffi (feature `cyclone`), and one function of backend::confine
+// What is `pub` is the crate's API: an item only the crate uses says so (`pub(crate)`).
+#![warn(unreachable_pub)]
 
 pub mod acks;
 pub mod adoption;

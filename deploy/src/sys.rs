@@ -26,7 +26,7 @@ pub fn high_fd(fd: &impl std::os::fd::AsFd) -> std::io::Result<OwnedFd> {
 
 /// Sets a child up between fork and exec: signals unblocked, killed with the supervisor,
 /// each `(from, to)` descriptor copied to `to` (without close-on-exec).
-pub fn prepare_child(cmd: &mut Command, fds: Vec<(RawFd, RawFd)>) {
+pub(crate) fn prepare_child(cmd: &mut Command, fds: Vec<(RawFd, RawFd)>) {
     // SAFETY: the closure only makes async-signal-safe calls and does not allocate (`fds`
     // is moved in before the fork); the sources stay open in the supervisor (invariants
     // above).
@@ -48,7 +48,7 @@ pub fn prepare_child(cmd: &mut Command, fds: Vec<(RawFd, RawFd)>) {
 }
 
 /// Waits for a signal of `set` for at most `timeout`.
-pub fn wait_signal(set: &SigSet, timeout: Duration) -> Option<Signal> {
+pub(crate) fn wait_signal(set: &SigSet, timeout: Duration) -> Option<Signal> {
     let ts = libc::timespec {
         tv_sec: timeout.as_secs() as libc::time_t,
         tv_nsec: timeout.subsec_nanos() as libc::c_long,
@@ -64,7 +64,7 @@ pub fn wait_signal(set: &SigSet, timeout: Duration) -> Option<Signal> {
 
 /// Makes a child the leader of a session of its own (`setsid` between fork and exec): no
 /// terminal, not in the supervisor's process group, so that it outlives the supervisor.
-pub fn detach(cmd: &mut Command) {
+pub(crate) fn detach(cmd: &mut Command) {
     // SAFETY: the closure makes one async-signal-safe call and does not allocate.
     unsafe {
         cmd.pre_exec(|| {

@@ -171,18 +171,18 @@ pub fn check(addresses: &[IpAddr]) -> Result<Plan, ConfineError> {
 /// Classic BPF: the instruction classes, sizes, modes and operations the program uses
 /// (`linux/bpf_common.h`).
 mod op {
-    pub const LD: u16 = 0x00;
-    pub const ALU: u16 = 0x04;
-    pub const JMP: u16 = 0x05;
-    pub const RET: u16 = 0x06;
-    pub const W: u16 = 0x00;
-    pub const B: u16 = 0x10;
-    pub const ABS: u16 = 0x20;
-    pub const AND: u16 = 0x50;
-    pub const RSH: u16 = 0x70;
-    pub const JA: u16 = 0x00;
-    pub const JEQ: u16 = 0x10;
-    pub const K: u16 = 0x00;
+    pub(super) const LD: u16 = 0x00;
+    pub(super) const ALU: u16 = 0x04;
+    pub(super) const JMP: u16 = 0x05;
+    pub(super) const RET: u16 = 0x06;
+    pub(super) const W: u16 = 0x00;
+    pub(super) const B: u16 = 0x10;
+    pub(super) const ABS: u16 = 0x20;
+    pub(super) const AND: u16 = 0x50;
+    pub(super) const RSH: u16 = 0x70;
+    pub(super) const JA: u16 = 0x00;
+    pub(super) const JEQ: u16 = 0x10;
+    pub(super) const K: u16 = 0x00;
 }
 
 /// Where a load with a negative offset reads (`linux/filter.h`): the network header, and the

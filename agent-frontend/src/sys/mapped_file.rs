@@ -29,7 +29,7 @@ const PAGE: usize = 4096;
 
 /// A writable shared mapping of a whole file of a fixed length.
 #[derive(Debug)]
-pub struct MappedFile {
+pub(crate) struct MappedFile {
     map: memmap2::MmapMut,
     /// Kept to allocate pages before their first write.
     file: File,
@@ -40,7 +40,7 @@ pub struct MappedFile {
 impl MappedFile {
     /// Maps `file`, which must be open for reading and writing, first growing it to `len`
     /// bytes if it is shorter (never shrinking it). See the module's invariants.
-    pub fn open(file: File, len: u64) -> std::io::Result<Self> {
+    pub(crate) fn open(file: File, len: u64) -> std::io::Result<Self> {
         if file.metadata()?.len() < len {
             file.set_len(len)?;
         }
@@ -61,13 +61,13 @@ impl MappedFile {
     }
 
     /// Bytes mapped (the file's length when it was mapped).
-    pub fn mapped_len(&self) -> usize {
+    pub(crate) fn mapped_len(&self) -> usize {
         self.map.len()
     }
 
     /// Copies `bytes` into the file at `offset`. Fails, writing nothing, if they do not fit
     /// or the file system cannot allocate the pages they go to (a full tmpfs).
-    pub fn write_at(&mut self, offset: usize, bytes: &[u8]) -> std::io::Result<()> {
+    pub(crate) fn write_at(&mut self, offset: usize, bytes: &[u8]) -> std::io::Result<()> {
         let end = offset
             .checked_add(bytes.len())
             .filter(|end| *end <= self.map.len())

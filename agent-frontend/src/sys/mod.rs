@@ -3,5 +3,5 @@
 //! * [`owned_fd`]: taking ownership of descriptors that arrive as bare numbers;
 //! * [`mapped_file`]: a file mapped into memory, written without a system call.
 
-pub mod mapped_file;
-pub mod owned_fd;
+pub(crate) mod mapped_file;
+pub(crate) mod owned_fd;

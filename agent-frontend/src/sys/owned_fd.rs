@@ -10,7 +10,7 @@ use std::fs::File;
 use std::os::fd::{BorrowedFd, FromRawFd, IntoRawFd, RawFd};
 
 /// The descriptor of an opened serial port, owned as a [`File`].
-pub fn from_serial_port(port: serialport::TTYPort) -> File {
+pub(crate) fn from_serial_port(port: serialport::TTYPort) -> File {
     // SAFETY: `into_raw_fd` releases the port's ownership of its open descriptor without
     // closing it (invariant above).
     unsafe { File::from_raw_fd(port.into_raw_fd()) }
@@ -22,7 +22,7 @@ static TAKEN: std::sync::Mutex<Vec<RawFd>> = std::sync::Mutex::new(Vec::new());
 /// A descriptor the parent process left open for us (`--pty-fd`, `XRCE_READY_FD`), owned as
 /// a [`File`]. Fails if `fd` is not open, is one of the standard streams, or was taken
 /// already.
-pub fn inherited(fd: RawFd) -> std::io::Result<File> {
+pub(crate) fn inherited(fd: RawFd) -> std::io::Result<File> {
     if fd <= 2 {
         return Err(std::io::Error::other(format!(
             "descriptor {fd} is a standard stream, not an inherited one"

@@ -17,39 +17,39 @@ use crate::{IPC_MAGIC, IPC_VERSION};
 
 /// Message kinds on the wire.
 mod kind {
-    pub const FRONTEND_HELLO: u8 = 1;
-    pub const CREATE: u8 = 2;
-    pub const DELETE: u8 = 3;
-    pub const WRITE: u8 = 4;
-    pub const READ: u8 = 5;
-    pub const DELETE_CLIENT: u8 = 6;
-    pub const PAUSE_READ: u8 = 7;
-    pub const RESUME_READ: u8 = 8;
-    pub const REPLAY_DONE: u8 = 9;
-    pub const WORKER_HELLO: u8 = 16;
-    pub const STATUS: u8 = 17;
-    pub const SAMPLE: u8 = 18;
-    pub const PROGRESS: u8 = 19;
-    pub const READ_ENDED: u8 = 20;
-    pub const WRITER_MATCHED: u8 = 21;
+    pub(super) const FRONTEND_HELLO: u8 = 1;
+    pub(super) const CREATE: u8 = 2;
+    pub(super) const DELETE: u8 = 3;
+    pub(super) const WRITE: u8 = 4;
+    pub(super) const READ: u8 = 5;
+    pub(super) const DELETE_CLIENT: u8 = 6;
+    pub(super) const PAUSE_READ: u8 = 7;
+    pub(super) const RESUME_READ: u8 = 8;
+    pub(super) const REPLAY_DONE: u8 = 9;
+    pub(super) const WORKER_HELLO: u8 = 16;
+    pub(super) const STATUS: u8 = 17;
+    pub(super) const SAMPLE: u8 = 18;
+    pub(super) const PROGRESS: u8 = 19;
+    pub(super) const READ_ENDED: u8 = 20;
+    pub(super) const WRITER_MATCHED: u8 = 21;
 }
 
 /// Header flags; which kinds carry each is written beside it.
 mod flag {
     /// Create: the client's message was little endian. Write, Sample: the sample is.
-    pub const LITTLE_ENDIAN: u8 = 0x01;
+    pub(super) const LITTLE_ENDIAN: u8 = 0x01;
     /// Create, Read, and the Status answering them: part of a replay to a new worker.
-    pub const REPLAY: u8 = 0x02;
+    pub(super) const REPLAY: u8 = 0x02;
     /// Write: the client expects a STATUS for it, success included.
-    pub const STATUS_REQUESTED: u8 = 0x04;
+    pub(super) const STATUS_REQUESTED: u8 = 0x04;
     /// Write: SampleInfos in the data are in the spec dialect (else eProsima's).
-    pub const DIALECT_SPEC: u8 = 0x08;
+    pub(super) const DIALECT_SPEC: u8 = 0x08;
     /// Sample: it disposes its instance.
-    pub const DISPOSED: u8 = 0x10;
+    pub(super) const DISPOSED: u8 = 0x10;
     /// Sample: it unregisters its instance.
-    pub const UNREGISTERED: u8 = 0x20;
+    pub(super) const UNREGISTERED: u8 = 0x20;
     /// Any request: see [`crate::RequestMessage::progress_can_wait`].
-    pub const PROGRESS_CAN_WAIT: u8 = 0x40;
+    pub(super) const PROGRESS_CAN_WAIT: u8 = 0x40;
 }
 
 /// Why an IPC message was rejected.

@@ -15,6 +15,8 @@
 //! same name plus `.ev` so receivers block instead of polling.
 
 #![deny(unsafe_code)]
+// What is `pub` is the crate's API: an item only the crate uses says so (`pub(crate)`).
+#![warn(unreachable_pub)]
 
 mod codec;
 pub mod fuzzing;

@@ -12,7 +12,7 @@ pub fn euid() -> u32 {
 
 /// Takes an exclusive `flock` on `file` without waiting; `Ok(false)` if another open file
 /// description holds it.
-pub fn try_flock(file: &std::fs::File) -> std::io::Result<bool> {
+pub(crate) fn try_flock(file: &std::fs::File) -> std::io::Result<bool> {
     loop {
         // SAFETY: the descriptor is open (borrowed from `file` for the call); flock only
         // changes the lock state of its open file description.
@@ -30,7 +30,7 @@ pub fn try_flock(file: &std::fs::File) -> std::io::Result<bool> {
 }
 
 /// The file-system type of the file system `file` lives on (`statfs`'s `f_type`).
-pub fn fs_type(file: &std::fs::File) -> Option<u64> {
+pub(crate) fn fs_type(file: &std::fs::File) -> Option<u64> {
     let mut st = std::mem::MaybeUninit::<libc::statfs>::uninit();
     // SAFETY: the descriptor is open for the call and `st` is a writable statfs the
     // kernel fills in completely when the call succeeds (checked before it is read).
@@ -45,7 +45,7 @@ pub fn fs_type(file: &std::fs::File) -> Option<u64> {
 }
 
 /// The descriptor of an iceoryx2 event listener, borrowed for as long as the listener.
-pub fn listener_fd(
+pub(crate) fn listener_fd(
     listener: &iceoryx2::port::listener::Listener<iceoryx2::service::ipc::Service>,
 ) -> BorrowedFd<'_> {
     use iceoryx2::prelude::*;

@@ -46,10 +46,10 @@ pub enum SampleInfoDetail {
 
 /// Spec discriminators (`SampleInfoFormat`).
 mod info_format {
-    pub const EMPTY: u8 = 0x00;
-    pub const SEQNUM: u8 = 0x01;
-    pub const TIMESTAMP: u8 = 0x02;
-    pub const SEQN_TIMS: u8 = 0x03;
+    pub(super) const EMPTY: u8 = 0x00;
+    pub(super) const SEQNUM: u8 = 0x01;
+    pub(super) const TIMESTAMP: u8 = 0x02;
+    pub(super) const SEQN_TIMS: u8 = 0x03;
 }
 
 impl SampleInfoDetail {

@@ -49,7 +49,7 @@ use crate::backend::BackendError;
 use crate::types::KeyDescriptor;
 
 /// A Cyclone entity handle.
-pub type Handle = c::dds_entity_t;
+pub(super) type Handle = c::dds_entity_t;
 
 /// Cyclone's text for a return code.
 fn retcode(r: c::dds_return_t) -> String {
@@ -77,7 +77,7 @@ fn cstring(s: &str, what: &str) -> Result<CString, BackendError> {
 
 /// An owned entity, deleted when dropped.
 #[derive(Debug)]
-pub struct Entity(Handle);
+pub(super) struct Entity(Handle);
 
 impl Entity {
     fn new(h: Handle, what: &str) -> Result<Self, BackendError> {
@@ -89,12 +89,12 @@ impl Entity {
     }
 
     /// Its handle, for creating children.
-    pub fn handle(&self) -> Handle {
+    pub(super) fn handle(&self) -> Handle {
         self.0
     }
 
     /// Its GUID.
-    pub fn guid(&self) -> Result<[u8; 16], BackendError> {
+    pub(super) fn guid(&self) -> Result<[u8; 16], BackendError> {
         guid_of(self.0)
     }
 }
@@ -115,7 +115,7 @@ fn guid_of(h: Handle) -> Result<[u8; 16], BackendError> {
 
 /// A domain with its configuration and one participant in it.
 #[derive(Debug)]
-pub struct Participant {
+pub(super) struct Participant {
     // Declared first: dropped (deleted) before its domain.
     participant: Entity,
     _domain: Option<Entity>,
@@ -124,7 +124,7 @@ pub struct Participant {
 impl Participant {
     /// A participant in `domain`, whose domain is configured by `config_xml` (Cyclone's XML
     /// configuration; `None`: Cyclone's defaults and `CYCLONEDDS_URI`).
-    pub fn new(domain: u32, config_xml: Option<&str>) -> Result<Self, BackendError> {
+    pub(super) fn new(domain: u32, config_xml: Option<&str>) -> Result<Self, BackendError> {
         let domain_entity = match config_xml {
             Some(xml) => {
                 let xml = cstring(xml, "configuration")?;
@@ -143,18 +143,18 @@ impl Participant {
     }
 
     /// Its handle.
-    pub fn handle(&self) -> Handle {
+    pub(super) fn handle(&self) -> Handle {
         self.participant.handle()
     }
 
     /// Its GUID.
-    pub fn guid(&self) -> Result<[u8; 16], BackendError> {
+    pub(super) fn guid(&self) -> Result<[u8; 16], BackendError> {
         self.participant.guid()
     }
 
     /// A publisher (`publish`) or subscriber with the given partitions (none: the default
     /// partition).
-    pub fn create_group(
+    pub(super) fn create_group(
         &self,
         publish: bool,
         partitions: &[String],
@@ -182,7 +182,7 @@ impl Participant {
     }
 
     /// A topic of raw samples: keyed by `key` when given.
-    pub fn create_topic(
+    pub(super) fn create_topic(
         &self,
         name: &str,
         type_name: &str,
@@ -287,7 +287,7 @@ pub enum AccessScope {
 }
 
 /// Nanoseconds meaning "infinite".
-pub const INFINITY: i64 = i64::MAX;
+pub(super) const INFINITY: i64 = i64::MAX;
 
 impl Qos {
     /// An empty QoS (every policy Cyclone's default).
@@ -448,7 +448,7 @@ impl Drop for Qos {
 
 /// A data writer of raw samples on one of this module's topics.
 #[derive(Debug)]
-pub struct Writer {
+pub(super) struct Writer {
     entity: Entity,
     sertype: *const c::ddsi_sertype,
     /// The sequence number of its last write attempt, as Cyclone numbers them (it counts
@@ -461,7 +461,7 @@ pub struct Writer {
 
 impl Writer {
     /// A writer in `publisher` on `topic`.
-    pub fn new(publisher: Handle, topic: &Entity, qos: &Qos) -> Result<Self, BackendError> {
+    pub(super) fn new(publisher: Handle, topic: &Entity, qos: &Qos) -> Result<Self, BackendError> {
         // SAFETY: handles are numbers; QoS is live; null listener.
         let h = unsafe { c::dds_create_writer(publisher, topic.handle(), qos.0, std::ptr::null()) };
         let entity = Entity::new(h, "create data writer")?;
@@ -484,13 +484,18 @@ impl Writer {
     }
 
     /// Its GUID.
-    pub fn guid(&self) -> Result<[u8; 16], BackendError> {
+    pub(super) fn guid(&self) -> Result<[u8; 16], BackendError> {
         self.entity.guid()
     }
 
     /// Writes a sample with representation identifier `encoding` and body `body`; with
     /// `dispose`, disposes the instance whose key payload `body` is instead.
-    pub fn write(&self, encoding: [u8; 2], body: &[u8], dispose: bool) -> Result<(), BackendError> {
+    pub(super) fn write(
+        &self,
+        encoding: [u8; 2],
+        body: &[u8],
+        dispose: bool,
+    ) -> Result<(), BackendError> {
         let data = encapsulate(encoding, body);
         let kind = if dispose {
             c::ddsi_serdata_kind_SDK_KEY
@@ -517,17 +522,17 @@ impl Writer {
     }
 
     /// Whether every matched reliable reader acknowledged everything (never waits).
-    pub fn all_acknowledged(&self) -> bool {
+    pub(super) fn all_acknowledged(&self) -> bool {
         wait_for_acks(self.entity.handle(), 0)
     }
 
     /// Its handle (for [`wait_for_acks`] from another thread).
-    pub fn handle(&self) -> Handle {
+    pub(super) fn handle(&self) -> Handle {
         self.entity.handle()
     }
 
     /// How many readers it matches.
-    pub fn matched(&self) -> usize {
+    pub(super) fn matched(&self) -> usize {
         // SAFETY: zeroed status is a valid out value.
         let mut st: c::dds_publication_matched_status_t = unsafe { std::mem::zeroed() };
         let r = unsafe { c::dds_get_publication_matched_status(self.entity.handle(), &mut st) };
@@ -544,14 +549,14 @@ const DDSI_STATUSINFO_DISPOSE: u32 = 1;
 /// Waits up to `timeout_ns` until every matched reliable reader of `writer` acknowledged
 /// every sample written before the call; whether they did. A handle is a number, so this may
 /// be called from any thread, also for a writer deleted meanwhile (false).
-pub fn wait_for_acks(writer: Handle, timeout_ns: i64) -> bool {
+pub(super) fn wait_for_acks(writer: Handle, timeout_ns: i64) -> bool {
     // SAFETY: no pointers; Cyclone looks the handle up and pins the writer while it waits.
     unsafe { c::dds_wait_for_acks(writer, timeout_ns) == 0 }
 }
 
 /// A sample taken from a [`Reader`].
 #[derive(Debug, Clone)]
-pub struct TakenRaw {
+pub(super) struct TakenRaw {
     /// The representation identifier of the sample.
     pub encoding: [u8; 2],
     /// The body after the encapsulation header (a key payload for an invalid sample).
@@ -572,7 +577,7 @@ pub struct TakenRaw {
 
 /// A data reader of raw samples whose data-available listener signals a [`Readiness`].
 #[derive(Debug)]
-pub struct Reader {
+pub(super) struct Reader {
     handle: Handle,
     signal: *const ReaderSignal,
     /// Writer GUIDs by publication handle (asked of Cyclone once per writer).
@@ -580,11 +585,11 @@ pub struct Reader {
 }
 
 /// Samples taken per call.
-pub const TAKE_BATCH: usize = 32;
+pub(super) const TAKE_BATCH: usize = 32;
 
 impl Reader {
     /// A reader in `subscriber` on `topic` whose data signals `token` on `readiness`.
-    pub fn new(
+    pub(super) fn new(
         subscriber: Handle,
         topic: &Entity,
         qos: &Qos,
@@ -621,12 +626,12 @@ impl Reader {
     }
 
     /// Its GUID.
-    pub fn guid(&self) -> Result<[u8; 16], BackendError> {
+    pub(super) fn guid(&self) -> Result<[u8; 16], BackendError> {
         guid_of(self.handle)
     }
 
     /// Takes up to a batch of samples into `out`; returns how many.
-    pub fn take(&mut self, out: &mut Vec<TakenRaw>) -> Result<usize, BackendError> {
+    pub(super) fn take(&mut self, out: &mut Vec<TakenRaw>) -> Result<usize, BackendError> {
         // Data arriving from now on signals the reader again (what arrived before is taken
         // below).
         // SAFETY: the signal lives as long as the reader.
@@ -707,7 +712,7 @@ impl Drop for Reader {
 
 /// Where reader listeners say "this reader has data", and the descriptor the worker polls.
 #[derive(Debug)]
-pub struct Readiness {
+pub(super) struct Readiness {
     shared: Arc<ReadyShared>,
     rx: UnixStream,
     /// Bytes read from the socket pair so far (compared with `ReadyShared::written`).
@@ -741,7 +746,7 @@ struct ReaderSignal {
 
 impl Readiness {
     /// An empty readiness queue.
-    pub fn new() -> std::io::Result<Self> {
+    pub(super) fn new() -> std::io::Result<Self> {
         let (tx, rx) = UnixStream::pair()?;
         tx.set_nonblocking(true)?;
         rx.set_nonblocking(true)?;
@@ -759,13 +764,13 @@ impl Readiness {
     }
 
     /// The descriptor that polls readable when a reader was signalled.
-    pub fn fd(&self) -> BorrowedFd<'_> {
+    pub(super) fn fd(&self) -> BorrowedFd<'_> {
         self.rx.as_fd()
     }
 
     /// Whether tokens wait in the queue (some were queued on the taking thread, which the
     /// descriptor does not announce).
-    pub fn has_queued(&self) -> bool {
+    pub(super) fn has_queued(&self) -> bool {
         match self.shared.queued.lock() {
             Ok(q) => !q.is_empty(),
             Err(p) => !p.into_inner().is_empty(),
@@ -775,7 +780,7 @@ impl Readiness {
     /// Moves the signalled readers' tokens to `out`. A reader is signalled again only
     /// after its token was handed out here, so callers take from it until empty. Call it
     /// from the thread that made the queue, after every pass of its loop.
-    pub fn drain(&self, out: &mut Vec<u64>) {
+    pub(super) fn drain(&self, out: &mut Vec<u64>) {
         // The socket is read only when listeners counted more bytes than were read (no
         // system call otherwise), and before `armed` is cleared. A listener that armed before
         // the clear pushed its token before arming, so the take below gets it (its byte, if
