@@ -61,8 +61,8 @@
 //! `/metrics`) and logged once per episode ([`episodes`]).
 #![deny(unsafe_code)]
 // the exceptions: backend::cyclone::ffi (feature `cyclone`), and one function of backend::confine
-// What is `pub` is the crate's API: an item only the crate uses says so (`pub(crate)`).
-#![warn(unreachable_pub)]
+// What is `pub` is the crate's API, documented; an item only the crate uses says so (`pub(crate)`).
+#![warn(unreachable_pub, missing_docs)]
 
 pub mod acks;
 pub mod adoption;

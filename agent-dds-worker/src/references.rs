@@ -23,19 +23,36 @@ struct Profile {
 pub enum ReferencesError {
     /// Reading the file failed.
     #[error("reading {path}: {error}")]
-    Io { path: String, error: std::io::Error },
+    Io {
+        /// The file.
+        path: String,
+        /// Why.
+        error: std::io::Error,
+    },
     /// The file is not well-formed XML.
     #[error("parsing {path}: {error}")]
-    Xml { path: String, error: String },
+    Xml {
+        /// The file.
+        path: String,
+        /// What the parser said.
+        error: String,
+    },
     /// A `<types>` section could not be used.
     #[error("{path}: {error}")]
     Types {
+        /// The file.
         path: String,
+        /// What is wrong with the types.
         error: crate::types::TypeError,
     },
     /// Two profiles share a name.
     #[error("{path}: profile_name {name:?} appears twice")]
-    Duplicate { path: String, name: String },
+    Duplicate {
+        /// The file.
+        path: String,
+        /// The name.
+        name: String,
+    },
 }
 
 impl References {

@@ -20,7 +20,12 @@ pub enum XmlError {
     Missing(&'static str),
     /// A value is not one the agent knows.
     #[error("invalid value {value:?} for {what}")]
-    Invalid { what: &'static str, value: String },
+    Invalid {
+        /// The element or attribute.
+        what: &'static str,
+        /// Its value.
+        value: String,
+    },
 }
 
 /// A topic as described in XML.

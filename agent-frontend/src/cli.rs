@@ -150,6 +150,7 @@ pub struct FrontendArgs {
     /// clients gone for good (and their entities, replayed to every new worker) end.
     #[arg(long, env = "XRCE_CLIENT_DEAD_TIME", default_value_t = DEFAULT_CLIENT_DEAD_TIME)]
     pub client_dead_time: f64,
+    /// Which clients may open sessions, and their quotas.
     #[command(flatten)]
     pub admission: AdmissionArgs,
 }

@@ -15,8 +15,8 @@
 //! * [`session_store`] and [`takeover`]: sessions kept for, and taken over by, the next
 //!   front-end process after a crash or an upgrade.
 #![deny(unsafe_code)]
-// What is `pub` is the crate's API: an item only the crate uses says so (`pub(crate)`).
-#![warn(unreachable_pub)]
+// What is `pub` is the crate's API, documented; an item only the crate uses says so (`pub(crate)`).
+#![warn(unreachable_pub, missing_docs)]
 
 pub mod cli;
 pub mod event_loop;

@@ -11,8 +11,8 @@
 //! `Instant`s in, and take transmits, operations and timer deadlines out. The contract between
 //! the agent's processes and its shared memory are the `xrce-ipc` crate's, beside this one.
 #![forbid(unsafe_code)]
-// What is `pub` is the crate's API: an item only the crate uses says so (`pub(crate)`).
-#![warn(unreachable_pub)]
+// What is `pub` is the crate's API, documented; an item only the crate uses says so (`pub(crate)`).
+#![warn(unreachable_pub, missing_docs)]
 
 pub mod fault;
 pub mod framing;

@@ -183,6 +183,7 @@ pub struct Common {
         value_parser = clap::value_parser!(u64).range(1..=MAX_MEMORY_LIMIT_MIB)
     )]
     pub memory_limit: Option<u64>,
+    /// Which clients may open sessions, and their quotas.
     #[command(flatten)]
     pub admission: xrce_frontend::cli::AdmissionArgs,
 }
@@ -199,6 +200,7 @@ pub struct IpArgs {
     /// Address to bind (default: every interface).
     #[arg(long)]
     pub bind: Option<IpAddr>,
+    /// The options every transport has.
     #[command(flatten)]
     pub common: Common,
 }
@@ -206,6 +208,7 @@ pub struct IpArgs {
 /// Options of the TCP transports.
 #[derive(Debug, Clone, Args)]
 pub struct TcpArgs {
+    /// The address and port.
     #[command(flatten)]
     pub ip: IpArgs,
     /// Connections served at once; more are refused with a log line.
@@ -229,6 +232,7 @@ pub struct SerialArgs {
     /// RTS/CTS hardware flow control.
     #[arg(long = "flow-control")]
     pub flow_control: bool,
+    /// The options every transport has.
     #[command(flatten)]
     pub common: Common,
 }
@@ -249,6 +253,7 @@ pub struct MultiserialArgs {
     /// RTS/CTS hardware flow control on every device.
     #[arg(long = "flow-control")]
     pub flow_control: bool,
+    /// The options every transport has.
     #[command(flatten)]
     pub common: Common,
 }
@@ -259,6 +264,7 @@ pub struct PtyArgs {
     /// Baud rate (a pseudoterminal ignores it).
     #[arg(short = 'b', long = "baudrate", default_value_t = 115_200)]
     pub baudrate: u32,
+    /// The options every transport has.
     #[command(flatten)]
     pub common: Common,
 }
@@ -272,6 +278,7 @@ pub struct CanfdArgs {
     /// CAN id (hex).
     #[arg(short = 'I', long = "id")]
     pub id: Option<String>,
+    /// The options every transport has.
     #[command(flatten)]
     pub common: Common,
 }

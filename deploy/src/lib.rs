@@ -2,8 +2,8 @@
 //! restarts a child that dies (with back-off), forwards SIGINT/SIGTERM for a clean stop and
 //! removes shared-memory leftovers of children that died hard.
 #![deny(unsafe_code)]
-// What is `pub` is the crate's API: an item only the crate uses says so (`pub(crate)`).
-#![warn(unreachable_pub)]
+// What is `pub` is the crate's API, documented; an item only the crate uses says so (`pub(crate)`).
+#![warn(unreachable_pub, missing_docs)]
 
 use std::os::fd::{AsRawFd, OwnedFd, RawFd};
 use std::path::PathBuf;

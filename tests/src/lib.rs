@@ -55,10 +55,15 @@ pub fn dds_backend() -> String {
 /// (`cargo test -p xrce-tests`). Built with the faults tests/fault-check.sh injects (the
 /// dev-dependencies of this crate turn the feature on) and both DDS backends;
 /// XRCE_DDS_BACKEND=rustdds runs the suite against RustDDS (the agents inherit the variable).
-/// With XRCE_TEST_RELEASE set, release builds are made and used instead (benchmarks).
+/// With XRCE_TEST_RELEASE set, release builds are made and used instead (benchmarks); with
+/// XRCE_TEST_BINARIES set to a directory, the binaries there are used as they are (an older
+/// build, to show that a new test fails against it).
 pub fn binaries() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
+        if let Some(dir) = std::env::var_os("XRCE_TEST_BINARIES").filter(|d| !d.is_empty()) {
+            return PathBuf::from(dir);
+        }
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let release = std::env::var("XRCE_TEST_RELEASE").is_ok();
         let mut cmd = Command::new(cargo);

@@ -15,8 +15,8 @@
 //! same name plus `.ev` so receivers block instead of polling.
 
 #![deny(unsafe_code)]
-// What is `pub` is the crate's API: an item only the crate uses says so (`pub(crate)`).
-#![warn(unreachable_pub)]
+// What is `pub` is the crate's API, documented; an item only the crate uses says so (`pub(crate)`).
+#![warn(unreachable_pub, missing_docs)]
 
 mod codec;
 pub mod fuzzing;

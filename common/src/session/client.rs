@@ -81,10 +81,13 @@ pub enum ClientEvent {
     Status(BaseObjectReply),
     /// A DATA reply (the bytes after the BaseObjectRequest, in `format`).
     Data {
+        /// The READ_DATA it answers.
         request: BaseObjectRequest,
         /// The DataFormat (FORMAT_DATA: `data` is the sample itself).
         format: u8,
+        /// The stream it came on.
         stream_id: u8,
+        /// The bytes after the BaseObjectRequest.
         data: Vec<u8>,
     },
     /// An INFO reply.

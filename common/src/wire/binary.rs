@@ -18,11 +18,17 @@ pub const MAX_PARTITIONS: usize = 64;
 
 /// `EndpointQosFlags` bits (eProsima: bit 1 is keep-last, where Annex A says keep-all).
 pub mod qos_flags {
+    /// Reliable (else best effort).
     pub const RELIABLE: u16 = 0x0001;
+    /// Keep last (else keep all), as eProsima's clients set it.
     pub const HISTORY_KEEP_LAST: u16 = 0x0002;
+    /// Exclusive ownership (else shared).
     pub const OWNERSHIP_EXCLUSIVE: u16 = 0x0004;
+    /// Transient-local durability.
     pub const DURABILITY_TRANSIENT_LOCAL: u16 = 0x0008;
+    /// Transient durability.
     pub const DURABILITY_TRANSIENT: u16 = 0x0010;
+    /// Persistent durability.
     pub const DURABILITY_PERSISTENT: u16 = 0x0020;
 }
 

@@ -19,11 +19,26 @@ pub const MAX_LOCATORS: usize = 64;
 #[derive(Clone, PartialEq, Eq, Debug)]
 pub enum TransportLocator {
     /// ADDRESS_FORMAT_SMALL.
-    Small { address: [u8; 2], port: u8 },
+    Small {
+        /// Two address octets.
+        address: [u8; 2],
+        /// One port octet.
+        port: u8,
+    },
     /// ADDRESS_FORMAT_MEDIUM (IPv4).
-    Medium { address: [u8; 4], port: u16 },
+    Medium {
+        /// The IPv4 address.
+        address: [u8; 4],
+        /// The port.
+        port: u16,
+    },
     /// ADDRESS_FORMAT_LARGE (IPv6).
-    Large { address: [u8; 16], port: u32 },
+    Large {
+        /// The IPv6 address.
+        address: [u8; 16],
+        /// The port (four octets on the wire).
+        port: u32,
+    },
     /// ADDRESS_FORMAT_STRING.
     String(String),
 }

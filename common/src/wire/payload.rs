@@ -9,21 +9,37 @@ use super::DecodeError;
 
 /// Submessage ids (§8.3.5, Table 10).
 pub mod submessage_id {
+    /// CREATE_CLIENT: opens a session.
     pub const CREATE_CLIENT: u8 = 0;
+    /// CREATE: creates an object.
     pub const CREATE: u8 = 1;
+    /// GET_INFO: asks about the agent or an object.
     pub const GET_INFO: u8 = 2;
+    /// DELETE: deletes an object or the session.
     pub const DELETE: u8 = 3;
+    /// STATUS_AGENT: answers CREATE_CLIENT.
     pub const STATUS_AGENT: u8 = 4;
+    /// STATUS: answers CREATE and DELETE.
     pub const STATUS: u8 = 5;
+    /// INFO: answers GET_INFO.
     pub const INFO: u8 = 6;
+    /// WRITE_DATA: a client's sample(s) for a data writer.
     pub const WRITE_DATA: u8 = 7;
+    /// READ_DATA: asks a data reader for samples.
     pub const READ_DATA: u8 = 8;
+    /// DATA: samples for a client's read.
     pub const DATA: u8 = 9;
+    /// ACKNACK: what a reliable stream's receiver has and lacks.
     pub const ACKNACK: u8 = 10;
+    /// HEARTBEAT: what a reliable stream's sender holds.
     pub const HEARTBEAT: u8 = 11;
+    /// RESET: restarts the streams.
     pub const RESET: u8 = 12;
+    /// FRAGMENT: a slice of a larger submessage.
     pub const FRAGMENT: u8 = 13;
+    /// TIMESTAMP: asks for the agent's clock.
     pub const TIMESTAMP: u8 = 14;
+    /// TIMESTAMP_REPLY: answers TIMESTAMP.
     pub const TIMESTAMP_REPLY: u8 = 15;
 }
 
@@ -250,8 +266,11 @@ pub enum Representation {
 
 /// Representation format octets.
 pub mod representation_format {
+    /// A reference to a profile the agent knows.
     pub const BY_REFERENCE: u8 = 0x01;
+    /// An XML text.
     pub const AS_XML_STRING: u8 = 0x02;
+    /// The binary (XCDR) representation.
     pub const IN_BINARY: u8 = 0x03;
 }
 
@@ -525,30 +544,50 @@ pub struct TimestampReplyPayload {
 /// A decoded submessage payload.
 #[derive(Clone, PartialEq, Eq, Debug)]
 pub enum Payload<'a> {
+    /// CREATE_CLIENT.
     CreateClient(CreateClientPayload),
+    /// CREATE.
     Create(CreatePayload),
+    /// GET_INFO.
     GetInfo(GetInfoPayload),
+    /// DELETE.
     Delete(BaseObjectRequest),
+    /// STATUS_AGENT.
     StatusAgent(StatusAgentPayload),
+    /// STATUS.
     Status(BaseObjectReply),
+    /// INFO.
     Info(InfoPayload<'a>),
+    /// WRITE_DATA.
     WriteData(DataPayload<'a>),
+    /// READ_DATA.
     ReadData(ReadDataPayload),
+    /// DATA.
     Data(DataPayload<'a>),
+    /// ACKNACK.
     Acknack(AcknackPayload),
+    /// HEARTBEAT.
     Heartbeat(HeartbeatPayload),
+    /// RESET (no payload).
     Reset,
-    /// A slice of a larger serialized submessage; `last` is the Last Fragment flag.
+    /// A slice of a larger serialized submessage.
     Fragment {
+        /// The Last Fragment flag: this slice ends the submessage.
         last: bool,
+        /// The slice.
         data: &'a [u8],
     },
+    /// TIMESTAMP: the client's transmit time.
     Timestamp(Time),
+    /// TIMESTAMP_REPLY.
     TimestampReply(TimestampReplyPayload),
     /// A submessage id this codec does not know; skipped by its length.
     Unknown {
+        /// Its submessage id.
         id: u8,
+        /// Its flags.
         flags: u8,
+        /// Its payload, undecoded.
         data: &'a [u8],
     },
 }

@@ -26,20 +26,35 @@ impl fmt::Display for ClientKey {
 
 /// `ObjectKind` values (§7.7.5, Annex A, plus eProsima's requester/replier).
 pub mod object_kind {
+    /// No object (an invalid id).
     pub const INVALID: u8 = 0x00;
+    /// A DDS domain participant.
     pub const PARTICIPANT: u8 = 0x01;
+    /// A topic.
     pub const TOPIC: u8 = 0x02;
+    /// A publisher.
     pub const PUBLISHER: u8 = 0x03;
+    /// A subscriber.
     pub const SUBSCRIBER: u8 = 0x04;
+    /// A data writer.
     pub const DATAWRITER: u8 = 0x05;
+    /// A data reader.
     pub const DATAREADER: u8 = 0x06;
+    /// A requester (eProsima): a writer of requests and a reader of replies.
     pub const REQUESTER: u8 = 0x07;
+    /// A replier (eProsima): a reader of requests and a writer of replies.
     pub const REPLIER: u8 = 0x08;
+    /// A type.
     pub const TYPE: u8 = 0x0A;
+    /// A QoS profile.
     pub const QOSPROFILE: u8 = 0x0B;
+    /// An application.
     pub const APPLICATION: u8 = 0x0C;
+    /// The agent itself.
     pub const AGENT: u8 = 0x0D;
+    /// The client (its session).
     pub const CLIENT: u8 = 0x0E;
+    /// Anything else.
     pub const OTHER: u8 = 0x0F;
 }
 
@@ -104,15 +119,25 @@ impl fmt::Debug for RequestId {
 
 /// `StatusValue` (§7.7.7, Table 2).
 pub mod status {
+    /// Done.
     pub const OK: u8 = 0x00;
+    /// Done: the object existed already as asked (REUSE).
     pub const OK_MATCHED: u8 = 0x01;
+    /// DDS failed.
     pub const ERR_DDS_ERROR: u8 = 0x80;
+    /// An object with that id exists but differs, and REPLACE was not asked.
     pub const ERR_MISMATCH: u8 = 0x81;
+    /// An object with that id exists, and neither REUSE nor REPLACE was asked.
     pub const ERR_ALREADY_EXISTS: u8 = 0x82;
+    /// Not allowed.
     pub const ERR_DENIED: u8 = 0x83;
+    /// A reference names nothing the agent knows.
     pub const ERR_UNKNOWN_REFERENCE: u8 = 0x84;
+    /// The request cannot be read or makes no sense.
     pub const ERR_INVALID_DATA: u8 = 0x85;
+    /// The client's version or vendor is not served.
     pub const ERR_INCOMPATIBLE: u8 = 0x86;
+    /// Out of room: a bound of the agent bit.
     pub const ERR_RESOURCES: u8 = 0x87;
 
     /// Whether a status value means success.
@@ -163,10 +188,15 @@ pub mod stream_id {
 
 /// `DataFormat` values carried in WRITE_DATA / DATA flags and in READ_DATA (§4 of the digest).
 pub mod data_format {
+    /// One sample, its bytes only.
     pub const DATA: u8 = 0x00;
+    /// One sample with its SampleInfo.
     pub const SAMPLE: u8 = 0x02;
+    /// A sequence of samples, bytes only.
     pub const DATA_SEQ: u8 = 0x08;
+    /// A sequence of samples with their SampleInfos.
     pub const SAMPLE_SEQ: u8 = 0x0A;
+    /// Samples packed with delta SampleInfos.
     pub const PACKED_SAMPLES: u8 = 0x0E;
     /// Mask of the format bits in submessage flags.
     pub const MASK: u8 = 0x0E;

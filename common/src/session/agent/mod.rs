@@ -162,37 +162,56 @@ pub enum Operation<'a> {
         origin: OriginId,
     },
     /// A session ended (deleted by the client, or replaced): drop all its objects.
-    ClientDeleted { client: ClientKey },
+    ClientDeleted {
+        /// Its key.
+        client: ClientKey,
+    },
     /// CREATE, with the byte order the client used (its data writers publish in it).
     Create {
+        /// The client whose session it came on.
         client: ClientKey,
+        /// What to create, and how.
         create: &'a CreatePayload,
+        /// The byte order of the submessage.
         little_endian: bool,
     },
     /// DELETE of an object.
     Delete {
+        /// The client whose session it came on.
         client: ClientKey,
+        /// The object, and the request id its STATUS answers.
         request: BaseObjectRequest,
     },
     /// WRITE_DATA, with the stream it came on (reliable streams must not lose it) and the
     /// dialect its SampleInfos are in.
     Write {
+        /// The client whose session it came on.
         client: ClientKey,
+        /// The stream it came on.
         stream_id: u8,
+        /// The data writer, and the sample(s) in the payload's data format.
         data: DataPayload<'a>,
+        /// The byte order of the submessage.
         little_endian: bool,
+        /// How its SampleInfos are written (the spec's or eProsima's).
         dialect: Dialect,
     },
     /// GET_INFO about an object of the client (not the agent itself, which the core answers).
     GetInfo {
+        /// The client whose session it came on.
         client: ClientKey,
+        /// The object, and the request id its INFO answers.
         request: BaseObjectRequest,
+        /// What is asked (configuration, activity).
         info_mask: u32,
     },
     /// READ_DATA.
     Read {
+        /// The client whose session it came on.
         client: ClientKey,
+        /// The data reader, and the request id its DATA answers.
         request: BaseObjectRequest,
+        /// What to read and how to deliver it.
         spec: &'a ReadSpecification,
     },
 }
