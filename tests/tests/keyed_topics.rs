@@ -250,12 +250,15 @@ fn a_keyed_writer_publishes_instances_and_disposes_them() {
 
 #[test]
 fn cyclone_disposes_reach_a_sample_read_and_filters_select_samples() {
+    // A history deep enough that no sample is replaced before the read takes it (KEEP_LAST
+    // 1 would make BLUE 8 depend on the worker reading within the 30 ms before BLUE 11).
     let (agent, mut c, r) = keyed_endpoint(
         "keyedsub",
         2,
         41,
         object_kind::DATAREADER,
-        "<reliability><kind>RELIABLE</kind></reliability>",
+        "<reliability><kind>RELIABLE</kind></reliability>\
+         <historyQos><kind>KEEP_LAST</kind><depth>16</depth></historyQos>",
     );
     // A malformed filter is refused with INVALID_DATA.
     let read = |filter: &str| ReadSpecification {
