@@ -157,8 +157,15 @@ impl<A: Endpoint> Agent<A> {
                 self.reply_timestamp(now, key, t)
             }
             Payload::Timestamp(_) => self.count_drop("repeated_request"),
+            Payload::Fragment { data, .. } if reassembled || !stream_id::is_reliable(stream) => {
+                self.drop_submessage(
+                    DecodeError::InvalidValue("fragment outside a reliable stream"),
+                    submessage_id::FRAGMENT,
+                    data,
+                )
+            }
             Payload::Fragment { last, data } => {
-                self.on_fragment(now, key, stream, last, data, reassembled, sink)
+                self.on_fragment(now, key, stream, last, data, sink)
             }
             _ => self.drop_submessage(
                 DecodeError::InvalidValue("submessage for an agent"),
@@ -170,7 +177,8 @@ impl<A: Endpoint> Agent<A> {
 
     /// Collects a FRAGMENT; the last one's reassembled submessages are processed as if they
     /// had arrived in the message of the last fragment.
-    #[allow(clippy::too_many_arguments)]
+    /// (A fragment nested in a reassembled message, or on a best-effort stream, is dropped
+    /// before it comes here.)
     fn on_fragment(
         &mut self,
         now: Instant,
@@ -178,16 +186,8 @@ impl<A: Endpoint> Agent<A> {
         stream: u8,
         last: bool,
         data: &[u8],
-        reassembled: bool,
         sink: &mut impl OperationSink,
     ) {
-        if reassembled || !stream_id::is_reliable(stream) {
-            return self.drop_submessage(
-                DecodeError::InvalidValue("fragment outside a reliable stream"),
-                submessage_id::FRAGMENT,
-                data,
-            );
-        }
         let max = self.config.max_reassembly;
         let Some(c) = self.clients.get_mut(&key) else {
             return;

@@ -190,16 +190,14 @@ impl<A: Endpoint> Agent<A> {
                     if existing.is_some() {
                         self.remove_client(now, c.client_key, sink);
                     }
-                    let mut client = ProxyClient::new(
-                        c.client_key,
-                        c.session_id,
-                        src,
+                    let terms = proxy::SessionTerms {
+                        key: c.client_key,
+                        session_id: c.session_id,
                         mtu,
                         dialect,
                         dead_time,
-                        now,
-                        &self.config,
-                    );
+                    };
+                    let mut client = ProxyClient::new(terms, src, now, &self.config);
                     client.mtu_announced = c.mtu.is_some();
                     client.first_seq = proxy::first_sequence_number(c.vendor_id);
                     self.budget.session_added(client.origin);

@@ -147,16 +147,14 @@ impl<A: Endpoint> Agent<A> {
             .reliable_out
             .iter()
             .any(|o| o.in_flight.as_ref().is_none_or(|m| !m.is_empty()) || !o.queued.is_empty());
-        let mut client = ProxyClient::new(
-            snapshot.key,
-            snapshot.session_id,
-            endpoint,
-            snapshot.mtu.clamp(64, self.config.max_message_size.max(64)),
-            snapshot.dialect,
-            snapshot.dead_time,
-            now,
-            &self.config,
-        );
+        let terms = proxy::SessionTerms {
+            key: snapshot.key,
+            session_id: snapshot.session_id,
+            mtu: snapshot.mtu.clamp(64, self.config.max_message_size.max(64)),
+            dialect: snapshot.dialect,
+            dead_time: snapshot.dead_time,
+        };
+        let mut client = ProxyClient::new(terms, endpoint, now, &self.config);
         // Not stored: eProsima clients announce their MTU, spec clients do not.
         client.mtu_announced = snapshot.dialect == Dialect::Eprosima;
         client.reliable_in = snapshot

@@ -99,19 +99,32 @@ pub(super) fn first_sequence_number(vendor: [u8; 2]) -> u16 {
     u16::from(vendor == crate::wire::VENDOR_RTI)
 }
 
+/// What a session is opened with: what the client's CREATE_CLIENT (or a stored snapshot)
+/// says of it.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct SessionTerms {
+    /// The client's key.
+    pub(super) key: ClientKey,
+    /// Its session id.
+    pub(super) session_id: u8,
+    /// Largest message it takes.
+    pub(super) mtu: u16,
+    /// How its messages are written (the spec's or eProsima's).
+    pub(super) dialect: Dialect,
+    /// How long it may stay silent before it is probed and then dropped.
+    pub(super) dead_time: Option<Duration>,
+}
+
 impl<A: Origin> ProxyClient<A> {
-    /// A fresh session: no stream used yet.
-    #[allow(clippy::too_many_arguments)]
-    pub(super) fn new(
-        key: ClientKey,
-        session_id: u8,
-        addr: A,
-        mtu: u16,
-        dialect: Dialect,
-        dead_time: Option<Duration>,
-        now: Instant,
-        config: &AgentConfig,
-    ) -> Self {
+    /// A fresh session at `addr`: no stream used yet.
+    pub(super) fn new(terms: SessionTerms, addr: A, now: Instant, config: &AgentConfig) -> Self {
+        let SessionTerms {
+            key,
+            session_id,
+            mtu,
+            dialect,
+            dead_time,
+        } = terms;
         ProxyClient {
             key,
             session_id,
