@@ -254,6 +254,14 @@ impl Inbox {
     }
 }
 
+impl Drop for Inbox {
+    /// What a deleted reader still had queued is given back to every reader's limit.
+    fn drop(&mut self) {
+        let q = lock(&self.queue);
+        self.all.sub(q.bytes);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -407,5 +415,9 @@ mod tests {
         assert!(taken > 0 && taken <= (1 << 20) / (10 << 10));
         assert_eq!(pool.held.load(Ordering::Relaxed), 0);
         assert!(readers[1].push(sample()).queued, "room again");
+        // A reader deleted with samples queued gives their room back.
+        assert!(pool.held.load(Ordering::Relaxed) > 0);
+        drop(readers);
+        assert_eq!(pool.held.load(Ordering::Relaxed), 0);
     }
 }
