@@ -43,6 +43,10 @@ if ! tests/e2e-binaries >"$logs/binaries" 2>"$logs/build"; then
   exit 1
 fi
 while read -r name path; do exe[$name]=$path; done <"$logs/binaries"
+if [ "${#exe[@]}" -eq 0 ]; then
+  echo "fault-check: no end-to-end test binaries found" >&2
+  exit 1
+fi
 
 run() { # fault binary name log -> exit status of the test
   local fault=$1 bin=$2 name=$3 log=$4

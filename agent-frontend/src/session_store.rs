@@ -28,8 +28,9 @@
 //! than about 60,000 clients on one front-end); the directory should be a tmpfs (the default
 //! runtime directories are), since on a copy-on-write disk file system a write to a page allocated
 //! already can still fail and that failure is a SIGBUS; and a front-end of a version before
-//! the mapping (records `XRSS`) cannot read these records (`XRS2`), so a downgrade loses the
-//! stored sessions and their clients create them again.
+//! the mapping (records `XRSS`) or before files grew with their records (`XRS2`) cannot read
+//! these records (`XRS3`), so a downgrade loses the stored sessions and their clients create
+//! them again (rather than being restored from a stale record).
 //!
 //! The event loop stores what changed before it sends what the core produced, so nothing a
 //! client saw acknowledged or numbered is ahead of what a successor reads. An `alive` file
@@ -67,8 +68,13 @@ const MIN_SLOT: u64 = 2 << 10;
 /// Bytes of the store every session has, whatever it holds (its state file's first page);
 /// bounded by the session cap, so not counted in the budget (see the module docs).
 pub const SESSION_PAGE: u64 = 4 << 10;
-/// Magic of a state record whose CRC covers its sequence number, length and body.
-const MAGIC: [u8; 4] = *b"XRS2";
+/// Magic of a state record whose CRC covers its sequence number, length and body, in a file
+/// whose slots are half its length (one that grows with its records).
+const MAGIC: [u8; 4] = *b"XRS3";
+/// Magic of such a record in a file of two fixed 256 KiB slots (earlier versions; still
+/// read). A version that knows only this one finds no record in the newer files, so a
+/// downgrade drops the sessions rather than restoring a stale record.
+const MAGIC_FIXED_SLOTS: [u8; 4] = *b"XRS2";
 /// Magic of a state record whose CRC covers only its body (written with `pwrite` by earlier
 /// versions, which a front-end being upgraded hands its sessions over in; still read).
 const MAGIC_BODY_CRC: [u8; 4] = *b"XRSS";
@@ -211,6 +217,9 @@ pub struct SessionStore {
     ignored: usize,
     /// Objects files of clients without a state file yet (bytes), kept until it comes.
     objects_only: HashMap<ClientKey, u64>,
+    /// Clients whose objects could not be stored: their state is not stored either (a
+    /// successor would take the missing file for "no objects") until their objects are.
+    objects_unsaved: std::collections::HashSet<ClientKey>,
 }
 
 fn key_name(key: ClientKey) -> String {
@@ -261,6 +270,7 @@ impl SessionStore {
             too_large: Default::default(),
             ignored: 0,
             objects_only: HashMap::new(),
+            objects_unsaved: Default::default(),
         }
     }
 
@@ -420,6 +430,9 @@ impl SessionStore {
 
     /// Stores a client's state record.
     pub fn save_state(&mut self, key: ClientKey, record: &[u8]) {
+        if self.objects_unsaved.contains(&key) {
+            return;
+        }
         if record.len() + HEADER > SLOT as usize {
             if self.too_large.insert(key) {
                 tracing::warn!(client = %key, bytes = record.len(), "session state too large to store; a front-end restart would lose this session");
@@ -442,12 +455,19 @@ impl SessionStore {
                 // stay whole until then).
                 let (seq, objects) =
                     resized.map_or((0, objects_only.unwrap_or(0)), |f| (f.seq, f.objects));
-                let mut f = StateFile::new(create_state_file(&path, 2 * wanted)?, seq);
-                f.objects = objects;
-                encode_record(&mut f, record);
-                let at = ((f.seq % 2) * f.slot()) as usize;
-                f.map.write_at(at, &f.buf)?;
-                rename_state_file(&path)?;
+                let resized = create_state_file(&path, 2 * wanted).and_then(|map| {
+                    let mut f = StateFile::new(map, seq);
+                    f.objects = objects;
+                    encode_record(&mut f, record);
+                    let at = ((f.seq % 2) * f.slot()) as usize;
+                    f.map.write_at(at, &f.buf)?;
+                    rename_state_file(&path)?;
+                    Ok(f)
+                });
+                let f = resized.inspect_err(|_| {
+                    // Its pages back (the old file, if any, keeps the last whole record).
+                    let _ = std::fs::remove_file(path.with_extension("state.tmp"));
+                })?;
                 self.files.insert(key, f);
                 self.objects_only.remove(&key);
                 return Ok(());
@@ -475,7 +495,13 @@ impl SessionStore {
         } else {
             write_atomically(&path, objects)
         };
-        if r.is_ok() {
+        if r.is_err() {
+            // Without its objects, its state must not be found either.
+            self.objects_unsaved.insert(key);
+            self.files.remove(&key);
+            let _ = std::fs::remove_file(self.dir.join(format!("{}.state", key_name(key))));
+        } else {
+            self.objects_unsaved.remove(&key);
             let len = objects.len() as u64;
             match self.files.get_mut(&key) {
                 Some(f) => f.objects = len,
@@ -494,8 +520,9 @@ impl SessionStore {
     pub fn remove(&mut self, key: ClientKey) {
         self.files.remove(&key);
         self.objects_only.remove(&key);
+        self.objects_unsaved.remove(&key);
         self.too_large.remove(&key);
-        for ext in ["state", "objects"] {
+        for ext in ["state", "objects", "state.tmp"] {
             let _ = std::fs::remove_file(self.dir.join(format!("{}.{ext}", key_name(key))));
         }
     }
@@ -626,7 +653,7 @@ fn latest_record(file: &std::fs::File) -> Option<(u64, Vec<u8>)> {
         let mut h = [0u8; HEADER];
         file.read_exact_at(&mut h, at).ok()?;
         let magic: [u8; 4] = h[..4].try_into().ok()?;
-        if magic != MAGIC && magic != MAGIC_BODY_CRC {
+        if magic != MAGIC && magic != MAGIC_FIXED_SLOTS && magic != MAGIC_BODY_CRC {
             return None;
         }
         let seq = u64::from_le_bytes(h[4..12].try_into().ok()?);
@@ -638,7 +665,7 @@ fn latest_record(file: &std::fs::File) -> Option<(u64, Vec<u8>)> {
         let mut body = vec![0u8; len];
         file.read_exact_at(&mut body, at + HEADER as u64).ok()?;
         let whole = match magic {
-            MAGIC => record_crc(&h[4..16], &body) == crc,
+            MAGIC | MAGIC_FIXED_SLOTS => record_crc(&h[4..16], &body) == crc,
             _ => CRC.checksum(&body) == crc,
         };
         whole.then_some((seq, body))

@@ -79,14 +79,19 @@ pub(super) enum WhenFull {
 /// publisher's large samples cannot make the worker hold more.
 pub(super) const MAX_QUEUED_BYTES: usize = 16 << 20;
 
-/// Most bytes of sample bodies all the readers' queues of the backend hold together: however
-/// many readers clients make, what arrives for them while they do not read stays within it.
+/// The limit of every reader's queue together ([`QueuedBytes`]): however many readers clients
+/// make, what arrives for them while they do not read stays within one and a half times it.
 pub(super) const MAX_ALL_QUEUED_BYTES: usize = 64 << 20;
 
-/// Bytes queued in every reader's queue together, against their limit.
+/// Bytes queued in every reader's queue together, shared as a front-end's memory budget is:
+/// below half the limit a reader takes what comes; beyond, only up to its equal share (the
+/// limit over the readers), so readers that never read cannot take the room of those that
+/// do. A reader within its share always finds room: what was taken below half plus every
+/// share is the most all hold together, one and a half times the limit.
 #[derive(Debug)]
 pub(super) struct QueuedBytes {
     held: AtomicUsize,
+    readers: AtomicUsize,
     limit: usize,
 }
 
@@ -94,12 +99,25 @@ impl QueuedBytes {
     pub(super) fn new(limit: usize) -> Self {
         QueuedBytes {
             held: AtomicUsize::new(0),
+            readers: AtomicUsize::new(0),
             limit,
         }
     }
 
-    fn fits(&self, more: usize) -> bool {
-        self.held.load(Ordering::Relaxed) + more <= self.limit
+    fn share(&self) -> usize {
+        self.limit / self.readers.load(Ordering::Relaxed).max(1)
+    }
+
+    /// Whether a reader holding `own` bytes must give up some before it takes `more`.
+    fn over(&self, own: usize, more: usize) -> bool {
+        let held = self.held.load(Ordering::Relaxed);
+        held + more > self.limit / 2 && own + more > self.share()
+    }
+
+    /// Whether `more` bytes cannot be taken even by a reader that gave up all its `own`.
+    fn hopeless(&self, own: usize, more: usize) -> bool {
+        let others = self.held.load(Ordering::Relaxed).saturating_sub(own);
+        others + more > self.limit / 2 && more > self.share()
     }
 
     fn add(&self, n: usize) {
@@ -159,6 +177,7 @@ impl Inbox {
         dropped: Arc<AtomicU64>,
         all: Arc<QueuedBytes>,
     ) -> Self {
+        all.readers.fetch_add(1, Ordering::Relaxed);
         Inbox {
             queue: Mutex::new(Queue {
                 items: VecDeque::new(),
@@ -192,9 +211,13 @@ impl Inbox {
                 evicted,
             };
         }
-        while q.items.len() >= self.capacity
+        // What the other readers hold leaves no room however much of its own it gave up:
+        // the new sample goes, its queue stays.
+        let hopeless = self.all.hopeless(q.bytes, new);
+        while hopeless
+            || q.items.len() >= self.capacity
             || q.bytes + new > MAX_QUEUED_BYTES
-            || !self.all.fits(new)
+            || self.all.over(q.bytes, new)
         {
             if self.dropped.fetch_add(1, Ordering::Relaxed) == 0 {
                 tracing::warn!(
@@ -202,13 +225,13 @@ impl Inbox {
                     max_bytes = MAX_QUEUED_BYTES,
                     max_bytes_all_readers = self.all.limit,
                     "a Zenoh reader's queue is full: samples are dropped (its history depth, \
-                     or its resource limits for keep-all, or 16 MiB, or 64 MiB for every \
-                     reader's queue together; counted in the worker's status)"
+                     or its resource limits for keep-all, or 16 MiB, or its share of the room \
+                     of every reader's queue together; counted in the worker's status)"
                 );
             }
             let oldest = match self.when_full {
-                WhenFull::DropOldest => q.items.pop_front(),
-                WhenFull::DropNewest => None,
+                WhenFull::DropOldest if !hopeless => q.items.pop_front(),
+                _ => None,
             };
             match oldest {
                 Some(old) => {
@@ -259,6 +282,7 @@ impl Drop for Inbox {
     fn drop(&mut self) {
         let q = lock(&self.queue);
         self.all.sub(q.bytes);
+        self.all.readers.fetch_sub(1, Ordering::Relaxed);
     }
 }
 
@@ -403,7 +427,7 @@ mod tests {
                 r.push(sample());
             }
         }
-        assert!(pool.held.load(Ordering::Relaxed) <= 1 << 20);
+        assert!(pool.held.load(Ordering::Relaxed) <= 3 << 19);
         assert!(dropped.load(Ordering::Relaxed) > 0);
         // What the readers take gives the room back.
         let mut taken = 0;
@@ -412,12 +436,57 @@ mod tests {
                 taken += 1;
             }
         }
-        assert!(taken > 0 && taken <= (1 << 20) / (10 << 10));
+        assert!(taken > 0 && taken <= (3 << 19) / (10 << 10));
         assert_eq!(pool.held.load(Ordering::Relaxed), 0);
         assert!(readers[1].push(sample()).queued, "room again");
         // A reader deleted with samples queued gives their room back.
         assert!(pool.held.load(Ordering::Relaxed) > 0);
         drop(readers);
         assert_eq!(pool.held.load(Ordering::Relaxed), 0);
+    }
+
+    #[test]
+    fn readers_that_never_read_leave_room_for_one_that_does() {
+        // Four keep-last readers that never read, then a fifth: past half the limit each
+        // holds its share (the limit over five), so the fifth finds room.
+        let wakeup = Arc::new(Wakeup::new().expect("socket pair"));
+        let dropped = Arc::new(AtomicU64::new(0));
+        let pool = Arc::new(QueuedBytes::new(1 << 20));
+        let readers: Vec<Inbox> = (0..5)
+            .map(|t| {
+                Inbox::new(
+                    t,
+                    10_000,
+                    WhenFull::DropOldest,
+                    wakeup.clone(),
+                    dropped.clone(),
+                    pool.clone(),
+                )
+            })
+            .collect();
+        let sample = || {
+            Ok(Taken {
+                sample: Sample::cdr(true, &[7; 10 << 10]),
+                identity: SampleIdentity::default(),
+                related: None,
+                disposed: false,
+                unregistered: false,
+            })
+        };
+        for r in &readers[..4] {
+            for _ in 0..1000 {
+                r.push(sample());
+            }
+        }
+        assert!(pool.held.load(Ordering::Relaxed) <= 3 << 19);
+        for n in 0..10 {
+            assert!(
+                readers[4].push(sample()).queued,
+                "sample {n} of the reader that reads"
+            );
+        }
+        // The greedy readers kept their newest samples (keep-last), none went unaccounted.
+        let queued: usize = readers.iter().map(|r| lock(&r.queue).bytes).sum();
+        assert_eq!(queued, pool.held.load(Ordering::Relaxed));
     }
 }
