@@ -389,42 +389,54 @@ mod tests {
         assert!(q.pop().is_none());
     }
 
-    #[test]
-    fn every_reader_together_holds_at_most_the_shared_limit() {
-        // 100 readers that never read, 1,000 samples of 10 KiB each offered to every one:
-        // 1 GB offered, the limit (1 MiB here) held.
+    /// `n` readers of `capacity` samples sharing 1 MiB, and the pool and drop counter.
+    fn readers_sharing_1_mib(
+        n: ReaderToken,
+        capacity: usize,
+        when_full: impl Fn(ReaderToken) -> WhenFull,
+    ) -> (Vec<Inbox>, Arc<QueuedBytes>, Arc<AtomicU64>) {
         let wakeup = Arc::new(Wakeup::new().expect("socket pair"));
         let dropped = Arc::new(AtomicU64::new(0));
         let pool = Arc::new(QueuedBytes::new(1 << 20));
-        let readers: Vec<Inbox> = (0..100)
+        let readers = (0..n)
             .map(|t| {
-                let when_full = if t % 2 == 0 {
-                    WhenFull::DropOldest
-                } else {
-                    WhenFull::DropNewest
-                };
                 Inbox::new(
                     t,
-                    1000,
-                    when_full,
+                    capacity,
+                    when_full(t),
                     wakeup.clone(),
                     dropped.clone(),
                     pool.clone(),
                 )
             })
             .collect();
-        let sample = || {
-            Ok(Taken {
-                sample: Sample::cdr(true, &[7; 10 << 10]),
-                identity: SampleIdentity::default(),
-                related: None,
-                disposed: false,
-                unregistered: false,
-            })
-        };
+        (readers, pool, dropped)
+    }
+
+    fn sample_10k() -> Result<Taken, BackendError> {
+        Ok(Taken {
+            sample: Sample::cdr(true, &[7; 10 << 10]),
+            identity: SampleIdentity::default(),
+            related: None,
+            disposed: false,
+            unregistered: false,
+        })
+    }
+
+    #[test]
+    fn every_reader_together_holds_at_most_the_shared_limit() {
+        // 100 readers that never read, 1,000 samples of 10 KiB each offered to every one:
+        // 1 GB offered, the limit (1 MiB here) held.
+        let (readers, pool, dropped) = readers_sharing_1_mib(100, 1000, |t| {
+            if t % 2 == 0 {
+                WhenFull::DropOldest
+            } else {
+                WhenFull::DropNewest
+            }
+        });
         for _ in 0..1000 {
             for r in &readers {
-                r.push(sample());
+                r.push(sample_10k());
             }
         }
         assert!(pool.held.load(Ordering::Relaxed) <= 3 << 19);
@@ -438,7 +450,7 @@ mod tests {
         }
         assert!(taken > 0 && taken <= (3 << 19) / (10 << 10));
         assert_eq!(pool.held.load(Ordering::Relaxed), 0);
-        assert!(readers[1].push(sample()).queued, "room again");
+        assert!(readers[1].push(sample_10k()).queued, "room again");
         // A reader deleted with samples queued gives their room back.
         assert!(pool.held.load(Ordering::Relaxed) > 0);
         drop(readers);
@@ -449,39 +461,16 @@ mod tests {
     fn readers_that_never_read_leave_room_for_one_that_does() {
         // Four keep-last readers that never read, then a fifth: past half the limit each
         // holds its share (the limit over five), so the fifth finds room.
-        let wakeup = Arc::new(Wakeup::new().expect("socket pair"));
-        let dropped = Arc::new(AtomicU64::new(0));
-        let pool = Arc::new(QueuedBytes::new(1 << 20));
-        let readers: Vec<Inbox> = (0..5)
-            .map(|t| {
-                Inbox::new(
-                    t,
-                    10_000,
-                    WhenFull::DropOldest,
-                    wakeup.clone(),
-                    dropped.clone(),
-                    pool.clone(),
-                )
-            })
-            .collect();
-        let sample = || {
-            Ok(Taken {
-                sample: Sample::cdr(true, &[7; 10 << 10]),
-                identity: SampleIdentity::default(),
-                related: None,
-                disposed: false,
-                unregistered: false,
-            })
-        };
+        let (readers, pool, _) = readers_sharing_1_mib(5, 10_000, |_| WhenFull::DropOldest);
         for r in &readers[..4] {
             for _ in 0..1000 {
-                r.push(sample());
+                r.push(sample_10k());
             }
         }
         assert!(pool.held.load(Ordering::Relaxed) <= 3 << 19);
         for n in 0..10 {
             assert!(
-                readers[4].push(sample()).queued,
+                readers[4].push(sample_10k()).queued,
                 "sample {n} of the reader that reads"
             );
         }
