@@ -770,6 +770,56 @@ mod tests {
     }
 
     #[test]
+    fn a_client_whose_objects_cannot_be_stored_has_no_state_until_they_are() {
+        // A successor that found the state without the objects would take the session for
+        // one without objects and never re-create them.
+        let mut s = store("unsaved");
+        let key = ClientKey([0x0B, 0x1E, 0xC7, 0x50]);
+        s.keep_alive(Instant::now());
+        s.save_objects(key, b"first objects");
+        s.save_state(key, b"first state");
+        let objects = s.dir().join("0B1EC750.objects");
+        let state = s.dir().join("0B1EC750.state");
+        assert!(state.exists() && objects.exists());
+
+        // A directory where the objects file goes: the rename over it fails.
+        std::fs::remove_file(&objects).expect("remove objects");
+        std::fs::create_dir(&objects).expect("block objects");
+        std::fs::write(objects.join("keep"), b"x").expect("fill block");
+        s.save_objects(key, b"second objects");
+        assert!(!state.exists(), "the state went with the objects");
+        s.save_state(key, b"second state");
+        assert!(!state.exists(), "no state while the objects are unsaved");
+        let dir = s.dir().to_path_buf();
+        assert!(
+            SessionStore::open_at(dir.clone())
+                .expect("store")
+                .take_over()
+                .iter()
+                .all(|c| c.key != key),
+            "a successor finds no session to restore without its objects"
+        );
+
+        // Storable again: both are stored from the next save on.
+        std::fs::remove_dir_all(&objects).expect("unblock objects");
+        s.save_objects(key, b"third objects");
+        s.save_state(key, b"third state");
+        drop(s);
+        let found = SessionStore::open_at(dir.clone())
+            .expect("store")
+            .take_over();
+        assert_eq!(
+            found,
+            vec![StoredClient {
+                key,
+                state: b"third state".to_vec(),
+                objects: b"third objects".to_vec()
+            }]
+        );
+        let _ = std::fs::remove_dir_all(dir);
+    }
+
+    #[test]
     fn a_record_growing_a_little_keeps_its_file() {
         // Between an eighth of a slot and a whole one the file stays (no new file per
         // record for a client whose output comes and goes).
