@@ -11,7 +11,7 @@ use crate::worker::{Worker, WorkerConfig};
 /// give them. A supervisor passes every setting on the command line
 /// ([`WorkerArgs::to_args`]) and removes these from its worker's environment, so that what it
 /// decided is what the worker runs with, whatever the worker inherited.
-pub const SETTINGS_ENV: [&str; 13] = [
+pub const SETTINGS_ENV: [&str; 15] = [
     "XRCE_INSTANCE",
     "XRCE_DDS_INTERFACES",
     "XRCE_DDS_BACKEND",
@@ -24,6 +24,8 @@ pub const SETTINGS_ENV: [&str; 13] = [
     "XRCE_MAX_DOMAINS",
     "XRCE_RESERVED_PORTS",
     "XRCE_ZENOH_TYPE_HASHES",
+    "XRCE_LOCAL_DELIVERY",
+    "XRCE_DOMAIN_ID_OVERRIDE",
     "XRCE_LOG",
 ];
 
@@ -89,7 +91,7 @@ pub struct WorkerArgs {
     #[arg(
         long = "max-domains",
         env = "XRCE_MAX_DOMAINS",
-        value_parser = clap::value_parser!(u16).range(1..=233)
+        value_parser = clap::value_parser!(u16).range(1..=i64::from(crate::domains::DOMAIN_COUNT))
     )]
     pub max_domains: Option<u16>,
     /// The UDP ports the agent's front-ends serve (comma-separated): DDS leaves them to the
@@ -111,6 +113,25 @@ pub struct WorkerArgs {
         value_delimiter = ','
     )]
     pub zenoh_type_hashes: Vec<std::path::PathBuf>,
+    /// With RustDDS: deliver the agent's own samples to its own readers inside the worker
+    /// (`false`: through UDP loopback, as RustDDS does between processes; to measure the
+    /// difference, or to rule the in-process delivery out when looking for a fault).
+    #[arg(
+        long = "local-delivery",
+        env = "XRCE_LOCAL_DELIVERY",
+        default_value_t = true,
+        action = clap::ArgAction::Set,
+        value_parser = clap::builder::BoolishValueParser::new()
+    )]
+    pub local_delivery: bool,
+    /// The DDS domain of a participant created in domain 255, "the agent's default" (as
+    /// MicroXRCEAgent's `XRCE_DOMAIN_ID_OVERRIDE`). Without it, `ROS_DOMAIN_ID`, else 0.
+    #[arg(
+        long = "default-domain",
+        env = "XRCE_DOMAIN_ID_OVERRIDE",
+        value_parser = clap::value_parser!(u16).range(0..=i64::from(crate::domains::MAX_DOMAIN_ID))
+    )]
+    pub default_domain: Option<u16>,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_dds_worker=debug`.
     #[arg(long, env = "XRCE_LOG", default_value = "info,rustdds=error")]
     pub log: String,
@@ -156,6 +177,8 @@ impl WorkerArgs {
             max_domains,
             reserved_ports,
             zenoh_type_hashes,
+            local_delivery,
+            default_domain,
             log,
         } = self;
         // `--key=value`: a value that starts with `-` (`-1`, an instance `-gw`) stays a value.
@@ -184,6 +207,10 @@ impl WorkerArgs {
             arg("--max-domains", n.to_string());
         }
         arg("--reserved-ports", reserved_ports.to_string());
+        arg("--local-delivery", local_delivery.to_string());
+        if let Some(d) = default_domain {
+            arg("--default-domain", d.to_string());
+        }
         if !zenoh_type_hashes.is_empty() {
             let list: Vec<String> = zenoh_type_hashes
                 .iter()
@@ -193,6 +220,33 @@ impl WorkerArgs {
         }
         a
     }
+}
+
+/// The domain of "the agent's default" (domain id 255): `given` (`--default-domain`,
+/// `XRCE_DOMAIN_ID_OVERRIDE`), else `ros_domain_id` (ROS 2's `ROS_DOMAIN_ID`, what micro-ROS
+/// users set), else 0. A `ROS_DOMAIN_ID` that is no DDS domain id is refused here, at start,
+/// rather than at a client's first participant.
+pub fn resolve_default_domain(
+    given: Option<u16>,
+    ros_domain_id: Option<&std::ffi::OsStr>,
+) -> anyhow::Result<u16> {
+    if let Some(d) = given {
+        return Ok(d);
+    }
+    let Some(v) = ros_domain_id else {
+        return Ok(0);
+    };
+    let text = v.to_string_lossy();
+    text.trim()
+        .parse::<u16>()
+        .ok()
+        .filter(|d| *d <= crate::domains::MAX_DOMAIN_ID)
+        .ok_or_else(|| {
+            anyhow::anyhow!(
+                "ROS_DOMAIN_ID={text:?} is not a DDS domain id (0 to {})",
+                crate::domains::MAX_DOMAIN_ID
+            )
+        })
 }
 
 /// Runs a worker until SIGINT/SIGTERM.
@@ -208,6 +262,10 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
     let (ros_distro, distro_source) = crate::ros_graph::RosDistro::resolve(
         args.ros_distro,
         std::env::var_os("ROS_DISTRO").as_deref(),
+    )?;
+    let default_domain = resolve_default_domain(
+        args.default_domain,
+        std::env::var_os("ROS_DOMAIN_ID").as_deref(),
     )?;
     raise_fd_limit();
     let references = match &args.refs {
@@ -233,6 +291,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
             zenoh: crate::backend::ZenohSettings {
                 type_hashes: args.zenoh_type_hashes,
             },
+            rustdds_loopback: !args.local_delivery,
         },
         references,
         ros_graph: args.ros_graph,
@@ -244,6 +303,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         }),
         domains,
         bounds: crate::bounds::WorkerBounds::default(),
+        default_domain,
     })?;
     worker.set_ros_distro(ros_distro);
     if args.ros_graph {
@@ -313,6 +373,8 @@ mod tests {
             max_domains: Some(4),
             reserved_ports: ReservedPorts::new([7401, 8888]),
             zenoh_type_hashes: vec!["/opt/ros/jazzy".into(), "/etc/xrce-agent/hashes.tsv".into()],
+            local_delivery: false,
+            default_domain: Some(45),
             log: "debug".into(),
         };
         assert_eq!(parse(every.to_args()), every);
@@ -323,6 +385,30 @@ mod tests {
             ..every
         };
         assert_eq!(parse(dashed.to_args()), dashed);
+    }
+
+    #[test]
+    fn the_default_domain_is_the_option_then_ros_domain_id_then_zero() {
+        use std::ffi::OsStr;
+        assert_eq!(resolve_default_domain(None, None).ok(), Some(0));
+        assert_eq!(
+            resolve_default_domain(None, Some(OsStr::new(" 65 "))).ok(),
+            Some(65)
+        );
+        assert_eq!(
+            resolve_default_domain(Some(66), Some(OsStr::new("67"))).ok(),
+            Some(66)
+        );
+        for bad in ["233", "-1", "x", ""] {
+            let err = resolve_default_domain(None, Some(OsStr::new(bad))).expect_err(bad);
+            assert!(err.to_string().contains("ROS_DOMAIN_ID"), "{err}");
+        }
+        // The option and its variable take DDS's domain ids only.
+        assert!(Cli::try_parse_from(["w", "--default-domain", "233"]).is_err());
+        let cli = Cli::try_parse_from(["w", "--default-domain", "232", "--local-delivery", "off"])
+            .expect("valid");
+        assert_eq!(cli.args.default_domain, Some(232));
+        assert!(!cli.args.local_delivery);
     }
 
     #[test]

@@ -27,6 +27,10 @@ use xrce_common::wire::status;
 /// The highest domain id DDS allows (RTPS 2.5 §9.6.1.1 with the default port mapping).
 pub const MAX_DOMAIN_ID: u16 = 232;
 
+/// How many domain ids DDS allows (0 to [`MAX_DOMAIN_ID`]): the most domains a worker could
+/// be asked to serve at once.
+pub const DOMAIN_COUNT: u16 = MAX_DOMAIN_ID + 1;
+
 /// Distinct domains in use at once when the operator gave no `--domains` list: a gateway
 /// usually serves one or two (ROS_DOMAIN_ID), and 8 Cyclone domains already cost about 40
 /// threads.

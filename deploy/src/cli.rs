@@ -86,7 +86,7 @@ pub enum Command {
 pub struct Common {
     /// Verbosity 0 (off) … 6 (a hex dump of every message); 4 = info (the default), 5 adds
     /// per-message debug logs. Given, it wins over the XRCE_LOG environment variable.
-    #[arg(short = 'v', long = "verbose", value_parser = clap::value_parser!(u8).range(0..=6))]
+    #[arg(short = 'v', long = "verbose", value_parser = crate::plan::parse_verbose)]
     pub verbose: Option<u8>,
     /// Middleware: `dds` (DDS, through `--dds-backend`) or `zenoh` (a ROS 2 graph on
     /// rmw_zenoh: its keys, attachments and liveliness tokens; the session connects to a
@@ -180,12 +180,44 @@ pub struct Common {
         long = "memory-limit",
         env = "XRCE_MEMORY_LIMIT",
         value_name = "MIB",
-        value_parser = clap::value_parser!(u64).range(1..=MAX_MEMORY_LIMIT_MIB)
+        value_parser = crate::plan::parse_memory_limit_mib
     )]
     pub memory_limit: Option<u64>,
+    /// Seconds the DDS entities of a front-end whose process is gone are kept for it to
+    /// come back (default 30), 0 to 86400.
+    #[arg(
+        long = "frontend-grace",
+        env = "XRCE_FRONTEND_GRACE",
+        value_name = "SECONDS"
+    )]
+    pub frontend_grace: Option<f64>,
     /// Which clients may open sessions, and their quotas.
     #[command(flatten)]
     pub admission: xrce_frontend::cli::AdmissionArgs,
+}
+
+impl Common {
+    /// The options as an empty command line gives them: each from its environment
+    /// variable, else its default. What a gateway file's left-out keys take, so that a
+    /// setting means the same from a file as on a command line.
+    pub fn from_environment() -> anyhow::Result<Self> {
+        #[derive(Parser)]
+        #[command(name = "xrce-agent")]
+        struct Empty {
+            #[command(flatten)]
+            common: Common,
+        }
+        Empty::try_parse_from(["xrce-agent"])
+            .map(|e| e.common)
+            .map_err(|e| {
+                let rendered = e.render().to_string();
+                let why = rendered.lines().next().unwrap_or_default().to_string();
+                anyhow::anyhow!(
+                    "an environment variable of the agent's settings is refused: {}",
+                    why.trim_start_matches("error: ")
+                )
+            })
+    }
 }
 
 /// The largest `--memory-limit` (and `memory_limit_mib`): 1 TiB.

@@ -6,6 +6,7 @@
 //! instance = "gw"                  # optional: shared-memory name of the agent's processes
 //! verbose = 4                      # optional, like -v
 //! memory_limit_mib = 512           # optional, like --memory-limit (per process)
+//! discard_sessions = false         # optional, like --discard-sessions
 //!
 //! [worker]
 //! refs = "profiles.xml"            # optional, like -r
@@ -65,10 +66,11 @@ use std::path::{Path, PathBuf};
 use serde::Deserialize;
 use toml::Spanned;
 use xrce_common::session::admission::KeyArg;
-use xrce_frontend::cli::{AdmissionArgs, FrontendArgs, TransportKind};
+use xrce_frontend::cli::{AdmissionArgs, TransportKind};
 use xrce_frontend::transport::registry::{Medium, TRANSPORTS};
 
 use crate::cli::FrontendPlan;
+use crate::plan;
 
 /// A gateway file as written.
 #[derive(Debug, Deserialize)]
@@ -103,6 +105,9 @@ pub struct AgentSection {
     /// Private resident memory (MiB) beyond which a process is restarted, like
     /// `--memory-limit`.
     pub memory_limit_mib: Option<Spanned<u64>>,
+    /// Start without the sessions a previous agent of the instance stored, like
+    /// `--discard-sessions`.
+    pub discard_sessions: Option<bool>,
 }
 
 /// `[worker]`: the DDS side.
@@ -178,28 +183,13 @@ pub struct GatewayFrontend {
     pub plan: FrontendPlan,
     /// Answer multicast discovery on this port.
     pub discovery: Option<u16>,
-    /// Seconds of silence before a client's session is deleted (0 = never).
-    pub client_dead_time: f64,
+    /// Seconds of silence before a client's session is deleted (0 = never); `None`: as
+    /// `--client-dead-time` left out.
+    pub client_dead_time: Option<f64>,
     /// Forced protocol dialect.
     pub dialect: Option<xrce_common::wire::Dialect>,
     /// Allow-list, roaming and quotas of its clients.
     pub admission: AdmissionArgs,
-}
-
-impl GatewayFrontend {
-    /// The front-end process's settings (its instance and log filter are the supervisor's
-    /// to set).
-    pub fn settings(&self) -> FrontendArgs {
-        let mut s = FrontendArgs::defaults();
-        s.frontend_id = self.id;
-        s.name = Some(self.name.clone());
-        self.plan.apply_to(&mut s);
-        s.discovery = self.discovery;
-        s.client_dead_time = self.client_dead_time;
-        s.dialect = self.dialect;
-        s.admission = self.admission.clone();
-        s
-    }
 }
 
 /// A checked gateway file.
@@ -350,36 +340,25 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
         }
     })?;
     if let Some(v) = &file.agent.verbose {
-        if *v.get_ref() > 6 {
-            return Err(c.err(v.span(), "agent.verbose must be 0 to 6"));
-        }
+        plan::check_verbose(*v.get_ref())
+            .map_err(|e| c.err(v.span(), format!("agent.verbose {e}")))?;
     }
     if let Some(g) = file.worker.frontend_grace {
-        if !(g.is_finite() && (0.0..=86_400.0).contains(&g)) {
-            return Err(c.err(
-                0..0,
-                format!("worker.frontend_grace must be 0 to 86400 seconds, got {g}"),
-            ));
-        }
+        plan::check_frontend_grace(g)
+            .map_err(|e| c.err(0..0, format!("worker.frontend_grace {e}")))?;
+    }
+    if let Some(n) = file.worker.max_domains {
+        plan::check_max_domains(n).map_err(|e| c.err(0..0, format!("worker.max_domains {e}")))?;
+    }
+    if let Some(d) = &file.worker.domains {
+        plan::parse_domains(d).map_err(|e| c.err(0..0, format!("worker.domains {e}")))?;
     }
     if let Some(m) = &file.agent.memory_limit_mib {
-        if !(1..=crate::cli::MAX_MEMORY_LIMIT_MIB).contains(m.get_ref()) {
-            return Err(c.err(
-                m.span(),
-                format!(
-                    "agent.memory_limit_mib must be 1 to {} (MiB)",
-                    crate::cli::MAX_MEMORY_LIMIT_MIB
-                ),
-            ));
-        }
+        plan::check_memory_limit_mib(*m.get_ref())
+            .map_err(|e| c.err(m.span(), format!("agent.memory_limit_mib {e}")))?;
     }
     if let Some(i) = &file.agent.instance {
-        if !xrce_ipc::shm::valid_instance(i) {
-            return Err(c.err(
-                0..0,
-                format!("agent.instance {i:?} must be 1-32 characters of [A-Za-z0-9_-]"),
-            ));
-        }
+        plan::check_instance(i).map_err(|e| c.err(0..0, format!("agent.instance {e}")))?;
     }
     let mut worker = file.worker.clone();
     if let Some(m) = &file.worker.middleware {
@@ -625,15 +604,11 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
             ));
         }
         let client_dead_time = match &f.client_dead_time {
-            Some(d) if !(d.get_ref().is_finite() && (0.0..=31_536_000.0).contains(d.get_ref())) => {
-                return Err(here(
-                    "client_dead_time",
-                    d.span(),
-                    "must be 0 to 31536000 seconds",
-                ))
-            }
-            Some(d) => *d.get_ref(),
-            None => xrce_frontend::cli::DEFAULT_CLIENT_DEAD_TIME,
+            Some(d) => Some(
+                plan::check_client_dead_time(*d.get_ref())
+                    .map_err(|e| here("client_dead_time", d.span(), &e))?,
+            ),
+            None => None,
         };
         let dialect = match &f.dialect {
             Some(d) => Some(d.get_ref().parse().map_err(|_: String| {

@@ -3,7 +3,6 @@
 //! under the supervisor ([`Group::supervise`]) or one at a time in the foreground for
 //! systemd units of their own ([`Group::exec_one`]).
 
-use std::net::IpAddr;
 use std::sync::Arc;
 use std::time::Duration;
 use xrce_dds_worker::backend::ports::ReservedPorts;
@@ -14,8 +13,8 @@ use xrce_frontend::cli::{FrontendArgs, SETTINGS_ENV};
 use xrce_frontend::session_store;
 use xrce_frontend::transport::registry::Medium;
 
-use crate::cli::{Common, FrontendPlan, DEFAULT_VERBOSITY};
-use crate::gateway::Gateway;
+use crate::cli::{FrontendPlan, DEFAULT_VERBOSITY};
+use crate::plan::{AgentPlan, FrontendSpec, WorkerPlan};
 use crate::{readiness, supervise, verbosity_filter, ChildSpec};
 use xrce_ipc::{runtime_dir, status};
 
@@ -91,7 +90,8 @@ pub fn log_filter(verbose: Option<u8>) -> String {
 /// The tracing target of RustDDS's transient "No locators" warnings.
 const RUSTDDS_WRITER: &str = "rustdds::rtps::writer";
 
-fn init_logging(filter: &str) {
+/// Sets up the supervisor's logging with `filter` ([`log_filter`]): once, in `main`.
+pub fn init_logging(filter: &str) {
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_new(filter).unwrap_or_else(|_| "info".into()),
@@ -100,52 +100,32 @@ fn init_logging(filter: &str) {
         .init();
 }
 
-/// The domain ids a worker serves (`--domains`, `--max-domains`) and the ROS 2
-/// distribution its graph is laid out for.
-#[derive(Debug, Clone, Default)]
-pub struct WorkerDomains {
-    /// `--ros-distro`; `None`: `ROS_DISTRO`, else jazzy.
-    pub ros_distro: Option<xrce_dds_worker::ros_graph::RosDistro>,
-    /// Domain ids clients may use (`0-10,42`); `None`: any.
-    pub domains: Option<String>,
-    /// Most distinct domains in use at once; `None`: the worker's default (8, none with a
-    /// list of domains).
-    pub max_domains: Option<u16>,
-}
-
-/// What the supervisor decided for its worker: `base` (the worker's defaults) with the
-/// settings given here, each checked now with a clear message rather than in a worker crash
-/// loop, and the UDP ports the front-ends serve reserved from DDS.
-#[allow(clippy::too_many_arguments)]
+/// What the supervisor decided for its worker: `base` (the worker's settings from the
+/// environment) with the plan's on top, each checked now with a clear message rather than in
+/// a worker crash loop, and the UDP ports the front-ends serve reserved from DDS.
 fn worker_settings(
     mut base: WorkerArgs,
-    refs: Option<&std::path::Path>,
-    dds_interfaces: &[IpAddr],
-    ros_graph: bool,
-    share_writers: bool,
-    dds_backend: Option<BackendKind>,
-    domains: &WorkerDomains,
-    frontends: &[&FrontendPlan],
+    plan: &WorkerPlan,
+    frontends: &[FrontendSpec],
 ) -> anyhow::Result<WorkerArgs> {
     // An unknown ROS_DISTRO would stop the worker.
     let (distro, _) = xrce_dds_worker::ros_graph::RosDistro::resolve(
-        domains.ros_distro,
+        plan.ros_distro,
         std::env::var_os("ROS_DISTRO").as_deref(),
     )?;
     base.ros_distro = Some(distro);
-    if let Some(list) = &domains.domains {
-        base.domains = Some(
-            list.parse::<xrce_dds_worker::domains::DomainSet>()
-                .map_err(|e| anyhow::anyhow!("--domains {list:?}: {e}"))?,
-        );
+    // So would a ROS_DOMAIN_ID that is no domain id; the worker gets the domain decided.
+    base.default_domain = Some(xrce_dds_worker::cli::resolve_default_domain(
+        base.default_domain,
+        std::env::var_os("ROS_DOMAIN_ID").as_deref(),
+    )?);
+    if plan.domains.is_some() {
+        base.domains = plan.domains.clone();
     }
-    if let Some(n) = domains.max_domains {
-        if !(1..=233).contains(&n) {
-            anyhow::bail!("--max-domains must be 1 to 233, got {n}");
-        }
-        base.max_domains = Some(n);
+    if plan.max_domains.is_some() {
+        base.max_domains = plan.max_domains;
     }
-    if let Some(b) = dds_backend {
+    if let Some(b) = plan.backend {
         if !b.is_built() {
             anyhow::bail!(
                 "this build has no {} DDS backend: build xrce-agent with its default features \
@@ -155,8 +135,17 @@ fn worker_settings(
         }
         base.dds_backend = b;
     }
-    if !dds_interfaces.is_empty() {
-        base.dds_interfaces = dds_interfaces.to_vec();
+    if !plan.dds_interfaces.is_empty() {
+        base.dds_interfaces = plan.dds_interfaces.clone();
+    }
+    if let Some(grace) = plan.frontend_grace {
+        base.frontend_grace = grace;
+    }
+    if !plan.zenoh_type_hashes.is_empty() {
+        base.zenoh_type_hashes = plan.zenoh_type_hashes.clone();
+    }
+    if base.dds_backend == BackendKind::Zenoh {
+        xrce_dds_worker::backend::check_zenoh(&base.zenoh_type_hashes)?;
     }
     // The UDP ports the front-ends serve: DDS leaves them alone (a well-known DDS port,
     // such as RTI's default XRCE port 7401, domain 0's user multicast port, is moved off);
@@ -164,7 +153,7 @@ fn worker_settings(
     // worker warns at start and refuses the domain's participants).
     let udp_ports: Vec<u16> = frontends
         .iter()
-        .filter_map(|f| match f {
+        .filter_map(|f| match &f.plan {
             FrontendPlan::Ip { kind, listen, .. } if kind.medium() == Medium::Datagrams => {
                 Some(listen.port())
             }
@@ -175,166 +164,54 @@ fn worker_settings(
         interfaces: base.dds_interfaces.clone(),
         backend: base.dds_backend,
         reserved_ports: ReservedPorts::new(udp_ports.iter().copied()),
-        zenoh: Default::default(),
+        ..Default::default()
     };
     base.reserved_ports = dds.reserved_ports.clone();
     if !base.dds_interfaces.is_empty() {
         // The worker refuses to run unconfined; refused here too, before any process starts.
         xrce_dds_worker::backend::check_config(&dds)?;
     }
-    if let Some(path) = refs {
+    if let Some(path) = &plan.refs {
         // Refuse a bad file here, with a clear message, rather than in a worker crash loop.
         let refs = xrce_dds_worker::references::References::load(path)?;
         let absolute = std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf());
         tracing::info!(path = %absolute.display(), profiles = refs.len(), "references file");
         base.refs = Some(absolute);
     }
-    base.ros_graph = ros_graph;
-    base.share_writers = share_writers;
+    base.ros_graph = plan.ros_graph;
+    base.share_writers = plan.share_writers;
     Ok(base)
 }
 
-/// Paths made absolute against the current directory (the worker may run elsewhere).
-fn absolute_paths(paths: &[std::path::PathBuf]) -> Vec<std::path::PathBuf> {
-    paths
-        .iter()
-        .map(|p| std::path::absolute(p).unwrap_or_else(|_| p.clone()))
-        .collect()
-}
-
 impl Group {
-    /// One front-end, from a MicroXRCEAgent command line.
-    pub fn from_command_line(frontend: FrontendPlan, common: &Common) -> anyhow::Result<Self> {
-        let filter = log_filter(common.verbose);
-        init_logging(&filter);
-        // By default the instance is derived from what the agent serves and its network
-        // namespace: a restarted agent finds its predecessor's sessions, and two agents on
-        // one port, bound to different addresses or in different network namespaces, never
-        // share one (the instance lock refuses a second agent on the same one).
-        let stem = format!("{}-", frontend.label());
-        let instance = common
-            .instance
-            .clone()
-            .unwrap_or_else(|| xrce_ipc::derived_instance(&frontend.label(), &frontend.identity()));
-        if !xrce_ipc::shm::valid_instance(&instance) {
-            anyhow::bail!("instance name {instance:?} must be 1-32 characters of [A-Za-z0-9_-]");
-        }
-        if !(common.client_dead_time.is_finite()
-            && (0.0..=31_536_000.0).contains(&common.client_dead_time))
-        {
-            anyhow::bail!("--client-dead-time must be 0 to 31536000 seconds (a year)");
-        }
+    /// The processes `plan` describes, once it is checked ([`AgentPlan::check`]) and the
+    /// worker's settings are decided ([`worker_settings`]). Logging is the caller's to set
+    /// up first ([`init_logging`] with [`log_filter`] of the plan's verbosity).
+    pub fn new(plan: AgentPlan) -> anyhow::Result<Self> {
+        plan.check()?;
+        let filter = log_filter(plan.verbose);
+        let instance = plan.instance().to_string();
         let mut worker = worker_settings(
             WorkerArgs::from_environment()?,
-            common.refs.as_deref(),
-            &common.dds_interfaces,
-            common.ros_graph,
-            common.share_writers,
-            crate::cli::backend_for(&common.middleware, common.dds_backend)
-                .map_err(|e| anyhow::anyhow!("{e}"))?,
-            &WorkerDomains {
-                ros_distro: common.ros_distro,
-                domains: common.domains.clone(),
-                max_domains: common.max_domains,
-            },
-            &[&frontend],
+            &plan.worker,
+            &plan.frontends,
         )?;
         worker.instance = instance.clone();
         worker.log = filter.clone();
-        worker.zenoh_type_hashes = absolute_paths(&common.zenoh_type_hashes);
-        if worker.dds_backend == BackendKind::Zenoh {
-            xrce_dds_worker::backend::check_zenoh(&worker.zenoh_type_hashes)?;
-        }
-        let mut settings = FrontendArgs::defaults();
-        settings.instance = instance.clone();
-        settings.log = filter.clone();
-        settings.frontend_id = 0;
-        settings.name = Some(frontend.label());
-        frontend.apply_to(&mut settings);
-        settings.dialect = common.dialect;
-        settings.client_dead_time = common.client_dead_time;
-        settings.admission = common.admission.clone();
-        if let Some(port) = common.discovery {
-            if frontend.kind().is_ip() {
-                settings.discovery = Some(port);
-            } else {
-                tracing::warn!(
-                    transport = frontend.kind().name(),
-                    "-d/--discovery is not supported on this transport (UDP and TCP only); ignored"
-                );
-            }
-        }
-        Ok(Group {
-            instance,
-            explicit_instance: common.instance.is_some(),
-            stem,
-            filter,
-            worker,
-            metrics: common.metrics,
-            memory_limit: common.memory_limit.map(|mib| mib << 20),
-            discard_sessions: common.discard_sessions,
-            frontends: vec![FrontendLaunch {
-                name: frontend.label(),
-                id: 0,
-                plan: frontend,
-                settings,
-            }],
-        })
-    }
-
-    /// Every front-end of a gateway file.
-    pub fn from_gateway(g: &Gateway) -> anyhow::Result<Self> {
-        let filter = log_filter(g.agent.verbose.as_ref().map(|v| *v.get_ref()));
-        init_logging(&filter);
-        let stem = "gw-".to_string();
-        let instance = g.agent.instance.clone().unwrap_or_else(|| {
-            // Derived from the file (its full path) and the network namespace, as for a
-            // command line.
-            let file = std::fs::canonicalize(&g.path).unwrap_or_else(|_| g.path.clone());
-            xrce_ipc::derived_instance("gw", &file.display().to_string())
-        });
-        let mut worker = worker_settings(
-            WorkerArgs::from_environment()?,
-            g.worker.refs.as_ref().map(|r| r.get_ref().as_path()),
-            &g.worker.dds_interfaces,
-            g.worker.ros_graph.unwrap_or(true),
-            g.worker.share_writers.unwrap_or(false),
-            crate::cli::backend_for(
-                g.worker.middleware.as_deref().unwrap_or("dds"),
-                g.worker.dds_backend,
-            )
-            .map_err(|e| anyhow::anyhow!("[worker] {e}"))?,
-            &WorkerDomains {
-                ros_distro: g
-                    .worker
-                    .ros_distro
-                    .as_deref()
-                    .map(str::parse::<xrce_dds_worker::ros_graph::RosDistro>)
-                    .transpose()
-                    .map_err(|e| anyhow::anyhow!("[worker] ros_distro: {e}"))?,
-                domains: g.worker.domains.clone(),
-                max_domains: g.worker.max_domains,
-            },
-            &g.frontends.iter().map(|f| &f.plan).collect::<Vec<_>>(),
-        )?;
-        worker.instance = instance.clone();
-        worker.log = filter.clone();
-        if !g.worker.zenoh_type_hashes.is_empty() {
-            worker.zenoh_type_hashes = absolute_paths(&g.worker.zenoh_type_hashes);
-        }
-        if worker.dds_backend == BackendKind::Zenoh {
-            xrce_dds_worker::backend::check_zenoh(&worker.zenoh_type_hashes)?;
-        }
-        if let Some(grace) = g.worker.frontend_grace {
-            worker.frontend_grace = grace;
-        }
-        let frontends = g
+        let frontends = plan
             .frontends
             .iter()
             .map(|f| {
                 let mut settings = f.settings();
                 settings.instance = instance.clone();
                 settings.log = filter.clone();
+                if settings.discovery.is_some() && !f.plan.kind().is_ip() {
+                    tracing::warn!(
+                        transport = f.plan.kind().name(),
+                        "-d/--discovery is not supported on this transport (UDP and TCP only); ignored"
+                    );
+                    settings.discovery = None;
+                }
                 FrontendLaunch {
                     name: f.name.clone(),
                     id: f.id,
@@ -345,19 +222,14 @@ impl Group {
             .collect();
         Ok(Group {
             instance,
-            explicit_instance: g.agent.instance.is_some(),
-            stem,
+            explicit_instance: plan.instance.is_some(),
+            stem: plan.stem,
             filter,
             worker,
             frontends,
-            metrics: g.metrics,
-            memory_limit: g
-                .agent
-                .memory_limit_mib
-                .as_ref()
-                .map(|mib| *mib.get_ref() << 20),
-            discard_sessions: std::env::var("XRCE_DISCARD_SESSIONS")
-                .is_ok_and(|v| !v.is_empty() && v != "0" && v != "false"),
+            metrics: plan.metrics,
+            memory_limit: plan.memory_limit_mib.map(|mib| mib << 20),
+            discard_sessions: plan.discard_sessions,
         })
     }
 
@@ -736,21 +608,29 @@ mod tests {
             listen: "127.0.0.1:8888".parse().expect("address"),
             max_connections: 10,
         };
-        let worker = worker_settings(
-            WorkerArgs::built_in(),
-            None,
-            &["127.0.0.1".parse().expect("address")],
-            false,
-            true,
-            Some(BackendKind::Rustdds),
-            &WorkerDomains {
-                ros_distro: Some(xrce_dds_worker::ros_graph::RosDistro::Humble),
-                domains: Some("0-3".into()),
-                max_domains: Some(2),
-            },
-            &[&udp, &tcp],
-        )
-        .expect("valid settings");
+        let spec = |plan: FrontendPlan| FrontendSpec {
+            name: "f".into(),
+            id: 0,
+            plan,
+            discovery: None,
+            client_dead_time: 0.0,
+            dialect: None,
+            admission: Default::default(),
+        };
+        let plan = WorkerPlan {
+            refs: None,
+            dds_interfaces: vec!["127.0.0.1".parse().expect("address")],
+            ros_graph: false,
+            share_writers: true,
+            backend: Some(BackendKind::Rustdds),
+            zenoh_type_hashes: vec![],
+            frontend_grace: Some(2.5),
+            ros_distro: Some(xrce_dds_worker::ros_graph::RosDistro::Humble),
+            domains: Some("0-3".parse().expect("domains")),
+            max_domains: Some(2),
+        };
+        let worker = worker_settings(WorkerArgs::built_in(), &plan, &[spec(udp), spec(tcp)])
+            .expect("valid settings");
         // Only the datagram front-end's port: DDS never binds TCP.
         assert_eq!(worker.reserved_ports, ReservedPorts::new([7401]));
         assert_eq!(
@@ -766,31 +646,9 @@ mod tests {
             args.contains(&"--reserved-ports=7401".to_string()),
             "{args:?}"
         );
-        for bad in [
-            WorkerDomains {
-                domains: Some("0-300".into()),
-                ..WorkerDomains::default()
-            },
-            WorkerDomains {
-                max_domains: Some(0),
-                ..WorkerDomains::default()
-            },
-        ] {
-            assert!(
-                worker_settings(
-                    WorkerArgs::built_in(),
-                    None,
-                    &[],
-                    true,
-                    false,
-                    None,
-                    &bad,
-                    &[]
-                )
-                .is_err(),
-                "{bad:?}"
-            );
-        }
+        assert_eq!(worker.frontend_grace, 2.5);
+        // The default domain is decided here too (the worker's environment aside).
+        assert!(worker.default_domain.is_some());
     }
 
     #[test]

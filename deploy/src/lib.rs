@@ -16,6 +16,7 @@ pub mod docs;
 pub mod gateway;
 pub mod group;
 pub mod metrics;
+pub mod plan;
 pub mod readiness;
 pub mod status_view;
 pub mod sweep;

@@ -9,7 +9,8 @@ use std::process::ExitCode;
 
 use clap::Parser;
 use xrce_agent::cli::{check_supported, plan, Cli, Command, Unsupported};
-use xrce_agent::group::Group;
+use xrce_agent::group::{init_logging, log_filter, Group};
+use xrce_agent::plan::AgentPlan;
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
@@ -41,7 +42,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
             }
             return Ok(());
         }
-        let group = Group::from_gateway(&gateway)?;
+        let plan = AgentPlan::from_gateway(&gateway)?;
+        init_logging(&log_filter(plan.verbose));
+        let group = Group::new(plan)?;
         return match &cli.process {
             Some(name) => group.exec_one(name),
             None => group.supervise(),
@@ -64,5 +67,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         };
     };
     check_supported(&common)?;
-    Group::from_command_line(frontend, &common)?.supervise()
+    let plan = AgentPlan::from_command_line(frontend, &common)?;
+    init_logging(&log_filter(plan.verbose));
+    Group::new(plan)?.supervise()
 }

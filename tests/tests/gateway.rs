@@ -336,7 +336,7 @@ fn gateway_files_are_checked_with_the_key_and_line() {
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert_eq!(run.status.code(), Some(1), "{stderr}");
     assert!(
-        stderr.contains("is refused") && stderr.contains("not-a-domain"),
+        stderr.contains("XRCE_DOMAINS") && stderr.contains("not-a-domain"),
         "{stderr}"
     );
     let _ = std::fs::remove_dir_all(&dir);

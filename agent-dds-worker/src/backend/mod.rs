@@ -53,6 +53,10 @@ pub struct DdsConfig {
     pub reserved_ports: ports::ReservedPorts,
     /// The Zenoh backend's settings.
     pub zenoh: ZenohSettings,
+    /// RustDDS delivers the agent's own samples through UDP loopback, as between processes,
+    /// instead of inside the worker ([`local`]): `--local-delivery false`, to measure the
+    /// difference or to rule the wrapper out when looking for a fault.
+    pub rustdds_loopback: bool,
 }
 
 /// The Zenoh backend's settings.
@@ -207,13 +211,12 @@ pub fn for_services(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
 
 /// The RustDDS backend, which sends samples between its own writers and readers through
 /// UDP loopback, wrapped so that they are delivered inside the process ([`local`]), unless
-/// the environment says `XRCE_LOCAL_DELIVERY=off` (to measure the difference, or to rule the
-/// wrapper out when looking for a fault).
+/// the configuration says otherwise ([`DdsConfig::rustdds_loopback`]).
 fn rustdds_delivering_locally(config: DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
+    let loopback = config.rustdds_loopback;
     let rustdds = Box::new(rustdds::RustDds::new(config)?);
-    let off = std::env::var("XRCE_LOCAL_DELIVERY").is_ok_and(|v| v == "off" || v == "0");
-    if off {
-        tracing::info!("XRCE_LOCAL_DELIVERY=off: RustDDS delivers the agent's own samples");
+    if loopback {
+        tracing::info!("local delivery off: RustDDS delivers the agent's own samples");
         return Ok(rustdds);
     }
     Ok(Box::new(local::LocalDelivery::new(rustdds)))
@@ -290,22 +293,16 @@ impl BackendError {
 /// The domain id XRCE clients use to mean "the agent's default" (reference agent behaviour).
 pub const DOMAIN_ID_DEFAULT_MARKER: i16 = 255;
 
-/// Maps the domain id a client asked for to the DDS domain used.
-pub fn effective_domain(requested: i16) -> Result<u16, String> {
+/// Maps the domain id a client asked for to the DDS domain used: the marker of "the agent's
+/// default" to `default` (`--default-domain`, else ROS_DOMAIN_ID, else 0), another id to
+/// itself if DDS allows it.
+pub fn effective_domain(requested: i16, default: u16) -> Result<u16, String> {
     if requested == DOMAIN_ID_DEFAULT_MARKER {
-        for var in ["XRCE_DOMAIN_ID_OVERRIDE", "ROS_DOMAIN_ID"] {
-            if let Ok(v) = std::env::var(var) {
-                return v
-                    .trim()
-                    .parse::<u16>()
-                    .map_err(|_| format!("{var}={v:?} is not a domain id"));
-            }
-        }
-        return Ok(0);
+        return Ok(default);
     }
     u16::try_from(requested)
         .ok()
-        .filter(|d| *d <= 232)
+        .filter(|d| *d <= crate::domains::MAX_DOMAIN_ID)
         .ok_or_else(|| format!("domain id {requested} out of range"))
 }
 
@@ -642,8 +639,9 @@ mod tests {
 
     #[test]
     fn domain_ids() {
-        assert_eq!(effective_domain(7), Ok(7));
-        assert!(effective_domain(-1).is_err());
-        assert!(effective_domain(300).is_err());
+        assert_eq!(effective_domain(7, 3), Ok(7));
+        assert_eq!(effective_domain(DOMAIN_ID_DEFAULT_MARKER, 3), Ok(3));
+        assert!(effective_domain(-1, 0).is_err());
+        assert!(effective_domain(300, 0).is_err());
     }
 }

@@ -87,7 +87,8 @@ impl Worker {
         let (parent, kind) = match (variant.kind, variant.extra) {
             (object_kind::PARTICIPANT, VariantExtra::DomainId(d)) => {
                 check_plain(repr, variant.kind, &self.config.references, little_endian)?;
-                let domain = effective_domain(d).map_err(OpError::InvalidData)?;
+                let domain = effective_domain(d, self.config.default_domain)
+                    .map_err(OpError::InvalidData)?;
                 self.admit_domain(domain, key)?;
                 let node = participant_name(repr, &self.config.references, little_endian)
                     .as_deref()

@@ -92,6 +92,8 @@ pub struct WorkerConfig {
     /// What clients may make the worker hold: entities, and the samples of their caches
     /// ([`crate::bounds`]).
     pub bounds: WorkerBounds,
+    /// The DDS domain of participants created in "the agent's default" domain (id 255).
+    pub default_domain: u16,
 }
 
 /// A loop pass longer than this is logged (front-ends' operations wait meanwhile, and a

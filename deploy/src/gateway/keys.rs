@@ -53,6 +53,13 @@ pub const KEYS: &[KeyDoc] = &[
         meaning: "Private resident memory beyond which a process is restarted (its clients keep their sessions). `--memory-limit`.",
     },
     KeyDoc {
+        table: "agent",
+        key: "discard_sessions",
+        value: "true or false",
+        default: || "false, or `XRCE_DISCARD_SESSIONS`".into(),
+        meaning: "Start without the sessions a previous agent of the instance stored (its clients create them again). `--discard-sessions`.",
+    },
+    KeyDoc {
         table: "worker",
         key: "refs",
         value: "path",
@@ -104,9 +111,9 @@ pub const KEYS: &[KeyDoc] = &[
     KeyDoc {
         table: "worker",
         key: "frontend_grace",
-        value: "seconds",
+        value: "seconds, 0 to 86400",
         default: || xrce_dds_worker::cli::WorkerArgs::built_in().frontend_grace.to_string(),
-        meaning: "How long the entities of a front-end whose process is gone are kept for it to come back.",
+        meaning: "How long the entities of a front-end whose process is gone are kept for it to come back. `--frontend-grace`.",
     },
     KeyDoc {
         table: "worker",

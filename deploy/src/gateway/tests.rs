@@ -42,12 +42,16 @@ max_client_bytes_per_second = 100000
     )
     .expect("valid");
     assert_eq!(g.frontends.len(), 4);
-    assert_eq!(g.agent.memory_limit_mib.map(|m| m.into_inner()), Some(512));
+    assert_eq!(
+        g.agent.memory_limit_mib.as_ref().map(|m| *m.get_ref()),
+        Some(512)
+    );
     assert_eq!(g.frontends[0].name, "udp4-0");
     assert_eq!(g.frontends[1].id, 1);
     assert_eq!(g.frontends[3].name, "companion");
     assert_eq!(g.frontends[3].id, 7);
-    let args = g.frontends[3].settings().to_args();
+    let plan = crate::plan::AgentPlan::from_gateway(&g).expect("plan");
+    let args = plan.frontends[3].settings().to_args();
     assert!(args.iter().any(|a| a == "--max-connections=50"));
     assert!(args.iter().any(|a| a == "--dialect=spec"));
     assert!(args.iter().any(|a| a == "--client-dead-time=30"));
@@ -65,7 +69,7 @@ max_client_bytes_per_second = 100000
         .windows(2)
         .any(|w| w == ["--max-client-bytes-per-second", "100000"]));
     // The defaults add nothing.
-    assert!(!g.frontends[0]
+    assert!(!plan.frontends[0]
         .settings()
         .to_args()
         .iter()

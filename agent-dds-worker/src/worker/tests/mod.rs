@@ -105,6 +105,7 @@ impl Harness {
             frontend_grace: Duration::from_secs(30),
             domains: DomainPolicy::default(),
             bounds: crate::bounds::WorkerBounds::default(),
+            default_domain: 0,
         };
         configure(&mut config);
         let worker = Worker::with_backend(config, Box::new(fake)).expect("worker");
