@@ -11,7 +11,7 @@ use crate::worker::{Worker, WorkerConfig};
 /// give them. A supervisor passes every setting on the command line
 /// ([`WorkerArgs::to_args`]) and removes these from its worker's environment, so that what it
 /// decided is what the worker runs with, whatever the worker inherited.
-pub const SETTINGS_ENV: [&str; 15] = [
+pub const SETTINGS_ENV: [&str; 21] = [
     "XRCE_INSTANCE",
     "XRCE_DDS_INTERFACES",
     "XRCE_DDS_BACKEND",
@@ -26,8 +26,125 @@ pub const SETTINGS_ENV: [&str; 15] = [
     "XRCE_ZENOH_TYPE_HASHES",
     "XRCE_LOCAL_DELIVERY",
     "XRCE_DOMAIN_ID_OVERRIDE",
+    "XRCE_MAX_ENTITIES_PER_CLIENT",
+    "XRCE_MAX_ENTITIES",
+    "XRCE_MAX_SAMPLES_PER_ENDPOINT",
+    "XRCE_MAX_INSTANCES_PER_ENDPOINT",
+    "XRCE_MAX_SAMPLES_PER_CLIENT",
+    "XRCE_MAX_SAMPLES",
     "XRCE_LOG",
 ];
+
+/// What clients may make the worker hold ([`crate::bounds`]), each unset for its default:
+/// the same options on the worker's command line and the agent's (a gateway file's
+/// `[worker]` keys of the same names, with `_`).
+#[derive(Debug, Clone, Default, PartialEq, Eq, clap::Args)]
+pub struct BoundsArgs {
+    /// DDS entities of one client (default 1,024); one more is refused with
+    /// STATUS_ERR_RESOURCES.
+    #[arg(long = "max-entities-per-client", env = "XRCE_MAX_ENTITIES_PER_CLIENT", value_name = "N", value_parser = at_least_one::<usize>)]
+    pub max_entities_per_client: Option<usize>,
+    /// DDS entities of every client together (default 32,768).
+    #[arg(long = "max-entities", env = "XRCE_MAX_ENTITIES", value_name = "N", value_parser = at_least_one::<usize>)]
+    pub max_entities: Option<usize>,
+    /// Samples one DDS reader's or writer's cache may keep (default 4,096): a deeper
+    /// history, KEEP_ALL and unlimited resource limits are clamped to it.
+    #[arg(long = "max-samples-per-endpoint", env = "XRCE_MAX_SAMPLES_PER_ENDPOINT", value_name = "N", value_parser = at_least_one::<u32>)]
+    pub max_samples_per_endpoint: Option<u32>,
+    /// Instances one endpoint of a keyed topic may keep (default 1,024).
+    #[arg(long = "max-instances-per-endpoint", env = "XRCE_MAX_INSTANCES_PER_ENDPOINT", value_name = "N", value_parser = at_least_one::<u32>)]
+    pub max_instances_per_endpoint: Option<u32>,
+    /// Samples the endpoints of one client may keep together (default 65,536).
+    #[arg(long = "max-samples-per-client", env = "XRCE_MAX_SAMPLES_PER_CLIENT", value_name = "N", value_parser = at_least_one::<u64>)]
+    pub max_samples_per_client: Option<u64>,
+    /// Samples the endpoints of every client may keep together (default 1,048,576).
+    #[arg(long = "max-samples", env = "XRCE_MAX_SAMPLES", value_name = "N", value_parser = at_least_one::<u64>)]
+    pub max_samples: Option<u64>,
+}
+
+/// A whole number of at least 1 (a bound of 0 would refuse everything).
+fn at_least_one<T: std::str::FromStr + PartialOrd + From<u8>>(s: &str) -> Result<T, String> {
+    match s.parse::<T>() {
+        Ok(n) if n >= T::from(1) => Ok(n),
+        _ => Err(format!("{s:?} is not a whole number of at least 1")),
+    }
+}
+
+impl BoundsArgs {
+    /// These bounds, each unset one taken from `fallback`.
+    pub fn or(&self, fallback: &BoundsArgs) -> BoundsArgs {
+        BoundsArgs {
+            max_entities_per_client: self
+                .max_entities_per_client
+                .or(fallback.max_entities_per_client),
+            max_entities: self.max_entities.or(fallback.max_entities),
+            max_samples_per_endpoint: self
+                .max_samples_per_endpoint
+                .or(fallback.max_samples_per_endpoint),
+            max_instances_per_endpoint: self
+                .max_instances_per_endpoint
+                .or(fallback.max_instances_per_endpoint),
+            max_samples_per_client: self
+                .max_samples_per_client
+                .or(fallback.max_samples_per_client),
+            max_samples: self.max_samples.or(fallback.max_samples),
+        }
+    }
+
+    /// The worker's bounds: the defaults with the ones given here.
+    pub fn bounds(&self) -> crate::bounds::WorkerBounds {
+        let d = crate::bounds::WorkerBounds::default();
+        let count = |v: Option<u32>, d: i32| v.map_or(d, |v| i32::try_from(v).unwrap_or(i32::MAX));
+        crate::bounds::WorkerBounds {
+            samples_per_endpoint: count(self.max_samples_per_endpoint, d.samples_per_endpoint),
+            instances_per_endpoint: count(
+                self.max_instances_per_endpoint,
+                d.instances_per_endpoint,
+            ),
+            samples_per_client: self.max_samples_per_client.unwrap_or(d.samples_per_client),
+            samples_total: self.max_samples.unwrap_or(d.samples_total),
+            entities_per_client: self
+                .max_entities_per_client
+                .unwrap_or(d.entities_per_client),
+            entities_total: self.max_entities.unwrap_or(d.entities_total),
+        }
+    }
+
+    /// The given ones as `--option=value` arguments.
+    fn to_args(&self, out: &mut Vec<String>) {
+        let BoundsArgs {
+            max_entities_per_client,
+            max_entities,
+            max_samples_per_endpoint,
+            max_instances_per_endpoint,
+            max_samples_per_client,
+            max_samples,
+        } = self;
+        let mut arg = |k: &str, v: Option<String>| {
+            if let Some(v) = v {
+                out.push(format!("{k}={v}"));
+            }
+        };
+        arg(
+            "--max-entities-per-client",
+            max_entities_per_client.map(|v| v.to_string()),
+        );
+        arg("--max-entities", max_entities.map(|v| v.to_string()));
+        arg(
+            "--max-samples-per-endpoint",
+            max_samples_per_endpoint.map(|v| v.to_string()),
+        );
+        arg(
+            "--max-instances-per-endpoint",
+            max_instances_per_endpoint.map(|v| v.to_string()),
+        );
+        arg(
+            "--max-samples-per-client",
+            max_samples_per_client.map(|v| v.to_string()),
+        );
+        arg("--max-samples", max_samples.map(|v| v.to_string()));
+    }
+}
 
 /// Settings of a DDS worker process. The supervisor hands its worker the settings as this
 /// type ([`WorkerArgs::to_args`]); adding a setting is a field here (the compiler then asks
@@ -132,6 +249,9 @@ pub struct WorkerArgs {
         value_parser = clap::value_parser!(u16).range(0..=i64::from(crate::domains::MAX_DOMAIN_ID))
     )]
     pub default_domain: Option<u16>,
+    /// What clients may make the worker hold.
+    #[command(flatten)]
+    pub bounds: BoundsArgs,
     /// Log filter (tracing syntax), e.g. `info` or `xrce_dds_worker=debug`.
     #[arg(long, env = "XRCE_LOG", default_value = "info,rustdds=error")]
     pub log: String,
@@ -179,6 +299,7 @@ impl WorkerArgs {
             zenoh_type_hashes,
             local_delivery,
             default_domain,
+            bounds,
             log,
         } = self;
         // `--key=value`: a value that starts with `-` (`-1`, an instance `-gw`) stays a value.
@@ -218,6 +339,7 @@ impl WorkerArgs {
                 .collect();
             arg("--zenoh-type-hashes", list.join(","));
         }
+        bounds.to_args(&mut a);
         a
     }
 }
@@ -302,7 +424,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
             30.0
         }),
         domains,
-        bounds: crate::bounds::WorkerBounds::default(),
+        bounds: args.bounds.bounds(),
         default_domain,
     })?;
     worker.set_ros_distro(ros_distro);
@@ -375,6 +497,14 @@ mod tests {
             zenoh_type_hashes: vec!["/opt/ros/jazzy".into(), "/etc/xrce-agent/hashes.tsv".into()],
             local_delivery: false,
             default_domain: Some(45),
+            bounds: BoundsArgs {
+                max_entities_per_client: Some(10),
+                max_entities: Some(100),
+                max_samples_per_endpoint: Some(64),
+                max_instances_per_endpoint: Some(8),
+                max_samples_per_client: Some(1000),
+                max_samples: Some(10_000),
+            },
             log: "debug".into(),
         };
         assert_eq!(parse(every.to_args()), every);

@@ -194,6 +194,9 @@ pub struct Common {
     /// Which clients may open sessions, and their quotas.
     #[command(flatten)]
     pub admission: xrce_frontend::cli::AdmissionArgs,
+    /// What clients may make the DDS worker hold.
+    #[command(flatten)]
+    pub bounds: xrce_dds_worker::cli::BoundsArgs,
 }
 
 impl Common {

@@ -21,6 +21,8 @@
 //! middleware = "dds"               # optional, like -m: dds, or zenoh (an rmw_zenoh graph)
 //! zenoh_type_hashes = ["/opt/ros/jazzy"]  # optional, like --zenoh-type-hashes
 //! frontend_grace = 30              # optional: seconds a gone front-end's clients are kept
+//! max_entities_per_client = 1024   # optional: DDS entities of one client
+//! max_samples_per_client = 65536   # optional: samples one client's DDS caches may keep
 //!
 //! [[frontend]]
 //! name = "ethernet"                # optional, unique (default: transport and id)
@@ -139,6 +141,32 @@ pub struct WorkerSection {
     pub domains: Option<String>,
     /// Most distinct domains in use at once, like `--max-domains`.
     pub max_domains: Option<u16>,
+    /// DDS entities of one client, like `--max-entities-per-client`.
+    pub max_entities_per_client: Option<usize>,
+    /// DDS entities of every client, like `--max-entities`.
+    pub max_entities: Option<usize>,
+    /// Samples one endpoint's cache may keep, like `--max-samples-per-endpoint`.
+    pub max_samples_per_endpoint: Option<u32>,
+    /// Instances one endpoint may keep, like `--max-instances-per-endpoint`.
+    pub max_instances_per_endpoint: Option<u32>,
+    /// Samples one client's endpoints may keep, like `--max-samples-per-client`.
+    pub max_samples_per_client: Option<u64>,
+    /// Samples every client's endpoints may keep, like `--max-samples`.
+    pub max_samples: Option<u64>,
+}
+
+impl WorkerSection {
+    /// The worker's bounds the file gives.
+    pub fn bounds(&self) -> xrce_dds_worker::cli::BoundsArgs {
+        xrce_dds_worker::cli::BoundsArgs {
+            max_entities_per_client: self.max_entities_per_client,
+            max_entities: self.max_entities,
+            max_samples_per_endpoint: self.max_samples_per_endpoint,
+            max_instances_per_endpoint: self.max_instances_per_endpoint,
+            max_samples_per_client: self.max_samples_per_client,
+            max_samples: self.max_samples,
+        }
+    }
 }
 
 /// One `[[frontend]]` as written.
@@ -349,6 +377,28 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
     }
     if let Some(n) = file.worker.max_domains {
         plan::check_max_domains(n).map_err(|e| c.err(0..0, format!("worker.max_domains {e}")))?;
+    }
+    let w = &file.worker;
+    for (key, value) in [
+        (
+            "max_entities_per_client",
+            w.max_entities_per_client.map(|v| v as u64),
+        ),
+        ("max_entities", w.max_entities.map(|v| v as u64)),
+        (
+            "max_samples_per_endpoint",
+            w.max_samples_per_endpoint.map(u64::from),
+        ),
+        (
+            "max_instances_per_endpoint",
+            w.max_instances_per_endpoint.map(u64::from),
+        ),
+        ("max_samples_per_client", w.max_samples_per_client),
+        ("max_samples", w.max_samples),
+    ] {
+        if value == Some(0) {
+            return Err(c.err(0..0, format!("worker.{key} must be at least 1")));
+        }
     }
     if let Some(d) = &file.worker.domains {
         plan::parse_domains(d).map_err(|e| c.err(0..0, format!("worker.domains {e}")))?;

@@ -180,6 +180,7 @@ fn worker_settings(
     }
     base.ros_graph = plan.ros_graph;
     base.share_writers = plan.share_writers;
+    base.bounds = plan.bounds.or(&base.bounds);
     Ok(base)
 }
 
@@ -628,6 +629,7 @@ mod tests {
             ros_distro: Some(xrce_dds_worker::ros_graph::RosDistro::Humble),
             domains: Some("0-3".parse().expect("domains")),
             max_domains: Some(2),
+            bounds: Default::default(),
         };
         let worker = worker_settings(WorkerArgs::built_in(), &plan, &[spec(udp), spec(tcp)])
             .expect("valid settings");

@@ -82,6 +82,8 @@ pub struct WorkerPlan {
     pub domains: Option<DomainSet>,
     /// Most distinct domains in use at once; `None`: the worker's default.
     pub max_domains: Option<u16>,
+    /// What clients may make the worker hold (each unset: the worker's default).
+    pub bounds: xrce_dds_worker::cli::BoundsArgs,
 }
 
 /// One front-end: what it serves and its settings.
@@ -236,6 +238,7 @@ impl AgentPlan {
                     .transpose()
                     .map_err(refused("--domains"))?,
                 max_domains: common.max_domains,
+                bounds: common.bounds.clone(),
             },
             frontends: vec![FrontendSpec {
                 name: frontend.label(),
@@ -312,6 +315,7 @@ impl AgentPlan {
                     // environment's.
                     .map_err(refused("XRCE_DOMAINS"))?,
                 max_domains: w.max_domains.or(env.max_domains),
+                bounds: w.bounds().or(&env.bounds),
             },
             frontends: g
                 .frontends
@@ -546,6 +550,7 @@ mod tests {
                 "1 to 1048576",
             ),
             ("-v 7", "verbose = 7", "", "", "0 to 6"),
+            ("--max-entities 0", "", "max_entities = 0", "", "at least 1"),
         ];
         for (option, agent, worker, frontend, words) in cases {
             let cli = from_command_line(option).map(|_| ()).expect_err(option);

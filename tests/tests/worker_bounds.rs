@@ -195,3 +195,39 @@ fn a_keep_all_reader_with_unlimited_resources_that_never_reads_keeps_the_worker_
     );
     assert!(agent.stop(), "agent did not stop cleanly");
 }
+
+/// The worker's bounds are settings of the agent (here from the environment, as a unit's
+/// `Environment=` gives them; the command line and a gateway file give the same, see
+/// `deploy/src/plan.rs`): with 3 entities per client, a client's 4th is refused, and another
+/// client still has its own 3.
+#[test]
+fn the_entity_bound_per_client_is_a_setting_of_the_agent() {
+    let agent = AgentProcess::start_with_env("entcap", &[("XRCE_MAX_ENTITIES_PER_CLIENT", "3")]);
+    let p = ObjectId::new(1, k::PARTICIPANT);
+    let t = ObjectId::new(1, k::TOPIC);
+    let g = ObjectId::new(1, k::PUBLISHER);
+    let w = ObjectId::new(1, k::DATAWRITER);
+    for key in [*b"ENT1", *b"ENT2"] {
+        let mut c = TestClient::new(agent.addr(), key);
+        c.connect(Duration::from_secs(10));
+        let domain = VariantExtra::DomainId(89);
+        assert_eq!(
+            c.create(p, k::PARTICIPANT, xml::PARTICIPANT, domain),
+            status::OK
+        );
+        assert_eq!(
+            c.create(t, k::TOPIC, xml::TOPIC, VariantExtra::Parent(p)),
+            status::OK
+        );
+        assert_eq!(
+            c.create(g, k::PUBLISHER, "", VariantExtra::Parent(p)),
+            status::OK
+        );
+        assert_eq!(
+            c.create(w, k::DATAWRITER, xml::WRITER, VariantExtra::Parent(g)),
+            status::ERR_RESOURCES,
+            "the 4th entity of client {key:?}"
+        );
+    }
+    assert!(agent.stop(), "agent did not stop cleanly");
+}
