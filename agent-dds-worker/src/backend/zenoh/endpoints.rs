@@ -1,7 +1,57 @@
 //! The Zenoh backend's writers and readers as the worker uses them ([`DdsWriter`],
 //! [`DdsReader`]), and the payloads and attachments they send and receive.
 
-use super::*;
+use std::sync::Arc;
+
+use bytes::Bytes;
+use zenoh::Wait as _;
+
+use super::inbox::{lock, Inbox};
+use super::naming::Attachment;
+use super::services::{self, ServiceLink};
+use super::{count_drop, zenoh_err, Dropped, GraphEntry};
+use crate::backend::{
+    BackendError, DdsReader, DdsWriter, Encoding, Guid, Sample, SampleIdentity, Taken,
+};
+use crate::types::KeyDescriptor;
+
+/// How a writer sends.
+pub(super) enum Sender {
+    /// A topic's advanced publisher.
+    Publisher(zenoh_ext::AdvancedPublisher<'static>),
+    /// A requester's querier: a request is a query; replies go to the link's reader.
+    Querier(zenoh::query::Querier<'static>, Arc<ServiceLink>),
+    /// A replier's writer: a reply answers the pending query of its request.
+    Replies(zenoh::key_expr::KeyExpr<'static>, Arc<ServiceLink>),
+}
+
+/// A client's data writer, requester or replier, as Zenoh sends its samples.
+pub(super) struct Writer {
+    pub(super) sender: Sender,
+    pub(super) gid: Guid,
+    pub(super) topic_name: String,
+    pub(super) little_endian: bool,
+    pub(super) key: Option<Arc<KeyDescriptor>>,
+    pub(super) seq: std::cell::Cell<i64>,
+    pub(super) _graph: Option<GraphEntry>,
+    pub(super) dropped: Arc<Dropped>,
+}
+
+/// What keeps a reader's Zenoh side alive.
+pub(super) enum Receiver {
+    Subscriber(#[allow(dead_code)] zenoh_ext::AdvancedSubscriber<()>),
+    Queryable(#[allow(dead_code)] zenoh::query::Queryable<()>),
+    /// A requester's reader: replies come through the link.
+    Replies(Arc<ServiceLink>),
+}
+
+/// A client's data reader, requester or replier, with the queue its samples wait in.
+pub(super) struct Reader {
+    pub(super) inbox: Arc<Inbox>,
+    pub(super) gid: Guid,
+    pub(super) receiver: Receiver,
+    pub(super) _graph: Option<GraphEntry>,
+}
 
 pub(super) fn now_ns() -> i64 {
     std::time::SystemTime::now()

@@ -32,17 +32,15 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
-use bytes::Bytes;
 use zenoh::Wait as _;
 use zenoh_ext::{AdvancedPublisherBuilderExt as _, AdvancedSubscriberBuilderExt as _};
 
 use super::policies::{Durability, History, Reliability};
 use super::{
-    BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, Encoding, EndpointQos,
-    Guid, ReaderToken, Sample, SampleIdentity, Taken, TopicSpec,
+    BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid,
+    ReaderToken, TopicSpec,
 };
 use crate::ros_graph::DomainNodes;
-use crate::types::KeyDescriptor;
 
 mod endpoints;
 mod graph;
@@ -52,9 +50,9 @@ mod services;
 pub mod session;
 pub mod type_hashes;
 
-use endpoints::{attachment_of, taken_of};
+use endpoints::{attachment_of, taken_of, Reader, Receiver, Sender, Writer};
 use inbox::{lock, Inbox, Wakeup, WhenFull};
-use naming::{Attachment, EntityKind, RosName};
+use naming::{EntityKind, RosName};
 use services::{PendingService, ServiceLink};
 
 /// How long a request waits for replies (rmw_zenoh's `queries_default_timeout`).
@@ -316,42 +314,6 @@ fn count_drop(counter: &AtomicU64, what: &str) {
     if counter.fetch_add(1, Ordering::Relaxed) == 0 {
         tracing::warn!("{what} (further ones counted in the worker's status)");
     }
-}
-
-/// How a writer sends.
-enum Sender {
-    /// A topic's advanced publisher.
-    Publisher(zenoh_ext::AdvancedPublisher<'static>),
-    /// A requester's querier: a request is a query; replies go to the link's reader.
-    Querier(zenoh::query::Querier<'static>, Arc<ServiceLink>),
-    /// A replier's writer: a reply answers the pending query of its request.
-    Replies(zenoh::key_expr::KeyExpr<'static>, Arc<ServiceLink>),
-}
-
-struct Writer {
-    sender: Sender,
-    gid: Guid,
-    topic_name: String,
-    little_endian: bool,
-    key: Option<Arc<KeyDescriptor>>,
-    seq: std::cell::Cell<i64>,
-    _graph: Option<GraphEntry>,
-    dropped: Arc<Dropped>,
-}
-
-/// What keeps a reader's Zenoh side alive.
-enum Receiver {
-    Subscriber(#[allow(dead_code)] zenoh_ext::AdvancedSubscriber<()>),
-    Queryable(#[allow(dead_code)] zenoh::query::Queryable<()>),
-    /// A requester's reader: replies come through the link.
-    Replies(Arc<ServiceLink>),
-}
-
-struct Reader {
-    inbox: Arc<Inbox>,
-    gid: Guid,
-    receiver: Receiver,
-    _graph: Option<GraphEntry>,
 }
 
 impl DdsBackend for Zenoh {
