@@ -78,6 +78,7 @@ pub mod recent;
 pub mod references;
 pub mod representation;
 pub mod ros_graph;
+pub mod ros_nodes;
 pub mod tree;
 pub mod turns;
 pub mod types;

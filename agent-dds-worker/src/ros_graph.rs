@@ -27,8 +27,6 @@ use std::collections::{HashMap, HashSet};
 use std::ffi::OsStr;
 use std::time::{Duration, Instant};
 
-use ros2_client::NodeName;
-
 use crate::backend::{
     BackendError, DdsBackend, DdsGroup, DdsWriter, EndpointQos, Guid, Sample, TopicSpec,
 };
@@ -166,29 +164,7 @@ impl std::str::FromStr for RosDistro {
 /// Shortest time between two updates of one domain's graph message.
 pub const REFRESH: Duration = Duration::from_millis(100);
 
-/// The node name a participant name stands for: micro-ROS sends `name` for a node in the
-/// root namespace and `/ns/name` otherwise; None if it is not a valid ROS node name.
-pub fn node_name(participant_name: &str) -> Option<NodeName> {
-    let n = participant_name.trim();
-    let (ns, base) = match n.rsplit_once('/') {
-        Some(("", base)) => ("/", base),
-        Some((ns, base)) if ns.starts_with('/') => (ns, base),
-        Some((ns, base)) => return NodeName::new(&format!("/{ns}"), base).ok(),
-        None => ("/", n),
-    };
-    NodeName::new(ns, base).ok()
-}
-
-/// What one domain's message lists: nodes with their endpoints' GUIDs.
-#[derive(Debug, Default, Clone, PartialEq, Eq)]
-pub struct DomainNodes {
-    /// (node, writer GUIDs, reader GUIDs), in a stable order.
-    pub nodes: Vec<(NodeName, Vec<Guid>, Vec<Guid>)>,
-    /// Which XRCE participant each node is (same order; a number stable while it lives), so
-    /// that a backend announcing nodes itself keeps a node's identity when another node of
-    /// the same name comes or goes. Empty where nobody needs it.
-    pub participants: Vec<u64>,
-}
+pub use crate::ros_nodes::{node_name, DomainNodes};
 
 /// A domain's graph writer (with its publisher), its participant's GUID, and what it last
 /// published.

@@ -1,7 +1,6 @@
 //! Command-line settings of a front-end, shared by `xrce-frontend` and `xrce-agent frontend`,
 //! and its start-up: open the transport, connect to the worker, run the event loop.
 
-use std::io::Write;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -11,69 +10,11 @@ use xrce_common::session::agent::AgentConfig;
 use xrce_common::session::budget::{self, BudgetSplit, Limits};
 use xrce_common::wire::Dialect;
 
-use crate::event_loop::OnServing;
-use crate::relay::Relay;
-use crate::transport::discovery::Discovery;
 use crate::transport::multiserial::LineDevice;
-use crate::transport::registry::{Medium, TransportSpec, TRANSPORTS};
 use crate::transport::serial::TtyConfig;
 use crate::transport::tcp::TcpConfig;
-use crate::transport::Transport;
 
-/// The transports a front-end serves.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum TransportKind {
-    /// UDP over IPv4.
-    Udp4,
-    /// UDP over IPv6.
-    Udp6,
-    /// TCP over IPv4.
-    Tcp4,
-    /// TCP over IPv6.
-    Tcp6,
-    /// One serial device.
-    Serial,
-    /// Several serial devices.
-    Multiserial,
-    /// A pseudoterminal.
-    Pseudoterminal,
-}
-
-impl TransportKind {
-    /// What the front-end knows of it ([`crate::transport::registry`]).
-    pub fn spec(self) -> &'static TransportSpec {
-        // The registry lists the kinds in declaration order (checked by its tests).
-        &TRANSPORTS[self as usize]
-    }
-
-    /// The name used on the command line and in gateway files.
-    pub fn name(self) -> &'static str {
-        self.spec().name
-    }
-
-    /// The kind of that name (or of one of its aliases).
-    pub fn by_name(name: &str) -> Option<Self> {
-        TRANSPORTS
-            .iter()
-            .find(|t| t.name == name || t.aliases.contains(&name))
-            .map(|t| t.kind)
-    }
-
-    /// How it reaches clients.
-    pub fn medium(self) -> Medium {
-        self.spec().medium
-    }
-
-    /// Whether it serves an IP port.
-    pub fn is_ip(self) -> bool {
-        matches!(self.medium(), Medium::Datagrams | Medium::Streams)
-    }
-
-    /// Whether it serves IPv6.
-    pub fn is_ipv6(self) -> bool {
-        self.spec().ipv6
-    }
-}
+pub use crate::transport::registry::TransportKind;
 
 /// The environment variables a front-end reads settings from when its command line does not
 /// give them. A supervisor passes every setting on the command line and removes these from
@@ -504,104 +445,6 @@ impl FrontendArgs {
             })
             .collect())
     }
-}
-
-/// Once serving: writes "READY" to the descriptor named by `XRCE_READY_FD`, if any (the
-/// supervisor waits on it before it reports the agent ready), and tells systemd when the
-/// front-end runs as a unit of its own (`NOTIFY_SOCKET`).
-fn readiness_reporter() -> OnServing {
-    let pipe = std::env::var("XRCE_READY_FD")
-        .ok()
-        .and_then(|v| v.parse::<i32>().ok())
-        .and_then(|fd| match crate::sys::owned_fd::inherited(fd) {
-            Ok(f) => Some(f),
-            Err(e) => {
-                tracing::warn!(error = %e, "XRCE_READY_FD");
-                None
-            }
-        });
-    Box::new(move || {
-        if let Some(mut file) = pipe {
-            if let Err(e) = file.write_all(b"READY\n") {
-                tracing::debug!(error = %e, "readiness report");
-            }
-        }
-        if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {
-            tracing::warn!(error = %e, "sd_notify failed");
-        }
-    })
-}
-
-/// Raises the open-file limit to the hard limit: every TCP connection is a descriptor, and
-/// so is every stored session.
-fn raise_fd_limit() {
-    use nix::sys::resource::{getrlimit, setrlimit, Resource};
-    if let Ok((soft, hard)) = getrlimit(Resource::RLIMIT_NOFILE) {
-        if soft < hard {
-            match setrlimit(Resource::RLIMIT_NOFILE, hard, hard) {
-                Ok(()) => tracing::debug!(from = soft, to = hard, "open-file limit raised"),
-                Err(e) => tracing::warn!(error = %e, soft, "could not raise the open-file limit"),
-            }
-        }
-    }
-}
-
-/// Runs a front-end until SIGINT/SIGTERM.
-pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_new(&args.log).unwrap_or_else(|_| "info".into()),
-        )
-        .with_writer(std::io::stderr)
-        .init();
-    xrce_common::fault::install_and_log("frontend")?;
-    let config = args.agent_config()?;
-    // Every TCP connection is a descriptor, and so is every stored session's state file.
-    raise_fd_limit();
-    let on_serving = Some(readiness_reporter());
-    (args.transport.spec().serve)(&args, config, on_serving)
-}
-
-/// Serves clients over `transport`, opened by its module from `args`: connects to the worker
-/// and runs the event loop until SIGINT/SIGTERM.
-pub(crate) fn serve<T: Transport>(
-    transport: T,
-    args: &FrontendArgs,
-    config: AgentConfig,
-    on_serving: Option<OnServing>,
-) -> anyhow::Result<()> {
-    let discovery = match args.discovery {
-        Some(port) => {
-            let served = args.listen.map(|a| a.ip());
-            Some(
-                Discovery::new(port, served, config.vendor_id, transport.locators())
-                    .map_err(|e| anyhow::anyhow!("discovery on port {port}: {e}"))?,
-            )
-        }
-        None => None,
-    };
-    let incarnation = crate::session_store::next_incarnation(&args.instance, args.frontend_id);
-    let (link, inbox) = crate::relay::link::open(&args.instance, args.frontend_id, incarnation)?;
-    let mut relay = Relay::new(args.frontend_id, incarnation, link);
-    relay.set_max_objects_per_client(args.admission.max_objects_per_client);
-    relay.set_memory_budget(args.admission.budget_split());
-    if let Some(keys) = &config.admission.allowed_keys {
-        tracing::info!(keys = keys.len(), "only listed client keys are admitted");
-    }
-    let who = crate::status::Identity {
-        name: args
-            .name
-            .clone()
-            .unwrap_or_else(|| format!("frontend-{}", args.frontend_id)),
-        id: args.frontend_id,
-    };
-    let place = crate::event_loop::Placement {
-        instance: args.instance.clone(),
-        keep_sessions: args.keep_sessions,
-    };
-    crate::event_loop::run(
-        &place, who, transport, relay, inbox, config, discovery, on_serving,
-    )
 }
 
 #[cfg(test)]

@@ -24,6 +24,7 @@ pub mod object_budget;
 pub mod relay;
 pub mod report;
 pub mod session_store;
+pub mod start;
 pub mod status;
 mod sys;
 pub mod takeover;

@@ -72,7 +72,7 @@ pub enum Command {
     /// Internal: write the man pages, the shell completions or the command-line reference
     /// (for packages and docs/).
     #[command(hide = true)]
-    Generate(crate::docs::GenerateArgs),
+    Generate(GenerateArgs),
     /// Internal: run the DDS worker (started by the supervisor).
     #[command(hide = true)]
     DdsWorker(xrce_dds_worker::cli::WorkerArgs),
@@ -81,12 +81,39 @@ pub enum Command {
     Frontend(xrce_frontend::cli::FrontendArgs),
 }
 
+/// What to generate.
+#[derive(Debug, clap::Args)]
+pub struct GenerateArgs {
+    /// Which.
+    #[command(subcommand)]
+    pub what: Generated,
+}
+
+/// The documents `xrce-agent generate` writes.
+#[derive(Debug, clap::Subcommand)]
+pub enum Generated {
+    /// Man pages, `xrce-agent.1` and one per subcommand, into DIR.
+    Man {
+        /// Where to write them.
+        dir: PathBuf,
+    },
+    /// The completion script of SHELL on standard output.
+    Completions {
+        /// bash, zsh, fish, elvish or powershell.
+        shell: clap_complete::Shell,
+    },
+    /// The command-line reference (Markdown, `docs/cli.md`) on standard output.
+    Reference,
+    /// The gateway file reference (Markdown, `docs/gateway.md`) on standard output.
+    GatewayReference,
+}
+
 /// Options every transport takes.
 #[derive(Debug, Clone, Args)]
 pub struct Common {
     /// Verbosity 0 (off) … 6 (a hex dump of every message); 4 = info (the default), 5 adds
     /// per-message debug logs. Given, it wins over the XRCE_LOG environment variable.
-    #[arg(short = 'v', long = "verbose", value_parser = crate::plan::parse_verbose)]
+    #[arg(short = 'v', long = "verbose", value_parser = crate::settings::parse_verbose)]
     pub verbose: Option<u8>,
     /// Middleware: `dds` (DDS, through `--dds-backend`) or `zenoh` (a ROS 2 graph on
     /// rmw_zenoh: its keys, attachments and liveliness tokens; the session connects to a
@@ -180,7 +207,7 @@ pub struct Common {
         long = "memory-limit",
         env = "XRCE_MEMORY_LIMIT",
         value_name = "MIB",
-        value_parser = crate::plan::parse_memory_limit_mib
+        value_parser = crate::settings::parse_memory_limit_mib
     )]
     pub memory_limit: Option<u64>,
     /// Seconds the DDS entities of a front-end whose process is gone are kept for it to
@@ -223,8 +250,7 @@ impl Common {
     }
 }
 
-/// The largest `--memory-limit` (and `memory_limit_mib`): 1 TiB.
-pub const MAX_MEMORY_LIMIT_MIB: u64 = 1 << 20;
+pub use crate::settings::MAX_MEMORY_LIMIT_MIB;
 
 /// Options of the UDP transports.
 #[derive(Debug, Clone, Args)]

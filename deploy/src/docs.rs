@@ -3,36 +3,12 @@
 //! subcommand), the shell completions, and the references in `docs/cli.md` and
 //! `docs/gateway.md` (a test checks that the committed files are current).
 
-use std::path::{Path, PathBuf};
+use crate::cli::{GenerateArgs, Generated};
+use std::path::Path;
 
 use clap::CommandFactory;
 
 use crate::cli::Cli;
-
-/// What to generate.
-#[derive(Debug, clap::Args)]
-pub struct GenerateArgs {
-    #[command(subcommand)]
-    what: Generated,
-}
-
-#[derive(Debug, clap::Subcommand)]
-enum Generated {
-    /// Man pages, `xrce-agent.1` and one per subcommand, into DIR.
-    Man {
-        /// Where to write them.
-        dir: PathBuf,
-    },
-    /// The completion script of SHELL on standard output.
-    Completions {
-        /// bash, zsh, fish, elvish or powershell.
-        shell: clap_complete::Shell,
-    },
-    /// The command-line reference (Markdown, `docs/cli.md`) on standard output.
-    Reference,
-    /// The gateway file reference (Markdown, `docs/gateway.md`) on standard output.
-    GatewayReference,
-}
 
 /// Runs `xrce-agent generate`.
 pub fn run(args: &GenerateArgs) -> anyhow::Result<()> {

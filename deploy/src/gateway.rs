@@ -72,7 +72,7 @@ use xrce_frontend::cli::{AdmissionArgs, TransportKind};
 use xrce_frontend::transport::registry::{Medium, TRANSPORTS};
 
 use crate::cli::FrontendPlan;
-use crate::plan;
+use crate::settings;
 
 /// A gateway file as written.
 #[derive(Debug, Deserialize)]
@@ -368,15 +368,16 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
         }
     })?;
     if let Some(v) = &file.agent.verbose {
-        plan::check_verbose(*v.get_ref())
+        settings::check_verbose(*v.get_ref())
             .map_err(|e| c.err(v.span(), format!("agent.verbose {e}")))?;
     }
     if let Some(g) = file.worker.frontend_grace {
-        plan::check_frontend_grace(g)
+        settings::check_frontend_grace(g)
             .map_err(|e| c.err(0..0, format!("worker.frontend_grace {e}")))?;
     }
     if let Some(n) = file.worker.max_domains {
-        plan::check_max_domains(n).map_err(|e| c.err(0..0, format!("worker.max_domains {e}")))?;
+        settings::check_max_domains(n)
+            .map_err(|e| c.err(0..0, format!("worker.max_domains {e}")))?;
     }
     let w = &file.worker;
     for (key, value) in [
@@ -401,14 +402,14 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
         }
     }
     if let Some(d) = &file.worker.domains {
-        plan::parse_domains(d).map_err(|e| c.err(0..0, format!("worker.domains {e}")))?;
+        settings::parse_domains(d).map_err(|e| c.err(0..0, format!("worker.domains {e}")))?;
     }
     if let Some(m) = &file.agent.memory_limit_mib {
-        plan::check_memory_limit_mib(*m.get_ref())
+        settings::check_memory_limit_mib(*m.get_ref())
             .map_err(|e| c.err(m.span(), format!("agent.memory_limit_mib {e}")))?;
     }
     if let Some(i) = &file.agent.instance {
-        plan::check_instance(i).map_err(|e| c.err(0..0, format!("agent.instance {e}")))?;
+        settings::check_instance(i).map_err(|e| c.err(0..0, format!("agent.instance {e}")))?;
     }
     let mut worker = file.worker.clone();
     if let Some(m) = &file.worker.middleware {
@@ -655,7 +656,7 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
         }
         let client_dead_time = match &f.client_dead_time {
             Some(d) => Some(
-                plan::check_client_dead_time(*d.get_ref())
+                settings::check_client_dead_time(*d.get_ref())
                     .map_err(|e| here("client_dead_time", d.span(), &e))?,
             ),
             None => None,

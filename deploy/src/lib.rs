@@ -18,6 +18,7 @@ pub mod group;
 pub mod metrics;
 pub mod plan;
 pub mod readiness;
+pub mod settings;
 pub mod status_view;
 pub mod sweep;
 #[allow(unsafe_code)]

@@ -59,7 +59,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     let Some((frontend, common)) = plan(&command)? else {
         return match command {
             Command::DdsWorker(args) => xrce_dds_worker::cli::run(args),
-            Command::Frontend(args) => xrce_frontend::cli::run(args),
+            Command::Frontend(args) => xrce_frontend::start::run(args),
             Command::Status(args) => xrce_agent::status_view::run(&args),
             Command::Sweep(args) => xrce_agent::sweep::run(&args),
             Command::Generate(args) => xrce_agent::docs::run(&args),

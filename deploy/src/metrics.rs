@@ -41,14 +41,32 @@ pub struct AgentStatus {
     pub processes: Vec<ProcessReport>,
 }
 
+/// A client key as printed by default: `0x****BBBB` (its last four hex digits); a key in
+/// any other form is hidden whole.
+pub fn redact_key(key: &str) -> String {
+    let hex = key
+        .strip_prefix("0x")
+        .or_else(|| key.strip_prefix("0X"))
+        .unwrap_or(key);
+    let tail_ok = |t: &str| t.len() == 4 && t.bytes().all(|b| b.is_ascii_hexdigit());
+    if hex.len() == 8 && hex.bytes().all(|b| b.is_ascii_hexdigit()) {
+        format!("0x****{}", &hex[4..])
+    } else if let Some(tail) = hex.strip_prefix("****").filter(|t| tail_ok(t)) {
+        // Already redacted (by the metrics endpoint's /status).
+        format!("0x****{tail}")
+    } else {
+        "0x********".to_string()
+    }
+}
+
 impl AgentStatus {
     /// Replaces every client key by its redacted form
-    /// ([`crate::status_view::redact_key`]).
+    /// ([`redact_key`]).
     pub fn redact_keys(&mut self) {
         for p in &mut self.processes {
             if let Some(f) = &mut p.frontend {
                 for s in &mut f.sessions {
-                    s.client_key = crate::status_view::redact_key(&s.client_key);
+                    s.client_key = redact_key(&s.client_key);
                 }
             }
         }

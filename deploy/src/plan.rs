@@ -6,19 +6,24 @@
 //! command line's own parser, [`Common::from_environment`]), so a setting means the same
 //! either way.
 //!
-//! The bounds of every setting are here, once, as `check_*` functions: the gateway parser
-//! calls them to name the key and line, [`AgentPlan::check`] for everything else.
+//! The bounds of every setting are in [`crate::settings`], once: the command line's parsers
+//! and the gateway parser call them (the latter to name the key and line),
+//! [`AgentPlan::check`] for everything else.
 
 use std::net::{IpAddr, SocketAddr};
 use std::path::PathBuf;
 
 use xrce_dds_worker::backend::BackendKind;
-use xrce_dds_worker::domains::{DomainSet, DOMAIN_COUNT};
+use xrce_dds_worker::domains::DomainSet;
 use xrce_dds_worker::ros_graph::RosDistro;
 use xrce_frontend::cli::{AdmissionArgs, FrontendArgs};
 
-use crate::cli::{Common, FrontendPlan, MAX_MEMORY_LIMIT_MIB};
+use crate::cli::{Common, FrontendPlan};
 use crate::gateway::Gateway;
+use crate::settings::{
+    check_client_dead_time, check_frontend_grace, check_instance, check_max_domains,
+    check_memory_limit_mib, check_verbose, parse_domains,
+};
 
 /// Why a plan is refused: the setting (as the command line names it) and what is wrong.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -120,82 +125,6 @@ impl FrontendSpec {
         s.admission = self.admission.clone();
         s
     }
-}
-
-/// `--verbose`, `agent.verbose`.
-pub fn check_verbose(v: u8) -> Result<u8, String> {
-    (v <= 6)
-        .then_some(v)
-        .ok_or_else(|| "must be 0 to 6".to_string())
-}
-
-/// `-v`'s parser: a number, then [`check_verbose`].
-pub fn parse_verbose(text: &str) -> Result<u8, String> {
-    text.parse::<u8>()
-        .map_err(|e| format!("{e}"))
-        .and_then(check_verbose)
-}
-
-/// `--memory-limit`'s parser: a number, then [`check_memory_limit_mib`].
-pub fn parse_memory_limit_mib(text: &str) -> Result<u64, String> {
-    text.parse::<u64>()
-        .map_err(|e| format!("{e}"))
-        .and_then(check_memory_limit_mib)
-}
-
-/// `--client-dead-time`, `client_dead_time`: seconds, 0 (never) to a year.
-pub fn check_client_dead_time(s: f64) -> Result<f64, String> {
-    (s.is_finite() && (0.0..=31_536_000.0).contains(&s))
-        .then_some(s)
-        .ok_or_else(|| format!("must be 0 to 31536000 seconds (a year), got {s}"))
-}
-
-/// `--frontend-grace`, `worker.frontend_grace`: seconds, 0 to a day.
-pub fn check_frontend_grace(s: f64) -> Result<f64, String> {
-    (s.is_finite() && (0.0..=86_400.0).contains(&s))
-        .then_some(s)
-        .ok_or_else(|| format!("must be 0 to 86400 seconds (a day), got {s}"))
-}
-
-/// `--memory-limit`, `agent.memory_limit_mib`: MiB.
-pub fn check_memory_limit_mib(m: u64) -> Result<u64, String> {
-    (1..=MAX_MEMORY_LIMIT_MIB)
-        .contains(&m)
-        .then_some(m)
-        .ok_or_else(|| format!("must be 1 to {MAX_MEMORY_LIMIT_MIB} (MiB), got {m}"))
-}
-
-/// `--max-domains`, `worker.max_domains`: 1 to as many domains as DDS has.
-pub fn check_max_domains(n: u16) -> Result<u16, String> {
-    (1..=DOMAIN_COUNT)
-        .contains(&n)
-        .then_some(n)
-        .ok_or_else(|| format!("must be 1 to {DOMAIN_COUNT}, got {n}"))
-}
-
-/// `--instance`, `agent.instance`.
-pub fn check_instance(name: &str) -> Result<(), String> {
-    xrce_ipc::shm::valid_instance(name)
-        .then_some(())
-        .ok_or_else(|| format!("{name:?} must be 1-32 characters of [A-Za-z0-9_-]"))
-}
-
-/// `--domains`, `worker.domains`: ids and ranges (`0-10,42`).
-pub fn parse_domains(list: &str) -> Result<DomainSet, String> {
-    list.parse::<DomainSet>()
-        .map_err(|e| format!("{list:?}: {e}"))
-}
-
-/// `XRCE_DISCARD_SESSIONS` and other flags read from the environment, with the command
-/// line's own parser (clap's: empty, `0`, `false`, `no`, `off`, `n`, `f` are false, any
-/// other value true), so a variable means the same to a gateway as to a command line.
-pub fn env_flag(name: &str) -> bool {
-    use clap::builder::TypedValueParser;
-    std::env::var_os(name).is_some_and(|v| {
-        clap::builder::FalseyValueParser::new()
-            .parse_ref(&clap::Command::new("xrce-agent"), None, &v)
-            .unwrap_or(true)
-    })
 }
 
 fn refused(setting: &'static str) -> impl Fn(String) -> PlanError {
@@ -566,23 +495,5 @@ mod tests {
             problem: check_instance("no/slash").expect_err("refused"),
         })
         .contains("[A-Za-z0-9_-]"));
-    }
-
-    #[test]
-    fn environment_flags_read_as_the_command_line_reads_them() {
-        use clap::builder::TypedValueParser;
-        let parse = |v: &str| {
-            clap::builder::FalseyValueParser::new()
-                .parse_ref(&clap::Command::new("t"), None, std::ffi::OsStr::new(v))
-                .expect("parses")
-        };
-        for off in ["", "0", "false", "off", "no", "n", "f", "OFF"] {
-            assert!(!parse(off), "{off}");
-        }
-        for on in ["1", "true", "on", "yes", "anything"] {
-            assert!(parse(on), "{on}");
-        }
-        // An unset variable is false.
-        assert!(!env_flag("XRCE_TEST_SURELY_UNSET_FLAG"));
     }
 }

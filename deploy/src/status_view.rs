@@ -91,24 +91,6 @@ pub fn printable(s: &str) -> String {
     out
 }
 
-/// A client key as printed by default: `0x****BBBB` (its last four hex digits); a key in
-/// any other form is hidden whole.
-pub fn redact_key(key: &str) -> String {
-    let hex = key
-        .strip_prefix("0x")
-        .or_else(|| key.strip_prefix("0X"))
-        .unwrap_or(key);
-    let tail_ok = |t: &str| t.len() == 4 && t.bytes().all(|b| b.is_ascii_hexdigit());
-    if hex.len() == 8 && hex.bytes().all(|b| b.is_ascii_hexdigit()) {
-        format!("0x****{}", &hex[4..])
-    } else if let Some(tail) = hex.strip_prefix("****").filter(|t| tail_ok(t)) {
-        // Already redacted (by the metrics endpoint's /status).
-        format!("0x****{tail}")
-    } else {
-        "0x********".to_string()
-    }
-}
-
 /// Makes every string of `agent` printable ([`printable`]), map keys included, and redacts
 /// its client keys unless `show_keys`.
 pub fn sanitize(agent: &mut AgentStatus, show_keys: bool) {
@@ -134,7 +116,7 @@ pub fn sanitize(agent: &mut AgentStatus, show_keys: bool) {
                 s.client_key = if show_keys {
                     printable(&s.client_key)
                 } else {
-                    redact_key(&s.client_key)
+                    crate::metrics::redact_key(&s.client_key)
                 };
                 clean(&mut s.peer);
                 clean(&mut s.dialect);
@@ -612,14 +594,14 @@ mod tests {
         let back: serde_json::Value = serde_json::from_str(&escaped).expect("valid JSON");
         assert_eq!(back["a"], "x\u{202E}\u{E0041}");
         // Odd keys are hidden whole; long strings are cut.
-        assert_eq!(redact_key("0xAB"), "0x********");
-        assert_eq!(redact_key("0XaaaaBBBB"), "0x****BBBB");
+        assert_eq!(crate::metrics::redact_key("0xAB"), "0x********");
+        assert_eq!(crate::metrics::redact_key("0XaaaaBBBB"), "0x****BBBB");
         assert_eq!(
-            redact_key("0x****BBBB"),
+            crate::metrics::redact_key("0x****BBBB"),
             "0x****BBBB",
             "redacted once is enough"
         );
-        assert_eq!(redact_key("0x****\u{1b}[2J"), "0x********");
+        assert_eq!(crate::metrics::redact_key("0x****\u{1b}[2J"), "0x********");
         let long = printable(&"x".repeat(1000));
         assert_eq!(long.chars().count(), MAX_PRINTED_CHARS + 1);
         assert!(long.ends_with('…'));

@@ -663,7 +663,7 @@ impl DdsBackend for LocalDelivery {
     fn announce_graph(
         &mut self,
         domain: u16,
-        nodes: &crate::ros_graph::DomainNodes,
+        nodes: &crate::ros_nodes::DomainNodes,
     ) -> Result<(), BackendError> {
         self.inner.announce_graph(domain, nodes)
     }

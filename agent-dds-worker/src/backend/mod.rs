@@ -530,7 +530,7 @@ pub trait DdsBackend {
     fn announce_graph(
         &mut self,
         _domain: u16,
-        _nodes: &crate::ros_graph::DomainNodes,
+        _nodes: &crate::ros_nodes::DomainNodes,
     ) -> Result<(), BackendError> {
         Ok(())
     }

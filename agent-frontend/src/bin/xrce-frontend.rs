@@ -12,5 +12,5 @@ struct Cli {
 }
 
 fn main() -> anyhow::Result<()> {
-    xrce_frontend::cli::run(Cli::parse().args)
+    xrce_frontend::start::run(Cli::parse().args)
 }

@@ -69,7 +69,7 @@ impl Unreachable {
                 Ok(m) => m,
                 Err(_) => break,
             };
-            let Some(to) = msg.address.as_ref().and_then(super::udp::socket_addr) else {
+            let Some(to) = msg.address.as_ref().and_then(socket_addr) else {
                 continue;
             };
             let Ok(cmsgs) = msg.cmsgs() else { continue };
@@ -110,6 +110,14 @@ impl Unreachable {
 /// Whether two addresses are one host's (an IPv4 address and its v4-mapped IPv6 form are).
 fn same_host(a: IpAddr, b: IpAddr) -> bool {
     a.to_canonical() == b.to_canonical()
+}
+
+/// The IP address and port of a datagram's source (or of the destination an ICMP error names).
+pub(super) fn socket_addr(a: &SockaddrStorage) -> Option<SocketAddr> {
+    if let Some(v4) = a.as_sockaddr_in() {
+        return Some(SocketAddr::V4((*v4).into()));
+    }
+    a.as_sockaddr_in6().map(|v6| SocketAddr::V6((*v6).into()))
 }
 
 #[cfg(test)]

@@ -242,7 +242,7 @@ impl SerialTransport {
                 }
             },
             LineDevice::Pty { master, .. } => {
-                if !super::pty::slave_is_open(master) {
+                if !slave_is_open(master) {
                     line.state = LineState::Waiting(now + REOPEN_PERIOD);
                     return;
                 }
@@ -560,20 +560,23 @@ impl Transport for SerialTransport {
     }
 }
 
-/// The registry's start-up of `serial` and `multiserial`: the `--device` lines at
-/// `--baudrate`, served.
-pub fn serve(
-    args: &crate::cli::FrontendArgs,
-    config: xrce_common::session::agent::AgentConfig,
-    on_serving: Option<crate::event_loop::OnServing>,
-) -> anyhow::Result<()> {
-    let lines = args.serial_lines()?;
-    if !super::serial::is_standard_rate(args.baudrate) {
-        tracing::warn!(
-            baudrate = args.baudrate,
-            "not a standard baud rate: set as a custom rate"
-        );
+/// `serial` and `multiserial` (named `name`): the `lines` at `baudrate`.
+pub fn open(name: &'static str, lines: Vec<LineDevice>, baudrate: u32) -> SerialTransport {
+    if !super::serial::is_standard_rate(baudrate) {
+        tracing::warn!(baudrate, "not a standard baud rate: set as a custom rate");
     }
-    let t = SerialTransport::new(args.transport.name(), lines, framing::MAX_PAYLOAD);
-    crate::cli::serve(t, args, config, on_serving)
+    SerialTransport::new(name, lines, framing::MAX_PAYLOAD)
+}
+
+/// Whether a program has the slave side of `master` open (the master reports no hang-up).
+pub fn slave_is_open(master: &File) -> bool {
+    use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
+    use std::os::fd::AsFd;
+    let mut fds = [PollFd::new(master.as_fd(), PollFlags::POLLIN)];
+    match poll(&mut fds, PollTimeout::ZERO) {
+        Ok(_) => !fds[0]
+            .revents()
+            .is_some_and(|r| r.contains(PollFlags::POLLHUP)),
+        Err(_) => false,
+    }
 }

@@ -4,7 +4,7 @@
 //! eProsima client sets no terminal mode itself).
 //!
 //! Once a client has closed the slave the master reports a hang-up until another opens it;
-//! that is the normal state between clients, not an error: [`slave_is_open`] tells when one
+//! that is the normal state between clients, not an error: [`super::multiserial::slave_is_open`] tells when one
 //! arrived. (Before the first client nothing tells; the line counts as open then, and nothing
 //! is sent on it before a client speaks.)
 
@@ -74,43 +74,30 @@ fn standard_baud(rate: u32) -> Option<termios::BaudRate> {
     })
 }
 
-/// Whether a program has the slave side of `master` open (the master reports no hang-up).
-pub fn slave_is_open(master: &File) -> bool {
-    use nix::poll::{poll, PollFd, PollFlags, PollTimeout};
-    let mut fds = [PollFd::new(master.as_fd(), PollFlags::POLLIN)];
-    match poll(&mut fds, PollTimeout::ZERO) {
-        Ok(_) => !fds[0]
-            .revents()
-            .is_some_and(|r| r.contains(PollFlags::POLLHUP)),
-        Err(_) => false,
-    }
-}
-
-/// The registry's start-up of `pseudoterminal`: serves the pty master the supervisor left
-/// open at `--pty-fd`, or opens a new pseudoterminal and prints its path.
-pub fn serve(
-    args: &crate::cli::FrontendArgs,
-    config: xrce_common::session::agent::AgentConfig,
-    on_serving: Option<crate::event_loop::OnServing>,
-) -> anyhow::Result<()> {
+/// `pseudoterminal`: serves the pty master the supervisor left open (`inherited`: its
+/// descriptor and the slave's path), or opens a new pseudoterminal at `baudrate` and prints
+/// its path.
+pub fn open_transport(
+    inherited: Option<(std::os::fd::RawFd, PathBuf)>,
+    baudrate: u32,
+) -> anyhow::Result<super::multiserial::SerialTransport> {
     use super::multiserial::{LineDevice, SerialTransport};
-    let (master, slave_path) = match args.pty_fd {
-        Some(fd) => {
+    let (master, slave_path) = match inherited {
+        Some((fd, path)) => {
             let master = crate::sys::owned_fd::inherited(fd)?;
             super::serial::set_nonblocking(&master)?;
-            (master, args.pty_path.clone().unwrap_or_default())
+            (master, path)
         }
         None => {
-            let pty = open(args.baudrate)?;
+            let pty = open(baudrate)?;
             let path = pty.slave_path.display();
             println!("Pseudoterminal opened at {path} (dev: {path})");
             (pty.master, pty.slave_path)
         }
     };
-    let t = SerialTransport::new(
+    Ok(SerialTransport::new(
         "pseudoterminal",
         vec![LineDevice::Pty { master, slave_path }],
         xrce_common::framing::serial::MAX_PAYLOAD,
-    );
-    crate::cli::serve(t, args, config, on_serving)
+    ))
 }

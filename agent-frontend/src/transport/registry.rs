@@ -1,13 +1,8 @@
-//! Every transport a front-end serves, one line each: its names, how it reaches clients, and
-//! the function of its module that opens it from the front-end's settings and serves. The
-//! front-end's start-up, the supervisor's plans and the gateway file's names all read this
-//! table; a new transport is its module, its line here and its [`TransportKind`] variant
-//! (which the command line's value list is derived from).
-
-use xrce_common::session::agent::AgentConfig;
-
-use crate::cli::{FrontendArgs, TransportKind};
-use crate::event_loop::OnServing;
+//! Every transport a front-end serves, one line each: its names and how it reaches clients.
+//! The front-end's start-up (`crate::start`, which opens each medium's transport), the
+//! supervisor's plans and the gateway file's names all read this table; a new transport is
+//! its module, its line here, its [`TransportKind`] variant (which the command line's value
+//! list is derived from) and its arm in the start-up's `open_and_serve`.
 
 /// How a transport reaches its clients (what the supervisor plans for it: an address and
 /// port, devices, or a pseudoterminal it opens).
@@ -23,9 +18,60 @@ pub enum Medium {
     Pseudoterminal,
 }
 
-/// Opens a transport from the front-end's settings and serves its clients until
-/// SIGINT/SIGTERM.
-pub type Serve = fn(&FrontendArgs, AgentConfig, Option<OnServing>) -> anyhow::Result<()>;
+/// The transports a front-end serves.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum TransportKind {
+    /// UDP over IPv4.
+    Udp4,
+    /// UDP over IPv6.
+    Udp6,
+    /// TCP over IPv4.
+    Tcp4,
+    /// TCP over IPv6.
+    Tcp6,
+    /// One serial device.
+    Serial,
+    /// Several serial devices.
+    Multiserial,
+    /// A pseudoterminal.
+    Pseudoterminal,
+}
+
+impl TransportKind {
+    /// What the front-end knows of it ([`self`] module's table).
+    pub fn spec(self) -> &'static TransportSpec {
+        // The registry lists the kinds in declaration order (checked by its tests).
+        &TRANSPORTS[self as usize]
+    }
+
+    /// The name used on the command line and in gateway files.
+    pub fn name(self) -> &'static str {
+        self.spec().name
+    }
+
+    /// The kind of that name (or of one of its aliases).
+    pub fn by_name(name: &str) -> Option<Self> {
+        TRANSPORTS
+            .iter()
+            .find(|t| t.name == name || t.aliases.contains(&name))
+            .map(|t| t.kind)
+    }
+
+    /// How it reaches clients.
+    pub fn medium(self) -> Medium {
+        self.spec().medium
+    }
+
+    /// Whether it serves an IP port.
+    pub fn is_ip(self) -> bool {
+        matches!(self.medium(), Medium::Datagrams | Medium::Streams)
+    }
+
+    /// Whether it serves IPv6.
+    pub fn is_ipv6(self) -> bool {
+        self.spec().ipv6
+    }
+}
 
 /// One transport.
 #[derive(Debug)]
@@ -42,20 +88,17 @@ pub struct TransportSpec {
     pub ipv6: bool,
     /// Exactly one device (serial lines).
     pub one_device: bool,
-    /// Its module's start-up.
-    pub serve: Serve,
 }
 
-use crate::transport::{multiserial, pty, tcp, udp};
 use Medium::*;
 use TransportKind as K;
 
 /// The transports, in [`TransportKind`]'s declaration order.
 pub const TRANSPORTS: [TransportSpec; 7] = [
-    spec(K::Udp4, "udp4", &[], Datagrams, false, udp::serve),
-    spec(K::Udp6, "udp6", &[], Datagrams, true, udp::serve),
-    spec(K::Tcp4, "tcp4", &[], Streams, false, tcp::serve),
-    spec(K::Tcp6, "tcp6", &["tpc6"], Streams, true, tcp::serve),
+    spec(K::Udp4, "udp4", &[], Datagrams, false),
+    spec(K::Udp6, "udp6", &[], Datagrams, true),
+    spec(K::Tcp4, "tcp4", &[], Streams, false),
+    spec(K::Tcp6, "tcp6", &["tpc6"], Streams, true),
     serial(K::Serial, "serial", true),
     serial(K::Multiserial, "multiserial", false),
     spec(
@@ -64,7 +107,6 @@ pub const TRANSPORTS: [TransportSpec; 7] = [
         &[],
         Pseudoterminal,
         false,
-        pty::serve,
     ),
 ];
 
@@ -74,7 +116,6 @@ const fn spec(
     aliases: &'static [&'static str],
     medium: Medium,
     ipv6: bool,
-    serve: Serve,
 ) -> TransportSpec {
     TransportSpec {
         kind,
@@ -83,14 +124,13 @@ const fn spec(
         medium,
         ipv6,
         one_device: false,
-        serve,
     }
 }
 
 const fn serial(kind: TransportKind, name: &'static str, one_device: bool) -> TransportSpec {
     TransportSpec {
         one_device,
-        ..spec(kind, name, &[], SerialLines, false, multiserial::serve)
+        ..spec(kind, name, &[], SerialLines, false)
     }
 }
 

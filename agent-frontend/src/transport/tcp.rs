@@ -825,28 +825,9 @@ impl Transport for TcpTransport {
     }
 }
 
-/// The registry's start-up of `tcp4` and `tcp6`: listens where `--listen` says, with the
-/// connection bounds of the settings, and serves.
-pub fn serve(
-    args: &crate::cli::FrontendArgs,
-    config: xrce_common::session::agent::AgentConfig,
-    on_serving: Option<crate::event_loop::OnServing>,
-) -> anyhow::Result<()> {
-    let addr = args.listen_addr()?;
+/// `tcp4` and `tcp6`: a listener on `addr` with the connection bounds of `config`.
+pub fn open(addr: std::net::SocketAddr, config: TcpConfig) -> std::io::Result<TcpTransport> {
     let listener = std::net::TcpListener::bind(addr)
-        .map_err(|e| anyhow::anyhow!("binding TCP {addr}: {e}"))?;
-    let tcp = TcpConfig {
-        max_connections: args.max_connections.max(1),
-        max_per_address: args.admission.max_connections_per_address,
-        idle_timeout: (args.admission.tcp_idle_timeout > 0)
-            .then(|| Duration::from_secs(args.admission.tcp_idle_timeout)),
-        send_buffer: args.tcp_send_buffer.max(1024),
-        // Half the session core's share of --memory-budget: the connections' buffers hold
-        // what the core would otherwise (messages on their way in and out).
-        memory_budget: config.limits.memory_budget / 2,
-        ..TcpConfig::default()
-    };
-    let mut config = config;
-    config.limits.memory_budget -= tcp.memory_budget;
-    crate::cli::serve(TcpTransport::new(listener, tcp)?, args, config, on_serving)
+        .map_err(|e| std::io::Error::new(e.kind(), format!("binding TCP {addr}: {e}")))?;
+    TcpTransport::new(listener, config)
 }

@@ -114,21 +114,13 @@ impl UdpTransport {
             } else {
                 m.address
                     .as_ref()
-                    .and_then(socket_addr)
+                    .and_then(super::icmp::socket_addr)
                     .ok_or("unknown_source")
             };
             got.push((m.bytes, src));
         }
         Ok(())
     }
-}
-
-/// The IP address and port of a datagram's source.
-pub(super) fn socket_addr(a: &SockaddrStorage) -> Option<SocketAddr> {
-    if let Some(v4) = a.as_sockaddr_in() {
-        return Some(SocketAddr::V4((*v4).into()));
-    }
-    a.as_sockaddr_in6().map(|v6| SocketAddr::V6((*v6).into()))
 }
 
 impl Transport for UdpTransport {
@@ -304,16 +296,11 @@ impl Transport for UdpTransport {
     }
 }
 
-/// The registry's start-up of `udp4` and `udp6`: binds the socket `--listen` names and serves.
-pub fn serve(
-    args: &crate::cli::FrontendArgs,
-    config: xrce_common::session::agent::AgentConfig,
-    on_serving: Option<crate::event_loop::OnServing>,
-) -> anyhow::Result<()> {
-    let addr = args.listen_addr()?;
-    let socket =
-        std::net::UdpSocket::bind(addr).map_err(|e| anyhow::anyhow!("binding UDP {addr}: {e}"))?;
-    crate::cli::serve(UdpTransport::new(socket)?, args, config, on_serving)
+/// `udp4` and `udp6`: a socket bound to `addr`.
+pub fn open(addr: SocketAddr) -> std::io::Result<UdpTransport> {
+    let socket = std::net::UdpSocket::bind(addr)
+        .map_err(|e| std::io::Error::new(e.kind(), format!("binding UDP {addr}: {e}")))?;
+    UdpTransport::new(socket)
 }
 
 #[cfg(test)]

@@ -22,6 +22,8 @@ mod codec;
 pub mod fuzzing;
 pub mod message;
 #[cfg(feature = "shm")]
+pub mod names;
+#[cfg(feature = "shm")]
 pub mod runtime_dir;
 #[cfg(feature = "shm")]
 pub mod settings;

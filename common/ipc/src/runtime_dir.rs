@@ -294,7 +294,7 @@ pub fn ensure_runtime_root() -> Result<PathBuf, RuntimeDirError> {
 
 /// Checks an instance name before it becomes a directory name.
 fn check_instance(instance: &str) -> Result<(), RuntimeDirError> {
-    if crate::shm::valid_instance(instance) {
+    if crate::names::valid_instance(instance) {
         Ok(())
     } else {
         Err(RuntimeDirError::InstanceName(instance.to_string()))
@@ -538,7 +538,7 @@ pub fn list_instances() -> Result<Vec<(String, PathBuf)>, RuntimeDirError> {
         .filter(|e| e.file_type().is_ok_and(|t| t.is_dir()))
         .filter_map(|e| {
             let name = e.file_name().into_string().ok()?;
-            (name != IPC_DIR && crate::shm::valid_instance(&name))
+            (name != IPC_DIR && crate::names::valid_instance(&name))
                 .then(|| (name, e.path().join("status")))
         })
         .collect();
@@ -572,7 +572,7 @@ fn with_slash(p: PathBuf) -> PathBuf {
 
 /// Longest event-socket file name iceoryx2 makes in its root for an instance (past its
 /// prefix): a listener id (a `u128` in decimal, up to 39 digits) and the suffix.
-pub const IPC_SOCKET_NAME_MAX: usize = 39 + crate::shm::EVENT_SUFFIX.len();
+pub const IPC_SOCKET_NAME_MAX: usize = 39 + crate::names::EVENT_SUFFIX.len();
 /// Longest Unix socket path (`sun_path`, with its terminating NUL).
 const SUN_PATH_MAX: usize = 108;
 
@@ -581,7 +581,7 @@ pub fn ipc_root_fits(root: &Path, instance: &str) -> bool {
     use std::os::unix::ffi::OsStrExt;
     let root_len = root.as_os_str().as_bytes().len() + 1;
     // The instance's prefix, its random part and the `_` after it.
-    let prefix_len = crate::shm::file_prefix(instance).len() + SHM_TOKEN.len + 1;
+    let prefix_len = crate::names::file_prefix(instance).len() + SHM_TOKEN.len + 1;
     root_len + prefix_len + IPC_SOCKET_NAME_MAX < SUN_PATH_MAX
 }
 

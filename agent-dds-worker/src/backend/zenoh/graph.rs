@@ -8,7 +8,7 @@ use zenoh::Wait as _;
 
 use super::naming::{liveliness_token, EndpointToken, EntityKind, NodeToken};
 use crate::backend::{BackendError, Guid};
-use crate::ros_graph::DomainNodes;
+use crate::ros_nodes::DomainNodes;
 
 /// What an endpoint's token says besides its node.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -138,7 +138,7 @@ impl Tokens {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ros_graph::node_name;
+    use crate::ros_nodes::node_name;
 
     fn nodes(list: &[(&str, u64, Vec<Guid>)]) -> DomainNodes {
         DomainNodes {

@@ -40,7 +40,7 @@ use super::{
     BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid,
     ReaderToken, TopicSpec,
 };
-use crate::ros_graph::DomainNodes;
+use crate::ros_nodes::DomainNodes;
 
 mod endpoints;
 mod graph;
