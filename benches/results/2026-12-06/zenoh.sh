@@ -1,7 +1,7 @@
 #!/bin/sh
 # Issue 35: the agent into Zenoh (-m zenoh) beside Cyclone DDS (its default), one run, in a
 # network namespace with only loopback (run as root from the repository's top folder):
-#   unshare -n sh -c 'ip link set lo up; docs/bench-2026-12-06/zenoh.sh'
+#   unshare -n sh -c 'ip link set lo up; benches/results/2026-12-06/zenoh.sh'
 # Cyclone rows: the generator's RustDDS reader counts what reaches DDS. Zenoh rows: the
 # generator runs a Zenoh router on tcp/127.0.0.1:17447 (the agent connects to it, as an
 # rmw_zenoh node to its router) and counts what reaches its subscription there.

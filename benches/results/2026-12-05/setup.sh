@@ -1,7 +1,7 @@
 #!/bin/sh
 # Set-up of 1,001 sessions and 4,004 entities, the two builds of ab.sh alternated, 7 rounds
 # (the 3 rounds of ab.sh left the set-up medians apart: 679 against 591 ms).
-# Run as: unshare -n sh docs/bench-2026-12-05/setup.sh OUT_DIR
+# Run as: unshare -n sh benches/results/2026-12-05/setup.sh OUT_DIR
 set -e
 ip link set lo up
 export XRCE_DISCARD_SESSIONS=true

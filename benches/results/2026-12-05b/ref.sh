@@ -4,7 +4,7 @@
 # -DUAGENT_USE_SYSTEM_FASTDDS=ON -DUAGENT_USE_SYSTEM_FASTCDR=ON -DUAGENT_P2P_PROFILE=OFF
 # -DUAGENT_LOGGER_PROFILE=OFF -DUAGENT_SOCKETCAN_PROFILE=OFF, in /tmp/ref-build), alternated
 # by xrce-loadgen, 3 rounds each, medians. Best-effort, 40-byte samples.
-# Run as: unshare -n sh docs/bench-2026-12-05b/ref.sh OUT_DIR
+# Run as: unshare -n sh benches/results/2026-12-05b/ref.sh OUT_DIR
 set -e
 ip link set lo up
 export XRCE_DISCARD_SESSIONS=true

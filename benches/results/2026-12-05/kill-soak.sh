@@ -1,7 +1,7 @@
 #!/bin/sh
-# Kill soak of each build (A = /tmp/new, this session; B = /tmp/base = 563d230): 100 reliable
+# Kill soak of each build (A = /tmp/new, this change; B = /tmp/base = e8d71ce): 100 reliable
 # publishers, 1 reliable subscriber, 1,000/s, the worker and the front-end SIGKILLed in turn
-# every 6 s, 14 kills. Run as: unshare -n sh docs/bench-2026-12-05b/kill-soak.sh OUT_DIR
+# every 6 s, 14 kills. Run as: unshare -n sh benches/results/2026-12-05/kill-soak.sh OUT_DIR
 set -e
 ip link set lo up
 export XRCE_DISCARD_SESSIONS=true
