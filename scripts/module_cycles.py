@@ -27,7 +27,6 @@ DEFAULT_CRATES = [
 ]
 
 PATH = re.compile(r"\b(crate|super|self)((?:::[A-Za-z_][A-Za-z0-9_]*)+)")
-USE_GROUP = re.compile(r"\buse\s+(crate|super|self)((?:::[A-Za-z_][A-Za-z0-9_]*)*)::\{([^;]*)\};", re.S)
 LINE_COMMENT = re.compile(r"//.*")
 TEST_MOD = re.compile(r"#\[cfg\(test\)\]\s*(?:pub(?:\([a-z]+\))?\s+)?mod\s+\w+\s*\{", re.S)
 
@@ -42,6 +41,49 @@ def module_path(src: Path, file: Path) -> tuple:
     return tuple(parts)
 
 
+def closing_brace(text: str, open_at: int) -> int:
+    """Index of the `}` closing the `{` at `open_at`, skipping strings, chars and comments."""
+    depth = 0
+    i = open_at
+    n = len(text)
+    while i < n:
+        ch = text[i]
+        if text.startswith("//", i):
+            i = text.find("\n", i)
+            if i < 0:
+                return n
+            continue
+        if text.startswith("/*", i):
+            j = text.find("*/", i + 2)
+            i = n if j < 0 else j + 2
+            continue
+        raw = re.match(r'b?r(#*)"', text[i : i + 40])
+        if raw and (i == 0 or not (text[i - 1].isalnum() or text[i - 1] == "_")):
+            end = '"' + raw.group(1)
+            j = text.find(end, i + raw.end())
+            i = n if j < 0 else j + len(end)
+            continue
+        if ch == '"':
+            i += 1
+            while i < n and text[i] != '"':
+                i += 2 if text[i] == "\\" else 1
+            i += 1
+            continue
+        if ch == "'":
+            lit = re.match(r"'(\\.|[^\\'])'", text[i : i + 12])
+            if lit:
+                i += lit.end()
+                continue
+        if ch == "{":
+            depth += 1
+        elif ch == "}":
+            depth -= 1
+            if depth == 0:
+                return i
+        i += 1
+    return n
+
+
 def strip_tests(text: str) -> str:
     """The text without `#[cfg(test)] mod x { ... }` blocks."""
     out = []
@@ -50,19 +92,45 @@ def strip_tests(text: str) -> str:
         if m.start() < i:
             continue
         out.append(text[i : m.start()])
-        depth = 0
-        j = m.end() - 1
-        while j < len(text):
-            if text[j] == "{":
-                depth += 1
-            elif text[j] == "}":
-                depth -= 1
-                if depth == 0:
-                    break
-            j += 1
-        i = j + 1
+        i = closing_brace(text, m.end() - 1) + 1
     out.append(text[i:])
     return "".join(out)
+
+
+def split_top(text: str, sep: str = ","):
+    """`text` split on `sep` outside braces."""
+    parts, depth, cur = [], 0, []
+    for ch in text:
+        if ch == "{":
+            depth += 1
+        elif ch == "}":
+            depth -= 1
+        if ch == sep and depth == 0:
+            parts.append("".join(cur))
+            cur = []
+        else:
+            cur.append(ch)
+    parts.append("".join(cur))
+    return [p.strip() for p in parts if p.strip()]
+
+
+def expand_use(tree: str):
+    """Every path a use tree names, as lists of segments (`a::{b, c::{d as e}}`: a::b, a::c::d)."""
+    tree = " ".join(tree.split())
+    brace = tree.find("{")
+    if brace < 0:
+        path = re.split(r"\s+as\s+", tree)[0].strip()
+        segs = [p for p in path.split("::") if p]
+        if segs and segs[-1] in ("self", "*"):
+            segs = segs[:-1]
+        return [segs] if segs else [[]]
+    prefix = [p for p in tree[:brace].split("::") if p.strip()]
+    inner = tree[brace + 1 : tree.rfind("}")]
+    out = []
+    for item in split_top(inner):
+        for sub in expand_use(item):
+            out.append(prefix + sub)
+    return out
 
 
 def resolve(base: tuple, anchor: str, rest: list) -> tuple:
@@ -78,23 +146,20 @@ def resolve(base: tuple, anchor: str, rest: list) -> tuple:
     return tuple(here[:-1]) + tuple(rest)
 
 
-def references(text: str, here: tuple, is_mod_file: bool) -> set:
+USE = re.compile(r"\buse\s+([^;]+);")
+
+
+def references(text: str, here: tuple) -> set:
     """Module paths (as far as named) this file's code names."""
-    base = here if is_mod_file else here
-    # `self::` in a file is the file's own module; `super::` its parent.
     found = set()
     code = LINE_COMMENT.sub("", text)
-    for m in USE_GROUP.finditer(code):
-        prefix = [p for p in m.group(2).split("::") if p]
-        for item in re.split(r"[,{}\s]+", m.group(3)):
-            item = item.split(" as ")[0].strip()
-            if item and item not in ("self", "*"):
-                found.add(resolve(base, m.group(1), prefix + [item]))
-            elif item == "self":
-                found.add(resolve(base, m.group(1), prefix))
+    for m in USE.finditer(code):
+        for segs in expand_use(m.group(1)):
+            if segs and segs[0] in ("crate", "super", "self"):
+                found.add(resolve(here, segs[0], segs[1:]))
     for m in PATH.finditer(code):
         parts = [p for p in m.group(2).split("::") if p]
-        found.add(resolve(base, m.group(1), parts))
+        found.add(resolve(here, m.group(1), parts))
     return found
 
 
@@ -102,16 +167,17 @@ def crate_graph(src: Path):
     files = [
         p
         for p in src.rglob("*.rs")
-        if "tests" not in p.relative_to(src).parts and p.stem != "tests"
+        if "tests" not in p.relative_to(src).parts
+        and p.stem != "tests"
+        # A program under src/bin is a crate of its own (checked on its own).
+        and not (src.name == "src" and p.relative_to(src).parts[0] == "bin")
     ]
     modules = {module_path(src, f) for f in files}
     edges = {}
     for f in files:
         here = module_path(src, f)
-        if here[:1] == ("<bin>",):
-            continue
         text = strip_tests(f.read_text(encoding="utf-8"))
-        for target in references(text, here, f.stem in ("mod", "lib", "main")):
+        for target in references(text, here):
             # The longest known module the path names.
             t = target
             while t and t not in modules:
@@ -163,8 +229,19 @@ def cycles(edges):
     return out
 
 
+def with_programs(crates):
+    """Each crate's src/, then each program under its src/bin/ that has modules of its own."""
+    out = []
+    for c in crates:
+        out.append(c)
+        bins = ROOT / c / "bin"
+        if bins.is_dir():
+            out += [str(d.relative_to(ROOT)) for d in sorted(bins.iterdir()) if d.is_dir()]
+    return out
+
+
 def main(argv):
-    crates = argv[1:] or DEFAULT_CRATES
+    crates = argv[1:] or with_programs(DEFAULT_CRATES)
     found = 0
     for c in crates:
         src = ROOT / c

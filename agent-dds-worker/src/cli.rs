@@ -11,7 +11,7 @@ use crate::worker::{Worker, WorkerConfig};
 /// give them. A supervisor passes every setting on the command line
 /// ([`WorkerArgs::to_args`]) and removes these from its worker's environment, so that what it
 /// decided is what the worker runs with, whatever the worker inherited.
-pub const SETTINGS_ENV: [&str; 21] = [
+pub const SETTINGS_ENV: [&str; 20] = [
     "XRCE_INSTANCE",
     "XRCE_DDS_INTERFACES",
     "XRCE_DDS_BACKEND",
@@ -25,7 +25,6 @@ pub const SETTINGS_ENV: [&str; 21] = [
     "XRCE_RESERVED_PORTS",
     "XRCE_ZENOH_TYPE_HASHES",
     "XRCE_LOCAL_DELIVERY",
-    "XRCE_DOMAIN_ID_OVERRIDE",
     "XRCE_MAX_ENTITIES_PER_CLIENT",
     "XRCE_MAX_ENTITIES",
     "XRCE_MAX_SAMPLES_PER_ENDPOINT",
@@ -238,14 +237,13 @@ pub struct WorkerArgs {
         env = "XRCE_LOCAL_DELIVERY",
         default_value_t = true,
         action = clap::ArgAction::Set,
-        value_parser = clap::builder::BoolishValueParser::new()
+        value_parser = local_delivery
     )]
     pub local_delivery: bool,
-    /// The DDS domain of a participant created in domain 255, "the agent's default" (as
-    /// MicroXRCEAgent's `XRCE_DOMAIN_ID_OVERRIDE`). Without it, `ROS_DOMAIN_ID`, else 0.
+    /// The DDS domain of a participant created in domain 255, "the agent's default". Without
+    /// it, `XRCE_DOMAIN_ID_OVERRIDE` (as MicroXRCEAgent), else `ROS_DOMAIN_ID`, else 0.
     #[arg(
         long = "default-domain",
-        env = "XRCE_DOMAIN_ID_OVERRIDE",
         value_parser = clap::value_parser!(u16).range(0..=i64::from(crate::domains::MAX_DOMAIN_ID))
     )]
     pub default_domain: Option<u16>,
@@ -344,31 +342,53 @@ impl WorkerArgs {
     }
 }
 
-/// The domain of "the agent's default" (domain id 255): `given` (`--default-domain`,
-/// `XRCE_DOMAIN_ID_OVERRIDE`), else `ros_domain_id` (ROS 2's `ROS_DOMAIN_ID`, what micro-ROS
-/// users set), else 0. A `ROS_DOMAIN_ID` that is no DDS domain id is refused here, at start,
-/// rather than at a client's first participant.
+/// The domain of "the agent's default" (domain id 255): `given` (`--default-domain`), else
+/// the environment's `XRCE_DOMAIN_ID_OVERRIDE` (MicroXRCEAgent's variable), else
+/// `ROS_DOMAIN_ID` (ROS 2's, what micro-ROS users set), else 0. A variable set but blank is
+/// unset (as ROS 2 reads `ROS_DOMAIN_ID`); one that is no DDS domain id is refused here, at
+/// start, rather than at a client's first participant.
 pub fn resolve_default_domain(
     given: Option<u16>,
-    ros_domain_id: Option<&std::ffi::OsStr>,
+    env: impl Fn(&str) -> Option<std::ffi::OsString>,
 ) -> anyhow::Result<u16> {
     if let Some(d) = given {
         return Ok(d);
     }
-    let Some(v) = ros_domain_id else {
-        return Ok(0);
-    };
-    let text = v.to_string_lossy();
-    text.trim()
-        .parse::<u16>()
-        .ok()
-        .filter(|d| *d <= crate::domains::MAX_DOMAIN_ID)
-        .ok_or_else(|| {
-            anyhow::anyhow!(
-                "ROS_DOMAIN_ID={text:?} is not a DDS domain id (0 to {})",
-                crate::domains::MAX_DOMAIN_ID
-            )
-        })
+    for var in ["XRCE_DOMAIN_ID_OVERRIDE", "ROS_DOMAIN_ID"] {
+        let Some(v) = env(var) else { continue };
+        let text = v.to_string_lossy();
+        if text.trim().is_empty() {
+            continue;
+        }
+        return text
+            .trim()
+            .parse::<u16>()
+            .ok()
+            .filter(|d| *d <= crate::domains::MAX_DOMAIN_ID)
+            .ok_or_else(|| {
+                anyhow::anyhow!(
+                    "{var}={text:?} is not a DDS domain id (0 to {})",
+                    crate::domains::MAX_DOMAIN_ID
+                )
+            });
+    }
+    Ok(0)
+}
+
+/// `--local-delivery`'s parser: a boolean as clap reads one (`off`, `0`, `false`, `no` are
+/// false), blank meaning the default (on), so that `XRCE_LOCAL_DELIVERY=` stops nothing.
+fn local_delivery(s: &str) -> Result<bool, String> {
+    use clap::builder::TypedValueParser;
+    if s.trim().is_empty() {
+        return Ok(true);
+    }
+    clap::builder::BoolishValueParser::new()
+        .parse_ref(
+            &clap::Command::new("xrce-dds-worker"),
+            None,
+            std::ffi::OsStr::new(s.trim()),
+        )
+        .map_err(|_| format!("{s:?} is not on or off (true, false, 1, 0, yes, no)"))
 }
 
 /// Runs a worker until SIGINT/SIGTERM.
@@ -385,10 +405,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         args.ros_distro,
         std::env::var_os("ROS_DISTRO").as_deref(),
     )?;
-    let default_domain = resolve_default_domain(
-        args.default_domain,
-        std::env::var_os("ROS_DOMAIN_ID").as_deref(),
-    )?;
+    let default_domain = resolve_default_domain(args.default_domain, std::env::var_os)?;
     raise_fd_limit();
     let references = match &args.refs {
         Some(path) => {
@@ -518,27 +535,44 @@ mod tests {
     }
 
     #[test]
-    fn the_default_domain_is_the_option_then_ros_domain_id_then_zero() {
-        use std::ffi::OsStr;
-        assert_eq!(resolve_default_domain(None, None).ok(), Some(0));
+    fn the_default_domain_is_the_option_then_the_variables_then_zero() {
+        use std::ffi::OsString;
+        let env = |vars: &'static [(&'static str, &'static str)]| {
+            move |name: &str| {
+                vars.iter()
+                    .find(|(n, _)| *n == name)
+                    .map(|(_, v)| OsString::from(v))
+            }
+        };
+        assert_eq!(resolve_default_domain(None, env(&[])).ok(), Some(0));
         assert_eq!(
-            resolve_default_domain(None, Some(OsStr::new(" 65 "))).ok(),
+            resolve_default_domain(None, env(&[("ROS_DOMAIN_ID", " 65 ")])).ok(),
             Some(65)
         );
-        assert_eq!(
-            resolve_default_domain(Some(66), Some(OsStr::new("67"))).ok(),
-            Some(66)
-        );
-        for bad in ["233", "-1", "x", ""] {
-            let err = resolve_default_domain(None, Some(OsStr::new(bad))).expect_err(bad);
-            assert!(err.to_string().contains("ROS_DOMAIN_ID"), "{err}");
+        let both = env(&[("XRCE_DOMAIN_ID_OVERRIDE", "66"), ("ROS_DOMAIN_ID", "67")]);
+        assert_eq!(resolve_default_domain(None, &both).ok(), Some(66));
+        assert_eq!(resolve_default_domain(Some(1), &both).ok(), Some(1));
+        // Blank is unset (as ROS 2 reads it).
+        let blank = env(&[("XRCE_DOMAIN_ID_OVERRIDE", " "), ("ROS_DOMAIN_ID", "")]);
+        assert_eq!(resolve_default_domain(None, blank).ok(), Some(0));
+        for bad in ["233", "-1", "x"] {
+            let vars: &'static [(&'static str, &'static str)] = match bad {
+                "233" => &[("ROS_DOMAIN_ID", "233")],
+                "-1" => &[("XRCE_DOMAIN_ID_OVERRIDE", "-1")],
+                _ => &[("ROS_DOMAIN_ID", "x")],
+            };
+            let err = resolve_default_domain(None, env(vars)).expect_err(bad);
+            assert!(err.to_string().contains("not a DDS domain id"), "{err}");
         }
-        // The option and its variable take DDS's domain ids only.
+        // The option takes DDS's domain ids only.
         assert!(Cli::try_parse_from(["w", "--default-domain", "233"]).is_err());
         let cli = Cli::try_parse_from(["w", "--default-domain", "232", "--local-delivery", "off"])
             .expect("valid");
         assert_eq!(cli.args.default_domain, Some(232));
         assert!(!cli.args.local_delivery);
+        assert_eq!(local_delivery(""), Ok(true));
+        assert_eq!(local_delivery("no"), Ok(false));
+        assert!(local_delivery("maybe").is_err());
     }
 
     #[test]

@@ -1,5 +1,5 @@
-//! Command-line settings of a front-end, shared by `xrce-frontend` and `xrce-agent frontend`,
-//! and its start-up: open the transport, connect to the worker, run the event loop.
+//! Command-line settings of a front-end, shared by `xrce-frontend` and `xrce-agent frontend`
+//! (its start-up, which reads them, is [`crate::start`]).
 
 use std::net::SocketAddr;
 use std::path::PathBuf;

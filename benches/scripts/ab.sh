@@ -5,12 +5,13 @@
 # namespace with only loopback (it enters one itself with `unshare -rn` when it can).
 #
 #   benches/scripts/ab.sh NEW_AGENT OLD_AGENT [CASE...]
+#   OLD_CMD='MicroXRCEAgent udp4 -p {port}' benches/scripts/ab.sh NEW_AGENT [CASE...]
 #
 # NEW_AGENT and OLD_AGENT are `xrce-agent` executables (release builds copied aside), or, for
 # a reference such as MicroXRCEAgent, set OLD_CMD to its whole command line with `{port}`
-# where the port goes (OLD_AGENT is then ignored). LOADGEN names xrce-loadgen (default: the
-# release build of this tree), OUT the folder (default benches/results/<today>), ROUNDS the
-# rounds per case (3).
+# where the port goes and leave OLD_AGENT out (paths without spaces). LOADGEN names
+# xrce-loadgen (default: the release build of this tree), OUT the folder (default
+# benches/results/<today>), ROUNDS the rounds per case (3).
 #
 # Cases (default: latency-10k clients-10-1k clients-100-20k):
 #   latency-1k            1 -> 1 best-effort at 1,000/s (p50 / p99)
@@ -22,15 +23,30 @@
 #   clients-1000-20k      1,000 clients -> 1 at 20,000/s
 set -eu
 here=$(cd "$(dirname "$0")/../.." && pwd)
-if [ "${XRCE_AB_IN_NETNS:-}" != 1 ] && command -v unshare >/dev/null 2>&1 \
-    && unshare -rn true 2>/dev/null; then
-  export XRCE_AB_IN_NETNS=1
-  exec unshare -rn sh -c 'ip link set lo up && exec sh "$0" "$@"' "$0" "$@"
+if [ "${XRCE_AB_IN_NETNS:-}" != 1 ]; then
+  if command -v unshare >/dev/null 2>&1 && unshare -rn true 2>/dev/null; then
+    export XRCE_AB_IN_NETNS=1
+    exec unshare -rn sh -c 'ip link set lo up && exec sh "$0" "$@"' "$0" "$@"
+  fi
+  echo "ab.sh: cannot enter a network namespace (unshare -rn): DDS would reach every" \
+    "interface; as root: unshare -n sh -c 'ip link set lo up; XRCE_AB_IN_NETNS=1 sh $0 ...'" >&2
+  exit 1
 fi
-[ $# -ge 2 ] || { sed -n '2,22p' "$0"; exit 2; }
-NEW=$1
-OLD=$2
-shift 2
+if [ -n "${OLD_CMD:-}" ]; then
+  [ $# -ge 1 ] || { sed -n '2,23p' "$0"; exit 2; }
+  NEW=$1
+  OLD=
+  shift
+else
+  [ $# -ge 2 ] || { sed -n '2,23p' "$0"; exit 2; }
+  NEW=$1
+  OLD=$2
+  shift 2
+fi
+# Inside the namespace this user is root: the agents' private runtime directory goes in a
+# fresh temporary one, never root's own.
+XRCE_RUNTIME_DIR=${XRCE_RUNTIME_DIR:-$(mktemp -d)}
+export XRCE_RUNTIME_DIR
 L=${LOADGEN:-$here/target/release/xrce-loadgen}
 O=${OUT:-$here/benches/results/$(date +%F)}
 R=${ROUNDS:-3}

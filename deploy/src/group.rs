@@ -117,7 +117,7 @@ fn worker_settings(
     // So would a ROS_DOMAIN_ID that is no domain id; the worker gets the domain decided.
     base.default_domain = Some(xrce_dds_worker::cli::resolve_default_domain(
         base.default_domain,
-        std::env::var_os("ROS_DOMAIN_ID").as_deref(),
+        std::env::var_os,
     )?);
     if plan.domains.is_some() {
         base.domains = plan.domains.clone();
@@ -510,7 +510,7 @@ impl Group {
         use std::os::unix::process::CommandExt;
         if !self.explicit_instance {
             anyhow::bail!(
-                "--process needs [agent] instance in the file: the processes of separate units must agree on it"
+                "--process needs an instance name ([agent] instance in the file, or XRCE_INSTANCE): the processes of separate units must agree on it"
             );
         }
         let exe = std::env::current_exe()

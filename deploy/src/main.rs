@@ -31,6 +31,8 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     if let Some(path) = &cli.config {
         let gateway = xrce_agent::gateway::load(path)?;
         if cli.check {
+            // What the file leaves to the environment is checked too, as a start would.
+            Group::new(AgentPlan::from_gateway(&gateway)?)?;
             println!("{}: valid", path.display());
             for f in &gateway.frontends {
                 println!(

@@ -165,7 +165,7 @@ impl AgentPlan {
                     .as_deref()
                     .map(parse_domains)
                     .transpose()
-                    .map_err(refused("--domains"))?,
+                    .map_err(refused("--domains (or XRCE_DOMAINS)"))?,
                 max_domains: common.max_domains,
                 bounds: common.bounds.clone(),
             },
@@ -270,18 +270,18 @@ impl AgentPlan {
     /// Every setting within its bounds: the one check, whichever front door the plan came
     /// through.
     pub fn check(&self) -> Result<(), PlanError> {
-        check_instance(self.instance()).map_err(refused("--instance"))?;
+        check_instance(self.instance()).map_err(refused("--instance (or XRCE_INSTANCE)"))?;
         if let Some(v) = self.verbose {
             check_verbose(v).map_err(refused("--verbose"))?;
         }
         if let Some(m) = self.memory_limit_mib {
-            check_memory_limit_mib(m).map_err(refused("--memory-limit"))?;
+            check_memory_limit_mib(m).map_err(refused("--memory-limit (or XRCE_MEMORY_LIMIT)"))?;
         }
         if let Some(g) = self.worker.frontend_grace {
-            check_frontend_grace(g).map_err(refused("--frontend-grace"))?;
+            check_frontend_grace(g).map_err(refused("--frontend-grace (or XRCE_FRONTEND_GRACE)"))?;
         }
         if let Some(n) = self.worker.max_domains {
-            check_max_domains(n).map_err(refused("--max-domains"))?;
+            check_max_domains(n).map_err(refused("--max-domains (or XRCE_MAX_DOMAINS)"))?;
         }
         if self.frontends.is_empty() {
             return Err(PlanError {
@@ -291,7 +291,7 @@ impl AgentPlan {
         }
         let mut ids = std::collections::HashSet::new();
         for f in &self.frontends {
-            check_client_dead_time(f.client_dead_time).map_err(refused("--client-dead-time"))?;
+            check_client_dead_time(f.client_dead_time).map_err(refused("--client-dead-time (or XRCE_CLIENT_DEAD_TIME)"))?;
             if !ids.insert(f.id) {
                 return Err(PlanError {
                     setting: "--config",

@@ -374,7 +374,11 @@ pub fn reference() -> String {
          `[[frontend]]` of a TOML file; `xrce-agent --config FILE --check` checks it and prints \
          what it would run. An unknown key, a value of the wrong type or out of range, two \
          front-ends on one port or device are refused with the file's line and the key's \
-         path (`frontend[0].port: expected a port number 1-65535, got \"x\"`).\n",
+         path (`frontend[0].port: expected a port number 1-65535, got \"x\"`).\n\n\
+         A key left out means what its command-line option means when left out: the \
+         option's environment variable if it is set (`XRCE_INSTANCE`, `XRCE_DDS_BACKEND`, \
+         `XRCE_CLIENT_DEAD_TIME`, ...; `xrce-agent udp4 --help` names each one), else the \
+         default below. `--check` checks the variables too.\n",
     );
     for (table, heading) in [
         ("agent", "`[agent]`: the agent as a whole"),
