@@ -259,6 +259,25 @@ struct Checker<'a> {
 }
 
 impl Checker<'_> {
+    /// Where `key` of `[table]` is written (its line), for values checked after parsing.
+    fn key(&self, table: &str, key: &str) -> Range<usize> {
+        let mut offset = 0;
+        let mut in_table = false;
+        for line in self.text.split_inclusive('\n') {
+            let t = line.trim();
+            if t.starts_with('[') {
+                in_table = t.trim_matches(|c| c == '[' || c == ']').trim() == table;
+            } else if in_table
+                && t.strip_prefix(key)
+                    .is_some_and(|rest| rest.trim_start().starts_with('='))
+            {
+                return offset..offset + line.len();
+            }
+            offset += line.len();
+        }
+        0..0
+    }
+
     fn err(&self, span: Range<usize>, message: impl Into<String>) -> ConfigError {
         ConfigError {
             path: self.path.display().to_string(),
@@ -373,11 +392,11 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
     }
     if let Some(g) = file.worker.frontend_grace {
         settings::check_frontend_grace(g)
-            .map_err(|e| c.err(0..0, format!("worker.frontend_grace {e}")))?;
+            .map_err(|e| c.err(c.key("worker", "frontend_grace"), format!("worker.frontend_grace {e}")))?;
     }
     if let Some(n) = file.worker.max_domains {
         settings::check_max_domains(n)
-            .map_err(|e| c.err(0..0, format!("worker.max_domains {e}")))?;
+            .map_err(|e| c.err(c.key("worker", "max_domains"), format!("worker.max_domains {e}")))?;
     }
     let w = &file.worker;
     for (key, value) in [
@@ -398,23 +417,28 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
         ("max_samples", w.max_samples),
     ] {
         if value == Some(0) {
-            return Err(c.err(0..0, format!("worker.{key} must be at least 1")));
+            return Err(c.err(
+                c.key("worker", key),
+                format!("worker.{key} must be at least 1"),
+            ));
         }
     }
     if let Some(d) = &file.worker.domains {
-        settings::parse_domains(d).map_err(|e| c.err(0..0, format!("worker.domains {e}")))?;
+        settings::parse_domains(d)
+            .map_err(|e| c.err(c.key("worker", "domains"), format!("worker.domains {e}")))?;
     }
     if let Some(m) = &file.agent.memory_limit_mib {
         settings::check_memory_limit_mib(*m.get_ref())
             .map_err(|e| c.err(m.span(), format!("agent.memory_limit_mib {e}")))?;
     }
     if let Some(i) = &file.agent.instance {
-        settings::check_instance(i).map_err(|e| c.err(0..0, format!("agent.instance {e}")))?;
+        settings::check_instance(i)
+            .map_err(|e| c.err(c.key("agent", "instance"), format!("agent.instance {e}")))?;
     }
     let mut worker = file.worker.clone();
     if let Some(m) = &file.worker.middleware {
         crate::cli::backend_for(m, file.worker.dds_backend)
-            .map_err(|e| c.err(0..0, format!("worker.middleware: {e}")))?;
+            .map_err(|e| c.err(c.key("worker", "middleware"), format!("worker.middleware: {e}")))?;
     }
     let base = path.parent().unwrap_or(Path::new("."));
     worker.zenoh_type_hashes = file

@@ -134,6 +134,12 @@ fn wrong_values_name_the_key_and_what_it_expects() {
         e.message.contains("frontend_grace must be 0 to 86400"),
         "{e}"
     );
+    assert_eq!(e.line, 2, "the key's line: {e}");
+    let e = refused(
+        "[agent]\nverbose = 1\n[worker]\nros_graph = true\nmax_samples = 0\n[[frontend]]\ntransport = \"pseudoterminal\"\n",
+    );
+    assert!(e.message.contains("max_samples must be at least 1"), "{e}");
+    assert_eq!(e.line, 5, "the key's line: {e}");
     // An unknown key is named by its path, with the keys its table takes.
     let e = refused("[[frontend]]\ntransport = \"udp4\"\nport = 1\nprot = 2\n");
     assert!(
