@@ -186,7 +186,7 @@ fn worker_settings(
 
 impl Group {
     /// The processes `plan` describes, once it is checked ([`AgentPlan::check`]) and the
-    /// worker's settings are decided ([`worker_settings`]). Logging is the caller's to set
+    /// worker's settings are decided (`worker_settings`). Logging is the caller's to set
     /// up first ([`init_logging`] with [`log_filter`] of the plan's verbosity).
     pub fn new(plan: AgentPlan) -> anyhow::Result<Self> {
         plan.check()?;
