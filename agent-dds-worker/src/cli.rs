@@ -405,7 +405,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         args.ros_distro,
         std::env::var_os("ROS_DISTRO").as_deref(),
     )?;
-    let default_domain = resolve_default_domain(args.default_domain, std::env::var_os)?;
+    let default_domain = resolve_default_domain(args.default_domain, |v| std::env::var_os(v))?;
     raise_fd_limit();
     let references = match &args.refs {
         Some(path) => {
@@ -550,8 +550,8 @@ mod tests {
             Some(65)
         );
         let both = env(&[("XRCE_DOMAIN_ID_OVERRIDE", "66"), ("ROS_DOMAIN_ID", "67")]);
-        assert_eq!(resolve_default_domain(None, &both).ok(), Some(66));
-        assert_eq!(resolve_default_domain(Some(1), &both).ok(), Some(1));
+        assert_eq!(resolve_default_domain(None, both).ok(), Some(66));
+        assert_eq!(resolve_default_domain(Some(1), both).ok(), Some(1));
         // Blank is unset (as ROS 2 reads it).
         let blank = env(&[("XRCE_DOMAIN_ID_OVERRIDE", " "), ("ROS_DOMAIN_ID", "")]);
         assert_eq!(resolve_default_domain(None, blank).ok(), Some(0));

@@ -391,12 +391,20 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
             .map_err(|e| c.err(v.span(), format!("agent.verbose {e}")))?;
     }
     if let Some(g) = file.worker.frontend_grace {
-        settings::check_frontend_grace(g)
-            .map_err(|e| c.err(c.key("worker", "frontend_grace"), format!("worker.frontend_grace {e}")))?;
+        settings::check_frontend_grace(g).map_err(|e| {
+            c.err(
+                c.key("worker", "frontend_grace"),
+                format!("worker.frontend_grace {e}"),
+            )
+        })?;
     }
     if let Some(n) = file.worker.max_domains {
-        settings::check_max_domains(n)
-            .map_err(|e| c.err(c.key("worker", "max_domains"), format!("worker.max_domains {e}")))?;
+        settings::check_max_domains(n).map_err(|e| {
+            c.err(
+                c.key("worker", "max_domains"),
+                format!("worker.max_domains {e}"),
+            )
+        })?;
     }
     let w = &file.worker;
     for (key, value) in [
@@ -437,8 +445,12 @@ pub fn parse(path: &Path, text: &str) -> Result<Gateway, ConfigError> {
     }
     let mut worker = file.worker.clone();
     if let Some(m) = &file.worker.middleware {
-        crate::cli::backend_for(m, file.worker.dds_backend)
-            .map_err(|e| c.err(c.key("worker", "middleware"), format!("worker.middleware: {e}")))?;
+        crate::cli::backend_for(m, file.worker.dds_backend).map_err(|e| {
+            c.err(
+                c.key("worker", "middleware"),
+                format!("worker.middleware: {e}"),
+            )
+        })?;
     }
     let base = path.parent().unwrap_or(Path::new("."));
     worker.zenoh_type_hashes = file

@@ -117,7 +117,7 @@ fn worker_settings(
     // So would a ROS_DOMAIN_ID that is no domain id; the worker gets the domain decided.
     base.default_domain = Some(xrce_dds_worker::cli::resolve_default_domain(
         base.default_domain,
-        std::env::var_os,
+        |v| std::env::var_os(v),
     )?);
     if plan.domains.is_some() {
         base.domains = plan.domains.clone();

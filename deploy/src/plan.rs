@@ -278,7 +278,8 @@ impl AgentPlan {
             check_memory_limit_mib(m).map_err(refused("--memory-limit (or XRCE_MEMORY_LIMIT)"))?;
         }
         if let Some(g) = self.worker.frontend_grace {
-            check_frontend_grace(g).map_err(refused("--frontend-grace (or XRCE_FRONTEND_GRACE)"))?;
+            check_frontend_grace(g)
+                .map_err(refused("--frontend-grace (or XRCE_FRONTEND_GRACE)"))?;
         }
         if let Some(n) = self.worker.max_domains {
             check_max_domains(n).map_err(refused("--max-domains (or XRCE_MAX_DOMAINS)"))?;
@@ -291,7 +292,8 @@ impl AgentPlan {
         }
         let mut ids = std::collections::HashSet::new();
         for f in &self.frontends {
-            check_client_dead_time(f.client_dead_time).map_err(refused("--client-dead-time (or XRCE_CLIENT_DEAD_TIME)"))?;
+            check_client_dead_time(f.client_dead_time)
+                .map_err(refused("--client-dead-time (or XRCE_CLIENT_DEAD_TIME)"))?;
             if !ids.insert(f.id) {
                 return Err(PlanError {
                     setting: "--config",
