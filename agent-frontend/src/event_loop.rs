@@ -48,18 +48,38 @@ pub struct Placement {
     pub keep_sessions: bool,
 }
 
-/// Runs front-end `who` of `place` over `transport` until SIGINT/SIGTERM, relaying to the
-/// worker through `relay` and `inbox`.
-#[allow(clippy::too_many_arguments)]
+/// What a front-end serves with: the transport its clients reach it over, its link to the
+/// worker (the relay and the inbox of the worker's replies), the session core's settings, the
+/// discovery responder if any, and what to do once the worker serves it.
+pub struct Serving<T: Transport> {
+    /// Its clients' transport.
+    pub transport: T,
+    /// The relay to the worker.
+    pub relay: Relay<ShmLink>,
+    /// The worker's replies and announcements.
+    pub inbox: ShmInbox,
+    /// The session core's settings.
+    pub config: AgentConfig,
+    /// Answers multicast discovery, if asked to.
+    pub discovery: Option<Discovery>,
+    /// Called once, when a worker first serves this front-end.
+    pub on_serving: Option<OnServing>,
+}
+
+impl<T: Transport> std::fmt::Debug for Serving<T> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Serving")
+            .field("transport", &self.transport.name())
+            .field("discovery", &self.discovery.is_some())
+            .finish_non_exhaustive()
+    }
+}
+
+/// Runs front-end `who` of `place` with `serving` until SIGINT/SIGTERM.
 pub fn run<T: Transport>(
     place: &Placement,
     who: Identity,
-    mut transport: T,
-    mut relay: Relay<ShmLink>,
-    inbox: ShmInbox,
-    mut config: AgentConfig,
-    mut discovery: Option<Discovery>,
-    mut on_serving: Option<OnServing>,
+    mut serving: Serving<T>,
 ) -> anyhow::Result<()> {
     // Every line this front-end logs names it (a gateway's front-ends share one log).
     let _span = tracing::info_span!("frontend", name = %who.name).entered();
@@ -83,23 +103,12 @@ pub fn run<T: Transport>(
     } else {
         None
     };
-    config.track_sessions = store.is_some();
-    relay.set_hand_over_at_once(store.is_some());
+    serving.config.track_sessions = store.is_some();
+    serving.relay.set_hand_over_at_once(store.is_some());
     // Who started this process: it is gone when it died (its death is what asks this one to
     // stop, PR_SET_PDEATHSIG), not when it stops the agent on purpose.
     let supervisor = nix::unistd::getppid();
-    let result = serve(
-        &who,
-        &mut reporter,
-        &mut watchdog,
-        &mut store,
-        &mut transport,
-        &mut relay,
-        &inbox,
-        &mut config,
-        &mut discovery,
-        &mut on_serving,
-    );
+    let result = serve(&who, &mut reporter, &mut watchdog, &mut store, &mut serving);
     if result.is_ok() {
         // The transport is still open here (and this process's report still says it runs,
         // so that a successor waits for it).
@@ -109,19 +118,22 @@ pub fn run<T: Transport>(
     result
 }
 
-#[allow(clippy::too_many_arguments)]
 fn serve<T: Transport>(
     who: &Identity,
     reporter: &mut Reporter,
     watchdog: &mut Watchdog,
     store: &mut Option<SessionStore>,
-    transport: &mut T,
-    relay: &mut Relay<ShmLink>,
-    inbox: &ShmInbox,
-    config: &mut AgentConfig,
-    discovery: &mut Option<Discovery>,
-    on_serving: &mut Option<OnServing>,
+    serving: &mut Serving<T>,
 ) -> anyhow::Result<()> {
+    let Serving {
+        transport,
+        relay,
+        inbox,
+        config,
+        discovery,
+        on_serving,
+    } = serving;
+    let inbox = &*inbox;
     config.max_message_size = transport.max_message_size();
     let mut poll = Poll::new()?;
     let [replies_fd, announce_fd] = inbox.raw_fds();

@@ -152,7 +152,13 @@ fn serve<T: Transport>(
         instance: args.instance.clone(),
         keep_sessions: args.keep_sessions,
     };
-    crate::event_loop::run(
-        &place, who, transport, relay, inbox, config, discovery, on_serving,
-    )
+    let serving = crate::event_loop::Serving {
+        transport,
+        relay,
+        inbox,
+        config,
+        discovery,
+        on_serving,
+    };
+    crate::event_loop::run(&place, who, serving)
 }

@@ -50,21 +50,17 @@ fn collect(reader: &DdsPeer, got: &mut Deliveries, others: &mut Vec<u32>) {
     }
 }
 
-/// Writes `n` reliable samples (and one best-effort sample from `be` every fifth), ending
-/// the agent after `end_at` of them and starting it again with `restart`; returns what the
-/// reader got: the reliable indices, and the best-effort ones.
-#[allow(clippy::too_many_arguments)]
+/// Writes `n` reliable samples from `rel`'s writer (and one best-effort sample from `be`'s
+/// every fifth), ending the agent after `end_at` of them and starting it again with
+/// `restart`; returns what the reader got: the reliable indices, and the best-effort ones.
 fn stream_through_restart(
     agent: AgentProcess,
     restart: impl FnOnce() -> AgentProcess,
     ending: Ending,
-    rel: &mut TestClient,
-    w: ObjectId,
-    be: &mut TestClient,
-    bw: ObjectId,
+    (rel, w): (&mut TestClient, ObjectId),
+    (be, bw): (&mut TestClient, ObjectId),
     reader: &DdsPeer,
-    n: u32,
-    end_at: u32,
+    (n, end_at): (u32, u32),
 ) -> (AgentProcess, Deliveries, Vec<u32>) {
     let mut got = Deliveries::default();
     let mut best_effort = Vec::new();
@@ -138,13 +134,10 @@ fn udp_through_restart(ending: Ending, domain: i16, keys: ([u8; 4], [u8; 4])) {
         agent,
         move || AgentProcess::start_on(addr, None),
         ending,
-        &mut rel,
-        w,
-        &mut be,
-        bw,
+        (&mut rel, w),
+        (&mut be, bw),
         &reader,
-        N,
-        END_AT,
+        (N, END_AT),
     );
     assert_eq!(
         agent.instance(),

@@ -309,6 +309,11 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     let usage_before = agent.as_ref().and_then(AgentUnderTest::usage);
     // CPU of the threads that drive the clients (not the DDS reader's nor a null agent's).
     let mut generator_cpu = 0.0;
+    let form = SampleForm {
+        stream,
+        payload,
+        base,
+    };
     let t0 = Instant::now();
     let deadline = t0 + Duration::from_secs(a.duration);
     let mut killer = match (&track, agent.as_ref()) {
@@ -342,7 +347,7 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
                 // Keeps pumping after its share is sent: reliable streams still need their
                 // acknowledgements and repairs.
                 while !stop.load(Ordering::Relaxed) {
-                    share.send_due(g, 0..n, t0, stream, payload, base, track);
+                    share.send_due(g, 0..n, t0, form, track);
                     if share.sent > counted {
                         sent_total.fetch_add(share.sent - counted, Ordering::Relaxed);
                         counted = share.sent;
@@ -380,9 +385,7 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
                 first,
                 subscribers..n,
                 t0,
-                stream,
-                payload,
-                base,
+                form,
                 track.as_ref().map(|k| (k, 0)),
             );
             if let Some(k) = killer.as_mut() {

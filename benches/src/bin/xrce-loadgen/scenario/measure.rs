@@ -160,7 +160,12 @@ pub(super) fn warm_up(
     let end = t0 + Duration::from_secs(a.duration);
     let mut events = Vec::new();
     while !share.done() && Instant::now() < end {
-        share.send_due(all, subscribers..n, t0, stream, payload, base, None);
+        let form = super::traffic::SampleForm {
+            stream,
+            payload,
+            base,
+        };
+        share.send_due(all, subscribers..n, t0, form, None);
         all.pump(&mut events, share.wait(t0))?;
         events.clear();
     }

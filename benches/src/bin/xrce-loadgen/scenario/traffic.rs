@@ -136,6 +136,15 @@ pub(super) fn tag(data: &[u8]) -> Option<(u32, u64)> {
     Some((seq, ts))
 }
 
+/// What each sample sent is: its stream, its payload's size, and the instant its timestamp
+/// counts from.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct SampleForm {
+    pub(super) stream: u8,
+    pub(super) payload: usize,
+    pub(super) base: Instant,
+}
+
 /// What a group of publishers sends in the measured phase: the sequence numbers
 /// `first, first + step, …` below `samples`, paced at `rate` (0 = unpaced).
 pub(super) struct Share {
@@ -175,17 +184,19 @@ impl Share {
     }
 
     /// Sends what is due by now (at most 64 per call), round robin over `pubs`.
-    #[allow(clippy::too_many_arguments)]
     pub(super) fn send_due(
         &mut self,
         group: &mut Group,
         pubs: std::ops::Range<usize>,
         t0: Instant,
-        stream: u8,
-        payload: usize,
-        base: Instant,
+        form: SampleForm,
         track: Option<(&Track, u32)>,
     ) {
+        let SampleForm {
+            stream,
+            payload,
+            base,
+        } = form;
         if pubs.is_empty() {
             return;
         }
