@@ -21,6 +21,9 @@
 #   clients-100-60k       100 clients -> 1 at 60,000/s
 #   clients-100-reliable  100 reliable clients -> 1 at 20,000/s
 #   clients-1000-20k      1,000 clients -> 1 at 20,000/s
+#   kill-soak             each agent alone (not alternated): 100 reliable clients -> 1 at
+#                         1,000/s, worker and front-end SIGKILLed in turn every 6 s, 14 kills
+#                         (lost / repeated); with OLD_CMD (no worker to kill), NEW only
 set -eu
 here=$(cd "$(dirname "$0")/../.." && pwd)
 if [ "${XRCE_AB_IN_NETNS:-}" != 1 ]; then
@@ -33,12 +36,12 @@ if [ "${XRCE_AB_IN_NETNS:-}" != 1 ]; then
   exit 1
 fi
 if [ -n "${OLD_CMD:-}" ]; then
-  [ $# -ge 1 ] || { sed -n '2,23p' "$0"; exit 2; }
+  [ $# -ge 1 ] || { sed -n '2,26p' "$0"; exit 2; }
   NEW=$1
   OLD=
   shift
 else
-  [ $# -ge 2 ] || { sed -n '2,23p' "$0"; exit 2; }
+  [ $# -ge 2 ] || { sed -n '2,26p' "$0"; exit 2; }
   NEW=$1
   OLD=$2
   shift 2
@@ -64,6 +67,17 @@ run() {
   "$L" "$@" --payload 40 --rounds "$R" --agent-cmd "$A" --compare-with "$B" \
     >>"$O/ab-$name.txt" 2>&1
 }
+soak() {
+  builds="new old"
+  [ -z "${OLD_CMD:-}" ] || builds=new
+  for which in $builds; do
+    if [ $which = new ]; then agent=$A; else agent=$B; fi
+    echo "== kill-soak ($which): $agent" | tee "$O/kill-soak-$which.txt"
+    "$L" --publishers 100 --subscribers 1 --rate 1000 --samples 100000 --duration 110 \
+      --kills 14 --kill alternate --kill-every 6 --agent-cmd "$agent" \
+      >>"$O/kill-soak-$which.txt" 2>&1
+  done
+}
 [ $# -gt 0 ] || set -- latency-10k clients-10-1k clients-100-20k
 for case in "$@"; do
   case $case in
@@ -74,6 +88,7 @@ for case in "$@"; do
     clients-100-60k) run "$case" --publishers 100 --subscribers 1 --rate 60000 --best-effort --samples 600000 ;;
     clients-100-reliable) run "$case" --publishers 100 --subscribers 1 --rate 20000 --samples 200000 ;;
     clients-1000-20k) run "$case" --publishers 1000 --subscribers 1 --rate 20000 --best-effort --samples 200000 ;;
+    kill-soak) soak ;;
     *) echo "unknown case $case" >&2; exit 2 ;;
   esac
 done
