@@ -68,6 +68,16 @@ pub fn binaries() -> &'static Path {
         let release = std::env::var("XRCE_TEST_RELEASE").is_ok();
         let mut cmd = Command::new(cargo);
         cmd.current_dir(workspace());
+        // What cargo sets for this test process (CARGO_MANIFEST_DIR, CARGO_PKG_*, …) is not
+        // the environment it built the workspace in: `ring`'s build script reruns when
+        // CARGO_MANIFEST_DIR changes, so passing them on rebuilt ring, rustls, Zenoh and the
+        // agent (about two minutes on 2 cores) in the first test binary of each crate, and
+        // again in the next `cargo` CI ran.
+        for (key, _) in std::env::vars_os() {
+            if key.to_str().is_some_and(set_by_cargo_for_a_test) {
+                cmd.env_remove(&key);
+            }
+        }
         if release {
             cmd.args([
                 "build",
@@ -89,6 +99,21 @@ pub fn binaries() -> &'static Path {
         assert!(st.success(), "building the agent binaries failed");
         target_dir().join(if release { "release" } else { "debug" })
     })
+}
+
+/// Whether `key` is one of the variables cargo sets for the test binary it runs, which a
+/// `cargo` started from the test must not inherit.
+fn set_by_cargo_for_a_test(key: &str) -> bool {
+    const EXACT: [&str; 7] = [
+        "CARGO_MANIFEST_DIR",
+        "CARGO_MANIFEST_PATH",
+        "CARGO_MANIFEST_LINKS",
+        "CARGO_CRATE_NAME",
+        "CARGO_PRIMARY_PACKAGE",
+        "CARGO_TARGET_TMPDIR",
+        "OUT_DIR",
+    ];
+    EXACT.contains(&key) || key.starts_with("CARGO_PKG_") || key.starts_with("CARGO_BIN_EXE_")
 }
 
 /// The address and port named by `-p PORT` / `--bind ADDR` in an agent command line
