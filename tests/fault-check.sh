@@ -10,7 +10,7 @@
 set -uo pipefail
 cd "$(dirname "$0")/.."
 
-# fault  test-binary::test-name (the tests that must go red under it)
+# fault  module::test-name in the end-to-end binary (the tests that must go red under it)
 checks=(
   "dds-duplicate    helloworld_e2e::client_publishes_cyclone_reads_every_sample"
   "dds-duplicate    helloworld_e2e::client_to_client_through_the_agent"
@@ -72,10 +72,10 @@ report=()
 for c in "${checks[@]}"; do
   read -r fault test <<<"$c"
   [ -n "$only" ] && [ "$fault" != "$only" ] && continue
-  bin=${test%%::*}
-  name=${test#*::}
+  bin=e2e
+  name=$test
   if [ -z "${control[$test]:-}" ]; then
-    log="$logs/none.$bin.$name"
+    log="$logs/none.$name"
     start=$SECONDS
     if run none "$bin" "$name" "$log"; then
       control[$test]=green
@@ -87,7 +87,7 @@ for c in "${checks[@]}"; do
       report+=("$(printf '%-17s %-95s %s' none "$test" "FAILED without a fault")")
     fi
   fi
-  log="$logs/$fault.$bin.$name"
+  log="$logs/$fault.$name"
   start=$SECONDS
   if run "$fault" "$bin" "$name" "$log"; then
     missed=$((missed + 1))

@@ -12,7 +12,7 @@ This script defines those types with cyclonedds.idl in the layout --layout names
 24-octet Gids; jazzy: 16-octet Gids, as iron, kilted and rolling), subscribes to
 ros_discovery_info in --domain as a ROS 2 reader would (reliable, transient-local, keep last
 1), and prints what it decodes. It shares no code with the agent: it is the independent
-reader the end-to-end test tests/tests/ros_graph_layouts.rs compares the agent against.
+reader the end-to-end test tests/tests/e2e/ros_graph_layouts.rs compares the agent against.
 One layout per process: the two layouts have the same type names, which one participant
 could not hold at once.
 

@@ -114,6 +114,10 @@ impl TestClient {
         representation: Representation,
         extra: VariantExtra,
     ) -> u8 {
+        if let VariantExtra::DomainId(domain) = extra {
+            // A participant: its domain is the running test's module's ([`crate::domains`]).
+            crate::domains::claim(u32::from(domain as u16));
+        }
         let variant = ObjectVariant {
             kind,
             representation,

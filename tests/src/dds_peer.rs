@@ -73,7 +73,9 @@ pub struct DdsPeer {
 
 impl DdsPeer {
     /// Starts `dds_peer.py <args>` pinned to loopback.
+    /// Claims its domain for the running test's module ([`crate::domains`]).
     pub fn start(args: &[&str]) -> Self {
+        crate::domains::claim(crate::domains::of_peer_arguments(args));
         let xml = workspace().join("tests/python/cyclonedds-loopback.xml");
         let mut command = Command::new(cyclone_python());
         command

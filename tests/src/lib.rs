@@ -12,6 +12,7 @@ use std::sync::OnceLock;
 mod agent_process;
 mod client;
 mod dds_peer;
+pub mod domains;
 pub mod impaired;
 pub mod link;
 pub use agent_process::*;
@@ -99,6 +100,16 @@ pub fn binaries() -> &'static Path {
         assert!(st.success(), "building the agent binaries failed");
         target_dir().join(if release { "release" } else { "debug" })
     })
+}
+
+/// The name libtest knows the test `test` of the module `module` by (`module_path!()` in the
+/// test's file: its first segment, the test binary's crate, is not part of the name), for a
+/// test that runs itself again in another namespace with `--exact`.
+pub fn libtest_name(module: &str, test: &str) -> String {
+    match module.split_once("::") {
+        Some((_, path)) => format!("{path}::{test}"),
+        None => test.to_string(),
+    }
 }
 
 /// Whether `key` is one of the variables cargo sets for the test binary it runs, which a

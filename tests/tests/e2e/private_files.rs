@@ -156,7 +156,7 @@ fn an_agents_files_are_private_to_its_user() {
     let rt = dir.join("rt");
     let agent = start_agent("p", &rt);
     let instance = agent.instance().to_string();
-    let _client = client_with_objects(&agent, &rt, 93);
+    let _client = client_with_objects(&agent, &rt, 121);
     // Wait for the status reports too (every second).
     assert!(wait_until(5 * SECOND, || {
         rt.join(&instance).join("status/frontend-0.json").is_file()
@@ -477,7 +477,7 @@ fn a_link_planted_where_a_file_will_be_created_is_not_followed() {
             l.display()
         );
     }
-    let _client = client_with_objects(&agent, &rt, 94);
+    let _client = client_with_objects(&agent, &rt, 122);
     // Two more rounds of `alive` and status reports.
     std::thread::sleep(5 * SECOND / 2);
     assert_eq!(std::fs::read(&victim).expect("victim"), b"untouched");
@@ -505,7 +505,7 @@ fn a_second_front_end_or_agent_on_the_instance_is_refused_and_the_first_keeps_it
     let rt = dir.join("rt");
     let agent = start_agent("pf-second", &rt);
     let instance = agent.instance().to_string();
-    let mut client = client_with_objects(&agent, &rt, 95);
+    let mut client = client_with_objects(&agent, &rt, 123);
     let store = store_of(&rt, &instance);
     let snapshot = |name: &str| std::fs::read(store.join(name)).ok();
     let objects = snapshot(&format!("{KEY_NAME}.objects"));
@@ -647,7 +647,7 @@ fn full_client_keys_in_status_are_shown_only_to_the_agents_own_user() {
     .expect("agent");
     let mut c = TestClient::new(agent.addr(), KEY);
     c.connect(10 * SECOND);
-    c.setup_publisher(96);
+    c.setup_publisher(124);
     let status = |out: std::process::Output| String::from_utf8_lossy(&out.stdout).into_owned();
     let wanted = ["status", "--metrics", &listen, "--json", "--show-keys"];
     // The agent's own user sees the key whole (once the front-end reported the session).

@@ -154,7 +154,7 @@ fn worker_sigkill_mid_best_effort_stream_resumes_it() {
     const N: u32 = 6_000;
     const KILL_AT: u32 = 100;
     let (agent, reader, mut c, w, old_worker) =
-        publisher_and_reader("kill-be", 15, [0xAB, 0xCD, 0xEF, 0x05]);
+        publisher_and_reader("kill-be", 100, [0xAB, 0xCD, 0xEF, 0x05]);
     let mut got = Deliveries::default();
     let collect = |reader: &DdsPeer, got: &mut Deliveries| collect(reader, got, "best effort");
     // The first sample written once a new worker serves (the supervisor restarts it).

@@ -179,8 +179,8 @@ bind = "127.0.0.1"
     let mut subscriber = TestClient::new(udp_addr, [0x6B, 0, 0, 2]);
     publisher.connect(10 * SECOND);
     subscriber.connect(10 * SECOND);
-    subscriber.setup_subscriber(61);
-    let w = publisher.setup_publisher(61);
+    subscriber.setup_subscriber(103);
+    let w = publisher.setup_publisher(103);
     let mut tcp_client = TestClient::tcp(([127, 0, 0, 1], tcp).into(), [0x6B, 0, 0, 3]);
     tcp_client.connect(10 * SECOND);
     let tcp_pid = agent
@@ -220,7 +220,7 @@ bind = "127.0.0.1"
     drop(tcp_client);
     let mut tcp_client = TestClient::tcp(([127, 0, 0, 1], tcp).into(), [0x6B, 0, 0, 3]);
     tcp_client.connect(10 * SECOND);
-    tcp_client.setup_subscriber(61);
+    tcp_client.setup_subscriber(103);
     // Until DDS matched the new reader: probes, not counted.
     let end = Instant::now() + 30 * SECOND;
     let mut matched = false;
@@ -387,7 +387,7 @@ bind = "127.0.0.1"
     .expect("the front-end did not start");
     let mut c = TestClient::new(([127, 0, 0, 1], udp).into(), [0x6C, 0, 0, 1]);
     c.connect(10 * SECOND);
-    c.setup_publisher(62);
+    c.setup_publisher(104);
     // A second front-end with the same id on another port (another file naming the same
     // instance, say): it would take the first one's clients' entities; it is refused.
     let other = format!("127.0.0.1:{}", free_udp_port());

@@ -21,7 +21,7 @@ fn entities_created_by_reference_publish_to_cyclone() {
     let reader = DdsPeer::start(&[
         "read",
         "--domain",
-        "17",
+        "101",
         "--count",
         "20",
         "--reliable",
@@ -37,7 +37,7 @@ fn entities_created_by_reference_publish_to_cyclone() {
             p,
             k::PARTICIPANT,
             by_ref("default_xrce_participant"),
-            VariantExtra::DomainId(17)
+            VariantExtra::DomainId(101)
         ),
         status::OK
     );

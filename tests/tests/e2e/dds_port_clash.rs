@@ -22,8 +22,9 @@ use std::time::{Duration, Instant};
 
 use xrce_common::wire::{object_kind, status, ObjectId, VariantExtra};
 use xrce_tests::{
-    binaries, cyclone_python, dds_backend, hello_world, output_within, parse_sample_line,
-    unique_instance, workspace, xml, AgentProcess, DdsPeer, Deliveries, TestClient,
+    binaries, cyclone_python, dds_backend, hello_world, libtest_name, output_within,
+    parse_sample_line, unique_instance, workspace, xml, AgentProcess, DdsPeer, Deliveries,
+    TestClient,
 };
 
 const SECOND: Duration = Duration::from_secs(1);
@@ -53,7 +54,8 @@ fn in_private_network(inner: &str) {
             .arg("-n")
             .arg("--")
             .arg(exe)
-            .args([inner, "--exact", "--nocapture", "--test-threads", "1"])
+            .arg(libtest_name(module_path!(), inner))
+            .args(["--exact", "--nocapture", "--test-threads", "1"])
             .env(INSIDE, "1"),
         Duration::from_secs(300),
     );

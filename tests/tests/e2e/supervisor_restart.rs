@@ -159,7 +159,7 @@ fn udp_through_restart(ending: Ending, domain: i16, keys: ([u8; 4], [u8; 4])) {
 
 #[test]
 fn the_supervisor_killed_mid_stream_and_started_again_loses_no_reliable_sample() {
-    udp_through_restart(Ending::Kill, 93, (*b"SKR1", *b"SKB1"));
+    udp_through_restart(Ending::Kill, 125, (*b"SKR1", *b"SKB1"));
 }
 
 #[test]

@@ -11,7 +11,7 @@ use xrce_common::wire::binary::{
     ParticipantBinary, TopicBinary,
 };
 use xrce_common::wire::{object_kind as k, status, ObjectId, Representation, VariantExtra};
-use xrce_tests::{free_tcp_port, AgentProcess, DdsPeer, TestClient};
+use xrce_tests::{free_tcp_port, libtest_name, AgentProcess, DdsPeer, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 const DOMAIN: i16 = 7;
@@ -707,13 +707,11 @@ fn devices_on_two_lans_meet_through_one_router() {
         std::process::Command::new("ip")
             .args(["netns", "exec", lan])
             .arg(&exe)
-            .args([
+            .arg(libtest_name(
+                module_path!(),
                 "devices_on_two_lans_meet_through_one_router",
-                "--exact",
-                "--nocapture",
-                "--test-threads",
-                "1",
-            ])
+            ))
+            .args(["--exact", "--nocapture", "--test-threads", "1"])
             .env(LAN_ROLE, role)
             .env(LAN_ROUTER, format!("tcp/10.231.{subnet}.1:7447"))
             .stdin(std::process::Stdio::piped())

@@ -119,7 +119,7 @@ fn max_bytes_per_second_caps_the_rate_and_loses_none() {
         max_bytes_per_second: 100,
         ..Default::default()
     };
-    let t = paced_sends("bps", 27, ddc, 20, "bytes");
+    let t = paced_sends("bps", 102, ddc, 20, "bytes");
     let span = t[19] - t[0];
     assert!(span >= 950, "20 samples sent within {span} ms: {t:?}");
     // Any second of the agent's clock overlaps two windows at most (16 samples), one more

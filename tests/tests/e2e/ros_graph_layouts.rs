@@ -302,19 +302,19 @@ fn the_node_is_decoded_in(expected: &'static str, env: &[(&str, &str)], domain: 
 
 #[test]
 fn xrce_ros_distro_humble_publishes_24_octet_gids() {
-    the_node_is_decoded_in("humble", &[("XRCE_ROS_DISTRO", "humble")], 71);
+    the_node_is_decoded_in("humble", &[("XRCE_ROS_DISTRO", "humble")], 105);
 }
 
 #[test]
 fn by_default_the_graph_has_jazzy_s_16_octet_gids() {
     // An empty ROS_DISTRO counts as unset (whatever the shell running the tests sourced).
-    the_node_is_decoded_in("jazzy", &[("ROS_DISTRO", "")], 72);
+    the_node_is_decoded_in("jazzy", &[("ROS_DISTRO", "")], 106);
 }
 
 #[test]
 fn ros_distro_from_a_sourced_humble_shell_reaches_the_worker() {
     // The supervisor passes its environment on: ROS_DISTRO needs no wiring.
-    the_node_is_decoded_in("humble", &[("ROS_DISTRO", "humble")], 73);
+    the_node_is_decoded_in("humble", &[("ROS_DISTRO", "humble")], 107);
 }
 
 #[test]
