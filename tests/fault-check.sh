@@ -36,80 +36,117 @@ trap 'rm -rf "$logs"' EXIT
 
 # The tests and the agent (with fault injection) as `cargo test --workspace` (README's test
 # command) builds them: after it, nothing is built again (tests/e2e-binaries).
-declare -A exe=()
 if ! tests/e2e-binaries >"$logs/binaries" 2>"$logs/build"; then
   tail -n 30 "$logs/build"
   echo "fault-check: building the tests failed" >&2
   exit 1
 fi
-while read -r name path; do exe[$name]=$path; done <"$logs/binaries"
-if [ "${#exe[@]}" -eq 0 ]; then
-  echo "fault-check: no end-to-end test binaries found" >&2
+exe=$(awk '$1 == "e2e" { print $2 }' "$logs/binaries")
+if [ -z "$exe" ]; then
+  echo "fault-check: no end-to-end test binary found" >&2
   exit 1
 fi
 
-run() { # fault binary name log -> exit status of the test
-  local fault=$1 bin=$2 name=$3 log=$4
-  if [ -z "${exe[$bin]:-}" ]; then
-    echo "fault-check: no test binary $bin" >"$log"
-    return 1
-  fi
+# Runs the named tests side by side in one process (each module keeps to DDS domains of its
+# own, so tests of different modules do not see each other), under XRCE_FAULT=$1 (none: no
+# fault), into the log $2.
+run() {
+  local fault=$1 log=$2
+  shift 2
   if [ "$fault" = none ]; then
-    (cd tests && env -u XRCE_FAULT "${exe[$bin]}" --exact "$name") >"$log" 2>&1
+    (cd tests && env -u XRCE_FAULT "$exe" --exact "$@") >"$log" 2>&1
   else
-    (cd tests && XRCE_FAULT=$fault "${exe[$bin]}" --exact "$name") >"$log" 2>&1
+    (cd tests && XRCE_FAULT=$fault "$exe" --exact "$@") >"$log" 2>&1
   fi
+  return 0
+}
+
+# What the log $1 says of the test $2: ok, FAILED, or nothing when it did not run.
+outcome() {
+  awk -v t="$2" '$1 == "test" && $2 == t && $3 == "..." { print $4; exit }' "$1"
+}
+
+# The captured output of the failed test $2 in the log $1 (libtest prints it after the run).
+section() {
+  awk -v head="---- $2 stdout ----" '
+    $0 == head { on = 1; next }
+    on && (/^---- .* stdout ----$/ || /^failures:$/) { exit }
+    on { print }' "$1"
 }
 
 # The first assertion message of a failed test, on one line.
 why() {
-  grep -m1 -A1 "panicked at" "$1" | tail -n 1 | cut -c1-110
+  grep -m1 -A1 "panicked at" <<<"$1" | tail -n 1 | cut -c1-110
 }
 
 declare -A control=()
-missed=0
-report=()
+declare -A wanted=()
+faults=()
 for c in "${checks[@]}"; do
   read -r fault test <<<"$c"
   [ -n "$only" ] && [ "$fault" != "$only" ] && continue
-  bin=e2e
-  name=$test
-  if [ -z "${control[$test]:-}" ]; then
-    log="$logs/none.$name"
-    start=$SECONDS
-    if run none "$bin" "$name" "$log"; then
-      control[$test]=green
-      echo "without a fault  $test: passed ($((SECONDS - start)) s)"
-    else
-      control[$test]=red
-      missed=$((missed + 1))
-      echo "without a fault  $test: FAILED: $(why "$log")"
-      report+=("$(printf '%-17s %-95s %s' none "$test" "FAILED without a fault")")
-    fi
+  control[$test]=unknown
+  if [ -z "${wanted[$fault]:-}" ]; then
+    faults+=("$fault")
   fi
-  log="$logs/$fault.$name"
-  start=$SECONDS
-  if run "$fault" "$bin" "$name" "$log"; then
-    missed=$((missed + 1))
-    echo "XRCE_FAULT=$fault  $test: passed: NOT CAUGHT ($((SECONDS - start)) s)"
-    report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "NOT CAUGHT")")
-  elif ! grep -q "FAULT INJECTION active" "$log"; then
-    # Red without the fault running (the agent did not start, a name it does not know, a
-    # harness failure) proves nothing.
-    missed=$((missed + 1))
-    echo "XRCE_FAULT=$fault  $test: failed, but no agent reported the fault active:"
-    grep -m1 -A1 "panicked at" "$log" || tail -n 5 "$log"
-    report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "FAILED WITHOUT THE FAULT ACTIVE")")
-  elif grep -q "panicked at" "$log"; then
-    echo "XRCE_FAULT=$fault  $test: caught ($((SECONDS - start)) s): $(why "$log")"
-    report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "caught: $(why "$log")")")
+  wanted[$fault]+=" $test"
+done
+
+missed=0
+report=()
+# Every test without a fault first: each must pass.
+start=$SECONDS
+run none "$logs/none" "${!control[@]}"
+for test in "${!control[@]}"; do
+  if [ "$(outcome "$logs/none" "$test")" = ok ]; then
+    control[$test]=green
+    echo "without a fault  $test: passed"
   else
-    # Red without an assertion (a build or harness failure) proves nothing.
+    control[$test]=red
     missed=$((missed + 1))
-    echo "XRCE_FAULT=$fault  $test: failed without an assertion:"
-    tail -n 5 "$log"
-    report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "FAILED WITHOUT AN ASSERTION")")
+    echo "without a fault  $test: FAILED: $(why "$(section "$logs/none" "$test")")"
+    report+=("$(printf '%-17s %-95s %s' none "$test" "FAILED without a fault")")
   fi
+done
+echo "(without a fault: $((SECONDS - start)) s)"
+# Then each fault against the tests that must catch it: each must fail on an assertion, with
+# an agent that said the fault was active.
+for fault in "${faults[@]}"; do
+  read -r -a tests <<<"${wanted[$fault]}"
+  log="$logs/$fault"
+  start=$SECONDS
+  run "$fault" "$log" "${tests[@]}"
+  for test in "${tests[@]}"; do
+    result=$(outcome "$log" "$test")
+    out=$(section "$log" "$test")
+    if [ "$result" = ok ]; then
+      missed=$((missed + 1))
+      echo "XRCE_FAULT=$fault  $test: passed: NOT CAUGHT"
+      report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "NOT CAUGHT")")
+    elif [ "$result" != FAILED ]; then
+      missed=$((missed + 1))
+      echo "XRCE_FAULT=$fault  $test: did not run:"
+      tail -n 5 "$log"
+      report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "DID NOT RUN")")
+    elif ! grep -q "FAULT INJECTION active" <<<"$out"; then
+      # Red without the fault running (the agent did not start, a name it does not know, a
+      # harness failure) proves nothing.
+      missed=$((missed + 1))
+      echo "XRCE_FAULT=$fault  $test: failed, but no agent reported the fault active:"
+      grep -m1 -A1 "panicked at" <<<"$out" || tail -n 5 <<<"$out"
+      report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "FAILED WITHOUT THE FAULT ACTIVE")")
+    elif grep -q "panicked at" <<<"$out"; then
+      echo "XRCE_FAULT=$fault  $test: caught: $(why "$out")"
+      report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "caught: $(why "$out")")")
+    else
+      # Red without an assertion (a harness failure) proves nothing.
+      missed=$((missed + 1))
+      echo "XRCE_FAULT=$fault  $test: failed without an assertion:"
+      tail -n 5 <<<"$out"
+      report+=("$(printf '%-17s %-95s %s' "$fault" "$test" "FAILED WITHOUT AN ASSERTION")")
+    fi
+  done
+  echo "(XRCE_FAULT=$fault: $((SECONDS - start)) s)"
 done
 
 echo
