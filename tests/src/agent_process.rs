@@ -19,8 +19,8 @@ pub struct AgentProcess {
     /// Its instance name.
     pub instance: String,
     ip: std::net::IpAddr,
-    /// What it printed (stdout and stderr), when started with [`AgentProcess::launch`].
-    output: Option<AgentOutput>,
+    /// What it printed (stdout and stderr).
+    output: AgentOutput,
 }
 
 /// `line` without ANSI escape sequences (`ESC [ ... letter`).
@@ -108,143 +108,181 @@ impl AgentOutput {
     }
 }
 
-impl AgentProcess {
-    /// Starts `xrce-agent <args>` (DDS pinned to loopback, instance `tag`-based) and waits
-    /// until it reports ready (every front-end serving), up to 30 s. Its output is collected
-    /// ([`Self::output`]). `None` if it exited first.
-    pub fn launch(tag: &str, args: &[&str]) -> Option<Self> {
-        Self::launch_with_env(tag, args, &[])
-    }
-
-    /// [`Self::launch`] with extra environment variables.
-    pub fn launch_with_env(tag: &str, args: &[&str], env: &[(&str, &str)]) -> Option<Self> {
-        let instance = unique_instance(tag);
-        let mut full: Vec<&str> = args.to_vec();
-        full.extend(["--dds-interface", "127.0.0.1", "--instance", &instance]);
-        let (ip, port) = ip_and_port(args);
-        Self::spawn_collected(&full, instance.clone(), "agent ready", ip, port, env)
-    }
-
-    /// Starts `xrce-agent <args>` exactly as given (a gateway file names its instance and
-    /// pins DDS itself) and waits up to 30 s for a log line containing `ready`.
-    pub fn launch_raw(
-        args: &[&str],
-        instance: String,
-        ready: &str,
-        ip: std::net::IpAddr,
-        port: u16,
-    ) -> Option<Self> {
-        Self::spawn_collected(args, instance, ready, ip, port, &[])
-    }
-
-    fn spawn_collected(
-        args: &[&str],
-        instance: String,
-        ready: &str,
-        ip: std::net::IpAddr,
-        port: u16,
-        env: &[(&str, &str)],
-    ) -> Option<Self> {
-        let (child, output) = spawn_agent(args, env);
-        let mut agent = AgentProcess {
-            child,
-            port,
-            instance,
-            ip,
-            output: Some(output.clone()),
-        };
-        let end = Instant::now() + Duration::from_secs(30);
-        while Instant::now() < end {
-            if output
-                .wait_for(0, ready, Duration::from_millis(100))
-                .is_some()
-            {
-                return Some(agent);
-            }
-            if let Ok(Some(_)) = agent.child.try_wait() {
-                return None;
-            }
-        }
-        None
-    }
-
-    /// The agent's collected output.
-    pub fn output(&self) -> &AgentOutput {
-        self.output
-            .as_ref()
-            .expect("output is collected for every agent started here")
-    }
-
-    /// Starts an agent on a free port.
-    pub fn start(tag: &str) -> Self {
-        Self::start_with_env(tag, &[])
-    }
-
-    /// Starts an agent on a free port with extra environment variables.
-    pub fn start_with_env(tag: &str, env: &[(&str, &str)]) -> Self {
-        // A port found free can be taken by another process before the agent binds it
-        // (tests run in parallel): then the agent exits at once, and another port is tried.
-        for _ in 0..5 {
-            let port = free_udp_port();
-            let instance = unique_instance(tag);
-            if let Some(a) =
-                Self::try_start(([127, 0, 0, 1], port).into(), Some(instance), &[], env)
-            {
-                return a;
-            }
-        }
-        panic!("the agent did not start on any of 5 free ports");
-    }
-
-    /// Starts an agent bound to `addr`; without `instance` it picks its default name
-    /// (`udp4-<port>-<hash of what it serves and its network namespace>`).
-    pub fn start_on(addr: SocketAddr, instance: Option<String>) -> Self {
-        Self::start_with(addr, instance, &[])
-    }
-
-    /// Starts an agent bound to `addr` with extra command-line arguments.
-    pub fn start_with(addr: SocketAddr, instance: Option<String>, extra: &[&str]) -> Self {
-        Self::try_start(addr, instance, extra, &[]).expect("the agent did not answer a ping")
-    }
-
-    /// Starts an agent; `None` if it exits or does not answer a ping within 20 s.
-    fn try_start(
+/// What an agent under test serves, and so how the test knows it is ready.
+#[derive(Debug, Clone)]
+enum Serves {
+    /// `udp4` on a free loopback port (another one when a parallel test takes it first);
+    /// ready when it answers a ping.
+    FreeUdpPort,
+    /// `udp4` bound to this address; ready when it answers a ping.
+    Udp(SocketAddr),
+    /// This command line, DDS pinned to loopback and the instance added; ready when it logs
+    /// `agent ready`. Its address is read from `-p` / `--bind`.
+    CommandLine(Vec<String>),
+    /// This command line with nothing added (a gateway file pins DDS and names its
+    /// instance); ready when it logs `ready`; serving `addr` (port 0: nothing to ping).
+    Exactly {
+        args: Vec<String>,
+        ready: String,
         addr: SocketAddr,
-        instance: Option<String>,
-        extra: &[&str],
-        env: &[(&str, &str)],
-    ) -> Option<Self> {
-        let port = addr.port();
-        let mut args = vec![
-            "udp4".to_string(),
-            "-p".into(),
-            port.to_string(),
-            "--bind".into(),
-            addr.ip().to_string(),
-        ];
-        args.extend(["--dds-interface".to_string(), "127.0.0.1".into()]);
-        if let Some(i) = &instance {
-            args.extend(["--instance".to_string(), i.clone()]);
+    },
+}
+
+/// An agent a test is about to start: what it serves, its instance, its options and
+/// environment ([`AgentProcess::builder`], [`AgentProcess::at`], [`AgentProcess::exactly`]),
+/// then [`start`](AgentBuilder::start) or [`launch`](AgentBuilder::launch). Every agent of
+/// the suite starts through [`AgentBuilder::launch`].
+#[derive(Debug, Clone)]
+#[must_use]
+pub struct AgentBuilder {
+    tag: String,
+    serves: Serves,
+    /// Named by the test; otherwise a unique one from `tag` (or, for [`Serves::Udp`], the
+    /// agent's own default).
+    instance: Option<String>,
+    extra: Vec<String>,
+    env: Vec<(String, String)>,
+}
+
+impl AgentProcess {
+    /// An agent serving `udp4` on a free loopback port, DDS pinned to loopback, in an
+    /// instance of its own named after `tag`; ready when it answers a ping.
+    pub fn builder(tag: &str) -> AgentBuilder {
+        AgentBuilder {
+            tag: tag.to_string(),
+            serves: Serves::FreeUdpPort,
+            instance: None,
+            extra: Vec::new(),
+            env: Vec::new(),
         }
-        args.extend(extra.iter().map(|a| a.to_string()));
-        let (child, output) = spawn_agent(&args, env);
-        // The agent's own default: derived from what it serves (and the namespace).
-        let instance = instance.unwrap_or_else(|| {
-            xrce_ipc::derived_instance(
-                &format!("udp4-{port}"),
-                &SocketAddr::new(addr.ip(), port).to_string(),
-            )
-        });
+    }
+
+    /// An agent serving `udp4` bound to `addr`, in the agent's own default instance (derived
+    /// from what it serves, so an agent started again at `addr` is its predecessor's
+    /// successor) unless [`AgentBuilder::instance`] names one.
+    pub fn at(addr: SocketAddr) -> AgentBuilder {
+        AgentBuilder {
+            serves: Serves::Udp(addr),
+            ..Self::builder("at")
+        }
+    }
+
+    /// `xrce-agent <args>` exactly as given (a gateway file names its `instance` and pins DDS
+    /// itself), ready when it logs a line containing `ready`, serving `addr`.
+    pub fn exactly(args: &[&str], ready: &str, addr: SocketAddr, instance: &str) -> AgentBuilder {
+        AgentBuilder {
+            serves: Serves::Exactly {
+                args: args.iter().map(|a| a.to_string()).collect(),
+                ready: ready.to_string(),
+                addr,
+            },
+            instance: Some(instance.to_string()),
+            ..Self::builder("exactly")
+        }
+    }
+}
+
+impl AgentBuilder {
+    /// `xrce-agent <args>` (DDS pinned to loopback and the instance added), ready when it
+    /// logs `agent ready` (every front-end serving), instead of `udp4` on a free port.
+    pub fn command_line(mut self, args: &[&str]) -> Self {
+        self.serves = Serves::CommandLine(args.iter().map(|a| a.to_string()).collect());
+        self
+    }
+
+    /// In the instance `name`.
+    pub fn instance(mut self, name: impl Into<String>) -> Self {
+        self.instance = Some(name.into());
+        self
+    }
+
+    /// With these options after the others.
+    pub fn extra(mut self, args: &[&str]) -> Self {
+        self.extra.extend(args.iter().map(|a| a.to_string()));
+        self
+    }
+
+    /// With these environment variables.
+    pub fn env(mut self, env: &[(&str, &str)]) -> Self {
+        self.env
+            .extend(env.iter().map(|(k, v)| (k.to_string(), v.to_string())));
+        self
+    }
+
+    /// Starts it; panics unless it becomes ready. On a free port, up to 5 ports are tried: one
+    /// found free can be taken by another test before the agent binds it, and then the agent
+    /// exits at once.
+    pub fn start(self) -> AgentProcess {
+        let tries = if matches!(self.serves, Serves::FreeUdpPort) {
+            5
+        } else {
+            1
+        };
+        for _ in 0..tries {
+            if let Some(agent) = self.clone().launch() {
+                return agent;
+            }
+        }
+        panic!("the agent ({:?}) did not become ready", self.serves);
+    }
+
+    /// Starts it and waits until it is ready (a ping answered within 20 s, or its ready line
+    /// within 30 s); `None` if it exited or was not ready by then. Its output is collected
+    /// ([`AgentProcess::output`]).
+    pub fn launch(self) -> Option<AgentProcess> {
+        let (mut args, instance, addr, ready) = match self.serves {
+            Serves::FreeUdpPort => {
+                let addr = SocketAddr::from(([127, 0, 0, 1], free_udp_port()));
+                let instance = self.instance.unwrap_or_else(|| unique_instance(&self.tag));
+                (udp_arguments(addr, Some(&instance)), instance, addr, None)
+            }
+            Serves::Udp(addr) => {
+                let args = udp_arguments(addr, self.instance.as_deref());
+                // The agent's own default: derived from what it serves (and the namespace).
+                let instance = self.instance.unwrap_or_else(|| {
+                    xrce_ipc::derived_instance(&format!("udp4-{}", addr.port()), &addr.to_string())
+                });
+                (args, instance, addr, None)
+            }
+            Serves::CommandLine(mut args) => {
+                let instance = self.instance.unwrap_or_else(|| unique_instance(&self.tag));
+                let (ip, port) = ip_and_port(&args);
+                args.extend(["--dds-interface".into(), "127.0.0.1".into()]);
+                args.extend(["--instance".into(), instance.clone()]);
+                let ready = Some("agent ready".to_string());
+                (args, instance, SocketAddr::new(ip, port), ready)
+            }
+            Serves::Exactly { args, ready, addr } => {
+                let instance = self.instance.unwrap_or_default();
+                (args, instance, addr, Some(ready))
+            }
+        };
+        args.extend(self.extra);
+        let env: Vec<(&str, &str)> = self
+            .env
+            .iter()
+            .map(|(k, v)| (k.as_str(), v.as_str()))
+            .collect();
+        let (child, output) = spawn_agent(&args, &env);
         let mut agent = AgentProcess {
             child,
-            port,
+            port: addr.port(),
             instance,
             ip: addr.ip(),
-            output: Some(output),
+            output: output.clone(),
         };
-        let end = Instant::now() + Duration::from_secs(20);
+        let (end, step) = match ready {
+            Some(_) => (Instant::now() + Duration::from_secs(30), 100),
+            None => (Instant::now() + Duration::from_secs(20), 200),
+        };
         while Instant::now() < end {
-            if agent.ping(Duration::from_millis(200)) {
+            let is_ready = match &ready {
+                Some(line) => output
+                    .wait_for(0, line, Duration::from_millis(step))
+                    .is_some(),
+                None => agent.ping(Duration::from_millis(step)),
+            };
+            if is_ready {
                 return Some(agent);
             }
             if let Ok(Some(_)) = agent.child.try_wait() {
@@ -252,6 +290,30 @@ impl AgentProcess {
             }
         }
         None
+    }
+}
+
+/// `udp4` bound to `addr`, DDS pinned to loopback, in `instance` if given.
+fn udp_arguments(addr: SocketAddr, instance: Option<&str>) -> Vec<String> {
+    let mut args: Vec<String> = vec![
+        "udp4".into(),
+        "-p".into(),
+        addr.port().to_string(),
+        "--bind".into(),
+        addr.ip().to_string(),
+        "--dds-interface".into(),
+        "127.0.0.1".into(),
+    ];
+    if let Some(i) = instance {
+        args.extend(["--instance".into(), i.to_string()]);
+    }
+    args
+}
+
+impl AgentProcess {
+    /// The agent's collected output.
+    pub fn output(&self) -> &AgentOutput {
+        &self.output
     }
 
     /// Pings the agent (GET_INFO without a session) until it answers INFO, up to `d`.

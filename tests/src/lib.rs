@@ -129,13 +129,13 @@ fn set_by_cargo_for_a_test(key: &str) -> bool {
 
 /// The address and port named by `-p PORT` / `--bind ADDR` in an agent command line
 /// (loopback and 0 when absent).
-fn ip_and_port(args: &[&str]) -> (std::net::IpAddr, u16) {
+fn ip_and_port(args: &[impl AsRef<str>]) -> (std::net::IpAddr, u16) {
     let mut ip: std::net::IpAddr = [127, 0, 0, 1].into();
     let mut port = 0;
     for w in args.windows(2) {
-        match w[0] {
-            "-p" | "--port" => port = w[1].parse().unwrap_or(0),
-            "--bind" => ip = w[1].parse().unwrap_or(ip),
+        match w[0].as_ref() {
+            "-p" | "--port" => port = w[1].as_ref().parse().unwrap_or(0),
+            "--bind" => ip = w[1].as_ref().parse().unwrap_or(ip),
             _ => {}
         }
     }

@@ -19,7 +19,10 @@ fn agent(tag: &str, extra: &[&str]) -> AgentProcess {
     let port = free_udp_port().to_string();
     let mut args = vec!["udp4", "-p", &port, "--bind", "127.0.0.1"];
     args.extend_from_slice(extra);
-    AgentProcess::launch(tag, &args).expect("agent")
+    AgentProcess::builder(tag)
+        .command_line(&args)
+        .launch()
+        .expect("agent")
 }
 
 /// A Cyclone reader of `count` reliable HelloWorld samples in `domain`.
@@ -76,8 +79,14 @@ fn only_listed_keys_get_a_session_and_the_others_are_told_denied() {
         ),
         status::OK
     );
-    // One warning names the refused key; repeats are only counted.
+    // One warning names the refused key; repeats are only counted. (The log line may come
+    // after the refusal it is about.)
     let out = agent.output();
+    assert!(
+        out.wait_for(0, "not in --allow-keys", 10 * SECOND)
+            .is_some(),
+        "no warning names the refused key"
+    );
     assert_eq!(out.count("not in --allow-keys"), 1);
     assert!(out.count("11112222") >= 1);
     assert!(agent.stop(), "agent did not stop cleanly");

@@ -11,7 +11,7 @@ const SECOND: Duration = Duration::from_secs(1);
 
 #[test]
 fn a_big_endian_client_publishes_values_cyclone_reads_correctly() {
-    let agent = AgentProcess::start("bigend");
+    let agent = AgentProcess::builder("bigend").start();
     let reader = DdsPeer::start(&[
         "read",
         "--domain",
@@ -55,7 +55,7 @@ fn a_big_endian_client_creates_its_entities_in_binary() {
         ParticipantBinary, TopicBinary,
     };
     use xrce_common::wire::{object_kind as k, ObjectId, Representation, VariantExtra};
-    let agent = AgentProcess::start("bigendbin");
+    let agent = AgentProcess::builder("bigendbin").start();
     let reader = DdsPeer::start(&[
         "read",
         "--domain",

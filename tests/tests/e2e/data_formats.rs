@@ -32,7 +32,7 @@ fn a_read_asking_for_sample_gets_numbered_sample_infos() {
 /// Cyclone writes five samples; a read in `format` gets each once, in its own DATA, with a
 /// SampleInfo numbering it within the read.
 fn read_in_format(format: u8, domain: i16, key: u8) {
-    let agent = AgentProcess::start(&format!("fmtsub{format}"));
+    let agent = AgentProcess::builder(&format!("fmtsub{format}")).start();
     let mut c = TestClient::new(agent.addr(), [0xF0, 0x4D, 0x00, key]);
     c.connect(10 * SECOND);
     let domain_arg = domain.to_string();
@@ -116,7 +116,7 @@ fn read_in_format(format: u8, domain: i16, key: u8) {
 
 #[test]
 fn write_data_in_format_sample_is_published() {
-    let agent = AgentProcess::start("fmtpub");
+    let agent = AgentProcess::builder("fmtpub").start();
     let reader = DdsPeer::start(&[
         "read",
         "--domain",

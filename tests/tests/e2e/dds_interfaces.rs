@@ -95,13 +95,14 @@ fn agent_with_dds_on(tag: &str, dds_interface: &str) -> AgentProcess {
             "--instance",
             &instance,
         ];
-        if let Some(a) = AgentProcess::launch_raw(
+        if let Some(a) = AgentProcess::exactly(
             &args,
-            instance.clone(),
             "agent ready",
-            IpAddr::V4(Ipv4Addr::LOCALHOST),
-            port,
-        ) {
+            SocketAddr::new(IpAddr::V4(Ipv4Addr::LOCALHOST), port),
+            &instance,
+        )
+        .launch()
+        {
             return a;
         }
     }

@@ -16,6 +16,7 @@
 //! domain 0 with the real port numbers is this test's alone.
 
 use std::io::{BufRead, BufReader};
+use std::net::SocketAddr;
 use std::process::{Child, Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
@@ -186,13 +187,13 @@ fn agent_on(port: u16, extra: &[&str]) -> AgentProcess {
         &instance,
     ];
     args.extend_from_slice(extra);
-    AgentProcess::launch_raw(
+    AgentProcess::exactly(
         &args,
-        instance.clone(),
         "agent ready",
-        [127, 0, 0, 1].into(),
-        port,
+        SocketAddr::new([127, 0, 0, 1].into(), port),
+        &instance,
     )
+    .launch()
     .unwrap_or_else(|| panic!("xrce-agent {args:?} did not start"))
 }
 

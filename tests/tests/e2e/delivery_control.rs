@@ -22,7 +22,7 @@ fn paced_sends(
     count: u32,
     message: &str,
 ) -> Vec<u32> {
-    let agent = AgentProcess::start(name);
+    let agent = AgentProcess::builder(name).start();
     let mut c = TestClient::new(agent.addr(), [0xDD, 0xC0, 0x00, domain as u8]);
     c.connect(10 * SECOND);
     c.setup_subscriber_with(
@@ -143,7 +143,7 @@ fn limited_read(
     every: u32,
     listen: Duration,
 ) -> Vec<(u32, Duration)> {
-    let agent = AgentProcess::start(name);
+    let agent = AgentProcess::builder(name).start();
     let mut c = TestClient::new(agent.addr(), [0xDD, 0xC1, 0x00, domain as u8]);
     c.connect(10 * SECOND);
     let domain_arg = domain.to_string();

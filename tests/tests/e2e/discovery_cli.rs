@@ -78,9 +78,8 @@ fn group(port: u16) -> SocketAddr {
 fn multicast_discovery_answers_with_the_agents_locator() {
     let disc = free_udp_port();
     let port = free_udp_port();
-    let agent = AgentProcess::launch(
-        "disc",
-        &[
+    let agent = AgentProcess::builder("disc")
+        .command_line(&[
             "udp4",
             "-p",
             &port.to_string(),
@@ -88,9 +87,9 @@ fn multicast_discovery_answers_with_the_agents_locator() {
             "127.0.0.1",
             "-d",
             &disc.to_string(),
-        ],
-    )
-    .expect("agent with discovery");
+        ])
+        .launch()
+        .expect("agent with discovery");
     let answers = discover(group(disc), Duration::from_secs(10));
     assert_eq!(
         answers,
@@ -120,18 +119,17 @@ fn multicast_discovery_answers_with_the_agents_locator() {
 fn a_tcp_agent_is_discovered_at_its_tcp_port() {
     let disc = free_udp_port();
     let port = free_tcp_port();
-    let agent = AgentProcess::launch(
-        "disctcp",
-        &[
+    let agent = AgentProcess::builder("disctcp")
+        .command_line(&[
             "tcp4",
             "-p",
             &port.to_string(),
             "--bind",
             "127.0.0.1",
             &format!("-d{disc}"),
-        ],
-    )
-    .expect("agent with discovery");
+        ])
+        .launch()
+        .expect("agent with discovery");
     let answers = discover(group(disc), Duration::from_secs(10));
     assert_eq!(
         answers,

@@ -33,7 +33,7 @@ fn xrce_domain_id_override_wins_over_ros_domain_id() {
 /// A client's participant in domain 255, with the agent started with `env`, publishes in
 /// `domain`, where Cyclone DDS reads each sample once.
 fn domain_255_follows(env: &[(&str, &str)], domain: u16, tag: &str, key: u8) {
-    let agent = AgentProcess::start_with_env(tag, env);
+    let agent = AgentProcess::builder(tag).env(env).start();
     let domain_arg = domain.to_string();
     let reader = DdsPeer::start(&[
         "read",

@@ -164,7 +164,7 @@ fn assert_exactly_once(got: &BTreeMap<u32, u32>, n: u32) {
 
 #[test]
 fn a_fragment_flood_from_many_sessions_stays_in_the_budget_and_others_are_served() {
-    let agent = AgentProcess::start("fragflood");
+    let agent = AgentProcess::builder("fragflood").start();
     let fe = frontend_pid(&agent);
     let before = rss_kib(fe);
     // 160 sessions, each its own socket and key, each sending 1 MiB of FRAGMENTs on one
@@ -209,11 +209,12 @@ fn a_fragment_flood_from_many_sessions_stays_in_the_budget_and_others_are_served
 fn a_session_flood_from_one_address_leaves_room_for_others() {
     // Caps lowered so that the test needs hundreds of sockets, not thousands; the
     // mechanism is the one the defaults (8192 and 2048) use.
-    let agent = AgentProcess::start_with(
-        SocketAddr::new(ip("127.0.0.1"), xrce_tests::free_udp_port()),
-        None,
-        &["--max-sessions", "300", "--max-sessions-per-address", "200"],
-    );
+    let agent = AgentProcess::at(SocketAddr::new(
+        ip("127.0.0.1"),
+        xrce_tests::free_udp_port(),
+    ))
+    .extra(&["--max-sessions", "300", "--max-sessions-per-address", "200"])
+    .start();
     let mut flood = Vec::new();
     let mut answers: BTreeMap<Option<u8>, usize> = BTreeMap::new();
     for i in 0..250u32 {
@@ -276,7 +277,7 @@ fn thousands_of_addresses_with_one_silent_session_each_do_not_lock_a_new_one_out
     // The default cap (8192 sessions): one CREATE_CLIENT from each of 8192 addresses of
     // 127.0.0.0/8, then silence. Every address holds one session, as many as a newcomer's
     // would, so only "the most silent session without objects, anywhere" makes room.
-    let agent = AgentProcess::start("lockout");
+    let agent = AgentProcess::builder("lockout").start();
     let mut refused = 0;
     for i in 0..8192u32 {
         let from = IpAddr::from([127, 2 + (i >> 8) as u8, (i & 0xFF) as u8, 1]);
@@ -314,7 +315,7 @@ fn thousands_of_addresses_with_one_silent_session_each_do_not_lock_a_new_one_out
 
 #[test]
 fn a_datagram_packed_with_create_clients_gets_one_reply() {
-    let agent = AgentProcess::start("packed");
+    let agent = AgentProcess::builder("packed").start();
     let s = UdpSocket::bind("127.0.0.1:0").expect("bind");
     s.connect(agent.addr()).expect("connect");
     s.set_read_timeout(Some(Duration::from_millis(200)))
@@ -352,7 +353,7 @@ fn a_datagram_packed_with_create_clients_gets_one_reply() {
 
 #[test]
 fn a_live_session_is_not_taken_over_and_a_restarted_client_gets_it_back() {
-    let agent = AgentProcess::start("takeover");
+    let agent = AgentProcess::builder("takeover").start();
     let key = *b"OWNR";
     let mut sub = TestClient::on_link(
         Link::udp_from(agent.addr(), ip("127.0.0.3")),
@@ -448,7 +449,10 @@ fn tcp_agent(tag: &str, extra: &[&str]) -> (AgentProcess, SocketAddr) {
     let port_arg = port.to_string();
     let mut args = vec!["tcp4", "-p", &port_arg, "--bind", "127.0.0.1"];
     args.extend_from_slice(extra);
-    let agent = AgentProcess::launch(tag, &args).expect("TCP agent");
+    let agent = AgentProcess::builder(tag)
+        .command_line(&args)
+        .launch()
+        .expect("TCP agent");
     let (_, hard) = getrlimit(Resource::RLIMIT_NOFILE).expect("getrlimit");
     setrlimit(Resource::RLIMIT_NOFILE, hard, hard).expect("setrlimit");
     (agent, SocketAddr::new(ip("127.0.0.1"), port))

@@ -135,7 +135,7 @@ impl Drop for FastDds {
 
 #[test]
 fn a_client_publishes_and_fast_dds_reads_every_sample() {
-    let agent = AgentProcess::start("fastdds-pub");
+    let agent = AgentProcess::builder("fastdds-pub").start();
     let mut reader = FastDds::start("hello_sub", &["-d", "91", "-n", "30", "-t", "90"]);
     let mut c = TestClient::new(agent.addr(), [0xFA, 0x57, 0xDD, 0x01]);
     c.connect(10 * SECOND);
@@ -172,7 +172,7 @@ fn a_client_publishes_and_fast_dds_reads_every_sample() {
 
 #[test]
 fn fast_dds_publishes_and_a_client_reads_every_sample() {
-    let agent = AgentProcess::start("fastdds-sub");
+    let agent = AgentProcess::builder("fastdds-sub").start();
     let mut c = TestClient::new(agent.addr(), [0xFA, 0x57, 0xDD, 0x02]);
     c.connect(10 * SECOND);
     c.setup_subscriber(92);
@@ -197,7 +197,7 @@ fn fast_dds_publishes_and_a_client_reads_every_sample() {
 /// matched to its request.
 #[test]
 fn an_xrce_requester_gets_each_reply_of_a_fast_dds_replier_once() {
-    let agent = AgentProcess::start("fastdds-rpc");
+    let agent = AgentProcess::builder("fastdds-rpc").start();
     let mut replier = FastDds::start("adder_replier", &["-d", "93", "-n", "100000", "-t", "90"]);
     // Its participant holds its ports before the agent makes one in the domain: two
     // implementations picking participant ids at once can both take id 0, and then one

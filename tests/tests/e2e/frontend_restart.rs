@@ -39,7 +39,7 @@ fn a_front_end_stopped_for_an_upgrade_hands_its_sessions_over() {
 fn takeover_mid_stream(tag: &str, signal: Signal, domain: i16) {
     const N: u32 = 300;
     const KILL_AT: u32 = 100;
-    let agent = AgentProcess::start(tag);
+    let agent = AgentProcess::builder(tag).start();
     let d = domain.to_string();
     let reader = DdsPeer::start(&[
         "read",
@@ -182,7 +182,9 @@ fn a_serial_front_end_killed_mid_stream_is_taken_over() {
     const KILL_AT: u32 = 50;
     let pty = PtyPair::open();
     let dev = pty.slave_path.to_str().expect("utf-8 path").to_string();
-    let agent = AgentProcess::launch("fe-kill-serial", &["serial", "--dev", &dev, "-b", "921600"])
+    let agent = AgentProcess::builder("fe-kill-serial")
+        .command_line(&["serial", "--dev", &dev, "-b", "921600"])
+        .launch()
         .expect("the serial agent did not become ready");
     let reader = DdsPeer::start(&[
         "read",
@@ -259,7 +261,9 @@ fn a_tcp_front_end_killed_leaves_no_entity_behind() {
     let mut agent = None;
     for _ in 0..5 {
         let port = free_tcp_port().to_string();
-        agent = AgentProcess::launch("fe-kill-tcp", &["tcp4", "-p", &port]);
+        agent = AgentProcess::builder("fe-kill-tcp")
+            .command_line(&["tcp4", "-p", &port])
+            .launch();
         if agent.is_some() {
             break;
         }
@@ -329,7 +333,7 @@ fn a_front_end_stopped_while_dds_data_flows_to_its_client_loses_none() {
 
 fn read_through_takeover(tag: &str, signal: Signal, domain: i16) {
     const N: u32 = 600;
-    let agent = AgentProcess::start(tag);
+    let agent = AgentProcess::builder(tag).start();
     let d = domain.to_string();
     let mut sub = TestClient::new(agent.addr(), [0x5E, 0x87, 0x00, 0x01]);
     sub.connect(10 * SECOND);

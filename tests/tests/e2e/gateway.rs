@@ -1,6 +1,7 @@
 //! The gateway: several front-ends, one per transport, on one DDS worker from one file
 //! (`xrce-agent --config FILE`), with real processes, sockets and ptys, and Cyclone DDS.
 
+use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -27,13 +28,13 @@ fn write(dir: &Path, text: &str) -> PathBuf {
 
 fn gateway(path: &Path, instance: &str) -> AgentProcess {
     let p = path.to_str().expect("utf-8 path");
-    AgentProcess::launch_raw(
+    AgentProcess::exactly(
         &["--config", p],
-        instance.to_string(),
         "agent ready",
-        [127, 0, 0, 1].into(),
-        0,
+        SocketAddr::new([127, 0, 0, 1].into(), 0),
+        instance,
     )
+    .launch()
     .expect("the gateway did not become ready")
 }
 
@@ -369,21 +370,21 @@ bind = "127.0.0.1"
     );
     let p = path.to_str().expect("utf-8");
     let localhost = [127, 0, 0, 1].into();
-    let worker = AgentProcess::launch_raw(
+    let worker = AgentProcess::exactly(
         &["--config", p, "--process", "worker"],
-        instance.clone(),
         "worker serving",
-        localhost,
-        0,
+        SocketAddr::new(localhost, 0),
+        &instance,
     )
+    .launch()
     .expect("the worker did not start");
-    let frontend = AgentProcess::launch_raw(
+    let frontend = AgentProcess::exactly(
         &["--config", p, "--process", "lan"],
-        instance.clone(),
         "worker generation seen",
-        localhost,
-        udp,
+        SocketAddr::new(localhost, udp),
+        &instance,
     )
+    .launch()
     .expect("the front-end did not start");
     let mut c = TestClient::new(([127, 0, 0, 1], udp).into(), [0x6C, 0, 0, 1]);
     c.connect(10 * SECOND);

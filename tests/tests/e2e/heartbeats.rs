@@ -18,7 +18,7 @@ const WATCH: Duration = Duration::from_secs(6);
 
 #[test]
 fn heartbeats_to_a_silent_client_back_off() {
-    let agent = AgentProcess::start("hbbackoff");
+    let agent = AgentProcess::builder("hbbackoff").start();
     let domain = 68;
     let mut sub = TestClient::new(agent.addr(), [0x4B, 0xB0, 0x00, 0x01]);
     sub.connect(10 * SECOND);

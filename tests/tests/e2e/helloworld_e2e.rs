@@ -10,7 +10,7 @@ const SECOND: Duration = Duration::from_secs(1);
 
 #[test]
 fn client_publishes_cyclone_reads_every_sample() {
-    let agent = AgentProcess::start("pub");
+    let agent = AgentProcess::builder("pub").start();
     let reader = DdsPeer::start(&[
         "read",
         "--domain",
@@ -41,7 +41,7 @@ fn client_publishes_cyclone_reads_every_sample() {
 
 #[test]
 fn cyclone_publishes_client_reads() {
-    let agent = AgentProcess::start("sub");
+    let agent = AgentProcess::builder("sub").start();
     let mut c = TestClient::new(agent.addr(), [0xCC, 0xCC, 0xDD, 0x02]);
     c.connect(10 * SECOND);
     c.setup_subscriber(12);
@@ -71,7 +71,7 @@ fn cyclone_publishes_client_reads() {
 
 #[test]
 fn client_to_client_through_the_agent() {
-    let agent = AgentProcess::start("c2c");
+    let agent = AgentProcess::builder("c2c").start();
     let mut sub = TestClient::new(agent.addr(), [0x11, 0x11, 0x11, 0x03]);
     sub.connect(10 * SECOND);
     sub.setup_subscriber(13);

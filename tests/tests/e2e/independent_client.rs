@@ -16,7 +16,7 @@ const SECOND: Duration = Duration::from_secs(1);
 
 #[test]
 fn a_client_numbering_its_streams_from_one_loses_no_first_exchange() {
-    let agent = AgentProcess::start("fromone");
+    let agent = AgentProcess::builder("fromone").start();
     let domain = 96;
     let reader = DdsPeer::start(&[
         "read",
@@ -88,7 +88,7 @@ fn a_client_numbering_its_streams_from_one_loses_no_first_exchange() {
 
 #[test]
 fn a_session_ended_by_deleting_the_client_kind_is_answered_and_deleted() {
-    let agent = AgentProcess::start("delkind");
+    let agent = AgentProcess::builder("delkind").start();
     let mut c = TestClient::with_config(agent.addr(), ClientConfig::like_rti(ClientKey(*b"RTI3")));
     c.connect(10 * SECOND);
     c.setup_publisher(97);

@@ -10,8 +10,8 @@ use xrce_tests::{free_udp_port, AgentProcess, TestClient};
 #[test]
 fn two_agents_on_one_port_do_not_share_their_ipc() {
     let port = free_udp_port();
-    let a = AgentProcess::start_on(([127, 0, 0, 1], port).into(), None);
-    let b = AgentProcess::start_on(([127, 0, 0, 2], port).into(), None);
+    let a = AgentProcess::at(([127, 0, 0, 1], port).into()).start();
+    let b = AgentProcess::at(([127, 0, 0, 2], port).into()).start();
     // The instance each agent's processes really use (not the name the harness expects):
     // the front-end's `--instance` argument (its settings travel as arguments), the
     // worker's XRCE_INSTANCE.
@@ -82,7 +82,7 @@ fn a_killed_agents_instance_is_taken_over_and_left_clean_by_the_next_one() {
     use nix::sys::signal::{kill, Signal};
     use nix::unistd::Pid;
     let port = free_udp_port();
-    let dead = AgentProcess::start_on(([127, 0, 0, 1], port).into(), None);
+    let dead = AgentProcess::at(([127, 0, 0, 1], port).into()).start();
     let instance = dead.instance.clone();
     // Freeze the supervisor so it restarts nothing, then kill everything without cleanup.
     let supervisor = Pid::from_raw(dead.pid() as i32);
@@ -115,7 +115,7 @@ fn a_killed_agents_instance_is_taken_over_and_left_clean_by_the_next_one() {
     // The same command line derives the same instance: the next agent takes it over (its
     // predecessor's dead nodes are cleaned when its own are made), serves, and leaves
     // nothing in shared memory when it stops.
-    let next = AgentProcess::start_on(([127, 0, 0, 1], port).into(), None);
+    let next = AgentProcess::at(([127, 0, 0, 1], port).into()).start();
     assert_eq!(
         next.instance(),
         instance,

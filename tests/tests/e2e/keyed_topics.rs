@@ -104,7 +104,7 @@ fn keyed_endpoint(
     endpoint: u8,
     qos: &str,
 ) -> (AgentProcess, TestClient, ObjectId) {
-    let agent = AgentProcess::start(tag);
+    let agent = AgentProcess::builder(tag).start();
     let mut c = TestClient::new(agent.addr(), [0xF0, 0x4E, 0x00, client]);
     c.connect(10 * SECOND);
     let (group, element) = if endpoint == object_kind::DATAWRITER {
@@ -363,7 +363,7 @@ fn cyclone_disposes_reach_a_sample_read_and_filters_select_samples() {
 
 #[test]
 fn a_filter_on_a_topic_of_unknown_type_is_refused() {
-    let agent = AgentProcess::start("keyednotype");
+    let agent = AgentProcess::builder("keyednotype").start();
     let mut c = TestClient::new(agent.addr(), [0xF0, 0x4E, 0x00, 0x03]);
     c.connect(10 * SECOND);
     let r = c.setup_subscriber_with(

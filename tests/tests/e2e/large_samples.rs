@@ -17,7 +17,7 @@ fn big_text(len: usize, seed: u32) -> String {
 
 #[test]
 fn client_publishes_200_kb_samples_that_cyclone_reads_intact() {
-    let agent = AgentProcess::start("bigpub");
+    let agent = AgentProcess::builder("bigpub").start();
     let reader = DdsPeer::start(&[
         "read",
         "--domain",
@@ -73,7 +73,7 @@ fn client_publishes_200_kb_samples_that_cyclone_reads_intact() {
 
 #[test]
 fn cyclone_publishes_150_kb_samples_that_the_client_reads_intact() {
-    let agent = AgentProcess::start("bigsub");
+    let agent = AgentProcess::builder("bigsub").start();
     let mut c = TestClient::new(agent.addr(), [0xB1, 0x62, 0x00, 0x02]);
     c.connect(10 * SECOND);
     c.setup_subscriber(19);

@@ -11,13 +11,12 @@ const SECOND: Duration = Duration::from_secs(1);
 #[test]
 fn a_late_transient_local_reader_gets_the_history() {
     // The worker says (at debug level) when a new writer stops holding its samples.
-    let agent = AgentProcess::start_with_env(
-        "late",
-        &[(
+    let agent = AgentProcess::builder("late")
+        .env(&[(
             "XRCE_LOG",
             "info,rustdds=error,xrce_dds_worker::worker::writes=debug",
-        )],
-    );
+        )])
+        .start();
     let mut c = TestClient::new(agent.addr(), [0x1A, 0x7E, 0x00, 0x01]);
     c.connect(10 * SECOND);
     let w = c.setup_publisher(24);

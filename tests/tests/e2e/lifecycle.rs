@@ -246,7 +246,7 @@ impl Rig {
         match wire {
             Wire::Udp => {
                 let addr: SocketAddr = ([127, 0, 0, 1], free_udp_port()).into();
-                let agent = AgentProcess::start_on(addr, None);
+                let agent = AgentProcess::at(addr).start();
                 Rig {
                     wire,
                     addr,
@@ -256,7 +256,9 @@ impl Rig {
             }
             Wire::Tcp => {
                 let port = free_tcp_port();
-                let agent = AgentProcess::launch("life-tcp", &["tcp4", "-p", &port.to_string()])
+                let agent = AgentProcess::builder("life-tcp")
+                    .command_line(&["tcp4", "-p", &port.to_string()])
+                    .launch()
                     .expect("the TCP agent did not start");
                 Rig {
                     wire,
@@ -268,9 +270,10 @@ impl Rig {
             Wire::Serial => {
                 let pty = xrce_tests::PtyPair::open();
                 let dev = pty.slave_path.display().to_string();
-                let agent =
-                    AgentProcess::launch("life-serial", &["serial", "--dev", &dev, "-b", "921600"])
-                        .expect("the serial agent did not start");
+                let agent = AgentProcess::builder("life-serial")
+                    .command_line(&["serial", "--dev", &dev, "-b", "921600"])
+                    .launch()
+                    .expect("the serial agent did not start");
                 Rig {
                     wire,
                     addr: agent.addr(),
@@ -340,7 +343,7 @@ impl Rig {
                 sigkill(old.pid() as i32);
                 drop(old);
                 // The same command line: it finds its predecessor's stored sessions.
-                self.agent = Some(AgentProcess::start_on(self.addr, None));
+                self.agent = Some(AgentProcess::at(self.addr).start());
             }
         }
     }
@@ -682,7 +685,7 @@ fn a_px4_flight_controller_keeps_its_session_through_an_agent_restart_and_its_ow
 /// finishes at its second attempt, not after ten seconds.
 #[test]
 fn a_delete_whose_reply_was_lost_is_answered_again() {
-    let agent = AgentProcess::start("life-del");
+    let agent = AgentProcess::builder("life-del").start();
     let relay = ImpairedUdp::start(agent.addr(), Impairment::clean());
     let mut dropped = false;
     // The agent's first reply to a DELETE_CLIENT: a STATUS (0x05) on stream 0.
@@ -728,7 +731,7 @@ fn a_delete_whose_reply_was_lost_is_answered_again() {
 /// A reliable publisher through a link that loses, duplicates and reorders: every sample
 /// once and in order; the time it took is printed.
 fn through_impaired_link(impairment: Impairment, domain: i16, what: &str, n: u32) {
-    let agent = AgentProcess::start("life-lossy");
+    let agent = AgentProcess::builder("life-lossy").start();
     let relay = ImpairedUdp::start(agent.addr(), impairment);
     let reader = DdsPeer::start(&[
         "read",
@@ -821,11 +824,10 @@ fn a_link_that_duplicates_and_reorders_loses_and_repeats_nothing() {
 #[test]
 fn a_serial_line_that_flips_bits_loses_and_repeats_nothing() {
     let line = NoisyLine::open(1.0 / 400.0, 11);
-    let agent = AgentProcess::launch(
-        "life-noisy",
-        &["serial", "--dev", &line.agent_path, "-b", "115200"],
-    )
-    .expect("the serial agent did not start");
+    let agent = AgentProcess::builder("life-noisy")
+        .command_line(&["serial", "--dev", &line.agent_path, "-b", "115200"])
+        .launch()
+        .expect("the serial agent did not start");
     let rounds = micro_ros_rounds(146);
     let writer = talker_writer(&rounds[0]);
     let reader = chatter_reader(30, 146);
@@ -917,7 +919,7 @@ fn an_agent_that_comes_back_tells_its_clients_where_their_streams_stand() {
 #[test]
 fn a_front_end_whose_supervisor_died_holds_its_port_for_the_successor() {
     let addr: SocketAddr = ([127, 0, 0, 1], free_udp_port()).into();
-    let old = AgentProcess::start_on(addr, None);
+    let old = AgentProcess::at(addr).start();
     let probe = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
     probe.connect(addr).expect("connect");
     probe
@@ -941,7 +943,7 @@ fn a_front_end_whose_supervisor_died_holds_its_port_for_the_successor() {
         }
     }
     let from = old.output().len();
-    let next = AgentProcess::start_on(addr, None);
+    let next = AgentProcess::at(addr).start();
     assert!(
         old.output()
             .wait_for(from, "a successor waits: letting the port go", 10 * SECOND)

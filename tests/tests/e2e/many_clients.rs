@@ -20,7 +20,7 @@ fn fifty_publishing_sessions_one_subscriber() {
     const CLIENTS: u32 = 50;
     const EACH: u32 = 10;
     const PROBE: u32 = 1_000_000;
-    let agent = AgentProcess::start("many");
+    let agent = AgentProcess::builder("many").start();
     let mut sub = TestClient::new(agent.addr(), [0x5B, 0, 0, 0]);
     sub.connect(Duration::from_secs(10));
     sub.setup_subscriber(15);

@@ -3,7 +3,7 @@
 //! the supervisor's watchdog restarting a front-end whose loop stopped, and its memory limit.
 
 use std::io::{Read, Write};
-use std::net::TcpStream;
+use std::net::{SocketAddr, TcpStream};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
@@ -67,9 +67,8 @@ fn metrics_and_status_show_the_clients_their_samples_and_the_restarts() {
     let port = free_udp_port().to_string();
     let metrics_port = free_tcp_port();
     let listen = format!("127.0.0.1:{metrics_port}");
-    let agent = AgentProcess::launch(
-        "metrics",
-        &[
+    let agent = AgentProcess::builder("metrics")
+        .command_line(&[
             "udp4",
             "-p",
             &port,
@@ -80,9 +79,9 @@ fn metrics_and_status_show_the_clients_their_samples_and_the_restarts() {
             // Far above what any process uses: nothing is killed for it.
             "--memory-limit",
             "4096",
-        ],
-    )
-    .expect("agent");
+        ])
+        .launch()
+        .expect("agent");
     let mut sub = TestClient::new(agent.addr(), [0x11, 0x11, 0x11, 0x78]);
     sub.connect(10 * SECOND);
     sub.setup_subscriber(78);
@@ -203,12 +202,11 @@ fn metrics_and_status_show_the_clients_their_samples_and_the_restarts() {
 #[test]
 fn a_front_end_whose_loop_stops_is_killed_and_restarted() {
     let port = free_udp_port().to_string();
-    let agent = AgentProcess::launch_with_env(
-        "stall",
-        &["udp4", "-p", &port, "--bind", "127.0.0.1"],
-        &[("XRCE_STALL_TIMEOUT", "3")],
-    )
-    .expect("agent");
+    let agent = AgentProcess::builder("stall")
+        .command_line(&["udp4", "-p", &port, "--bind", "127.0.0.1"])
+        .env(&[("XRCE_STALL_TIMEOUT", "3")])
+        .launch()
+        .expect("agent");
     let out = agent.output().clone();
     let frontend = agent
         .child_pid_with("frontend", "udp4")
@@ -262,13 +260,13 @@ fn a_process_over_the_memory_limit_is_killed_and_restarted() {
         "--memory-limit",
         "1",
     ];
-    let agent = AgentProcess::launch_raw(
+    let agent = AgentProcess::exactly(
         &args,
-        instance.clone(),
         "each process is restarted beyond this private resident memory",
-        "127.0.0.1".parse().expect("address"),
-        port,
+        SocketAddr::new("127.0.0.1".parse().expect("address"), port),
+        &instance,
     )
+    .launch()
     .expect("agent");
     let out = agent.output().clone();
     for name in ["xrce-dds-worker", &format!("xrce-frontend-udp4-{port}")] {

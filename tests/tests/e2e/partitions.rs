@@ -16,7 +16,7 @@ const PUBLISHER_IN_ROBOT_A: &str = "<dds><publisher><qos><partition><names><name
 
 #[test]
 fn a_publishers_partition_reaches_only_readers_of_that_partition() {
-    let agent = AgentProcess::start("partitions");
+    let agent = AgentProcess::builder("partitions").start();
     let mut c = TestClient::new(agent.addr(), [0x9A, 0x27, 0x00, 0x01]);
     c.connect(10 * SECOND);
     let p = ObjectId::new(1, k::PARTICIPANT);

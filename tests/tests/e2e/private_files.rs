@@ -57,7 +57,7 @@ fn env_of(rt: &Path) -> [(&'static str, String); 1] {
 fn start_agent(tag: &str, rt: &Path) -> AgentProcess {
     let env = env_of(rt);
     let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
-    AgentProcess::start_with_env(tag, &env)
+    AgentProcess::builder(tag).env(&env).start()
 }
 
 /// Every entry under `dir` (not following links), `dir` first.
@@ -594,7 +594,7 @@ fn files_planted_in_dev_shm_under_an_instance_s_names_do_not_stop_its_next_start
     let instance = unique_instance("pf-shm");
     let addr: std::net::SocketAddr = ([127, 0, 0, 1], xrce_tests::free_udp_port()).into();
     // A first run shows its names in /dev/shm to every local user.
-    let first = AgentProcess::start_with(addr, Some(instance.clone()), &[]);
+    let first = AgentProcess::at(addr).instance(instance.clone()).start();
     let seen = shm_files(&instance);
     assert!(!seen.is_empty(), "the agent has no shared memory");
     assert!(
@@ -612,7 +612,7 @@ fn files_planted_in_dev_shm_under_an_instance_s_names_do_not_stop_its_next_start
         std::os::unix::fs::chown(p, Some(NOBODY), Some(NOBODY)).expect("chown");
     }
     // The next start serves all the same.
-    let second = AgentProcess::start_with(addr, Some(instance.clone()), &[]);
+    let second = AgentProcess::at(addr).instance(instance.clone()).start();
     let mut c = TestClient::new(second.addr(), *b"PLNT");
     c.connect(10 * SECOND);
     c.setup_publisher(99);
@@ -632,9 +632,8 @@ fn full_client_keys_in_status_are_shown_only_to_the_agents_own_user() {
     }
     let port = free_udp_port().to_string();
     let listen = format!("127.0.0.1:{}", xrce_tests::free_tcp_port());
-    let agent = AgentProcess::launch(
-        "pf-keys",
-        &[
+    let agent = AgentProcess::builder("pf-keys")
+        .command_line(&[
             "udp4",
             "-p",
             &port,
@@ -642,9 +641,9 @@ fn full_client_keys_in_status_are_shown_only_to_the_agents_own_user() {
             "127.0.0.1",
             "--metrics",
             &listen,
-        ],
-    )
-    .expect("agent");
+        ])
+        .launch()
+        .expect("agent");
     let mut c = TestClient::new(agent.addr(), KEY);
     c.connect(10 * SECOND);
     c.setup_publisher(124);

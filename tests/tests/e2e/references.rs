@@ -13,11 +13,10 @@ use xrce_tests::{
 fn entities_created_by_reference_publish_to_cyclone() {
     let refs = workspace().join("tests/data/helloworld.refs");
     let refs = refs.to_str().expect("utf-8 path");
-    let agent = AgentProcess::start_with(
-        ([127, 0, 0, 1], free_udp_port()).into(),
-        Some(unique_instance("refs")),
-        &["-r", refs],
-    );
+    let agent = AgentProcess::at(([127, 0, 0, 1], free_udp_port()).into())
+        .instance(unique_instance("refs"))
+        .extra(&["-r", refs])
+        .start();
     let reader = DdsPeer::start(&[
         "read",
         "--domain",

@@ -44,7 +44,7 @@ fn serve(replier: &mut TestClient, id: ObjectId, seen: &mut HashSet<Vec<u8>>) ->
 
 #[test]
 fn replies_reach_the_requester_matched_to_their_requests() {
-    let agent = AgentProcess::start("rpc");
+    let agent = AgentProcess::builder("rpc").start();
     let mut replier = TestClient::new(agent.addr(), [0x2E, 0x91, 0x00, 0x01]);
     replier.connect(10 * SECOND);
     let rep = endpoint(&mut replier, k::REPLIER);
@@ -107,7 +107,7 @@ fn replies_reach_the_requester_matched_to_their_requests() {
 
 #[test]
 fn a_content_filter_on_a_requester_is_refused() {
-    let agent = AgentProcess::start("rpcfilter");
+    let agent = AgentProcess::builder("rpcfilter").start();
     let mut c = TestClient::new(agent.addr(), [0xF0, 0x51, 0x00, 0x01]);
     c.connect(10 * SECOND);
     let requester = endpoint(&mut c, k::REQUESTER);

@@ -46,7 +46,7 @@ fn parse_graph(l: &str) -> Option<Vec<Node>> {
 
 #[test]
 fn a_micro_ros_node_is_announced_with_its_endpoints_and_removed_with_them() {
-    let agent = AgentProcess::start("rosgraph");
+    let agent = AgentProcess::builder("rosgraph").start();
     let peer = DdsPeer::start(&[
         "graph",
         "--domain",

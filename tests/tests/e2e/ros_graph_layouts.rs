@@ -211,7 +211,7 @@ fn create_ros_node(c: &mut TestClient, domain: u16) {
 /// `expected` (`humble` or `jazzy`) decodes it with GIDs of its length while the other
 /// decoder decodes no such node (it fails to parse, or reads nonsense such as no node).
 fn the_node_is_decoded_in(expected: &'static str, env: &[(&str, &str)], domain: u16) {
-    let agent = AgentProcess::start_with_env("roslayout", env);
+    let agent = AgentProcess::builder("roslayout").env(env).start();
     let other = if expected == "humble" {
         "jazzy"
     } else {

@@ -14,7 +14,10 @@ use xrce_tests::{hello_world, AgentProcess, DdsPeer, Link, PtyPair, SharedLine, 
 const SECOND: Duration = Duration::from_secs(1);
 
 fn agent(tag: &str, args: &[&str]) -> AgentProcess {
-    AgentProcess::launch(tag, args).expect("the serial agent did not become ready")
+    AgentProcess::builder(tag)
+        .command_line(args)
+        .launch()
+        .expect("the serial agent did not become ready")
 }
 
 fn path(p: &Path) -> &str {

@@ -30,7 +30,7 @@ fn two_clients_publish(
     writer_xml: &str,
     second_writer_xml: &str,
 ) -> usize {
-    let agent = AgentProcess::start_with_env(tag, env);
+    let agent = AgentProcess::builder(tag).env(env).start();
     let d = domain.to_string();
     let reader = DdsPeer::start(&[
         "read",

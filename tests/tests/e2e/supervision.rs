@@ -42,7 +42,9 @@ fn restart_delays(agent: &AgentProcess, from: usize) -> Vec<u64> {
 #[test]
 fn a_child_that_keeps_dying_is_restarted_with_growing_back_off() {
     let port = free_udp_port().to_string();
-    let agent = AgentProcess::launch("backoff", &["udp4", "-p", &port, "--bind", "127.0.0.1"])
+    let agent = AgentProcess::builder("backoff")
+        .command_line(&["udp4", "-p", &port, "--bind", "127.0.0.1"])
+        .launch()
         .expect("agent");
     let out = agent.output().clone();
     let mark = out.len();
@@ -73,9 +75,8 @@ fn a_child_that_keeps_dying_is_restarted_with_growing_back_off() {
 #[test]
 fn a_client_silent_past_the_dead_time_loses_its_session_and_entities() {
     let port = free_udp_port().to_string();
-    let agent = AgentProcess::launch(
-        "deadtime",
-        &[
+    let agent = AgentProcess::builder("deadtime")
+        .command_line(&[
             "udp4",
             "-p",
             &port,
@@ -83,9 +84,9 @@ fn a_client_silent_past_the_dead_time_loses_its_session_and_entities() {
             "127.0.0.1",
             "--client-dead-time",
             "1",
-        ],
-    )
-    .expect("agent");
+        ])
+        .launch()
+        .expect("agent");
     let reader = DdsPeer::start(&[
         "read",
         "--domain",
@@ -128,7 +129,9 @@ fn a_client_silent_past_the_dead_time_loses_its_session_and_entities() {
 #[test]
 fn udp6_client_publishes_cyclone_reads_each_sample_once() {
     let port = free_udp_port().to_string();
-    let agent = AgentProcess::launch("udp6", &["udp6", "-p", &port, "--bind", "::1"])
+    let agent = AgentProcess::builder("udp6")
+        .command_line(&["udp6", "-p", &port, "--bind", "::1"])
+        .launch()
         .expect("agent on ::1");
     assert!(agent.addr().is_ipv6());
     let reader = DdsPeer::start(&[
@@ -167,7 +170,9 @@ const FLOOD_SAMPLES: u32 = 120_000;
 #[test]
 fn a_flood_to_a_stalled_subscriber_stays_within_the_agents_bounds() {
     let port = free_udp_port().to_string();
-    let agent = AgentProcess::launch("flood", &["udp4", "-p", &port, "--bind", "127.0.0.1"])
+    let agent = AgentProcess::builder("flood")
+        .command_line(&["udp4", "-p", &port, "--bind", "127.0.0.1"])
+        .launch()
         .expect("agent");
     let mut stalled = TestClient::new(agent.addr(), [0xF1, 0x00, 0x00, 0x01]);
     stalled.connect(10 * SECOND);
@@ -255,7 +260,9 @@ fn a_flood_to_a_stalled_subscriber_stays_within_the_agents_bounds() {
 #[test]
 fn a_client_asking_for_hard_liveliness_is_dropped_when_silent_and_only_it() {
     let port = free_udp_port().to_string();
-    let agent = AgentProcess::launch("hardlive", &["udp4", "-p", &port, "--bind", "127.0.0.1"])
+    let agent = AgentProcess::builder("hardlive")
+        .command_line(&["udp4", "-p", &port, "--bind", "127.0.0.1"])
+        .launch()
         .expect("agent");
     let mut config = ClientConfig::new(ClientKey([0x4C, 0x1F, 0x00, 0x01]));
     config.hard_liveliness = Some(SECOND);

@@ -112,7 +112,7 @@ fn udp_through_restart(ending: Ending, domain: i16, keys: ([u8; 4], [u8; 4])) {
     const END_AT: u32 = 60;
     let addr: SocketAddr = ([127, 0, 0, 1], free_udp_port()).into();
     // No --instance: the same command line must find its own store again.
-    let agent = AgentProcess::start_on(addr, None);
+    let agent = AgentProcess::at(addr).start();
     let instance = agent.instance().to_string();
     let reader = reader(domain);
     let mut rel = TestClient::new(addr, keys.0);
@@ -132,7 +132,7 @@ fn udp_through_restart(ending: Ending, domain: i16, keys: ([u8; 4], [u8; 4])) {
     );
     let (agent, got, best_effort) = stream_through_restart(
         agent,
-        move || AgentProcess::start_on(addr, None),
+        move || AgentProcess::at(addr).start(),
         ending,
         (&mut rel, w),
         (&mut be, bw),
@@ -194,8 +194,14 @@ fn a_serial_client_goes_on_after_the_supervisor_is_killed_and_started_again() {
         let instance = instance.clone();
         move || {
             let a: Vec<&str> = args.iter().map(String::as_str).collect();
-            AgentProcess::launch_raw(&a, instance, "agent ready", [127, 0, 0, 1].into(), 0)
-                .expect("the serial agent did not become ready")
+            AgentProcess::exactly(
+                &a,
+                "agent ready",
+                SocketAddr::new([127, 0, 0, 1].into(), 0),
+                &instance,
+            )
+            .launch()
+            .expect("the serial agent did not become ready")
         }
     };
     let agent = launch.clone()();

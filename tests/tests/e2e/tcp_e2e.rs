@@ -21,7 +21,7 @@ fn tcp_agent_with(tag: &str, transport: &str, bind: &str, extra: &[&str]) -> Age
         let port = free_tcp_port().to_string();
         let mut args = vec![transport, "-p", &port, "--bind", bind];
         args.extend_from_slice(extra);
-        if let Some(a) = AgentProcess::launch(tag, &args) {
+        if let Some(a) = AgentProcess::builder(tag).command_line(&args).launch() {
             return a;
         }
     }

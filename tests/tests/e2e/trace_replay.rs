@@ -102,7 +102,7 @@ static DOMAIN_0: std::sync::Mutex<()> = std::sync::Mutex::new(());
 fn replay(name: &str) {
     let _domain = DOMAIN_0.lock().unwrap_or_else(|p| p.into_inner());
     let lines = trace(name);
-    let agent = AgentProcess::start(&name[..8]);
+    let agent = AgentProcess::builder(&name[..8]).start();
     // One socket per client of the capture, in order of appearance.
     let mut ports: Vec<u16> = Vec::new();
     for l in &lines {

@@ -38,7 +38,7 @@ const FIRST_DOMAIN: i16 = 110;
 
 #[test]
 fn a_ninth_domain_is_refused_the_domains_survive_a_restart_and_deleted_ones_give_threads_back() {
-    let agent = AgentProcess::start("wbounds");
+    let agent = AgentProcess::builder("wbounds").start();
     let first_worker = *agent
         .child_pids("dds-worker")
         .first()
@@ -138,7 +138,7 @@ fn a_ninth_domain_is_refused_the_domains_survive_a_restart_and_deleted_ones_give
 #[test]
 fn a_keep_all_reader_with_unlimited_resources_that_never_reads_keeps_the_worker_bounded() {
     let domain = 120;
-    let agent = AgentProcess::start("keepall");
+    let agent = AgentProcess::builder("keepall").start();
     let worker = *agent
         .child_pids("dds-worker")
         .first()
@@ -202,7 +202,9 @@ fn a_keep_all_reader_with_unlimited_resources_that_never_reads_keeps_the_worker_
 /// client still has its own 3.
 #[test]
 fn the_entity_bound_per_client_is_a_setting_of_the_agent() {
-    let agent = AgentProcess::start_with_env("entcap", &[("XRCE_MAX_ENTITIES_PER_CLIENT", "3")]);
+    let agent = AgentProcess::builder("entcap")
+        .env(&[("XRCE_MAX_ENTITIES_PER_CLIENT", "3")])
+        .start();
     let p = ObjectId::new(1, k::PARTICIPANT);
     let t = ObjectId::new(1, k::TOPIC);
     let g = ObjectId::new(1, k::PUBLISHER);

@@ -22,7 +22,7 @@ fn publisher_and_reader(
     domain: i16,
     key: [u8; 4],
 ) -> (AgentProcess, DdsPeer, TestClient, ObjectId, i32) {
-    let agent = AgentProcess::start(tag);
+    let agent = AgentProcess::builder(tag).start();
     // The reader counts duplicates too, so let it run past what is written.
     let reader = DdsPeer::start(&[
         "read",
@@ -211,7 +211,7 @@ fn worker_sigkill_mid_best_effort_stream_resumes_it() {
 fn worker_sigkill_while_a_client_reads_resumes_its_samples_none_twice() {
     // 10 s of samples: the restart, the replay and DDS matching again have about 9 s.
     const N: u32 = 500;
-    let agent = AgentProcess::start("killread");
+    let agent = AgentProcess::builder("killread").start();
     let mut c = TestClient::new(agent.addr(), [0xAB, 0xCD, 0xEF, 0x05]);
     c.connect(10 * SECOND);
     c.setup_subscriber(36);

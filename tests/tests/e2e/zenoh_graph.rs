@@ -37,13 +37,12 @@ fn start_graph(tag: &str) -> Graph {
     );
     let overrides =
         format!("connect/endpoints=[\"{endpoint}\"];listen/endpoints=[\"tcp/127.0.0.1:0\"]");
-    let agent = AgentProcess::start_with_env(
-        tag,
-        &[
+    let agent = AgentProcess::builder(tag)
+        .env(&[
             ("XRCE_DDS_BACKEND", "zenoh"),
             ("ZENOH_CONFIG_OVERRIDE", &overrides),
-        ],
-    );
+        ])
+        .start();
     Graph {
         router,
         endpoint,
@@ -769,13 +768,12 @@ fn devices_on_two_lans_meet_through_one_router() {
 fn lan_role(role: &str, router: &str) {
     let overrides =
         format!("connect/endpoints=[\"{router}\"];listen/endpoints=[\"tcp/127.0.0.1:0\"]");
-    let agent = AgentProcess::start_with_env(
-        &format!("lan{role}"),
-        &[
+    let agent = AgentProcess::builder(&format!("lan{role}"))
+        .env(&[
             ("XRCE_DDS_BACKEND", "zenoh"),
             ("ZENOH_CONFIG_OVERRIDE", &overrides),
-        ],
-    );
+        ])
+        .start();
     let mut c = TestClient::new(agent.addr(), [0x2E, 0x40, 0x00, 0x10]);
     c.connect(10 * SECOND);
     let (w, r) = create_talker(&mut c, qos_flags::RELIABLE | qos_flags::HISTORY_KEEP_LAST);
