@@ -12,20 +12,9 @@ use xrce_common::session::agent::{Agent, AgentConfig, NullSink};
 use xrce_common::wire::*;
 
 fn create_client(key: ClientKey) -> Vec<u8> {
-    let mut b = MessageBuilder::new(MessageHeader::new(0x00, 0, 0, key));
-    let payload = Payload::CreateClient(CreateClientPayload {
-        cookie: XRCE_COOKIE,
-        version: XRCE_VERSION,
-        vendor_id: VENDOR_EPROSIMA,
-        client_key: key,
-        session_id: 0x81,
-        properties: None,
-        mtu: Some(512),
-    });
-    if b.push(&payload, true).is_err() {
-        return Vec::new();
-    }
-    b.finish()
+    let create = CreateClientPayload::eprosima(key, 0x81);
+    let header = MessageHeader::new(0x00, 0, 0, key);
+    MessageBuilder::single(header, &Payload::CreateClient(create)).unwrap_or_default()
 }
 
 struct Outcome {

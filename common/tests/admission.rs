@@ -35,21 +35,12 @@ const ELSEWHERE: u32 = 2;
 const KEY: ClientKey = ClientKey([0xAA, 0xAA, 0xBB, 0xBB]);
 
 fn create_client(key: ClientKey) -> Vec<u8> {
-    let mut b = MessageBuilder::new(MessageHeader::new(0x00, 0, 0, key));
-    b.push(
-        &Payload::CreateClient(CreateClientPayload {
-            cookie: XRCE_COOKIE,
-            version: XRCE_VERSION,
-            vendor_id: VENDOR_EPROSIMA,
-            client_key: key,
-            session_id: 0x01,
-            properties: None,
-            mtu: Some(512),
-        }),
-        true,
+    let create = CreateClientPayload::eprosima(key, 0x01);
+    MessageBuilder::single(
+        MessageHeader::new(0x00, 0, 0, key),
+        &Payload::CreateClient(create),
     )
-    .expect("encode");
-    b.finish()
+    .expect("encode")
 }
 
 /// A WRITE_DATA of `sample` on the reliable stream 1 (with the key in the header).

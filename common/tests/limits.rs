@@ -25,21 +25,12 @@ fn key(n: u32) -> ClientKey {
 }
 
 fn create_client(k: ClientKey) -> Vec<u8> {
-    let mut b = MessageBuilder::new(MessageHeader::new(0x00, 0, 0, k));
-    b.push(
-        &Payload::CreateClient(CreateClientPayload {
-            cookie: XRCE_COOKIE,
-            version: XRCE_VERSION,
-            vendor_id: VENDOR_EPROSIMA,
-            client_key: k,
-            session_id: 0x01,
-            properties: None,
-            mtu: Some(512),
-        }),
-        true,
+    let create = CreateClientPayload::eprosima(k, 0x01);
+    MessageBuilder::single(
+        MessageHeader::new(0x00, 0, 0, k),
+        &Payload::CreateClient(create),
     )
-    .expect("encode");
-    b.finish()
+    .expect("encode")
 }
 
 /// A reliable message (stream 0x80) holding one FRAGMENT of `len` bytes, not the last.

@@ -51,21 +51,16 @@ const ADDR: u32 = 7;
 const KEY: ClientKey = ClientKey([0xA1, 0xB2, 0xC3, 0xD4]);
 
 fn create_client(vendor_id: [u8; 2], properties: Option<Vec<Property>>) -> Vec<u8> {
-    let mut b = MessageBuilder::new(MessageHeader::new(0x00, 0, 0, KEY));
-    b.push(
-        &Payload::CreateClient(CreateClientPayload {
-            cookie: XRCE_COOKIE,
-            version: XRCE_VERSION,
-            vendor_id,
-            client_key: KEY,
-            session_id: 0x01,
-            properties,
-            mtu: Some(512),
-        }),
-        true,
+    let create = CreateClientPayload {
+        vendor_id,
+        properties,
+        ..CreateClientPayload::eprosima(KEY, 0x01)
+    };
+    MessageBuilder::single(
+        MessageHeader::new(0x00, 0, 0, KEY),
+        &Payload::CreateClient(create),
     )
-    .expect("encode");
-    b.finish()
+    .expect("encode")
 }
 
 fn in_session(stream: u8, seq: u16, payload: Payload<'_>) -> Vec<u8> {

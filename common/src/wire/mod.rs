@@ -223,6 +223,14 @@ impl MessageBuilder {
         MessageBuilder { buf }
     }
 
+    /// A message of `payload` alone after `header`, little-endian (what tests and tools send
+    /// one submessage at a time).
+    pub fn single(header: MessageHeader, payload: &Payload<'_>) -> Result<Vec<u8>, EncodeError> {
+        let mut b = MessageBuilder::new(header);
+        b.push(payload, true)?;
+        Ok(b.finish())
+    }
+
     /// Length so far.
     pub fn len(&self) -> usize {
         self.buf.len()

@@ -4,7 +4,10 @@
 //! once, straight from the socket buffer to its destination.
 
 use super::cdr::{CdrReader, CdrWriter};
-use super::types::{object_kind, ClientKey, ObjectId, RequestId, ResultStatus, Time, XRCE_COOKIE};
+use super::types::{
+    object_kind, ClientKey, ObjectId, RequestId, ResultStatus, Time, VENDOR_EPROSIMA, XRCE_COOKIE,
+    XRCE_VERSION,
+};
 use super::DecodeError;
 
 /// Submessage ids (§8.3.5, Table 10).
@@ -168,6 +171,21 @@ pub struct CreateClientPayload {
 }
 
 impl CreateClientPayload {
+    /// What an eProsima client sends to open session `session_id` as `key`: this protocol
+    /// version, eProsima's vendor id, no properties, an MTU of 512 (change a field with
+    /// `..CreateClientPayload::eprosima(key, id)`).
+    pub fn eprosima(key: ClientKey, session_id: u8) -> Self {
+        CreateClientPayload {
+            cookie: XRCE_COOKIE,
+            version: XRCE_VERSION,
+            vendor_id: VENDOR_EPROSIMA,
+            client_key: key,
+            session_id,
+            properties: None,
+            mtu: Some(512),
+        }
+    }
+
     fn decode(r: &mut CdrReader<'_>) -> Result<Self, DecodeError> {
         let cookie = r.array()?;
         let version = r.array()?;

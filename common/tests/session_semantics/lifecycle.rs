@@ -6,21 +6,12 @@
 use super::*;
 
 fn create_client_with(session_id: u8) -> Vec<u8> {
-    let mut b = MessageBuilder::new(MessageHeader::new(0x00, 0, 0, KEY));
-    b.push(
-        &Payload::CreateClient(CreateClientPayload {
-            cookie: XRCE_COOKIE,
-            version: XRCE_VERSION,
-            vendor_id: VENDOR_EPROSIMA,
-            client_key: KEY,
-            session_id,
-            properties: None,
-            mtu: Some(512),
-        }),
-        true,
+    let create = CreateClientPayload::eprosima(KEY, session_id);
+    MessageBuilder::single(
+        MessageHeader::new(0x00, 0, 0, KEY),
+        &Payload::CreateClient(create),
     )
-    .expect("encode");
-    b.finish()
+    .expect("encode")
 }
 
 /// A WRITE_DATA on reliable stream 0x80 of session 0x01, numbered `seq`.

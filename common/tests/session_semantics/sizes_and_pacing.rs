@@ -294,21 +294,17 @@ fn a_best_effort_sample_larger_than_the_client_mtu_is_dropped_without_a_sequence
     // A client that announces no MTU (a spec client): only the transport bounds its
     // best-effort messages.
     let mut spec = Agent::new(AgentConfig::default());
-    let mut b = MessageBuilder::new(MessageHeader::new(0x00, 0, 0, KEY));
-    b.push(
-        &Payload::CreateClient(CreateClientPayload {
-            cookie: XRCE_COOKIE,
-            version: XRCE_VERSION,
-            vendor_id: [9, 9],
-            client_key: KEY,
-            session_id: 0x01,
-            properties: None,
-            mtu: None,
-        }),
-        true,
+    let create = CreateClientPayload {
+        vendor_id: [9, 9],
+        mtu: None,
+        ..CreateClientPayload::eprosima(KEY, 0x01)
+    };
+    let message = MessageBuilder::single(
+        MessageHeader::new(0x00, 0, 0, KEY),
+        &Payload::CreateClient(create),
     )
     .expect("encode");
-    spec.handle_datagram(t0, ADDR, &b.finish(), &mut Recorder::default());
+    spec.handle_datagram(t0, ADDR, &message, &mut Recorder::default());
     drain(&mut spec);
     spec.send_data(t0, KEY, stream_id::BUILTIN_BEST_EFFORT, reply(&BIG))
         .expect("sent");

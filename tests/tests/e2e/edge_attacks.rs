@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use xrce_common::session::client::ClientConfig;
 use xrce_common::wire::{
     flags, status, stream_id, submessage_id, ClientKey, CreateClientPayload, Message,
-    MessageBuilder, MessageHeader, Payload, VENDOR_EPROSIMA, XRCE_COOKIE, XRCE_VERSION,
+    MessageBuilder, MessageHeader, Payload,
 };
 use xrce_tests::{free_tcp_port, hello_world, rss_kib, AgentProcess, Link, TestClient};
 
@@ -28,21 +28,12 @@ fn frontend_pid(agent: &AgentProcess) -> i32 {
 }
 
 fn create_client(key: ClientKey) -> Vec<u8> {
-    let mut b = MessageBuilder::new(MessageHeader::new(0x00, 0, 0, key));
-    b.push(
-        &Payload::CreateClient(CreateClientPayload {
-            cookie: XRCE_COOKIE,
-            version: XRCE_VERSION,
-            vendor_id: VENDOR_EPROSIMA,
-            client_key: key,
-            session_id: 0x81,
-            properties: None,
-            mtu: Some(512),
-        }),
-        true,
+    let create = CreateClientPayload::eprosima(key, 0x81);
+    MessageBuilder::single(
+        MessageHeader::new(0x00, 0, 0, key),
+        &Payload::CreateClient(create),
     )
-    .expect("encode");
-    b.finish()
+    .expect("encode")
 }
 
 /// A reliable message on stream 0x80 holding one FRAGMENT of `len` bytes, not the last.
