@@ -15,6 +15,7 @@ mod dds_peer;
 pub mod domains;
 pub mod impaired;
 pub mod link;
+pub mod scenarios;
 pub use agent_process::*;
 pub use client::*;
 pub use dds_peer::*;

@@ -4,38 +4,17 @@
 
 use std::time::Duration;
 
-use xrce_tests::{hello_world, AgentProcess, DdsPeer, Deliveries, TestClient};
+use xrce_tests::scenarios;
+use xrce_tests::{hello_world, AgentProcess, Deliveries, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
 
 #[test]
 fn client_publishes_cyclone_reads_every_sample() {
     let agent = AgentProcess::builder("pub").start();
-    let reader = DdsPeer::start(&[
-        "read",
-        "--domain",
-        "11",
-        "--count",
-        "50",
-        "--reliable",
-        "--timeout",
-        "60",
-    ]);
     let mut c = TestClient::new(agent.addr(), [0xAA, 0xAA, 0xBB, 0x01]);
     c.connect(10 * SECOND);
-    let w = c.setup_publisher(11);
-    assert!(
-        reader
-            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
-            .is_some(),
-        "Cyclone never matched the agent's writer"
-    );
-    for i in 0..50 {
-        c.write_reliable(w, &hello_world(i, "Hello DDS world!"));
-    }
-    let got = reader.collect_deliveries(50, "Hello DDS world!", 30 * SECOND, || c.step());
-    got.assert_exactly_once(0..50, "Cyclone reading a client");
-    got.assert_in_order("Cyclone reading a client");
+    scenarios::client_publishes_cyclone_reads(&mut c, 11, 50, "Hello DDS world!", "a client");
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
@@ -44,28 +23,7 @@ fn cyclone_publishes_client_reads() {
     let agent = AgentProcess::builder("sub").start();
     let mut c = TestClient::new(agent.addr(), [0xCC, 0xCC, 0xDD, 0x02]);
     c.connect(10 * SECOND);
-    c.setup_subscriber(12);
-    let mut writer = DdsPeer::start(&[
-        "write",
-        "--domain",
-        "12",
-        "--count",
-        "20",
-        "--interval-ms",
-        "10",
-        "--message",
-        "from cyclone",
-        "--wait-match",
-        "--reliable",
-        "--timeout",
-        "60",
-        "--linger-ms",
-        "3000",
-    ]);
-    let got = c.collect_deliveries(20, "from cyclone", 60 * SECOND);
-    got.assert_exactly_once(0..20, "a client reading Cyclone");
-    got.assert_in_order("a client reading Cyclone");
-    assert_eq!(writer.wait(30 * SECOND, || c.step()), Some(0));
+    scenarios::cyclone_publishes_client_reads(&mut c, 12, 20, "from cyclone", "a client");
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 

@@ -9,6 +9,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use xrce_common::wire::stream_id;
+use xrce_tests::scenarios;
 use xrce_tests::{hello_world, AgentProcess, DdsPeer, Link, PtyPair, SharedLine, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
@@ -31,31 +32,9 @@ fn serial_client_publishes_cyclone_reads_each_sample_once() {
         "serpub",
         &["serial", "--dev", path(&pty.slave_path), "-b", "921600"],
     );
-    let reader = DdsPeer::start(&[
-        "read",
-        "--domain",
-        "54",
-        "--count",
-        "30",
-        "--reliable",
-        "--timeout",
-        "60",
-    ]);
     let mut c = TestClient::serial(pty.master, 1, [0x5E, 0x41, 0, 1]);
     c.connect(10 * SECOND);
-    let w = c.setup_publisher(54);
-    assert!(
-        reader
-            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
-            .is_some(),
-        "Cyclone never matched the agent's writer"
-    );
-    for i in 0..30 {
-        c.write_reliable(w, &hello_world(i, "over serial"));
-    }
-    let got = reader.collect_deliveries(30, "over serial", 30 * SECOND, || c.step());
-    got.assert_exactly_once(0..30, "Cyclone reading a serial client");
-    got.assert_in_order("Cyclone reading a serial client");
+    scenarios::client_publishes_cyclone_reads(&mut c, 54, 30, "over serial", "a serial client");
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 

@@ -8,6 +8,7 @@ use xrce_common::session::client::ClientEvent;
 use xrce_common::wire::{
     object_kind, status, ObjectId, ObjectVariant, Representation, VariantExtra,
 };
+use xrce_tests::scenarios;
 use xrce_tests::{free_tcp_port, hello_world, xml, AgentProcess, DdsPeer, Link, TestClient};
 
 const SECOND: Duration = Duration::from_secs(1);
@@ -31,31 +32,9 @@ fn tcp_agent_with(tag: &str, transport: &str, bind: &str, extra: &[&str]) -> Age
 #[test]
 fn tcp4_client_publishes_cyclone_reads_each_sample_once() {
     let agent = tcp_agent("tcp4pub", "tcp4", "127.0.0.1");
-    let reader = DdsPeer::start(&[
-        "read",
-        "--domain",
-        "50",
-        "--count",
-        "50",
-        "--reliable",
-        "--timeout",
-        "60",
-    ]);
     let mut c = TestClient::tcp(agent.addr(), [0x7C, 0x90, 0, 1]);
     c.connect(10 * SECOND);
-    let w = c.setup_publisher(50);
-    assert!(
-        reader
-            .wait_for("MATCHED 1", 30 * SECOND, || c.step())
-            .is_some(),
-        "Cyclone never matched the agent's writer"
-    );
-    for i in 0..50 {
-        c.write_reliable(w, &hello_world(i, "over tcp"));
-    }
-    let got = reader.collect_deliveries(50, "over tcp", 30 * SECOND, || c.step());
-    got.assert_exactly_once(0..50, "Cyclone reading a TCP client");
-    got.assert_in_order("Cyclone reading a TCP client");
+    scenarios::client_publishes_cyclone_reads(&mut c, 50, 50, "over tcp", "a TCP client");
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
@@ -65,27 +44,7 @@ fn cyclone_publishes_tcp6_client_reads_each_sample_once() {
     assert!(agent.addr().is_ipv6());
     let mut c = TestClient::tcp(agent.addr(), [0x7C, 0x90, 0, 2]);
     c.connect(10 * SECOND);
-    c.setup_subscriber(51);
-    let _writer = DdsPeer::start(&[
-        "write",
-        "--domain",
-        "51",
-        "--count",
-        "20",
-        "--interval-ms",
-        "10",
-        "--message",
-        "to tcp6",
-        "--wait-match",
-        "--reliable",
-        "--timeout",
-        "60",
-        "--linger-ms",
-        "3000",
-    ]);
-    let got = c.collect_deliveries(20, "to tcp6", 60 * SECOND);
-    got.assert_exactly_once(0..20, "a TCP/IPv6 client reading Cyclone");
-    got.assert_in_order("a TCP/IPv6 client reading Cyclone");
+    scenarios::cyclone_publishes_client_reads(&mut c, 51, 20, "to tcp6", "a TCP/IPv6 client");
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
