@@ -49,21 +49,23 @@ fi
 
 # Runs the named tests side by side in one process (each module keeps to DDS domains of its
 # own, so tests of different modules do not see each other), under XRCE_FAULT=$1 (none: no
-# fault), into the log $2.
+# fault), into the log $2; libtest writes each test's result on a line of its own into
+# $2.results (the log itself may have a child's output in the middle of a result line).
 run() {
   local fault=$1 log=$2
   shift 2
   if [ "$fault" = none ]; then
-    (cd tests && env -u XRCE_FAULT "$exe" --exact "$@") >"$log" 2>&1
+    (cd tests && env -u XRCE_FAULT "$exe" --exact --logfile "$log.results" "$@") >"$log" 2>&1
   else
-    (cd tests && XRCE_FAULT=$fault "$exe" --exact "$@") >"$log" 2>&1
+    (cd tests && XRCE_FAULT=$fault "$exe" --exact --logfile "$log.results" "$@") >"$log" 2>&1
   fi
   return 0
 }
 
-# What the log $1 says of the test $2: ok, FAILED, or nothing when it did not run.
+# What the run of the log $1 says of the test $2: ok, FAILED, or nothing when it did not run.
 outcome() {
-  awk -v t="$2" '$1 == "test" && $2 == t && $3 == "..." { print $4; exit }' "$1"
+  awk -v t="$2" '$2 == t && $1 == "ok" { print "ok"; exit }
+                 $2 == t && $1 == "failed" { print "FAILED"; exit }' "$1.results" 2>/dev/null
 }
 
 # The captured output of the failed test $2 in the log $1 (libtest prints it after the run).
@@ -98,9 +100,16 @@ report=()
 start=$SECONDS
 run none "$logs/none" "${!control[@]}"
 for test in "${!control[@]}"; do
-  if [ "$(outcome "$logs/none" "$test")" = ok ]; then
+  result=$(outcome "$logs/none" "$test")
+  if [ "$result" = ok ]; then
     control[$test]=green
     echo "without a fault  $test: passed"
+  elif [ "$result" != FAILED ]; then
+    control[$test]=red
+    missed=$((missed + 1))
+    echo "without a fault  $test: did not run:"
+    tail -n 5 "$logs/none"
+    report+=("$(printf '%-17s %-95s %s' none "$test" "DID NOT RUN")")
   else
     control[$test]=red
     missed=$((missed + 1))

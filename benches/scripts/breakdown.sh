@@ -28,11 +28,24 @@ mkdir -p "$OUT"
 XRCE_RUNTIME_DIR=$(mktemp -d)
 export XRCE_RUNTIME_DIR
 export XRCE_DISCARD_SESSIONS=true
+AG=
+LG=
+# Whatever happens, nothing is left running and the runtime directory goes.
+cleanup() {
+  for p in $LG $AG; do kill "$p" 2>/dev/null || true; done
+  wait 2>/dev/null || true
+  rm -rf "$XRCE_RUNTIME_DIR"
+}
+trap cleanup EXIT
 "$R/xrce-agent" udp4 -p 9999 --dds-interface 127.0.0.1 -v 2 >"$OUT/agent.log" 2>&1 &
 AG=$!
 sleep 4
 FE=$(pgrep -P $AG -f " frontend" | head -1)
 WK=$(pgrep -P $AG -f " dds-worker" | head -1)
+if [ -z "$FE" ] || [ -z "$WK" ]; then
+  echo "breakdown.sh: the agent's front-end or worker did not start (see $OUT/agent.log)" >&2
+  exit 1
+fi
 "$R/xrce-loadgen" --no-agent --port 9999 --publishers 10 --subscribers 1 --rate 1000 \
   --best-effort --samples 60000 --payload 40 >"$OUT/loadgen.txt" 2>&1 &
 LG=$!
@@ -61,14 +74,17 @@ S2=$!
 wait $S1 || true
 wait $S2 || true
 sleep 1
-for p in frontend:$FE worker:$WK; do
-  perf record -F 4999 -g -p "${p#*:}" -o "$OUT/perf-${p%%:*}.data" -- sleep 10 >/dev/null 2>&1 &
-done
-wait_perf=$(jobs -p | grep -v "^$LG$" | grep -v "^$AG$" || true)
-for j in $wait_perf; do wait "$j" || true; done
+perf record -F 4999 -g -p $FE -o "$OUT/perf-frontend.data" -- sleep 10 >/dev/null 2>&1 &
+P1=$!
+perf record -F 4999 -g -p $WK -o "$OUT/perf-worker.data" -- sleep 10 >/dev/null 2>&1 &
+P2=$!
+wait $P1 || true
+wait $P2 || true
 wait $LG || true
+LG=
 kill $AG
 wait $AG || true
+AG=
 for p in frontend worker; do
   {
     perf report -i "$OUT/perf-$p.data" --no-children --sort dso --stdio -g none 2>/dev/null | grep -v '^#' | grep -v '^$' | head -6

@@ -17,7 +17,8 @@ const AGENT_DEFAULT: u32 = 255;
 
 /// Records that the running test's module uses `domain`; panics if another module does.
 ///
-/// The module is read from the thread libtest runs the test on (named `module::test`).
+/// The module is read from the thread libtest runs the test on (named `module::test`, or
+/// `module::inner::test` for a test in a nested module, which counts as its top module's).
 /// Threads a test starts itself are unnamed and claim nothing: the test's own claims cover
 /// them. Outside a suite of modules (a name without `::`) nothing is checked.
 pub fn claim(domain: u32) {
@@ -25,7 +26,7 @@ pub fn claim(domain: u32) {
         return;
     }
     let thread = std::thread::current();
-    let Some((module, _)) = thread.name().and_then(|name| name.rsplit_once("::")) else {
+    let Some((module, _)) = thread.name().and_then(|name| name.split_once("::")) else {
         return;
     };
     static CLAIMS: Mutex<BTreeMap<u32, String>> = Mutex::new(BTreeMap::new());
@@ -77,5 +78,7 @@ mod tests {
         assert!(run("first::b", 231));
         assert!(!run("second::c", 231));
         assert!(run("second::c", 230));
+        // A nested module is its top module's.
+        assert!(run("first::inner::d", 231));
     }
 }
