@@ -12,9 +12,9 @@ use xrce_common::session::agent::{Agent, AgentConfig, NullSink};
 use xrce_common::wire::*;
 
 fn create_client(key: ClientKey) -> Vec<u8> {
-    let create = CreateClientPayload::eprosima(key, 0x81);
-    let header = MessageHeader::new(0x00, 0, 0, key);
-    MessageBuilder::single(header, &Payload::CreateClient(create)).unwrap_or_default()
+    CreateClientPayload::eprosima(key, 0x81)
+        .message()
+        .unwrap_or_default()
 }
 
 struct Outcome {

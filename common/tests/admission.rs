@@ -35,12 +35,9 @@ const ELSEWHERE: u32 = 2;
 const KEY: ClientKey = ClientKey([0xAA, 0xAA, 0xBB, 0xBB]);
 
 fn create_client(key: ClientKey) -> Vec<u8> {
-    let create = CreateClientPayload::eprosima(key, 0x01);
-    MessageBuilder::single(
-        MessageHeader::new(0x00, 0, 0, key),
-        &Payload::CreateClient(create),
-    )
-    .expect("encode")
+    CreateClientPayload::eprosima(key, 0x01)
+        .message()
+        .expect("encode")
 }
 
 /// A WRITE_DATA of `sample` on the reliable stream 1 (with the key in the header).

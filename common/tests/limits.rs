@@ -25,12 +25,9 @@ fn key(n: u32) -> ClientKey {
 }
 
 fn create_client(k: ClientKey) -> Vec<u8> {
-    let create = CreateClientPayload::eprosima(k, 0x01);
-    MessageBuilder::single(
-        MessageHeader::new(0x00, 0, 0, k),
-        &Payload::CreateClient(create),
-    )
-    .expect("encode")
+    CreateClientPayload::eprosima(k, 0x01)
+        .message()
+        .expect("encode")
 }
 
 /// A reliable message (stream 0x80) holding one FRAGMENT of `len` bytes, not the last.

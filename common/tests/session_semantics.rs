@@ -51,15 +51,12 @@ const ADDR: u32 = 7;
 const KEY: ClientKey = ClientKey([0xA1, 0xB2, 0xC3, 0xD4]);
 
 fn create_client(vendor_id: [u8; 2], properties: Option<Vec<Property>>) -> Vec<u8> {
-    let create = CreateClientPayload {
+    CreateClientPayload {
         vendor_id,
         properties,
         ..CreateClientPayload::eprosima(KEY, 0x01)
-    };
-    MessageBuilder::single(
-        MessageHeader::new(0x00, 0, 0, KEY),
-        &Payload::CreateClient(create),
-    )
+    }
+    .message()
     .expect("encode")
 }
 

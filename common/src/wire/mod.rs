@@ -209,6 +209,15 @@ impl<'a> Message<'a> {
     }
 }
 
+impl CreateClientPayload {
+    /// This CREATE_CLIENT alone in a message whose header carries the client's key (session
+    /// id 0x00), little-endian: what a client with a key sends to open its session.
+    pub fn message(self) -> Result<Vec<u8>, EncodeError> {
+        let header = MessageHeader::new(0x00, 0, 0, self.client_key);
+        MessageBuilder::single(header, &Payload::CreateClient(self))
+    }
+}
+
 /// Builds a message one submessage at a time, with padding and lengths filled in.
 #[derive(Debug, Clone)]
 pub struct MessageBuilder {

@@ -6,12 +6,9 @@
 use super::*;
 
 fn create_client_with(session_id: u8) -> Vec<u8> {
-    let create = CreateClientPayload::eprosima(KEY, session_id);
-    MessageBuilder::single(
-        MessageHeader::new(0x00, 0, 0, KEY),
-        &Payload::CreateClient(create),
-    )
-    .expect("encode")
+    CreateClientPayload::eprosima(KEY, session_id)
+        .message()
+        .expect("encode")
 }
 
 /// A WRITE_DATA on reliable stream 0x80 of session 0x01, numbered `seq`.

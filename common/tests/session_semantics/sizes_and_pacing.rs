@@ -294,15 +294,12 @@ fn a_best_effort_sample_larger_than_the_client_mtu_is_dropped_without_a_sequence
     // A client that announces no MTU (a spec client): only the transport bounds its
     // best-effort messages.
     let mut spec = Agent::new(AgentConfig::default());
-    let create = CreateClientPayload {
+    let message = CreateClientPayload {
         vendor_id: [9, 9],
         mtu: None,
         ..CreateClientPayload::eprosima(KEY, 0x01)
-    };
-    let message = MessageBuilder::single(
-        MessageHeader::new(0x00, 0, 0, KEY),
-        &Payload::CreateClient(create),
-    )
+    }
+    .message()
     .expect("encode");
     spec.handle_datagram(t0, ADDR, &message, &mut Recorder::default());
     drain(&mut spec);

@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use xrce_common::session::client::ClientConfig;
 use xrce_common::wire::{
     flags, status, stream_id, submessage_id, ClientKey, CreateClientPayload, Message,
-    MessageBuilder, MessageHeader, Payload,
+    MessageHeader, Payload,
 };
 use xrce_tests::{free_tcp_port, hello_world, rss_kib, AgentProcess, Link, TestClient};
 
@@ -28,12 +28,9 @@ fn frontend_pid(agent: &AgentProcess) -> i32 {
 }
 
 fn create_client(key: ClientKey) -> Vec<u8> {
-    let create = CreateClientPayload::eprosima(key, 0x81);
-    MessageBuilder::single(
-        MessageHeader::new(0x00, 0, 0, key),
-        &Payload::CreateClient(create),
-    )
-    .expect("encode")
+    CreateClientPayload::eprosima(key, 0x81)
+        .message()
+        .expect("encode")
 }
 
 /// A reliable message on stream 0x80 holding one FRAGMENT of `len` bytes, not the last.
