@@ -7,24 +7,25 @@ crate, then the children of each module among themselves, so a child naming its 
 (`super::`) is not a cycle but two siblings naming each other are. Test modules (`tests`,
 `#[cfg(test)]` files under `tests/`) are left out: they may reach anywhere.
 
-Usage: scripts/module_cycles.py [CRATE_SRC_DIR ...]   (default: every crate's src/)
+Usage: scripts/module_cycles.py [CRATE_SRC_DIR ...]   (default: the src/ of every member of
+the workspace, as Cargo.toml lists them)
 """
 
 import os
 import re
 import sys
+import tomllib
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_CRATES = [
-    "common/src",
-    "common/ipc/src",
-    "agent-frontend/src",
-    "agent-dds-worker/src",
-    "deploy/src",
-    "benches/src",
-    "tests/src",
-]
+
+
+def workspace_crates():
+    """The src/ folder of every workspace member (a new crate is checked without a change here)."""
+    with open(ROOT / "Cargo.toml", "rb") as f:
+        members = tomllib.load(f)["workspace"]["members"]
+    return [f"{m}/src" for m in members]
+
 
 PATH = re.compile(r"\b(crate|super|self)((?:::[A-Za-z_][A-Za-z0-9_]*)+)")
 LINE_COMMENT = re.compile(r"//.*")
@@ -241,7 +242,7 @@ def with_programs(crates):
 
 
 def main(argv):
-    crates = argv[1:] or with_programs(DEFAULT_CRATES)
+    crates = argv[1:] or with_programs(workspace_crates())
     found = 0
     for c in crates:
         src = ROOT / c

@@ -423,9 +423,9 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
     );
     let mut worker = Worker::new(WorkerConfig {
         instance: args.instance,
+        backend: args.dds_backend,
         dds: DdsConfig {
             interfaces: args.dds_interfaces,
-            backend: args.dds_backend,
             reserved_ports: args.reserved_ports,
             zenoh: crate::backend::ZenohSettings {
                 type_hashes: args.zenoh_type_hashes,

@@ -3,7 +3,8 @@
 //!
 //! It is not an XRCE endpoint: it never sees client datagrams, only the IPC contract of
 //! `xrce_ipc`. Samples pass through as serialized bytes. The DDS implementation sits
-//! behind [`backend`] (Cyclone DDS by default, `backend::cyclone`, and [`backend::rustdds`]).
+//! behind [`backend`], the seam `xrce_dds_seam` that the backend crates implement (Cyclone DDS
+//! by default, `xrce_dds_cyclone`; `xrce_dds_rustdds`; `xrce_dds_zenoh`).
 //!
 //! # QoS mapping
 //!
@@ -56,11 +57,10 @@
 //! ([`domains`]: `--domains`, `--max-domains`, 8 distinct domains at once by default, a
 //! domain's DDS participants released with its last XRCE participant), content filters
 //! ([`filter`]: clauses per filter, steps per evaluation, per reader and per pass of the
-//! loop), and `--dds-interface`, which fails closed ([`backend::confine`]). Refusals are
+//! loop), and `--dds-interface`, which fails closed (`xrce_dds_seam::confine`). Refusals are
 //! counted by reason in the worker's `dropped` counters (`xrce_dropped_total` in
 //! `/metrics`) and logged once per episode ([`episodes`]).
-#![deny(unsafe_code)]
-// the exceptions: backend::cyclone::ffi (feature `cyclone`), and one function of backend::confine
+#![forbid(unsafe_code)]
 // What is `pub` is the crate's API, documented; an item only the crate uses says so (`pub(crate)`).
 #![warn(unreachable_pub, missing_docs)]
 
@@ -78,9 +78,9 @@ pub mod recent;
 pub mod references;
 pub mod representation;
 pub mod ros_graph;
-pub mod ros_nodes;
 pub mod tree;
 pub mod turns;
-pub mod types;
 pub mod worker;
 pub mod xml;
+
+pub use xrce_dds_seam::{ros_nodes, types};

@@ -28,7 +28,7 @@ use std::ffi::OsStr;
 use std::time::{Duration, Instant};
 
 use crate::backend::{
-    BackendError, DdsBackend, DdsGroup, DdsWriter, EndpointQos, Guid, Sample, TopicSpec,
+    BackendError, DdsBackend, DdsWriter, EndpointQos, Guid, Publisher, Sample, TopicSpec,
 };
 
 pub mod entities_info;
@@ -170,7 +170,7 @@ pub use crate::ros_nodes::{node_name, DomainNodes};
 /// published.
 struct GraphWriter {
     writer: Box<dyn DdsWriter>,
-    _group: Box<dyn DdsGroup>,
+    _group: Publisher,
     participant: Guid,
     last: DomainNodes,
 }
@@ -272,14 +272,14 @@ impl RosGraph {
 
     fn make_writer(backend: &mut dyn DdsBackend, domain: u16) -> Result<GraphWriter, BackendError> {
         let participant = backend.participant_guid(domain)?;
-        let group = backend.create_group(domain, true, &[])?;
+        let group = backend.create_publisher(domain, &[])?;
         let topic = TopicSpec {
             name: entities_info::TOPIC_NAME.to_string(),
             type_name: entities_info::TYPE_NAME.to_string(),
             key: None,
         };
         let writer = backend
-            .create_writer(&*group, &topic, &EndpointQos::ros_discovery_writer(), true)
+            .create_writer(&group, &topic, &EndpointQos::ros_discovery_writer(), true)
             .map_err(|e| e.context("ros_discovery_info writer"))?;
         Ok(GraphWriter {
             writer,

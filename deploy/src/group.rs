@@ -162,14 +162,13 @@ fn worker_settings(
         .collect();
     let dds = xrce_dds_worker::backend::DdsConfig {
         interfaces: base.dds_interfaces.clone(),
-        backend: base.dds_backend,
         reserved_ports: ReservedPorts::new(udp_ports.iter().copied()),
         ..Default::default()
     };
     base.reserved_ports = dds.reserved_ports.clone();
     if !base.dds_interfaces.is_empty() {
         // The worker refuses to run unconfined; refused here too, before any process starts.
-        xrce_dds_worker::backend::check_config(&dds)?;
+        xrce_dds_worker::backend::check_config(base.dds_backend, &dds)?;
     }
     if let Some(path) = &plan.refs {
         // Refuse a bad file here, with a clear message, rather than in a worker crash loop.

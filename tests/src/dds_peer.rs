@@ -1,6 +1,8 @@
 //! The independent DDS peer: Cyclone DDS from PyPI (pinned) in a virtual environment, as a
 //! process whose samples the tests read, and what was delivered to it.
 
+use std::cell::RefCell;
+use std::collections::VecDeque;
 use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
 use std::process::{Child, ChildStdout, Command, Stdio};
@@ -69,6 +71,8 @@ pub fn zenoh_python() -> PathBuf {
 pub struct DdsPeer {
     child: Child,
     lines: mpsc::Receiver<String>,
+    /// Lines [`wait_for_keeping`](DdsPeer::wait_for_keeping) passed over, read first.
+    kept: RefCell<VecDeque<String>>,
 }
 
 impl DdsPeer {
@@ -123,22 +127,55 @@ impl DdsPeer {
                 }
             }
         });
-        DdsPeer { child, lines }
+        DdsPeer {
+            child,
+            lines,
+            kept: RefCell::default(),
+        }
     }
 
     /// The next output line, waiting up to `d`.
     pub fn line(&self, d: Duration) -> Option<String> {
+        if let Some(l) = self.kept.borrow_mut().pop_front() {
+            return Some(l);
+        }
         self.lines.recv_timeout(d).ok()
     }
 
     /// Waits for a line starting with `prefix`, while `pump` keeps other parties running.
-    pub fn wait_for(&self, prefix: &str, d: Duration, mut pump: impl FnMut()) -> Option<String> {
+    pub fn wait_for(&self, prefix: &str, d: Duration, pump: impl FnMut()) -> Option<String> {
+        self.wait_for_line(prefix, d, pump, false)
+    }
+
+    /// As [`wait_for`](DdsPeer::wait_for), but the lines before the one found are kept for
+    /// [`line`](DdsPeer::line) and [`drain_lines`](DdsPeer::drain_lines): for a peer whose
+    /// callbacks may print data before it says READY (a Zenoh transient-local subscription
+    /// gets the publishers' history while it is being declared).
+    pub fn wait_for_keeping(
+        &self,
+        prefix: &str,
+        d: Duration,
+        pump: impl FnMut(),
+    ) -> Option<String> {
+        self.wait_for_line(prefix, d, pump, true)
+    }
+
+    fn wait_for_line(
+        &self,
+        prefix: &str,
+        d: Duration,
+        mut pump: impl FnMut(),
+        keep: bool,
+    ) -> Option<String> {
         let end = Instant::now() + d;
         while Instant::now() < end {
             pump();
             if let Ok(l) = self.lines.recv_timeout(Duration::from_millis(2)) {
                 if l.starts_with(prefix) {
                     return Some(l);
+                }
+                if keep {
+                    self.kept.borrow_mut().push_back(l);
                 }
             }
         }
@@ -159,7 +196,9 @@ impl DdsPeer {
 
     /// All lines received so far.
     pub fn drain_lines(&self) -> Vec<String> {
-        self.lines.try_iter().collect()
+        let mut all: Vec<String> = self.kept.borrow_mut().drain(..).collect();
+        all.extend(self.lines.try_iter());
+        all
     }
 }
 

@@ -118,16 +118,18 @@ impl Worker {
                 let (_, domain) = self
                     .participant_of(key, p)
                     .ok_or(OpError::UnknownReference("no participant".into()))?;
-                let publish = kind == object_kind::PUBLISHER;
-                let group: Rc<dyn DdsGroup> = Rc::from(
-                    self.dds
-                        .create_group(domain, publish, &partitions)
-                        .map_err(dds_err)?,
-                );
-                let entity = if publish {
-                    EntityKind::Publisher(group)
+                let entity = if kind == object_kind::PUBLISHER {
+                    let publisher = self
+                        .dds
+                        .create_publisher(domain, &partitions)
+                        .map_err(dds_err)?;
+                    EntityKind::Publisher(Rc::new(publisher))
                 } else {
-                    EntityKind::Subscriber(group)
+                    let subscriber = self
+                        .dds
+                        .create_subscriber(domain, &partitions)
+                        .map_err(dds_err)?;
+                    EntityKind::Subscriber(Rc::new(subscriber))
                 };
                 (Some(p), entity)
             }
@@ -168,7 +170,7 @@ impl Worker {
                         // A client writes in its native byte order, the one of its CREATE.
                         let raw = self
                             .dds
-                            .create_writer(&*publisher, &topic, &dds_qos, little_endian)
+                            .create_writer(&publisher, &topic, &dds_qos, little_endian)
                             .map_err(dds_err)?;
                         let w = Rc::new(DdsWriter {
                             raw,
@@ -240,7 +242,7 @@ impl Worker {
                 let token = self.readers.new_token();
                 let r = self
                     .dds
-                    .create_reader(&*subscriber, &topic, &qos, token)
+                    .create_reader(&subscriber, &topic, &qos, token)
                     .map_err(dds_err)?;
                 self.readers.by_token.insert(token, key);
                 (

@@ -13,9 +13,9 @@ pub(super) enum EntityKind {
     /// A topic description; DDS topics are made by the backend when endpoints are.
     Topic(TopicDesc),
     /// A DDS publisher.
-    Publisher(Rc<dyn DdsGroup>),
+    Publisher(Rc<backend::Publisher>),
     /// A DDS subscriber.
-    Subscriber(Rc<dyn DdsGroup>),
+    Subscriber(Rc<backend::Subscriber>),
     /// A type definition (`<types>`) the client's topics can use.
     Type(Arc<TypeSet>),
     /// A data writer.

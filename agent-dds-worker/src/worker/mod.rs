@@ -33,7 +33,7 @@ use xrce_ipc::{self as ipc, Encode, Reply, ReplyMessage, Request, RequestMessage
 use crate::acks::{AckTracker, Acknowledging, Outstanding};
 use crate::adoption::{Adoption, Origin};
 use crate::backend::{
-    self, effective_domain, BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, EndpointQos,
+    self, effective_domain, BackendError, DdsBackend, DdsConfig, DdsReader, EndpointQos,
     EndpointSide, ReaderToken, Sample, TopicSpec,
 };
 use crate::bounds::{Holdings, OverBound, WorkerBounds};
@@ -75,7 +75,9 @@ use writes::*;
 pub struct WorkerConfig {
     /// Agent instance name (prefix of every shared-memory resource).
     pub instance: String,
-    /// DDS settings.
+    /// The DDS implementation.
+    pub backend: backend::BackendKind,
+    /// Where DDS may talk.
     pub dds: DdsConfig,
     /// Profiles clients may create by reference (`-r`).
     pub references: crate::references::References,
@@ -349,8 +351,8 @@ impl Worker {
     /// Opens the IPC services, then announces a new generation; DDS through the backend
     /// `config.dds` names.
     pub fn new(mut config: WorkerConfig) -> anyhow::Result<Self> {
-        let dds = backend::create(&config.dds)?;
-        config.domains.unservable = backend::unservable_domains(&config.dds);
+        let dds = backend::create(config.backend, &config.dds)?;
+        config.domains.unservable = backend::unservable_domains(config.backend, &config.dds);
         Self::with_backend(config, dds)
     }
 

@@ -15,8 +15,8 @@ pub(super) struct ServiceEndpoint {
     /// Requester: the sequence number of each published request -> its XRCE request id.
     pub(super) pending: HashMap<i64, xrce_common::wire::RequestId>,
     pub(super) pending_order: std::collections::VecDeque<i64>,
-    pub(super) _publisher: Box<dyn DdsGroup>,
-    pub(super) _subscriber: Box<dyn DdsGroup>,
+    pub(super) _publisher: backend::Publisher,
+    pub(super) _subscriber: backend::Subscriber,
 }
 
 /// What a requester or replier client gets for a DDS sample: a replier the request's
@@ -123,11 +123,11 @@ impl Worker {
             type_name: type_name.to_string(),
             key: None,
         };
-        let publisher = dds.create_group(domain, true, &[]).map_err(dds_err)?;
-        let subscriber = dds.create_group(domain, false, &[]).map_err(dds_err)?;
+        let publisher = dds.create_publisher(domain, &[]).map_err(dds_err)?;
+        let subscriber = dds.create_subscriber(domain, &[]).map_err(dds_err)?;
         let writer = dds
             .create_writer(
-                &*publisher,
+                &publisher,
                 &spec(out_topic, out_type),
                 &EndpointQos::service(EndpointSide::Writer),
                 little_endian,
@@ -135,7 +135,7 @@ impl Worker {
             .map_err(dds_err)?;
         let reader = dds
             .create_reader(
-                &*subscriber,
+                &subscriber,
                 &spec(in_topic, in_type),
                 &EndpointQos::service(EndpointSide::Reader),
                 token,

@@ -98,6 +98,7 @@ impl Harness {
         let (fake, bus) = Fake::new().expect("fake backend");
         let mut config = WorkerConfig {
             instance: instance.clone(),
+            backend: Default::default(),
             dds: DdsConfig::default(),
             references: Default::default(),
             ros_graph: false,

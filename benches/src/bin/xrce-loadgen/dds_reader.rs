@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use rustdds::mio1::{Events, Interest, Poll, Token};
 use rustdds::{DomainParticipantBuilder, QosPolicyBuilder, TopicKind};
-use xrce_dds_worker::backend::rustdds::raw::{RawLe, RawSample};
+use xrce_dds_rustdds::raw::{RawLe, RawSample};
 
 /// What the DDS reader saw.
 #[derive(Debug)]

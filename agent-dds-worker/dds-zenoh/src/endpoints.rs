@@ -10,10 +10,10 @@ use super::inbox::{lock, Inbox};
 use super::naming::Attachment;
 use super::services::{self, ServiceLink};
 use super::{count_drop, zenoh_err, Dropped, GraphEntry};
-use crate::backend::{
+use xrce_dds_seam::types::KeyDescriptor;
+use xrce_dds_seam::{
     BackendError, DdsReader, DdsWriter, Encoding, Guid, Sample, SampleIdentity, Taken,
 };
-use crate::types::KeyDescriptor;
 
 /// How a writer sends.
 pub(super) enum Sender {

@@ -9,11 +9,11 @@ use std::os::unix::net::UnixStream;
 use std::rc::Rc;
 use std::sync::Arc;
 
-use super::{
-    BackendError, DdsBackend, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken,
+use crate::types::KeyDescriptor;
+use crate::{
+    BackendError, DdsBackend, DdsReader, DdsWriter, EndpointQos, Endpoints, Guid, ReaderToken,
     Sample, SampleIdentity, Taken, TopicSpec,
 };
-use crate::types::KeyDescriptor;
 
 /// What a fake writer did.
 #[derive(Debug, Clone)]
@@ -155,19 +155,9 @@ impl Fake {
     }
 }
 
-struct Group {
-    domain: u16,
-    publish: bool,
-}
-
-impl DdsGroup for Group {
-    fn domain(&self) -> u16 {
-        self.domain
-    }
-    fn as_any(&self) -> &dyn std::any::Any {
-        self
-    }
-}
+/// A fake publisher or subscriber: nothing to hold.
+#[derive(Debug)]
+pub struct Group;
 
 struct Writer {
     bus: Rc<FakeBus>,
@@ -297,26 +287,32 @@ impl DdsReader for Reader {
     }
 }
 
-impl DdsBackend for Fake {
-    fn name(&self) -> &'static str {
-        "fake"
-    }
+impl Endpoints for Fake {
+    type Publisher = Group;
+    type Subscriber = Group;
 
-    fn create_group(
+    fn new_publisher(
         &mut self,
         domain: u16,
-        publish: bool,
         _partitions: &[String],
-    ) -> Result<Box<dyn DdsGroup>, BackendError> {
-        if !self.bus.domains.borrow().contains(&domain) {
-            self.bus.domains.borrow_mut().push(domain);
-        }
-        Ok(Box::new(Group { domain, publish }))
+    ) -> Result<Group, BackendError> {
+        self.enter(domain);
+        Ok(Group)
     }
 
-    fn create_writer(
+    fn new_subscriber(
         &mut self,
-        group: &dyn DdsGroup,
+        domain: u16,
+        _partitions: &[String],
+    ) -> Result<Group, BackendError> {
+        self.enter(domain);
+        Ok(Group)
+    }
+
+    fn new_writer(
+        &mut self,
+        _publisher: &Group,
+        domain: u16,
         topic: &TopicSpec,
         qos: &EndpointQos,
         little_endian: bool,
@@ -325,24 +321,16 @@ impl DdsBackend for Fake {
             .endpoints
             .borrow_mut()
             .push((topic.name.clone(), *qos));
-        match group.as_any().downcast_ref::<Group>() {
-            Some(g) if g.publish => {}
-            _ => {
-                return Err(BackendError::ForeignEntity(
-                    "a data writer needs a fake publisher",
-                ))
-            }
-        }
         let id = self.bus.next();
         self.bus
             .live_writers
             .borrow_mut()
-            .push((id, group.domain(), topic.name.clone()));
+            .push((id, domain, topic.name.clone()));
         self.bus.writers_made.set(self.bus.writers_made.get() + 1);
         Ok(Box::new(Writer {
             bus: self.bus.clone(),
             id,
-            domain: group.domain(),
+            domain,
             topic: topic.name.clone(),
             little_endian,
             key: topic.key.clone(),
@@ -351,9 +339,10 @@ impl DdsBackend for Fake {
         }))
     }
 
-    fn create_reader(
+    fn new_reader(
         &mut self,
-        group: &dyn DdsGroup,
+        _subscriber: &Group,
+        domain: u16,
         topic: &TopicSpec,
         qos: &EndpointQos,
         token: ReaderToken,
@@ -362,19 +351,11 @@ impl DdsBackend for Fake {
             .endpoints
             .borrow_mut()
             .push((topic.name.clone(), *qos));
-        match group.as_any().downcast_ref::<Group>() {
-            Some(g) if !g.publish => {}
-            _ => {
-                return Err(BackendError::ForeignEntity(
-                    "a data reader needs a fake subscriber",
-                ))
-            }
-        }
         let id = self.bus.next();
         let queue = Rc::new(RefCell::new(VecDeque::new()));
         self.bus.readers.borrow_mut().push(ReaderSlot {
             id,
-            domain: group.domain(),
+            domain,
             topic: topic.name.clone(),
             token,
             queue: queue.clone(),
@@ -385,6 +366,21 @@ impl DdsBackend for Fake {
             id,
             queue,
         }))
+    }
+}
+
+impl Fake {
+    /// Notes a domain the worker made a group in.
+    fn enter(&self, domain: u16) {
+        if !self.bus.domains.borrow().contains(&domain) {
+            self.bus.domains.borrow_mut().push(domain);
+        }
+    }
+}
+
+impl DdsBackend for Fake {
+    fn name(&self) -> &'static str {
+        "fake"
     }
 
     fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError> {

@@ -45,8 +45,8 @@ use std::sync::{Arc, Mutex};
 
 use cyclors as c;
 
-use crate::backend::BackendError;
-use crate::types::KeyDescriptor;
+use xrce_dds_seam::types::KeyDescriptor;
+use xrce_dds_seam::BackendError;
 
 /// A Cyclone entity handle.
 pub(super) type Handle = c::dds_entity_t;
@@ -1313,7 +1313,7 @@ unsafe fn key_payload(tp: *const c::ddsi_sertype, data: &[u8]) -> Option<Vec<u8>
     let le = data[1] & 1 == 1;
     let xcdr2 = matches!(data[1], 6 | 7);
     let k = key.of_received(&data[4..], le, xcdr2, false).ok()?;
-    Some(encapsulate(super::Encoding::CDR_LE.0, &k.payload))
+    Some(encapsulate(xrce_dds_seam::Encoding::CDR_LE.0, &k.payload))
 }
 
 /// A serialized sample as DDS carries it: the encapsulation header, the body, and zeros up to

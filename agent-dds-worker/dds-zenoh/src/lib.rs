@@ -23,6 +23,8 @@
 //! endpoint's number (rmw_zenoh hashes the endpoint's token, which names its node; the
 //! backend makes an endpoint before it knows its node), unique all the same; a dispose has no
 //! Zenoh counterpart (ROS topics have no instances) and is refused.
+#![forbid(unsafe_code)]
+#![warn(unreachable_pub, missing_docs)]
 
 use std::cell::RefCell;
 use std::collections::{BTreeMap, HashMap};
@@ -35,12 +37,12 @@ use std::time::Duration;
 use zenoh::Wait as _;
 use zenoh_ext::{AdvancedPublisherBuilderExt as _, AdvancedSubscriberBuilderExt as _};
 
-use super::policies::{Durability, History, Reliability};
-use super::{
-    BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid,
+use xrce_dds_seam::policies::{Durability, History, Reliability};
+use xrce_dds_seam::ros_nodes::DomainNodes;
+use xrce_dds_seam::{
+    BackendError, DdsBackend, DdsConfig, DdsReader, DdsWriter, EndpointQos, Endpoints, Guid,
     ReaderToken, TopicSpec,
 };
-use crate::ros_nodes::DomainNodes;
 
 mod endpoints;
 mod graph;
@@ -218,13 +220,13 @@ impl Zenoh {
         }
     }
 
-    fn group_domain(group: &dyn DdsGroup, publish: bool) -> Result<u16, BackendError> {
-        match group.as_any().downcast_ref::<Group>() {
-            Some(g) if g.publish == publish => Ok(g.domain),
-            _ => Err(BackendError::ForeignEntity(
-                "an endpoint needs a publisher or subscriber of the Zenoh backend",
-            )),
+    /// Notes a domain a group was made in (Zenoh has no partitions).
+    fn enter(&mut self, domain: u16, partitions: &[String]) -> Result<Group, BackendError> {
+        if !partitions.is_empty() {
+            return Err(BackendError::Unsupported("Zenoh has no partitions"));
         }
+        self.domains.insert(domain, ());
+        Ok(Group)
     }
 
     fn inbox(&self, token: ReaderToken, qos: &EndpointQos) -> Arc<Inbox> {
@@ -233,7 +235,7 @@ impl Zenoh {
             History::KeepAll => (
                 qos.resource_limits
                     .map(|r| usize::try_from(r.max_samples).unwrap_or(READER_QUEUE_MAX))
-                    .unwrap_or(super::qos::KEEP_ALL_READER_SAMPLES as usize),
+                    .unwrap_or(xrce_dds_seam::qos::KEEP_ALL_READER_SAMPLES as usize),
                 WhenFull::DropNewest,
             ),
         };
@@ -269,21 +271,9 @@ impl Zenoh {
     }
 }
 
-/// A publisher or subscriber: Zenoh has no groups, so it only says which domain.
+/// A publisher or subscriber: Zenoh has no groups (the seam keeps the domain).
 #[derive(Debug)]
-struct Group {
-    domain: u16,
-    publish: bool,
-}
-
-impl DdsGroup for Group {
-    fn domain(&self) -> u16 {
-        self.domain
-    }
-    fn as_any(&self) -> &dyn std::any::Any {
-        self
-    }
-}
+pub struct Group;
 
 /// Removes an endpoint from the graph when it goes.
 struct GraphEntry {
@@ -298,12 +288,12 @@ impl Drop for GraphEntry {
 }
 
 /// The history a transient-local publisher caches, or subscriber asks for: its depth
-/// (keep-all: [`super::qos::KEEP_ALL_READER_SAMPLES`]), at most [`READER_QUEUE_MAX`], so that
+/// (keep-all: [`xrce_dds_seam::qos::KEEP_ALL_READER_SAMPLES`]), at most [`READER_QUEUE_MAX`], so that
 /// a client's QoS cannot make the worker cache without bound.
 fn history_depth(qos: &EndpointQos) -> usize {
     match qos.history {
         History::KeepLast(d) => usize::try_from(d).unwrap_or(1),
-        History::KeepAll => super::qos::KEEP_ALL_READER_SAMPLES as usize,
+        History::KeepAll => xrce_dds_seam::qos::KEEP_ALL_READER_SAMPLES as usize,
     }
     .clamp(1, READER_QUEUE_MAX)
 }
@@ -316,34 +306,32 @@ fn count_drop(counter: &AtomicU64, what: &str) {
     }
 }
 
-impl DdsBackend for Zenoh {
-    fn name(&self) -> &'static str {
-        "zenoh"
+impl Endpoints for Zenoh {
+    type Publisher = Group;
+    type Subscriber = Group;
+
+    fn new_publisher(&mut self, domain: u16, partitions: &[String]) -> Result<Group, BackendError> {
+        self.enter(domain, partitions)
     }
 
-    fn create_group(
+    fn new_subscriber(
         &mut self,
         domain: u16,
-        publish: bool,
         partitions: &[String],
-    ) -> Result<Box<dyn DdsGroup>, BackendError> {
-        if !partitions.is_empty() {
-            return Err(BackendError::Unsupported("Zenoh has no partitions"));
-        }
-        self.domains.insert(domain, ());
-        Ok(Box::new(Group { domain, publish }))
+    ) -> Result<Group, BackendError> {
+        self.enter(domain, partitions)
     }
 
-    fn create_writer(
+    fn new_writer(
         &mut self,
-        group: &dyn DdsGroup,
+        _publisher: &Group,
+        domain: u16,
         spec: &TopicSpec,
         qos: &EndpointQos,
         little_endian: bool,
     ) -> Result<Box<dyn DdsWriter>, BackendError> {
         // A service's reader comes right after its writer: nothing older may pair.
         self.last_service = None;
-        let domain = Self::group_domain(group, true)?;
         let id = self.next_id();
         let gid = self.gid(id);
         let kind = match RosName::from_dds(&spec.name) {
@@ -434,16 +422,16 @@ impl DdsBackend for Zenoh {
         }))
     }
 
-    fn create_reader(
+    fn new_reader(
         &mut self,
-        group: &dyn DdsGroup,
+        _subscriber: &Group,
+        domain: u16,
         spec: &TopicSpec,
         qos: &EndpointQos,
         token: ReaderToken,
     ) -> Result<Box<dyn DdsReader>, BackendError> {
         // Only the reader made right after a service's writer may pair with it.
         let pending = self.last_service.take();
-        let domain = Self::group_domain(group, false)?;
         let id = self.next_id();
         let gid = self.gid(id);
         let kind = match RosName::from_dds(&spec.name) {
@@ -568,6 +556,12 @@ impl DdsBackend for Zenoh {
             receiver,
             _graph: graph,
         }))
+    }
+}
+
+impl DdsBackend for Zenoh {
+    fn name(&self) -> &'static str {
+        "zenoh"
     }
 
     fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError> {

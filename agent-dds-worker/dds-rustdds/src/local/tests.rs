@@ -1,7 +1,7 @@
 use super::*;
-use crate::backend::fake::{self, keyed_spec, Fake};
-use crate::backend::policies::{QosDesc, ResourceLimitsDesc};
-use crate::backend::{DdsConfig, EndpointSide};
+use xrce_dds_seam::fake::{self, keyed_spec, Fake};
+use xrce_dds_seam::policies::{QosDesc, ResourceLimitsDesc};
+use xrce_dds_seam::{DdsConfig, DynEndpoints, EndpointSide};
 
 fn spec(name: &str) -> TopicSpec {
     TopicSpec {
@@ -43,20 +43,20 @@ fn seqs(taken: &[Taken]) -> Vec<i64> {
 
 /// A wrapped fake: the fake delivers every sample to every reader of its topic as
 /// well, as RustDDS does through loopback.
-fn fake() -> (LocalDelivery, Rc<crate::backend::fake::FakeBus>) {
+fn fake() -> (LocalDelivery, Rc<xrce_dds_seam::fake::FakeBus>) {
     let (fake, bus) = Fake::new().expect("fake");
     (LocalDelivery::new(Box::new(fake)), bus)
 }
 
 struct Groups {
-    publisher: Box<dyn DdsGroup>,
-    subscriber: Box<dyn DdsGroup>,
+    publisher: Publisher,
+    subscriber: Subscriber,
 }
 
 fn groups(b: &mut LocalDelivery, domain: u16) -> Groups {
     Groups {
-        publisher: b.create_group(domain, true, &[]).expect("publisher"),
-        subscriber: b.create_group(domain, false, &[]).expect("subscriber"),
+        publisher: b.create_publisher(domain, &[]).expect("publisher"),
+        subscriber: b.create_subscriber(domain, &[]).expect("subscriber"),
     }
 }
 
@@ -69,10 +69,10 @@ fn reader_then_writer(
 ) -> (Box<dyn DdsReader>, Box<dyn DdsWriter>) {
     let g = groups(b, 0);
     let r = b
-        .create_reader(&*g.subscriber, topic, reader, token)
+        .create_reader(&g.subscriber, topic, reader, token)
         .expect("reader");
     let w = b
-        .create_writer(&*g.publisher, topic, &writer_qos(), true)
+        .create_writer(&g.publisher, topic, &writer_qos(), true)
         .expect("writer");
     (r, w)
 }
@@ -137,7 +137,7 @@ fn what_is_not_modelled_is_left_to_the_backend() {
     // A best-effort writer cannot serve a reliable reader.
     let _r = b
         .create_reader(
-            &*g.subscriber,
+            &g.subscriber,
             &spec("a"),
             &qos(EndpointSide::Reader, |d| {
                 d.reliability = Some(Reliability::Reliable)
@@ -147,7 +147,7 @@ fn what_is_not_modelled_is_left_to_the_backend() {
         .expect("reader");
     let _w = b
         .create_writer(
-            &*g.publisher,
+            &g.publisher,
             &spec("a"),
             &qos(EndpointSide::Writer, |d| {
                 d.reliability = Some(Reliability::BestEffort)
@@ -159,7 +159,7 @@ fn what_is_not_modelled_is_left_to_the_backend() {
     // Exclusive ownership, another type, another domain: no pair.
     let _x = b
         .create_reader(
-            &*g.subscriber,
+            &g.subscriber,
             &spec("b"),
             &qos(EndpointSide::Reader, |d| {
                 d.ownership = Some(OwnershipKind::Exclusive)
@@ -172,34 +172,34 @@ fn what_is_not_modelled_is_left_to_the_backend() {
         ..spec("b")
     };
     let _y = b
-        .create_reader(&*g.subscriber, &other_type, &reader_qos(), 3)
+        .create_reader(&g.subscriber, &other_type, &reader_qos(), 3)
         .expect("reader");
     let g1 = groups(&mut b, 1);
     let _z = b
-        .create_reader(&*g1.subscriber, &spec("b"), &reader_qos(), 4)
+        .create_reader(&g1.subscriber, &spec("b"), &reader_qos(), 4)
         .expect("reader");
     let _wb = b
-        .create_writer(&*g.publisher, &spec("b"), &writer_qos(), true)
+        .create_writer(&g.publisher, &spec("b"), &writer_qos(), true)
         .expect("writer");
     assert_eq!(b.pairs(), 0);
     // Partitions that do not meet, and wildcards: no pair; equal names: a pair.
-    let pa = b.create_group(0, true, &["x".into()]).expect("group");
-    let sb = b.create_group(0, false, &["y".into()]).expect("group");
-    let sw = b.create_group(0, false, &["x*".into()]).expect("group");
+    let pa = b.create_publisher(0, &["x".into()]).expect("group");
+    let sb = b.create_subscriber(0, &["y".into()]).expect("group");
+    let sw = b.create_subscriber(0, &["x*".into()]).expect("group");
     let sx = b
-        .create_group(0, false, &["y".into(), "x".into()])
+        .create_subscriber(0, &["y".into(), "x".into()])
         .expect("group");
     let _wp = b
-        .create_writer(&*pa, &spec("p"), &writer_qos(), true)
+        .create_writer(&pa, &spec("p"), &writer_qos(), true)
         .expect("writer");
     for (g, token) in [(&sb, 5), (&sw, 6)] {
         let _r = b
-            .create_reader(&**g, &spec("p"), &reader_qos(), token)
+            .create_reader(g, &spec("p"), &reader_qos(), token)
             .expect("reader");
         assert_eq!(b.pairs(), 0);
     }
     let _rx = b
-        .create_reader(&*sx, &spec("p"), &reader_qos(), 7)
+        .create_reader(&sx, &spec("p"), &reader_qos(), 7)
         .expect("reader");
     assert_eq!(b.pairs(), 1);
 }
@@ -209,18 +209,18 @@ fn a_transient_local_reader_takes_a_writers_history_from_the_backend() {
     let (mut b, bus) = fake();
     let g = groups(&mut b, 0);
     let w = b
-        .create_writer(&*g.publisher, &spec("t"), &writer_qos(), true)
+        .create_writer(&g.publisher, &spec("t"), &writer_qos(), true)
         .expect("writer");
     w.write(sample(1)).expect("write");
     let tl = qos(EndpointSide::Reader, |d| {
         d.durability = Some(Durability::TransientLocal)
     });
     let mut late = b
-        .create_reader(&*g.subscriber, &spec("t"), &tl, 1)
+        .create_reader(&g.subscriber, &spec("t"), &tl, 1)
         .expect("reader");
     assert_eq!(b.pairs(), 0, "its history comes from the backend");
     let mut volatile = b
-        .create_reader(&*g.subscriber, &spec("t"), &reader_qos(), 2)
+        .create_reader(&g.subscriber, &spec("t"), &reader_qos(), 2)
         .expect("reader");
     assert_eq!(b.pairs(), 1);
     w.write(sample(2)).expect("write");
@@ -254,10 +254,10 @@ fn keep_last_evicts_each_instance_s_oldest_from_the_middle_of_the_queue_in_order
         d.history = Some(History::KeepLast(1))
     });
     let mut r = b
-        .create_reader(&*g.subscriber, &keyed_spec("k"), &last1, 1)
+        .create_reader(&g.subscriber, &keyed_spec("k"), &last1, 1)
         .expect("reader");
     let w = b
-        .create_writer(&*g.publisher, &keyed_spec("k"), &writer_qos(), true)
+        .create_writer(&g.publisher, &keyed_spec("k"), &writer_qos(), true)
         .expect("writer");
     // Sequence numbers 1-5: instances 1, 2, 3, 1, 2.
     for (id, v) in [(1, 10), (2, 20), (3, 30), (1, 11), (2, 21)] {
@@ -288,10 +288,10 @@ fn the_queue_keeps_the_readers_history_per_instance_and_disposes_arrive_as_keys(
         d.history = Some(History::KeepLast(2))
     });
     let mut r = b
-        .create_reader(&*g.subscriber, &keyed_spec("k"), &last2, 1)
+        .create_reader(&g.subscriber, &keyed_spec("k"), &last2, 1)
         .expect("reader");
     let w = b
-        .create_writer(&*g.publisher, &keyed_spec("k"), &writer_qos(), true)
+        .create_writer(&g.publisher, &keyed_spec("k"), &writer_qos(), true)
         .expect("writer");
     for v in 1..=4 {
         w.write(keyed(1, v)).expect("write");
@@ -307,7 +307,7 @@ fn the_queue_keeps_the_readers_history_per_instance_and_disposes_arrive_as_keys(
     let last = got.last().expect("dispose");
     assert!(last.disposed && !last.unregistered);
     assert_eq!(&last.sample.body[..], &2i32.to_le_bytes(), "the key alone");
-    assert_eq!(last.sample.encoding, super::super::Encoding::CDR_LE);
+    assert_eq!(last.sample.encoding, xrce_dds_seam::Encoding::CDR_LE);
 }
 
 #[test]
@@ -319,7 +319,7 @@ fn a_reader_queue_holds_at_most_its_byte_cap() {
     let mib = bytes::Bytes::from(vec![0u8; 1 << 20]);
     let taken = |n: i64| Taken {
         sample: Sample {
-            encoding: super::super::Encoding::CDR_LE,
+            encoding: xrce_dds_seam::Encoding::CDR_LE,
             body: mib.clone(),
         },
         identity: SampleIdentity {
@@ -375,10 +375,10 @@ fn a_full_keep_all_reader_refuses_and_counts() {
         });
     });
     let mut r = b
-        .create_reader(&*g.subscriber, &spec("t"), &all3, 1)
+        .create_reader(&g.subscriber, &spec("t"), &all3, 1)
         .expect("reader");
     let w = b
-        .create_writer(&*g.publisher, &spec("t"), &writer_qos(), true)
+        .create_writer(&g.publisher, &spec("t"), &writer_qos(), true)
         .expect("writer");
     for n in 1..=5 {
         w.write(sample(n)).expect("write");
@@ -396,12 +396,10 @@ fn a_full_keep_all_reader_refuses_and_counts() {
 fn through_rustdds_identities_agree_and_network_copies_are_dropped() {
     let config = DdsConfig {
         interfaces: vec!["127.0.0.1".parse().expect("address")],
-        backend: crate::backend::BackendKind::Rustdds,
         ..Default::default()
     };
     let domain = 100 + (std::process::id() % 100) as u16;
-    let rustdds =
-        || Box::new(crate::backend::rustdds::RustDds::new(config.clone()).expect("backend"));
+    let rustdds = || Box::new(crate::RustDds::new(config.clone()).expect("backend"));
     let mut b = LocalDelivery::new(rustdds());
     let mut witness = rustdds();
     let g = groups(&mut b, domain);
@@ -410,16 +408,14 @@ fn through_rustdds_identities_agree_and_network_copies_are_dropped() {
     });
     let topic = keyed_spec("local_delivery_test");
     let mut r = b
-        .create_reader(&*g.subscriber, &topic, &reliable, 1)
+        .create_reader(&g.subscriber, &topic, &reliable, 1)
         .expect("reader");
-    let ws = witness
-        .create_group(domain, false, &[])
-        .expect("subscriber");
+    let ws = witness.create_subscriber(domain, &[]).expect("subscriber");
     let mut seen = witness
-        .create_reader(&*ws, &topic, &reliable, 1)
+        .create_reader(&ws, &topic, &reliable, 1)
         .expect("witness");
     let w = b
-        .create_writer(&*g.publisher, &topic, &writer_qos(), true)
+        .create_writer(&g.publisher, &topic, &writer_qos(), true)
         .expect("writer");
     assert_eq!(b.pairs(), 1);
     let deadline = Instant::now() + Duration::from_secs(10);

@@ -5,8 +5,8 @@ use rustdds::bytes::Bytes;
 use rustdds::no_key::{Decode, DefaultDecoder, DeserializerAdapter, SerializerAdapter};
 use rustdds::RepresentationIdentifier;
 
-use crate::backend::{BackendError, Encoding, Sample};
-use crate::types::KeyDescriptor;
+use xrce_dds_seam::types::KeyDescriptor;
+use xrce_dds_seam::{BackendError, Encoding, Sample};
 
 /// A serialized sample body (no encapsulation header) and its encoding.
 #[derive(Debug, Clone)]

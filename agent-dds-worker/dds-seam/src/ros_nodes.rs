@@ -1,10 +1,10 @@
 //! The ROS 2 nodes a domain's graph lists, as plain data: built by the worker's graph
-//! ([`crate::ros_graph`]) and handed to a backend that announces nodes itself
-//! ([`crate::backend::DdsBackend::announce_graph`]). A leaf below both.
+//! (the worker's `ros_graph`) and handed to a backend that announces nodes itself
+//! ([`crate::DdsBackend::announce_graph`]). A leaf below both.
 
 use ros2_client::NodeName;
 
-/// A DDS GUID as the graph lists it (the same octets as [`crate::backend::Guid`]).
+/// A DDS GUID as the graph lists it (the same octets as [`crate::Guid`]).
 pub type Guid = [u8; 16];
 
 /// The node name a participant name stands for: micro-ROS sends `name` for a node in the

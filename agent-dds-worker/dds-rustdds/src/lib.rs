@@ -5,6 +5,8 @@
 //! Writers and readers live on different RustDDS participants: pinned to loopback, a RustDDS
 //! participant cannot deliver from its own writer to its own reader (its proxies of itself
 //! get no locators), so two XRCE clients in one domain would not hear each other.
+#![forbid(unsafe_code)]
+#![warn(unreachable_pub, missing_docs)]
 
 use std::cell::Cell;
 use std::collections::HashMap;
@@ -16,13 +18,14 @@ use std::time::Duration;
 use rustdds::mio1::{Events, Interest, Poll, Registry, Token};
 use rustdds::{DomainParticipant, DomainParticipantBuilder, QosPolicies, RTPSEntity, TopicKind};
 
-use super::ports;
-use super::{
-    BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid,
+use xrce_dds_seam::ports;
+use xrce_dds_seam::types::KeyDescriptor;
+use xrce_dds_seam::{
+    BackendError, DdsBackend, DdsConfig, DdsReader, DdsWriter, EndpointQos, Endpoints, Guid,
     ReaderToken, Sample, SampleIdentity, Taken, TopicSpec,
 };
-use crate::types::KeyDescriptor;
 
+pub mod local;
 pub mod qos;
 pub mod raw;
 
@@ -119,7 +122,7 @@ impl RustDds {
             ))
         })?;
         // Fails closed: unconfined, the participant is dropped (deleted) here.
-        super::confine_new_sockets(&self.config)
+        xrce_dds_seam::confine_new_sockets(&self.config)
             .map_err(|e| e.context(&format!("DDS participant in domain {domain}")))?;
         tracing::info!(domain, ?role, "DDS participant created");
         self.participants.insert((domain, role), p.clone());
@@ -142,21 +145,18 @@ fn topic(dp: &DomainParticipant, spec: &TopicSpec) -> Result<rustdds::Topic, Bac
     .map_err(|e| BackendError::Dds(format!("create topic: {e:?}")))
 }
 
-/// A RustDDS publisher or subscriber.
-enum Group {
-    Publisher(rustdds::Publisher, DomainParticipant, u16),
-    Subscriber(rustdds::Subscriber, DomainParticipant, u16),
+/// A RustDDS publisher, with the participant its writers' topics are made on.
+#[allow(missing_debug_implementations)] // RustDDS's publisher has none
+pub struct Publisher {
+    publisher: rustdds::Publisher,
+    participant: DomainParticipant,
 }
 
-impl DdsGroup for Group {
-    fn domain(&self) -> u16 {
-        match self {
-            Group::Publisher(_, _, d) | Group::Subscriber(_, _, d) => *d,
-        }
-    }
-    fn as_any(&self) -> &dyn std::any::Any {
-        self
-    }
+/// A RustDDS subscriber, with the participant its readers' topics are made on.
+#[allow(missing_debug_implementations)] // RustDDS's subscriber has none
+pub struct Subscriber {
+    subscriber: rustdds::Subscriber,
+    participant: DomainParticipant,
 }
 
 /// A RustDDS data writer and what its status events said.
@@ -286,49 +286,51 @@ fn to_rustdds_identity(id: SampleIdentity) -> rustdds::SampleIdentity {
     }
 }
 
-impl DdsBackend for RustDds {
-    fn name(&self) -> &'static str {
-        "rustdds"
-    }
+impl Endpoints for RustDds {
+    type Publisher = Publisher;
+    type Subscriber = Subscriber;
 
-    fn create_group(
+    fn new_publisher(
         &mut self,
         domain: u16,
-        publish: bool,
         _partitions: &[String],
-    ) -> Result<Box<dyn DdsGroup>, BackendError> {
-        let none = QosPolicies::qos_none();
-        Ok(Box::new(if publish {
-            let dp = self.participant(domain, Role::Publish)?;
-            let p = dp
-                .create_publisher(&none)
-                .map_err(|e| BackendError::Dds(format!("create publisher: {e:?}")))?;
-            Group::Publisher(p, dp, domain)
-        } else {
-            let dp = self.participant(domain, Role::Subscribe)?;
-            let s = dp
-                .create_subscriber(&none)
-                .map_err(|e| BackendError::Dds(format!("create subscriber: {e:?}")))?;
-            Group::Subscriber(s, dp, domain)
-        }))
+    ) -> Result<Publisher, BackendError> {
+        let participant = self.participant(domain, Role::Publish)?;
+        let publisher = participant
+            .create_publisher(&QosPolicies::qos_none())
+            .map_err(|e| BackendError::Dds(format!("create publisher: {e:?}")))?;
+        Ok(Publisher {
+            publisher,
+            participant,
+        })
     }
 
-    fn create_writer(
+    fn new_subscriber(
         &mut self,
-        group: &dyn DdsGroup,
+        domain: u16,
+        _partitions: &[String],
+    ) -> Result<Subscriber, BackendError> {
+        let participant = self.participant(domain, Role::Subscribe)?;
+        let subscriber = participant
+            .create_subscriber(&QosPolicies::qos_none())
+            .map_err(|e| BackendError::Dds(format!("create subscriber: {e:?}")))?;
+        Ok(Subscriber {
+            subscriber,
+            participant,
+        })
+    }
+
+    fn new_writer(
+        &mut self,
+        publisher: &Publisher,
+        _domain: u16,
         spec: &TopicSpec,
         qos: &EndpointQos,
         little_endian: bool,
     ) -> Result<Box<dyn DdsWriter>, BackendError> {
-        let Some(Group::Publisher(publisher, dp, _)) = group.as_any().downcast_ref::<Group>()
-        else {
-            return Err(BackendError::ForeignEntity(
-                "a data writer needs a RustDDS publisher",
-            ));
-        };
-        let t = topic(dp, spec)?;
+        let t = topic(&publisher.participant, spec)?;
         let raw = RawWriter::create(
-            publisher,
+            &publisher.publisher,
             &t,
             qos::to_rustdds(qos),
             little_endian,
@@ -344,22 +346,22 @@ impl DdsBackend for RustDds {
         }))
     }
 
-    fn create_reader(
+    fn new_reader(
         &mut self,
-        group: &dyn DdsGroup,
+        subscriber: &Subscriber,
+        _domain: u16,
         spec: &TopicSpec,
         qos: &EndpointQos,
         token: ReaderToken,
     ) -> Result<Box<dyn DdsReader>, BackendError> {
-        let Some(Group::Subscriber(subscriber, dp, _)) = group.as_any().downcast_ref::<Group>()
-        else {
-            return Err(BackendError::ForeignEntity(
-                "a data reader needs a RustDDS subscriber",
-            ));
-        };
-        let t = topic(dp, spec)?;
-        let mut raw = RawReader::create(subscriber, &t, qos::to_rustdds(qos), spec.key.clone())
-            .map_err(|e| BackendError::Dds(format!("create data reader: {e:?}")))?;
+        let t = topic(&subscriber.participant, spec)?;
+        let mut raw = RawReader::create(
+            &subscriber.subscriber,
+            &t,
+            qos::to_rustdds(qos),
+            spec.key.clone(),
+        )
+        .map_err(|e| BackendError::Dds(format!("create data reader: {e:?}")))?;
         let token = usize::try_from(token)
             .map_err(|_| BackendError::Dds("reader token out of range".into()))?;
         self.registry
@@ -369,6 +371,12 @@ impl DdsBackend for RustDds {
             raw,
             registry: self.registry.clone(),
         }))
+    }
+}
+
+impl DdsBackend for RustDds {
+    fn name(&self) -> &'static str {
+        "rustdds"
     }
 
     fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError> {
@@ -422,13 +430,12 @@ mod tests {
             .collect();
         let mut dds = RustDds::new(DdsConfig {
             interfaces: vec!["127.0.0.1".parse().expect("address")],
-            backend: super::super::BackendKind::Rustdds,
             ..Default::default()
         })
         .expect("backend");
         dds.reserve_ports(ports::ReservedPorts::new(reserved.iter().copied()));
-        let _publisher = dds.create_group(99, true, &[]).expect("publisher");
-        let _subscriber = dds.create_group(99, false, &[]).expect("subscriber");
+        let _publisher = Endpoints::new_publisher(&mut dds, 99, &[]).expect("publisher");
+        let _subscriber = Endpoints::new_subscriber(&mut dds, 99, &[]).expect("subscriber");
         assert_eq!(dds.participants(), 2);
         for p in reserved {
             assert!(

@@ -4,7 +4,7 @@
 
 use std::time::Duration;
 
-use crate::backend::policies::{
+use crate::policies::{
     Durability, History, OwnershipKind, QosDesc, Reliability, ResourceLimitsDesc,
 };
 

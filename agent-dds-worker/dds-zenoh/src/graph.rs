@@ -7,8 +7,8 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use zenoh::Wait as _;
 
 use super::naming::{liveliness_token, EndpointToken, EntityKind, NodeToken};
-use crate::backend::{BackendError, Guid};
-use crate::ros_nodes::DomainNodes;
+use xrce_dds_seam::ros_nodes::DomainNodes;
+use xrce_dds_seam::{BackendError, Guid};
 
 /// What an endpoint's token says besides its node.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -138,7 +138,7 @@ impl Tokens {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ros_nodes::node_name;
+    use xrce_dds_seam::ros_nodes::node_name;
 
     fn nodes(list: &[(&str, u64, Vec<Guid>)]) -> DomainNodes {
         DomainNodes {

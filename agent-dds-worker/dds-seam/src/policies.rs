@@ -2,7 +2,7 @@
 //! XML and binary representations are read into, what the topic's and the endpoint's
 //! settings are merged as ([`QosDesc::overridden_by`]), and what each backend maps onto its
 //! own policies. `None` is "not given": the reference agent's defaults apply
-//! ([`super::qos`]).
+//! ([`crate::qos`]).
 
 /// Reliability kinds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

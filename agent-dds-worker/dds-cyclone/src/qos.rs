@@ -1,11 +1,11 @@
 //! Cyclone DDS policies for an endpoint's resolved QoS.
 
 use super::ffi::{self, Qos, INFINITY};
-use crate::backend::policies::{
+use xrce_dds_seam::policies::{
     AccessScope, DestinationOrderKind, Durability, History, LivelinessKind, OwnershipKind, Period,
     Reliability,
 };
-use crate::backend::{BackendError, EndpointQos};
+use xrce_dds_seam::{BackendError, EndpointQos};
 
 /// Nanoseconds of a period (infinite beyond `i64`).
 fn ns(p: Period) -> i64 {

@@ -33,7 +33,7 @@
 //!   is one the agent serves, the worker warns at start and refuses that domain's
 //!   participants ([`unservable_domains`]), and serves the others. Confined to loopback, DDS
 //!   discovers by unicast and binds no multicast port that matters.
-//! * The ports the front-ends serve ([`ReservedPorts`], [`super::DdsConfig::reserved_ports`]) are also
+//! * The ports the front-ends serve ([`ReservedPorts`], [`crate::DdsConfig::reserved_ports`]) are also
 //!   held by the worker while a participant is being made ([`PortGuard`]), so that DDS does
 //!   not take one that a front-end let go for a moment (a front-end being restarted): the
 //!   front-end could not bind it again while the participant lives.
@@ -335,7 +335,7 @@ pub fn plan(
 /// The domains DDS cannot serve while the front-ends hold these reserved ports, with why:
 /// those whose discovery multicast port is one of them, while DDS uses multicast with these
 /// `interfaces`. The worker refuses their participants with STATUS_ERR_DENIED
-/// ([`crate::domains::DomainRefusal::PortClash`]) and serves every other domain, as
+/// (the worker refuses its participants) and serves every other domain, as
 /// MicroXRCEAgent does on such a port (`-p 22150` costs domain 59 only); it warns at start
 /// ([`log_reserved`]). Other clashes cost no domain: [`plan`] serves them.
 pub fn unservable_domains(

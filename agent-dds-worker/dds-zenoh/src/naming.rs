@@ -6,8 +6,8 @@
 //! not differ in any of them (`liveliness_utils.cpp`, `attachment_helpers.cpp`,
 //! `rmw_zenoh.cpp` at those tags).
 
-use crate::backend::policies::{Durability, History, Reliability};
-use crate::backend::qos::EndpointQos;
+use xrce_dds_seam::policies::{Durability, History, Reliability};
+use xrce_dds_seam::qos::EndpointQos;
 
 /// What an XRCE topic name stands for in a ROS graph.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -307,8 +307,8 @@ pub fn service_type_name(dds_type: &str) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::backend::policies::QosDesc;
-    use crate::backend::qos::EndpointSide;
+    use xrce_dds_seam::policies::QosDesc;
+    use xrce_dds_seam::qos::EndpointSide;
 
     #[test]
     fn micro_ros_names_map_to_ros_names() {

@@ -2,7 +2,7 @@
 //! that would send it through the network instead.
 //!
 //! RustDDS delivers a sample from one of the worker's writers to one of its readers over UDP
-//! loopback (between two participants, see [`super::rustdds`]): two system calls, two thread
+//! loopback (between two participants, see [`crate::RustDds`]): two system calls, two thread
 //! hand-overs and the RTPS encoding each way, for what never leaves the process. Cyclone DDS
 //! delivers such samples itself and needs none of this. [`LocalDelivery`] wraps a backend:
 //! when a writer and a reader of the worker match (same domain, partition, topic, type and
@@ -37,12 +37,12 @@ use std::rc::Rc;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use super::{
-    BackendError, DdsBackend, DdsGroup, DdsReader, DdsWriter, EndpointQos, Guid, ReaderToken,
-    Sample, SampleIdentity, Taken, TopicSpec,
+use xrce_dds_seam::policies::{Durability, History, OwnershipKind, Period, Reliability};
+use xrce_dds_seam::types::KeyDescriptor;
+use xrce_dds_seam::{
+    BackendError, DdsBackend, DdsReader, DdsWriter, EndpointQos, Endpoints, Guid, Publisher,
+    ReaderToken, Sample, SampleIdentity, Subscriber, Taken, TopicSpec,
 };
-use crate::backend::policies::{Durability, History, OwnershipKind, Period, Reliability};
-use crate::types::KeyDescriptor;
 
 /// Most samples a reader's local queue keeps when its resource limits set none.
 pub const LOCAL_QUEUE_MAX: usize = 65_536;
@@ -110,9 +110,9 @@ struct Endpoint {
 }
 
 impl Endpoint {
-    fn new(group: &LocalGroup, spec: &TopicSpec, qos: &EndpointQos) -> Self {
+    fn new<G>(group: &LocalGroup<G>, domain: u16, spec: &TopicSpec, qos: &EndpointQos) -> Self {
         Endpoint {
-            domain: group.inner.domain(),
+            domain,
             partitions: group.partitions.clone(),
             topic: spec.name.clone(),
             type_name: spec.type_name.clone(),
@@ -455,19 +455,11 @@ impl LocalQueue {
     }
 }
 
-/// A group of the inner backend, with its partitions.
-struct LocalGroup {
-    inner: Box<dyn DdsGroup>,
+/// A publisher or subscriber of the inner backend, with its partitions.
+#[derive(Debug)]
+pub struct LocalGroup<G> {
+    inner: G,
     partitions: Vec<String>,
-}
-
-impl DdsGroup for LocalGroup {
-    fn domain(&self) -> u16 {
-        self.inner.domain()
-    }
-    fn as_any(&self) -> &dyn std::any::Any {
-        self
-    }
 }
 
 /// A writer of the inner backend that also delivers inside the process.
@@ -535,7 +527,7 @@ impl DdsWriter for LocalWriter {
         };
         let taken = Taken {
             sample: Sample {
-                encoding: super::Encoding::CDR_LE,
+                encoding: xrce_dds_seam::Encoding::CDR_LE,
                 body: key.payload.into(),
             },
             identity,
@@ -631,21 +623,94 @@ impl DdsReader for LocalReader {
     }
 }
 
+impl Endpoints for LocalDelivery {
+    type Publisher = LocalGroup<Publisher>;
+    type Subscriber = LocalGroup<Subscriber>;
+
+    fn new_publisher(
+        &mut self,
+        domain: u16,
+        partitions: &[String],
+    ) -> Result<Self::Publisher, BackendError> {
+        Ok(LocalGroup {
+            inner: self.inner.create_publisher(domain, partitions)?,
+            partitions: partitions.to_vec(),
+        })
+    }
+
+    fn new_subscriber(
+        &mut self,
+        domain: u16,
+        partitions: &[String],
+    ) -> Result<Self::Subscriber, BackendError> {
+        Ok(LocalGroup {
+            inner: self.inner.create_subscriber(domain, partitions)?,
+            partitions: partitions.to_vec(),
+        })
+    }
+
+    fn new_writer(
+        &mut self,
+        g: &LocalGroup<Publisher>,
+        domain: u16,
+        topic: &TopicSpec,
+        qos: &EndpointQos,
+        little_endian: bool,
+    ) -> Result<Box<dyn DdsWriter>, BackendError> {
+        let inner = self
+            .inner
+            .create_writer(&g.inner, topic, qos, little_endian)?;
+        let id = self.hub.next_id();
+        let slot = WriterSlot {
+            endpoint: Endpoint::new(g, domain, topic, qos),
+            guid: inner.guid(),
+            wrote: Rc::new(Cell::new(inner.writes() > 0)),
+            paired: Rc::default(),
+        };
+        let writer = LocalWriter {
+            inner,
+            hub: self.hub.clone(),
+            id,
+            last_seq: Cell::new(0),
+            wrote: slot.wrote.clone(),
+            paired: slot.paired.clone(),
+        };
+        self.hub.add_writer(id, slot);
+        Ok(Box::new(writer))
+    }
+
+    fn new_reader(
+        &mut self,
+        g: &LocalGroup<Subscriber>,
+        domain: u16,
+        topic: &TopicSpec,
+        qos: &EndpointQos,
+        token: ReaderToken,
+    ) -> Result<Box<dyn DdsReader>, BackendError> {
+        let inner = self.inner.create_reader(&g.inner, topic, qos, token)?;
+        let id = self.hub.next_id();
+        let state = Rc::new(LocalReaderState {
+            id,
+            endpoint: Endpoint::new(g, domain, topic, qos),
+            token,
+            key: topic.key.clone(),
+            queue: RefCell::new(LocalQueue::new(qos)),
+            signalled: Cell::new(false),
+            twins: RefCell::default(),
+        });
+        self.hub.add_reader(id, state.clone());
+        Ok(Box::new(LocalReader {
+            inner,
+            hub: self.hub.clone(),
+            state,
+            local_first: false,
+        }))
+    }
+}
+
 impl DdsBackend for LocalDelivery {
     fn name(&self) -> &'static str {
         self.inner.name()
-    }
-
-    fn create_group(
-        &mut self,
-        domain: u16,
-        publish: bool,
-        partitions: &[String],
-    ) -> Result<Box<dyn DdsGroup>, BackendError> {
-        Ok(Box::new(LocalGroup {
-            inner: self.inner.create_group(domain, publish, partitions)?,
-            partitions: partitions.to_vec(),
-        }))
     }
 
     fn supports_partitions(&self) -> bool {
@@ -663,75 +728,9 @@ impl DdsBackend for LocalDelivery {
     fn announce_graph(
         &mut self,
         domain: u16,
-        nodes: &crate::ros_nodes::DomainNodes,
+        nodes: &xrce_dds_seam::ros_nodes::DomainNodes,
     ) -> Result<(), BackendError> {
         self.inner.announce_graph(domain, nodes)
-    }
-
-    fn create_writer(
-        &mut self,
-        group: &dyn DdsGroup,
-        topic: &TopicSpec,
-        qos: &EndpointQos,
-        little_endian: bool,
-    ) -> Result<Box<dyn DdsWriter>, BackendError> {
-        let Some(g) = group.as_any().downcast_ref::<LocalGroup>() else {
-            return Err(BackendError::ForeignEntity(
-                "a data writer needs a publisher of this backend",
-            ));
-        };
-        let inner = self
-            .inner
-            .create_writer(&*g.inner, topic, qos, little_endian)?;
-        let id = self.hub.next_id();
-        let slot = WriterSlot {
-            endpoint: Endpoint::new(g, topic, qos),
-            guid: inner.guid(),
-            wrote: Rc::new(Cell::new(inner.writes() > 0)),
-            paired: Rc::default(),
-        };
-        let writer = LocalWriter {
-            inner,
-            hub: self.hub.clone(),
-            id,
-            last_seq: Cell::new(0),
-            wrote: slot.wrote.clone(),
-            paired: slot.paired.clone(),
-        };
-        self.hub.add_writer(id, slot);
-        Ok(Box::new(writer))
-    }
-
-    fn create_reader(
-        &mut self,
-        group: &dyn DdsGroup,
-        topic: &TopicSpec,
-        qos: &EndpointQos,
-        token: ReaderToken,
-    ) -> Result<Box<dyn DdsReader>, BackendError> {
-        let Some(g) = group.as_any().downcast_ref::<LocalGroup>() else {
-            return Err(BackendError::ForeignEntity(
-                "a data reader needs a subscriber of this backend",
-            ));
-        };
-        let inner = self.inner.create_reader(&*g.inner, topic, qos, token)?;
-        let id = self.hub.next_id();
-        let state = Rc::new(LocalReaderState {
-            id,
-            endpoint: Endpoint::new(g, topic, qos),
-            token,
-            key: topic.key.clone(),
-            queue: RefCell::new(LocalQueue::new(qos)),
-            signalled: Cell::new(false),
-            twins: RefCell::default(),
-        });
-        self.hub.add_reader(id, state.clone());
-        Ok(Box::new(LocalReader {
-            inner,
-            hub: self.hub.clone(),
-            state,
-            local_first: false,
-        }))
     }
 
     fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError> {

@@ -3,11 +3,11 @@
 use rustdds::policy;
 use rustdds::{QosPolicies, QosPolicyBuilder};
 
-use crate::backend::policies::{
+use xrce_dds_seam::policies::{
     AccessScope, DestinationOrderKind, Durability, History, LivelinessKind, OwnershipKind, Period,
     Reliability,
 };
-use crate::backend::EndpointQos;
+use xrce_dds_seam::EndpointQos;
 
 /// The RustDDS policies of an endpoint.
 pub fn to_rustdds(qos: &EndpointQos) -> QosPolicies {
@@ -105,11 +105,11 @@ mod tests {
 
     #[test]
     fn every_described_policy_reaches_rustdds_and_the_endpoint_overrides_the_topic() {
-        use crate::backend::policies::{
+        use xrce_dds_seam::policies::{
             AccessScope, DestinationOrderKind, LivelinessKind, OwnershipKind, Period,
             PresentationDesc, QosDesc, ResourceLimitsDesc,
         };
-        use crate::backend::EndpointSide;
+        use xrce_dds_seam::EndpointSide;
         let ms = |v| Period::Finite(std::time::Duration::from_millis(v));
         let topic = QosDesc {
             deadline: Some(ms(100)),

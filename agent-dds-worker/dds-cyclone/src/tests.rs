@@ -1,9 +1,10 @@
 use super::*;
-use crate::backend::fake::{keyed, keyed_spec};
-use crate::backend::policies::{History, QosDesc, Reliability};
-use crate::backend::EndpointSide;
 use std::os::fd::{AsRawFd, RawFd};
 use std::time::{Duration, Instant};
+use xrce_dds_seam::fake::{keyed, keyed_spec};
+use xrce_dds_seam::policies::{History, QosDesc, Reliability};
+use xrce_dds_seam::DynEndpoints;
+use xrce_dds_seam::EndpointSide;
 
 fn addr(a: &str) -> IpAddr {
     a.parse().expect("address")
@@ -13,7 +14,6 @@ fn addr(a: &str) -> IpAddr {
 fn loopback() -> Cyclone {
     Cyclone::new(DdsConfig {
         interfaces: vec![addr("127.0.0.1")],
-        backend: crate::backend::BackendKind::Cyclone,
         ..Default::default()
     })
     .expect("backend")
@@ -71,13 +71,13 @@ fn local_writers_reach_local_readers_with_keys_disposes_and_wake_ups() {
     };
     let wq = EndpointQos::resolve(EndpointSide::Writer, &keep_last_1, &QosDesc::default());
     let rq = EndpointQos::resolve(EndpointSide::Reader, &keep_last_1, &QosDesc::default());
-    let publisher = dds.create_group(89, true, &[]).expect("publisher");
-    let subscriber = dds.create_group(89, false, &[]).expect("subscriber");
+    let publisher = dds.create_publisher(89, &[]).expect("publisher");
+    let subscriber = dds.create_subscriber(89, &[]).expect("subscriber");
     let mut reader = dds
-        .create_reader(subscriber.as_ref(), &spec, &rq, 7)
+        .create_reader(&subscriber, &spec, &rq, 7)
         .expect("reader");
     let writer = dds
-        .create_writer(publisher.as_ref(), &spec, &wq, true)
+        .create_writer(&publisher, &spec, &wq, true)
         .expect("writer");
     assert_eq!(dds.participants(), 1, "one participant per domain");
     wait_until(|| writer.matched_readers() > 0);
@@ -160,7 +160,7 @@ fn local_writers_reach_local_readers_with_keys_disposes_and_wake_ups() {
         key: None,
     };
     let plain_writer = dds
-        .create_writer(publisher.as_ref(), &plain, &wq, true)
+        .create_writer(&publisher, &plain, &wq, true)
         .expect("writer");
     plain_writer
         .write(Sample::cdr(true, &[9; 8]))
@@ -269,7 +269,7 @@ fn a_front_ends_free_port_is_not_taken_by_the_participant() {
     );
     let mut dds = loopback();
     dds.reserve_ports(ports::ReservedPorts::new([disc, data]));
-    let _publisher = dds.create_group(98, true, &[]).expect("publisher");
+    let _publisher = dds.create_publisher(98, &[]).expect("publisher");
     for p in [disc, data] {
         assert!(
             std::net::UdpSocket::bind(("0.0.0.0", p)).is_ok(),
@@ -298,21 +298,19 @@ fn partitions_separate_writers_from_readers_of_other_partitions() {
         &QosDesc::default(),
     );
     let a = ["robot_a".to_string()];
-    let publisher = dds.create_group(90, true, &a).expect("publisher");
+    let publisher = dds.create_publisher(90, &a).expect("publisher");
     let elsewhere = dds
-        .create_group(90, false, &["robot_b".to_string()])
+        .create_subscriber(90, &["robot_b".to_string()])
         .expect("subscriber");
     let same = dds
-        .create_group(90, false, &["robot_*".to_string()])
+        .create_subscriber(90, &["robot_*".to_string()])
         .expect("subscriber");
     let mut other = dds
-        .create_reader(elsewhere.as_ref(), &spec, &rq, 1)
+        .create_reader(&elsewhere, &spec, &rq, 1)
         .expect("reader");
-    let mut mine = dds
-        .create_reader(same.as_ref(), &spec, &rq, 2)
-        .expect("reader");
+    let mut mine = dds.create_reader(&same, &spec, &rq, 2).expect("reader");
     let writer = dds
-        .create_writer(publisher.as_ref(), &spec, &wq, true)
+        .create_writer(&publisher, &spec, &wq, true)
         .expect("writer");
     wait_until(|| writer.matched_readers() > 0);
     std::thread::sleep(Duration::from_millis(100));
@@ -341,13 +339,13 @@ fn a_dispose_after_more_samples_than_one_take_comes_after_the_last_of_them() {
     };
     let wq = EndpointQos::resolve(EndpointSide::Writer, &all, &QosDesc::default());
     let rq = EndpointQos::resolve(EndpointSide::Reader, &all, &QosDesc::default());
-    let publisher = dds.create_group(91, true, &[]).expect("publisher");
-    let subscriber = dds.create_group(91, false, &[]).expect("subscriber");
+    let publisher = dds.create_publisher(91, &[]).expect("publisher");
+    let subscriber = dds.create_subscriber(91, &[]).expect("subscriber");
     let mut reader = dds
-        .create_reader(subscriber.as_ref(), &spec, &rq, 3)
+        .create_reader(&subscriber, &spec, &rq, 3)
         .expect("reader");
     let writer = dds
-        .create_writer(publisher.as_ref(), &spec, &wq, true)
+        .create_writer(&publisher, &spec, &wq, true)
         .expect("writer");
     wait_until(|| writer.matched_readers() > 0);
     let n = 2 * ffi::TAKE_BATCH as i32 + 5;

@@ -9,7 +9,7 @@ use std::os::unix::net::UnixStream;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 
-use crate::backend::{BackendError, ReaderToken, Taken};
+use xrce_dds_seam::{BackendError, ReaderToken, Taken};
 
 /// Locks a mutex whose holder may have panicked (the data stays usable: queues and lists).
 pub(super) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -289,7 +289,7 @@ impl Drop for Inbox {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::backend::{Sample, SampleIdentity};
+    use xrce_dds_seam::{Sample, SampleIdentity};
 
     fn taken(n: u8) -> Result<Taken, BackendError> {
         Ok(Taken {

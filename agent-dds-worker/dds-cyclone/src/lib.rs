@@ -9,6 +9,9 @@
 //!
 //! What it cannot do (docs/dds-backends.md): requesters and repliers (no related sample
 //! identity can be put on a write through Cyclone's C API).
+#![deny(unsafe_code)]
+// The exception: `ffi`, the calls into Cyclone DDS's C API, with their invariants.
+#![warn(unreachable_pub, missing_docs)]
 
 use std::collections::{HashMap, VecDeque};
 use std::fmt::Write as _;
@@ -21,12 +24,12 @@ use std::time::Duration;
 
 use bytes::Bytes;
 
-use super::ports;
-use super::{
-    BackendError, DdsBackend, DdsConfig, DdsGroup, DdsReader, DdsWriter, Encoding, EndpointQos,
+use xrce_dds_seam::ports;
+use xrce_dds_seam::types::KeyDescriptor;
+use xrce_dds_seam::{
+    BackendError, DdsBackend, DdsConfig, DdsReader, DdsWriter, Encoding, EndpointQos, Endpoints,
     Guid, ReaderToken, Sample, SampleIdentity, Taken, TopicSpec,
 };
-use crate::types::KeyDescriptor;
 
 #[allow(unsafe_code)]
 mod ffi;
@@ -69,7 +72,7 @@ const AGENT_SETTINGS: &str =
 /// indices on the same addresses (which is also how RustDDS and a loopback-pinned Cyclone
 /// find each other). With `data_multicast_offset`, user-data multicast is received on that
 /// port of the domain's range instead of its own (`7400 + 250·d + 1`, which an XRCE front-end
-/// serves: [`super::ports`]); Cyclone announces the port, so other participants send there.
+/// serves: [`xrce_dds_seam::ports`]); Cyclone announces the port, so other participants send there.
 pub fn config_xml(
     interfaces: &[IpAddr],
     uri: Option<&str>,
@@ -200,11 +203,27 @@ impl Cyclone {
         drop(guard);
         let p = Rc::new(p?);
         // Fails closed: unconfined, the participant (and its domain) is deleted here.
-        super::confine_new_sockets(&self.config)
+        xrce_dds_seam::confine_new_sockets(&self.config)
             .map_err(|e| e.context(&format!("DDS participant in domain {domain}")))?;
         tracing::info!(domain, "Cyclone DDS participant created");
         self.participants.insert(domain, p.clone());
         Ok(p)
+    }
+
+    /// A publisher (`publish`) or subscriber in `domain`.
+    fn group(
+        &mut self,
+        domain: u16,
+        publish: bool,
+        partitions: &[String],
+    ) -> Result<Group, BackendError> {
+        let participant = self.participant(domain)?;
+        let entity = participant.create_group(publish, partitions)?;
+        Ok(Group {
+            entity,
+            participant,
+            domain,
+        })
     }
 
     fn topic(&mut self, group: &Group, spec: &TopicSpec) -> Result<Rc<ffi::Entity>, BackendError> {
@@ -357,20 +376,18 @@ impl Drop for AckWatcher {
     }
 }
 
-/// A publisher or subscriber.
-struct Group {
+/// A Cyclone DDS publisher or subscriber, on the participant of its domain.
+pub struct Group {
     entity: ffi::Entity,
     participant: Rc<ffi::Participant>,
     domain: u16,
-    publish: bool,
 }
 
-impl DdsGroup for Group {
-    fn domain(&self) -> u16 {
-        self.domain
-    }
-    fn as_any(&self) -> &dyn std::any::Any {
-        self
+impl std::fmt::Debug for Group {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Group")
+            .field("domain", &self.domain)
+            .finish_non_exhaustive()
     }
 }
 
@@ -622,42 +639,33 @@ impl DdsReader for Reader {
     }
 }
 
-impl DdsBackend for Cyclone {
-    fn name(&self) -> &'static str {
-        "cyclone"
+impl Endpoints for Cyclone {
+    type Publisher = Group;
+    type Subscriber = Group;
+
+    fn new_publisher(&mut self, domain: u16, partitions: &[String]) -> Result<Group, BackendError> {
+        self.group(domain, true, partitions)
     }
 
-    fn create_group(
+    fn new_subscriber(
         &mut self,
         domain: u16,
-        publish: bool,
         partitions: &[String],
-    ) -> Result<Box<dyn DdsGroup>, BackendError> {
-        let participant = self.participant(domain)?;
-        let entity = participant.create_group(publish, partitions)?;
-        Ok(Box::new(Group {
-            entity,
-            participant,
-            domain,
-            publish,
-        }))
+    ) -> Result<Group, BackendError> {
+        self.group(domain, false, partitions)
     }
 
-    fn create_writer(
+    fn new_writer(
         &mut self,
-        group: &dyn DdsGroup,
+        g: &Group,
+        _domain: u16,
         spec: &TopicSpec,
         qos: &EndpointQos,
         little_endian: bool,
     ) -> Result<Box<dyn DdsWriter>, BackendError> {
-        let Some(g) = group.as_any().downcast_ref::<Group>().filter(|g| g.publish) else {
-            return Err(BackendError::ForeignEntity(
-                "a data writer needs a Cyclone DDS publisher",
-            ));
-        };
         let topic = self.topic(g, spec)?;
         let raw = ffi::Writer::new(g.entity.handle(), &topic, &qos::to_cyclone(qos)?)?;
-        let reliable = qos.reliability == crate::backend::policies::Reliability::Reliable;
+        let reliable = qos.reliability == xrce_dds_seam::policies::Reliability::Reliable;
         let (acks, watcher) = if reliable {
             (
                 self.acks.watch(raw.handle()),
@@ -678,22 +686,14 @@ impl DdsBackend for Cyclone {
         }))
     }
 
-    fn create_reader(
+    fn new_reader(
         &mut self,
-        group: &dyn DdsGroup,
+        g: &Group,
+        _domain: u16,
         spec: &TopicSpec,
         qos: &EndpointQos,
         token: ReaderToken,
     ) -> Result<Box<dyn DdsReader>, BackendError> {
-        let Some(g) = group
-            .as_any()
-            .downcast_ref::<Group>()
-            .filter(|g| !g.publish)
-        else {
-            return Err(BackendError::ForeignEntity(
-                "a data reader needs a Cyclone DDS subscriber",
-            ));
-        };
         let topic = self.topic(g, spec)?;
         let raw = ffi::Reader::new(
             g.entity.handle(),
@@ -713,6 +713,12 @@ impl DdsBackend for Cyclone {
             carried: Vec::new(),
             seen: HashMap::new(),
         }))
+    }
+}
+
+impl DdsBackend for Cyclone {
+    fn name(&self) -> &'static str {
+        "cyclone"
     }
 
     fn supports_partitions(&self) -> bool {
