@@ -94,6 +94,10 @@ def parse_args(argv):
                    help="repeat the message text this many times (large samples)")
     w.add_argument("--wait-match", action="store_true",
                    help="wait (up to --timeout) for at least one matched reader before writing")
+    w.add_argument("--settle-ms", type=int, default=300,
+                   help="with --wait-match: pause this long after the match (default 300): the "
+                        "writer matching the reader does not mean the reader matched the writer, "
+                        "and a volatile reader misses what was written before it did")
     w.add_argument("--linger-ms", type=int, default=1000,
                    help="stay alive this long after the last write (default 1000)")
     w.add_argument("--colors", default="RED,GREEN,BLUE",
@@ -275,6 +279,7 @@ def main(argv=None):
             if st.current_count >= 1:
                 out(f"MATCHED {st.current_count}")
                 last_matched = st.current_count
+                time.sleep(args.settle_ms / 1000.0)
                 break
             left = remaining_ns()
             if left == 0:

@@ -98,7 +98,30 @@ impl AgentOutput {
         self.len() == 0
     }
 
-    /// How many lines contain `needle`.
+    /// Whether at least `n` lines contain `needle`, waiting up to `d` for them ([`LOG_WAIT`]): a log line
+    /// reaches the test through the process's pipe and a reader thread, after the effect the
+    /// test saw (a closed connection, a refused sample), so counting at once races it.
+    pub fn logged(&self, needle: &str, n: usize, d: Duration) -> bool {
+        let end = Instant::now() + d;
+        let (m, cv) = &*self.lines;
+        let Ok(mut v) = m.lock() else {
+            return false;
+        };
+        loop {
+            if v.iter().filter(|l| l.contains(needle)).count() >= n {
+                return true;
+            }
+            let Some(left) = end.checked_duration_since(Instant::now()) else {
+                return false;
+            };
+            match cv.wait_timeout(v, left) {
+                Ok((guard, _)) => v = guard,
+                Err(_) => return false,
+            }
+        }
+    }
+
+    /// How many lines contain `needle` (now: see [`logged`](AgentOutput::logged)).
     pub fn count(&self, needle: &str) -> usize {
         self.lines
             .0
@@ -453,6 +476,9 @@ impl Drop for AgentProcess {
 }
 
 /// Runs `cmd` (its output piped) to its end and returns what it printed; panics if it
+/// How long a test waits for a log line the agent prints after an effect the test saw.
+pub const LOG_WAIT: Duration = Duration::from_secs(5);
+
 /// takes longer than `d` (it is killed then), so that a hang fails instead of blocking.
 pub fn output_within(cmd: &mut Command, d: Duration) -> std::process::Output {
     let mut child = cmd

@@ -7,14 +7,14 @@
 //! descriptor the worker's loop waits on for readers with data.
 //!
 //! This crate is what every backend and the worker share, and nothing else: the traits
-//! ([`DdsBackend`], [`Endpoints`], [`DdsWriter`], [`DdsReader`]), publishers and subscribers
-//! typed by role ([`groups`]), samples and GUIDs, the
-//! error kinds, the endpoint QoS the worker resolves ([`qos`], [`policies`]), where DDS may
-//! talk ([`DdsConfig`], [`confine`], [`ports`]), the XRCE type descriptions a backend
-//! extracts keys with ([`types`]) and the ROS graph's plain data ([`ros_nodes`]). The
-//! backends are crates of their own (`xrce-dds-cyclone`, `xrce-dds-rustdds`,
-//! `xrce-dds-zenoh`); with the `fake` feature, `fake` is one that delivers between its own
-//! writers and readers in memory, for unit tests.
+//! ([`DdsBackend`], [`Endpoints`], [`DdsWriter`], [`DdsReader`]), publishers and
+//! subscribers typed by role ([`groups`]), samples and GUIDs, the error kinds, the endpoint
+//! QoS the worker resolves ([`qos`], [`policies`]), where DDS may talk ([`DdsConfig`],
+//! [`confine`], [`ports`]), the XRCE type descriptions a backend extracts keys with
+//! ([`types`]) and the ROS graph's plain data ([`ros_nodes`]). The backends are crates of
+//! their own (`xrce-dds-cyclone`, `xrce-dds-rustdds`, `xrce-dds-zenoh`); with the `fake`
+//! feature, `fake` is one that delivers between its own writers and readers in memory, for
+//! unit tests.
 #![deny(unsafe_code)]
 // The exception: one function of `confine` (attaching a socket filter to a descriptor).
 #![warn(unreachable_pub, missing_docs)]

@@ -78,6 +78,8 @@ pub fn check_config(backend: BackendKind, config: &DdsConfig) -> anyhow::Result<
             "DDS confined to these addresses and interfaces"
         ),
     }
+    #[cfg(not(feature = "cyclone"))]
+    let _ = backend;
     #[cfg(feature = "cyclone")]
     if backend == BackendKind::Cyclone {
         xrce_dds_cyclone::config_xml(&config.interfaces, None, None)

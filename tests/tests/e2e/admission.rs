@@ -321,7 +321,9 @@ fn metered_writes(tag: &str, quota: [&str; 2], domain: i16, count: u32, message:
     got.assert_exactly_once(0..count, "a client over its quota");
     got.assert_in_order("a client over its quota");
     assert!(
-        agent.output().count("over its rate quota") >= 1,
+        agent
+            .output()
+            .logged("over its rate quota", 1, xrce_tests::LOG_WAIT),
         "the quota never bit"
     );
     assert!(agent.stop(), "agent did not stop cleanly");

@@ -80,7 +80,9 @@ fn a_client_numbering_its_streams_from_one_loses_no_first_exchange() {
     );
     // The session's line says who the client is and what the agent does for it.
     assert!(
-        agent.output().count("RTI (01.01)") >= 2,
+        agent
+            .output()
+            .logged("RTI (01.01)", 2, xrce_tests::LOG_WAIT),
         "no session line names the vendor"
     );
     assert!(agent.stop(), "agent did not stop cleanly");

@@ -246,7 +246,9 @@ fn an_idle_tcp_connection_is_closed_and_a_talking_one_kept() {
         "the talking client's connection was closed too"
     );
     assert!(
-        agent.output().count("tcp_idle_connection") >= 1,
+        agent
+            .output()
+            .logged("tcp_idle_connection", 1, xrce_tests::LOG_WAIT),
         "the close was not logged"
     );
     assert!(agent.stop(), "agent did not stop cleanly");

@@ -190,7 +190,9 @@ fn a_keep_all_reader_with_unlimited_resources_that_never_reads_keeps_the_worker_
         "the worker grew by {grown} KiB: the reader's cache is not bounded"
     );
     assert!(
-        agent.output().count("QoS clamped") >= 1,
+        agent
+            .output()
+            .logged("QoS clamped", 1, xrce_tests::LOG_WAIT),
         "the clamp was not logged"
     );
     assert!(agent.stop(), "agent did not stop cleanly");
