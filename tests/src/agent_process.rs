@@ -475,10 +475,10 @@ impl Drop for AgentProcess {
     }
 }
 
-/// Runs `cmd` (its output piped) to its end and returns what it printed; panics if it
 /// How long a test waits for a log line the agent prints after an effect the test saw.
 pub const LOG_WAIT: Duration = Duration::from_secs(5);
 
+/// Runs `cmd` (its output piped) to its end and returns what it printed; panics if it
 /// takes longer than `d` (it is killed then), so that a hang fails instead of blocking.
 pub fn output_within(cmd: &mut Command, d: Duration) -> std::process::Output {
     let mut child = cmd

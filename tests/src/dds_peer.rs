@@ -167,6 +167,26 @@ impl DdsPeer {
         mut pump: impl FnMut(),
         keep: bool,
     ) -> Option<String> {
+        // Lines an earlier `wait_for_keeping` passed over come first.
+        let mut passed = VecDeque::new();
+        loop {
+            let Some(l) = self.kept.borrow_mut().pop_front() else {
+                break;
+            };
+            if l.starts_with(prefix) {
+                if keep {
+                    let mut kept = self.kept.borrow_mut();
+                    while let Some(p) = passed.pop_back() {
+                        kept.push_front(p);
+                    }
+                }
+                return Some(l);
+            }
+            passed.push_back(l);
+        }
+        if keep {
+            *self.kept.borrow_mut() = passed;
+        }
         let end = Instant::now() + d;
         while Instant::now() < end {
             pump();

@@ -5,8 +5,8 @@
 //! holds them as [`Publisher`] and [`Subscriber`], which say their role in their type and
 //! keep the backend's own group inside; [`DynEndpoints`], implemented once here for every
 //! [`Endpoints`], gives the backend its own group back. So no backend looks for its types
-//! at run time, a data writer cannot be asked of a subscriber, and a group made by another
-//! backend is refused in one place ([`BackendError::ForeignEntity`]).
+//! at run time, a data writer cannot be asked of a subscriber, and a group made by a backend
+//! of another type is refused in one place ([`BackendError::ForeignEntity`]).
 
 use std::any::Any;
 

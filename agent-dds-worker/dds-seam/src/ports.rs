@@ -335,7 +335,7 @@ pub fn plan(
 /// The domains DDS cannot serve while the front-ends hold these reserved ports, with why:
 /// those whose discovery multicast port is one of them, while DDS uses multicast with these
 /// `interfaces`. The worker refuses their participants with STATUS_ERR_DENIED
-/// (the worker refuses its participants) and serves every other domain, as
+/// (its `DomainRefusal::PortClash`) and serves every other domain, as
 /// MicroXRCEAgent does on such a port (`-p 22150` costs domain 59 only); it warns at start
 /// ([`log_reserved`]). Other clashes cost no domain: [`plan`] serves them.
 pub fn unservable_domains(

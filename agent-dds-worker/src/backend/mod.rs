@@ -122,7 +122,7 @@ pub fn unservable_domains(
     ports::unservable_domains(&config.reserved_ports, &config.interfaces)
 }
 
-/// The backend `config` names, once [`check_config`] accepted the configuration.
+/// The backend `backend` names, once [`check_config`] accepted the configuration.
 pub fn create(backend: BackendKind, config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
     check_config(backend, config)?;
     ports::log_reserved(&config.reserved_ports, &config.interfaces);
@@ -156,7 +156,8 @@ pub fn for_services(config: &DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
 
 /// The RustDDS backend, which sends samples between its own writers and readers through
 /// UDP loopback, wrapped so that they are delivered inside the process
-/// (`xrce_dds_rustdds::local`), unless the configuration says otherwise ([`DdsConfig::rustdds_loopback`]).
+/// (`xrce_dds_rustdds::local`), unless the configuration says otherwise
+/// ([`DdsConfig::rustdds_loopback`]).
 fn rustdds_delivering_locally(config: DdsConfig) -> anyhow::Result<Box<dyn DdsBackend>> {
     let loopback = config.rustdds_loopback;
     let rustdds = Box::new(xrce_dds_rustdds::RustDds::new(config)?);

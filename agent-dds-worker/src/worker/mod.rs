@@ -349,7 +349,7 @@ impl std::fmt::Debug for Worker {
 
 impl Worker {
     /// Opens the IPC services, then announces a new generation; DDS through the backend
-    /// `config.dds` names.
+    /// `config.backend` names, where `config.dds` says.
     pub fn new(mut config: WorkerConfig) -> anyhow::Result<Self> {
         let dds = backend::create(config.backend, &config.dds)?;
         config.domains.unservable = backend::unservable_domains(config.backend, &config.dds);

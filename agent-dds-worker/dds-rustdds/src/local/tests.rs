@@ -389,6 +389,34 @@ fn a_full_keep_all_reader_refuses_and_counts() {
     assert_eq!(b.dropped(), vec![("local_queue_refused", 2)]);
 }
 
+/// A publisher or subscriber another type of backend made is refused (the worker's fault, not
+/// the client's), and nothing is made with it.
+#[test]
+fn a_group_of_another_backend_is_refused() {
+    let (mut other, _) = Fake::new().expect("fake");
+    let publisher = other.create_publisher(0, &[]).expect("publisher");
+    let subscriber = other.create_subscriber(0, &[]).expect("subscriber");
+    let (mut b, bus) = fake();
+    let w = b.create_writer(&publisher, &spec("t"), &writer_qos(), true);
+    assert!(
+        matches!(w, Err(BackendError::ForeignEntity(_))),
+        "a writer in a foreign publisher: {:?}",
+        w.err()
+    );
+    let r = b.create_reader(&subscriber, &spec("t"), &reader_qos(), 1);
+    assert!(
+        matches!(r, Err(BackendError::ForeignEntity(_))),
+        "a reader in a foreign subscriber: {:?}",
+        r.err()
+    );
+    assert_eq!(bus.writers_made.get() + bus.readers_made.get(), 0);
+    // Its own groups serve it.
+    let g = groups(&mut b, 0);
+    assert!(b
+        .create_writer(&g.publisher, &spec("t"), &writer_qos(), true)
+        .is_ok());
+}
+
 /// Through RustDDS on loopback: the reader gets each sample once, at once, with the
 /// identity RustDDS gives the copy it sends (writes and a dispose), and the copies that
 /// come through the network are dropped.
