@@ -481,6 +481,12 @@ impl Worker {
             .take()
             .ok_or_else(|| anyhow::anyhow!("the worker runs only once"))?;
         let result = self.serve(&requests);
+        // The files of a front-end killed since the last census (once a second) would outlive
+        // the agent: the census removes them now.
+        let census = self.node.nodes();
+        if !census.dead.is_empty() {
+            tracing::debug!(dead = ?census.dead, "dead front-ends' shared-memory files removed");
+        }
         self.reporter.remove();
         result
     }
