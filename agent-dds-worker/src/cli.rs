@@ -5,7 +5,8 @@ use std::net::IpAddr;
 use crate::backend::ports::ReservedPorts;
 use crate::backend::{BackendKind, DdsConfig};
 use crate::domains::{DomainPolicy, DomainSet};
-use crate::worker::{Worker, WorkerConfig};
+use crate::process::WorkerProcess;
+use crate::worker::WorkerConfig;
 
 /// The environment variables a worker reads settings from when its command line does not
 /// give them. A supervisor passes every setting on the command line
@@ -421,7 +422,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         max_in_use = ?domains.max_in_use,
         "DDS domains clients may use"
     );
-    let mut worker = Worker::new(WorkerConfig {
+    let mut process = WorkerProcess::start(WorkerConfig {
         instance: args.instance,
         backend: args.dds_backend,
         dds: DdsConfig {
@@ -444,7 +445,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         bounds: args.bounds.bounds(),
         default_domain,
     })?;
-    worker.set_ros_distro(ros_distro);
+    process.worker_mut().set_ros_distro(ros_distro);
     if args.ros_graph {
         tracing::info!(
             distro = %ros_distro,
@@ -457,7 +458,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
     if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {
         tracing::warn!(error = %e, "sd_notify failed");
     }
-    worker.run()
+    process.run()
 }
 
 /// Raises the open-file limit to its hard limit: RustDDS holds about two descriptors per

@@ -74,6 +74,7 @@ pub mod domains;
 pub mod episodes;
 pub mod filter;
 pub mod fuzzing;
+pub mod process;
 pub mod recent;
 pub mod references;
 pub mod representation;

@@ -2,7 +2,7 @@
 //! here) and the choice of implementation.
 //!
 //! The worker's modules use only the seam's traits and types; [`create`] makes the backend
-//! the configuration names (`Worker::new`), `Worker::with_backend` takes any other. The
+//! the configuration names (`WorkerProcess::start`), `Worker::new` takes any backend. The
 //! implementations are crates of their own: `xrce_dds_cyclone` (Cyclone DDS, the default,
 //! with the `cyclone` feature, on by default), `xrce_dds_rustdds` (RustDDS, always built; it
 //! also serves requesters and repliers beside a backend that cannot, [`for_services`], and

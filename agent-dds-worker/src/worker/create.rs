@@ -50,7 +50,7 @@ pub(super) fn compile_filter(
     })
 }
 
-impl Worker {
+impl<L: WorkerLink> Worker<L> {
     pub(super) fn create(
         &mut self,
         key: EntityKey,
@@ -193,7 +193,7 @@ impl Worker {
                         w
                     }
                 };
-                let now = Instant::now();
+                let now = self.now;
                 // A writer joining a shared DDS writer that matched its readers long enough
                 // ago writes at once.
                 let matched = w
@@ -319,7 +319,7 @@ impl Worker {
                 rematch.held = carried;
                 rematch
                     .until
-                    .get_or_insert_with(|| Instant::now() + NEW_WRITER_HOLD_MAX);
+                    .get_or_insert_with(|| self.now + NEW_WRITER_HOLD_MAX);
             }
             if rematch.until.is_some() {
                 self.writers.holding.insert(key);
@@ -355,7 +355,7 @@ impl Worker {
         }
         if graph_change {
             if let Some(d) = self.domain_of(key) {
-                self.graph.touch(d, Instant::now());
+                self.graph.touch(d, self.now);
             }
         }
         Ok(())
@@ -400,7 +400,7 @@ impl Worker {
         let clamped = crate::bounds::clamp(qos, topic.key.is_some(), &bounds);
         if clamped.changed {
             self.count("qos_clamped");
-            if self.episodes.refused("qos_clamped", Instant::now()) {
+            if self.episodes.refused("qos_clamped", self.now) {
                 tracing::warn!(client = %key.1, topic = %topic.name, ?asked, history = ?qos.history, resource_limits = ?qos.resource_limits, "endpoint QoS clamped to the worker's bounds: its cache keeps at most {} samples (further clamps are counted, not logged, until the episode ends)", clamped.samples);
             }
         }

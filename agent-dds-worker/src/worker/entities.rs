@@ -50,7 +50,7 @@ pub(super) struct Entity {
     pub(super) samples: u32,
 }
 
-impl Worker {
+impl<L: WorkerLink> Worker<L> {
     /// The domain an entity lives in, if it is part of a participant.
     pub(super) fn domain_of(&self, key: EntityKey) -> Option<u16> {
         match &self.entities.get(&key)?.kind {
@@ -106,7 +106,7 @@ impl Worker {
     pub(super) fn remove_subtree(&mut self, key: EntityKey) {
         // Every entity of a subtree lives in the domain of its root.
         if let Some(d) = self.domain_of(key) {
-            self.graph.touch(d, Instant::now());
+            self.graph.touch(d, self.now);
         }
         for (key, e) in self.entities.remove_subtree(key) {
             self.forget_entity(key, e);
@@ -140,7 +140,7 @@ impl Worker {
                 // Samples it still held for its readers to match go out now (a replaced
                 // writer's were carried to its successor before): the client was told they
                 // were written.
-                let now = Instant::now();
+                let now = self.now;
                 let held = std::mem::take(&mut rematch.held);
                 if !held.is_empty() {
                     self.publish_held(key, &writer, held, now);

@@ -10,17 +10,18 @@ fn participant_number(key: &EntityKey) -> u64 {
     h.finish()
 }
 
-impl Worker {
+impl<L: WorkerLink> Worker<L> {
     /// Publishes the ROS graph in the `ros_discovery_info` layout of `distro` (24-octet GIDs
-    /// for Humble, 16 for Iron and later). Called once before [`Worker::run`]; the worker's
-    /// configuration does not carry it so that the graph's settings stay in this module.
+    /// for Humble, 16 for Iron and later). Called once before the worker serves
+    /// ([`crate::process::WorkerProcess::run`]); the worker's configuration does not carry it
+    /// so that the graph's settings stay in this module.
     pub fn set_ros_distro(&mut self, distro: crate::ros_graph::RosDistro) {
-        self.graph.set_layout(distro.gid_layout(), Instant::now());
+        self.graph.set_layout(distro.gid_layout(), self.now);
     }
 
     /// Publishes the ROS graph of every domain that changed, when its update is due.
     pub(super) fn publish_graph(&mut self) {
-        let now = Instant::now();
+        let now = self.now;
         for domain in self.graph.due(now) {
             let nodes = self.domain_nodes(domain);
             if self.dds.announces_graph() {

@@ -5,11 +5,17 @@
 //! front-end cannot rebuild: after a restart it announces a new generation and the front-ends
 //! replay their clients' object graphs.
 //!
-//! This module is the loop and the worker's state; each job is a module of its own: the
-//! dispatch of requests (`requests`), the reply ports (`ports`), the DDS side of each
-//! entity (`entities`; the tree itself is [`crate::tree`]), creation (`create`), writes
-//! and held samples (`writes`), reads (`reads`), requesters and repliers (`services`)
-//! and the ROS 2 graph (`graph`).
+//! The worker is sans-IO, as the front-end's relay is: what it sends goes through a
+//! [`WorkerLink`] (shared memory in the process, memory in tests), and the caller gives it
+//! the time with every event ([`Worker::handle_request`], [`Worker::pass`]) and asks when it
+//! wants the next pass ([`Worker::poll_timeout`]). The process around it
+//! ([`crate::process`]) polls, drains the requests, reports status and handles signals.
+//!
+//! This module is the worker's state and its pass; each job is a module of its own: the
+//! dispatch of requests (`requests`), the reply ports (`ports`), the link (`link`), the DDS
+//! side of each entity (`entities`; the tree itself is [`crate::tree`]), creation
+//! (`create`), writes and held samples (`writes`), reads (`reads`), requesters and
+//! repliers (`services`) and the ROS 2 graph (`graph`).
 
 use std::cell::Cell;
 use std::collections::{HashMap, HashSet};
@@ -26,8 +32,7 @@ use xrce_common::wire::{
     object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, ResultStatus,
     VariantExtra,
 };
-use xrce_ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
-use xrce_ipc::status::{ProcessReport, Reporter, Watchdog, WorkerStatus};
+use xrce_ipc::status::{ProcessReport, WorkerStatus};
 use xrce_ipc::{self as ipc, Encode, Reply, ReplyMessage, Request, RequestMessage, Route};
 
 use crate::acks::{AckTracker, Acknowledging, Outstanding};
@@ -53,6 +58,7 @@ use crate::xml::{self, TopicDesc};
 mod create;
 mod entities;
 mod graph;
+mod link;
 mod ports;
 mod reads;
 mod replay_guard;
@@ -64,9 +70,10 @@ mod writes;
 
 use create::*;
 use entities::*;
+pub use link::{LinkError, MemoryWorkerLink, ShmWorkerLink, WorkerLink};
 use ports::*;
 use reads::*;
-use replay_guard::ReplayGuard;
+use replay_guard::{ReplayGuard, Screened};
 use services::*;
 use writes::*;
 
@@ -98,17 +105,6 @@ pub struct WorkerConfig {
     pub default_domain: u16,
 }
 
-/// A loop pass longer than this is logged (front-ends' operations wait meanwhile, and a
-/// front-end drops best-effort writes once its window to the worker is full).
-const SLOW_PASS: Duration = Duration::from_millis(50);
-/// A stopping worker stops once no operation came for this long (and DDS readers have
-/// acknowledged every write).
-pub const DRAIN_QUIET: Duration = Duration::from_millis(100);
-/// Longest a stopping worker drains (below the supervisor's stop grace of 5 s).
-pub const DRAIN_MAX: Duration = Duration::from_secs(3);
-/// At most one such line in this period (with the count of slow passes so far).
-const SLOW_PASS_LOG_PERIOD: Duration = Duration::from_secs(10);
-
 /// How often the worker looks for front-ends whose process is gone.
 const CENSUS_PERIOD: Duration = Duration::from_secs(1);
 /// How often every writer's matched count is looked at and, when it changed, reported to its
@@ -119,14 +115,16 @@ type EntityKey = (u32, ClientKey, ObjectId);
 
 use crate::representation::OpError;
 
-/// The DDS worker.
-pub struct Worker {
+/// The DDS worker: executes the front-ends' operations on DDS entities, sends what they
+/// are owed through its link `L`.
+pub struct Worker<L: WorkerLink> {
     config: WorkerConfig,
-    node: IpcNode,
+    /// Where replies, wake-ups, announcements and replay marks go.
+    link: L,
+    /// The time of the event being handled, as the caller gave it (the worker reads no
+    /// clock).
+    now: Instant,
     generation: u32,
-    /// Taken by [`Worker::run`] so requests can be handled straight from shared memory.
-    requests: Option<Receiver>,
-    announce: Sender,
     /// What the worker knows of each front-end: its reply port, its hello, its entities
     /// while it is gone, its restarted successor.
     frontends: Frontends,
@@ -160,13 +158,6 @@ pub struct Worker {
     samples_written: u64,
     /// Samples taken from DDS readers and sent to front-ends.
     samples_taken: u64,
-    /// Loop passes that took [`SLOW_PASS`] or longer, and when one was last logged.
-    slow_passes: u64,
-    slow_logged: Option<Instant>,
-    /// Writes this process's status report.
-    reporter: Reporter,
-    /// Pings systemd's watchdog when the worker is a unit of its own.
-    watchdog: Watchdog,
 }
 
 /// The DDS readers the worker made for XRCE readers, and whose turn it is to be read.
@@ -338,7 +329,7 @@ struct Frontends {
     deferred: Vec<Vec<u8>>,
 }
 
-impl std::fmt::Debug for Worker {
+impl<L: WorkerLink> std::fmt::Debug for Worker<L> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Worker")
             .field("generation", &self.generation)
@@ -347,39 +338,25 @@ impl std::fmt::Debug for Worker {
     }
 }
 
-impl Worker {
-    /// Opens the IPC services, then announces a new generation; DDS through the backend
-    /// `config.backend` names, where `config.dds` says.
-    pub fn new(mut config: WorkerConfig) -> anyhow::Result<Self> {
-        let dds = backend::create(config.backend, &config.dds)?;
-        config.domains.unservable = backend::unservable_domains(config.backend, &config.dds);
-        Self::with_backend(config, dds)
-    }
-
-    /// Opens the IPC services, then announces a new generation; DDS through `dds`.
-    pub fn with_backend(config: WorkerConfig, dds: Box<dyn DdsBackend>) -> anyhow::Result<Self> {
+impl<L: WorkerLink> Worker<L> {
+    /// A worker of generation `generation` over DDS `dds`, at `now`: it announces itself
+    /// through `link` (front-ends that knew another generation replay to it).
+    pub fn new(
+        config: WorkerConfig,
+        dds: Box<dyn DdsBackend>,
+        mut link: L,
+        generation: u32,
+        now: Instant,
+    ) -> Result<Self, LinkError> {
         tracing::info!(backend = dds.name(), "DDS backend");
-        let node = IpcNode::new(&config.instance, "xrce-dds-worker")?;
-        let requests = node.receiver(&ipc::request_service(&config.instance), ServiceKind::Data)?;
-        let announce = node.sender(
-            &ipc::announce_service(&config.instance),
-            ServiceKind::Announce,
-        )?;
-        let nanos = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.subsec_nanos())
-            .unwrap_or(0);
-        let generation = (nanos ^ std::process::id().rotate_left(16)) | 1;
-        let ros_graph = config.ros_graph;
-        let config_instance = config.instance.clone();
-        let replay_guard = ReplayGuard::open(&config.instance);
+        let replay_guard = ReplayGuard::new(link.take_crashed_replays());
         let domains = Domains::new(config.domains.clone());
-        let w = Worker {
+        let graph = RosGraph::new(config.ros_graph);
+        let mut w = Worker {
             config,
-            node,
+            link,
+            now,
             generation,
-            requests: Some(requests),
-            announce,
             frontends: Frontends::default(),
             dds,
             services_dds: None,
@@ -389,17 +366,13 @@ impl Worker {
             episodes: Episodes::default(),
             holdings: Holdings::default(),
             replay_guard,
-            writers: Writers::new(Instant::now()),
-            graph: RosGraph::new(ros_graph),
-            next_census: Instant::now() + CENSUS_PERIOD,
-            next_match_report: Instant::now() + MATCH_REPORT_PERIOD,
+            writers: Writers::new(now),
+            graph,
+            next_census: now + CENSUS_PERIOD,
+            next_match_report: now + MATCH_REPORT_PERIOD,
             dropped: HashMap::new(),
             samples_written: 0,
             samples_taken: 0,
-            slow_passes: 0,
-            slow_logged: None,
-            reporter: Reporter::new(&config_instance, "worker"),
-            watchdog: Watchdog::from_env(),
         };
         let hello = ReplyMessage::new(
             Route {
@@ -408,8 +381,7 @@ impl Worker {
             },
             Reply::WorkerHello,
         );
-        w.announce.send(&hello)?;
-        w.announce.notify()?;
+        w.link.announce(&hello)?;
         tracing::info!(generation = w.generation, instance = %w.config.instance, "worker serving");
         Ok(w)
     }
@@ -428,7 +400,7 @@ impl Worker {
     /// not per refusal).
     fn refused(&mut self, reason: &'static str, why: &str) {
         self.count(reason);
-        if self.episodes.refused(reason, Instant::now()) {
+        if self.episodes.refused(reason, self.now) {
             tracing::warn!(
                 reason,
                 total = self.dropped.get(reason).copied().unwrap_or(0),
@@ -474,138 +446,60 @@ impl Worker {
         }
     }
 
-    /// Runs until SIGINT or SIGTERM, then drains (see [`DRAIN_MAX`]).
-    pub fn run(&mut self) -> anyhow::Result<()> {
-        let requests = self
-            .requests
-            .take()
-            .ok_or_else(|| anyhow::anyhow!("the worker runs only once"))?;
-        let result = self.serve(&requests);
-        // The files of a front-end killed since the last census (once a second) would outlive
-        // the agent: the census removes them now.
-        let census = self.node.nodes();
-        if !census.dead.is_empty() {
-            tracing::debug!(dead = ?census.dead, "dead front-ends' shared-memory files removed");
-        }
-        self.reporter.remove();
-        result
+    /// Handles one request of a front-end (its encoded message), at `now`.
+    pub fn handle_request(&mut self, message: &[u8], now: Instant) {
+        self.now = now;
+        self.screen_request(message);
     }
 
-    fn serve(&mut self, requests: &Receiver) -> anyhow::Result<()> {
-        // Since when the worker drains before it stops, and when it last took a request.
-        let mut draining: Option<Instant> = None;
-        let mut last_request = Instant::now();
-        loop {
-            if let Some(since) = draining {
-                // Stop once the front-ends have sent nothing for a moment (they stop with
-                // it: a supervisor that stops or dies stops them all) and DDS readers have
-                // acknowledged every write, or after DRAIN_MAX whatever is left.
-                let quiet = last_request.elapsed() >= DRAIN_QUIET;
-                let acknowledged = self.writers.acks.outstanding_writes() == 0;
-                if (quiet && acknowledged) || since.elapsed() >= DRAIN_MAX {
-                    tracing::info!(
-                        drained_ms = since.elapsed().as_millis() as u64,
-                        unacknowledged_writes = self.writers.acks.outstanding_writes(),
-                        "stopping"
-                    );
-                    return Ok(());
-                }
-            } else if self.node.termination_requested() {
-                // Operations a front-end handed over were acknowledged to its clients: they
-                // are executed, and their samples given DDS's time to reach its readers,
-                // before the DDS entities go with this process.
-                tracing::info!(
-                    "termination requested; executing what the front-ends handed over first"
-                );
-                draining = Some(Instant::now());
-                self.replay_guard.stopping();
-            }
-            let now = Instant::now();
-            if now >= self.reporter.due() {
-                let report = self.status_report();
-                self.reporter.maybe_write(now, || report);
-            }
-            self.watchdog.maybe_ping(now);
-            // At least once per report period: the report's age is the loop's heartbeat.
-            let period = xrce_ipc::status::REPORT_PERIOD.as_millis() as i32;
-            let timeout = match self.poll_timeout() {
-                t if t < 0 => period,
-                t => t.min(period),
-            };
-            // Draining, it looks at the clock often enough to stop on time.
-            let timeout = if draining.is_some() {
-                timeout.min(20)
-            } else {
-                timeout
-            };
-            let requests_ready = self.wait(requests, timeout)?;
-            let pass = Instant::now();
-            // Wake-ups are consumed only when there are some (a system call each time, and
-            // the loop runs per sample under load); the queue itself is read every time.
-            if requests_ready {
-                requests.clear_events();
-            }
-            let taken = requests.drain(|m| self.handle_request(m))?;
-            if taken > 0 {
-                last_request = Instant::now();
-            }
-            let after_requests = pass.elapsed();
-            self.serve_successors();
-            let pumped = self.pump_readers()?;
-            let after_reads = pass.elapsed();
-            self.expire_reads();
-            self.release_rematched();
-            self.report_matches();
-            self.publish_graph();
-            self.flush();
-            self.watch_frontends();
-            let took = pass.elapsed();
-            if took >= SLOW_PASS {
-                self.slow_passes += 1;
-                let quiet = self
-                    .slow_logged
-                    .is_some_and(|t| t.elapsed() < SLOW_PASS_LOG_PERIOD);
-                if quiet {
-                    continue;
-                }
-                self.slow_logged = Some(Instant::now());
-                tracing::warn!(
-                    took_ms = took.as_millis() as u64,
-                    slow_passes = self.slow_passes,
-                    requests_ms = after_requests.as_millis() as u64,
-                    reads_ms = after_reads.saturating_sub(after_requests).as_millis() as u64,
-                    requests = taken,
-                    readers = pumped,
-                    "a worker loop pass took long; front-ends' operations waited meanwhile"
-                );
-            }
+    /// One pass at `now`, after the requests that came: the requests held for restarted
+    /// front-ends, the readers' samples, expired reads, held writes, matched counts, the ROS
+    /// graph, what the front-ends are owed, and gone front-ends. Returns how many readers
+    /// were pumped; fails only if a backend cannot tell which readers have data.
+    pub fn pass(&mut self, now: Instant) -> std::io::Result<usize> {
+        self.now = now;
+        self.serve_successors();
+        let pumped = self.pump_readers()?;
+        self.expire_reads();
+        self.release_rematched();
+        self.report_matches();
+        self.publish_graph();
+        self.flush();
+        self.watch_frontends();
+        Ok(pumped)
+    }
+
+    /// The worker stops of its own accord (drained): the replays under way did not crash
+    /// it, their marks go.
+    pub fn stop(&mut self) {
+        for fe in self.replay_guard.stopping() {
+            self.link.mark_replay(fe, None);
         }
     }
 
-    /// Blocks until the front-ends' requests or a DDS backend's readers may have something,
-    /// `timeout_ms` passes, or a signal arrives (then the caller checks for termination);
-    /// whether the requests' descriptor polled readable.
-    ///
-    /// poll(2), level-triggered, not an edge-triggered poller as the front-end's: the
-    /// backends' descriptors signal a condition (a Cyclone reader queue, a RustDDS poller)
-    /// that each pass drains only up to a batch, and must wake the next wait as long as it
-    /// holds.
-    fn wait(&self, requests: &Receiver, timeout_ms: i32) -> std::io::Result<bool> {
-        use nix::poll::{PollFd, PollFlags, PollTimeout};
-        use std::os::fd::AsFd;
-        let mut fds = vec![
-            PollFd::new(requests.as_fd(), PollFlags::POLLIN),
-            PollFd::new(self.dds.readiness_fd(), PollFlags::POLLIN),
-        ];
-        if let Some(s) = &self.services_dds {
-            fds.push(PollFd::new(s.readiness_fd(), PollFlags::POLLIN));
-        }
-        let timeout = PollTimeout::try_from(timeout_ms.max(0)).unwrap_or(PollTimeout::MAX);
-        match nix::poll::poll(&mut fds, timeout) {
-            Ok(_) => Ok(fds[0].revents().is_some_and(|r| !r.is_empty())),
-            Err(nix::errno::Errno::EINTR) => Ok(false),
-            Err(e) => Err(e.into()),
-        }
+    /// Writes DDS readers have not acknowledged yet (a stopping worker waits for them a
+    /// while).
+    pub fn unacknowledged_writes(&self) -> usize {
+        self.writers.acks.outstanding_writes()
+    }
+
+    /// The descriptors that become readable when a DDS backend's readers may have data
+    /// (level-triggered: readable as long as they hold some).
+    pub fn readiness_fds(&self) -> Vec<std::os::fd::BorrowedFd<'_>> {
+        std::iter::once(&self.dds)
+            .chain(self.services_dds.as_ref())
+            .map(|b| b.readiness_fd())
+            .collect()
+    }
+
+    /// The link.
+    pub fn link(&self) -> &L {
+        &self.link
+    }
+
+    /// The link, to drive it.
+    pub fn link_mut(&mut self) -> &mut L {
+        &mut self.link
     }
 
     /// Sends the samples of every reader with an active read that has some, each in its
@@ -638,7 +532,16 @@ impl Worker {
         Ok(pumped)
     }
 
-    fn poll_timeout(&self) -> i32 {
+    /// How long until the worker wants its next pass if nothing comes meanwhile (zero: at
+    /// once; `None`: not before something comes).
+    pub fn poll_timeout(&self, now: Instant) -> Option<Duration> {
+        match self.timeout_ms(now) {
+            t if t < 0 => None,
+            t => Some(Duration::from_millis(t as u64)),
+        }
+    }
+
+    fn timeout_ms(&self, now: Instant) -> i32 {
         let queued = self.dds.readers_queued()
             || self
                 .services_dds
@@ -655,8 +558,8 @@ impl Worker {
             .writers
             .acks
             .due()
-            .map(|d| d.saturating_duration_since(Instant::now()).as_millis() as i32 + 1);
-        let t = self.timeout_without_acks();
+            .map(|d| d.saturating_duration_since(now).as_millis() as i32 + 1);
+        let t = self.timeout_without_acks(now);
         match (acks, t) {
             (Some(a), t) if t < 0 => a,
             (Some(a), t) => a.min(t),
@@ -664,7 +567,7 @@ impl Worker {
         }
     }
 
-    fn timeout_without_acks(&self) -> i32 {
+    fn timeout_without_acks(&self, now: Instant) -> i32 {
         if !self.writers.holding.is_empty() {
             let draining = self.writers.holding.iter().any(|k| {
                 matches!(self.entities.value(k), Some(Entity { kind: EntityKind::Writer { rematch: r, .. }, .. }) if r.draining)
@@ -679,13 +582,12 @@ impl Worker {
         if let Some(newest) = waiting.map(|p| p.last_delivery).max() {
             // A congested front-end does not signal when it drained: try again shortly, and
             // rarely once it has taken nothing for a while (it may be gone).
-            return if newest.elapsed() < Duration::from_secs(1) {
+            return if now.saturating_duration_since(newest) < Duration::from_secs(1) {
                 1
             } else {
                 100
             };
         }
-        let now = Instant::now();
         let census = (!self.entities.is_empty() || !self.frontends.orphaned.is_empty())
             .then_some(self.next_census);
         self.readers
@@ -706,7 +608,7 @@ impl Worker {
     }
 
     /// This worker's status report (what it holds and did).
-    fn status_report(&self) -> ProcessReport {
+    pub fn status_report(&self) -> ProcessReport {
         let mut entities: std::collections::BTreeMap<String, u64> = Default::default();
         for e in self.entities.values() {
             let kind = match &e.kind {

@@ -4,7 +4,6 @@
 use super::*;
 
 pub(super) struct FrontendPort {
-    pub(super) sender: Sender,
     /// The front-end process served (see [`Route::incarnation`]).
     pub(super) incarnation: u16,
     pub(super) processed: u64,
@@ -34,12 +33,12 @@ pub(super) const BACKLOG_MAX: usize = 4096;
 /// Bytes of refused replies kept per front-end (samples reach 1 MiB each).
 pub(super) const BACKLOG_MAX_BYTES: usize = 64 << 20;
 
-impl Worker {
+impl<L: WorkerLink> Worker<L> {
     /// Deletes the entities of front-ends whose process has been gone for the grace period
     /// (a gateway front-end stopped for good); a restarted one says hello within it and
     /// takes over, as before. Dead nodes' shared-memory resources are removed on the way.
     pub(super) fn watch_frontends(&mut self) {
-        let now = Instant::now();
+        let now = self.now;
         if now < self.next_census {
             return;
         }
@@ -48,11 +47,10 @@ impl Worker {
         if served.is_empty() && self.frontends.orphaned.is_empty() {
             return;
         }
-        let census = self.node.nodes();
+        let gone = self.link.gone(&served);
         self.frontends.orphaned.retain(|fe, _| served.contains(fe));
         for fe in served {
-            let name = format!("xrce-frontend-{fe}");
-            if census.alive.contains(&name) {
+            if !gone.contains(&fe) {
                 if self.frontends.orphaned.remove(&fe).is_some() {
                     tracing::info!(frontend = fe, "front-end is back");
                 }
@@ -68,7 +66,9 @@ impl Worker {
                 now
             });
             // A replay from a front-end that is gone did not crash this worker.
-            self.replay_guard.end(fe);
+            if self.replay_guard.end(fe) {
+                self.link.mark_replay(fe, None);
+            }
             if now.saturating_duration_since(since) >= grace {
                 let clients = self.entities.clients().filter(|(f, _)| *f == fe).count();
                 tracing::warn!(
@@ -80,6 +80,7 @@ impl Worker {
                 self.frontends.adoption.forget(fe);
                 self.frontends.recent.remove(&fe);
                 self.frontends.ports.remove(&fe);
+                self.link.forget(fe);
                 self.frontends.greeted.retain(|(f, _)| *f != fe);
                 self.frontends.orphaned.remove(&fe);
                 self.count("frontend_gone");
@@ -87,30 +88,9 @@ impl Worker {
         }
     }
 
-    /// The reply port of a front-end, opened on first use.
-    pub(super) fn port(&mut self, frontend: u32) -> Result<&mut FrontendPort, ShmError> {
-        use std::collections::hash_map::Entry;
-        match self.frontends.ports.entry(frontend) {
-            Entry::Occupied(e) => Ok(e.into_mut()),
-            Entry::Vacant(v) => {
-                let sender = self.node.sender(
-                    &ipc::reply_service(&self.config.instance, frontend),
-                    ServiceKind::Reply,
-                )?;
-                Ok(v.insert(FrontendPort {
-                    sender,
-                    incarnation: 0,
-                    processed: 0,
-                    dirty: false,
-                    backlog: Default::default(),
-                    backlog_bytes: 0,
-                    unnotified: false,
-                    progress_wake_owed: false,
-                    deferred: Turns::new(),
-                    last_delivery: Instant::now(),
-                }))
-            }
-        }
+    /// What the worker keeps for a front-end, made on first use.
+    pub(super) fn port(&mut self, frontend: u32) -> &mut FrontendPort {
+        self.frontends.port(frontend, self.now)
     }
 
     /// Sends a reply to its front-end (encoded in place in shared memory when the
@@ -131,23 +111,22 @@ impl Worker {
             tracing::warn!(frontend = route.frontend_id, client = %route.client_key, len, "sample too large for the front-end link; dropped");
             return self.count("sample_too_large");
         }
-        let port = match self.port(route.frontend_id) {
-            Ok(p) => p,
-            Err(e) => {
-                tracing::warn!(frontend = route.frontend_id, error = %e, "reply lost");
-                return self.count("reply_send_failed");
-            }
-        };
+        let now = self.now;
+        let port = self.frontends.port(route.frontend_id, now);
         port.dirty = true;
         if port.backlog.is_empty() {
-            match port.sender.send(&m) {
+            match self.link.send(route.frontend_id, &m) {
                 Ok(true) => {
-                    port.last_delivery = Instant::now();
+                    port.last_delivery = now;
                     port.unnotified = true;
                     return;
                 }
                 // Its queue is full: woken, it drains it and takes the backlog.
                 Ok(false) => port.unnotified = true,
+                Err(e @ LinkError::Unreachable { .. }) => {
+                    tracing::warn!(error = %e, "reply lost");
+                    return self.count("reply_send_failed");
+                }
                 Err(e) => tracing::debug!(error = %e, "reply send failed; queued"),
             }
         }
@@ -204,7 +183,7 @@ impl Worker {
     pub(super) fn flush(&mut self) {
         let generation = self.generation;
         let held = self.oldest_held();
-        let now = Instant::now();
+        let now = self.now;
         let (moved, all) = self.writers.acks.poll(now);
         if !self.writers.retiring.is_empty() {
             self.writers.prune_retiring(now);
@@ -217,13 +196,14 @@ impl Worker {
         }
         // Computed once, and only when a progress message goes out (the loop runs per sample).
         let acks = &self.writers.acks;
+        let link = &mut self.link;
         let mut outstanding: Option<HashMap<u32, u64>> = None;
         for (fe, p) in self.frontends.ports.iter_mut() {
             // Something the front-end must be woken for went out.
             let mut wake = false;
             let mut sent = false;
             while let Some(m) = p.backlog.front() {
-                match p.sender.send_encoded(m) {
+                match link.send_encoded(*fe, m) {
                     Ok(true) => {}
                     Ok(false) => break,
                     Err(e) => {
@@ -266,7 +246,7 @@ impl Worker {
                         acknowledged,
                     },
                 );
-                if let Ok(true) = p.sender.send(&progress) {
+                if let Ok(true) = link.send(*fe, &progress) {
                     p.dirty = false;
                     sent = true;
                     if p.progress_wake_owed {
@@ -276,7 +256,7 @@ impl Worker {
                 }
             }
             if sent {
-                p.last_delivery = Instant::now();
+                p.last_delivery = now;
             }
             // Also when only replies sent directly went out (a full queue may have refused
             // the progress message): a front-end that is not woken does not read them.
@@ -285,12 +265,29 @@ impl Worker {
             // slept about 0.15 times less per sample).
             if wake || p.unnotified {
                 p.unnotified = false;
-                if let Err(e) = p.sender.notify() {
+                if let Err(e) = link.wake(*fe) {
                     // Tried again on the next pass.
                     p.unnotified = true;
                     tracing::debug!(frontend = fe, error = %e, "front-end wake-up failed");
                 }
             }
         }
+    }
+}
+
+impl Frontends {
+    /// What the worker keeps for `frontend`, made on first use (at `now`).
+    fn port(&mut self, frontend: u32, now: Instant) -> &mut FrontendPort {
+        self.ports.entry(frontend).or_insert_with(|| FrontendPort {
+            incarnation: 0,
+            processed: 0,
+            dirty: false,
+            backlog: Default::default(),
+            backlog_bytes: 0,
+            unnotified: false,
+            progress_wake_owed: false,
+            deferred: Turns::new(),
+            last_delivery: now,
+        })
     }
 }

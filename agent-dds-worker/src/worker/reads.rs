@@ -82,7 +82,7 @@ impl Pacing {
 /// Samples taken from one reader per wake-up before others get a turn.
 pub(super) const PUMP_BATCH: usize = 256;
 
-impl Worker {
+impl<L: WorkerLink> Worker<L> {
     pub(super) fn start_read(
         &mut self,
         key: EntityKey,
@@ -138,7 +138,7 @@ impl Worker {
                 request_id,
                 remaining: (d.max_samples != u16::MAX).then_some(d.max_samples as u32),
                 deadline: (d.max_elapsed_time != 0)
-                    .then(|| Instant::now() + Duration::from_secs(d.max_elapsed_time as u64)),
+                    .then(|| self.now + Duration::from_secs(d.max_elapsed_time as u64)),
                 one_shot: false,
                 paused,
                 pacing: Pacing::new(&d),
@@ -288,7 +288,7 @@ impl Worker {
         let one_shot = read.one_shot;
         let mut errors = 0u64;
         let mut filtered = 0u64;
-        let now = Instant::now();
+        let now = self.now;
         while limit > 0 {
             if read.pacing.limited() && !read.pacing.may_send(now) {
                 // Paced: the rest waits in the DDS reader until `next_at`.
@@ -447,7 +447,7 @@ impl Worker {
     }
 
     pub(super) fn expire_reads(&mut self) {
-        let now = Instant::now();
+        let now = self.now;
         // Paced reads whose wait is over take their next samples.
         for (k, r) in self.readers.reads.iter_mut() {
             if r.pacing.next_at.is_some_and(|t| t <= now) {

@@ -3,12 +3,12 @@
 
 use super::*;
 
-impl Worker {
+impl<L: WorkerLink> Worker<L> {
     /// Screens a request by the front-end process that sent it: a restarted front-end's
     /// requests wait until the queue holds nothing more of its predecessor's (whose
     /// operations run first, on the entities they were meant for); a predecessor's request
     /// that comes after its successor took over is dropped.
-    pub(super) fn handle_request(&mut self, bytes: &[u8]) {
+    pub(super) fn screen_request(&mut self, bytes: &[u8]) {
         let m = match RequestMessage::decode(bytes) {
             Ok(m) => m,
             Err(e) => {
@@ -44,7 +44,7 @@ impl Worker {
         }
     }
 
-    /// Serves the requests of restarted front-ends held back by [`Self::handle_request`],
+    /// Serves the requests of restarted front-ends held back by [`Self::screen_request`],
     /// once the queue was drained of their predecessors'.
     pub(super) fn serve_successors(&mut self) {
         if self.frontends.deferred.is_empty() {
@@ -76,11 +76,10 @@ impl Worker {
                     .greeted
                     .insert((r.frontend_id, r.incarnation));
                 self.offer_entities(r.frontend_id);
-                if let Ok(p) = self.port(r.frontend_id) {
-                    // Its operations are numbered from its hello on.
-                    p.incarnation = r.incarnation;
-                    p.processed = r.op_seq;
-                }
+                // Its operations are numbered from its hello on.
+                let p = self.port(r.frontend_id);
+                p.incarnation = r.incarnation;
+                p.processed = r.op_seq;
                 // Replies held for a previous incarnation of this front-end mean nothing now.
                 if let Some(p) = self.frontends.ports.get_mut(&r.frontend_id) {
                     p.backlog.clear();
@@ -91,7 +90,9 @@ impl Worker {
                 self.replay_guard.begin(r.frontend_id);
             }
             Request::ReplayDone => {
-                self.replay_guard.end(r.frontend_id);
+                if self.replay_guard.end(r.frontend_id) {
+                    self.link.mark_replay(r.frontend_id, None);
+                }
                 self.end_adoption(r.frontend_id)
             }
             Request::DeleteClient => {
@@ -103,7 +104,11 @@ impl Worker {
                 replay,
                 readers_matched,
             } => {
-                if self.replay_guard.refuses(r.frontend_id, r.client_key) {
+                let screened = self.replay_guard.screen(r.frontend_id, r.client_key);
+                if let Screened::Admitted { mark: Some(client) } = screened {
+                    self.link.mark_replay(r.frontend_id, Some(client));
+                }
+                if screened == Screened::Refused {
                     let why = format!(
                         "replayed objects of client {} refused, its session ended: the last \
                          worker died while replaying them",
@@ -170,14 +175,13 @@ impl Worker {
                 }
             }
         }
-        if let Ok(p) = self.port(r.frontend_id) {
-            if p.incarnation == r.incarnation {
-                p.processed = p.processed.max(r.op_seq);
-            }
-            p.dirty = true;
-            if !m.progress_can_wait {
-                p.progress_wake_owed = true;
-            }
+        let p = self.port(r.frontend_id);
+        if p.incarnation == r.incarnation {
+            p.processed = p.processed.max(r.op_seq);
+        }
+        p.dirty = true;
+        if !m.progress_can_wait {
+            p.progress_wake_owed = true;
         }
     }
 

@@ -89,7 +89,7 @@ pub(super) fn service_write(
     }
 }
 
-impl Worker {
+impl<L: WorkerLink> Worker<L> {
     /// The writer and reader of a requester or replier, on the DDS participants of `domain`.
     /// Both are reliable and volatile (as RPC over DDS); the writer publishes in the
     /// client's byte order.

@@ -124,7 +124,7 @@ pub(super) const REMATCH_HELD_MAX: usize = 65_536;
 /// Most bytes one holding writer keeps (the same rule).
 pub(super) const REMATCH_HELD_MAX_BYTES: usize = 32 << 20;
 
-impl Worker {
+impl<L: WorkerLink> Worker<L> {
     /// Publishes the samples of one WRITE_DATA (one, or several in the sequence formats).
     pub(super) fn write(
         &mut self,
@@ -263,7 +263,7 @@ impl Worker {
             rematch.held_bytes = 0;
             let held = std::mem::take(&mut rematch.held);
             let w = w.clone();
-            self.publish_held(key, &w, held, Instant::now());
+            self.publish_held(key, &w, held, self.now);
             return self.publish_one(key, &w, seq, sample, dispose);
         }
         let w = w.clone();
@@ -286,10 +286,7 @@ impl Worker {
         } else {
             publish(&*w.raw, sample).map_err(|e| OpError::from(e.context("DDS write")))
         };
-        if done.is_ok()
-            && w.outstanding
-                .record(key.0, seq, Instant::now(), w.raw.writes())
-        {
+        if done.is_ok() && w.outstanding.record(key.0, seq, self.now, w.raw.writes()) {
             self.writers.acks.watch(w);
         }
         done
@@ -346,7 +343,7 @@ impl Worker {
 
     /// Releases the samples of replayed writers that matched again (or waited long enough).
     pub(super) fn release_rematched(&mut self) {
-        let now = Instant::now();
+        let now = self.now;
         let mut failures = 0u64;
         let mut done = Vec::new();
         // Front-ends whose held writes advanced: their progress is sent.
@@ -454,7 +451,7 @@ impl Worker {
     /// Tells front-ends how many readers each of their data writers matches, when that
     /// changed (every [`MATCH_REPORT_PERIOD`]).
     pub(super) fn report_matches(&mut self) {
-        let now = Instant::now();
+        let now = self.now;
         if now < self.next_match_report {
             return;
         }

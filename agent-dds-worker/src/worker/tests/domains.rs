@@ -46,7 +46,7 @@ fn the_last_participant_of_a_domain_releases_the_domains_dds_participant() {
     t.publisher_in(CLIENT, 5, "rt/chatter");
     t.publisher_in(OTHER, 5, "rt/chatter");
     t.publisher_in(client(9), 6, "rt/other");
-    std::thread::sleep(crate::ros_graph::REFRESH);
+    t.advance(crate::ros_graph::REFRESH);
     t.worker.publish_graph();
     assert_eq!(t.bus.writers_of("ros_discovery_info"), 2, "one per domain");
     assert_eq!(t.backend_domains(), vec![5, 6]);
@@ -70,7 +70,7 @@ fn the_last_participant_of_a_domain_releases_the_domains_dds_participant() {
     );
     assert_eq!(t.worker.domains.in_use().collect::<Vec<_>>(), vec![6]);
     // The graph of domain 5 is not published again (no writer, no node).
-    std::thread::sleep(crate::ros_graph::REFRESH);
+    t.advance(crate::ros_graph::REFRESH);
     t.worker.publish_graph();
     assert_eq!(t.backend_domains(), vec![6]);
 
@@ -147,15 +147,14 @@ fn a_domain_outside_the_allowed_list_is_denied() {
         },
     ));
     t.worker.flush();
-    let mut statuses = Vec::new();
-    t.replies
-        .drain(|m| {
-            let m = ReplyMessage::decode(m).expect("reply");
-            if let Reply::Status { result, .. } = m.reply {
-                statuses.push(result.status);
-            }
+    let statuses: Vec<u8> = t
+        .replies()
+        .into_iter()
+        .filter_map(|m| match m.reply {
+            Reply::Status { result, .. } => Some(result.status),
+            _ => None,
         })
-        .expect("drain");
+        .collect();
     assert_eq!(statuses, vec![status::ERR_DENIED]);
 }
 

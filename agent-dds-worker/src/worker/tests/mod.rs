@@ -1,14 +1,15 @@
-//! The worker over the fake backend: what it makes, writes, holds and deletes in DDS for the
-//! XRCE objects of a client, and what reaches the front-end (through real shared memory).
+//! The worker over the fake backend and a link in memory: what it makes, writes, holds and
+//! deletes in DDS for the XRCE objects of a client, and what reaches the front-end. Time is
+//! the harness's: it moves only when a test advances it.
 
 use super::*;
 use crate::backend::fake::{Fake, FakeBus};
 use xrce_common::wire::cdr::CdrWriter;
 use xrce_common::wire::{DataDeliveryControl, Representation};
-use xrce_ipc::shm::ServiceKind;
 
 mod domains;
 mod filters;
+mod link;
 mod progress;
 mod services;
 
@@ -24,6 +25,25 @@ const READER: ObjectId = ObjectId::new(1, object_kind::DATAREADER);
 const TYPES: ObjectId = ObjectId::new(1, object_kind::TYPE);
 
 const TOPIC: &str = "HelloWorldTopic";
+
+/// The generation of the harness's workers.
+const GENERATION: u32 = 0x11;
+
+/// The default settings of a test worker.
+fn config() -> WorkerConfig {
+    WorkerConfig {
+        instance: "worker-test".into(),
+        backend: Default::default(),
+        dds: DdsConfig::default(),
+        references: Default::default(),
+        ros_graph: false,
+        share_writers: false,
+        frontend_grace: Duration::from_secs(30),
+        domains: DomainPolicy::default(),
+        bounds: crate::bounds::WorkerBounds::default(),
+        default_domain: 0,
+    }
+}
 
 /// A writer on `topic`: keyed ones have the type `Keyed` (defined by the client's TYPE
 /// object), the others a type the worker does not know.
@@ -74,12 +94,10 @@ fn variant(kind: u8, xml: &str, extra: VariantExtra) -> Vec<u8> {
     b
 }
 
-/// A worker over a fake backend, and a front-end's end of its reply channel.
+/// A worker over a fake backend and a link in memory.
 struct Harness {
-    worker: Worker,
+    worker: Worker<MemoryWorkerLink>,
     bus: Rc<FakeBus>,
-    replies: xrce_ipc::shm::Receiver,
-    _node: IpcNode,
 }
 
 impl Harness {
@@ -89,37 +107,35 @@ impl Harness {
 
     /// A worker over a fake backend with the settings `configure` makes of the defaults.
     fn with(configure: impl FnOnce(&mut WorkerConfig)) -> Self {
-        static N: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
-        let instance = format!(
-            "wt{}-{}",
-            std::process::id() % 100_000,
-            N.fetch_add(1, std::sync::atomic::Ordering::Relaxed)
-        );
-        let (fake, bus) = Fake::new().expect("fake backend");
-        let mut config = WorkerConfig {
-            instance: instance.clone(),
-            backend: Default::default(),
-            dds: DdsConfig::default(),
-            references: Default::default(),
-            ros_graph: false,
-            share_writers: false,
-            frontend_grace: Duration::from_secs(30),
-            domains: DomainPolicy::default(),
-            bounds: crate::bounds::WorkerBounds::default(),
-            default_domain: 0,
-        };
+        let mut config = config();
         configure(&mut config);
-        let worker = Worker::with_backend(config, Box::new(fake)).expect("worker");
-        let node = IpcNode::new(&instance, "test-frontend").expect("node");
-        let replies = node
-            .receiver(&ipc::reply_service(&instance, FE), ServiceKind::Reply)
-            .expect("reply channel");
-        Harness {
-            worker,
-            bus,
-            replies,
-            _node: node,
-        }
+        Self::over(config, MemoryWorkerLink::default())
+    }
+
+    /// A worker with `config` over a new fake backend and `link`.
+    fn over(config: WorkerConfig, link: MemoryWorkerLink) -> Self {
+        let (fake, bus) = Fake::new().expect("fake backend");
+        let worker =
+            Worker::new(config, Box::new(fake), link, GENERATION, Instant::now()).expect("worker");
+        Harness { worker, bus }
+    }
+
+    /// Moves the worker's time on by `by`.
+    fn advance(&mut self, by: Duration) {
+        self.worker.now += by;
+    }
+
+    /// The replies the front-end got since the last call, decoded, oldest first.
+    fn replies(&mut self) -> Vec<ReplyMessage<'static>> {
+        self.worker
+            .link
+            .take(FE)
+            .into_iter()
+            .map(|m| {
+                let m = ReplyMessage::decode(&m).expect("reply");
+                ReplyMessage::new(m.route, m.reply.into_owned())
+            })
+            .collect()
     }
 
     fn create(&mut self, client: ClientKey, id: ObjectId, body: &[u8]) -> Result<(), OpError> {
@@ -203,20 +219,17 @@ impl Harness {
 
     /// The bodies of the samples the front-end got, in order, with their writers.
     fn samples(&mut self) -> Vec<(backend::Guid, i64, Vec<u8>)> {
-        let mut out = Vec::new();
-        self.replies
-            .drain(|m| {
-                let m = ReplyMessage::decode(m).expect("reply");
-                if let Reply::Sample(s) = m.reply {
-                    out.push((
-                        s.identity.writer,
-                        s.identity.sequence_number,
-                        s.data.to_vec(),
-                    ));
-                }
+        self.replies()
+            .into_iter()
+            .filter_map(|m| match m.reply {
+                Reply::Sample(s) => Some((
+                    s.identity.writer,
+                    s.identity.sequence_number,
+                    s.data.to_vec(),
+                )),
+                _ => None,
             })
-            .expect("drain");
-        out
+            .collect()
     }
 }
 
@@ -273,7 +286,7 @@ fn a_released_writer_sends_one_sample_first_and_the_rest_once_it_was_acknowledge
 fn an_unacknowledged_first_sample_holds_the_rest_back_only_briefly() {
     let mut t = released_unacknowledged(3);
     assert_eq!(t.bus.samples_on(TOPIC).len(), 1);
-    std::thread::sleep(RELEASE_FIRST_ACK_WAIT);
+    t.advance(RELEASE_FIRST_ACK_WAIT);
     t.worker.release_rematched();
     assert_eq!(t.bus.samples_on(TOPIC).len(), 3);
     assert!(t.worker.writers.holding.is_empty());

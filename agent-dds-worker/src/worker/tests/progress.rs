@@ -31,16 +31,15 @@ impl Harness {
     /// What the front-end was told executed since the last call (each progress message's
     /// first number), and whether it was woken for it.
     fn progress(&mut self) -> (Vec<u64>, bool) {
-        let mut executed = Vec::new();
-        self.replies
-            .drain(|m| {
-                let m = ReplyMessage::decode(m).expect("reply");
-                if let Reply::Progress { executed: e, .. } = m.reply {
-                    executed.push(e);
-                }
+        let executed = self
+            .replies()
+            .into_iter()
+            .filter_map(|m| match m.reply {
+                Reply::Progress { executed, .. } => Some(executed),
+                _ => None,
             })
-            .expect("drain");
-        (executed, self.replies.take_events())
+            .collect();
+        (executed, self.worker.link.take_wake(FE))
     }
 }
 

@@ -29,16 +29,15 @@ impl Harness {
 
     /// The Sample messages the front-end got: (client, request id, body after the identity).
     fn samples_by_client(&mut self) -> Vec<(ClientKey, [u8; 2], Vec<u8>)> {
-        let mut out = Vec::new();
-        self.replies
-            .drain(|m| {
-                let m = ReplyMessage::decode(m).expect("reply");
-                if let Reply::Sample(s) = m.reply {
-                    out.push((m.route.client_key, m.route.request_id.0, s.data.to_vec()));
+        self.replies()
+            .into_iter()
+            .filter_map(|m| match m.reply {
+                Reply::Sample(s) => {
+                    Some((m.route.client_key, m.route.request_id.0, s.data.to_vec()))
                 }
+                _ => None,
             })
-            .expect("drain");
-        out
+            .collect()
     }
 
     fn write(&mut self, client: ClientKey, id: ObjectId, request: [u8; 2], body: &[u8]) {

@@ -1,0 +1,202 @@
+//! What the worker does with its link and its clock, in memory: the announcement, front-ends
+//! whose process is gone, a congested front-end, and a replay that crashed the last worker.
+
+use super::*;
+
+/// The incarnation of the front-end's process in these tests.
+const INCARNATION: u16 = 4;
+
+impl Harness {
+    /// Hands the worker front-end FE's request, encoded as it comes from shared memory.
+    fn send(&mut self, route: Route, request: Request<'_>) {
+        let route = Route {
+            incarnation: INCARNATION,
+            ..route
+        };
+        let bytes = RequestMessage::new(route, request).encode();
+        let now = self.worker.now;
+        self.worker.handle_request(&bytes, now);
+    }
+
+    /// A pass at the worker's time.
+    fn pass(&mut self) {
+        let now = self.worker.now;
+        self.worker.pass(now).expect("pass");
+    }
+
+    /// A replayed participant of `client` (as a front-end replays it to a new worker).
+    fn replayed_participant(&mut self, client: ClientKey) {
+        let description = variant(
+            object_kind::PARTICIPANT,
+            "<dds><participant><rtps><name>p</name></rtps></participant></dds>",
+            VariantExtra::DomainId(3),
+        );
+        self.send(
+            Route::object(FE, client, Default::default(), PARTICIPANT),
+            Request::Create {
+                description: description.into(),
+                client_little_endian: true,
+                replay: true,
+                readers_matched: 0,
+            },
+        );
+    }
+
+    /// The statuses the front-end got since the last call: (client, status, implementation
+    /// status).
+    fn statuses(&mut self) -> Vec<(ClientKey, u8, u8)> {
+        self.replies()
+            .into_iter()
+            .filter_map(|m| match m.reply {
+                Reply::Status { result, .. } => Some((
+                    m.route.client_key,
+                    result.status,
+                    result.implementation_status,
+                )),
+                _ => None,
+            })
+            .collect()
+    }
+}
+
+#[test]
+fn a_new_worker_announces_its_generation() {
+    let t = Harness::new(false);
+    let announced: Vec<ReplyMessage<'_>> = t
+        .worker
+        .link
+        .announced()
+        .iter()
+        .map(|m| ReplyMessage::decode(m).expect("announcement"))
+        .collect();
+    assert_eq!(announced.len(), 1);
+    assert_eq!(announced[0].reply, Reply::WorkerHello);
+    assert_eq!(announced[0].route.generation, GENERATION);
+}
+
+/// A front-end whose process is gone keeps its clients' entities for the grace period (a
+/// supervisor restarts it within it); one that comes back in time keeps them, one that does
+/// not loses them, and its channel closes.
+#[test]
+fn a_gone_front_ends_entities_are_kept_for_the_grace_then_deleted() {
+    let grace = Duration::from_secs(30);
+    let mut t = Harness::with(|c| c.frontend_grace = grace);
+    t.participant(CLIENT);
+    t.writer(CLIENT, WRITER, &writer_xml(TOPIC, "NO_KEY", "VOLATILE"))
+        .expect("writer");
+    let entities = t.worker.entities.len();
+
+    t.worker.link.set_gone(FE, true);
+    t.advance(CENSUS_PERIOD);
+    t.pass();
+    assert!(t.worker.frontends.orphaned.contains_key(&FE));
+    t.advance(grace - CENSUS_PERIOD);
+    t.pass();
+    assert_eq!(t.worker.entities.len(), entities, "kept within the grace");
+
+    // Back in time (restarted): nothing lost, nothing orphaned any more.
+    t.worker.link.set_gone(FE, false);
+    t.advance(CENSUS_PERIOD);
+    t.pass();
+    assert!(t.worker.frontends.orphaned.is_empty());
+    assert_eq!(t.bus.writers_of(TOPIC), 1);
+
+    // Gone for good: the grace counts from the census that found it gone again.
+    t.worker.link.set_gone(FE, true);
+    t.advance(CENSUS_PERIOD);
+    t.pass();
+    t.advance(grace - Duration::from_millis(1));
+    t.pass();
+    assert_eq!(t.worker.entities.len(), entities);
+    t.advance(CENSUS_PERIOD);
+    t.pass();
+    assert!(t.worker.entities.is_empty());
+    assert_eq!(t.bus.writers_of(TOPIC), 0);
+    assert!(t.worker.link.forgotten(FE));
+    assert!(!t.worker.frontends.ports.contains_key(&FE));
+    assert_eq!(t.worker.dropped.get("frontend_gone"), Some(&1));
+}
+
+/// Replies a congested front-end's full queue refuses wait in the worker, and reach it in
+/// order, before its progress, as it drains its queue; it is woken for them.
+#[test]
+fn a_congested_front_end_gets_every_reply_in_order_as_it_drains() {
+    let mut t = Harness::over(config(), MemoryWorkerLink::bounded(2));
+    for n in 0..5u8 {
+        let route = Route::object(FE, CLIENT, xrce_common::wire::RequestId([0, n]), WRITER);
+        t.worker.reply(
+            route,
+            Reply::Status {
+                result: ResultStatus::new(status::OK),
+                replay: false,
+            },
+        );
+    }
+    assert_eq!(t.worker.frontends.ports[&FE].backlog.len(), 3);
+    // Two at a time: the queue's capacity.
+    let mut got = Vec::new();
+    for _ in 0..3 {
+        t.worker.flush();
+        assert!(t.worker.link.take_wake(FE), "woken for what it got");
+        got.extend(t.replies());
+    }
+    let order: Vec<Option<u8>> = got
+        .iter()
+        .map(|m| match m.reply {
+            Reply::Status { .. } => Some(m.route.request_id.0[1]),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        order,
+        vec![Some(0), Some(1), Some(2), Some(3), Some(4), None]
+    );
+    assert!(matches!(got[5].reply, Reply::Progress { .. }));
+    assert_eq!(t.worker.dropped.get("reply_backlog_overflow"), None);
+    t.worker.flush();
+    assert!(!t.worker.link.take_wake(FE), "nothing new");
+}
+
+/// The client whose replay was under way when the worker died is refused by the next one
+/// (its session ends, the client creates it again); the others are replayed.
+#[test]
+fn a_replay_that_crashed_the_worker_is_refused_by_the_next_one() {
+    let mut first = Harness::new(false);
+    first.send(Route::frontend(FE), Request::FrontendHello);
+    first.replayed_participant(CLIENT);
+    first.replayed_participant(OTHER);
+    assert_eq!(first.worker.link.marks().get(&FE), Some(&OTHER));
+    // The worker dies while OTHER's objects are being replayed.
+    let mut next = Harness::over(config(), first.worker.link.after_crash());
+    next.send(Route::frontend(FE), Request::FrontendHello);
+    next.replayed_participant(CLIENT);
+    next.replayed_participant(OTHER);
+    next.worker.flush();
+    assert_eq!(
+        next.statuses(),
+        vec![
+            (CLIENT, status::OK, 0),
+            (OTHER, status::ERR_RESOURCES, ipc::REPLAY_REFUSED),
+        ]
+    );
+    assert_eq!(next.worker.dropped.get("replay_crash"), Some(&1));
+    // The replay ends: no mark is left, and OTHER creates as usual again.
+    next.send(Route::frontend(FE), Request::ReplayDone);
+    assert!(next.worker.link.marks().is_empty());
+    next.replayed_participant(OTHER);
+    next.worker.flush();
+    assert_eq!(next.statuses(), vec![(OTHER, status::OK, 0)]);
+}
+
+/// Operations a front-end sent before its hello reached this worker were meant for the one
+/// that died: ignored (the front-end replays after its hello).
+#[test]
+fn operations_before_the_front_ends_hello_are_ignored() {
+    let mut t = Harness::new(false);
+    t.replayed_participant(CLIENT);
+    assert!(t.worker.entities.is_empty());
+    assert_eq!(t.worker.dropped.get("operation_before_hello"), Some(&1));
+    t.send(Route::frontend(FE), Request::FrontendHello);
+    t.replayed_participant(CLIENT);
+    assert_eq!(t.worker.entities.len(), 1);
+}
