@@ -23,6 +23,12 @@ checks=(
   "reply-duplicate  request_reply::replies_reach_the_requester_matched_to_their_requests"
   "heartbeat-fixed  heartbeats::heartbeats_to_a_silent_client_back_off"
   "replay-skip      worker_restart::worker_sigkill_while_a_client_reads_resumes_its_samples_none_twice"
+  # The same agent code in one process, in memory (simulation.rs installs XRCE_FAULT itself).
+  "dds-duplicate    simulation::samples_reach_the_clients_reader_through_the_worker_in_order"
+  "dds-drop         simulation::samples_reach_the_clients_reader_through_the_worker_in_order"
+  "client-duplicate simulation::samples_reach_the_clients_reader_through_the_worker_in_order"
+  "client-drop      simulation::a_lossy_link_and_a_worker_crash_delay_samples_but_lose_and_repeat_none"
+  "replay-skip      simulation::a_lossy_link_and_a_worker_crash_delay_samples_but_lose_and_repeat_none"
 )
 
 only=${1:-}

@@ -6,8 +6,8 @@ use std::time::{Duration, Instant};
 
 use xrce_common::session::client::{Client, ClientConfig, ClientEvent};
 use xrce_common::wire::{
-    object_kind, stream_id, ClientKey, DataDeliveryControl, ObjectId, ObjectVariant,
-    ReadSpecification, Representation, RequestId, VariantExtra,
+    object_kind, stream_id, ClientKey, ObjectId, ObjectVariant, ReadSpecification, Representation,
+    RequestId, VariantExtra,
 };
 
 use crate::*;
@@ -286,16 +286,8 @@ impl TestClient {
     /// READ_DATA on the reliable stream with unlimited delivery (data readers, requesters,
     /// repliers).
     pub fn read_unlimited(&mut self, object: ObjectId) {
-        let spec = ReadSpecification {
-            preferred_stream_id: stream_id::BUILTIN_RELIABLE,
-            delivery_control: Some(DataDeliveryControl {
-                max_samples: u16::MAX,
-                ..Default::default()
-            }),
-            ..Default::default()
-        };
         self.client
-            .read(Instant::now(), object, spec)
+            .read(Instant::now(), object, crate::unlimited_reliable_read())
             .expect("read");
     }
 

@@ -40,6 +40,9 @@ struct ReaderSlot {
 /// The shared state of a fake backend, which tests look into.
 #[derive(Debug, Default)]
 pub struct FakeBus {
+    /// Which fake backend this is (in the GUIDs: two fakes, as two DDS participants, never
+    /// share one).
+    number: u32,
     next_id: Cell<u32>,
     readers: RefCell<Vec<ReaderSlot>>,
     live_writers: RefCell<Vec<(u32, u16, String)>>,
@@ -67,8 +70,9 @@ impl FakeBus {
         id
     }
 
-    fn guid(id: u32) -> Guid {
+    fn guid(&self, id: u32) -> Guid {
         let mut g = [0xfa; 16];
+        g[8..12].copy_from_slice(&self.number.to_be_bytes());
         g[12..].copy_from_slice(&id.to_be_bytes());
         g
     }
@@ -141,7 +145,9 @@ pub struct Fake {
 impl Fake {
     /// A fake backend and the handle tests inspect it with.
     pub fn new() -> std::io::Result<(Self, Rc<FakeBus>)> {
+        static MADE: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
         let bus = Rc::new(FakeBus {
+            number: MADE.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             acknowledged: Cell::new(true),
             ..FakeBus::default()
         });
@@ -191,7 +197,7 @@ impl Writer {
         let seq = self.seq.get() + 1;
         self.seq.set(seq);
         let identity = SampleIdentity {
-            writer: FakeBus::guid(self.id),
+            writer: self.bus.guid(self.id),
             sequence_number: seq,
         };
         self.bus.written.borrow_mut().push(Written {
@@ -213,7 +219,7 @@ impl Writer {
 
 impl DdsWriter for Writer {
     fn guid(&self) -> Guid {
-        FakeBus::guid(self.id)
+        self.bus.guid(self.id)
     }
     fn topic_name(&self) -> &str {
         &self.topic
@@ -280,7 +286,7 @@ impl Drop for Reader {
 
 impl DdsReader for Reader {
     fn guid(&self) -> Guid {
-        FakeBus::guid(self.id)
+        self.bus.guid(self.id)
     }
     fn take_next(&mut self) -> Result<Option<Taken>, BackendError> {
         Ok(self.queue.borrow_mut().pop_front())

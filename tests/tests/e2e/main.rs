@@ -1,6 +1,7 @@
 //! The end-to-end suite as one test binary: real agent processes (front-ends, worker,
 //! supervisor), real sockets on loopback, ptys and shared memory, independent DDS and Zenoh
-//! peers. One module per subject; every test of every module runs side by side with the others
+//! peers; and one module (`simulation`) that runs the agent's code in this process, in
+//! memory, in simulated time. One module per subject; every test of every module runs side by side with the others
 //! (libtest's threads), so a module keeps to DDS domains no other module uses: the harness
 //! checks this as domains are claimed (`xrce_tests::domains`). One binary links once and lets
 //! a slow test of one subject overlap the others.
@@ -38,6 +39,7 @@ mod ros_graph;
 mod ros_graph_layouts;
 mod serial_e2e;
 mod shared_writers;
+mod simulation;
 mod supervision;
 mod supervisor_restart;
 mod tcp_e2e;
