@@ -73,6 +73,8 @@ impl WorkerProcess {
     /// 100 ms and DDS readers acknowledged every write, 3 s at most.
     pub fn run(mut self) -> anyhow::Result<()> {
         let result = self.serve();
+        // Replays that began during the drain (or before an error) did not crash it either.
+        self.worker.stop();
         // The files of a front-end killed since the last census (once a second) would outlive
         // the agent: the census removes them now.
         let dead = self.worker.link().remove_dead();
@@ -120,10 +122,11 @@ impl WorkerProcess {
             }
             self.watchdog.maybe_ping(now);
             // At least once per report period: the report's age is the loop's heartbeat.
+            // (The clock again: writing the report may have taken a while.)
             let period = REPORT_PERIOD.as_millis() as i32;
             let mut timeout = self
                 .worker
-                .poll_timeout(now)
+                .poll_timeout(Instant::now())
                 .map_or(period, |d| d.as_millis().min(period as u128) as i32);
             if draining.is_some() {
                 timeout = timeout.min(DRAIN_TICK_MS);

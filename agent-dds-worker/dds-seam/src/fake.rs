@@ -391,6 +391,7 @@ impl DdsBackend for Fake {
 
     fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError> {
         let mut g = [0xfb; 16];
+        g[8..12].copy_from_slice(&self.bus.number.to_be_bytes());
         g[14..].copy_from_slice(&domain.to_be_bytes());
         Ok(g)
     }
@@ -402,6 +403,12 @@ impl DdsBackend for Fake {
     fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()> {
         out.append(&mut self.bus.ready.borrow_mut());
         Ok(())
+    }
+
+    /// Its readers get their samples inside the process, with no wake-up: a loop over the
+    /// fake (a simulation) learns of them here.
+    fn readers_queued(&self) -> bool {
+        !self.bus.ready.borrow().is_empty()
     }
 
     fn participants(&self) -> usize {

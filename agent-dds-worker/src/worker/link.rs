@@ -18,19 +18,20 @@ use xrce_ipc::{self as ipc, Encode, ReplyMessage};
 #[derive(Debug, thiserror::Error)]
 pub enum LinkError {
     /// A front-end's reply channel could not be opened: what was meant for it is lost.
-    #[error("front-end {frontend}'s reply channel could not be opened: {source}")]
+    #[error(
+        "front-end {frontend}'s reply channel could not be opened{}",
+        .source.as_ref().map(|e| format!(": {e}")).unwrap_or_default()
+    )]
     Unreachable {
         /// The front-end.
         frontend: u32,
-        /// What failed.
-        source: ShmError,
+        /// What failed (none: a simulated failure, [`MemoryWorkerLink::set_unreachable`]).
+        #[source]
+        source: Option<ShmError>,
     },
     /// The shared-memory services failed.
     #[error(transparent)]
     Shm(#[from] ShmError),
-    /// A simulated failure ([`MemoryWorkerLink::fail_sends`]).
-    #[error("the link is down")]
-    Down,
 }
 
 /// What the worker sends and asks of the world outside it.
@@ -106,7 +107,10 @@ impl ShmWorkerLink {
                 let sender = self
                     .node
                     .sender(&service, ServiceKind::Reply)
-                    .map_err(|source| LinkError::Unreachable { frontend, source })?;
+                    .map_err(|e| LinkError::Unreachable {
+                        frontend,
+                        source: Some(e),
+                    })?;
                 Ok(v.insert(sender))
             }
         }
@@ -221,7 +225,7 @@ pub struct MemoryWorkerLink {
     forgotten: HashSet<u32>,
     marks: HashMap<u32, ClientKey>,
     crashed_replays: HashSet<(u32, ClientKey)>,
-    failing: bool,
+    unreachable: HashSet<u32>,
 }
 
 impl MemoryWorkerLink {
@@ -234,9 +238,13 @@ impl MemoryWorkerLink {
     }
 
     /// The link the next worker finds once this one's process died: the replay marks left
-    /// are its crashed replays.
+    /// are its crashed replays; the front-ends are as they were (bounds, gone, unreachable);
+    /// what waited in their queues died with the worker.
     pub fn after_crash(&self) -> Self {
         MemoryWorkerLink {
+            capacity: self.capacity,
+            gone: self.gone.clone(),
+            unreachable: self.unreachable.clone(),
             crashed_replays: self.marks.iter().map(|(fe, c)| (*fe, *c)).collect(),
             ..Default::default()
         }
@@ -279,15 +287,30 @@ impl MemoryWorkerLink {
         &self.marks
     }
 
-    /// Every send and wake-up fails from now on (`true`) or works again.
-    pub fn fail_sends(&mut self, failing: bool) {
-        self.failing = failing;
+    /// Front-end `frontend`'s channel cannot be opened (`true`: what is sent to it fails
+    /// with [`LinkError::Unreachable`]) or can again.
+    pub fn set_unreachable(&mut self, frontend: u32, unreachable: bool) {
+        if unreachable {
+            self.unreachable.insert(frontend);
+        } else {
+            self.unreachable.remove(&frontend);
+        }
+    }
+
+    fn reach(&mut self, frontend: u32) -> Result<(), LinkError> {
+        if self.unreachable.contains(&frontend) {
+            return Err(LinkError::Unreachable {
+                frontend,
+                source: None,
+            });
+        }
+        // Sent to again: its channel is open again.
+        self.forgotten.remove(&frontend);
+        Ok(())
     }
 
     fn push(&mut self, frontend: u32, message: Vec<u8>) -> Result<bool, LinkError> {
-        if self.failing {
-            return Err(LinkError::Down);
-        }
+        self.reach(frontend)?;
         let queue = self.queues.entry(frontend).or_default();
         if self.capacity.is_some_and(|c| queue.len() >= c) {
             return Ok(false);
@@ -307,9 +330,7 @@ impl WorkerLink for MemoryWorkerLink {
     }
 
     fn wake(&mut self, frontend: u32) -> Result<(), LinkError> {
-        if self.failing {
-            return Err(LinkError::Down);
-        }
+        self.reach(frontend)?;
         self.woken.insert(frontend);
         Ok(())
     }
@@ -324,8 +345,8 @@ impl WorkerLink for MemoryWorkerLink {
     }
 
     fn forget(&mut self, frontend: u32) {
+        // What it did not read stays in its queue, as in shared memory.
         self.forgotten.insert(frontend);
-        self.queues.remove(&frontend);
     }
 
     fn mark_replay(&mut self, frontend: u32, client: Option<ClientKey>) {

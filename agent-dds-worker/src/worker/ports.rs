@@ -124,6 +124,9 @@ impl<L: WorkerLink> Worker<L> {
                 // Its queue is full: woken, it drains it and takes the backlog.
                 Ok(false) => port.unnotified = true,
                 Err(e @ LinkError::Unreachable { .. }) => {
+                    // Nothing can reach it (tried again with the next reply): no progress
+                    // owed, no pass asked for it.
+                    port.dirty = false;
                     tracing::warn!(error = %e, "reply lost");
                     return self.count("reply_send_failed");
                 }
@@ -246,13 +249,21 @@ impl<L: WorkerLink> Worker<L> {
                         acknowledged,
                     },
                 );
-                if let Ok(true) = link.send(*fe, &progress) {
-                    p.dirty = false;
-                    sent = true;
-                    if p.progress_wake_owed {
-                        wake = true;
-                        p.progress_wake_owed = executed < p.processed;
+                match link.send(*fe, &progress) {
+                    Ok(true) => {
+                        p.dirty = false;
+                        sent = true;
+                        if p.progress_wake_owed {
+                            wake = true;
+                            p.progress_wake_owed = executed < p.processed;
+                        }
                     }
+                    // Full: tried again next pass.
+                    Ok(false) => {}
+                    // Its channel cannot be opened: the next reply tries again; until then
+                    // no pass is asked for it.
+                    Err(LinkError::Unreachable { .. }) => p.dirty = false,
+                    Err(e) => tracing::debug!(frontend = fe, error = %e, "progress not sent"),
                 }
             }
             if sent {

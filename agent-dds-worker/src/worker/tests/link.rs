@@ -81,7 +81,11 @@ fn a_new_worker_announces_its_generation() {
 fn a_gone_front_ends_entities_are_kept_for_the_grace_then_deleted() {
     let grace = Duration::from_secs(30);
     let mut t = Harness::with(|c| c.frontend_grace = grace);
+    t.send(Route::frontend(FE), Request::FrontendHello);
     t.participant(CLIENT);
+    // It was replaying another client when its process went.
+    t.replayed_participant(OTHER);
+    assert_eq!(t.worker.link.marks().get(&FE), Some(&OTHER));
     t.writer(CLIENT, WRITER, &writer_xml(TOPIC, "NO_KEY", "VOLATILE"))
         .expect("writer");
     let entities = t.worker.entities.len();
@@ -90,6 +94,10 @@ fn a_gone_front_ends_entities_are_kept_for_the_grace_then_deleted() {
     t.advance(CENSUS_PERIOD);
     t.pass();
     assert!(t.worker.frontends.orphaned.contains_key(&FE));
+    assert!(
+        t.worker.link.marks().is_empty(),
+        "a replay from a front-end that is gone did not crash the worker"
+    );
     t.advance(grace - CENSUS_PERIOD);
     t.pass();
     assert_eq!(t.worker.entities.len(), entities, "kept within the grace");
@@ -133,6 +141,12 @@ fn a_congested_front_end_gets_every_reply_in_order_as_it_drains() {
         );
     }
     assert_eq!(t.worker.frontends.ports[&FE].backlog.len(), 3);
+    let now = t.worker.now;
+    assert_eq!(
+        t.worker.poll_timeout(now),
+        Some(Duration::from_millis(1)),
+        "a congested front-end signals nothing when it drained: the worker looks again soon"
+    );
     // Two at a time: the queue's capacity.
     let mut got = Vec::new();
     for _ in 0..3 {
@@ -155,6 +169,44 @@ fn a_congested_front_end_gets_every_reply_in_order_as_it_drains() {
     assert_eq!(t.worker.dropped.get("reply_backlog_overflow"), None);
     t.worker.flush();
     assert!(!t.worker.link.take_wake(FE), "nothing new");
+    assert_eq!(t.worker.poll_timeout(now), None, "nothing to do");
+}
+
+/// A front-end whose reply channel cannot be opened loses its replies (counted), and the
+/// worker does not keep looking at it; once it can be reached, replies get through.
+#[test]
+fn replies_to_a_front_end_that_cannot_be_reached_are_counted_and_ask_for_no_pass() {
+    let mut t = Harness::new(false);
+    t.worker.link.set_unreachable(FE, true);
+    t.send(Route::frontend(FE), Request::FrontendHello);
+    t.pass();
+    assert_eq!(t.worker.dropped.get("reply_send_failed"), Some(&1));
+    let now = t.worker.now;
+    assert_eq!(t.worker.poll_timeout(now), None, "no pass asked for it");
+    t.worker.link.set_unreachable(FE, false);
+    t.send(Route::frontend(FE), Request::FrontendHello);
+    t.pass();
+    let got = t.replies();
+    assert_eq!(got[0].reply, Reply::WorkerHello);
+    assert!(matches!(got[1].reply, Reply::Progress { .. }));
+}
+
+/// A worker that stops of its own accord was not crashed by the replays under way: it
+/// leaves no mark for the next one.
+#[test]
+fn a_worker_that_stops_leaves_no_replay_mark() {
+    let mut t = Harness::new(false);
+    t.send(Route::frontend(FE), Request::FrontendHello);
+    t.replayed_participant(CLIENT);
+    assert_eq!(t.worker.link.marks().get(&FE), Some(&CLIENT));
+    t.worker.stop();
+    assert!(t.worker.link.marks().is_empty());
+    // The next worker replays the client as usual.
+    let mut next = Harness::over(config(), t.worker.link.after_crash());
+    next.send(Route::frontend(FE), Request::FrontendHello);
+    next.replayed_participant(CLIENT);
+    next.worker.flush();
+    assert_eq!(next.statuses(), vec![(CLIENT, status::OK, 0)]);
 }
 
 /// The client whose replay was under way when the worker died is refused by the next one
