@@ -133,20 +133,34 @@ impl WorkerProcess {
             }
             let requests_ready = self.wait(timeout)?;
             let pass = Instant::now();
-            // Wake-ups are consumed only when there are some (a system call each time, and
-            // the loop runs per sample under load); the queue itself is read every time.
-            if requests_ready {
-                self.requests.clear_events();
-            }
+            // The queue is read every time; wake-ups are consumed only when there are some (a
+            // system call each time, and the loop runs per sample under load).
             let worker = &mut self.worker;
-            let taken = self
+            let mut taken = self
                 .requests
                 .drain(|m| worker.handle_request(m, Instant::now()))?;
+            let after_requests = pass.elapsed();
+            let mut pumped = self.worker.pass(Instant::now())?;
+            if requests_ready {
+                // After the pass, not before the drain: by then the front-end that woke this
+                // worker has finished notifying, and iceoryx2 takes its one datagram with one
+                // `recv` (consumed at once, a second `recv` failed on most wake-ups: the
+                // notifier had not yet marked its notification sent). Requests that came
+                // after the drain notified nobody (folded into the notification consumed
+                // here): taken now, with a pass of their own.
+                self.requests.clear_events();
+                let worker = &mut self.worker;
+                let late = self
+                    .requests
+                    .drain(|m| worker.handle_request(m, Instant::now()))?;
+                if late > 0 {
+                    taken += late;
+                    pumped += self.worker.pass(Instant::now())?;
+                }
+            }
             if taken > 0 {
                 last_request = Instant::now();
             }
-            let after_requests = pass.elapsed();
-            let pumped = self.worker.pass(Instant::now())?;
             self.log_if_slow(pass, after_requests, taken, pumped);
         }
     }

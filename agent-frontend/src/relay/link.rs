@@ -147,11 +147,18 @@ impl ShmInbox {
         if let Err(e) = self.announce.drain(|m| relay.handle_announcement(m)) {
             tracing::warn!(error = %e, "receiving announcements failed");
         }
-        if replies_ready {
-            self.replies.clear_events();
-        }
         if let Err(e) = self.replies.drain(|m| relay.handle_reply(now, m, agent)) {
             tracing::warn!(error = %e, "receiving from the worker failed");
+        }
+        if replies_ready {
+            // After the drain, not before: by then the worker has finished notifying, and
+            // iceoryx2 takes its one datagram with one `recv` (consumed at once, a second
+            // `recv` failed on most wake-ups). Replies that came after the drain notified
+            // nobody (folded into the notification consumed here): taken now.
+            self.replies.clear_events();
+            if let Err(e) = self.replies.drain(|m| relay.handle_reply(now, m, agent)) {
+                tracing::warn!(error = %e, "receiving from the worker failed");
+            }
         }
         relay.after_replies(now, agent);
     }
