@@ -23,6 +23,9 @@ const DRAIN_QUIET: Duration = Duration::from_millis(100);
 const DRAIN_MAX: Duration = Duration::from_secs(3);
 /// How often a draining worker looks at the clock, at least (to stop on time).
 const DRAIN_TICK_MS: i32 = 20;
+/// A wait at least this long that ended with nothing ready consumes the requests' wake-ups
+/// anyway ([`WorkerProcess::serve`]).
+const IDLE_WAIT_MS: i32 = 10;
 
 /// The worker's process: its worker, the requests' receiver, its status report.
 pub struct WorkerProcess {
@@ -131,7 +134,13 @@ impl WorkerProcess {
             if draining.is_some() {
                 timeout = timeout.min(DRAIN_TICK_MS);
             }
-            let requests_ready = self.wait(timeout)?;
+            let (requests_ready, anything_ready) = self.wait(timeout)?;
+            // An idle wait that ended with nothing ready: a race inside iceoryx2 0.10 can
+            // leave the listener marked notified with nothing to read (a notifier that slips
+            // between the listener's reset and its second `recv`), after which no
+            // notification would come again; consuming the wake-ups resets it. Only when
+            // idle: that costs failed `recv`s.
+            let idle = !anything_ready && timeout >= IDLE_WAIT_MS;
             let pass = Instant::now();
             // The queue is read every time; wake-ups are consumed only when there are some (a
             // system call each time, and the loop runs per sample under load).
@@ -141,7 +150,7 @@ impl WorkerProcess {
                 .drain(|m| worker.handle_request(m, Instant::now()))?;
             let after_requests = pass.elapsed();
             let mut pumped = self.worker.pass(Instant::now())?;
-            if requests_ready {
+            if requests_ready || idle {
                 // After the pass, not before the drain: by then the front-end that woke this
                 // worker has finished notifying, and iceoryx2 takes its one datagram with one
                 // `recv` (consumed at once, a second `recv` failed on most wake-ups: the
@@ -200,13 +209,13 @@ impl WorkerProcess {
 
     /// Blocks until the front-ends' requests or a DDS backend's readers may have something,
     /// `timeout_ms` passes, or a signal arrives (then the caller checks for termination);
-    /// whether the requests' descriptor polled readable.
+    /// whether the requests' descriptor polled readable, and whether any did.
     ///
     /// poll(2), level-triggered, not an edge-triggered poller as the front-end's: the
     /// backends' descriptors signal a condition (a Cyclone reader queue, a RustDDS poller)
     /// that each pass drains only up to a batch, and must wake the next wait as long as it
     /// holds.
-    fn wait(&self, timeout_ms: i32) -> std::io::Result<bool> {
+    fn wait(&self, timeout_ms: i32) -> std::io::Result<(bool, bool)> {
         use nix::poll::{PollFd, PollFlags, PollTimeout};
         use std::os::fd::AsFd;
         let mut fds = vec![PollFd::new(self.requests.as_fd(), PollFlags::POLLIN)];
@@ -218,8 +227,9 @@ impl WorkerProcess {
         );
         let timeout = PollTimeout::try_from(timeout_ms.max(0)).unwrap_or(PollTimeout::MAX);
         match nix::poll::poll(&mut fds, timeout) {
-            Ok(_) => Ok(fds[0].revents().is_some_and(|r| !r.is_empty())),
-            Err(nix::errno::Errno::EINTR) => Ok(false),
+            Ok(n) => Ok((fds[0].revents().is_some_and(|r| !r.is_empty()), n > 0)),
+            // Interrupted: the caller looks for termination (nothing consumed).
+            Err(nix::errno::Errno::EINTR) => Ok((false, true)),
             Err(e) => Err(e.into()),
         }
     }

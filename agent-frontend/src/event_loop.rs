@@ -35,6 +35,9 @@ const TRANSPORT_TOKENS: usize = 16;
 const RECV_BATCH: usize = 256;
 /// Longest sleep: a stop signal that lands just before the loop blocks is seen this late.
 const MAX_SLEEP: Duration = Duration::from_secs(1);
+/// A wait at least this long that ended with nothing ready consumes the worker's wake-ups
+/// anyway (see the loop).
+const IDLE_WAIT: Duration = Duration::from_millis(10);
 
 /// Called once the front-end serves: its transport is registered and a worker answered.
 pub type OnServing = Box<dyn FnOnce()>;
@@ -199,7 +202,13 @@ fn serve<T: Transport>(
             Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
             Err(e) => return Err(e.into()),
         }
-        let (mut replies_ready, mut announce_ready) = (false, false);
+        // An idle wait that ended with nothing ready consumes the wake-ups of both channels
+        // anyway: a race inside iceoryx2 0.10 can leave a listener marked notified with
+        // nothing to read (a notifier that slips between the listener's reset and its second
+        // `recv`), after which no notification would come again; consuming resets it. Only
+        // when idle: that costs failed `recv`s.
+        let idle = events.is_empty() && timeout >= IDLE_WAIT;
+        let (mut replies_ready, mut announce_ready) = (idle, idle);
         for event in events.iter() {
             match event.token() {
                 REPLIES => replies_ready = true,
