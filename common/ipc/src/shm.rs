@@ -341,25 +341,41 @@ fn make_node_counter_private(prefix: &str) {
     }
 }
 
-/// Removes what an instance leaves in `/dev/shm` after its last node is gone (iceoryx2
-/// keeps a 16-byte `global_mgmt` object per prefix). Call only when no process of the
-/// instance runs any more. Returns how many files were removed.
+/// Removes what an instance leaves after its last node is gone: in `/dev/shm`, the 16-byte
+/// `global_mgmt` object iceoryx2 keeps per prefix; in iceoryx2's root, whatever files of the
+/// instance are left (a process killed while it created its node leaves the node's monitor
+/// files without its details, which iceoryx2's census lists neither alive nor dead, so no
+/// new node removes them). Call only when no process of the instance runs any more.
+/// Returns how many files were removed.
 pub fn remove_instance_leftovers(instance: &str) -> usize {
     if !valid_instance(instance) {
         return 0;
     }
     let prefix = file_prefix(instance);
-    let Ok(dir) = std::fs::read_dir(SHM_DIR) else {
-        return 0;
+    let remove_in = |dir: &std::path::Path, keep: &dyn Fn(&str) -> bool| -> usize {
+        let Ok(entries) = std::fs::read_dir(dir) else {
+            return 0;
+        };
+        entries
+            .flatten()
+            .filter(|e| {
+                let ours = e.file_type().is_ok_and(|t| !t.is_dir());
+                ours && e
+                    .file_name()
+                    .to_str()
+                    .is_some_and(|n| n.starts_with(&prefix) && !keep(n))
+            })
+            .filter(|e| std::fs::remove_file(e.path()).is_ok())
+            .count()
     };
-    dir.flatten()
-        .filter(|e| {
-            e.file_name()
-                .to_str()
-                .is_some_and(|n| n.starts_with(&prefix) && n.ends_with(".global_mgmt"))
-        })
-        .filter(|e| std::fs::remove_file(e.path()).is_ok())
-        .count()
+    let mut removed = remove_in(std::path::Path::new(SHM_DIR), &|n| {
+        !n.ends_with(".global_mgmt")
+    });
+    let root = crate::runtime_dir::ipc_root(instance);
+    for sub in ["", "services", "nodes"] {
+        removed += remove_in(&root.join(sub), &|_| false);
+    }
+    removed
 }
 
 /// Instances named `<stem><pid>` with files in `/dev/shm` whose process no longer exists
@@ -514,6 +530,21 @@ impl Receiver {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A node killed while it was being made leaves monitor files without details, which
+    /// no census lists as dead: the last clean-up of the instance removes them.
+    #[test]
+    fn the_last_clean_up_removes_a_half_made_nodes_files() {
+        let instance = format!("shmleft-{}", std::process::id());
+        drop(IpcNode::new(&instance, "test").expect("node"));
+        let nodes = crate::runtime_dir::ipc_root(&instance).join("nodes");
+        let half = nodes.join(format!("{}0123_abc.node_monitor", file_prefix(&instance)));
+        std::fs::write(&half, b"").expect("a half-made node's file");
+        assert!(!instance_files(&instance).is_empty());
+        assert!(remove_instance_leftovers(&instance) >= 1);
+        assert_eq!(instance_files(&instance), Vec::<String>::new());
+        let _ = std::fs::remove_dir_all(crate::runtime_dir::instance_dir(&instance));
+    }
 
     #[test]
     fn bodies_beyond_the_initial_segment_size_get_through() {
