@@ -29,6 +29,7 @@ checks=(
   "client-duplicate simulation::samples_reach_the_clients_reader_through_the_worker_in_order"
   "client-drop      simulation::a_lossy_link_and_a_worker_crash_delay_samples_but_lose_and_repeat_none"
   "replay-skip      simulation::a_lossy_link_and_a_worker_crash_delay_samples_but_lose_and_repeat_none"
+  "executed-ignored simulation::a_frontend_that_dies_between_handing_over_and_storing_repeats_no_write"
 )
 
 only=${1:-}

@@ -92,6 +92,7 @@ fn write() -> RequestMessage<'static> {
             little_endian: true,
             dialect: Dialect::Eprosima,
             status_requested: false,
+            position: None,
         },
     )
 }

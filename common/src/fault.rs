@@ -28,11 +28,13 @@ pub enum Fault {
     HeartbeatFixed,
     /// A restarted worker is not given one client's read in the replay.
     ReplaySkip,
+    /// A front-end that took over ignores what the worker executed for its predecessor.
+    ExecutedIgnored,
 }
 
 impl Fault {
     /// Every fault, in the order `tests/fault-check.sh` runs them.
-    pub const ALL: [Fault; 7] = [
+    pub const ALL: [Fault; 8] = [
         Fault::DdsDuplicate,
         Fault::DdsDrop,
         Fault::ClientDuplicate,
@@ -40,6 +42,7 @@ impl Fault {
         Fault::ReplyDuplicate,
         Fault::HeartbeatFixed,
         Fault::ReplaySkip,
+        Fault::ExecutedIgnored,
     ];
 
     /// The name `XRCE_FAULT` takes.
@@ -52,6 +55,7 @@ impl Fault {
             Fault::ReplyDuplicate => "reply-duplicate",
             Fault::HeartbeatFixed => "heartbeat-fixed",
             Fault::ReplaySkip => "replay-skip",
+            Fault::ExecutedIgnored => "executed-ignored",
         }
     }
 
@@ -71,7 +75,7 @@ impl fmt::Display for Fault {
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum FaultError {
     /// The name is not one of [`Fault::ALL`].
-    #[error("XRCE_FAULT={0}: no such fault (known: dds-duplicate, dds-drop, client-duplicate, client-drop, reply-duplicate, heartbeat-fixed, replay-skip)")]
+    #[error("XRCE_FAULT={0}: no such fault (known: dds-duplicate, dds-drop, client-duplicate, client-drop, reply-duplicate, heartbeat-fixed, replay-skip, executed-ignored)")]
     Unknown(String),
     /// The binary was built without the feature `fault-injection`.
     #[error(

@@ -29,8 +29,8 @@ use xrce_common::wire::cdr::CdrReader;
 use xrce_common::wire::sample::{decode_samples, sample_state};
 use xrce_common::wire::Dialect;
 use xrce_common::wire::{
-    object_kind, status, ClientKey, ObjectId, ObjectVariant, ReadSpecification, ResultStatus,
-    VariantExtra,
+    object_kind, status, stream_id, ClientKey, ObjectId, ObjectVariant, ReadSpecification,
+    ResultStatus, VariantExtra,
 };
 use xrce_ipc::status::{ProcessReport, WorkerStatus};
 use xrce_ipc::{self as ipc, Encode, Reply, ReplyMessage, Request, RequestMessage, Route};
@@ -57,6 +57,7 @@ use crate::xml::{self, TopicDesc};
 
 mod create;
 mod entities;
+mod executed;
 mod graph;
 mod link;
 mod ports;
@@ -70,6 +71,7 @@ mod writes;
 
 use create::*;
 use entities::*;
+use executed::{ExecutedWrites, Recorded};
 pub use link::{LinkError, MemoryWorkerLink, ShmWorkerLink, WorkerLink};
 use ports::*;
 use reads::*;
@@ -327,6 +329,9 @@ struct Frontends {
     successors: HashMap<u32, u16>,
     /// Those requests.
     deferred: Vec<Vec<u8>>,
+    /// The last write executed on each reliable stream of each client, for a process that
+    /// takes a front-end over.
+    executed: ExecutedWrites,
 }
 
 impl<L: WorkerLink> std::fmt::Debug for Worker<L> {

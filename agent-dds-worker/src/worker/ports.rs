@@ -79,6 +79,7 @@ impl<L: WorkerLink> Worker<L> {
                 self.remove_where(|c| c.0 == fe);
                 self.frontends.adoption.forget(fe);
                 self.frontends.recent.remove(&fe);
+                self.frontends.executed.forget_frontend(fe);
                 self.frontends.ports.remove(&fe);
                 self.link.forget(fe);
                 self.frontends.greeted.retain(|(f, _)| *f != fe);

@@ -86,6 +86,15 @@ impl<L: WorkerLink> Worker<L> {
                     p.backlog_bytes = 0;
                     p.deferred.clear();
                 }
+                // What its predecessor handed over and this worker executed, before the
+                // answer: the successor takes no client message until it has that answer.
+                for (client, position) in self.frontends.executed.of_frontend(r.frontend_id) {
+                    let route = Route {
+                        client_key: client,
+                        ..Route::frontend(r.frontend_id)
+                    };
+                    self.reply(route, Reply::Executed(position));
+                }
                 self.reply(Route::frontend(r.frontend_id), Reply::WorkerHello);
                 self.replay_guard.begin(r.frontend_id);
             }
@@ -96,6 +105,9 @@ impl<L: WorkerLink> Worker<L> {
                 self.end_adoption(r.frontend_id)
             }
             Request::DeleteClient => {
+                self.frontends
+                    .executed
+                    .forget_client(r.frontend_id, r.client_key);
                 self.remove_where(|c| c.0 == r.frontend_id && c.1 == r.client_key)
             }
             Request::Create {
@@ -151,8 +163,24 @@ impl<L: WorkerLink> Worker<L> {
                 little_endian,
                 dialect,
                 status_requested,
+                position,
             } => {
                 let result = self.write(key, &r, data_format, little_endian, dialect, &data);
+                if let Some(p) = position.filter(|p| stream_id::is_reliable(p.stream_id)) {
+                    let recorded = self
+                        .frontends
+                        .executed
+                        .record(r.frontend_id, r.client_key, p);
+                    if recorded == Recorded::Full {
+                        let why = format!(
+                            "positions of executed writes not kept for client {} of front-end                              {}: {} clients have theirs kept (its writes could repeat if its                              front-end crashes)",
+                            r.client_key,
+                            r.frontend_id,
+                            executed::MAX_CLIENTS
+                        );
+                        self.refused("executed_positions_full", &why);
+                    }
+                }
                 if result.is_err() || status_requested {
                     self.status(r, what, false, result);
                 }

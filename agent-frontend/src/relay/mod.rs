@@ -219,6 +219,11 @@ pub struct Relay<L> {
     /// Sends and wake-ups the link refused in a row (0: it works).
     link_failures: u32,
     stats: RelayStats,
+    /// Sessions were taken over from a predecessor and the worker has not yet said which
+    /// of their writes it executed ([`xrce_ipc::Reply::Executed`], then its answer to this
+    /// process's hello): client messages are refused (not acknowledged: sent again) until
+    /// it did, so that none is handed over twice.
+    awaiting_executed: bool,
     /// Most objects per client.
     max_objects: usize,
     /// Memory for object descriptions, shared between addresses and sessions.
@@ -274,6 +279,7 @@ impl<L: Link> Relay<L> {
             dirty: false,
             link_failures: 0,
             stats: RelayStats::default(),
+            awaiting_executed: false,
             max_objects: xrce_common::session::graph::MAX_OBJECTS,
             object_budget: ObjectBudget::new(BudgetSplit::of(DEFAULT_MEMORY_BUDGET).objects),
             object_budget_episodes: Episodes::default(),
@@ -326,6 +332,7 @@ impl<L: Link> Relay<L> {
     /// Takes over a client's graph a predecessor stored (before the first worker is seen:
     /// the replay to it creates the objects and restarts the reads).
     pub fn restore_graph(&mut self, client: ClientKey, graph: ObjectGraph) {
+        self.awaiting_executed = true;
         for o in graph.objects() {
             let mut body = Vec::new();
             o.variant.encode(&mut CdrWriter::new(&mut body, true));
@@ -625,6 +632,9 @@ impl<L: Link> Relay<L> {
 
 impl<L: Link> OperationSink for Relay<L> {
     fn has_room(&self) -> bool {
+        if self.awaiting_executed {
+            return false;
+        }
         let retained = self.retention.has_room();
         if self.hand_over_at_once && self.generation.is_some() {
             // What a client sent goes to the worker now or is refused unacknowledged (the
@@ -640,6 +650,9 @@ impl<L: Link> OperationSink for Relay<L> {
     }
 
     fn has_room_for(&self, submessages: usize) -> bool {
+        if self.awaiting_executed {
+            return false;
+        }
         if self.hand_over_at_once && self.generation.is_some() {
             // Room for what this message can bring (a submessage is one operation; twice
             // that, for margin), not for the largest message: a client sending one WRITE_DATA

@@ -152,6 +152,7 @@ impl<L: Link> Relay<L> {
             Operation::Write {
                 client,
                 stream_id: stream,
+                position,
                 data,
                 little_endian,
                 dialect,
@@ -179,6 +180,7 @@ impl<L: Link> Relay<L> {
                     little_endian,
                     dialect,
                     status_requested,
+                    position,
                 };
                 let mut m = message(fe, client, data.base, write);
                 let reliable = stream_id::is_reliable(stream);

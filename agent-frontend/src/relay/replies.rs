@@ -55,7 +55,16 @@ impl<L: Link> Relay<L> {
             self.stats.predecessor_replies += 1;
             return;
         }
+        if let Reply::Executed(position) = reply {
+            // Before the hello it precedes, whatever generation this process knows yet.
+            if !fault::hit(Fault::ExecutedIgnored, 1) {
+                agent.skip_executed(h.client_key, position);
+            }
+            return;
+        }
         if reply == Reply::WorkerHello {
+            // Its Executed replies came before it: client messages can be taken again.
+            self.awaiting_executed = false;
             if Some(h.generation) != self.generation {
                 self.new_generation(h.generation);
             }
@@ -71,7 +80,7 @@ impl<L: Link> Relay<L> {
             object_id: h.object_id,
         };
         match reply {
-            Reply::WorkerHello => {}
+            Reply::WorkerHello | Reply::Executed(_) => {}
             Reply::Progress {
                 executed,
                 acknowledged,

@@ -7,6 +7,7 @@
 
 use std::borrow::Cow;
 
+use xrce_common::session::stream::InputPosition;
 use xrce_common::wire::{ClientKey, Dialect, ObjectId, RequestId, ResultStatus};
 
 use crate::message::{
@@ -32,6 +33,7 @@ mod kind {
     pub(super) const PROGRESS: u8 = 19;
     pub(super) const READ_ENDED: u8 = 20;
     pub(super) const WRITER_MATCHED: u8 = 21;
+    pub(super) const EXECUTED: u8 = 22;
 }
 
 /// Header flags; which kinds carry each is written beside it.
@@ -50,6 +52,26 @@ mod flag {
     pub(super) const UNREGISTERED: u8 = 0x20;
     /// Any request: see [`crate::RequestMessage::progress_can_wait`].
     pub(super) const PROGRESS_CAN_WAIT: u8 = 0x40;
+    /// Write: the body starts with the write's [`super::InputPosition`].
+    pub(super) const POSITION: u8 = 0x80;
+}
+
+/// Bytes of an [`InputPosition`] in a body: the stream, then the message's sequence number
+/// and the write's index in it, little endian.
+const POSITION_LEN: usize = 5;
+
+fn write_position(p: &InputPosition, out: &mut [u8]) {
+    out[0] = p.stream_id;
+    out[1..3].copy_from_slice(&p.sequence.to_le_bytes());
+    out[3..5].copy_from_slice(&p.write_index.to_le_bytes());
+}
+
+fn read_position(b: &[u8; POSITION_LEN]) -> InputPosition {
+    InputPosition {
+        stream_id: b[0],
+        sequence: u16::from_le_bytes([b[1], b[2]]),
+        write_index: u16::from_le_bytes([b[3], b[4]]),
+    }
 }
 
 /// Why an IPC message was rejected.
@@ -121,17 +143,31 @@ impl<'a> RequestMessage<'a> {
                 readers_matched: h.readers,
             },
             kind::DELETE => empty(Request::Delete)?,
-            kind::WRITE => Request::Write {
-                data: Cow::Borrowed(body),
-                data_format: h.data_format,
-                little_endian: has(flag::LITTLE_ENDIAN),
-                dialect: if has(flag::DIALECT_SPEC) {
-                    Dialect::Spec
+            kind::WRITE => {
+                let (position, data) = if has(flag::POSITION) {
+                    let (p, data) =
+                        body.split_first_chunk::<POSITION_LEN>()
+                            .ok_or(IpcError::Body {
+                                kind: h.kind,
+                                len: body.len(),
+                            })?;
+                    (Some(read_position(p)), data)
                 } else {
-                    Dialect::Eprosima
-                },
-                status_requested: has(flag::STATUS_REQUESTED),
-            },
+                    (None, body)
+                };
+                Request::Write {
+                    data: Cow::Borrowed(data),
+                    data_format: h.data_format,
+                    little_endian: has(flag::LITTLE_ENDIAN),
+                    dialect: if has(flag::DIALECT_SPEC) {
+                        Dialect::Spec
+                    } else {
+                        Dialect::Eprosima
+                    },
+                    status_requested: has(flag::STATUS_REQUESTED),
+                    position,
+                }
+            }
             kind::READ => Request::Read {
                 spec: Cow::Borrowed(body),
                 replay: has(flag::REPLAY),
@@ -185,11 +221,13 @@ impl<'a> RequestMessage<'a> {
                 little_endian,
                 dialect,
                 status_requested,
+                position,
                 ..
             } => {
                 set(&mut h, flag::LITTLE_ENDIAN, *little_endian);
                 set(&mut h, flag::DIALECT_SPEC, *dialect == Dialect::Spec);
                 set(&mut h, flag::STATUS_REQUESTED, *status_requested);
+                set(&mut h, flag::POSITION, position.is_some());
                 h.data_format = *data_format;
                 kind::WRITE
             }
@@ -207,15 +245,31 @@ impl<'a> RequestMessage<'a> {
     }
 }
 
+impl RequestMessage<'_> {
+    /// The position in front of a Write's data, if it has one.
+    fn position(&self) -> Option<&InputPosition> {
+        match &self.request {
+            Request::Write { position, .. } => position.as_ref(),
+            _ => None,
+        }
+    }
+}
+
 impl Encode for RequestMessage<'_> {
     fn encoded_len(&self) -> usize {
-        HEADER_LEN + self.request.body().len()
+        let prefix = self.position().map_or(0, |_| POSITION_LEN);
+        HEADER_LEN + prefix + self.request.body().len()
     }
 
     fn encode_into(&self, out: &mut [u8]) {
         let body = self.request.body();
-        self.header().write(out, body.len());
-        out[HEADER_LEN..].copy_from_slice(body);
+        let position = self.position();
+        let prefix = position.map_or(0, |_| POSITION_LEN);
+        self.header().write(out, prefix + body.len());
+        if let Some(p) = position {
+            write_position(p, &mut out[HEADER_LEN..HEADER_LEN + POSITION_LEN]);
+        }
+        out[HEADER_LEN + prefix..].copy_from_slice(body);
     }
 }
 
@@ -282,6 +336,10 @@ impl<'a> ReplyMessage<'a> {
             }
             kind::READ_ENDED => empty(Reply::ReadEnded)?,
             kind::WRITER_MATCHED => empty(Reply::WriterMatched { readers: h.readers })?,
+            kind::EXECUTED => {
+                let p: &[u8; POSITION_LEN] = body.try_into().map_err(|_| wrong_body())?;
+                Reply::Executed(read_position(p))
+            }
             k if is_request_kind(k) => return Err(IpcError::Direction(k)),
             k => return Err(IpcError::Kind(k)),
         };
@@ -327,6 +385,7 @@ impl<'a> ReplyMessage<'a> {
                 h.readers = *readers;
                 kind::WRITER_MATCHED
             }
+            Reply::Executed(_) => kind::EXECUTED,
         };
         h
     }
@@ -336,6 +395,7 @@ impl<'a> ReplyMessage<'a> {
             Reply::Status { .. } => 2,
             Reply::Sample(s) => SAMPLE_IDENTITY_LEN + s.data.len(),
             Reply::Progress { .. } => 16,
+            Reply::Executed(_) => POSITION_LEN,
             _ => 0,
         }
     }
@@ -365,6 +425,7 @@ impl Encode for ReplyMessage<'_> {
                 body[..8].copy_from_slice(&executed.to_le_bytes());
                 body[8..].copy_from_slice(&acknowledged.to_le_bytes());
             }
+            Reply::Executed(p) => write_position(p, body),
             _ => {}
         }
     }
@@ -375,7 +436,7 @@ fn is_request_kind(k: u8) -> bool {
 }
 
 fn is_reply_kind(k: u8) -> bool {
-    (kind::WORKER_HELLO..=kind::WRITER_MATCHED).contains(&k)
+    (kind::WORKER_HELLO..=kind::EXECUTED).contains(&k)
 }
 
 /// The fixed header of every message (private: users see [`Route`] and the enums).

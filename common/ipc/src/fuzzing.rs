@@ -58,6 +58,11 @@ pub fn ipc_seeds() -> Vec<(String, Vec<u8>)> {
             little_endian: true,
             dialect: Dialect::Spec,
             status_requested: true,
+            position: Some(xrce_common::session::stream::InputPosition {
+                stream_id: 0x80,
+                sequence: 0xFFFE,
+                write_index: 3,
+            }),
         },
         Request::Read {
             spec: Cow::Borrowed(&[0x80, 0x00, 0x00, 0x00][..]),
@@ -90,6 +95,11 @@ pub fn ipc_seeds() -> Vec<(String, Vec<u8>)> {
         },
         Reply::ReadEnded,
         Reply::WriterMatched { readers: 4 },
+        Reply::Executed(xrce_common::session::stream::InputPosition {
+            stream_id: 0x81,
+            sequence: 12,
+            write_index: 0,
+        }),
     ];
     let mut seeds = Vec::new();
     for r in requests {

@@ -9,6 +9,7 @@
 
 use std::borrow::Cow;
 
+use xrce_common::session::stream::InputPosition;
 use xrce_common::wire::{ClientKey, Dialect, ObjectId, RequestId, ResultStatus};
 
 /// Bytes in front of every Sample's data: the DDS identity of the sample ([`SampleIdentity`]).
@@ -100,6 +101,10 @@ pub enum Request<'a> {
         dialect: Dialect,
         /// The client expects a STATUS for it, success included.
         status_requested: bool,
+        /// Where it stood in the client's reliable input stream (`None` for a best-effort
+        /// stream): the worker answers a successor's hello with the last one it executed
+        /// ([`Reply::Executed`]).
+        position: Option<InputPosition>,
     },
     /// Start or replace a read.
     Read {
@@ -145,12 +150,14 @@ impl Request<'_> {
                 little_endian,
                 dialect,
                 status_requested,
+                position,
             } => Request::Write {
                 data: own(data),
                 data_format,
                 little_endian,
                 dialect,
                 status_requested,
+                position,
             },
             Request::Read { spec, replay } => Request::Read {
                 spec: own(spec),
@@ -187,12 +194,14 @@ impl Request<'_> {
                 little_endian,
                 dialect,
                 status_requested,
+                position,
             } => Request::Write {
                 data: view(data),
                 data_format: *data_format,
                 little_endian: *little_endian,
                 dialect: *dialect,
                 status_requested: *status_requested,
+                position: *position,
             },
             Request::Read { spec, replay } => Request::Read {
                 spec: view(spec),
@@ -307,6 +316,11 @@ pub enum Reply<'a> {
         /// The count.
         readers: u8,
     },
+    /// The last write of the route's client on one of its reliable streams that this worker
+    /// executed for the front-end (any of its processes): sent to a process that takes over,
+    /// before the [`Reply::WorkerHello`] answering its hello, so that it does not hand over a
+    /// second time what its predecessor handed over before storing that it took it.
+    Executed(InputPosition),
 }
 
 impl Reply<'_> {
@@ -325,6 +339,7 @@ impl Reply<'_> {
             },
             Reply::ReadEnded => Reply::ReadEnded,
             Reply::WriterMatched { readers } => Reply::WriterMatched { readers },
+            Reply::Executed(p) => Reply::Executed(p),
         }
     }
 }

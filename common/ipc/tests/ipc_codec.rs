@@ -1,9 +1,10 @@
 //! The IPC contract's codec: every request and reply survives a round trip, the layout is
-//! the one both ends have spoken since version 6, and what is not a message of the right
+//! the one both ends have spoken since version 7, and what is not a message of the right
 //! direction, version, kind and size is refused.
 
 use std::borrow::Cow;
 
+use xrce_common::session::stream::InputPosition;
 use xrce_common::wire::{ClientKey, Dialect, ObjectId, RequestId, ResultStatus};
 use xrce_ipc::{
     Encode, IpcError, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
@@ -54,9 +55,10 @@ fn request() -> impl Strategy<Value = Request<'static>> {
             any::<u8>(),
             any::<bool>(),
             any::<bool>(),
-            any::<bool>()
+            any::<bool>(),
+            proptest::option::of(position()),
         )
-            .prop_map(|(d, f, le, spec, st)| Request::Write {
+            .prop_map(|(d, f, le, spec, st, p)| Request::Write {
                 data: d,
                 data_format: f,
                 little_endian: le,
@@ -66,6 +68,7 @@ fn request() -> impl Strategy<Value = Request<'static>> {
                     Dialect::Eprosima
                 },
                 status_requested: st,
+                position: p,
             }),
         (bytes(), any::<bool>()).prop_map(|(s, r)| Request::Read { spec: s, replay: r }),
         Just(Request::DeleteClient),
@@ -109,7 +112,16 @@ fn reply() -> impl Strategy<Value = Reply<'static>> {
         }),
         Just(Reply::ReadEnded),
         any::<u8>().prop_map(|n| Reply::WriterMatched { readers: n }),
+        position().prop_map(Reply::Executed),
     ]
+}
+
+fn position() -> impl Strategy<Value = InputPosition> {
+    (any::<u8>(), any::<u16>(), any::<u16>()).prop_map(|(s, q, i)| InputPosition {
+        stream_id: s,
+        sequence: q,
+        write_index: i,
+    })
 }
 
 proptest! {
@@ -148,7 +160,7 @@ proptest! {
 
 #[test]
 fn the_layout_is_the_contract() {
-    // A Write as a version-6 front-end lays it out, byte by byte.
+    // A Write as a version-7 front-end lays it out, byte by byte.
     let m = RequestMessage {
         route: Route {
             frontend_id: 7,
@@ -166,19 +178,32 @@ fn the_layout_is_the_contract() {
             little_endian: true,
             dialect: Dialect::Spec,
             status_requested: true,
+            position: Some(InputPosition {
+                stream_id: 0x80,
+                sequence: 0x1234,
+                write_index: 2,
+            }),
         },
     };
     let mut expected = b"XRIP".to_vec();
-    expected.extend_from_slice(&[6, 0, 4, 0x01 | 0x04 | 0x08 | 0x40]);
+    expected.extend_from_slice(&[7, 0, 4, 0x01 | 0x04 | 0x08 | 0x40 | 0x80]);
     expected.extend_from_slice(&7u32.to_le_bytes());
     expected.extend_from_slice(&3u32.to_le_bytes());
     expected.extend_from_slice(&(1u64 << 40).to_le_bytes());
     expected.extend_from_slice(&[1, 2, 3, 4, 0, 9]);
     expected.extend_from_slice(&ObjectId::new(1, 5).0);
-    expected.extend_from_slice(&4u32.to_le_bytes());
+    expected.extend_from_slice(&9u32.to_le_bytes());
     expected.extend_from_slice(&[0x0A, 0, 0xEF, 0xBE]);
+    expected.extend_from_slice(&[0x80, 0x34, 0x12, 2, 0]);
     expected.extend_from_slice(b"body");
     assert_eq!(m.encode(), expected);
+    // A Write flagged with a position too short to hold one is refused.
+    let mut short = expected[..HEADER_LEN + 3].to_vec();
+    short[32..36].copy_from_slice(&3u32.to_le_bytes());
+    assert_eq!(
+        RequestMessage::decode(&short),
+        Err(IpcError::Body { kind: 4, len: 3 })
+    );
 }
 
 #[test]

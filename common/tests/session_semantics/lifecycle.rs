@@ -4,6 +4,7 @@
 //! streams stand.
 
 use super::*;
+use xrce_common::session::stream::InputPosition;
 
 fn create_client_with(session_id: u8) -> Vec<u8> {
     CreateClientPayload::eprosima(KEY, session_id)
@@ -235,4 +236,176 @@ fn a_restart_right_after_the_session_began_is_told_from_a_duplicate_by_what_foll
         "the restarted client's messages were taken for copies"
     );
     assert!(!rec.0.iter().any(|o| matches!(o, Op::Deleted(_))));
+}
+
+/// What a successor's core hands over: the data of each write, and where it stood.
+#[derive(Default)]
+struct Positions(Vec<(Vec<u8>, Option<InputPosition>)>);
+
+impl OperationSink for Positions {
+    fn has_room(&self) -> bool {
+        true
+    }
+    fn operation(&mut self, _now: Instant, op: Operation<'_>) {
+        if let Operation::Write { data, position, .. } = op {
+            self.0.push((data.data.to_vec(), position));
+        }
+    }
+}
+
+/// One reliable message numbered `seq` carrying a WRITE_DATA of each sample of `samples`.
+fn message_of_writes(seq: u16, samples: &[u8]) -> Vec<u8> {
+    let mut b = MessageBuilder::new(MessageHeader::new(
+        0x01,
+        stream_id::BUILTIN_RELIABLE,
+        seq,
+        KEY,
+    ));
+    for s in samples {
+        let w = Payload::WriteData(DataPayload {
+            base: BaseObjectRequest {
+                request_id: RequestId::from_u16(0x200 + u16::from(*s)),
+                object_id: ObjectId::new(1, object_kind::DATAWRITER),
+            },
+            format: data_format::DATA,
+            data: std::slice::from_ref(s),
+        });
+        b.push(&w, true).expect("encode");
+    }
+    b.finish()
+}
+
+fn at(sequence: u16, write_index: u16) -> InputPosition {
+    InputPosition {
+        stream_id: stream_id::BUILTIN_RELIABLE,
+        sequence,
+        write_index,
+    }
+}
+
+/// A session taken over from a predecessor that stored it before message 3, handed two of
+/// its three writes to the worker, and died.
+fn taken_over_before_message_3(config: AgentConfig) -> (Agent<u32>, Instant) {
+    let (mut agent, mut rec, t0) = connected(
+        AgentConfig {
+            track_sessions: true,
+            ..config.clone()
+        },
+        VENDOR_EPROSIMA,
+        None,
+    );
+    for seq in 0..3 {
+        agent.handle_datagram(t0, ADDR, &write(seq), &mut rec);
+    }
+    let snapshot = agent
+        .snapshot(KEY, |a| a.to_le_bytes().to_vec())
+        .expect("a snapshot");
+    let mut next: Agent<u32> = Agent::new(config);
+    assert!(next.restore(t0, &snapshot, ADDR));
+    drain(&mut next);
+    (next, t0)
+}
+
+/// The writes of the message a predecessor handed over in part are not handed over again
+/// when the client resends it: only those the worker did not execute go, and the message is
+/// acknowledged; the messages after it go whole, with their positions.
+#[test]
+fn writes_the_worker_executed_for_a_predecessor_are_not_handed_over_again() {
+    let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
+    // Message 2 was stored as taken: what the worker says of it changes nothing.
+    agent.skip_executed(KEY, at(2, 0));
+    agent.skip_executed(KEY, at(3, 1));
+    let mut sink = Positions::default();
+    agent.handle_datagram(t0, ADDR, &message_of_writes(3, &[30, 31, 32]), &mut sink);
+    assert_eq!(sink.0, [(vec![32], Some(at(3, 2)))]);
+    assert_eq!(agent.stats().dropped("executed_before_takeover"), 2);
+    let acks: Vec<_> = payloads(&drain(&mut agent))
+        .into_iter()
+        .filter_map(|p| match p {
+            Payload::Acknack(a) => Some(a.first_unacked_seq_num),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(acks, [4], "the message is taken");
+    agent.handle_datagram(t0, ADDR, &message_of_writes(4, &[40, 41]), &mut sink);
+    assert_eq!(
+        sink.0[1..],
+        [(vec![40], Some(at(4, 0))), (vec![41], Some(at(4, 1)))]
+    );
+}
+
+/// The worker executed the whole of message 3 and message 4's first write, but the
+/// predecessor stored neither: the stream moves past 3, and only 4's second write goes.
+#[test]
+fn a_predecessor_ahead_of_its_store_by_more_than_one_message_is_caught_up() {
+    let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
+    agent.skip_executed(KEY, at(4, 0));
+    let mut sink = Positions::default();
+    agent.handle_datagram(t0, ADDR, &message_of_writes(3, &[30]), &mut sink);
+    agent.handle_datagram(t0, ADDR, &message_of_writes(4, &[40, 41]), &mut sink);
+    assert_eq!(sink.0, [(vec![41], Some(at(4, 1)))]);
+    // Far ahead of the stored session: not believed.
+    let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
+    agent.skip_executed(KEY, at(3 + 40, 0));
+    agent.handle_datagram(t0, ADDR, &message_of_writes(3, &[30]), &mut sink);
+    assert_eq!(sink.0.len(), 2);
+}
+
+/// What the worker executed for a predecessor means nothing to a session made since (the
+/// board reset while the front-end was taken over: its streams start again) nor once the
+/// taken-over session processed a message.
+#[test]
+fn executed_writes_are_applied_only_to_a_session_just_taken_over() {
+    let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
+    let later = t0 + Duration::from_secs(2);
+    let mut sink = Positions::default();
+    agent.handle_datagram(later, ADDR, &create_client_with(0x01), &mut sink);
+    agent.skip_executed(KEY, at(0, 0));
+    agent.handle_datagram(later, ADDR, &message_of_writes(0, &[1]), &mut sink);
+    assert_eq!(
+        sink.0,
+        [(vec![1], Some(at(0, 0)))],
+        "the new stream's write goes"
+    );
+
+    let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
+    let mut sink = Positions::default();
+    agent.handle_datagram(t0, ADDR, &message_of_writes(3, &[30]), &mut sink);
+    agent.skip_executed(KEY, at(4, 0));
+    agent.handle_datagram(t0, ADDR, &message_of_writes(4, &[40]), &mut sink);
+    assert_eq!(sink.0.len(), 2, "told too late: ignored");
+}
+
+/// A client that asks a STATUS for each write (the spec's dialect) gets one for a write
+/// not handed over again: its answer went to the process that died.
+#[test]
+fn a_write_not_handed_over_again_is_still_answered_where_the_client_asks() {
+    let (mut agent, mut rec, t0) = connected(
+        AgentConfig {
+            track_sessions: true,
+            ..AgentConfig::default()
+        },
+        [9, 9],
+        None,
+    );
+    agent.handle_datagram(t0, ADDR, &write(0), &mut rec);
+    let snapshot = agent
+        .snapshot(KEY, |a| a.to_le_bytes().to_vec())
+        .expect("a snapshot");
+    let mut next: Agent<u32> = Agent::new(AgentConfig::default());
+    assert!(next.restore(t0, &snapshot, ADDR));
+    drain(&mut next);
+    next.skip_executed(KEY, at(1, 0));
+    let mut sink = Positions::default();
+    next.handle_datagram(t0, ADDR, &message_of_writes(1, &[10]), &mut sink);
+    next.handle_timeout(t0, &mut sink);
+    assert!(sink.0.is_empty());
+    let statuses: Vec<_> = payloads(&drain(&mut next))
+        .into_iter()
+        .filter_map(|p| match p {
+            Payload::Status(s) => Some((s.related.request_id, s.result.status)),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(statuses, [(RequestId::from_u16(0x200 + 10), status::OK)]);
 }

@@ -3,14 +3,17 @@
 //! millisecond, nothing sleeps). What the process tests show with sockets and shared memory,
 //! shown here step by step and the same on every run: samples flow end to end, a worker
 //! that dies (any number of times, at any step) loses none of them and repeats only a write
-//! whose acknowledgement died with it, a link that loses datagrams delays them only, and a
-//! client that resets keeps its objects.
+//! whose acknowledgement died with it, a front-end that dies between handing a client's
+//! message over and storing that it took it has a successor that writes none of it twice, a
+//! link that loses datagrams delays them only, and a client that resets keeps its objects.
 
 use std::rc::Rc;
 use std::time::{Duration, Instant};
 
 use xrce_common::session::agent::{Agent, AgentConfig};
 use xrce_common::session::client::{Client, ClientConfig, ClientError, ClientEvent};
+use xrce_common::session::graph::ObjectGraph;
+use xrce_common::session::snapshot::SessionSnapshot;
 use xrce_common::wire::{
     object_kind as k, status, stream_id, ClientKey, ObjectId, ObjectVariant, Representation,
     VariantExtra,
@@ -79,6 +82,17 @@ struct World {
     next_pass: Option<Instant>,
     /// Samples the client wrote.
     written: u32,
+    /// The front-end's process (its incarnation), and how many died.
+    incarnation: u16,
+    frontend_crashes: u32,
+}
+
+/// What a front-end stored for its successor, encoded as its session store keeps it: the
+/// client's session and its object graph (objects, and reads with what they delivered).
+struct Stored {
+    session: Vec<u8>,
+    objects: Vec<u8>,
+    reads: Vec<u8>,
 }
 
 impl World {
@@ -115,7 +129,61 @@ impl World {
             crashes: 0,
             next_pass: Some(now),
             written: 0,
+            incarnation: 1,
+            frontend_crashes: 0,
         }
+    }
+
+    /// Sessions kept for a successor, as a front-end runs by default: client operations go
+    /// to the worker at once or are refused.
+    fn keeping_sessions(mut self) -> Self {
+        self.session = Agent::new(AgentConfig {
+            track_sessions: true,
+            ..AgentConfig::default()
+        });
+        self.relay.set_hand_over_at_once(true);
+        self
+    }
+
+    /// What the front-end stores now (it does so after each client message and before
+    /// anything goes out).
+    fn store(&self) -> Stored {
+        let key = self.client.config().key;
+        let session = self
+            .session
+            .snapshot(key, |a: u32| a.to_le_bytes().to_vec())
+            .expect("a session to store");
+        let graph = self.relay.graph(key).expect("a graph to store");
+        Stored {
+            session: session.encode(),
+            objects: graph.encode_objects(),
+            reads: graph.encode_reads(),
+        }
+    }
+
+    /// The front-end dies right after it handed the client's next message over to the
+    /// worker (which executes it), before it stored that it took the message; its successor
+    /// (the next incarnation, on the same address) takes over what was stored before.
+    fn crash_frontend_after_hand_over(&mut self) {
+        let stored = self.store();
+        self.step_to_worker(false);
+        let snapshot = SessionSnapshot::decode(&stored.session).expect("stored session");
+        let graph = ObjectGraph::decode(&stored.objects, &stored.reads).expect("stored graph");
+        self.incarnation += 1;
+        self.frontend_crashes += 1;
+        self.session = Agent::new(AgentConfig {
+            track_sessions: true,
+            ..AgentConfig::default()
+        });
+        self.relay = Relay::new(FE, self.incarnation, MemoryLink::default());
+        self.relay.set_hand_over_at_once(true);
+        assert!(
+            self.session.restore(self.now, &snapshot, ADDR),
+            "taken over"
+        );
+        self.relay.restore_graph(snapshot.key, graph);
+        // The successor finds the worker's announcement, as a process started after it.
+        self.announcements_seen = 0;
     }
 
     /// Whether the next datagram gets through.
@@ -344,8 +412,9 @@ impl World {
         assert_eq!(
             got,
             (0..n).map(sample).collect::<Vec<_>>(),
-            "after {} worker crashes",
-            self.crashes
+            "after {} worker and {} front-end crashes",
+            self.crashes,
+            self.frontend_crashes
         );
     }
 }
@@ -459,4 +528,41 @@ fn a_client_that_resets_and_creates_its_objects_again_with_reuse_keeps_publishin
         w.write(n);
     }
     w.expect_received(40);
+}
+
+/// The front-end dies after handing a client's reliable message over to the worker, which
+/// wrote its sample, and before storing that it took the message (four times in a run). The
+/// client sends the message again to the successor, which learns from the worker what it
+/// executed for its predecessor and does not hand that sample over again: every sample is
+/// written to DDS once and reaches the reader once, in order.
+#[test]
+fn a_frontend_that_dies_between_handing_over_and_storing_repeats_no_write() {
+    let mut w = World::new().keeping_sessions();
+    w.run_until("the relay knows the worker", |w| {
+        w.relay.generation().is_some()
+    });
+    w.client.connect(w.now);
+    w.run_until("connected", |w| w.client.is_connected());
+    w.create_objects(false);
+    // Past the new writer's hold (until its reader matched, and 500 ms more).
+    w.write(0);
+    w.run_until("the first sample", |w| w.received.len() == 1);
+    for n in 1..50 {
+        w.write(n);
+        if n % 12 == 5 {
+            w.crash_frontend_after_hand_over();
+            assert!(
+                w.bus.samples_on(TOPIC).contains(&sample(n)),
+                "the worker wrote sample {n} before the front-end died"
+            );
+        }
+        w.step();
+    }
+    w.expect_received(50);
+    assert_eq!(w.frontend_crashes, 4);
+    assert_eq!(
+        w.bus.samples_on(TOPIC),
+        (0..50).map(sample).collect::<Vec<_>>(),
+        "each sample written to DDS once, in order"
+    );
 }

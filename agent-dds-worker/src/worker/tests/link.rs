@@ -2,6 +2,7 @@
 //! whose process is gone, a congested front-end, and a replay that crashed the last worker.
 
 use super::*;
+use xrce_common::session::stream::InputPosition;
 
 /// The incarnation of the front-end's process in these tests.
 const INCARNATION: u16 = 4;
@@ -251,4 +252,65 @@ fn operations_before_the_front_ends_hello_are_ignored() {
     t.send(Route::frontend(FE), Request::FrontendHello);
     t.replayed_participant(CLIENT);
     assert_eq!(t.worker.entities.len(), 1);
+}
+
+/// A write of `client` on stream `stream` at message `sequence`, write `index` of it (a
+/// writer that does not exist: the position counts all the same).
+fn positioned_write(stream: u8, sequence: u16, index: u16) -> Request<'static> {
+    Request::Write {
+        data: keyed(1, 1).into(),
+        data_format: xrce_common::wire::data_format::DATA,
+        little_endian: true,
+        dialect: Dialect::Eprosima,
+        status_requested: false,
+        position: Some(InputPosition {
+            stream_id: stream,
+            sequence,
+            write_index: index,
+        }),
+    }
+}
+
+/// A process that takes a front-end over is told, before the answer to its hello, the last
+/// write the worker executed on each reliable stream of each client of its predecessor;
+/// not those of a client whose session ended, nor anything of best-effort streams.
+#[test]
+fn a_successor_is_told_the_last_write_executed_on_each_clients_reliable_stream() {
+    let mut t = Harness::new(false);
+    t.send(Route::frontend(FE), Request::FrontendHello);
+    let to = |client| Route::object(FE, client, Default::default(), WRITER);
+    t.send(to(CLIENT), positioned_write(0x80, 7, 0));
+    t.send(to(CLIENT), positioned_write(0x80, 7, 1));
+    t.send(to(CLIENT), positioned_write(0x81, 2, 0));
+    t.send(to(CLIENT), positioned_write(0x01, 9, 0));
+    t.send(to(OTHER), positioned_write(0x80, 3, 0));
+    t.send(to(OTHER), Request::DeleteClient);
+    t.pass();
+    let _ = t.replies();
+
+    let successor = Route {
+        incarnation: INCARNATION + 1,
+        ..Route::frontend(FE)
+    };
+    let hello = RequestMessage::new(successor, Request::FrontendHello).encode();
+    let now = t.worker.now;
+    t.worker.handle_request(&hello, now);
+    t.pass();
+    let replies = t.replies();
+    let hello = replies
+        .iter()
+        .position(|m| m.reply == Reply::WorkerHello)
+        .expect("the answer to the hello");
+    let mut executed: Vec<_> = replies[..hello]
+        .iter()
+        .map(|m| {
+            assert_eq!(m.route.incarnation, INCARNATION + 1);
+            match m.reply {
+                Reply::Executed(p) => (m.route.client_key, p.stream_id, p.sequence, p.write_index),
+                ref r => panic!("{r:?} before the hello"),
+            }
+        })
+        .collect();
+    executed.sort_unstable();
+    assert_eq!(executed, [(CLIENT, 0x80, 7, 1), (CLIENT, 0x81, 2, 0)]);
 }

@@ -10,6 +10,7 @@ fn write(sample: &[u8]) -> Request<'_> {
         little_endian: true,
         dialect: Dialect::Eprosima,
         status_requested: false,
+        position: None,
     }
 }
 

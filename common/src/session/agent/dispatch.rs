@@ -9,11 +9,12 @@ impl<A: Endpoint> Agent<A> {
         &mut self,
         now: Instant,
         key: ClientKey,
-        stream: u8,
+        at: &mut MessageAt,
         raw: RawSubmessage<'_>,
         reassembled: bool,
         sink: &mut impl OperationSink,
     ) {
+        let stream = at.stream;
         let payload = match raw.decode() {
             Ok(p) => p,
             Err(e) => return self.drop_submessage(e, raw.id, raw.payload),
@@ -69,16 +70,35 @@ impl<A: Endpoint> Agent<A> {
                 },
             ),
             Payload::WriteData(d) => {
+                let position = stream_id::is_reliable(stream).then_some(InputPosition {
+                    stream_id: stream,
+                    sequence: at.sequence,
+                    write_index: at.writes,
+                });
+                at.writes = at.writes.wrapping_add(1);
+                let dialect = self.client_dialect(key);
+                if let Some(p) = position.filter(|p| self.executed_before(key, p)) {
+                    // The front-end this one took over from handed it to the worker, which
+                    // wrote it, and died before storing that it took the message: written
+                    // once is enough. A client that asks a STATUS for each write gets its
+                    // answer, which went to the process that died.
+                    self.count_drop("executed_before_takeover");
+                    tracing::debug!(client = %key, stream = p.stream_id, sequence = p.sequence, write = p.write_index, "write resent after a takeover not written again");
+                    if dialect == Dialect::Spec {
+                        self.queue_status(key, d.base, ResultStatus::OK);
+                    }
+                    return;
+                }
                 self.stats.samples_in += 1;
                 if let Some(c) = self.clients.get_mut(&key) {
                     c.counters.samples_in += 1;
                 }
-                let dialect = self.client_dialect(key);
                 sink.operation(
                     now,
                     Operation::Write {
                         client: key,
                         stream_id: stream,
+                        position,
                         data: d,
                         little_endian: le,
                         dialect,
@@ -164,9 +184,7 @@ impl<A: Endpoint> Agent<A> {
                     data,
                 )
             }
-            Payload::Fragment { last, data } => {
-                self.on_fragment(now, key, stream, last, data, sink)
-            }
+            Payload::Fragment { last, data } => self.on_fragment(now, key, at, last, data, sink),
             _ => self.drop_submessage(
                 DecodeError::InvalidValue("submessage for an agent"),
                 raw.id,
@@ -183,12 +201,12 @@ impl<A: Endpoint> Agent<A> {
         &mut self,
         now: Instant,
         key: ClientKey,
-        stream: u8,
+        at: &mut MessageAt,
         last: bool,
         data: &[u8],
         sink: &mut impl OperationSink,
     ) {
-        let max = self.config.max_reassembly;
+        let (max, stream) = (self.config.max_reassembly, at.stream);
         let Some(c) = self.clients.get_mut(&key) else {
             return;
         };
@@ -211,7 +229,7 @@ impl<A: Endpoint> Agent<A> {
             Ok(Some(whole)) => {
                 for raw in Submessages::reassembled(&whole) {
                     match raw {
-                        Ok(raw) => self.dispatch(now, key, stream, raw, true, sink),
+                        Ok(raw) => self.dispatch(now, key, at, raw, true, sink),
                         Err(e) => return self.drop_input(e.reason(), &whole),
                     }
                 }

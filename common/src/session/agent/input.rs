@@ -334,14 +334,46 @@ impl<A: Endpoint> Agent<A> {
         sink: &mut impl OperationSink,
     ) {
         let stream = bytes.get(1).copied().unwrap_or(0);
+        let sequence = u16::from_le_bytes([
+            bytes.get(2).copied().unwrap_or(0),
+            bytes.get(3).copied().unwrap_or(0),
+        ]);
+        let mut at = MessageAt {
+            stream,
+            sequence,
+            writes: 0,
+        };
         for raw in Submessages::new(bytes, hlen) {
             let raw = match raw {
                 Ok(r) => r,
-                Err(e) => return self.drop_input(e.reason(), bytes),
+                Err(e) => {
+                    self.drop_input(e.reason(), bytes);
+                    break;
+                }
             };
-            self.dispatch(now, key, stream, raw, false, sink);
+            self.dispatch(now, key, &mut at, raw, false, sink);
+        }
+        if let Some(c) = self
+            .clients
+            .get_mut(&key)
+            .filter(|_| stream_id::is_reliable(stream))
+        {
+            // The relay takes reliable messages only once the worker said what it executed.
+            c.awaiting_executed = false;
+            // A floor is for the one message it names (sequence numbers wrap).
+            c.executed_floor
+                .retain(|f| (f.stream_id, f.sequence) != (stream, sequence));
         }
     }
+}
+
+/// The message a submessage came in: its stream and sequence number, and how many WRITE_DATA
+/// of it were dispatched so far (reassembled fragments count in the message of the last one).
+#[derive(Debug)]
+pub(super) struct MessageAt {
+    pub(super) stream: u8,
+    pub(super) sequence: u16,
+    pub(super) writes: u16,
 }
 
 /// Whether `sink` has room for the operations of the reliable message `bytes` (header

@@ -25,7 +25,9 @@ use super::admission::{Admission, CreationMeter, KeyCheck, Metered, RateMeter};
 use super::budget::{Budget, Decision, Episodes, Limits, Origin, OriginId};
 use super::fragment::{fragments, Reassembly};
 use super::snapshot::{OutputSnapshot, SessionSnapshot};
-use super::stream::{Arrival, BestEffortInput, ReliableInput, ReliableOutput};
+use super::stream::{
+    Arrival, BestEffortInput, InputPosition, ReliableInput, ReliableOutput, SkipTo,
+};
 use crate::wire::cdr::CdrWriter;
 use crate::wire::info::{
     ActivityInfo, AgentRepresentation, ObjectConfig, ObjectInfo, TransportLocator,
@@ -48,6 +50,7 @@ mod persist;
 mod proxy;
 mod timers;
 
+use input::MessageAt;
 pub(crate) use output::agent_info_message;
 pub use output::{DataReply, SendError};
 use proxy::{OutStream, ProxyClient};
@@ -189,6 +192,9 @@ pub enum Operation<'a> {
         client: ClientKey,
         /// The stream it came on.
         stream_id: u8,
+        /// Where it stood on a reliable stream (`None` on others): the worker keeps the last
+        /// one it executed for a front-end that takes over from this one.
+        position: Option<InputPosition>,
         /// The data writer, and the sample(s) in the payload's data format.
         data: DataPayload<'a>,
         /// The byte order of the submessage.

@@ -113,6 +113,55 @@ impl<A: Endpoint> Agent<A> {
         self.schedule(key);
     }
 
+    /// The worker executed `executed` (the last write it got from this front-end's
+    /// predecessor on that client stream), which may be part of a message the predecessor
+    /// did not store as taken: the client will send that message again, and the writes up
+    /// to `executed` are then not handed over a second time. Messages before it are taken
+    /// as received. Said once, after a takeover, before any client message is processed
+    /// (the relay refuses them until then).
+    pub fn skip_executed(&mut self, key: ClientKey, executed: InputPosition) {
+        let (window, max_streams) = (self.config.input_window, self.config.max_input_streams);
+        let Some(c) = self.clients.get_mut(&key).filter(|c| c.awaiting_executed) else {
+            return;
+        };
+        if !stream_id::is_reliable(executed.stream_id)
+            || (!c.reliable_in.contains_key(&executed.stream_id)
+                && c.reliable_in.len() >= max_streams)
+        {
+            return;
+        }
+        let first = c.first_seq;
+        let input = c
+            .reliable_in
+            .entry(executed.stream_id)
+            .or_insert_with(|| ReliableInput::resuming(window, first));
+        match input.skip_to(executed.sequence) {
+            // Stored as taken: its resend is a duplicate already.
+            SkipTo::Behind => {}
+            SkipTo::Expected => {
+                c.executed_floor
+                    .retain(|f| f.stream_id != executed.stream_id);
+                c.executed_floor.push(executed);
+                self.changed_input.insert(key);
+                tracing::debug!(client = %key, stream = executed.stream_id, sequence = executed.sequence, write = executed.write_index, "the worker executed writes of a message the last front-end had not stored as taken");
+            }
+            SkipTo::TooFar => {
+                tracing::warn!(client = %key, stream = executed.stream_id, sequence = executed.sequence, expected = input.expected(), "the worker's last executed write is far ahead of the stored session; ignored");
+            }
+        }
+    }
+
+    /// Whether the worker executed the write at `position` for the front-end this one took
+    /// over from ([`Self::skip_executed`]).
+    pub(super) fn executed_before(&self, key: ClientKey, position: &InputPosition) -> bool {
+        self.clients.get(&key).is_some_and(|c| {
+            c.executed_floor.iter().any(|f| {
+                (f.stream_id, f.sequence) == (position.stream_id, position.sequence)
+                    && position.write_index <= f.write_index
+            })
+        })
+    }
+
     /// Takes over a session a front-end that died stored (its object graph is the bridge's
     /// business): the client goes on where it was. Its reliable output streams first ask
     /// the client where it is (a HEARTBEAT now), and its input streams tell it what was taken
@@ -175,6 +224,7 @@ impl<A: Endpoint> Agent<A> {
             .checked_sub(self.config.duplicate_create_guard)
             .unwrap_or(now);
         client.streams_used = true;
+        client.awaiting_executed = true;
         // Its objects are the front-end's to restore: not a session to evict first.
         client.has_objects = true;
         if let Some(old) = self.clients.remove(&snapshot.key) {

@@ -55,6 +55,15 @@ pub(super) struct ProxyClient<A> {
     /// from the start again, behind what was taken, it was the client's restart after all
     /// (a board that reset at once), and the streams start again then.
     pub(super) restart_suspected: bool,
+    /// The last write the worker executed on a reliable input stream, where that is within
+    /// the message expected next (taken over: the front-end that died handed part or all of
+    /// that message over before storing that it took it); one entry per stream at most, each
+    /// dropped once its message was processed.
+    pub(super) executed_floor: Vec<InputPosition>,
+    /// Taken over from a stored session and nothing processed since: the worker's last
+    /// executed writes may still be applied ([`Agent::skip_executed`]); a session made or
+    /// restarted since numbers its streams afresh, and they would mean nothing there.
+    pub(super) awaiting_executed: bool,
     pub(super) dialect: Dialect,
     /// Silence after which the client is dead (hard liveliness or the configured dead time).
     pub(super) dead_time: Option<Duration>,
@@ -148,6 +157,8 @@ impl<A: Origin> ProxyClient<A> {
             established_at: now,
             streams_used: false,
             restart_suspected: false,
+            executed_floor: Vec::new(),
+            awaiting_executed: false,
             dialect,
             dead_time,
             detached: false,
@@ -181,6 +192,8 @@ impl<A: Origin> ProxyClient<A> {
         self.heartbeat_due = None;
         self.streams_used = false;
         self.restart_suspected = false;
+        self.executed_floor.clear();
+        self.awaiting_executed = false;
         self.last_acknack.clear();
     }
 
