@@ -26,8 +26,10 @@ use crate::transport::{StoredEndpoint, Transport};
 
 /// Stores what changed since the last call and forgets ended sessions. Sessions whose input
 /// positions moved are stored after each client message (right after its operations went
-/// to the worker: a crash in between makes the client resend one message, which the worker
-/// then executes twice) and before anything acknowledges it; `with_output` also stores the
+/// to the worker: a crash in between makes the client resend one message, whose writes the
+/// worker executed already; it tells the successor the last one it executed on each client
+/// stream, [`xrce_ipc::Reply::Executed`], and the successor does not hand those over
+/// again) and before anything acknowledges it; `with_output` also stores the
 /// sessions whose output or reads changed (the event loop does so at most every
 /// [`OUTPUT_STORE_PERIOD`]: a successor finds output state that much behind at worst, which
 /// the clients' ACKNACKs correct). Changed objects are always stored.

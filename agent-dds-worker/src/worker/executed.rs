@@ -9,21 +9,23 @@ use std::collections::HashMap;
 use xrce_common::session::stream::InputPosition;
 use xrce_common::wire::ClientKey;
 
-/// Most clients whose positions are kept, over all front-ends: beyond, a new client's are
-/// not kept (counted, logged once), so its writes could repeat at a front-end crash, as
-/// before positions were kept. A front-end bounds its sessions far below this.
-pub(super) const MAX_CLIENTS: usize = 1 << 18;
+/// Most clients whose positions are kept, over all front-ends (16 front-ends of 8,192
+/// sessions, a front-end's default bound): beyond, a new client's are not kept (counted,
+/// logged once per episode), so its writes could repeat at a front-end crash, as before
+/// positions were kept. At most about 20 MiB.
+pub(super) const MAX_CLIENTS: usize = 1 << 17;
 
-/// Reliable streams of a client whose position is kept (the XRCE reliable stream ids are
-/// 128 to 255).
-const MAX_STREAMS: usize = 128;
+/// Reliable streams of a client whose position is kept: twice the input streams a
+/// front-end's session core takes from one client (8).
+const MAX_STREAMS: usize = 16;
 
 /// What [`ExecutedWrites::record`] did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) enum Recorded {
     /// Kept.
     Yes,
-    /// Not kept: [`MAX_CLIENTS`] clients have positions already.
+    /// Not kept: [`MAX_CLIENTS`] clients have positions already, or this client has
+    /// [`MAX_STREAMS`].
     Full,
 }
 
@@ -122,5 +124,10 @@ mod tests {
         let old = ClientKey(7u32.to_le_bytes());
         assert_eq!(e.record(1, old, at(0x80, 1, 0)), Recorded::Yes);
         assert_eq!(e.record(1, old, at(0x81, 1, 0)), Recorded::Yes);
+        for stream in 0x82..0x80 + MAX_STREAMS as u8 {
+            assert_eq!(e.record(1, old, at(stream, 1, 0)), Recorded::Yes);
+        }
+        let beyond = 0x80 + MAX_STREAMS as u8;
+        assert_eq!(e.record(1, old, at(beyond, 1, 0)), Recorded::Full);
     }
 }

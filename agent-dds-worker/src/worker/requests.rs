@@ -173,7 +173,9 @@ impl<L: WorkerLink> Worker<L> {
                         .record(r.frontend_id, r.client_key, p);
                     if recorded == Recorded::Full {
                         let why = format!(
-                            "positions of executed writes not kept for client {} of front-end                              {}: {} clients have theirs kept (its writes could repeat if its                              front-end crashes)",
+                            "the position of a write of client {} of front-end {} not kept ({} clients \
+                             have theirs kept, or it uses too many streams): that write could repeat if \
+                             its front-end crashes",
                             r.client_key,
                             r.frontend_id,
                             executed::MAX_CLIENTS
