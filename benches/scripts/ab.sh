@@ -17,10 +17,12 @@
 #   latency-1k            1 -> 1 best-effort at 1,000/s (p50 / p99)
 #   latency-10k           1 -> 1 best-effort at 10,000/s
 #   clients-10-1k         10 clients -> 1 at 1,000/s in all (CPU per sample)
+#   clients-100-10k       100 clients -> 1 at 10,000/s
 #   clients-100-20k       100 clients -> 1 at 20,000/s
 #   clients-100-60k       100 clients -> 1 at 60,000/s
 #   clients-100-reliable  100 reliable clients -> 1 at 20,000/s
 #   clients-1000-20k      1,000 clients -> 1 at 20,000/s
+#   clients-100-unlimited 100 clients -> 1 as fast as their windows allow (what reaches DDS)
 #   kill-soak             each agent alone (not alternated): 100 reliable clients -> 1 at
 #                         1,000/s, worker and front-end SIGKILLed in turn every 6 s, 14 kills
 #                         (lost / repeated); with OLD_CMD (no worker to kill), NEW only
@@ -36,12 +38,12 @@ if [ "${XRCE_AB_IN_NETNS:-}" != 1 ]; then
   exit 1
 fi
 if [ -n "${OLD_CMD:-}" ]; then
-  [ $# -ge 1 ] || { sed -n '2,26p' "$0"; exit 2; }
+  [ $# -ge 1 ] || { sed -n '2,28p' "$0"; exit 2; }
   NEW=$1
   OLD=
   shift
 else
-  [ $# -ge 2 ] || { sed -n '2,26p' "$0"; exit 2; }
+  [ $# -ge 2 ] || { sed -n '2,28p' "$0"; exit 2; }
   NEW=$1
   OLD=$2
   shift 2
@@ -84,10 +86,12 @@ for case in "$@"; do
     latency-1k) run "$case" --publishers 1 --subscribers 1 --rate 1000 --best-effort --samples 20000 ;;
     latency-10k) run "$case" --publishers 1 --subscribers 1 --rate 10000 --best-effort --samples 100000 ;;
     clients-10-1k) run "$case" --publishers 10 --subscribers 1 --rate 1000 --best-effort --samples 20000 ;;
+    clients-100-10k) run "$case" --publishers 100 --subscribers 1 --rate 10000 --best-effort --samples 100000 ;;
     clients-100-20k) run "$case" --publishers 100 --subscribers 1 --rate 20000 --best-effort --samples 200000 ;;
     clients-100-60k) run "$case" --publishers 100 --subscribers 1 --rate 60000 --best-effort --samples 600000 ;;
     clients-100-reliable) run "$case" --publishers 100 --subscribers 1 --rate 20000 --samples 200000 ;;
     clients-1000-20k) run "$case" --publishers 1000 --subscribers 1 --rate 20000 --best-effort --samples 200000 ;;
+    clients-100-unlimited) run "$case" --publishers 100 --subscribers 1 --best-effort --samples 400000 --duration 30 ;;
     kill-soak) soak ;;
     *) echo "unknown case $case" >&2; exit 2 ;;
   esac
