@@ -3,7 +3,8 @@
 //! in-memory link (no shared memory): what a new worker generation gets replayed (objects in
 //! creation order, reads, retained writes, but not the writes DDS readers acknowledged),
 //! that a replayed read does not deliver a sample its client had, and how best-effort
-//! writes share the window.
+//! writes share the window, and that a relay that took sessions over takes no client message
+//! before the worker answered its hello.
 
 use std::cell::{Cell, RefCell};
 use std::time::{Duration, Instant};
@@ -563,4 +564,53 @@ fn a_client_whose_replay_crashed_the_last_worker_has_its_session_ended() {
     // And the worker is told the session is gone (its entities, if any, go with it).
     let told = rig.run(&[&second], |_, s| s.iter().any(|m| is(m, "DeleteClient")));
     assert!(told.iter().any(|m| m.route.client_key == key));
+}
+
+/// A front-end that took sessions over takes no client message (its relay has no room)
+/// until the worker answered its hello: the worker's last executed writes come before that
+/// answer, and a client's resend taken earlier would be handed over a second time. The
+/// announcement of a worker alone does not open it; the answer to this process does.
+#[test]
+fn a_relay_that_took_sessions_over_has_no_room_until_the_worker_answered_its_hello() {
+    use xrce_common::session::agent::OperationSink;
+    let now = Instant::now();
+    let mut agent: Agent<u32> = Agent::new(AgentConfig::default());
+    let mut relay = Relay::new(0, 2, MemoryLink::default());
+    relay.set_hand_over_at_once(true);
+    assert!(relay.has_room(), "nothing taken over: open");
+    relay.restore_graph(
+        ClientKey([0xB2, 0, 0, 1]),
+        xrce_common::session::graph::ObjectGraph::default(),
+    );
+    assert!(!relay.has_room() && !relay.has_room_for(1));
+    let worker = FakeWorker::start(0x31);
+    let announcement = ReplyMessage::new(
+        Route {
+            generation: 0x31,
+            ..Route::default()
+        },
+        Reply::WorkerHello,
+    );
+    relay.handle_announcement(&announcement.encode());
+    assert_eq!(relay.generation(), Some(0x31));
+    assert!(!relay.has_room(), "announced, not answered");
+    relay.pump();
+    let hello = relay
+        .link_mut()
+        .take()
+        .into_iter()
+        .map(|m| RequestMessage::decode(&m).expect("request").into_owned())
+        .find(|m| m.request == Request::FrontendHello)
+        .expect("the hello");
+    worker.reply(
+        Route {
+            incarnation: hello.route.incarnation,
+            ..Route::frontend(0)
+        },
+        Reply::WorkerHello,
+    );
+    for m in worker.replies.take() {
+        relay.handle_reply(now, &m, &mut agent);
+    }
+    assert!(relay.has_room() && relay.has_room_for(1));
 }

@@ -22,7 +22,7 @@
 #   clients-100-60k       100 clients -> 1 at 60,000/s
 #   clients-100-reliable  100 reliable clients -> 1 at 20,000/s
 #   clients-1000-20k      1,000 clients -> 1 at 20,000/s
-#   clients-100-unlimited 100 clients -> 1 as fast as their windows allow (what reaches DDS)
+#   clients-100-unlimited 100 reliable clients -> 1 as fast as their windows allow (into DDS)
 #   kill-soak             each agent alone (not alternated): 100 reliable clients -> 1 at
 #                         1,000/s, worker and front-end SIGKILLed in turn every 6 s, 14 kills
 #                         (lost / repeated); with OLD_CMD (no worker to kill), NEW only
@@ -91,7 +91,7 @@ for case in "$@"; do
     clients-100-60k) run "$case" --publishers 100 --subscribers 1 --rate 60000 --best-effort --samples 600000 ;;
     clients-100-reliable) run "$case" --publishers 100 --subscribers 1 --rate 20000 --samples 200000 ;;
     clients-1000-20k) run "$case" --publishers 1000 --subscribers 1 --rate 20000 --best-effort --samples 200000 ;;
-    clients-100-unlimited) run "$case" --publishers 100 --subscribers 1 --best-effort --samples 400000 --duration 30 ;;
+    clients-100-unlimited) run "$case" --publishers 100 --subscribers 1 --samples 400000 --duration 30 ;;
     kill-soak) soak ;;
     *) echo "unknown case $case" >&2; exit 2 ;;
   esac
