@@ -238,11 +238,21 @@ impl<L: WorkerLink> Worker<L> {
     /// The replay of front-end `fe` is complete: what it did not take back goes.
     pub(super) fn end_adoption(&mut self, fe: u32) {
         let (left, adopted) = self.frontends.adoption.finish(fe);
+        let mut clients: Vec<ClientKey> = left.iter().map(|k| k.1).collect();
+        clients.sort_unstable();
+        clients.dedup();
         let mut removed = 0;
         for k in left {
             if self.entities.contains_key(&k) {
                 self.remove_subtree(k);
                 removed += 1;
+            }
+        }
+        // A client the replay did not take back has no session here any more: what it
+        // executed means nothing to a later one of the same key.
+        for client in clients {
+            if !self.entities.clients().any(|c| *c == (fe, client)) {
+                self.frontends.executed.forget_client(fe, client);
             }
         }
         if adopted + removed > 0 {

@@ -641,7 +641,8 @@ impl<L: Link> OperationSink for Relay<L> {
             // client sends it again): an operation left in this process's outbox would die
             // with it, after its message was acknowledged and stored as taken. (Before a
             // worker answers, and while one restarts, operations wait in the outbox as
-            // always: they are replayed to the new worker.)
+            // always: they are replayed to the new worker; except after a takeover, when
+            // nothing is taken until the worker answered, `awaiting_executed`.)
             return retained
                 && self.outbox.is_empty()
                 && self.in_flight() + HAND_OVER_HEADROOM <= IN_FLIGHT_WINDOW;

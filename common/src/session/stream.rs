@@ -24,17 +24,6 @@ pub struct InputPosition {
     pub write_index: u16,
 }
 
-/// What [`ReliableInput::skip_to`] did.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum SkipTo {
-    /// The message is the one expected next now.
-    Expected,
-    /// It was delivered already: nothing changed.
-    Behind,
-    /// More than a window ahead: nothing changed.
-    TooFar,
-}
-
 /// The sender side of a reliable stream.
 #[derive(Debug, Clone)]
 pub struct ReliableOutput {
@@ -299,21 +288,6 @@ impl ReliableInput {
         self.expected = self.expected.wrapping_add(1);
     }
 
-    /// Takes the messages before `s` as delivered (their operations were executed elsewhere)
-    /// if `s` is at most a window ahead, dropping early copies of those it skips.
-    pub fn skip_to(&mut self, s: u16) -> SkipTo {
-        let d = s.wrapping_sub(self.expected);
-        if d >= 0x8000 {
-            return SkipTo::Behind;
-        }
-        if d >= self.window {
-            return SkipTo::TooFar;
-        }
-        self.expected = s;
-        self.early.retain(|e, _| seq::le(s, *e));
-        SkipTo::Expected
-    }
-
     /// Takes the expected message if it arrived early; deliver it, then [`Self::advance`].
     /// A receiver that cannot deliver it now takes it anyway and drops it: the next ACKNACK
     /// then reports it missing, so the sender resends it.
@@ -433,26 +407,6 @@ mod tests {
         assert_eq!(i.expected(), 2);
         assert_eq!(i.classify(0), Arrival::Duplicate);
         assert_eq!(i.classify(40), Arrival::OutOfWindow);
-    }
-
-    #[test]
-    fn skipping_to_a_message_moves_only_forward_and_within_the_window() {
-        let mut i = ReliableInput::resuming(16, 0xFFFE);
-        i.classify(0xFFFF);
-        i.store_early(0xFFFF, vec![1]);
-        i.classify(2);
-        i.store_early(2, vec![2]);
-        assert_eq!(i.skip_to(1), SkipTo::Expected);
-        assert_eq!(i.expected(), 1);
-        assert_eq!(
-            i.take_ready(),
-            None,
-            "the skipped message's early copy is gone"
-        );
-        assert_eq!(i.early_bytes(), 1, "the later one is kept");
-        assert_eq!(i.skip_to(0xFFF0), SkipTo::Behind);
-        assert_eq!(i.skip_to(17), SkipTo::TooFar);
-        assert_eq!(i.expected(), 1);
     }
 
     #[test]

@@ -314,3 +314,44 @@ fn a_successor_is_told_the_last_write_executed_on_each_clients_reliable_stream()
     executed.sort_unstable();
     assert_eq!(executed, [(CLIENT, 0x80, 7, 1), (CLIENT, 0x81, 2, 0)]);
 }
+
+/// A client whose objects the successor's replay did not take back (its session was not
+/// taken over) has no session here any more: its positions go with its entities, and the
+/// next process of the front-end is not told them.
+#[test]
+fn a_client_the_replay_did_not_take_back_loses_its_positions() {
+    let mut t = Harness::new(false);
+    t.send(Route::frontend(FE), Request::FrontendHello);
+    t.participant(CLIENT);
+    let to = Route::object(FE, CLIENT, Default::default(), WRITER);
+    t.send(to, positioned_write(0x80, 7, 0));
+    t.pass();
+    let hello = |t: &mut Harness, incarnation: u16| {
+        let route = Route {
+            incarnation,
+            ..Route::frontend(FE)
+        };
+        let now = t.worker.now;
+        let bytes = RequestMessage::new(route, Request::FrontendHello).encode();
+        t.worker.handle_request(&bytes, now);
+        t.pass();
+        t.replies()
+            .into_iter()
+            .filter(|m| matches!(m.reply, Reply::Executed(_)))
+            .count()
+    };
+    assert_eq!(hello(&mut t, INCARNATION + 1), 1);
+    // The successor's replay ends without the client's participant.
+    let done = Route {
+        incarnation: INCARNATION + 1,
+        ..Route::frontend(FE)
+    };
+    let now = t.worker.now;
+    t.worker.handle_request(
+        &RequestMessage::new(done, Request::ReplayDone).encode(),
+        now,
+    );
+    t.pass();
+    assert!(t.worker.entities.is_empty(), "its entities removed");
+    assert_eq!(hello(&mut t, INCARNATION + 2), 0);
+}

@@ -360,9 +360,9 @@ impl<A: Endpoint> Agent<A> {
         {
             // The relay takes reliable messages only once the worker said what it executed.
             c.awaiting_executed = false;
-            // A floor is for the one message it names (sequence numbers wrap).
-            c.executed_floor
-                .retain(|f| (f.stream_id, f.sequence) != (stream, sequence));
+            // A floor is for the message expected next when it was set: this one, or one a
+            // HEARTBEAT made the client skip (sequence numbers wrap, so it must not wait).
+            c.executed_floor.retain(|f| f.stream_id != stream);
         }
     }
 }

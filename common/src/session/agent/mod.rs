@@ -25,9 +25,7 @@ use super::admission::{Admission, CreationMeter, KeyCheck, Metered, RateMeter};
 use super::budget::{Budget, Decision, Episodes, Limits, Origin, OriginId};
 use super::fragment::{fragments, Reassembly};
 use super::snapshot::{OutputSnapshot, SessionSnapshot};
-use super::stream::{
-    Arrival, BestEffortInput, InputPosition, ReliableInput, ReliableOutput, SkipTo,
-};
+use super::stream::{Arrival, BestEffortInput, InputPosition, ReliableInput, ReliableOutput};
 use crate::wire::cdr::CdrWriter;
 use crate::wire::info::{
     ActivityInfo, AgentRepresentation, ObjectConfig, ObjectInfo, TransportLocator,

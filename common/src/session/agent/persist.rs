@@ -114,41 +114,30 @@ impl<A: Endpoint> Agent<A> {
     }
 
     /// The worker executed `executed` (the last write it got from this front-end's
-    /// predecessor on that client stream), which may be part of a message the predecessor
-    /// did not store as taken: the client will send that message again, and the writes up
-    /// to `executed` are then not handed over a second time. Messages before it are taken
-    /// as received. Said once, after a takeover, before any client message is processed
-    /// (the relay refuses them until then).
+    /// predecessor on that client stream). If that write is in the message the stored
+    /// session expects next, the predecessor handed that message over (part or all of its
+    /// writes) and died before storing that it took it: the client will send it again, and
+    /// the writes up to `executed` are then not handed over a second time. Any other
+    /// position is not this message's (behind: stored as taken; ahead: the stream restarted
+    /// since, or something else) and is ignored, so a message is never taken as received
+    /// on the worker's word. Applied after a takeover, before any reliable client message is
+    /// processed (the relay refuses them until the worker answered its hello).
     pub fn skip_executed(&mut self, key: ClientKey, executed: InputPosition) {
-        let (window, max_streams) = (self.config.input_window, self.config.max_input_streams);
         let Some(c) = self.clients.get_mut(&key).filter(|c| c.awaiting_executed) else {
             return;
         };
-        if !stream_id::is_reliable(executed.stream_id)
-            || (!c.reliable_in.contains_key(&executed.stream_id)
-                && c.reliable_in.len() >= max_streams)
-        {
+        let expected = c
+            .reliable_in
+            .get(&executed.stream_id)
+            .map_or(c.first_seq, ReliableInput::expected);
+        if !stream_id::is_reliable(executed.stream_id) || executed.sequence != expected {
+            tracing::debug!(client = %key, stream = executed.stream_id, sequence = executed.sequence, expected, "the worker's last executed write is not in the message expected next; ignored");
             return;
         }
-        let first = c.first_seq;
-        let input = c
-            .reliable_in
-            .entry(executed.stream_id)
-            .or_insert_with(|| ReliableInput::resuming(window, first));
-        match input.skip_to(executed.sequence) {
-            // Stored as taken: its resend is a duplicate already.
-            SkipTo::Behind => {}
-            SkipTo::Expected => {
-                c.executed_floor
-                    .retain(|f| f.stream_id != executed.stream_id);
-                c.executed_floor.push(executed);
-                self.changed_input.insert(key);
-                tracing::debug!(client = %key, stream = executed.stream_id, sequence = executed.sequence, write = executed.write_index, "the worker executed writes of a message the last front-end had not stored as taken");
-            }
-            SkipTo::TooFar => {
-                tracing::warn!(client = %key, stream = executed.stream_id, sequence = executed.sequence, expected = input.expected(), "the worker's last executed write is far ahead of the stored session; ignored");
-            }
-        }
+        c.executed_floor
+            .retain(|f| f.stream_id != executed.stream_id);
+        c.executed_floor.push(executed);
+        tracing::debug!(client = %key, stream = executed.stream_id, sequence = executed.sequence, write = executed.write_index, "the worker executed writes of a message the last front-end had not stored as taken");
     }
 
     /// Whether the worker executed the write at `position` for the front-end this one took
