@@ -401,6 +401,20 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     xrce_common::fault::install_and_log("worker")?;
+    let (config, ros_distro) = configure(args)?;
+    let mut process = WorkerProcess::start(config)?;
+    process.worker_mut().set_ros_distro(ros_distro);
+    // Under systemd (a unit of its own), the worker is ready once it serves.
+    if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {
+        tracing::warn!(error = %e, "sd_notify failed");
+    }
+    process.run()
+}
+
+/// The worker's configuration from its settings (the references file read, the ROS
+/// distribution and default domain resolved from the environment, the open-file limit
+/// raised), and the ROS distribution its graph is published in; logged.
+pub fn configure(args: WorkerArgs) -> anyhow::Result<(WorkerConfig, crate::ros_graph::RosDistro)> {
     // Before anything starts: a ROS_DISTRO the agent does not know stops it here.
     let (ros_distro, distro_source) = crate::ros_graph::RosDistro::resolve(
         args.ros_distro,
@@ -422,7 +436,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         max_in_use = ?domains.max_in_use,
         "DDS domains clients may use"
     );
-    let mut process = WorkerProcess::start(WorkerConfig {
+    let config = WorkerConfig {
         instance: args.instance,
         backend: args.dds_backend,
         dds: DdsConfig {
@@ -444,8 +458,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
         domains,
         bounds: args.bounds.bounds(),
         default_domain,
-    })?;
-    process.worker_mut().set_ros_distro(ros_distro);
+    };
     if args.ros_graph {
         tracing::info!(
             distro = %ros_distro,
@@ -454,11 +467,7 @@ pub fn run(args: WorkerArgs) -> anyhow::Result<()> {
             "ROS 2 graph layout"
         );
     }
-    // Under systemd (a unit of its own), the worker is ready once it serves.
-    if let Err(e) = sd_notify::notify(&[sd_notify::NotifyState::Ready]) {
-        tracing::warn!(error = %e, "sd_notify failed");
-    }
-    process.run()
+    Ok((config, ros_distro))
 }
 
 /// Raises the open-file limit to its hard limit: RustDDS holds about two descriptors per

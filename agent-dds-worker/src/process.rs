@@ -9,7 +9,7 @@ use xrce_ipc::shm::Receiver;
 use xrce_ipc::status::{Reporter, Watchdog, REPORT_PERIOD};
 
 use crate::backend;
-use crate::worker::{ShmWorkerLink, Worker, WorkerConfig};
+use crate::worker::{ShmWorkerLink, Worker, WorkerConfig, WorkerLink};
 
 /// A pass longer than this is logged (front-ends' operations wait meanwhile, and a
 /// front-end drops best-effort writes once its window to the worker is full).
@@ -51,12 +51,10 @@ impl std::fmt::Debug for WorkerProcess {
 impl WorkerProcess {
     /// Makes the DDS backend `config.backend` names, opens the IPC services, and announces a
     /// new generation.
-    pub fn start(mut config: WorkerConfig) -> anyhow::Result<Self> {
-        let dds = backend::create(config.backend, &config.dds)?;
-        config.domains.unservable = backend::unservable_domains(config.backend, &config.dds);
+    pub fn start(config: WorkerConfig) -> anyhow::Result<Self> {
         let (link, requests) = ShmWorkerLink::open(&config.instance)?;
         let reporter = Reporter::new(&config.instance, "worker");
-        let worker = Worker::new(config, dds, link, fresh_generation(), Instant::now())?;
+        let worker = start_worker(config, link)?;
         Ok(WorkerProcess {
             worker,
             requests,
@@ -233,6 +231,20 @@ impl WorkerProcess {
             Err(e) => Err(e.into()),
         }
     }
+}
+
+/// A new worker over `link`: makes the DDS backend `config.backend` names (and learns the
+/// domains it cannot serve), and announces a new generation.
+pub fn start_worker<L: WorkerLink>(mut config: WorkerConfig, link: L) -> anyhow::Result<Worker<L>> {
+    let dds = backend::create(config.backend, &config.dds)?;
+    config.domains.unservable = backend::unservable_domains(config.backend, &config.dds);
+    Ok(Worker::new(
+        config,
+        dds,
+        link,
+        fresh_generation(),
+        Instant::now(),
+    )?)
 }
 
 /// A generation id for a new worker: odd (never 0, the "no worker" of a route), and unlike

@@ -1,42 +1,40 @@
 //! The front-end's one event loop: a single thread blocked in epoll (through mio) on the
-//! transport's sockets or devices, the two IPC event descriptors and the discovery socket,
-//! with the earliest timer as timeout. After each wake-up it drains what is ready: client
-//! messages into the session core, worker replies out of shared memory, timers; then it
-//! hands the core's transmits to the transport. No busy polling: idle, it sleeps.
+//! transport's sockets or devices, what its worker side waits on (the two IPC event
+//! descriptors, or an in-process worker's DDS descriptors: [`crate::worker_side`]) and the
+//! discovery socket, with the earliest timer as timeout. After each wake-up it drains what is
+//! ready: client messages into the session core, the worker's replies, timers; then it hands
+//! the core's transmits to the transport. No busy polling: idle, it sleeps.
 //!
 //! mio's readiness is edge-triggered: a source read only up to a batch limit stays marked
 //! ready inside its transport, and the loop then polls without waiting.
 
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use mio::unix::SourceFd;
-use mio::{Events, Interest, Poll, Token};
+use mio::{Events, Poll, Token};
 use xrce_common::session::agent::{Agent, AgentConfig};
 
 use xrce_ipc::status::{Reporter, Watchdog};
 
-use crate::relay::link::{ShmInbox, ShmLink};
 use crate::relay::Relay;
 use crate::report::StatsReport;
 use crate::session_store::SessionStore;
 use crate::status::Identity;
 use crate::transport::discovery::Discovery;
 use crate::transport::Transport;
+use crate::worker_side::WorkerSide;
 
-/// The worker's replies are ready.
-const REPLIES: Token = Token(0);
-/// A worker announced itself.
-const ANNOUNCE: Token = Token(1);
 /// A discovery request arrived.
-const DISCOVERY: Token = Token(2);
+const DISCOVERY: Token = Token(0);
+/// The worker side's tokens start here (up to the transport's).
+const WORKER_TOKENS: usize = 1;
 /// The transport's tokens start here.
 const TRANSPORT_TOKENS: usize = 16;
 /// Messages handled per wake-up before IPC and timers get a turn.
 const RECV_BATCH: usize = 256;
 /// Longest sleep: a stop signal that lands just before the loop blocks is seen this late.
 const MAX_SLEEP: Duration = Duration::from_secs(1);
-/// A wait at least this long that ended with nothing ready consumes the worker's wake-ups
-/// anyway (see the loop).
+/// A wait at least this long that ended with nothing ready is reported to the worker side
+/// ([`WorkerSide::on_idle`]).
 const IDLE_WAIT: Duration = Duration::from_millis(10);
 
 /// Called once the front-end serves: its transport is registered and a worker answered.
@@ -52,15 +50,16 @@ pub struct Placement {
 }
 
 /// What a front-end serves with: the transport its clients reach it over, its link to the
-/// worker (the relay and the inbox of the worker's replies), the session core's settings, the
-/// discovery responder if any, and what to do once the worker serves it.
-pub struct Serving<T: Transport> {
+/// worker (the relay, and the worker side that carries its requests and brings the replies),
+/// the session core's settings, the discovery responder if any, and what to do once the
+/// worker serves it.
+pub struct Serving<T: Transport, W: WorkerSide> {
     /// Its clients' transport.
     pub transport: T,
     /// The relay to the worker.
-    pub relay: Relay<ShmLink>,
-    /// The worker's replies and announcements.
-    pub inbox: ShmInbox,
+    pub relay: Relay<W::Link>,
+    /// The worker: its replies and announcements.
+    pub worker: W,
     /// The session core's settings.
     pub config: AgentConfig,
     /// Answers multicast discovery, if asked to.
@@ -69,7 +68,7 @@ pub struct Serving<T: Transport> {
     pub on_serving: Option<OnServing>,
 }
 
-impl<T: Transport> std::fmt::Debug for Serving<T> {
+impl<T: Transport, W: WorkerSide> std::fmt::Debug for Serving<T, W> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("Serving")
             .field("transport", &self.transport.name())
@@ -79,10 +78,10 @@ impl<T: Transport> std::fmt::Debug for Serving<T> {
 }
 
 /// Runs front-end `who` of `place` with `serving` until SIGINT/SIGTERM.
-pub fn run<T: Transport>(
+pub fn run<T: Transport, W: WorkerSide>(
     place: &Placement,
     who: Identity,
-    mut serving: Serving<T>,
+    mut serving: Serving<T, W>,
 ) -> anyhow::Result<()> {
     // Every line this front-end logs names it (a gateway's front-ends share one log).
     let _span = tracing::info_span!("frontend", name = %who.name).entered();
@@ -112,6 +111,9 @@ pub fn run<T: Transport>(
     // stop, PR_SET_PDEATHSIG), not when it stops the agent on purpose.
     let supervisor = nix::unistd::getppid();
     let result = serve(&who, &mut reporter, &mut watchdog, &mut store, &mut serving);
+    // What the worker side must finish (an in-process worker's DDS writes), whatever ended
+    // the loop.
+    serving.worker.stop(&mut serving.relay);
     if result.is_ok() {
         // The transport is still open here (and this process's report still says it runs,
         // so that a successor waits for it).
@@ -121,29 +123,25 @@ pub fn run<T: Transport>(
     result
 }
 
-fn serve<T: Transport>(
+fn serve<T: Transport, W: WorkerSide>(
     who: &Identity,
     reporter: &mut Reporter,
     watchdog: &mut Watchdog,
     store: &mut Option<SessionStore>,
-    serving: &mut Serving<T>,
+    serving: &mut Serving<T, W>,
 ) -> anyhow::Result<()> {
     let Serving {
         transport,
         relay,
-        inbox,
+        worker,
         config,
         discovery,
         on_serving,
     } = serving;
-    let inbox = &*inbox;
     config.max_message_size = transport.max_message_size();
     let mut poll = Poll::new()?;
-    let [replies_fd, announce_fd] = inbox.raw_fds();
-    poll.registry()
-        .register(&mut SourceFd(&replies_fd), REPLIES, Interest::READABLE)?;
-    poll.registry()
-        .register(&mut SourceFd(&announce_fd), ANNOUNCE, Interest::READABLE)?;
+    let worker_tokens = (Token(WORKER_TOKENS), Token(TRANSPORT_TOKENS));
+    worker.register(poll.registry(), worker_tokens, relay)?;
     if let Some(d) = discovery.as_mut() {
         d.register(poll.registry(), DISCOVERY)?;
     }
@@ -165,10 +163,11 @@ fn serve<T: Transport>(
         }
     }
     // Pick up a worker that announced itself before we started.
-    inbox.deliver(Instant::now(), relay, &mut agent, true, true);
+    worker.on_idle();
+    worker.deliver(Instant::now(), relay, &mut agent)?;
     relay.pump();
     loop {
-        if inbox.termination_requested() {
+        if worker.termination_requested() {
             tracing::info!(transport = name, "termination requested");
             return Ok(());
         }
@@ -188,6 +187,7 @@ fn serve<T: Transport>(
                 report.due(&agent, relay, transport.stats()),
                 Some(reporter.due()),
                 watchdog.due(),
+                worker.poll_timeout(now, relay),
             ]
             .into_iter()
             .flatten()
@@ -202,22 +202,19 @@ fn serve<T: Transport>(
             Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
             Err(e) => return Err(e.into()),
         }
-        // An idle wait that ended with nothing ready consumes the wake-ups of both channels
-        // anyway: a race inside iceoryx2 0.10 can leave a listener marked notified with
-        // nothing to read (a notifier that slips between the listener's reset and its second
-        // `recv`), after which no notification would come again; consuming resets it. Only
-        // when idle: that costs failed `recv`s.
-        let idle = events.is_empty() && timeout >= IDLE_WAIT;
-        let (mut replies_ready, mut announce_ready) = (idle, idle);
+        // Only after an idle wait: what the side does then (consuming wake-ups it may have
+        // missed) costs system calls.
+        if events.is_empty() && timeout >= IDLE_WAIT {
+            worker.on_idle();
+        }
         for event in events.iter() {
             match event.token() {
-                REPLIES => replies_ready = true,
-                ANNOUNCE => announce_ready = true,
                 DISCOVERY => {
                     if let Some(d) = discovery.as_mut() {
                         d.on_event(event);
                     }
                 }
+                t if t.0 < TRANSPORT_TOKENS => worker.on_event(event),
                 _ => transport.on_event(event),
             }
         }
@@ -239,7 +236,7 @@ fn serve<T: Transport>(
         }
         discovery_left = discovery.as_mut().is_some_and(Discovery::answer_pending);
         relay.apply_replies(now, &mut agent);
-        inbox.deliver(now, relay, &mut agent, replies_ready, announce_ready);
+        worker.deliver(now, relay, &mut agent)?;
         if relay.take_generation_change() {
             agent.announce_streams(now);
         }
@@ -275,6 +272,8 @@ fn serve<T: Transport>(
         while let Some(t) = agent.poll_transmit() {
             transport.send(t.destination, &t.data);
         }
+        worker.maintain(now, relay);
+        worker.register(poll.registry(), worker_tokens, relay)?;
     }
 }
 

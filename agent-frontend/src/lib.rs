@@ -5,6 +5,7 @@
 //! * [`transport`]: the seam between the event loop and each way of reaching clients (UDP,
 //!   TCP, serial lines, pseudoterminals) and the discovery responder;
 //! * [`event_loop`]: the one loop driving a transport, the session core and the relay;
+//! * [`worker_side`]: the loop's seam to the worker, in its own process or in this one;
 //! * [`relay`]: operations to the worker, replies back, replay after a worker restart (a
 //!   sans-IO state machine; its iceoryx2 link is [`relay::link`]);
 //! * [`waiting_writes`]: best-effort writes waiting for the worker, shared fairly among
@@ -30,3 +31,4 @@ mod sys;
 pub mod takeover;
 pub mod transport;
 pub mod waiting_writes;
+pub mod worker_side;

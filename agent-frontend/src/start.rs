@@ -13,6 +13,7 @@ use crate::transport::discovery::Discovery;
 use crate::transport::registry::Medium;
 use crate::transport::tcp::TcpConfig;
 use crate::transport::{multiserial, pty, tcp, udp, Transport};
+use crate::worker_side::{ShmSide, WorkerSide};
 
 /// Once serving: writes "READY" to the descriptor named by `XRCE_READY_FD`, if any (the
 /// supervisor waits on it before it reports the agent ready), and tells systemd when the
@@ -54,7 +55,7 @@ fn raise_fd_limit() {
     }
 }
 
-/// Runs a front-end until SIGINT/SIGTERM.
+/// Runs a front-end until SIGINT/SIGTERM, with its worker in its own process.
 pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -63,22 +64,49 @@ pub fn run(args: FrontendArgs) -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     xrce_common::fault::install_and_log("frontend")?;
+    run_with(&args, |args, incarnation| {
+        let (link, inbox) =
+            crate::relay::link::open(&args.instance, args.frontend_id, incarnation)?;
+        Ok((link, ShmSide::new(inbox)))
+    })
+}
+
+/// Opens the worker side of a front-end: given its settings and its process's incarnation,
+/// the link the relay sends through and the side the event loop waits on.
+pub trait OpenWorker<W: WorkerSide>:
+    FnOnce(&FrontendArgs, u16) -> anyhow::Result<(W::Link, W)>
+{
+}
+
+impl<W: WorkerSide, F: FnOnce(&FrontendArgs, u16) -> anyhow::Result<(W::Link, W)>> OpenWorker<W>
+    for F
+{
+}
+
+/// Runs a front-end until SIGINT/SIGTERM, with the worker side `open_worker` opens (logging
+/// and faults are the caller's).
+pub fn run_with<W: WorkerSide>(
+    args: &FrontendArgs,
+    open_worker: impl OpenWorker<W>,
+) -> anyhow::Result<()> {
     let config = args.agent_config()?;
     // Every TCP connection is a descriptor, and so is every stored session's state file.
     raise_fd_limit();
     let on_serving = Some(readiness_reporter());
-    open_and_serve(&args, config, on_serving)
+    open_and_serve(args, config, on_serving, open_worker)
 }
 
 /// Opens the transport `args` names (each medium's module opens its own from the settings
 /// that concern it) and serves it.
-fn open_and_serve(
+fn open_and_serve<W: WorkerSide>(
     args: &FrontendArgs,
     config: AgentConfig,
     on_serving: Option<OnServing>,
+    open_worker: impl OpenWorker<W>,
 ) -> anyhow::Result<()> {
+    let w = open_worker;
     match args.transport.medium() {
-        Medium::Datagrams => serve(udp::open(args.listen_addr()?)?, args, config, on_serving),
+        Medium::Datagrams => serve(udp::open(args.listen_addr()?)?, args, config, on_serving, w),
         Medium::Streams => {
             let tcp = TcpConfig {
                 max_connections: args.max_connections.max(1),
@@ -98,30 +126,32 @@ fn open_and_serve(
                 args,
                 config,
                 on_serving,
+                w,
             )
         }
         Medium::SerialLines => {
             let lines = args.serial_lines()?;
             let t = multiserial::open(args.transport.name(), lines, args.baudrate);
-            serve(t, args, config, on_serving)
+            serve(t, args, config, on_serving, w)
         }
         Medium::Pseudoterminal => {
             let inherited = args
                 .pty_fd
                 .map(|fd| (fd, args.pty_path.clone().unwrap_or_default()));
             let t = pty::open_transport(inherited, args.baudrate)?;
-            serve(t, args, config, on_serving)
+            serve(t, args, config, on_serving, w)
         }
     }
 }
 
 /// Serves clients over `transport`, opened from `args`: connects to the worker
 /// and runs the event loop until SIGINT/SIGTERM.
-fn serve<T: Transport>(
+fn serve<T: Transport, W: WorkerSide>(
     transport: T,
     args: &FrontendArgs,
     config: AgentConfig,
     on_serving: Option<OnServing>,
+    open_worker: impl OpenWorker<W>,
 ) -> anyhow::Result<()> {
     let discovery = match args.discovery {
         Some(port) => {
@@ -134,7 +164,7 @@ fn serve<T: Transport>(
         None => None,
     };
     let incarnation = crate::session_store::next_incarnation(&args.instance, args.frontend_id);
-    let (link, inbox) = crate::relay::link::open(&args.instance, args.frontend_id, incarnation)?;
+    let (link, worker) = open_worker(args, incarnation)?;
     let mut relay = Relay::new(args.frontend_id, incarnation, link);
     relay.set_max_objects_per_client(args.admission.max_objects_per_client);
     relay.set_memory_budget(args.admission.budget_split());
@@ -155,7 +185,7 @@ fn serve<T: Transport>(
     let serving = crate::event_loop::Serving {
         transport,
         relay,
-        inbox,
+        worker,
         config,
         discovery,
         on_serving,

@@ -79,6 +79,10 @@ pub enum Command {
     /// Internal: run a front-end (started by the supervisor).
     #[command(hide = true)]
     Frontend(xrce_frontend::cli::FrontendArgs),
+    /// Internal: run a front-end and the DDS worker in one process (started by the
+    /// supervisor with `--single-process`).
+    #[command(hide = true)]
+    SingleProcess(crate::in_process::SingleProcessArgs),
 }
 
 /// What to generate.
@@ -152,6 +156,12 @@ pub struct Common {
     /// restarted agent takes them over and its clients go on).
     #[arg(long = "discard-sessions", env = "XRCE_DISCARD_SESSIONS", action = clap::ArgAction::SetTrue, value_parser = clap::builder::FalseyValueParser::new())]
     pub discard_sessions: bool,
+    /// Run the front-end and the DDS worker in one process (still under this supervisor):
+    /// no process hop per sample, which on a small gateway costs most of its CPU. A crash
+    /// then takes both down; the restarted process takes the sessions over and re-creates
+    /// their DDS entities, as after a worker crash.
+    #[arg(long = "single-process", env = "XRCE_SINGLE_PROCESS", action = clap::ArgAction::SetTrue, value_parser = clap::builder::FalseyValueParser::new())]
+    pub single_process: bool,
     /// Protocol dialect for every session: `spec` or `eprosima` (default: per session, from
     /// the client's vendor id).
     #[arg(long, env = "XRCE_DIALECT")]
@@ -610,6 +620,7 @@ pub fn plan(command: &Command) -> anyhow::Result<Option<(FrontendPlan, Common)>>
         }
         Command::DdsWorker(_)
         | Command::Frontend(_)
+        | Command::SingleProcess(_)
         | Command::Status(_)
         | Command::Sweep(_)
         | Command::Generate(_) => return Ok(None),

@@ -7,6 +7,7 @@
 //! verbose = 4                      # optional, like -v
 //! memory_limit_mib = 512           # optional, like --memory-limit (per process)
 //! discard_sessions = false         # optional, like --discard-sessions
+//! single_process = false           # optional, like --single-process (one front-end only)
 //!
 //! [worker]
 //! refs = "profiles.xml"            # optional, like -r
@@ -105,6 +106,9 @@ pub struct AgentSection {
     /// Start without the sessions a previous agent of the instance stored, like
     /// `--discard-sessions`.
     pub discard_sessions: Option<bool>,
+    /// The front-end and the worker in one process, like `--single-process` (a file with
+    /// one front-end only).
+    pub single_process: Option<bool>,
 }
 
 /// `[worker]`: the DDS side.

@@ -64,6 +64,8 @@ pub struct Group {
     pub memory_limit: Option<u64>,
     /// Start without the sessions a previous agent of the instance stored.
     pub discard_sessions: bool,
+    /// The front-end and the worker in one process ([`crate::in_process`]).
+    pub single_process: bool,
 }
 
 /// The log filter: `-v` (or the file's `verbose`) first, then XRCE_LOG, then the default.
@@ -230,6 +232,7 @@ impl Group {
             metrics: plan.metrics,
             memory_limit: plan.memory_limit_mib.map(|mib| mib << 20),
             discard_sessions: plan.discard_sessions,
+            single_process: plan.single_process,
         })
     }
 
@@ -288,18 +291,22 @@ impl Group {
         }
         let exe = std::env::current_exe()
             .map_err(|e| anyhow::anyhow!("locating this executable: {e}"))?;
-        let mut specs = vec![ChildSpec {
-            name: "xrce-dds-worker".into(),
-            program: exe.clone(),
-            args: std::iter::once("dds-worker".to_string())
-                .chain(self.worker.to_args())
-                .collect(),
-            env: Vec::new(),
-            env_remove: WORKER_SETTINGS_ENV.map(String::from).to_vec(),
-            fds: Vec::new(),
-            role: "worker".into(),
-            report: Some("worker".into()),
-        }];
+        // One process with both halves, or the worker of its own.
+        let mut specs = Vec::new();
+        (!self.single_process).then(|| {
+            specs.push(ChildSpec {
+                name: "xrce-dds-worker".into(),
+                program: exe.clone(),
+                args: std::iter::once("dds-worker".to_string())
+                    .chain(self.worker.to_args())
+                    .collect(),
+                env: Vec::new(),
+                env_remove: WORKER_SETTINGS_ENV.map(String::from).to_vec(),
+                fds: Vec::new(),
+                role: "worker".into(),
+                report: Some("worker".into()),
+            })
+        });
         let mut ready = Vec::new();
         // Kept open for the group's life: a restarted front-end gets the same pty.
         let mut ptys = Vec::new();
@@ -323,14 +330,29 @@ impl Group {
             fds.push((Arc::new(write), readiness::READY_FD));
             ready.push((f.name.clone(), read));
             let env = vec![("XRCE_READY_FD".into(), readiness::READY_FD.to_string())];
+            let (args, env_remove) = if self.single_process {
+                (
+                    crate::in_process::command_line(&self.worker.to_args(), &settings.to_args()),
+                    SETTINGS_ENV
+                        .into_iter()
+                        .chain(WORKER_SETTINGS_ENV)
+                        .map(String::from)
+                        .collect(),
+                )
+            } else {
+                (
+                    std::iter::once("frontend".to_string())
+                        .chain(settings.to_args())
+                        .collect(),
+                    SETTINGS_ENV.map(String::from).to_vec(),
+                )
+            };
             specs.push(ChildSpec {
                 name: format!("xrce-frontend-{}", f.name),
                 program: exe.clone(),
-                args: std::iter::once("frontend".to_string())
-                    .chain(settings.to_args())
-                    .collect(),
+                args,
                 env,
-                env_remove: SETTINGS_ENV.map(String::from).to_vec(),
+                env_remove,
                 fds,
                 role: "frontend".into(),
                 report: Some(format!("frontend-{}", f.id)),
@@ -521,6 +543,11 @@ impl Group {
             return serve_metrics_alone(listen, &self.instance);
         }
         let mut cmd = std::process::Command::new(exe);
+        if name == "worker" && self.single_process {
+            anyhow::bail!(
+                "no process \"worker\": with single_process the worker runs in the front-end's process"
+            );
+        }
         if name == "worker" {
             cmd.arg("dds-worker").args(self.worker.to_args());
             for k in WORKER_SETTINGS_ENV {
@@ -537,7 +564,17 @@ impl Group {
                         "no process {name:?}: the file has `worker` and the front-ends {names:?}"
                     )
                 })?;
-            cmd.arg("frontend").args(f.settings.to_args());
+            if self.single_process {
+                cmd.args(crate::in_process::command_line(
+                    &self.worker.to_args(),
+                    &f.settings.to_args(),
+                ));
+                for k in WORKER_SETTINGS_ENV {
+                    cmd.env_remove(k);
+                }
+            } else {
+                cmd.arg("frontend").args(f.settings.to_args());
+            }
             for k in SETTINGS_ENV {
                 cmd.env_remove(k);
             }

@@ -15,6 +15,7 @@ pub mod cli;
 pub mod docs;
 pub mod gateway;
 pub mod group;
+pub mod in_process;
 pub mod metrics;
 pub mod plan;
 pub mod readiness;

@@ -62,6 +62,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         return match command {
             Command::DdsWorker(args) => xrce_dds_worker::cli::run(args),
             Command::Frontend(args) => xrce_frontend::start::run(args),
+            Command::SingleProcess(args) => xrce_agent::in_process::run(&args),
             Command::Status(args) => xrce_agent::status_view::run(&args),
             Command::Sweep(args) => xrce_agent::sweep::run(&args),
             Command::Generate(args) => xrce_agent::docs::run(&args),

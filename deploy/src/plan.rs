@@ -55,6 +55,8 @@ pub struct AgentPlan {
     pub memory_limit_mib: Option<u64>,
     /// Start without the sessions a previous agent of the instance stored.
     pub discard_sessions: bool,
+    /// The front-end and the worker in one process (one front-end only).
+    pub single_process: bool,
     /// Where the metrics endpoint is served, if anywhere.
     pub metrics: Option<SocketAddr>,
     /// The DDS worker.
@@ -150,6 +152,7 @@ impl AgentPlan {
             verbose: common.verbose,
             memory_limit_mib: common.memory_limit,
             discard_sessions: common.discard_sessions,
+            single_process: common.single_process,
             metrics: common.metrics,
             worker: WorkerPlan {
                 refs: common.refs.clone(),
@@ -214,6 +217,7 @@ impl AgentPlan {
                 .map(|m| *m.get_ref())
                 .or(env.memory_limit),
             discard_sessions: g.agent.discard_sessions.unwrap_or(env.discard_sessions),
+            single_process: g.agent.single_process.unwrap_or(env.single_process),
             metrics: g.metrics.or(env.metrics),
             worker: WorkerPlan {
                 refs: w.refs.as_ref().map(|r| r.get_ref().clone()).or(env.refs),
@@ -290,6 +294,15 @@ impl AgentPlan {
                 problem: "names no front-end".into(),
             });
         }
+        if self.single_process && self.frontends.len() > 1 {
+            return Err(PlanError {
+                setting: "--single-process (or single_process)",
+                problem: format!(
+                    "runs one front-end with its worker; this agent has {}",
+                    self.frontends.len()
+                ),
+            });
+        }
         let mut ids = std::collections::HashSet::new();
         for f in &self.frontends {
             check_client_dead_time(f.client_dead_time)
@@ -334,7 +347,7 @@ mod tests {
     /// What a process is started with: its settings as arguments, and the group's own.
     fn started_with(g: &Group) -> String {
         format!(
-            "worker {:?}\nfront-ends {:?}\nmemory {:?} discard {} metrics {:?} named {} {}",
+            "worker {:?}\nfront-ends {:?}\nmemory {:?} discard {} single {} metrics {:?} named {} {}",
             g.worker.to_args(),
             g.frontends
                 .iter()
@@ -342,6 +355,7 @@ mod tests {
                 .collect::<Vec<_>>(),
             g.memory_limit,
             g.discard_sessions,
+            g.single_process,
             g.metrics,
             g.instance,
             g.explicit_instance,
@@ -358,6 +372,7 @@ mod tests {
             ("-v 6", "verbose = 6", "", ""),
             ("--memory-limit 512", "memory_limit_mib = 512", "", ""),
             ("--discard-sessions", "discard_sessions = true", "", ""),
+            ("--single-process", "single_process = true", "", ""),
             (
                 "--metrics 127.0.0.1:9464",
                 "[metrics]\nlisten = \"127.0.0.1:9464\"",
@@ -497,5 +512,24 @@ mod tests {
             problem: check_instance("no/slash").expect_err("refused"),
         })
         .contains("[A-Za-z0-9_-]"));
+    }
+
+    /// One process holds one front-end and the worker: a gateway of two front-ends in one
+    /// process is refused, saying why; with one front-end the supervisor runs no worker of
+    /// its own.
+    #[test]
+    fn a_single_process_serves_one_front_end() {
+        let text = "[agent]\ninstance = \"same\"\nsingle_process = true\n\
+                    [[frontend]]\ntransport = \"udp4\"\nport = 8888\n\
+                    [[frontend]]\ntransport = \"tcp4\"\nport = 8888\n";
+        let g = crate::gateway::parse(std::path::Path::new("/etc/xrce-agent/gw.toml"), text)
+            .expect("parsed");
+        let e = Group::new(AgentPlan::from_gateway(&g).expect("a plan")).expect_err("refused");
+        assert!(
+            format!("{e:#}").contains("runs one front-end with its worker; this agent has 2"),
+            "{e:#}"
+        );
+        let one = from_file("single_process = true", "", "").expect("one front-end");
+        assert!(one.single_process);
     }
 }

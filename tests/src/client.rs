@@ -77,6 +77,15 @@ impl TestClient {
         }
     }
 
+    /// How many times the agent answered this client's CREATE_CLIENT (a client that had to
+    /// create its session again shows more than one).
+    pub fn session_statuses(&self) -> usize {
+        self.events
+            .iter()
+            .filter(|e| matches!(e, ClientEvent::SessionStatus(_)))
+            .count()
+    }
+
     /// One round: flush, receive what arrived (up to 5 ms), fire timers.
     pub fn step(&mut self) {
         while let Some(t) = self.client.poll_transmit() {

@@ -80,9 +80,7 @@ impl ShmWorkerLink {
             instance: instance.to_string(),
             announce,
             replies: HashMap::new(),
-            marks: ReplayMarks {
-                dir: xrce_ipc::runtime_dir::instance_dir(instance),
-            },
+            marks: ReplayMarks::of(instance),
         };
         Ok((link, requests))
     }
@@ -168,13 +166,20 @@ const MARK: &str = "replaying-";
 /// The replay marks of an instance ([`super::replay_guard`]): one file per front-end
 /// replaying, naming the client whose objects it is replaying.
 #[derive(Debug)]
-struct ReplayMarks {
+pub(super) struct ReplayMarks {
     dir: PathBuf,
 }
 
 impl ReplayMarks {
+    /// The marks in agent instance `instance`'s private directory.
+    pub(super) fn of(instance: &str) -> Self {
+        ReplayMarks {
+            dir: xrce_ipc::runtime_dir::instance_dir(instance),
+        }
+    }
+
     /// Reads and removes the marks a worker that died left.
-    fn take(&self) -> HashSet<(u32, ClientKey)> {
+    pub(super) fn take(&self) -> HashSet<(u32, ClientKey)> {
         let mut found = HashSet::new();
         let Ok(entries) = std::fs::read_dir(&self.dir) else {
             return found;
@@ -195,7 +200,7 @@ impl ReplayMarks {
         found
     }
 
-    fn write(&self, frontend: u32, client: ClientKey) {
+    pub(super) fn write(&self, frontend: u32, client: ClientKey) {
         let path = self.dir.join(format!("{MARK}{frontend}"));
         let tmp = self
             .dir
@@ -205,7 +210,7 @@ impl ReplayMarks {
         }
     }
 
-    fn remove(&self, frontend: u32) {
+    pub(super) fn remove(&self, frontend: u32) {
         let _ = std::fs::remove_file(self.dir.join(format!("{MARK}{frontend}")));
     }
 }

@@ -60,6 +60,13 @@ pub const KEYS: &[KeyDoc] = &[
         meaning: "Start without the sessions a previous agent of the instance stored (its clients create them again). `--discard-sessions`.",
     },
     KeyDoc {
+        table: "agent",
+        key: "single_process",
+        value: "true or false",
+        default: || "false, or `XRCE_SINGLE_PROCESS`".into(),
+        meaning: "Run the front-end and the DDS worker in one process: less CPU per sample; a crash takes both down (sessions survive it). One front-end only. `--single-process`.",
+    },
+    KeyDoc {
         table: "worker",
         key: "refs",
         value: "path",

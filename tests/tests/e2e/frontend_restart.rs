@@ -7,7 +7,6 @@ use std::time::{Duration, Instant};
 
 use nix::sys::signal::{kill, Signal};
 use nix::unistd::Pid;
-use xrce_common::session::client::ClientEvent;
 use xrce_common::wire::object_kind;
 use xrce_tests::{
     free_tcp_port, hello_world, parse_sample_line, parse_sample_writer, sigkill,
@@ -16,13 +15,6 @@ use xrce_tests::{
 };
 
 const SECOND: Duration = Duration::from_secs(1);
-
-fn session_statuses(c: &TestClient) -> usize {
-    c.events
-        .iter()
-        .filter(|e| matches!(e, ClientEvent::SessionStatus(_)))
-        .count()
-}
 
 #[test]
 fn a_front_end_killed_mid_stream_is_taken_over_and_every_sample_arrives_once() {
@@ -157,12 +149,12 @@ fn takeover_mid_stream(tag: &str, signal: Signal, domain: i16) {
     client.assert_in_order("a client reading a client across a front-end crash");
     // Neither client had to create its session again.
     assert_eq!(
-        session_statuses(&publ),
+        publ.session_statuses(),
         1,
         "the publisher re-created its session"
     );
     assert_eq!(
-        session_statuses(&sub),
+        sub.session_statuses(),
         1,
         "the subscriber re-created its session"
     );
@@ -248,7 +240,7 @@ fn a_serial_front_end_killed_mid_stream_is_taken_over() {
         0..N,
         "Cyclone reading a serial client across a front-end crash",
     );
-    assert_eq!(session_statuses(&c), 1, "the client re-created its session");
+    assert_eq!(c.session_statuses(), 1, "the client re-created its session");
     assert!(agent.stop(), "agent did not stop cleanly");
 }
 
@@ -403,7 +395,7 @@ fn read_through_takeover(tag: &str, signal: Signal, domain: i16) {
     got.assert_exactly_once(0..N, "a client reading DDS data across a front-end crash");
     got.assert_in_order("a client reading DDS data across a front-end crash");
     assert_eq!(
-        session_statuses(&sub),
+        sub.session_statuses(),
         1,
         "the subscriber re-created its session"
     );

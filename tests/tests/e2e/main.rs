@@ -40,6 +40,7 @@ mod ros_graph_layouts;
 mod serial_e2e;
 mod shared_writers;
 mod simulation;
+mod single_process;
 mod supervision;
 mod supervisor_restart;
 mod tcp_e2e;
