@@ -271,9 +271,13 @@ fn families(s: &AgentStatus) -> Vec<Family> {
     );
     for p in &s.processes {
         let process: Labels = vec![("process", p.name.clone())];
-        cpu.add_real(process.clone(), p.cpu_seconds);
-        memory.add(process.clone(), p.resident_bytes);
-        start.add_real(process.clone(), p.started_unix_ms as f64 / 1000.0);
+        // A worker inside a front-end's process: that process is counted once, as the
+        // front-end.
+        if p.runs_inside(&s.processes).is_none() {
+            cpu.add_real(process.clone(), p.cpu_seconds);
+            memory.add(process.clone(), p.resident_bytes);
+            start.add_real(process.clone(), p.started_unix_ms as f64 / 1000.0);
+        }
         if let Some(f) = &p.frontend {
             let labels: Labels = vec![
                 ("frontend", p.name.clone()),

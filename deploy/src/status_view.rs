@@ -388,10 +388,15 @@ pub fn render(agent: &AgentStatus, now_ms: u64) -> String {
         .filter_map(|p| p.frontend.as_ref())
         .map(|f| f.sessions.len())
         .sum();
+    let processes = agent
+        .processes
+        .iter()
+        .filter(|p| p.runs_inside(&agent.processes).is_none())
+        .count();
     let mut out = format!(
         "agent {}: {} processes, {} sessions\n\n",
         printable(&agent.instance),
-        agent.processes.len(),
+        processes,
         sessions
     );
     let rows: Vec<Vec<String>> = agent
@@ -412,14 +417,23 @@ pub fn render(agent: &AgentStatus, now_ms: u64) -> String {
                 }
                 _ => String::new(),
             };
+            // A worker inside a front-end's process: its CPU and memory are the front-end's
+            // row's.
+            let (cpu, memory) = match p.runs_inside(&agent.processes) {
+                Some(host) => (format!("in {}", printable(&host.name)), String::new()),
+                None => (
+                    format!("{:.1}s", p.cpu_seconds),
+                    human_bytes(p.resident_bytes),
+                ),
+            };
             vec![
                 p.name.clone(),
                 p.role.clone(),
                 p.pid.to_string(),
                 human_duration(now_ms.saturating_sub(p.started_unix_ms) as f64 / 1000.0),
                 restarts_of(p),
-                format!("{:.1}s", p.cpu_seconds),
-                human_bytes(p.resident_bytes),
+                cpu,
+                memory,
                 what,
             ]
         })
@@ -548,6 +562,39 @@ mod tests {
         for cell in ["0x81", "eth/udp4", "127.0.0.1:40000", " 6 ", " 10 "] {
             assert!(session.contains(cell), "{cell:?} in {session}");
         }
+    }
+
+    /// `--single-process`: the worker's report comes from the front-end's process, which
+    /// is counted and shown once.
+    #[test]
+    fn a_worker_inside_a_front_end_is_not_a_process_of_its_own() {
+        let front_end = ProcessReport {
+            name: "eth".into(),
+            role: "frontend".into(),
+            pid: 12,
+            cpu_seconds: 2.0,
+            resident_bytes: 30 << 20,
+            frontend: Some(FrontendStatus::default()),
+            ..Default::default()
+        };
+        let worker = ProcessReport {
+            name: "worker".into(),
+            role: "worker".into(),
+            worker: Some(Default::default()),
+            frontend: None,
+            ..front_end.clone()
+        };
+        let agent = AgentStatus {
+            instance: "gw".into(),
+            processes: vec![worker, front_end],
+        };
+        let text = render(&agent, 0);
+        assert!(text.starts_with("agent gw: 1 processes"), "{text}");
+        let row = text
+            .lines()
+            .find(|l| l.starts_with("worker "))
+            .expect("worker row");
+        assert!(row.contains("in eth") && !row.contains("MiB"), "{row}");
     }
 
     #[test]

@@ -57,6 +57,19 @@ pub struct ProcessReport {
     pub children: Vec<ChildStatus>,
 }
 
+impl ProcessReport {
+    /// The front-end whose process this worker runs inside (`xrce-agent --single-process`),
+    /// among `all` the reports of its agent: the process's CPU and memory are that
+    /// front-end's, counted once.
+    pub fn runs_inside<'a>(&self, all: &'a [ProcessReport]) -> Option<&'a ProcessReport> {
+        if self.worker.is_none() {
+            return None;
+        }
+        all.iter()
+            .find(|p| p.pid == self.pid && p.frontend.is_some())
+    }
+}
+
 /// A front-end's part of its report.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct FrontendStatus {

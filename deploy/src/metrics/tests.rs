@@ -33,6 +33,7 @@ fn snapshot() -> AgentStatus {
             ProcessReport {
                 name: "worker".into(),
                 role: "worker".into(),
+                pid: 2,
                 cpu_seconds: 1.5,
                 worker: Some(WorkerStatus {
                     entities: BTreeMap::from([("writer".to_string(), 3)]),
@@ -44,6 +45,7 @@ fn snapshot() -> AgentStatus {
             ProcessReport {
                 name: "udp4-8888".into(),
                 role: "frontend".into(),
+                pid: 3,
                 resident_bytes: 4096,
                 frontend: Some(FrontendStatus {
                     transport: "udp4".into(),
