@@ -62,9 +62,7 @@ impl ProcessReport {
     /// among `all` the reports of its agent: the process's CPU and memory are that
     /// front-end's, counted once.
     pub fn runs_inside<'a>(&self, all: &'a [ProcessReport]) -> Option<&'a ProcessReport> {
-        if self.worker.is_none() {
-            return None;
-        }
+        self.worker.as_ref()?;
         all.iter()
             .find(|p| p.pid == self.pid && p.frontend.is_some())
     }
