@@ -165,6 +165,12 @@ fn serve<T: Transport, W: WorkerSide>(
     };
     let incarnation = crate::session_store::next_incarnation(&args.instance, args.frontend_id);
     let (link, worker) = open_worker(args, incarnation)?;
+    // Epochs of clients' streams this process issues are its own (a successor never reuses
+    // one the worker may hold a position of).
+    let config = AgentConfig {
+        incarnation,
+        ..config
+    };
     let mut relay = Relay::new(args.frontend_id, incarnation, link);
     relay.set_max_objects_per_client(args.admission.max_objects_per_client);
     relay.set_memory_budget(args.admission.budget_split());

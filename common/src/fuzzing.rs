@@ -335,6 +335,7 @@ pub fn example_snapshot() -> crate::session::snapshot::SessionSnapshot {
             },
         ],
         best_effort_out: vec![(0x01, 9)],
+        epoch: 0x0003_0002,
     }
 }
 

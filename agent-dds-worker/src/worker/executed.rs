@@ -89,6 +89,7 @@ mod tests {
 
     fn at(stream_id: u8, sequence: u16, write_index: u16) -> InputPosition {
         InputPosition {
+            epoch: 1,
             stream_id,
             sequence,
             write_index,

@@ -117,7 +117,8 @@ fn reply() -> impl Strategy<Value = Reply<'static>> {
 }
 
 fn position() -> impl Strategy<Value = InputPosition> {
-    (any::<u8>(), any::<u16>(), any::<u16>()).prop_map(|(s, q, i)| InputPosition {
+    (any::<u8>(), any::<u16>(), any::<u16>(), any::<u32>()).prop_map(|(s, q, i, e)| InputPosition {
+        epoch: e,
         stream_id: s,
         sequence: q,
         write_index: i,
@@ -179,6 +180,7 @@ fn the_layout_is_the_contract() {
             dialect: Dialect::Spec,
             status_requested: true,
             position: Some(InputPosition {
+                epoch: 0x0102_0304,
                 stream_id: 0x80,
                 sequence: 0x1234,
                 write_index: 2,
@@ -186,15 +188,15 @@ fn the_layout_is_the_contract() {
         },
     };
     let mut expected = b"XRIP".to_vec();
-    expected.extend_from_slice(&[7, 0, 4, 0x01 | 0x04 | 0x08 | 0x40 | 0x80]);
+    expected.extend_from_slice(&[8, 0, 4, 0x01 | 0x04 | 0x08 | 0x40 | 0x80]);
     expected.extend_from_slice(&7u32.to_le_bytes());
     expected.extend_from_slice(&3u32.to_le_bytes());
     expected.extend_from_slice(&(1u64 << 40).to_le_bytes());
     expected.extend_from_slice(&[1, 2, 3, 4, 0, 9]);
     expected.extend_from_slice(&ObjectId::new(1, 5).0);
-    expected.extend_from_slice(&9u32.to_le_bytes());
+    expected.extend_from_slice(&13u32.to_le_bytes());
     expected.extend_from_slice(&[0x0A, 0, 0xEF, 0xBE]);
-    expected.extend_from_slice(&[0x80, 0x34, 0x12, 2, 0]);
+    expected.extend_from_slice(&[0x80, 0x34, 0x12, 2, 0, 4, 3, 2, 1]);
     expected.extend_from_slice(b"body");
     assert_eq!(m.encode(), expected);
     // A Write flagged with a position too short to hold one is refused.

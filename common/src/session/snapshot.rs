@@ -18,7 +18,10 @@ use std::time::Duration;
 use crate::wire::{ClientKey, Dialect};
 
 /// Version of the encoding.
-const VERSION: u8 = 2;
+const VERSION: u8 = 3;
+/// The version before the epoch of the streams was stored: still read (its sessions' epoch
+/// is 0, which no front-end issues), so an upgrade keeps the sessions.
+const VERSION_WITHOUT_EPOCH: u8 = 2;
 /// Most streams of each kind a snapshot carries (the session core allows fewer).
 const MAX_STREAMS: usize = 256;
 /// Most unacknowledged messages kept per reliable output stream (windows are at most 16).
@@ -52,6 +55,8 @@ pub struct SessionSnapshot {
     pub reliable_out: Vec<OutputSnapshot>,
     /// Best-effort output streams: (stream id, next number).
     pub best_effort_out: Vec<(u8, u16)>,
+    /// The run of its streams ([`crate::session::stream::InputPosition::epoch`]).
+    pub epoch: u32,
 }
 
 /// A reliable output stream of a [`SessionSnapshot`].
@@ -146,6 +151,7 @@ impl SessionSnapshot {
                 out.extend_from_slice(sub);
             }
         }
+        out.extend_from_slice(&self.epoch.to_le_bytes());
         out
     }
 
@@ -153,7 +159,7 @@ impl SessionSnapshot {
     pub fn decode(bytes: &[u8]) -> Result<Self, SnapshotError> {
         let mut r = Reader(bytes);
         let version = r.u8()?;
-        if version != VERSION {
+        if version != VERSION && version != VERSION_WITHOUT_EPOCH {
             return Err(SnapshotError::Version(version));
         }
         let key = ClientKey(
@@ -221,6 +227,7 @@ impl SessionSnapshot {
                 queued,
             });
         }
+        let epoch = if version == VERSION { r.u32()? } else { 0 };
         if !r.0.is_empty() {
             return Err(SnapshotError::Invalid("trailing bytes"));
         }
@@ -236,6 +243,7 @@ impl SessionSnapshot {
             best_effort_in,
             reliable_out,
             best_effort_out,
+            epoch,
         })
     }
 }
@@ -292,6 +300,20 @@ mod tests {
             ..s
         };
         assert_eq!(SessionSnapshot::decode(&none.encode()), Ok(none));
+    }
+
+    /// A session a front-end of the version before stored is taken over, in no run of its
+    /// streams the worker could know (epoch 0).
+    #[test]
+    fn a_snapshot_without_the_epoch_is_read_with_epoch_0() {
+        let s = sample();
+        let mut old = s.encode();
+        old[0] = VERSION_WITHOUT_EPOCH;
+        old.truncate(old.len() - 4);
+        assert_eq!(
+            SessionSnapshot::decode(&old),
+            Ok(SessionSnapshot { epoch: 0, ..s })
+        );
     }
 
     #[test]

@@ -10,12 +10,17 @@ use super::seq;
 use crate::wire::{AcknackPayload, HeartbeatPayload};
 
 /// Where a WRITE_DATA stood in its client's reliable input stream: the message that carried
-/// it and how many WRITE_DATA of that message came before it. The worker keeps the last one
-/// it executed per client stream, so that a front-end taking over from one that died between
-/// handing a message's writes over and storing that it took the message does not write them
-/// again when the client resends it.
+/// it and how many WRITE_DATA of that message came before it, in which run of the client's
+/// streams. The worker keeps the last one it executed per client stream, so that a
+/// front-end taking over from one that died between handing messages' writes over and
+/// storing that it took them does not write them again when the client resends them.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub struct InputPosition {
+    /// The run of the client's streams: a new one each time they start again (a new
+    /// session, a RESET, a client's restart), never issued twice by any front-end of the
+    /// instance ([`crate::session::agent::AgentConfig::incarnation`]), so that a position
+    /// of an earlier run is never taken for one of this run.
+    pub epoch: u32,
     /// The reliable stream.
     pub stream_id: u8,
     /// The message's sequence number.

@@ -275,8 +275,13 @@ fn message_of_writes(seq: u16, samples: &[u8]) -> Vec<u8> {
     b.finish()
 }
 
+/// The epoch of the first run of a session's streams in a core of incarnation 0 (the
+/// default configuration's), which the tests' sessions are in.
+const FIRST_EPOCH: u32 = 1;
+
 fn at(sequence: u16, write_index: u16) -> InputPosition {
     InputPosition {
+        epoch: FIRST_EPOCH,
         stream_id: stream_id::BUILTIN_RELIABLE,
         sequence,
         write_index,
@@ -334,16 +339,58 @@ fn writes_the_worker_executed_for_a_predecessor_are_not_handed_over_again() {
     );
 }
 
-/// A position that is not in the message the stored session expects next is not believed:
-/// the predecessor stores after each message, so only that one can have been handed over
-/// unstored. One ahead means the client's streams started again since the worker's last
-/// write (a board that reset: CREATE_CLIENT of the same session, its objects made again in
-/// messages 0 to 2, then the front-end died), and taking it would drop the new messages in
-/// between and the first writes of the next.
+/// One datagram can hand several messages over before the front-end stores anything (a
+/// resend that fills a gap delivers the messages kept as early): the worker's last position
+/// is then some messages ahead of the stored session, and every write up to it (all of the
+/// messages before its own) is not handed over again, whatever order the client's resends
+/// come in; the messages are taken and the writes after it go.
 #[test]
-fn a_position_ahead_of_the_stored_session_is_not_believed() {
+fn writes_of_several_messages_the_worker_executed_are_not_handed_over_again() {
+    for order in [[3, 4, 5, 6], [5, 6, 4, 3]] {
+        let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
+        agent.skip_executed(KEY, at(5, 1));
+        let mut sink = Positions::default();
+        for seq in order {
+            let samples: &[u8] = match seq {
+                3 => &[30, 31],
+                4 => &[40],
+                5 => &[50, 51, 52],
+                _ => &[60],
+            };
+            agent.handle_datagram(t0, ADDR, &message_of_writes(seq, samples), &mut sink);
+        }
+        assert_eq!(
+            sink.0,
+            [(vec![52], Some(at(5, 2))), (vec![60], Some(at(6, 0)))],
+            "resent in the order {order:?}"
+        );
+        assert_eq!(agent.stats().dropped("executed_before_takeover"), 5);
+        let last_ack = payloads(&drain(&mut agent))
+            .into_iter()
+            .filter_map(|p| match p {
+                Payload::Acknack(a) => Some(a.first_unacked_seq_num),
+                _ => None,
+            })
+            .next_back();
+        assert_eq!(last_ack, Some(7), "every message taken");
+    }
+}
+
+/// A position of another run of the client's streams is not believed, however close: the
+/// streams started again since the worker's last write (a board that reset: CREATE_CLIENT
+/// of the same session, its objects made again in messages 0 to 2, then the front-end
+/// died), and taking it would drop new messages' writes. Nor is one further ahead than the
+/// window (no datagram hands that much over).
+#[test]
+fn a_position_of_another_run_of_the_streams_is_not_believed() {
     let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
-    agent.skip_executed(KEY, at(6, 0));
+    agent.skip_executed(
+        KEY,
+        InputPosition {
+            epoch: FIRST_EPOCH + 1,
+            ..at(6, 0)
+        },
+    );
     let mut sink = Positions::default();
     agent.handle_datagram(t0, ADDR, &message_of_writes(3, &[30]), &mut sink);
     agent.handle_datagram(t0, ADDR, &message_of_writes(4, &[40, 41]), &mut sink);
@@ -355,6 +402,12 @@ fn a_position_ahead_of_the_stored_session_is_not_believed() {
         "every write handed over"
     );
     assert_eq!(agent.stats().dropped("executed_before_takeover"), 0);
+
+    let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
+    agent.skip_executed(KEY, at(3 + 16, 0));
+    let mut sink = Positions::default();
+    agent.handle_datagram(t0, ADDR, &message_of_writes(3, &[30]), &mut sink);
+    assert_eq!(sink.0.len(), 1, "beyond the window: ignored");
 }
 
 /// What the worker executed for a predecessor means nothing to a session made since (the

@@ -264,6 +264,7 @@ fn positioned_write(stream: u8, sequence: u16, index: u16) -> Request<'static> {
         dialect: Dialect::Eprosima,
         status_requested: false,
         position: Some(InputPosition {
+            epoch: 1,
             stream_id: stream,
             sequence,
             write_index: index,

@@ -70,7 +70,9 @@ impl<A: Endpoint> Agent<A> {
                 },
             ),
             Payload::WriteData(d) => {
+                let epoch = self.clients.get(&key).map_or(0, |c| c.epoch);
                 let position = stream_id::is_reliable(stream).then_some(InputPosition {
+                    epoch,
                     stream_id: stream,
                     sequence: at.sequence,
                     write_index: at.writes,
@@ -169,8 +171,9 @@ impl<A: Endpoint> Agent<A> {
             }
             Payload::Heartbeat(_) => self.count_drop("heartbeat_for_best_effort_stream"),
             Payload::Reset => {
+                let epoch = self.next_epoch();
                 if let Some(c) = self.clients.get_mut(&key) {
-                    c.reset_streams();
+                    c.reset_streams(epoch);
                 }
             }
             Payload::Timestamp(t) if self.once(Reply::Timestamp) => {

@@ -116,7 +116,10 @@ impl<A: Endpoint> Agent<A> {
                         .is_some_and(|i| i.is_stale(first))
                 };
             if from_the_start {
-                client.reset_streams();
+                client.reset_streams(issue_epoch(
+                    &mut self.epochs_issued,
+                    self.config.incarnation,
+                ));
                 client.established_at = now;
                 tracing::info!(client = %key, stream, "the CREATE_CLIENT taken for a duplicate was the client's restart: its streams start again");
             }
@@ -360,9 +363,9 @@ impl<A: Endpoint> Agent<A> {
         {
             // The relay takes reliable messages only once the worker said what it executed.
             c.awaiting_executed = false;
-            // A floor is for the message expected next when it was set: this one, or one a
-            // HEARTBEAT made the client skip (sequence numbers wrap, so it must not wait).
-            c.executed_floor.retain(|f| f.stream_id != stream);
+            // A floor lasts up to the last message it covers.
+            c.executed_floor
+                .retain(|f| f.last.stream_id != stream || !f.ends_with(sequence));
         }
     }
 }

@@ -158,7 +158,10 @@ impl<A: Endpoint> Agent<A> {
                         self.stats.count("duplicate_create_client");
                         existing.restart_suspected = true;
                     } else {
-                        existing.reset_streams();
+                        existing.reset_streams(issue_epoch(
+                            &mut self.epochs_issued,
+                            self.config.incarnation,
+                        ));
                         existing.established_at = now;
                     }
                     existing.first_seq = proxy::first_sequence_number(c.vendor_id);
@@ -198,6 +201,7 @@ impl<A: Endpoint> Agent<A> {
                         dead_time,
                     };
                     let mut client = ProxyClient::new(terms, src, now, &self.config);
+                    client.epoch = self.next_epoch();
                     client.mtu_announced = c.mtu.is_some();
                     client.first_seq = proxy::first_sequence_number(c.vendor_id);
                     self.budget.session_added(client.origin);

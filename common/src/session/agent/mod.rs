@@ -51,7 +51,7 @@ mod timers;
 use input::MessageAt;
 pub(crate) use output::agent_info_message;
 pub use output::{DataReply, SendError};
-use proxy::{OutStream, ProxyClient};
+use proxy::{ExecutedFloor, OutStream, ProxyClient};
 
 /// What the session core needs of an endpoint: an identity, and the host it belongs to.
 pub trait Endpoint: Copy + Eq + Hash + Debug + Origin {}
@@ -113,6 +113,10 @@ pub struct AgentConfig {
     /// Keep track of the sessions whose [`SessionSnapshot`] changed, for a front-end that
     /// stores them so that its successor takes them over ([`Agent::take_session_changes`]).
     pub track_sessions: bool,
+    /// The front-end process's incarnation: the high half of each epoch of a client's
+    /// streams this core issues ([`InputPosition::epoch`]), so that a successor never issues
+    /// one its predecessor handed to the worker without storing it.
+    pub incarnation: u16,
 }
 
 impl Default for AgentConfig {
@@ -139,6 +143,7 @@ impl Default for AgentConfig {
             client_dead_time: None,
             admission: Admission::default(),
             track_sessions: false,
+            incarnation: 0,
         }
     }
 }
@@ -386,6 +391,8 @@ pub struct Agent<A> {
     episodes: Episodes,
     /// New sessions each origin may start per second.
     creations: CreationMeter,
+    /// Epochs of clients' streams issued so far (the low half of the next one).
+    epochs_issued: u16,
 }
 
 /// Replies the agent makes at most once per datagram, so that one datagram packed with
@@ -398,6 +405,15 @@ enum Reply {
     Timestamp,
     Acknack(u8),
     Retransmit(u8),
+}
+
+/// The epoch of a run of a client's streams that starts now: the process's `incarnation`
+/// and a count of those `issued` (it wraps after 65,536 runs, long past any position a
+/// worker could still hold of the first); never 0, the epoch of a session stored before
+/// epochs were.
+fn issue_epoch(issued: &mut u16, incarnation: u16) -> u32 {
+    *issued = issued.wrapping_add(1).max(1);
+    u32::from(incarnation) << 16 | u32::from(*issued)
 }
 
 impl<A: Endpoint> Agent<A> {
@@ -419,8 +435,14 @@ impl<A: Endpoint> Agent<A> {
             budget: Budget::new(config.limits.memory_budget),
             episodes: Episodes::default(),
             creations: CreationMeter::new(config.limits.new_sessions_per_second),
+            epochs_issued: 0,
             config,
         }
+    }
+
+    /// The epoch of a run of a client's streams that starts now ([`issue_epoch`]).
+    fn next_epoch(&mut self) -> u32 {
+        issue_epoch(&mut self.epochs_issued, self.config.incarnation)
     }
 
     /// Notes that a session's output side (or anything but its input positions) changed.

@@ -73,6 +73,7 @@ impl<A: Endpoint> Agent<A> {
             best_effort_in,
             reliable_out,
             best_effort_out,
+            epoch: c.epoch,
         })
     }
 
@@ -114,15 +115,18 @@ impl<A: Endpoint> Agent<A> {
     }
 
     /// The worker executed `executed` (the last write it got from this front-end's
-    /// predecessor on that client stream). If that write is in the message the stored
-    /// session expects next, the predecessor handed that message over (part or all of its
-    /// writes) and died before storing that it took it: the client will send it again, and
-    /// the writes up to `executed` are then not handed over a second time. Any other
-    /// position is not this message's (behind: stored as taken; ahead: the stream restarted
-    /// since, or something else) and is ignored, so a message is never taken as received
-    /// on the worker's word. Applied after a takeover, before any reliable client message is
-    /// processed (the relay refuses them until the worker answered its hello).
+    /// predecessor on that client stream). If that write is in the run of the streams the
+    /// stored session is in ([`InputPosition::epoch`]) and in a message from the one it
+    /// expects next up to a window ahead, the predecessor handed those messages over (all
+    /// the writes of the ones before, part or all of the last's) and died before storing
+    /// that it took them: the client will send them again, and those writes are then not
+    /// handed over a second time ([`ExecutedFloor`]). Any other position is ignored (behind:
+    /// stored as taken; another epoch: the streams started again since). A message is never
+    /// taken as received on the worker's word: its other operations are processed again.
+    /// Applied after a takeover, before any reliable client message is processed (the relay
+    /// refuses them until the worker answered its hello).
     pub fn skip_executed(&mut self, key: ClientKey, executed: InputPosition) {
+        let window = self.config.input_window;
         let Some(c) = self.clients.get_mut(&key).filter(|c| c.awaiting_executed) else {
             return;
         };
@@ -130,25 +134,32 @@ impl<A: Endpoint> Agent<A> {
             .reliable_in
             .get(&executed.stream_id)
             .map_or(c.first_seq, ReliableInput::expected);
-        if !stream_id::is_reliable(executed.stream_id) || executed.sequence != expected {
-            tracing::debug!(client = %key, stream = executed.stream_id, sequence = executed.sequence, expected, "the worker's last executed write is not in the message expected next; ignored");
+        // Behind what was stored: taken already. Of another run of the streams: it says
+        // nothing about this one. Further ahead than the window: not this stream's either
+        // (what one datagram can hand over spans the window at most).
+        let ahead = executed.sequence.wrapping_sub(expected);
+        if !stream_id::is_reliable(executed.stream_id)
+            || executed.epoch != c.epoch
+            || ahead >= window
+        {
+            tracing::debug!(client = %key, stream = executed.stream_id, sequence = executed.sequence, epoch = executed.epoch, expected, session_epoch = c.epoch, "the worker's last executed write is not in the messages expected next; ignored");
             return;
         }
         c.executed_floor
-            .retain(|f| f.stream_id != executed.stream_id);
-        c.executed_floor.push(executed);
-        tracing::debug!(client = %key, stream = executed.stream_id, sequence = executed.sequence, write = executed.write_index, "the worker executed writes of a message the last front-end had not stored as taken");
+            .retain(|f| f.last.stream_id != executed.stream_id);
+        c.executed_floor.push(ExecutedFloor {
+            from: expected,
+            last: executed,
+        });
+        tracing::debug!(client = %key, stream = executed.stream_id, from = expected, sequence = executed.sequence, write = executed.write_index, "the worker executed writes of messages the last front-end had not stored as taken");
     }
 
     /// Whether the worker executed the write at `position` for the front-end this one took
     /// over from ([`Self::skip_executed`]).
     pub(super) fn executed_before(&self, key: ClientKey, position: &InputPosition) -> bool {
-        self.clients.get(&key).is_some_and(|c| {
-            c.executed_floor.iter().any(|f| {
-                (f.stream_id, f.sequence) == (position.stream_id, position.sequence)
-                    && position.write_index <= f.write_index
-            })
-        })
+        self.clients
+            .get(&key)
+            .is_some_and(|c| c.executed_floor.iter().any(|f| f.covers(position)))
     }
 
     /// Takes over a session a front-end that died stored (its object graph is the bridge's
@@ -193,6 +204,7 @@ impl<A: Endpoint> Agent<A> {
             dead_time: snapshot.dead_time,
         };
         let mut client = ProxyClient::new(terms, endpoint, now, &self.config);
+        client.epoch = snapshot.epoch;
         // Not stored: eProsima clients announce their MTU, spec clients do not.
         client.mtu_announced = snapshot.dialect == Dialect::Eprosima;
         client.reliable_in = snapshot

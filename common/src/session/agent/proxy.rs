@@ -16,6 +16,38 @@ pub(super) struct OutStream {
     pub(super) queue: VecDeque<Vec<u8>>,
 }
 
+/// Writes the worker executed on one reliable input stream for the front-end this one took
+/// over from, which had not stored the messages that carried them as taken: every write of
+/// the messages from `from` (the one the stored stream expected) up to `last.sequence`, and
+/// those of that message up to `last.write_index`. The messages themselves are processed
+/// again (their other operations were not necessarily executed); only these writes are not
+/// handed over a second time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct ExecutedFloor {
+    pub(super) from: u16,
+    pub(super) last: InputPosition,
+}
+
+impl ExecutedFloor {
+    /// Whether the write at `position` is one of them.
+    pub(super) fn covers(&self, position: &InputPosition) -> bool {
+        let last = &self.last;
+        if (position.epoch, position.stream_id) != (last.epoch, last.stream_id) {
+            return false;
+        }
+        let span = last.sequence.wrapping_sub(self.from);
+        let offset = position.sequence.wrapping_sub(self.from);
+        offset < span || (offset == span && position.write_index <= last.write_index)
+    }
+
+    /// Whether a message `sequence` processed on its stream ends it: the last of its
+    /// messages, or one outside them (a HEARTBEAT made the client skip some; sequence
+    /// numbers wrap, so it must not wait).
+    pub(super) fn ends_with(&self, sequence: u16) -> bool {
+        sequence.wrapping_sub(self.from) >= self.last.sequence.wrapping_sub(self.from)
+    }
+}
+
 /// The agent's state of one client's session.
 #[derive(Debug)]
 pub(super) struct ProxyClient<A> {
@@ -55,11 +87,12 @@ pub(super) struct ProxyClient<A> {
     /// from the start again, behind what was taken, it was the client's restart after all
     /// (a board that reset at once), and the streams start again then.
     pub(super) restart_suspected: bool,
-    /// The last write the worker executed on a reliable input stream, where that is within
-    /// the message expected next (taken over: the front-end that died handed part or all of
-    /// that message over before storing that it took it); one entry per stream at most, each
-    /// dropped once its message was processed.
-    pub(super) executed_floor: Vec<InputPosition>,
+    /// The run of the client's streams ([`InputPosition::epoch`]).
+    pub(super) epoch: u32,
+    /// Writes the worker executed on a reliable input stream that the front-end this one
+    /// took over from had not stored as taken (it handed them over, then died); one entry
+    /// per stream at most, each dropped once the last of its messages was processed.
+    pub(super) executed_floor: Vec<ExecutedFloor>,
     /// Taken over from a stored session and nothing processed since: the worker's last
     /// executed writes may still be applied ([`Agent::skip_executed`]); a session made or
     /// restarted since numbers its streams afresh, and they would mean nothing there.
@@ -157,6 +190,7 @@ impl<A: Origin> ProxyClient<A> {
             established_at: now,
             streams_used: false,
             restart_suspected: false,
+            epoch: 0,
             executed_floor: Vec::new(),
             awaiting_executed: false,
             dialect,
@@ -182,7 +216,8 @@ impl<A: Origin> ProxyClient<A> {
         MessageHeader::new(self.session_id, stream, seq, self.key)
     }
 
-    pub(super) fn reset_streams(&mut self) {
+    pub(super) fn reset_streams(&mut self, epoch: u32) {
+        self.epoch = epoch;
         self.reliable_in.clear();
         self.best_effort_in.clear();
         self.reliable_out.clear();
