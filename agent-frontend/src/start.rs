@@ -144,6 +144,23 @@ fn open_and_serve<W: WorkerSide>(
     }
 }
 
+/// A random seed for the epochs of clients' streams ([`AgentConfig::epoch_seed`]): from the
+/// system's generator, else (logged) the clock mixed with the process id, which still
+/// differs from one process to the next.
+fn epoch_seed() -> u64 {
+    let mut bytes = [0u8; 8];
+    match getrandom::getrandom(&mut bytes) {
+        Ok(()) => u64::from_le_bytes(bytes),
+        Err(e) => {
+            tracing::warn!(error = %e, "no random bytes for the epochs of clients' streams; using the clock");
+            let nanos = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos() as u64);
+            nanos ^ u64::from(std::process::id()).rotate_left(32)
+        }
+    }
+}
+
 /// Serves clients over `transport`, opened from `args`: connects to the worker
 /// and runs the event loop until SIGINT/SIGTERM.
 fn serve<T: Transport, W: WorkerSide>(
@@ -165,10 +182,11 @@ fn serve<T: Transport, W: WorkerSide>(
     };
     let incarnation = crate::session_store::next_incarnation(&args.instance, args.frontend_id);
     let (link, worker) = open_worker(args, incarnation)?;
-    // Epochs of clients' streams this process issues are its own (a successor never reuses
-    // one the worker may hold a position of).
+    // The epochs of clients' streams this process issues are its own: a successor draws
+    // other ones, so a position the worker kept of this process's runs is never taken
+    // for one of its own.
     let config = AgentConfig {
-        incarnation,
+        epoch_seed: epoch_seed(),
         ..config
     };
     let mut relay = Relay::new(args.frontend_id, incarnation, link);

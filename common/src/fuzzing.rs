@@ -335,7 +335,7 @@ pub fn example_snapshot() -> crate::session::snapshot::SessionSnapshot {
             },
         ],
         best_effort_out: vec![(0x01, 9)],
-        epoch: 0x0003_0002,
+        epoch: 0x0123_4567_89AB_CDEF,
     }
 }
 

@@ -8,8 +8,9 @@
 //! in the same pass ([`InProcessSide`], a [`WorkerSide`]).
 //!
 //! Executing at the hand-over keeps the order the session store relies on: a client message
-//! is stored as taken only after its operations were executed, so a crash between the two
-//! makes the client send it again, never lose it.
+//! is stored as taken only after the worker took its operations, so a crash between the two
+//! makes the client send it again. (A write the worker holds for a new or re-created
+//! writer's readers is taken but not yet published: a crash loses it, docs/operations.md.)
 //!
 //! What changes for the user is what one crash takes down: both halves. The supervisor
 //! restarts the process, whose front-end takes its predecessor's sessions over from the
@@ -291,9 +292,9 @@ impl WorkerSide for InProcessSide {
     }
 
     fn stop(&mut self, relay: &mut Relay<WorkerInline>) {
-        // What the relay handed over was executed as it went, and acknowledged to its
-        // clients: given DDS's time to reach its readers before the entities go with this
-        // process.
+        // What the relay handed over was taken by the worker as it went, and acknowledged to
+        // its clients: held samples are released and everything given DDS's time to reach
+        // its readers before the entities go with this process.
         let worker = &mut relay.link_mut().worker;
         worker.stop();
         let start = Instant::now();

@@ -48,7 +48,13 @@ pub struct RustDds {
     /// The poll's registry, shared by every reader for its deregistration (one descriptor).
     registry: Rc<Registry>,
     events: Events,
+    /// The last look filled `events`: more readers may be ready, which the descriptor does
+    /// not announce again to a loop that waits on it edge-triggered.
+    batch_full: bool,
 }
+
+/// Readers named per look at the poll.
+const EVENT_BATCH: usize = 256;
 
 impl std::fmt::Debug for RustDds {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -69,7 +75,8 @@ impl RustDds {
             participants: HashMap::new(),
             poll,
             registry,
-            events: Events::with_capacity(256),
+            events: Events::with_capacity(EVENT_BATCH),
+            batch_full: false,
         })
     }
 
@@ -389,8 +396,14 @@ impl DdsBackend for RustDds {
 
     fn ready_readers(&mut self, out: &mut Vec<ReaderToken>) -> std::io::Result<()> {
         self.poll.poll(&mut self.events, Some(Duration::ZERO))?;
+        let before = out.len();
         out.extend(self.events.iter().map(|e| e.token().0 as ReaderToken));
+        self.batch_full = out.len() - before >= EVENT_BATCH;
         Ok(())
+    }
+
+    fn readers_queued(&self) -> bool {
+        self.batch_full
     }
 
     fn participants(&self) -> usize {

@@ -476,18 +476,20 @@ impl<L: WorkerLink> Worker<L> {
         Ok(pumped)
     }
 
-    /// The worker stops of its own accord (drained): the replays under way did not crash
-    /// it, their marks go.
+    /// The worker stops of its own accord (it drains first): the replays under way did not
+    /// crash it, their marks go; writers holding samples for their readers release them over
+    /// the next passes.
     pub fn stop(&mut self) {
         for fe in self.replay_guard.stopping() {
             self.link.mark_replay(fe, None);
         }
+        self.stop_holding();
     }
 
-    /// Writes DDS readers have not acknowledged yet (a stopping worker waits for them a
-    /// while).
+    /// Writes not yet done with: held for readers to match, or written and not acknowledged
+    /// by DDS readers yet (a stopping worker waits for them a while).
     pub fn unacknowledged_writes(&self) -> usize {
-        self.writers.acks.outstanding_writes()
+        self.writers.acks.outstanding_writes() + self.held_samples()
     }
 
     /// The descriptors that become readable when a DDS backend's readers may have data

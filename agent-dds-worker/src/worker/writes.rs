@@ -341,6 +341,39 @@ impl<L: WorkerLink> Worker<L> {
         found
     }
 
+    /// The worker stops: every holding writer stops waiting for its readers and releases
+    /// what it holds over the next passes (in its paced batches), so that readers matched
+    /// by then get the samples, which nobody would once the worker is gone.
+    pub(super) fn stop_holding(&mut self) {
+        let now = self.now;
+        for key in &self.writers.holding {
+            if let Some(Entity {
+                kind: EntityKind::Writer { rematch, .. },
+                ..
+            }) = self.entities.value_mut(key)
+            {
+                if rematch.until.is_some_and(|until| until > now) {
+                    rematch.until = Some(now);
+                }
+            }
+        }
+    }
+
+    /// Samples holding writers keep.
+    pub(super) fn held_samples(&self) -> usize {
+        self.writers
+            .holding
+            .iter()
+            .filter_map(|k| match self.entities.value(k) {
+                Some(Entity {
+                    kind: EntityKind::Writer { rematch, .. },
+                    ..
+                }) => Some(rematch.held.len()),
+                _ => None,
+            })
+            .sum()
+    }
+
     /// Releases the samples of replayed writers that matched again (or waited long enough).
     pub(super) fn release_rematched(&mut self) {
         let now = self.now;

@@ -58,13 +58,13 @@ mod flag {
 
 /// Bytes of an [`InputPosition`] in a body: the stream, then the message's sequence number,
 /// the write's index in it and the epoch of the streams, little endian.
-const POSITION_LEN: usize = 9;
+const POSITION_LEN: usize = 13;
 
 fn write_position(p: &InputPosition, out: &mut [u8]) {
     out[0] = p.stream_id;
     out[1..3].copy_from_slice(&p.sequence.to_le_bytes());
     out[3..5].copy_from_slice(&p.write_index.to_le_bytes());
-    out[5..9].copy_from_slice(&p.epoch.to_le_bytes());
+    out[5..13].copy_from_slice(&p.epoch.to_le_bytes());
 }
 
 fn read_position(b: &[u8; POSITION_LEN]) -> InputPosition {
@@ -72,7 +72,7 @@ fn read_position(b: &[u8; POSITION_LEN]) -> InputPosition {
         stream_id: b[0],
         sequence: u16::from_le_bytes([b[1], b[2]]),
         write_index: u16::from_le_bytes([b[3], b[4]]),
-        epoch: u32::from_le_bytes([b[5], b[6], b[7], b[8]]),
+        epoch: u64::from_le_bytes([b[5], b[6], b[7], b[8], b[9], b[10], b[11], b[12]]),
     }
 }
 

@@ -62,7 +62,7 @@ pub fn ipc_seeds() -> Vec<(String, Vec<u8>)> {
                 stream_id: 0x80,
                 sequence: 0xFFFE,
                 write_index: 3,
-                epoch: 0x0001_0002,
+                epoch: 0x0001_0002_0003_0004,
             }),
         },
         Request::Read {
@@ -100,7 +100,7 @@ pub fn ipc_seeds() -> Vec<(String, Vec<u8>)> {
             stream_id: 0x81,
             sequence: 12,
             write_index: 0,
-            epoch: 0xFFFF_FFFF,
+            epoch: u64::MAX,
         }),
     ];
     let mut seeds = Vec::new();

@@ -117,7 +117,7 @@ fn reply() -> impl Strategy<Value = Reply<'static>> {
 }
 
 fn position() -> impl Strategy<Value = InputPosition> {
-    (any::<u8>(), any::<u16>(), any::<u16>(), any::<u32>()).prop_map(|(s, q, i, e)| InputPosition {
+    (any::<u8>(), any::<u16>(), any::<u16>(), any::<u64>()).prop_map(|(s, q, i, e)| InputPosition {
         epoch: e,
         stream_id: s,
         sequence: q,
@@ -180,7 +180,7 @@ fn the_layout_is_the_contract() {
             dialect: Dialect::Spec,
             status_requested: true,
             position: Some(InputPosition {
-                epoch: 0x0102_0304,
+                epoch: 0x0102_0304_0506_0708,
                 stream_id: 0x80,
                 sequence: 0x1234,
                 write_index: 2,
@@ -194,9 +194,9 @@ fn the_layout_is_the_contract() {
     expected.extend_from_slice(&(1u64 << 40).to_le_bytes());
     expected.extend_from_slice(&[1, 2, 3, 4, 0, 9]);
     expected.extend_from_slice(&ObjectId::new(1, 5).0);
-    expected.extend_from_slice(&13u32.to_le_bytes());
+    expected.extend_from_slice(&17u32.to_le_bytes());
     expected.extend_from_slice(&[0x0A, 0, 0xEF, 0xBE]);
-    expected.extend_from_slice(&[0x80, 0x34, 0x12, 2, 0, 4, 3, 2, 1]);
+    expected.extend_from_slice(&[0x80, 0x34, 0x12, 2, 0, 8, 7, 6, 5, 4, 3, 2, 1]);
     expected.extend_from_slice(b"body");
     assert_eq!(m.encode(), expected);
     // A Write flagged with a position too short to hold one is refused.

@@ -56,7 +56,7 @@ pub struct SessionSnapshot {
     /// Best-effort output streams: (stream id, next number).
     pub best_effort_out: Vec<(u8, u16)>,
     /// The run of its streams ([`crate::session::stream::InputPosition::epoch`]).
-    pub epoch: u32,
+    pub epoch: u64,
 }
 
 /// A reliable output stream of a [`SessionSnapshot`].
@@ -227,7 +227,7 @@ impl SessionSnapshot {
                 queued,
             });
         }
-        let epoch = if version == VERSION { r.u32()? } else { 0 };
+        let epoch = if version == VERSION { r.u64()? } else { 0 };
         if !r.0.is_empty() {
             return Err(SnapshotError::Invalid("trailing bytes"));
         }
@@ -309,7 +309,7 @@ mod tests {
         let s = sample();
         let mut old = s.encode();
         old[0] = VERSION_WITHOUT_EPOCH;
-        old.truncate(old.len() - 4);
+        old.truncate(old.len() - 8);
         assert_eq!(
             SessionSnapshot::decode(&old),
             Ok(SessionSnapshot { epoch: 0, ..s })

@@ -17,10 +17,11 @@ use crate::wire::{AcknackPayload, HeartbeatPayload};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
 pub struct InputPosition {
     /// The run of the client's streams: a new one each time they start again (a new
-    /// session, a RESET, a client's restart), never issued twice by any front-end of the
-    /// instance ([`crate::session::agent::AgentConfig::incarnation`]), so that a position
-    /// of an earlier run is never taken for one of this run.
-    pub epoch: u32,
+    /// session, a RESET, a client's restart), never issued twice by one front-end process
+    /// and drawn at random across processes
+    /// ([`crate::session::agent::AgentConfig::epoch_seed`]), so that a position of an
+    /// earlier run is not taken for one of this run.
+    pub epoch: u64,
     /// The reliable stream.
     pub stream_id: u8,
     /// The message's sequence number.

@@ -275,40 +275,38 @@ fn message_of_writes(seq: u16, samples: &[u8]) -> Vec<u8> {
     b.finish()
 }
 
-/// The epoch of the first run of a session's streams in a core of incarnation 0 (the
-/// default configuration's), which the tests' sessions are in.
-const FIRST_EPOCH: u32 = 1;
-
-fn at(sequence: u16, write_index: u16) -> InputPosition {
+fn at(epoch: u64, sequence: u16, write_index: u16) -> InputPosition {
     InputPosition {
-        epoch: FIRST_EPOCH,
+        epoch,
         stream_id: stream_id::BUILTIN_RELIABLE,
         sequence,
         write_index,
     }
 }
 
+/// A core keeping sessions for a successor, drawing its epochs from `seed`.
+fn keeping(config: &AgentConfig, seed: u64) -> AgentConfig {
+    AgentConfig {
+        track_sessions: true,
+        epoch_seed: seed,
+        ..config.clone()
+    }
+}
+
 /// A session taken over from a predecessor that stored it before message 3, handed two of
-/// its three writes to the worker, and died.
-fn taken_over_before_message_3(config: AgentConfig) -> (Agent<u32>, Instant) {
-    let (mut agent, mut rec, t0) = connected(
-        AgentConfig {
-            track_sessions: true,
-            ..config.clone()
-        },
-        VENDOR_EPROSIMA,
-        None,
-    );
+/// its three writes to the worker, and died; and the epoch of its streams.
+fn taken_over_before_message_3(config: AgentConfig) -> (Agent<u32>, Instant, u64) {
+    let (mut agent, mut rec, t0) = connected(keeping(&config, 1), VENDOR_EPROSIMA, None);
     for seq in 0..3 {
         agent.handle_datagram(t0, ADDR, &write(seq), &mut rec);
     }
     let snapshot = agent
         .snapshot(KEY, |a| a.to_le_bytes().to_vec())
         .expect("a snapshot");
-    let mut next: Agent<u32> = Agent::new(config);
+    let mut next: Agent<u32> = Agent::new(keeping(&config, 2));
     assert!(next.restore(t0, &snapshot, ADDR));
     drain(&mut next);
-    (next, t0)
+    (next, t0, snapshot.epoch)
 }
 
 /// The writes of the message a predecessor handed over in part are not handed over again
@@ -316,13 +314,13 @@ fn taken_over_before_message_3(config: AgentConfig) -> (Agent<u32>, Instant) {
 /// acknowledged; the messages after it go whole, with their positions.
 #[test]
 fn writes_the_worker_executed_for_a_predecessor_are_not_handed_over_again() {
-    let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
+    let (mut agent, t0, epoch) = taken_over_before_message_3(AgentConfig::default());
     // Message 2 was stored as taken: what the worker says of it changes nothing.
-    agent.skip_executed(KEY, at(2, 0));
-    agent.skip_executed(KEY, at(3, 1));
+    agent.skip_executed(KEY, at(epoch, 2, 0));
+    agent.skip_executed(KEY, at(epoch, 3, 1));
     let mut sink = Positions::default();
     agent.handle_datagram(t0, ADDR, &message_of_writes(3, &[30, 31, 32]), &mut sink);
-    assert_eq!(sink.0, [(vec![32], Some(at(3, 2)))]);
+    assert_eq!(sink.0, [(vec![32], Some(at(epoch, 3, 2)))]);
     assert_eq!(agent.stats().dropped("executed_before_takeover"), 2);
     let acks: Vec<_> = payloads(&drain(&mut agent))
         .into_iter()
@@ -335,7 +333,10 @@ fn writes_the_worker_executed_for_a_predecessor_are_not_handed_over_again() {
     agent.handle_datagram(t0, ADDR, &message_of_writes(4, &[40, 41]), &mut sink);
     assert_eq!(
         sink.0[1..],
-        [(vec![40], Some(at(4, 0))), (vec![41], Some(at(4, 1)))]
+        [
+            (vec![40], Some(at(epoch, 4, 0))),
+            (vec![41], Some(at(epoch, 4, 1)))
+        ]
     );
 }
 
@@ -347,8 +348,8 @@ fn writes_the_worker_executed_for_a_predecessor_are_not_handed_over_again() {
 #[test]
 fn writes_of_several_messages_the_worker_executed_are_not_handed_over_again() {
     for order in [[3, 4, 5, 6], [5, 6, 4, 3]] {
-        let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
-        agent.skip_executed(KEY, at(5, 1));
+        let (mut agent, t0, epoch) = taken_over_before_message_3(AgentConfig::default());
+        agent.skip_executed(KEY, at(epoch, 5, 1));
         let mut sink = Positions::default();
         for seq in order {
             let samples: &[u8] = match seq {
@@ -361,7 +362,10 @@ fn writes_of_several_messages_the_worker_executed_are_not_handed_over_again() {
         }
         assert_eq!(
             sink.0,
-            [(vec![52], Some(at(5, 2))), (vec![60], Some(at(6, 0)))],
+            [
+                (vec![52], Some(at(epoch, 5, 2))),
+                (vec![60], Some(at(epoch, 6, 0)))
+            ],
             "resent in the order {order:?}"
         );
         assert_eq!(agent.stats().dropped("executed_before_takeover"), 5);
@@ -377,37 +381,77 @@ fn writes_of_several_messages_the_worker_executed_are_not_handed_over_again() {
 }
 
 /// A position of another run of the client's streams is not believed, however close: the
-/// streams started again since the worker's last write (a board that reset: CREATE_CLIENT
-/// of the same session, its objects made again in messages 0 to 2, then the front-end
-/// died), and taking it would drop new messages' writes. Nor is one further ahead than the
-/// window (no datagram hands that much over).
+/// board reset since the worker's last write (CREATE_CLIENT of the same session, its new
+/// run's messages 0 to 2 taken and stored, then the front-end died), and taking it would
+/// drop the new run's writes. Nor is one further ahead than the window (no datagram hands
+/// that much over).
 #[test]
 fn a_position_of_another_run_of_the_streams_is_not_believed() {
-    let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
-    agent.skip_executed(
-        KEY,
-        InputPosition {
-            epoch: FIRST_EPOCH + 1,
-            ..at(6, 0)
-        },
-    );
+    let config = AgentConfig::default();
+    let (mut agent, mut rec, t0) = connected(keeping(&config, 1), VENDOR_EPROSIMA, None);
+    let mut handed = Positions::default();
+    for seq in 0..7u8 {
+        let m = message_of_writes(u16::from(seq), &[seq]);
+        agent.handle_datagram(t0, ADDR, &m, &mut handed);
+    }
+    let old = handed.0.last().and_then(|(_, p)| *p).expect("a position");
+    let later = t0 + Duration::from_secs(2);
+    agent.handle_datagram(later, ADDR, &create_client_with(0x01), &mut rec);
+    for seq in 0..3 {
+        agent.handle_datagram(later, ADDR, &write(seq), &mut rec);
+    }
+    let snapshot = agent
+        .snapshot(KEY, |a| a.to_le_bytes().to_vec())
+        .expect("a snapshot");
+    assert_ne!(snapshot.epoch, old.epoch, "the restart started another run");
+    let mut next: Agent<u32> = Agent::new(keeping(&config, 2));
+    assert!(next.restore(later, &snapshot, ADDR));
+    drain(&mut next);
+    // Message 6 of the old run: three ahead of the 3 the new run expects.
+    next.skip_executed(KEY, old);
     let mut sink = Positions::default();
-    agent.handle_datagram(t0, ADDR, &message_of_writes(3, &[30]), &mut sink);
-    agent.handle_datagram(t0, ADDR, &message_of_writes(4, &[40, 41]), &mut sink);
-    agent.handle_datagram(t0, ADDR, &message_of_writes(5, &[50]), &mut sink);
-    agent.handle_datagram(t0, ADDR, &message_of_writes(6, &[60]), &mut sink);
+    for (seq, samples) in [(3, &[30][..]), (4, &[40, 41]), (5, &[50]), (6, &[60])] {
+        next.handle_datagram(later, ADDR, &message_of_writes(seq, samples), &mut sink);
+    }
     assert_eq!(
         sink.0.iter().map(|(d, _)| d[0]).collect::<Vec<_>>(),
         [30, 40, 41, 50, 60],
         "every write handed over"
     );
-    assert_eq!(agent.stats().dropped("executed_before_takeover"), 0);
+    assert_eq!(next.stats().dropped("executed_before_takeover"), 0);
 
-    let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
-    agent.skip_executed(KEY, at(3 + 16, 0));
+    let (mut agent, t0, epoch) = taken_over_before_message_3(AgentConfig::default());
+    agent.skip_executed(KEY, at(epoch, 3 + 16, 0));
     let mut sink = Positions::default();
     agent.handle_datagram(t0, ADDR, &message_of_writes(3, &[30]), &mut sink);
     assert_eq!(sink.0.len(), 1, "beyond the window: ignored");
+}
+
+/// Writes that follow a RESET in the same message belong to the new run of the streams but
+/// carry the old run's message number: they get no position, which a successor could
+/// otherwise take for the new run's.
+#[test]
+fn writes_after_a_reset_in_the_same_message_have_no_position() {
+    let (mut agent, t0, _) = taken_over_before_message_3(AgentConfig::default());
+    let mut b = MessageBuilder::new(MessageHeader::new(
+        0x01,
+        stream_id::BUILTIN_RELIABLE,
+        3,
+        KEY,
+    ));
+    b.push(&Payload::Reset, true).expect("encode");
+    let w = Payload::WriteData(DataPayload {
+        base: BaseObjectRequest {
+            request_id: RequestId::from_u16(0x233),
+            object_id: ObjectId::new(1, object_kind::DATAWRITER),
+        },
+        format: data_format::DATA,
+        data: &[33],
+    });
+    b.push(&w, true).expect("encode");
+    let mut sink = Positions::default();
+    agent.handle_datagram(t0, ADDR, &b.finish(), &mut sink);
+    assert_eq!(sink.0, [(vec![33], None)]);
 }
 
 /// What the worker executed for a predecessor means nothing to a session made since (the
@@ -415,22 +459,23 @@ fn a_position_of_another_run_of_the_streams_is_not_believed() {
 /// taken-over session processed a message.
 #[test]
 fn executed_writes_are_applied_only_to_a_session_just_taken_over() {
-    let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
+    let (mut agent, t0, epoch) = taken_over_before_message_3(AgentConfig::default());
     let later = t0 + Duration::from_secs(2);
     let mut sink = Positions::default();
     agent.handle_datagram(later, ADDR, &create_client_with(0x01), &mut sink);
-    agent.skip_executed(KEY, at(0, 0));
+    agent.skip_executed(KEY, at(epoch, 0, 0));
     agent.handle_datagram(later, ADDR, &message_of_writes(0, &[1]), &mut sink);
-    assert_eq!(
-        sink.0,
-        [(vec![1], Some(at(0, 0)))],
-        "the new stream's write goes"
-    );
+    let [(data, Some(position))] = &sink.0[..] else {
+        panic!("one write with a position: {:?}", sink.0);
+    };
+    assert_eq!(data, &[1], "the new stream's write goes");
+    assert_eq!((position.sequence, position.write_index), (0, 0));
+    assert_ne!(position.epoch, epoch, "in a new run of the streams");
 
-    let (mut agent, t0) = taken_over_before_message_3(AgentConfig::default());
+    let (mut agent, t0, epoch) = taken_over_before_message_3(AgentConfig::default());
     let mut sink = Positions::default();
     agent.handle_datagram(t0, ADDR, &message_of_writes(3, &[30]), &mut sink);
-    agent.skip_executed(KEY, at(4, 0));
+    agent.skip_executed(KEY, at(epoch, 4, 0));
     agent.handle_datagram(t0, ADDR, &message_of_writes(4, &[40]), &mut sink);
     assert_eq!(sink.0.len(), 2, "told too late: ignored");
 }
@@ -454,7 +499,7 @@ fn a_write_not_handed_over_again_is_still_answered_where_the_client_asks() {
     let mut next: Agent<u32> = Agent::new(AgentConfig::default());
     assert!(next.restore(t0, &snapshot, ADDR));
     drain(&mut next);
-    next.skip_executed(KEY, at(1, 0));
+    next.skip_executed(KEY, at(snapshot.epoch, 1, 0));
     let mut sink = Positions::default();
     next.handle_datagram(t0, ADDR, &message_of_writes(1, &[10]), &mut sink);
     next.handle_timeout(t0, &mut sink);

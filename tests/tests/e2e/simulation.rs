@@ -168,7 +168,7 @@ impl World {
     fn keeping_sessions(mut self) -> Self {
         self.session = Agent::new(AgentConfig {
             track_sessions: true,
-            incarnation: self.incarnation,
+            epoch_seed: u64::from(self.incarnation),
             ..AgentConfig::default()
         });
         self.relay.set_hand_over_at_once(true);
@@ -228,7 +228,7 @@ impl World {
         self.frontend_crashes += 1;
         self.session = Agent::new(AgentConfig {
             track_sessions: true,
-            incarnation: self.incarnation,
+            epoch_seed: u64::from(self.incarnation),
             ..AgentConfig::default()
         });
         self.relay = Relay::new(FE, self.incarnation, MemoryLink::default());

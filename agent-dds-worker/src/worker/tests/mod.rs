@@ -292,6 +292,31 @@ fn an_unacknowledged_first_sample_holds_the_rest_back_only_briefly() {
     assert!(t.worker.writers.holding.is_empty());
 }
 
+/// A stopping worker does not take what a writer holds for its readers away with it: it
+/// counts as not done with (the drain waits for it), and the writer releases it, in order,
+/// without waiting for its readers any longer.
+#[test]
+fn a_stopping_worker_releases_what_its_writers_hold() {
+    let mut t = reader_and_new_writer();
+    for i in 0..3 {
+        t.worker
+            .write_one((FE, CLIENT, WRITER), i, true, &keyed(i as i32, 0), false)
+            .expect("write");
+    }
+    assert!(t.bus.written.borrow().is_empty());
+    assert_eq!(t.worker.unacknowledged_writes(), 3, "held samples count");
+    t.worker.stop();
+    let now = t.worker.now;
+    for _ in 0..10 {
+        t.worker.pass(now).expect("pass");
+    }
+    assert_eq!(
+        t.bus.samples_on(TOPIC),
+        (0..3).map(|i| keyed(i, 0)).collect::<Vec<_>>()
+    );
+    assert!(t.worker.writers.holding.is_empty());
+}
+
 #[test]
 fn a_writer_holds_until_matched_then_its_samples_reach_a_reader_in_order() {
     let mut t = reader_and_new_writer();

@@ -70,13 +70,16 @@ impl<A: Endpoint> Agent<A> {
                 },
             ),
             Payload::WriteData(d) => {
-                let epoch = self.clients.get(&key).map_or(0, |c| c.epoch);
-                let position = stream_id::is_reliable(stream).then_some(InputPosition {
-                    epoch,
-                    stream_id: stream,
-                    sequence: at.sequence,
-                    write_index: at.writes,
-                });
+                // After a RESET in the same message its writes belong to the new run, at no
+                // position of it (the message is numbered in the old one): none.
+                let same_run = self.clients.get(&key).is_some_and(|c| c.epoch == at.epoch);
+                let position =
+                    (stream_id::is_reliable(stream) && same_run).then_some(InputPosition {
+                        epoch: at.epoch,
+                        stream_id: stream,
+                        sequence: at.sequence,
+                        write_index: at.writes,
+                    });
                 at.writes = at.writes.wrapping_add(1);
                 let dialect = self.client_dialect(key);
                 if let Some(p) = position.filter(|p| self.executed_before(key, p)) {
@@ -175,6 +178,9 @@ impl<A: Endpoint> Agent<A> {
                 if let Some(c) = self.clients.get_mut(&key) {
                     c.reset_streams(epoch);
                 }
+                // Stored before the next datagram: a successor must not take the client's
+                // new messages for copies of old ones.
+                self.touch_input(key);
             }
             Payload::Timestamp(t) if self.once(Reply::Timestamp) => {
                 self.reply_timestamp(now, key, t)

@@ -116,10 +116,7 @@ impl<A: Endpoint> Agent<A> {
                         .is_some_and(|i| i.is_stale(first))
                 };
             if from_the_start {
-                client.reset_streams(issue_epoch(
-                    &mut self.epochs_issued,
-                    self.config.incarnation,
-                ));
+                client.reset_streams(issue_epoch(&mut self.epochs_issued, self.config.epoch_seed));
                 client.established_at = now;
                 tracing::info!(client = %key, stream, "the CREATE_CLIENT taken for a duplicate was the client's restart: its streams start again");
             }
@@ -342,6 +339,7 @@ impl<A: Endpoint> Agent<A> {
             bytes.get(3).copied().unwrap_or(0),
         ]);
         let mut at = MessageAt {
+            epoch: self.clients.get(&key).map_or(0, |c| c.epoch),
             stream,
             sequence,
             writes: 0,
@@ -374,6 +372,9 @@ impl<A: Endpoint> Agent<A> {
 /// of it were dispatched so far (reassembled fragments count in the message of the last one).
 #[derive(Debug)]
 pub(super) struct MessageAt {
+    /// The run of the client's streams the message came in (a RESET inside it starts
+    /// another).
+    pub(super) epoch: u64,
     pub(super) stream: u8,
     pub(super) sequence: u16,
     pub(super) writes: u16,

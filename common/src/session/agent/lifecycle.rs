@@ -160,7 +160,7 @@ impl<A: Endpoint> Agent<A> {
                     } else {
                         existing.reset_streams(issue_epoch(
                             &mut self.epochs_issued,
-                            self.config.incarnation,
+                            self.config.epoch_seed,
                         ));
                         existing.established_at = now;
                     }

@@ -113,10 +113,11 @@ pub struct AgentConfig {
     /// Keep track of the sessions whose [`SessionSnapshot`] changed, for a front-end that
     /// stores them so that its successor takes them over ([`Agent::take_session_changes`]).
     pub track_sessions: bool,
-    /// The front-end process's incarnation: the high half of each epoch of a client's
-    /// streams this core issues ([`InputPosition::epoch`]), so that a successor never issues
-    /// one its predecessor handed to the worker without storing it.
-    pub incarnation: u16,
+    /// Drawn at random by each front-end process: the epochs of clients' streams this core
+    /// issues ([`InputPosition::epoch`]) are a one-to-one mix of it and a count, so one
+    /// process never issues an epoch twice, and a successor issues one its predecessor
+    /// handed to the worker with a chance of about one in 2^64 per pair.
+    pub epoch_seed: u64,
 }
 
 impl Default for AgentConfig {
@@ -143,7 +144,7 @@ impl Default for AgentConfig {
             client_dead_time: None,
             admission: Admission::default(),
             track_sessions: false,
-            incarnation: 0,
+            epoch_seed: 0,
         }
     }
 }
@@ -391,8 +392,8 @@ pub struct Agent<A> {
     episodes: Episodes,
     /// New sessions each origin may start per second.
     creations: CreationMeter,
-    /// Epochs of clients' streams issued so far (the low half of the next one).
-    epochs_issued: u16,
+    /// Epochs of clients' streams issued so far.
+    epochs_issued: u64,
 }
 
 /// Replies the agent makes at most once per datagram, so that one datagram packed with
@@ -407,13 +408,21 @@ enum Reply {
     Retransmit(u8),
 }
 
-/// The epoch of a run of a client's streams that starts now: the process's `incarnation`
-/// and a count of those `issued` (it wraps after 65,536 runs, long past any position a
-/// worker could still hold of the first); never 0, the epoch of a session stored before
-/// epochs were.
-fn issue_epoch(issued: &mut u16, incarnation: u16) -> u32 {
-    *issued = issued.wrapping_add(1).max(1);
-    u32::from(incarnation) << 16 | u32::from(*issued)
+/// The epoch of a run of a client's streams that starts now: the count of those `issued`
+/// mixed with the process's `seed` by SplitMix64's finalizer (one-to-one, so distinct
+/// counts give distinct epochs); 0, the epoch of a session stored before epochs were, is
+/// skipped.
+fn issue_epoch(issued: &mut u64, seed: u64) -> u64 {
+    loop {
+        *issued = issued.wrapping_add(1);
+        let mut z = seed.wrapping_add(issued.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        if z != 0 {
+            return z;
+        }
+    }
 }
 
 impl<A: Endpoint> Agent<A> {
@@ -441,8 +450,8 @@ impl<A: Endpoint> Agent<A> {
     }
 
     /// The epoch of a run of a client's streams that starts now ([`issue_epoch`]).
-    fn next_epoch(&mut self) -> u32 {
-        issue_epoch(&mut self.epochs_issued, self.config.incarnation)
+    fn next_epoch(&mut self) -> u64 {
+        issue_epoch(&mut self.epochs_issued, self.config.epoch_seed)
     }
 
     /// Notes that a session's output side (or anything but its input positions) changed.

@@ -120,7 +120,7 @@ impl<A: Endpoint> Agent<A> {
     /// expects next up to a window ahead, the predecessor handed those messages over (all
     /// the writes of the ones before, part or all of the last's) and died before storing
     /// that it took them: the client will send them again, and those writes are then not
-    /// handed over a second time ([`ExecutedFloor`]). Any other position is ignored (behind:
+    /// handed over a second time (a floor of the stream). Any other position is ignored (behind:
     /// stored as taken; another epoch: the streams started again since). A message is never
     /// taken as received on the worker's word: its other operations are processed again.
     /// Applied after a takeover, before any reliable client message is processed (the relay

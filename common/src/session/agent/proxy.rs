@@ -88,7 +88,7 @@ pub(super) struct ProxyClient<A> {
     /// (a board that reset at once), and the streams start again then.
     pub(super) restart_suspected: bool,
     /// The run of the client's streams ([`InputPosition::epoch`]).
-    pub(super) epoch: u32,
+    pub(super) epoch: u64,
     /// Writes the worker executed on a reliable input stream that the front-end this one
     /// took over from had not stored as taken (it handed them over, then died); one entry
     /// per stream at most, each dropped once the last of its messages was processed.
@@ -216,7 +216,7 @@ impl<A: Origin> ProxyClient<A> {
         MessageHeader::new(self.session_id, stream, seq, self.key)
     }
 
-    pub(super) fn reset_streams(&mut self, epoch: u32) {
+    pub(super) fn reset_streams(&mut self, epoch: u64) {
         self.epoch = epoch;
         self.reliable_in.clear();
         self.best_effort_in.clear();
@@ -290,4 +290,48 @@ impl<A: Origin> ProxyClient<A> {
 /// How often a silent client is probed: four times within its dead time, at most every 10 s.
 pub(super) fn probe_period(dead_time: Duration) -> Duration {
     (dead_time / 4).clamp(Duration::from_millis(25), Duration::from_secs(10))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn at(sequence: u16, write_index: u16) -> InputPosition {
+        InputPosition {
+            epoch: 7,
+            stream_id: 0x80,
+            sequence,
+            write_index,
+        }
+    }
+
+    /// Sequence numbers wrap: a floor from 0xFFFE up to message 1 covers 0xFFFE, 0xFFFF and
+    /// 0 whole and message 1 up to its write, nothing before 0xFFFE or after; it ends with
+    /// message 1 or one past it, not with those inside.
+    #[test]
+    fn a_floor_across_the_wrap_of_sequence_numbers() {
+        let floor = ExecutedFloor {
+            from: 0xFFFE,
+            last: at(1, 2),
+        };
+        for covered in [at(0xFFFE, 9), at(0xFFFF, 0), at(0, 5), at(1, 0), at(1, 2)] {
+            assert!(floor.covers(&covered), "{covered:?}");
+        }
+        for not in [at(0xFFFD, 0), at(1, 3), at(2, 0), at(0x8000, 0)] {
+            assert!(!floor.covers(&not), "{not:?}");
+        }
+        let other_run = InputPosition {
+            epoch: 8,
+            ..at(0, 0)
+        };
+        assert!(!floor.covers(&other_run));
+        let other_stream = InputPosition {
+            stream_id: 0x81,
+            ..at(0, 0)
+        };
+        assert!(!floor.covers(&other_stream));
+        assert!(!floor.ends_with(0xFFFF) && !floor.ends_with(0));
+        assert!(floor.ends_with(1) && floor.ends_with(2));
+        assert!(floor.ends_with(0xFFFD), "behind it: skipped by a HEARTBEAT");
+    }
 }
