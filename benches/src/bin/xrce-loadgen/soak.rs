@@ -19,6 +19,8 @@ pub enum KillTarget {
     Frontend,
     /// The worker, then the front-end, and so on.
     Alternate,
+    /// The one process of an agent run with `--single-process` (front-end and worker).
+    Single,
 }
 
 /// Samples lost or repeated because of a kill are the ones sent this long before it or
@@ -70,7 +72,7 @@ pub struct Receipt {
 pub struct Kill {
     /// When (ns since the base).
     pub at: u64,
-    /// `worker` or `frontend`.
+    /// `worker`, `frontend` or `single-process`.
     pub target: &'static str,
 }
 
@@ -119,11 +121,12 @@ impl Killer {
             KillTarget::Frontend => "frontend",
             KillTarget::Alternate if self.kills.len() % 2 == 0 => "worker",
             KillTarget::Alternate => "frontend",
+            KillTarget::Single => "single-process",
         };
-        let suffix = if target == "worker" {
-            " dds-worker"
-        } else {
-            " frontend"
+        let suffix = match target {
+            "worker" => " dds-worker",
+            "single-process" => " single-process",
+            _ => " frontend",
         };
         let Some(usage) = proc_usage(self.agent) else {
             return;
@@ -152,7 +155,7 @@ impl Killer {
 /// What one kill cost.
 #[derive(Debug, Clone, serde::Serialize)]
 pub struct KillReport {
-    /// `worker` or `frontend`.
+    /// `worker`, `frontend` or `single-process`.
     pub target: &'static str,
     /// Seconds into the run.
     pub at_seconds: f64,
@@ -306,7 +309,7 @@ pub fn analyse(
 /// Prints the soak's summary: totals and recovery percentiles per target, and every kill
 /// that lost, repeated or reordered something.
 pub fn print(r: &SoakReport) {
-    for target in ["worker", "frontend"] {
+    for target in ["worker", "frontend", "single-process"] {
         let ks: Vec<&KillReport> = r.kills.iter().filter(|k| k.target == target).collect();
         if ks.is_empty() {
             continue;
