@@ -53,11 +53,15 @@ impl InProcessLink {
     fn push(&mut self, frontend: u32, message: Vec<u8>) -> Result<bool, LinkError> {
         if frontend != self.frontend {
             self.misdirected += 1;
-            tracing::warn!(
-                frontend,
-                misdirected = self.misdirected,
-                "a reply for a front-end this process is not dropped"
-            );
+            // Logged at the first and then at each doubling (a defect, not a client's doing,
+            // but the log must not grow with it).
+            if self.misdirected.is_power_of_two() {
+                tracing::warn!(
+                    frontend,
+                    misdirected = self.misdirected,
+                    "a reply for a front-end this process is not dropped"
+                );
+            }
             return Err(LinkError::Unreachable {
                 frontend,
                 source: None,

@@ -119,6 +119,9 @@ impl<A: Endpoint> Agent<A> {
                 client.reset_streams(issue_epoch(&mut self.epochs_issued, self.config.epoch_seed));
                 client.established_at = now;
                 tracing::info!(client = %key, stream, "the CREATE_CLIENT taken for a duplicate was the client's restart: its streams start again");
+                // Stored with this message whatever its stream: a successor must not take
+                // the new run's messages for copies of the old one's.
+                self.touch_input(key);
             }
         }
         let Some(client) = self.clients.get_mut(&key) else {
