@@ -93,6 +93,7 @@ fn write() -> RequestMessage<'static> {
             dialect: Dialect::Eprosima,
             status_requested: false,
             position: None,
+            received_us: 0,
         },
     )
 }

@@ -315,7 +315,7 @@ impl<L: WorkerLink> Worker<L> {
         let mut kind = kind;
         if let EntityKind::Writer { rematch, .. } = &mut kind {
             if !carried.is_empty() {
-                rematch.held_bytes = carried.iter().map(|(_, s, _)| s.body.len()).sum();
+                rematch.held_bytes = carried.iter().map(|h| h.sample.body.len()).sum();
                 rematch.held = carried;
                 rematch
                     .until
@@ -420,7 +420,7 @@ impl<L: WorkerLink> Worker<L> {
 
     /// Takes the samples a data writer holds for its readers to match (none for another
     /// kind of entity).
-    fn take_held(&mut self, key: EntityKey) -> std::collections::VecDeque<(u64, Sample, bool)> {
+    fn take_held(&mut self, key: EntityKey) -> std::collections::VecDeque<HeldSample> {
         match self.entities.value_mut(&key) {
             Some(Entity {
                 kind: EntityKind::Writer { rematch, .. },

@@ -578,10 +578,12 @@ impl<L: WorkerLink> Worker<L> {
 
     fn timeout_without_acks(&self, now: Instant) -> i32 {
         if !self.writers.holding.is_empty() {
-            let draining = self.writers.holding.iter().any(|k| {
-                matches!(self.entities.value(k), Some(Entity { kind: EntityKind::Writer { rematch: r, .. }, .. }) if r.draining)
-            });
-            return if draining { 1 } else { 20 };
+            // A draining writer's next sample is due at its time (at least 1 ms on: the
+            // pace between batches); the others look for their readers every 20 ms.
+            return match self.next_release() {
+                Some(due) => (due.saturating_duration_since(now).as_millis() as i32).clamp(1, 20),
+                None => 20,
+            };
         }
         let waiting = self
             .frontends

@@ -164,8 +164,16 @@ impl<L: WorkerLink> Worker<L> {
                 dialect,
                 status_requested,
                 position,
+                received_us,
             } => {
-                let result = self.write(key, &r, data_format, little_endian, dialect, &data);
+                let data = WriteData {
+                    data_format,
+                    little_endian,
+                    dialect,
+                    body: &data,
+                    received_us,
+                };
+                let result = self.write(key, &r, data);
                 if let Some(p) = position.filter(|p| stream_id::is_reliable(p.stream_id)) {
                     let recorded = self
                         .frontends
@@ -272,7 +280,7 @@ impl<L: WorkerLink> Worker<L> {
         if let EntityKind::Writer { rematch, .. } = &mut e.kind {
             // Samples it still holds were numbered by the predecessor: as old as any.
             for h in rematch.held.iter_mut() {
-                h.0 = 0;
+                h.seq = 0;
             }
         }
         self.frontends.adoption.adopted(key.0);

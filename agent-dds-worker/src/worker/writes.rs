@@ -56,6 +56,18 @@ pub(super) const SHARE_GROUP: usize = 32;
 /// type: the domain, topic name, type name and byte order.
 pub(super) type SharedWriterKey = (u16, String, String, bool);
 
+/// A sample a writer holds for its readers.
+pub(super) struct HeldSample {
+    /// The front-end operation that wrote it.
+    pub(super) seq: u64,
+    pub(super) sample: Sample,
+    /// It disposes (or unregisters) its instance.
+    pub(super) dispose: bool,
+    /// When its front-end took it from the client ([`ipc::Request::Write`]'s
+    /// `received_us`): the release keeps the spacing.
+    pub(super) received_us: u64,
+}
+
 /// A new writer holds its writes until it has matched readers: volatile readers only get
 /// samples written after they matched a writer, and DDS discovery takes 0.1–0.4 s here.
 /// Without this, a client's first samples (the reference agent delivers them inside one Fast
@@ -66,8 +78,8 @@ pub(super) struct Rematch {
     pub(super) until: Option<Instant>,
     /// When the writer first matched a reader again.
     pub(super) matched_at: Option<Instant>,
-    /// Held writes: (front-end operation sequence number, sample, is a dispose).
-    pub(super) held: std::collections::VecDeque<(u64, Sample, bool)>,
+    /// Held writes, oldest first.
+    pub(super) held: std::collections::VecDeque<HeldSample>,
     /// Bytes of the held samples.
     pub(super) held_bytes: usize,
     /// Matched: the held samples are being written in batches (new writes still queue behind
@@ -82,12 +94,37 @@ pub(super) struct Rematch {
     pub(super) expected: u8,
     /// The matched count last reported to the front-end.
     pub(super) reported: Option<u8>,
+    /// Where the release's schedule starts: when the writer began to drain, and the
+    /// reception time of the sample it held first then ([`RELEASE_CATCH_UP`]).
+    pub(super) schedule: Option<(Instant, u64)>,
+    /// The worker stops: what is held goes out as fast as the readers acknowledge.
+    pub(super) rush: bool,
 }
 
 /// Held samples written per batch while a writer drains: a whole backlog at once would
 /// overrun the writer's keep-last history before its reader acknowledged (RustDDS then drops
 /// the oldest), which lost samples after a worker restart.
 pub(super) const RELEASE_BATCH: usize = 16;
+
+/// How much faster than they came held samples are written: a sample received `d` after
+/// the first one held is written `d / RELEASE_CATCH_UP` after the writer began to drain.
+/// The readers see at most twice the rate the clients wrote at (a burst of a second's
+/// samples overran readers that keep the last 1,000), and a writer that held for `h` has
+/// caught up with its clients `h` after it began to drain.
+pub(super) const RELEASE_CATCH_UP: u64 = 4;
+
+/// Longest delay the schedule gives one held sample (reception times from another process
+/// of the front-end, after a takeover, do not space like the rest).
+pub(super) const RELEASE_SCHEDULE_MAX: Duration = Duration::from_secs(2);
+
+/// Held samples written per worker pass, over every writer (the loop passes every
+/// millisecond while writers drain). After a worker restart a hundred writers may each hold
+/// a second's samples; released together, as one burst, they overran the history of the
+/// readers that keep the last 1,000 (this worker's own readers are taken only at the next
+/// pass): a quarter of what was held was lost while every writer had its readers back.
+/// Below [`PUMP_BATCH`](super::reads::PUMP_BATCH), what this worker's readers receive in a
+/// pass is taken in the next.
+pub(super) const RELEASE_PASS_MAX: usize = 64;
 
 /// The next batch waits until the readers acknowledged the previous one, at most this long
 /// (the loop's pace while draining, so readers that acknowledge only on heartbeats do not
@@ -124,17 +161,33 @@ pub(super) const REMATCH_HELD_MAX: usize = 65_536;
 /// Most bytes one holding writer keeps (the same rule).
 pub(super) const REMATCH_HELD_MAX_BYTES: usize = 32 << 20;
 
+/// The data of one WRITE_DATA, as a front-end handed it over.
+pub(super) struct WriteData<'a> {
+    /// Its XRCE DataFormat.
+    pub(super) data_format: u8,
+    pub(super) little_endian: bool,
+    pub(super) dialect: Dialect,
+    /// The bytes after the WRITE_DATA's BaseObjectRequest.
+    pub(super) body: &'a [u8],
+    /// When its front-end received it (`ipc::Request::Write`'s `received_us`).
+    pub(super) received_us: u64,
+}
+
 impl<L: WorkerLink> Worker<L> {
     /// Publishes the samples of one WRITE_DATA (one, or several in the sequence formats).
     pub(super) fn write(
         &mut self,
         key: EntityKey,
         route: &Route,
-        data_format: u8,
-        little_endian: bool,
-        dialect: Dialect,
-        body: &[u8],
+        data: WriteData<'_>,
     ) -> Result<(), OpError> {
+        let WriteData {
+            data_format,
+            little_endian,
+            dialect,
+            body,
+            received_us,
+        } = data;
         // Without a type description the end of a sample is the end of the submessage, so
         // a sequence can be split only when it holds one sample; with it, the type says
         // where each sample ends.
@@ -188,7 +241,7 @@ impl<L: WorkerLink> Worker<L> {
                 _ => None,
             };
             let data = rebased.as_deref().unwrap_or(s.data);
-            self.write_one(key, route.op_seq, little_endian, data, dispose)?;
+            self.write_one(key, route.op_seq, received_us, little_endian, data, dispose)?;
             self.samples_written += 1;
         }
         Ok(())
@@ -198,6 +251,7 @@ impl<L: WorkerLink> Worker<L> {
         &mut self,
         key: EntityKey,
         seq: u64,
+        received_us: u64,
         little_endian: bool,
         body: &[u8],
         dispose: bool,
@@ -248,7 +302,12 @@ impl<L: WorkerLink> Worker<L> {
                 && rematch.held_bytes + sample.body.len() <= REMATCH_HELD_MAX_BYTES
             {
                 rematch.held_bytes += sample.body.len();
-                rematch.held.push_back((seq, sample, dispose));
+                rematch.held.push_back(HeldSample {
+                    seq,
+                    sample,
+                    dispose,
+                    received_us,
+                });
                 return Ok(());
             }
             // Bounded: a writer that would hold more stops waiting for its readers.
@@ -298,11 +357,17 @@ impl<L: WorkerLink> Worker<L> {
         &mut self,
         key: EntityKey,
         w: &Rc<DdsWriter>,
-        held: std::collections::VecDeque<(u64, Sample, bool)>,
+        held: std::collections::VecDeque<HeldSample>,
         now: Instant,
     ) {
         let mut failures = 0;
-        for (seq, s, dispose) in held {
+        for HeldSample {
+            seq,
+            sample: s,
+            dispose,
+            ..
+        } in held
+        {
             let done = if dispose {
                 w.raw.dispose(&s)
             } else {
@@ -355,8 +420,29 @@ impl<L: WorkerLink> Worker<L> {
                 if rematch.until.is_some_and(|until| until > now) {
                     rematch.until = Some(now);
                 }
+                rematch.rush = true;
             }
         }
+    }
+
+    /// When the next held sample of a draining writer is due (None: none drains).
+    pub(super) fn next_release(&self) -> Option<Instant> {
+        self.writers
+            .holding
+            .iter()
+            .filter_map(|k| match self.entities.value(k) {
+                Some(Entity {
+                    kind: EntityKind::Writer { rematch: r, .. },
+                    ..
+                }) if r.draining => Some(match (r.schedule, r.held.front()) {
+                    (Some((start, first)), Some(h)) if !r.rush => {
+                        start + release_delay(first, h.received_us)
+                    }
+                    _ => self.now,
+                }),
+                _ => None,
+            })
+            .min()
     }
 
     /// Samples holding writers keep.
@@ -381,6 +467,8 @@ impl<L: WorkerLink> Worker<L> {
         let mut done = Vec::new();
         // Front-ends whose held writes advanced: their progress is sent.
         let mut released = Vec::new();
+        // Held samples written in this pass, over every writer.
+        let mut budget = RELEASE_PASS_MAX;
         for key in &self.writers.holding {
             let Some(Entity {
                 kind:
@@ -416,8 +504,12 @@ impl<L: WorkerLink> Worker<L> {
             if ready && !rematch.draining {
                 // Debug: with many clients every new writer passes here once.
                 tracing::debug!(
+                    client = %key.1,
                     held = rematch.held.len(),
                     matched = rematch.matched_at.is_some(),
+                    readers = w.matched.get(),
+                    expected = rematch.expected,
+                    first = rematch.held.front().map(|h| h.seq),
                     "holding writer resumes"
                 );
                 rematch.draining = true;
@@ -431,17 +523,41 @@ impl<L: WorkerLink> Worker<L> {
             let paced = rematch.last_batch.is_some_and(|t| {
                 now.saturating_duration_since(t) < wait && !w.raw.all_acknowledged()
             });
-            if rematch.draining && !paced {
+            // Samples the schedule lets out by now.
+            let due = if !rematch.draining {
+                0
+            } else if rematch.rush {
+                rematch.held.len()
+            } else {
+                let (start, first) = *rematch.schedule.get_or_insert_with(|| {
+                    (now, rematch.held.front().map_or(0, |h| h.received_us))
+                });
+                rematch
+                    .held
+                    .iter()
+                    .take(RELEASE_BATCH)
+                    .take_while(|h| now >= start + release_delay(first, h.received_us))
+                    .count()
+            };
+            // (A writer that holds nothing any more is done at once.)
+            if rematch.draining && !paced && budget > 0 && (due > 0 || rematch.held.is_empty()) {
                 let batch = if rematch.last_batch.is_none() {
                     1
                 } else {
                     rematch.probed = true;
-                    RELEASE_BATCH
+                    RELEASE_BATCH.min(budget).min(due)
                 };
+                budget -= batch.min(rematch.held.len());
                 rematch.last_batch = Some(now);
                 released.push(key.0);
                 for _ in 0..batch {
-                    let Some((seq, sample, dispose)) = rematch.held.pop_front() else {
+                    let Some(HeldSample {
+                        seq,
+                        sample,
+                        dispose,
+                        ..
+                    }) = rematch.held.pop_front()
+                    else {
                         break;
                     };
                     rematch.held_bytes = rematch.held_bytes.saturating_sub(sample.body.len());
@@ -462,6 +578,7 @@ impl<L: WorkerLink> Worker<L> {
                 if rematch.held.is_empty() {
                     rematch.until = None;
                     rematch.draining = false;
+                    rematch.schedule = None;
                     tracing::debug!("holding writer drained");
                     done.push(*key);
                 }
@@ -521,14 +638,21 @@ impl<L: WorkerLink> Worker<L> {
             .filter_map(|k| Some((k, self.entities.get(k)?)))
         {
             if let EntityKind::Writer { rematch: r, .. } = &e.kind {
-                if let Some((seq, _, _)) = r.held.front() {
-                    let v = m.entry(k.0).or_insert(*seq);
-                    *v = (*v).min(*seq);
+                if let Some(h) = r.held.front() {
+                    let v = m.entry(k.0).or_insert(h.seq);
+                    *v = (*v).min(h.seq);
                 }
             }
         }
         m
     }
+}
+
+/// How long after a writer began to drain a held sample received at `received_us` is
+/// written, when the first sample it held then was received at `first_us`.
+pub(super) fn release_delay(first_us: u64, received_us: u64) -> Duration {
+    Duration::from_micros(received_us.saturating_sub(first_us) / RELEASE_CATCH_UP)
+        .min(RELEASE_SCHEDULE_MAX)
 }
 
 /// Writes one sample to DDS: once, unless a fault injected on purpose (`xrce_common::fault`,

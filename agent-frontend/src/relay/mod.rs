@@ -232,6 +232,8 @@ pub struct Relay<L> {
     /// Bytes of queued operations before new ones are refused ([`OUTBOX_MAX_BYTES`] unless
     /// a memory budget says less).
     outbox_max_bytes: usize,
+    /// The instant reception times count from ([`Relay::received_us`]).
+    clock_origin: Option<Instant>,
 }
 
 /// `request` of `client` about the object and XRCE request of `base`.
@@ -284,7 +286,15 @@ impl<L: Link> Relay<L> {
             object_budget: ObjectBudget::new(BudgetSplit::of(DEFAULT_MEMORY_BUDGET).objects),
             object_budget_episodes: Episodes::default(),
             outbox_max_bytes: OUTBOX_MAX_BYTES,
+            clock_origin: None,
         }
+    }
+
+    /// Microseconds from the first operation this relay took to `now`: the reception time
+    /// a write carries to the worker (only spacings between them matter there).
+    fn received_us(&mut self, now: Instant) -> u64 {
+        let origin = *self.clock_origin.get_or_insert(now);
+        u64::try_from(now.saturating_duration_since(origin).as_micros()).unwrap_or(u64::MAX)
     }
 
     /// The link requests go over.

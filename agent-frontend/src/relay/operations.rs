@@ -181,6 +181,7 @@ impl<L: Link> Relay<L> {
                     dialect,
                     status_requested,
                     position,
+                    received_us: self.received_us(now),
                 };
                 let mut m = message(fe, client, data.base, write);
                 let reliable = stream_id::is_reliable(stream);

@@ -52,9 +52,12 @@ mod flag {
     pub(super) const UNREGISTERED: u8 = 0x20;
     /// Any request: see [`crate::RequestMessage::progress_can_wait`].
     pub(super) const PROGRESS_CAN_WAIT: u8 = 0x40;
-    /// Write: the body starts with the write's [`super::InputPosition`].
+    /// Write: the body holds the write's [`super::InputPosition`] after its reception time.
     pub(super) const POSITION: u8 = 0x80;
 }
+
+/// Bytes of a Write's reception time, at the start of its body (little endian).
+const RECEIVED_LEN: usize = 8;
 
 /// Bytes of an [`InputPosition`] in a body: the stream, then the message's sequence number,
 /// the write's index in it and the epoch of the streams, little endian.
@@ -146,6 +149,12 @@ impl<'a> RequestMessage<'a> {
             },
             kind::DELETE => empty(Request::Delete)?,
             kind::WRITE => {
+                let (received, body) =
+                    body.split_first_chunk::<RECEIVED_LEN>()
+                        .ok_or(IpcError::Body {
+                            kind: h.kind,
+                            len: body.len(),
+                        })?;
                 let (position, data) = if has(flag::POSITION) {
                     let (p, data) =
                         body.split_first_chunk::<POSITION_LEN>()
@@ -168,6 +177,7 @@ impl<'a> RequestMessage<'a> {
                     },
                     status_requested: has(flag::STATUS_REQUESTED),
                     position,
+                    received_us: u64::from_le_bytes(*received),
                 }
             }
             kind::READ => Request::Read {
@@ -248,28 +258,40 @@ impl<'a> RequestMessage<'a> {
 }
 
 impl RequestMessage<'_> {
-    /// The position in front of a Write's data, if it has one.
-    fn position(&self) -> Option<&InputPosition> {
+    /// What a Write's body carries in front of its data: when it was received, and its
+    /// position if it has one.
+    fn write_prefix(&self) -> Option<(u64, Option<&InputPosition>)> {
         match &self.request {
-            Request::Write { position, .. } => position.as_ref(),
+            Request::Write {
+                position,
+                received_us,
+                ..
+            } => Some((*received_us, position.as_ref())),
             _ => None,
         }
+    }
+
+    fn prefix_len(&self) -> usize {
+        self.write_prefix()
+            .map_or(0, |(_, p)| RECEIVED_LEN + p.map_or(0, |_| POSITION_LEN))
     }
 }
 
 impl Encode for RequestMessage<'_> {
     fn encoded_len(&self) -> usize {
-        let prefix = self.position().map_or(0, |_| POSITION_LEN);
-        HEADER_LEN + prefix + self.request.body().len()
+        HEADER_LEN + self.prefix_len() + self.request.body().len()
     }
 
     fn encode_into(&self, out: &mut [u8]) {
         let body = self.request.body();
-        let position = self.position();
-        let prefix = position.map_or(0, |_| POSITION_LEN);
+        let prefix = self.prefix_len();
         self.header().write(out, prefix + body.len());
-        if let Some(p) = position {
-            write_position(p, &mut out[HEADER_LEN..HEADER_LEN + POSITION_LEN]);
+        if let Some((received, position)) = self.write_prefix() {
+            let at = HEADER_LEN + RECEIVED_LEN;
+            out[HEADER_LEN..at].copy_from_slice(&received.to_le_bytes());
+            if let Some(p) = position {
+                write_position(p, &mut out[at..at + POSITION_LEN]);
+            }
         }
         out[HEADER_LEN + prefix..].copy_from_slice(body);
     }

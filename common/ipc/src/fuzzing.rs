@@ -64,6 +64,7 @@ pub fn ipc_seeds() -> Vec<(String, Vec<u8>)> {
                 write_index: 3,
                 epoch: 0x0001_0002_0003_0004,
             }),
+            received_us: 0x0102_0304_0506,
         },
         Request::Read {
             spec: Cow::Borrowed(&[0x80, 0x00, 0x00, 0x00][..]),

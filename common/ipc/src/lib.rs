@@ -42,7 +42,7 @@ pub use message::{
 };
 
 /// Version of this contract; both sides drop (and log) messages of another version.
-pub const IPC_VERSION: u16 = 8;
+pub const IPC_VERSION: u16 = 9;
 /// Magic at the start of every message.
 pub const IPC_MAGIC: [u8; 4] = *b"XRIP";
 

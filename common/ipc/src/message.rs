@@ -105,6 +105,10 @@ pub enum Request<'a> {
         /// stream): the worker answers a successor's hello with the last one it executed
         /// ([`Reply::Executed`]).
         position: Option<InputPosition>,
+        /// When the front-end took it from its client, in microseconds of that front-end
+        /// process's clock: a writer that held samples for its readers (after a worker
+        /// restart) writes them with the spacing they came with, not as one burst.
+        received_us: u64,
     },
     /// Start or replace a read.
     Read {
@@ -151,6 +155,7 @@ impl Request<'_> {
                 dialect,
                 status_requested,
                 position,
+                received_us,
             } => Request::Write {
                 data: own(data),
                 data_format,
@@ -158,6 +163,7 @@ impl Request<'_> {
                 dialect,
                 status_requested,
                 position,
+                received_us,
             },
             Request::Read { spec, replay } => Request::Read {
                 spec: own(spec),
@@ -195,6 +201,7 @@ impl Request<'_> {
                 dialect,
                 status_requested,
                 position,
+                received_us,
             } => Request::Write {
                 data: view(data),
                 data_format: *data_format,
@@ -202,6 +209,7 @@ impl Request<'_> {
                 dialect: *dialect,
                 status_requested: *status_requested,
                 position: *position,
+                received_us: *received_us,
             },
             Request::Read { spec, replay } => Request::Read {
                 spec: view(spec),

@@ -57,8 +57,9 @@ fn request() -> impl Strategy<Value = Request<'static>> {
             any::<bool>(),
             any::<bool>(),
             proptest::option::of(position()),
+            any::<u64>(),
         )
-            .prop_map(|(d, f, le, spec, st, p)| Request::Write {
+            .prop_map(|(d, f, le, spec, st, p, r)| Request::Write {
                 data: d,
                 data_format: f,
                 little_endian: le,
@@ -69,6 +70,7 @@ fn request() -> impl Strategy<Value = Request<'static>> {
                 },
                 status_requested: st,
                 position: p,
+                received_us: r,
             }),
         (bytes(), any::<bool>()).prop_map(|(s, r)| Request::Read { spec: s, replay: r }),
         Just(Request::DeleteClient),
@@ -185,27 +187,33 @@ fn the_layout_is_the_contract() {
                 sequence: 0x1234,
                 write_index: 2,
             }),
+            received_us: 0x1122_3344_5566,
         },
     };
     let mut expected = b"XRIP".to_vec();
-    expected.extend_from_slice(&[8, 0, 4, 0x01 | 0x04 | 0x08 | 0x40 | 0x80]);
+    expected.extend_from_slice(&[9, 0, 4, 0x01 | 0x04 | 0x08 | 0x40 | 0x80]);
     expected.extend_from_slice(&7u32.to_le_bytes());
     expected.extend_from_slice(&3u32.to_le_bytes());
     expected.extend_from_slice(&(1u64 << 40).to_le_bytes());
     expected.extend_from_slice(&[1, 2, 3, 4, 0, 9]);
     expected.extend_from_slice(&ObjectId::new(1, 5).0);
-    expected.extend_from_slice(&17u32.to_le_bytes());
+    expected.extend_from_slice(&25u32.to_le_bytes());
     expected.extend_from_slice(&[0x0A, 0, 0xEF, 0xBE]);
+    expected.extend_from_slice(&0x1122_3344_5566u64.to_le_bytes());
     expected.extend_from_slice(&[0x80, 0x34, 0x12, 2, 0, 8, 7, 6, 5, 4, 3, 2, 1]);
     expected.extend_from_slice(b"body");
     assert_eq!(m.encode(), expected);
-    // A Write flagged with a position too short to hold one is refused.
-    let mut short = expected[..HEADER_LEN + 3].to_vec();
-    short[32..36].copy_from_slice(&3u32.to_le_bytes());
-    assert_eq!(
-        RequestMessage::decode(&short),
-        Err(IpcError::Body { kind: 4, len: 3 })
-    );
+    // A Write flagged with a position too short to hold one is refused, and so is one too
+    // short for its reception time.
+    for len in [11, 3] {
+        let mut short = expected[..HEADER_LEN + len].to_vec();
+        short[32..36].copy_from_slice(&(len as u32).to_le_bytes());
+        let refused = RequestMessage::decode(&short);
+        assert!(
+            matches!(refused, Err(IpcError::Body { kind: 4, .. })),
+            "{len}: {refused:?}"
+        );
+    }
 }
 
 #[test]

@@ -269,6 +269,7 @@ fn positioned_write(stream: u8, sequence: u16, index: u16) -> Request<'static> {
             sequence,
             write_index: index,
         }),
+        received_us: 0,
     }
 }
 

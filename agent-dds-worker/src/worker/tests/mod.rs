@@ -250,7 +250,7 @@ fn released_unacknowledged(n: u64) -> Harness {
     let mut t = reader_and_new_writer();
     for i in 0..n {
         t.worker
-            .write_one((FE, CLIENT, WRITER), i, true, &keyed(i as i32, 0), false)
+            .write_one((FE, CLIENT, WRITER), i, 0, true, &keyed(i as i32, 0), false)
             .expect("write");
     }
     assert!(t.bus.written.borrow().is_empty());
@@ -281,6 +281,94 @@ fn a_released_writer_sends_one_sample_first_and_the_rest_once_it_was_acknowledge
     );
 }
 
+/// Held samples go out with the spacing their front-end received them with, faster by
+/// [`RELEASE_CATCH_UP`]: a second's worth is not one burst for the readers.
+#[test]
+fn held_samples_are_released_with_the_spacing_they_came_with() {
+    let mut t = reader_and_new_writer();
+    // Received 100 ms apart.
+    for i in 0..5 {
+        t.worker
+            .write_one(
+                (FE, CLIENT, WRITER),
+                i,
+                i * 100_000,
+                true,
+                &keyed(i as i32, 0),
+                false,
+            )
+            .expect("write");
+    }
+    t.matched_long_ago(CLIENT, WRITER);
+    let step = Duration::from_millis(100 / RELEASE_CATCH_UP);
+    // The first at once; the next one step after.
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 1);
+    assert_eq!(t.worker.next_release(), Some(t.worker.now + step));
+    for n in 2..=5 {
+        t.advance(step - Duration::from_millis(1));
+        t.worker.release_rematched();
+        assert_eq!(t.bus.samples_on(TOPIC).len(), n - 1, "not yet due");
+        t.advance(Duration::from_millis(1));
+        t.worker.release_rematched();
+        assert_eq!(t.bus.samples_on(TOPIC).len(), n);
+    }
+    assert!(t.worker.writers.holding.is_empty());
+    assert_eq!(t.worker.next_release(), None);
+}
+
+/// Many writers draining at once write at most [`RELEASE_PASS_MAX`] held samples in a
+/// pass, all of them in turn, each writer's in order.
+#[test]
+fn a_pass_releases_a_bounded_number_of_held_samples_over_all_writers() {
+    let mut t = Harness::new(false);
+    t.participant(CLIENT);
+    t.reader(CLIENT, READER, &reader_xml(TOPIC, "NO_KEY"))
+        .expect("reader");
+    let writers: Vec<ObjectId> = (0..8)
+        .map(|i| ObjectId::new(10 + i, object_kind::DATAWRITER))
+        .collect();
+    for (n, w) in writers.iter().enumerate() {
+        t.writer(CLIENT, *w, &writer_xml(TOPIC, "NO_KEY", "VOLATILE"))
+            .expect("writer");
+        for i in 0..16u64 {
+            let seq = n as u64 * 100 + i;
+            t.worker
+                .write_one((FE, CLIENT, *w), seq, 0, true, &keyed(seq as i32, 0), false)
+                .expect("write");
+        }
+    }
+    for w in &writers {
+        t.matched_long_ago(CLIENT, *w);
+    }
+    let mut passes = 0;
+    let mut before = t.bus.samples_on(TOPIC).len();
+    while !t.worker.writers.holding.is_empty() {
+        t.worker.release_rematched();
+        let now = t.bus.samples_on(TOPIC).len();
+        assert!(
+            now - before <= RELEASE_PASS_MAX,
+            "{} in one pass",
+            now - before
+        );
+        before = now;
+        passes += 1;
+        assert!(passes < 100, "the writers drain");
+    }
+    let written = t.bus.samples_on(TOPIC);
+    assert_eq!(written.len(), 8 * 16);
+    for n in 0..8 {
+        let mine: Vec<_> = written
+            .iter()
+            .filter(|s| (n * 100..n * 100 + 16).any(|seq| **s == keyed(seq, 0)))
+            .cloned()
+            .collect();
+        assert_eq!(
+            mine,
+            (0..16).map(|i| keyed(n * 100 + i, 0)).collect::<Vec<_>>()
+        );
+    }
+}
+
 /// A reader that never acknowledges holds the release up only so long.
 #[test]
 fn an_unacknowledged_first_sample_holds_the_rest_back_only_briefly() {
@@ -300,7 +388,7 @@ fn a_stopping_worker_releases_what_its_writers_hold() {
     let mut t = reader_and_new_writer();
     for i in 0..3 {
         t.worker
-            .write_one((FE, CLIENT, WRITER), i, true, &keyed(i as i32, 0), false)
+            .write_one((FE, CLIENT, WRITER), i, 0, true, &keyed(i as i32, 0), false)
             .expect("write");
     }
     assert!(t.bus.written.borrow().is_empty());
@@ -324,7 +412,7 @@ fn a_writer_holds_until_matched_then_its_samples_reach_a_reader_in_order() {
     t.read(CLIENT, READER);
     for i in 0..3 {
         t.worker
-            .write_one((FE, CLIENT, WRITER), i, true, &keyed(i as i32, 0), false)
+            .write_one((FE, CLIENT, WRITER), i, 0, true, &keyed(i as i32, 0), false)
             .expect("write");
     }
     // New writers hold their first samples until their readers matched a while.
@@ -418,7 +506,7 @@ fn disposes_need_a_key_and_reach_the_backend_in_order_with_writes() {
         .expect("keyless");
     let err = t
         .worker
-        .write_one((FE, CLIENT, WRITER), 1, true, &keyed(1, 1), true)
+        .write_one((FE, CLIENT, WRITER), 1, 0, true, &keyed(1, 1), true)
         .expect_err("a dispose without a key");
     assert_eq!(err.status(), status::ERR_INCOMPATIBLE);
     let keyed_writer = ObjectId::new(2, object_kind::DATAWRITER);
@@ -434,14 +522,14 @@ fn disposes_need_a_key_and_reach_the_backend_in_order_with_writes() {
     // A sample that is not of the topic's type is refused at once, not when released.
     let err = t
         .worker
-        .write_one(key, 2, true, &[1, 2], false)
+        .write_one(key, 2, 0, true, &[1, 2], false)
         .expect_err("not a Keyed");
     assert_eq!(err.status(), status::ERR_INVALID_DATA);
     t.worker
-        .write_one(key, 3, true, &keyed(5, 50), false)
+        .write_one(key, 3, 0, true, &keyed(5, 50), false)
         .expect("write");
     t.worker
-        .write_one(key, 4, true, &keyed(5, 0), true)
+        .write_one(key, 4, 0, true, &keyed(5, 0), true)
         .expect("dispose");
     t.matched_long_ago(CLIENT, keyed_writer);
     let written: Vec<(bool, Vec<u8>)> = t

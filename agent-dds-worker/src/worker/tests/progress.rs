@@ -11,6 +11,7 @@ fn write(sample: &[u8]) -> Request<'_> {
         dialect: Dialect::Eprosima,
         status_requested: false,
         position: None,
+        received_us: 0,
     }
 }
 

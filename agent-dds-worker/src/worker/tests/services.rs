@@ -46,10 +46,13 @@ impl Harness {
             .write(
                 (FE, client, id),
                 &route,
-                xrce_common::wire::data_format::DATA,
-                true,
-                Dialect::Eprosima,
-                body,
+                WriteData {
+                    data_format: xrce_common::wire::data_format::DATA,
+                    little_endian: true,
+                    dialect: Dialect::Eprosima,
+                    body,
+                    received_us: 0,
+                },
             )
             .expect("write");
     }
@@ -193,14 +196,14 @@ fn a_flooded_reader_does_not_keep_the_reader_of_another_client_waiting() {
     let flood = 8 * PUMP_BATCH as u64;
     for i in 0..flood {
         t.worker
-            .write_one((FE, CLIENT, WRITER), i, true, &keyed(i as i32, 0), false)
+            .write_one((FE, CLIENT, WRITER), i, 0, true, &keyed(i as i32, 0), false)
             .expect("write");
     }
     // A first round fills the front-end's queue with the flood alone.
     t.worker.pump_readers().expect("pump");
     t.worker.flush();
     t.worker
-        .write_one((FE, OTHER, WRITER), 0, true, &keyed(-1, 7), false)
+        .write_one((FE, OTHER, WRITER), 0, 0, true, &keyed(-1, 7), false)
         .expect("write");
     let mut got: Vec<Vec<u8>> = Vec::new();
     for _ in 0..64 {
