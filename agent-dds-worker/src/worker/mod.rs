@@ -225,6 +225,11 @@ struct Writers {
     /// Writers holding their samples until matched (kept apart so that the loop never scans
     /// every entity: with thousands of clients that scan dominated the worker's CPU).
     holding: HashSet<EntityKey>,
+    /// Where the next release pass starts among the holding writers (it turns, so that no
+    /// writer waits behind the others' whole backlogs).
+    release_turn: usize,
+    /// When held samples were last released (the pass budget grows with the time since).
+    last_release: Option<Instant>,
     /// DDS writers with writes their readers may not have acknowledged.
     acks: AckTracker<DdsWriter>,
     /// DDS writers shared by XRCE writers (`share_writers`), with the QoS and type they
@@ -247,6 +252,8 @@ impl Writers {
     fn new(now: Instant) -> Self {
         Writers {
             holding: HashSet::new(),
+            release_turn: 0,
+            last_release: None,
             acks: AckTracker::new(now),
             shared: HashMap::new(),
             retiring: std::collections::VecDeque::new(),
@@ -577,14 +584,23 @@ impl<L: WorkerLink> Worker<L> {
     }
 
     fn timeout_without_acks(&self, now: Instant) -> i32 {
-        if !self.writers.holding.is_empty() {
-            // A draining writer's next sample is due at its time (at least 1 ms on: the
-            // pace between batches); the others look for their readers every 20 ms.
-            return match self.next_release() {
-                Some(due) => (due.saturating_duration_since(now).as_millis() as i32).clamp(1, 20),
-                None => 20,
-            };
+        // A draining writer's next sample is due at its time (at least 1 ms on: the pace
+        // between batches); the others look for their readers every 20 ms.
+        let holding = (!self.writers.holding.is_empty()).then(|| match self.next_release() {
+            Some(due) => (due.saturating_duration_since(now).as_millis() as i32).clamp(1, 20),
+            None => 20,
+        });
+        let rest = self.timeout_for_ports_and_reads(now);
+        match (holding, rest) {
+            (Some(h), r) if r < 0 => h,
+            (Some(h), r) => h.min(r),
+            (None, r) => r,
         }
+    }
+
+    /// The timeout the front-ends' queues, the reads' deadlines and pacing, the ROS graph
+    /// and the census ask for (-1: none).
+    fn timeout_for_ports_and_reads(&self, now: Instant) -> i32 {
         let waiting = self
             .frontends
             .ports

@@ -107,23 +107,25 @@ pub(super) struct Rematch {
 pub(super) const RELEASE_BATCH: usize = 16;
 
 /// How much faster than they came held samples are written: a sample received `d` after
-/// the first one held is written `d / RELEASE_CATCH_UP` after the writer began to drain.
-/// The readers see at most twice the rate the clients wrote at (a burst of a second's
-/// samples overran readers that keep the last 1,000), and a writer that held for `h` has
-/// caught up with its clients `h` after it began to drain.
+/// the first one held is written `d / RELEASE_CATCH_UP` after the writer began to drain
+/// (within the batches and the pass budget below). A burst of a second's samples overran
+/// readers that keep the last 1,000; with 4 the readers see at most about four times the
+/// rate the clients wrote at, and a writer that held for `h` has caught up with its
+/// clients `h / 3` after it began to drain. (2 was too slow in a crash loop: the backlog
+/// outlived each worker, measured in BENCHMARKS.)
 pub(super) const RELEASE_CATCH_UP: u64 = 4;
 
 /// Longest delay the schedule gives one held sample (reception times from another process
 /// of the front-end, after a takeover, do not space like the rest).
 pub(super) const RELEASE_SCHEDULE_MAX: Duration = Duration::from_secs(2);
 
-/// Held samples written per worker pass, over every writer (the loop passes every
-/// millisecond while writers drain). After a worker restart a hundred writers may each hold
-/// a second's samples; released together, as one burst, they overran the history of the
+/// Held samples written per millisecond since the last release, over every writer
+/// (the writers take turns). After a worker restart a hundred writers may each hold a
+/// second's samples; released together, as one burst, they overran the history of the
 /// readers that keep the last 1,000 (this worker's own readers are taken only at the next
 /// pass): a quarter of what was held was lost while every writer had its readers back.
 /// Below [`PUMP_BATCH`](super::reads::PUMP_BATCH), what this worker's readers receive in a
-/// pass is taken in the next.
+/// pass is taken in the next. A stopping worker's writers are not held to it.
 pub(super) const RELEASE_PASS_MAX: usize = 64;
 
 /// The next batch waits until the readers acknowledged the previous one, at most this long
@@ -467,9 +469,21 @@ impl<L: WorkerLink> Worker<L> {
         let mut done = Vec::new();
         // Front-ends whose held writes advanced: their progress is sent.
         let mut released = Vec::new();
-        // Held samples written in this pass, over every writer.
-        let mut budget = RELEASE_PASS_MAX;
-        for key in &self.writers.holding {
+        // Held samples written in this pass, over every writer: RELEASE_PASS_MAX per
+        // millisecond since the last release pass (passes are not evenly spaced).
+        let elapsed_ms = self.writers.last_release.map_or(1, |t| {
+            now.saturating_duration_since(t).as_millis().clamp(1, 16) as usize
+        });
+        let mut budget = RELEASE_PASS_MAX * elapsed_ms;
+        let mut spent = false;
+        // In turns: the first writer of this pass is the second of the last one.
+        let mut order: Vec<EntityKey> = self.writers.holding.iter().copied().collect();
+        if !order.is_empty() {
+            let turn = self.writers.release_turn % order.len();
+            order.rotate_left(turn);
+            self.writers.release_turn = turn + 1;
+        }
+        for key in &order {
             let Some(Entity {
                 kind:
                     EntityKind::Writer {
@@ -528,26 +542,32 @@ impl<L: WorkerLink> Worker<L> {
                 0
             } else if rematch.rush {
                 rematch.held.len()
-            } else {
-                let (start, first) = *rematch.schedule.get_or_insert_with(|| {
-                    (now, rematch.held.front().map_or(0, |h| h.received_us))
-                });
+            } else if let Some(front) = rematch.held.front() {
+                let (start, first) = *rematch.schedule.get_or_insert((now, front.received_us));
                 rematch
                     .held
                     .iter()
                     .take(RELEASE_BATCH)
                     .take_while(|h| now >= start + release_delay(first, h.received_us))
                     .count()
+            } else {
+                0
             };
-            // (A writer that holds nothing any more is done at once.)
-            if rematch.draining && !paced && budget > 0 && (due > 0 || rematch.held.is_empty()) {
+            // (A writer that holds nothing any more is done at once; a stopping worker's
+            // writers are not held to the pass budget.)
+            let room = budget > 0 || rematch.rush;
+            if rematch.draining && !paced && room && (due > 0 || rematch.held.is_empty()) {
                 let batch = if rematch.last_batch.is_none() {
                     1
+                } else if rematch.rush {
+                    rematch.probed = true;
+                    RELEASE_BATCH.min(due)
                 } else {
                     rematch.probed = true;
                     RELEASE_BATCH.min(budget).min(due)
                 };
-                budget -= batch.min(rematch.held.len());
+                budget = budget.saturating_sub(batch.min(rematch.held.len()));
+                spent = true;
                 rematch.last_batch = Some(now);
                 released.push(key.0);
                 for _ in 0..batch {
@@ -583,6 +603,9 @@ impl<L: WorkerLink> Worker<L> {
                     done.push(*key);
                 }
             }
+        }
+        if spent {
+            self.writers.last_release = Some(now);
         }
         for k in done {
             self.writers.holding.remove(&k);

@@ -290,8 +290,9 @@ impl<L: Link> Relay<L> {
         }
     }
 
-    /// Microseconds from the first operation this relay took to `now`: the reception time
-    /// a write carries to the worker (only spacings between them matter there).
+    /// Microseconds from the first write this relay took to `now`: the reception time a
+    /// write carries to the worker (only spacings between one process's writes matter
+    /// there).
     fn received_us(&mut self, now: Instant) -> u64 {
         let origin = *self.clock_origin.get_or_insert(now);
         u64::try_from(now.saturating_duration_since(origin).as_micros()).unwrap_or(u64::MAX)

@@ -316,10 +316,8 @@ fn held_samples_are_released_with_the_spacing_they_came_with() {
     assert_eq!(t.worker.next_release(), None);
 }
 
-/// Many writers draining at once write at most [`RELEASE_PASS_MAX`] held samples in a
-/// pass, all of them in turn, each writer's in order.
-#[test]
-fn a_pass_releases_a_bounded_number_of_held_samples_over_all_writers() {
+/// Eight writers holding 16 samples each, matched long enough ago.
+fn eight_holding_writers() -> Harness {
     let mut t = Harness::new(false);
     t.participant(CLIENT);
     t.reader(CLIENT, READER, &reader_xml(TOPIC, "NO_KEY"))
@@ -340,6 +338,14 @@ fn a_pass_releases_a_bounded_number_of_held_samples_over_all_writers() {
     for w in &writers {
         t.matched_long_ago(CLIENT, *w);
     }
+    t
+}
+
+/// Many writers draining at once write at most [`RELEASE_PASS_MAX`] held samples in a
+/// pass (the worker's time standing still), each writer's in order.
+#[test]
+fn a_pass_releases_a_bounded_number_of_held_samples_over_all_writers() {
+    let mut t = eight_holding_writers();
     let mut passes = 0;
     let mut before = t.bus.samples_on(TOPIC).len();
     while !t.worker.writers.holding.is_empty() {
@@ -367,6 +373,18 @@ fn a_pass_releases_a_bounded_number_of_held_samples_over_all_writers() {
             (0..16).map(|i| keyed(n * 100 + i, 0)).collect::<Vec<_>>()
         );
     }
+}
+
+/// A stopping worker's writers are held neither to the schedule nor to the pass budget: the
+/// drain has seconds, not the time the clients took.
+#[test]
+fn a_stopping_worker_releases_past_the_pass_budget() {
+    let mut t = eight_holding_writers();
+    t.worker.stop();
+    t.worker.release_rematched();
+    t.worker.release_rematched();
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 8 * 16);
+    assert!(t.worker.writers.holding.is_empty());
 }
 
 /// A reader that never acknowledges holds the release up only so long.
