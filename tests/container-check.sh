@@ -85,7 +85,7 @@ echo "container-check: runs as $user"
 case "$user" in
     uid=0*) fail "the image runs as root" ;;
 esac
-echo "$user" | grep -q '(dialout)' || fail "the image's user is not in dialout"
+grep -q '(dialout)' <<<"$user" || fail "the image's user is not in dialout"
 out=$("${R[@]}" sh -c 'timeout -s INT 8 /usr/bin/xrce-agent udp4 -p 18888 --bind 127.0.0.1 --dds-interface 127.0.0.1 2>&1; rm -rf "/dev/shm/xrce-agent-$(id -u)"' || true)
-echo "$out" | grep -q 'agent ready' || { echo "$out" | tail -20 >&2; fail "the agent in the image never got ready"; }
+grep -q 'agent ready' <<<"$out" || { echo "$out" | tail -20 >&2; fail "the agent in the image never got ready"; }
 echo "container-check: the recipe's runtime stage builds, runs as a non-root user and serves"

@@ -40,8 +40,8 @@ $sudo dpkg -i "$deb"
 
 version=$(/usr/bin/xrce-agent --version)
 echo "$version"
-echo "$version" | grep -q '^commit: ' || fail "--version names no commit"
-echo "$version" | grep -q '^DDS backends: cyclone' || fail "--version names no Cyclone DDS backend"
+grep -q '^commit: ' <<<"$version" || fail "--version names no commit"
+grep -q '^DDS backends: cyclone' <<<"$version" || fail "--version names no Cyclone DDS backend"
 [ -f /usr/share/man/man1/xrce-agent.1.gz ] || fail "no man page"
 [ -f /usr/share/bash-completion/completions/xrce-agent ] || fail "no bash completion"
 for doc in README.md BENCHMARKS.md docs/cli.md docs/gateway.md docs/usage.md docs/operations.md; do
