@@ -471,8 +471,13 @@ impl<L: WorkerLink> Worker<L> {
         let mut released = Vec::new();
         // Held samples written in this pass, over every writer: RELEASE_PASS_MAX per
         // millisecond since the last release pass (passes are not evenly spaced).
+        // At most PUMP_BATCH in all, so that this worker's readers take in their next pass
+        // what they receive in this one.
+        let most_ms = (super::reads::PUMP_BATCH / RELEASE_PASS_MAX).max(1) as u128;
         let elapsed_ms = self.writers.last_release.map_or(1, |t| {
-            now.saturating_duration_since(t).as_millis().clamp(1, 16) as usize
+            now.saturating_duration_since(t)
+                .as_millis()
+                .clamp(1, most_ms) as usize
         });
         let mut budget = RELEASE_PASS_MAX * elapsed_ms;
         let mut spent = false;
