@@ -6,6 +6,13 @@
 //! writer keeps the operations written through it and not known to be acknowledged
 //! ([`Outstanding`]); the [`AckTracker`] watches the writers that have some and tells, per
 //! front-end, the newest operation up to which everything was acknowledged.
+//!
+//! DDS acknowledgements cover other processes' readers only: a reader in this worker (an
+//! XRCE client's) counts as acknowledged at once (Cyclone DDS delivers to it inside the
+//! write), yet its samples die with the worker until they were taken and handed to the
+//! client's front-end. So each write also carries a stamp, the worker's count of recorded
+//! writes, and is done only once the worker's own readers of its topic were drained past
+//! that stamp (what the caller of [`AckTracker::poll`] says of each writer).
 
 use std::cell::RefCell;
 use std::collections::{HashMap, HashSet, VecDeque};
@@ -30,13 +37,26 @@ pub trait Acknowledging {
     fn outstanding(&self) -> &Outstanding;
 }
 
+/// One front-end operation written through a DDS writer.
+#[derive(Debug, Clone, Copy)]
+struct Written {
+    frontend: u32,
+    /// The front-end's operation number.
+    seq: u64,
+    /// When it was written.
+    at: Instant,
+    /// The writer's write count after it.
+    ordinal: u64,
+    /// The worker's count of recorded writes after it (over every writer).
+    stamp: u64,
+}
+
 /// Operations written through one DDS writer and not known to be acknowledged, in the order
 /// they were written (one front-end's in increasing order unless the writer is shared), each
 /// with its ordinal among the writer's writes.
 #[derive(Debug, Default)]
 pub struct Outstanding {
-    /// (front-end, operation, when, the writer's write count after it).
-    writes: RefCell<VecDeque<(u32, u64, Instant, u64)>>,
+    writes: RefCell<VecDeque<Written>>,
     /// The writes are not one front-end's in increasing order (a shared DDS writer: several
     /// front-ends, or several XRCE writers whose held samples are released in turns).
     mixed: std::cell::Cell<bool>,
@@ -44,36 +64,47 @@ pub struct Outstanding {
 
 impl Outstanding {
     /// Records that front-end `frontend`'s operation `seq` was written as the writer's
-    /// `ordinal`-th write; true if nothing was outstanding before (the writer must be watched
-    /// from now on).
-    pub fn record(&self, frontend: u32, seq: u64, now: Instant, ordinal: u64) -> bool {
+    /// `ordinal`-th write and the worker's `stamp`-th recorded one; true if nothing was
+    /// outstanding before (the writer must be watched from now on).
+    pub fn record(&self, frontend: u32, seq: u64, now: Instant, ordinal: u64, stamp: u64) -> bool {
         let mut w = self.writes.borrow_mut();
         let first = w.is_empty();
         if w.back()
-            .is_some_and(|&(fe, s, _, _)| fe != frontend || s > seq)
+            .is_some_and(|b| b.frontend != frontend || b.seq > seq)
         {
             self.mixed.set(true);
         }
-        w.push_back((frontend, seq, now, ordinal));
+        w.push_back(Written {
+            frontend,
+            seq,
+            at: now,
+            ordinal,
+            stamp,
+        });
         first
     }
 
-    /// Forgets the writes among the writer's first `acknowledged` (ordinals grow in the
-    /// order of the queue), noting whose they were; whether nothing is left.
-    fn release_through(&self, acknowledged: u64, frontends: &mut HashSet<u32>) -> bool {
-        self.release_while(|&(_, _, _, ordinal)| ordinal <= acknowledged, frontends)
+    /// Forgets the writes among the writer's first `acknowledged` that are stamped up to
+    /// `drained` (ordinals and stamps grow in the order of the queue), noting whose they
+    /// were; whether nothing is left.
+    fn release_through(
+        &self,
+        acknowledged: u64,
+        drained: u64,
+        frontends: &mut HashSet<u32>,
+    ) -> bool {
+        self.release_while(
+            |w| w.ordinal <= acknowledged && w.stamp <= drained,
+            frontends,
+        )
     }
 
     /// Forgets the oldest writes while `done` says so, noting whose they were; whether
     /// nothing is left.
-    fn release_while(
-        &self,
-        done: impl Fn(&(u32, u64, Instant, u64)) -> bool,
-        frontends: &mut HashSet<u32>,
-    ) -> bool {
+    fn release_while(&self, done: impl Fn(&Written) -> bool, frontends: &mut HashSet<u32>) -> bool {
         let mut w = self.writes.borrow_mut();
         while let Some(front) = w.front().filter(|f| done(f)) {
-            frontends.insert(front.0);
+            frontends.insert(front.frontend);
             w.pop_front();
         }
         if w.is_empty() {
@@ -91,24 +122,29 @@ impl Outstanding {
         };
         if !self.mixed.get() {
             // One front-end's writes, in its order: the first is the oldest.
-            if let Some(&(fe, seq, _, _)) = w.front() {
-                merge(fe, seq);
+            if let Some(front) = w.front() {
+                merge(front.frontend, front.seq);
             }
             return;
         }
-        for &(fe, seq, _, _) in w.iter() {
-            merge(fe, seq);
+        for x in w.iter() {
+            merge(x.frontend, x.seq);
         }
     }
 
     /// Forgets writes older than `limit`; whether nothing is left.
     fn expire(&self, limit: Instant, frontends: &mut HashSet<u32>) -> bool {
-        self.release_while(|&(_, _, at, _)| at < limit, frontends)
+        self.release_while(|w| w.at < limit, frontends)
     }
 
     /// Forgets front-end `frontend`'s writes.
     fn forget(&self, frontend: u32) {
-        self.writes.borrow_mut().retain(|w| w.0 != frontend);
+        self.writes.borrow_mut().retain(|w| w.frontend != frontend);
+    }
+
+    /// The stamp of the newest write outstanding.
+    pub fn newest_stamp(&self) -> Option<u64> {
+        self.writes.borrow().back().map(|w| w.stamp)
     }
 
     /// How many writes are outstanding.
@@ -149,9 +185,15 @@ impl<W: Acknowledging> AckTracker<W> {
     }
 
     /// Asks the watched writers (at most every [`ACK_POLL_PERIOD`]); returns the front-ends
-    /// whose acknowledged frontier may have moved. A writer that was deleted has nothing
-    /// outstanding any more: its front-ends are returned too (`all` true: unknown which).
-    pub fn poll(&mut self, now: Instant) -> (HashSet<u32>, bool) {
+    /// whose acknowledged frontier may have moved. `drained` tells, of a writer, the stamp
+    /// up to which the worker's own readers of its topic took everything written (`u64::MAX`
+    /// with none reading). A writer that was deleted has nothing outstanding any more: its
+    /// front-ends are returned too (`all` true: unknown which).
+    pub fn poll(
+        &mut self,
+        now: Instant,
+        mut drained: impl FnMut(&W) -> u64,
+    ) -> (HashSet<u32>, bool) {
         let mut moved = HashSet::new();
         let mut all = false;
         if self.watched.is_empty() || now < self.next_poll {
@@ -165,7 +207,7 @@ impl<W: Acknowledging> AckTracker<W> {
                 return false;
             };
             let out = w.outstanding();
-            if out.release_through(w.acknowledged_writes(), &mut moved) {
+            if out.release_through(w.acknowledged_writes(), drained(&w), &mut moved) {
                 return false;
             }
             !out.expire(limit, &mut moved)
@@ -229,9 +271,17 @@ mod tests {
         }
     }
 
+    thread_local! {
+        /// The tests' count of recorded writes.
+        static STAMP: Cell<u64> = const { Cell::new(0) };
+    }
+
     fn write(t: &mut AckTracker<FakeWriter>, w: &Rc<FakeWriter>, fe: u32, seq: u64, now: Instant) {
         w.written.set(w.written.get() + 1);
-        if w.out.record(fe, seq, now, w.written.get()) {
+        STAMP.with(|s| s.set(s.get() + 1));
+        if w.out
+            .record(fe, seq, now, w.written.get(), STAMP.with(Cell::get))
+        {
             t.watch(w);
         }
     }
@@ -250,17 +300,17 @@ mod tests {
         write(&mut t, &b, 2, 5, t0);
         assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 10), (2, 5)]));
         // Nothing acknowledged: nothing moves.
-        assert_eq!(t.poll(t0).0, HashSet::new());
+        assert_eq!(t.poll(t0, |_| u64::MAX).0, HashSet::new());
         // Writer a's readers acknowledged: front-end 1 now waits only for b's 11.
         a.ack_all();
-        let (moved, all) = t.poll(t0 + ACK_POLL_PERIOD);
+        let (moved, all) = t.poll(t0 + ACK_POLL_PERIOD, |_| u64::MAX);
         assert_eq!((moved, all), (HashSet::from([1]), false));
         assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 11), (2, 5)]));
         assert_eq!(t.outstanding_writes(), 2);
         // Polls are rate-limited.
         b.ack_all();
-        assert!(t.poll(t0 + ACK_POLL_PERIOD).0.is_empty());
-        let (moved, _) = t.poll(t0 + 2 * ACK_POLL_PERIOD);
+        assert!(t.poll(t0 + ACK_POLL_PERIOD, |_| u64::MAX).0.is_empty());
+        let (moved, _) = t.poll(t0 + 2 * ACK_POLL_PERIOD, |_| u64::MAX);
         assert_eq!(moved, HashSet::from([1, 2]));
         assert!(t.oldest_outstanding().is_empty());
         assert_eq!(t.due(), None);
@@ -282,7 +332,7 @@ mod tests {
         t.forget_frontend(2);
         assert_eq!(t.outstanding_writes(), 0);
         // An empty writer is let go on the next poll.
-        let _ = t.poll(t0 + ACK_GIVE_UP + ACK_POLL_PERIOD);
+        let _ = t.poll(t0 + ACK_GIVE_UP + ACK_POLL_PERIOD, |_| u64::MAX);
         assert_eq!(t.due(), None);
     }
 
@@ -315,13 +365,13 @@ mod tests {
         let stuck = Rc::new(FakeWriter::default());
         write(&mut t, &stuck, 3, 1, t0);
         write(&mut t, &stuck, 3, 2, t0 + Duration::from_secs(1));
-        let (moved, _) = t.poll(t0 + ACK_GIVE_UP + Duration::from_millis(1));
+        let (moved, _) = t.poll(t0 + ACK_GIVE_UP + Duration::from_millis(1), |_| u64::MAX);
         assert_eq!(moved, HashSet::from([3]));
         assert_eq!(t.oldest_outstanding(), HashMap::from([(3, 2)]));
         let gone = Rc::new(FakeWriter::default());
         write(&mut t, &gone, 4, 7, t0 + ACK_GIVE_UP);
         drop(gone);
-        let (_, all) = t.poll(t0 + ACK_GIVE_UP + Duration::from_millis(10));
+        let (_, all) = t.poll(t0 + ACK_GIVE_UP + Duration::from_millis(10), |_| u64::MAX);
         assert!(all, "a deleted writer's front-ends are not known any more");
         assert_eq!(t.oldest_outstanding(), HashMap::from([(3, 2)]));
     }
@@ -337,16 +387,45 @@ mod tests {
             write(&mut t, &w, 1, seq, t0);
         }
         w.acked.set(3);
-        let (moved, _) = t.poll(t0);
+        let (moved, _) = t.poll(t0, |_| u64::MAX);
         assert_eq!(moved, HashSet::from([1]));
         assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 4)]));
         write(&mut t, &w, 1, 6, t0);
         w.acked.set(5);
-        let _ = t.poll(t0 + ACK_POLL_PERIOD);
+        let _ = t.poll(t0 + ACK_POLL_PERIOD, |_| u64::MAX);
         assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 6)]));
         w.ack_all();
-        let _ = t.poll(t0 + 2 * ACK_POLL_PERIOD);
+        let _ = t.poll(t0 + 2 * ACK_POLL_PERIOD, |_| u64::MAX);
         assert!(t.oldest_outstanding().is_empty());
         assert_eq!(t.due(), None);
+    }
+
+    #[test]
+    fn writes_wait_for_the_workers_own_readers_to_be_drained_past_them() {
+        // Acknowledged by every reader DDS counts, but this worker's own reader of the topic
+        // still holds some: those stay outstanding until it was drained past them.
+        let t0 = Instant::now();
+        let mut t = AckTracker::new(t0);
+        let w = Rc::new(FakeWriter::default());
+        let first = STAMP.with(Cell::get) + 1;
+        for seq in 1..=4 {
+            write(&mut t, &w, 1, seq, t0);
+        }
+        w.ack_all();
+        let (moved, _) = t.poll(t0, |_| first - 1);
+        assert!(moved.is_empty(), "nothing drained past any write");
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 1)]));
+        let (moved, _) = t.poll(t0 + ACK_POLL_PERIOD, |_| first + 1);
+        assert_eq!(moved, HashSet::from([1]));
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 3)]));
+        // Drained past everything, but DDS readers acknowledged only the first three.
+        w.acked.set(3);
+        write(&mut t, &w, 1, 5, t0);
+        let _ = t.poll(t0 + 2 * ACK_POLL_PERIOD, |_| u64::MAX);
+        assert_eq!(t.oldest_outstanding(), HashMap::from([(1, 4)]));
+        // A reader that never drains holds nothing past the give-up time.
+        w.ack_all();
+        let _ = t.poll(t0 + ACK_GIVE_UP + ACK_POLL_PERIOD, |_| 0);
+        assert!(t.oldest_outstanding().is_empty());
     }
 }

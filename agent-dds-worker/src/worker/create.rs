@@ -5,6 +5,8 @@ use super::*;
 
 /// What a data reader's content filters need.
 pub(super) struct ReaderInfo {
+    /// The topic's domain.
+    pub(super) domain: u16,
     /// The topic's name.
     pub(super) topic: String,
     /// The topic's type, if known.
@@ -178,6 +180,7 @@ impl<L: WorkerLink> Worker<L> {
                             matched_at: Cell::new(None),
                             matched: Cell::new(0),
                             outstanding: Outstanding::default(),
+                            topic: (domain, tdesc.name.clone()),
                         });
                         if let Some(k) = shared_key {
                             self.writers
@@ -251,6 +254,7 @@ impl<L: WorkerLink> Worker<L> {
                         reader: r,
                         token,
                         info: ReaderInfo {
+                            domain: subscriber.domain(),
                             topic: tdesc.name.clone(),
                             ty,
                             filter,

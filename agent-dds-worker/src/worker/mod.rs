@@ -200,6 +200,26 @@ impl Readers {
         }
     }
 
+    /// For each topic some active read of a data reader is on: the write stamp up to which
+    /// all those readers were drained ([`crate::acks`]). Readers without a read do not
+    /// count: their samples wait in DDS for a read that may never come, and nothing could
+    /// keep them across a worker restart but holding the writers' acknowledgements for
+    /// ever. Nor do the readers of front-ends whose process is gone (`orphaned`): nothing
+    /// they take reaches a client before a successor replays their reads.
+    fn drained_through(&self, orphaned: &HashMap<u32, Instant>) -> HashMap<&DomainTopic, u64> {
+        let mut drained: HashMap<&DomainTopic, u64> = HashMap::new();
+        for (key, r) in &self.reads {
+            if orphaned.contains_key(&key.0) {
+                continue;
+            }
+            if let Some(topic) = &r.topic {
+                let d = drained.entry(topic).or_insert(r.drained_through);
+                *d = (*d).min(r.drained_through);
+            }
+        }
+        drained
+    }
+
     /// Forgets `key`'s reads and turns, and the wake-up token of its reader (dropped by the
     /// caller: the backend's reader is deleted and wakes nobody any more).
     fn forget(&mut self, key: EntityKey, token: Option<ReaderToken>) {
@@ -242,6 +262,9 @@ struct Writers {
     retiring: std::collections::VecDeque<(Rc<DdsWriter>, Instant)>,
     /// Retiring writers let go before their readers acknowledged, for want of room.
     retired_early: u64,
+    /// Writes recorded for acknowledgement so far, over every writer: the stamp of the
+    /// newest, which the worker's own readers are drained past ([`crate::acks`]).
+    stamp: u64,
 }
 
 /// Most DDS writers kept retiring at once (each is a DDS entity a client made the worker
@@ -258,6 +281,19 @@ impl Writers {
             shared: HashMap::new(),
             retiring: std::collections::VecDeque::new(),
             retired_early: 0,
+            stamp: 0,
+        }
+    }
+
+    /// Records front-end `frontend`'s operation `seq`, just written through `writer`, as
+    /// outstanding until its readers acknowledged it.
+    fn record(&mut self, writer: &Rc<DdsWriter>, frontend: u32, seq: u64, now: Instant) {
+        self.stamp += 1;
+        if writer
+            .outstanding
+            .record(frontend, seq, now, writer.raw.writes(), self.stamp)
+        {
+            self.acks.watch(writer);
         }
     }
 

@@ -188,7 +188,16 @@ impl<L: WorkerLink> Worker<L> {
         let generation = self.generation;
         let held = self.oldest_held();
         let now = self.now;
-        let (moved, all) = self.writers.acks.poll(now);
+        // The worker's own readers of each topic drained up to (counted once per poll).
+        let mut drained = None;
+        let (reads, orphaned) = (&self.readers, &self.frontends.orphaned);
+        let (moved, all) = self.writers.acks.poll(now, |w| {
+            drained
+                .get_or_insert_with(|| reads.drained_through(orphaned))
+                .get(&w.topic)
+                .copied()
+                .unwrap_or(u64::MAX)
+        });
         if !self.writers.retiring.is_empty() {
             self.writers.prune_retiring(now);
         }

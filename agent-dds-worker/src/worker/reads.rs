@@ -21,6 +21,11 @@ pub(super) struct ActiveRead {
     /// The DataFormat the client asked for: without a SampleInfo (DATA, DATA_SEQ) a
     /// dispose cannot be told from a sample, so those reads get no instance ends.
     pub(super) data_format: u8,
+    /// The data reader's topic (None for a requester or replier).
+    pub(super) topic: Option<DomainTopic>,
+    /// The worker's write stamp up to which the reader was last seen drained: every sample
+    /// written before taken and handed to the front-end ([`crate::acks`]); 0 until then.
+    pub(super) drained_through: u64,
 }
 
 /// DataDeliveryControl's `min_pace_period` and `max_bytes_per_second`.
@@ -90,15 +95,18 @@ impl<L: WorkerLink> Worker<L> {
         replay: bool,
         body: &[u8],
     ) -> Result<(), OpError> {
-        let reader_type = match self.entities.value(&key) {
+        let (reader_type, topic) = match self.entities.value(&key) {
             Some(Entity {
                 kind: EntityKind::Reader { info, .. },
                 ..
-            }) => Some(info.ty.clone()),
+            }) => (
+                Some(info.ty.clone()),
+                Some((info.domain, info.topic.clone())),
+            ),
             Some(Entity {
                 kind: EntityKind::Service(..),
                 ..
-            }) => None,
+            }) => (None, None),
             _ => {
                 return Err(OpError::UnknownReference(
                     "read from an unknown data reader, requester or replier".into(),
@@ -144,6 +152,8 @@ impl<L: WorkerLink> Worker<L> {
                 pacing: Pacing::new(&d),
                 filter,
                 data_format: spec.data_format,
+                topic,
+                drained_through: 0,
             },
             None => ActiveRead {
                 request_id,
@@ -154,6 +164,8 @@ impl<L: WorkerLink> Worker<L> {
                 pacing: Pacing::default(),
                 filter,
                 data_format: spec.data_format,
+                topic,
+                drained_through: 0,
             },
         };
         self.readers.reads.insert(key, read);
@@ -284,6 +296,8 @@ impl<L: WorkerLink> Worker<L> {
         };
         let mut out = Vec::new();
         let mut more = false;
+        // The reader gave everything it had.
+        let mut emptied = false;
         let mut limit = read.remaining.unwrap_or(u32::MAX).min(PUMP_BATCH as u32);
         let one_shot = read.one_shot;
         let mut errors = 0u64;
@@ -358,7 +372,10 @@ impl<L: WorkerLink> Worker<L> {
                         break;
                     }
                 }
-                Ok(None) => break,
+                Ok(None) => {
+                    emptied = true;
+                    break;
+                }
                 Err(e) => {
                     // Counted against the batch, so a flood of them cannot starve the loop.
                     errors += 1;
@@ -421,15 +438,32 @@ impl<L: WorkerLink> Worker<L> {
                 Reply::Sample(sample),
             );
         }
+        // Drained, once what was taken reached the front-end's queue: then every write
+        // recorded so far that this reader got is the front-end's to keep.
+        let handed_over = self
+            .frontends
+            .ports
+            .get(&key.0)
+            .is_none_or(|p| p.backlog.is_empty());
+        let stamp = self.writers.stamp;
         let ended = match self.readers.reads.get_mut(&key) {
             Some(r) => {
                 if let Some(rem) = r.remaining.as_mut() {
                     *rem = rem.saturating_sub(sent);
                 }
+                if emptied && handed_over {
+                    r.drained_through = stamp;
+                }
                 r.remaining == Some(0) || (r.one_shot && sent > 0)
             }
             None => false,
         };
+        if emptied && !handed_over && !ended {
+            // Pumped again once the backlog is sent, to be seen drained then.
+            if let Some(p) = self.frontends.ports.get_mut(&key.0) {
+                p.deferred.push(key);
+            }
+        }
         if ended {
             self.end_read(key);
         } else if more {

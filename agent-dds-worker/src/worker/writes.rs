@@ -15,7 +15,13 @@ pub(super) struct DdsWriter {
     pub(super) matched: Cell<usize>,
     /// Front-end operations written through it that its readers may not have acknowledged.
     pub(super) outstanding: Outstanding,
+    /// Its domain and topic: which of the worker's own readers must take what it wrote
+    /// before a write counts as acknowledged ([`crate::acks`]).
+    pub(super) topic: DomainTopic,
 }
+
+/// A topic by domain and name (the worker's readers and writers of one topic share it).
+pub(super) type DomainTopic = (u16, String);
 
 impl Acknowledging for DdsWriter {
     fn acknowledged_writes(&self) -> u64 {
@@ -99,6 +105,9 @@ pub(super) struct Rematch {
     pub(super) schedule: Option<(Instant, u64)>,
     /// The worker stops: what is held goes out as fast as the readers acknowledge.
     pub(super) rush: bool,
+    /// Since when the next batch waits for this worker's own readers of the topic to take
+    /// what the writer wrote before ([`RELEASE_GATE_MAX`]).
+    pub(super) gated_since: Option<Instant>,
 }
 
 /// Held samples written per batch while a writer drains: a whole backlog at once would
@@ -143,6 +152,14 @@ pub(super) const RELEASE_ACK_WAIT: Duration = Duration::from_millis(2);
 /// 12-15 of 16, in about one run in three of the front-end takeover tests). Once every
 /// reader acknowledged one sample, each has seen a heartbeat, and later gaps are repaired.
 pub(super) const RELEASE_FIRST_ACK_WAIT: Duration = Duration::from_millis(100);
+
+/// Longest a draining writer waits for this worker's own readers of its topic to take what
+/// it wrote before its next batch. Such a reader whose client cannot keep up is paused, and
+/// keeps the last so many samples of its topic: written faster than its client takes them,
+/// a hundred writers' backlogs overwrote each other there (they stay held, safe with their
+/// front-end, until the reader took the previous batch). A client that takes nothing for
+/// this long does not keep the writers holding: they go on at their schedule (counted).
+pub(super) const RELEASE_GATE_MAX: Duration = Duration::from_secs(1);
 
 /// Longest hold of a replayed writer's samples when no reader matches.
 pub(super) const REMATCH_MAX: Duration = Duration::from_secs(3);
@@ -347,8 +364,8 @@ impl<L: WorkerLink> Worker<L> {
         } else {
             publish(&*w.raw, sample).map_err(|e| OpError::from(e.context("DDS write")))
         };
-        if done.is_ok() && w.outstanding.record(key.0, seq, self.now, w.raw.writes()) {
-            self.writers.acks.watch(w);
+        if done.is_ok() {
+            self.writers.record(w, key.0, seq, self.now);
         }
         done
     }
@@ -376,10 +393,7 @@ impl<L: WorkerLink> Worker<L> {
                 publish(&*w.raw, s)
             };
             match done {
-                Ok(()) if w.outstanding.record(key.0, seq, now, w.raw.writes()) => {
-                    self.writers.acks.watch(w)
-                }
-                Ok(()) => {}
+                Ok(()) => self.writers.record(w, key.0, seq, now),
                 Err(_) => failures += 1,
             }
         }
@@ -437,6 +451,10 @@ impl<L: WorkerLink> Worker<L> {
                     kind: EntityKind::Writer { rematch: r, .. },
                     ..
                 }) if r.draining => Some(match (r.schedule, r.held.front()) {
+                    // Its readers' next pass opens the gate, at the latest its time.
+                    _ if r.gated_since.is_some() && !r.rush => {
+                        r.gated_since.map_or(self.now, |t| t + RELEASE_GATE_MAX)
+                    }
                     (Some((start, first)), Some(h)) if !r.rush => {
                         start + release_delay(first, h.received_us)
                     }
@@ -481,6 +499,10 @@ impl<L: WorkerLink> Worker<L> {
         });
         let mut budget = RELEASE_PASS_MAX * elapsed_ms;
         let mut spent = false;
+        // This worker's readers drained up to, per topic (counted once, when needed), and
+        // the writers that stopped waiting for them.
+        let mut drained = None;
+        let mut gate_expired = 0u64;
         // In turns: the first writer of this pass is the second of the last one.
         let mut order: Vec<EntityKey> = self.writers.holding.iter().copied().collect();
         if !order.is_empty() {
@@ -561,7 +583,32 @@ impl<L: WorkerLink> Worker<L> {
             // (A writer that holds nothing any more is done at once; a stopping worker's
             // writers are not held to the pass budget.)
             let room = budget > 0 || rematch.rush;
-            if rematch.draining && !paced && room && (due > 0 || rematch.held.is_empty()) {
+            // This worker's readers of the topic took what the writer wrote so far (or it
+            // waited for them long enough).
+            let taken = w.outstanding.newest_stamp().is_none_or(|newest| {
+                drained
+                    .get_or_insert_with(|| self.readers.drained_through(&self.frontends.orphaned))
+                    .get(&w.topic)
+                    .is_none_or(|d| *d >= newest)
+            });
+            let gate_open = if taken || rematch.rush || !rematch.draining {
+                rematch.gated_since = None;
+                true
+            } else {
+                let since = *rematch.gated_since.get_or_insert(now);
+                let expired = now.saturating_duration_since(since) >= RELEASE_GATE_MAX;
+                if expired {
+                    rematch.gated_since = None;
+                    gate_expired += 1;
+                }
+                expired
+            };
+            if rematch.draining
+                && !paced
+                && room
+                && gate_open
+                && (due > 0 || rematch.held.is_empty())
+            {
                 let batch = if rematch.last_batch.is_none() {
                     1
                 } else if rematch.rush {
@@ -596,8 +643,8 @@ impl<L: WorkerLink> Worker<L> {
                     }
                     if done.is_err() {
                         failures += 1;
-                    } else if w.outstanding.record(key.0, seq, now, w.raw.writes()) {
-                        self.writers.acks.watch(w);
+                    } else {
+                        self.writers.record(w, key.0, seq, now);
                     }
                 }
                 if rematch.held.is_empty() {
@@ -623,6 +670,17 @@ impl<L: WorkerLink> Worker<L> {
         }
         for _ in 0..failures {
             self.count("dds_write_failed");
+        }
+        if gate_expired > 0 {
+            let why = format!(
+                "held samples released although this worker's reader of their topic has not \
+                 taken the previous ones for {} ms (its client does not keep up): they may \
+                 overwrite each other in its history",
+                RELEASE_GATE_MAX.as_millis()
+            );
+            for _ in 0..gate_expired {
+                self.refused("release_gate_expired", &why);
+            }
         }
     }
 

@@ -201,6 +201,20 @@ impl Harness {
             .expect("read");
     }
 
+    /// Hands the worker a pause or resume of the client's read.
+    fn pause_read(&mut self, pause: bool) {
+        let route = Route::object(FE, CLIENT, Default::default(), READER);
+        self.worker.process_request(RequestMessage {
+            route,
+            progress_can_wait: false,
+            request: if pause {
+                Request::PauseRead
+            } else {
+                Request::ResumeRead
+            },
+        });
+    }
+
     /// Lets a holding writer's readers have matched long enough, then releases (twice: the
     /// first sample goes alone).
     fn matched_long_ago(&mut self, client: ClientKey, id: ObjectId) {
@@ -437,24 +451,20 @@ fn a_writer_holds_until_matched_then_its_samples_reach_a_reader_in_order() {
     assert!(t.bus.written.borrow().is_empty());
     assert!(t.worker.writers.holding.contains(&(FE, CLIENT, WRITER)));
     t.matched_long_ago(CLIENT, WRITER);
+    // The first alone; the rest once the worker's reader took it, in the next pass.
+    assert_eq!(t.bus.samples_on(TOPIC), vec![keyed(0, 0)]);
+    t.advance(Duration::from_millis(5));
+    let now = t.worker.now;
+    t.worker.pass(now).expect("pass");
     assert!(t.worker.writers.holding.is_empty());
     assert_eq!(
         t.bus.samples_on(TOPIC),
         (0..3).map(|i| keyed(i, 0)).collect::<Vec<_>>()
     );
     // What the reader took goes to the front-end with the writer's identity, in order.
-    t.worker
-        .dds
-        .ready_readers(&mut t.worker.readers.ready)
-        .expect("ready");
-    let tokens: Vec<ReaderToken> = t.worker.readers.ready.drain(..).collect();
-    assert!(!tokens.is_empty());
-    for k in tokens {
-        if let Some(k) = t.worker.readers.by_token.get(&k).copied() {
-            t.worker.pump(k);
-        }
-    }
-    t.worker.flush();
+    t.advance(Duration::from_millis(5));
+    let now = t.worker.now;
+    t.worker.pass(now).expect("pass");
     let got = t.samples();
     let writer = match &t
         .worker
@@ -614,4 +624,64 @@ fn shared_writers_share_one_backend_writer_per_qos_and_byte_order() {
     assert_eq!(t.bus.writers_of(TOPIC), 3);
     // Only the big-endian writer's entry is left among the shared ones.
     assert_eq!(t.worker.writers.shared.len(), 1);
+}
+
+/// A new writer that held `n` samples, released (its first sample alone) while the read of
+/// the worker's own reader of the topic is paused.
+fn released_to_a_paused_reader(n: u64) -> Harness {
+    let mut t = reader_and_new_writer();
+    t.read(CLIENT, READER);
+    for i in 0..n {
+        t.worker
+            .write_one((FE, CLIENT, WRITER), i, 0, true, &keyed(i as i32, 0), false)
+            .expect("write");
+    }
+    t.pause_read(true);
+    t.matched_long_ago(CLIENT, WRITER);
+    t
+}
+
+/// A draining writer's next batch waits until this worker's own reader of the topic took
+/// the last one: a paused read (its client is slow) keeps the rest held, not overwritten in
+/// the reader's history; the wait is bounded.
+#[test]
+fn a_draining_writer_waits_for_the_workers_reader_to_take_its_last_batch() {
+    let mut t = released_to_a_paused_reader(40);
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 1, "the first sample, alone");
+    for _ in 0..5 {
+        t.advance(Duration::from_millis(100));
+        t.worker.release_rematched();
+    }
+    assert_eq!(
+        t.bus.samples_on(TOPIC).len(),
+        1,
+        "the paused reader has not taken it"
+    );
+    // Resumed: each pass takes what the last released, and releases a batch more.
+    t.pause_read(false);
+    let mut written = vec![1];
+    for _ in 0..3 {
+        t.advance(Duration::from_millis(5));
+        let now = t.worker.now;
+        t.worker.pass(now).expect("pass");
+        written.push(t.bus.samples_on(TOPIC).len());
+    }
+    assert_eq!(
+        written,
+        vec![1, 1 + RELEASE_BATCH, 1 + 2 * RELEASE_BATCH, 40]
+    );
+    assert_eq!(t.worker.dropped.get("release_gate_expired"), None);
+}
+
+/// A reader whose client takes nothing does not keep a writer's samples held for ever.
+#[test]
+fn a_paused_reader_holds_a_draining_writer_back_only_so_long() {
+    let mut t = released_to_a_paused_reader(3);
+    t.advance(RELEASE_GATE_MAX - Duration::from_millis(1));
+    t.worker.release_rematched();
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 1);
+    t.advance(Duration::from_millis(1));
+    t.worker.release_rematched();
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 3);
+    assert_eq!(t.worker.dropped.get("release_gate_expired"), Some(&1));
 }

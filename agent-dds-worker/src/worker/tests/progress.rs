@@ -1,6 +1,7 @@
 //! Progress reports to the front-end: which ones wake it and which can wait.
 
 use super::*;
+use crate::acks::ACK_POLL_PERIOD;
 
 /// A little-endian WRITE_DATA of one bare sample.
 fn write(sample: &[u8]) -> Request<'_> {
@@ -101,4 +102,65 @@ fn progress_of_released_writes_that_can_wait_goes_out_without_a_wake_up() {
     assert_eq!(t.bus.samples_on(TOPIC), vec![keyed(1, 1)]);
     t.worker.flush();
     assert_eq!(t.progress(), (vec![1], false));
+}
+
+impl Harness {
+    /// A pass `by` after the last; the newest `acknowledged` the front-end was told since
+    /// the last call, and how many samples it got.
+    fn acknowledged_after(&mut self, by: Duration) -> (Option<u64>, usize) {
+        self.advance(by);
+        let now = self.worker.now;
+        self.worker.pass(now).expect("pass");
+        let mut acknowledged = None;
+        let mut samples = 0;
+        for m in self.replies() {
+            match m.reply {
+                Reply::Progress {
+                    acknowledged: a, ..
+                } => acknowledged = Some(a),
+                Reply::Sample(_) => samples += 1,
+                _ => {}
+            }
+        }
+        (acknowledged, samples)
+    }
+}
+
+/// DDS counts a reader inside this worker as acknowledging at once, but its samples die
+/// with the worker until they were taken for the client's read: a write is reported
+/// acknowledged only once the worker's own readers of its topic were drained past it, so
+/// the front-end keeps it for a new worker meanwhile.
+#[test]
+fn a_write_is_acknowledged_only_once_the_workers_own_readers_took_it() {
+    let mut t = reader_and_new_writer();
+    t.read(CLIENT, READER);
+    t.request(write(&keyed(1, 1)), 1, false);
+    t.matched_long_ago(CLIENT, WRITER);
+    assert_eq!(
+        t.acknowledged_after(ACK_POLL_PERIOD),
+        (Some(1), 1),
+        "taken at once"
+    );
+    t.pause_read(true);
+    t.request(write(&keyed(2, 1)), 2, false);
+    t.request(write(&keyed(3, 1)), 3, false);
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 3, "written to DDS");
+    for _ in 0..3 {
+        let (acknowledged, samples) = t.acknowledged_after(ACK_POLL_PERIOD);
+        assert_eq!(acknowledged.unwrap_or(1), 1, "still in the paused reader");
+        assert_eq!(samples, 0);
+    }
+    t.pause_read(false);
+    assert_eq!(t.acknowledged_after(ACK_POLL_PERIOD), (Some(3), 2));
+}
+
+/// A reader with no read does not hold writes back: its samples may wait for a read that
+/// never comes.
+#[test]
+fn a_reader_without_a_read_holds_no_acknowledgement_back() {
+    let mut t = reader_and_new_writer();
+    t.request(write(&keyed(1, 1)), 1, false);
+    t.matched_long_ago(CLIENT, WRITER);
+    t.request(write(&keyed(2, 1)), 2, false);
+    assert_eq!(t.acknowledged_after(ACK_POLL_PERIOD).0, Some(2));
 }
