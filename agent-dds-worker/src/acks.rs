@@ -12,7 +12,10 @@
 //! write), yet its samples die with the worker until they were taken and handed to the
 //! client's front-end. So each write also carries a stamp, the worker's count of recorded
 //! writes, and is done only once the worker's own readers of its topic were drained past
-//! that stamp (what the caller of [`AckTracker::poll`] says of each writer).
+//! that stamp (what the caller of [`AckTracker::poll`] says of each writer). That holds for
+//! backends that deliver to the worker's own readers inside the write call (Cyclone DDS, the
+//! RustDDS backend's in-process delivery); with Zenoh a reader may be drained before a
+//! sample reaches it, and the write counts as taken.
 
 use std::cell::RefCell;
 use std::collections::{HashMap, HashSet, VecDeque};
@@ -140,11 +143,6 @@ impl Outstanding {
     /// Forgets front-end `frontend`'s writes.
     fn forget(&self, frontend: u32) {
         self.writes.borrow_mut().retain(|w| w.frontend != frontend);
-    }
-
-    /// The stamp of the newest write outstanding.
-    pub fn newest_stamp(&self) -> Option<u64> {
-        self.writes.borrow().back().map(|w| w.stamp)
     }
 
     /// How many writes are outstanding.

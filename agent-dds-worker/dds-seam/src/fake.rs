@@ -61,6 +61,8 @@ pub struct FakeBus {
     pub released: RefCell<Vec<u16>>,
     /// Every endpoint made: its topic and the QoS it was given.
     pub endpoints: RefCell<Vec<(String, EndpointQos)>>,
+    /// Writes reach no reader (as with readers in other partitions, or of incompatible QoS).
+    pub unheard: Cell<bool>,
 }
 
 impl FakeBus {
@@ -206,6 +208,9 @@ impl Writer {
             sample: sample.clone(),
             dispose,
         });
+        if self.bus.unheard.get() {
+            return identity;
+        }
         self.bus.inject(self.domain, &self.topic, || Taken {
             sample: sample.clone(),
             identity,

@@ -184,6 +184,8 @@ struct Readers {
     over_budget: Turns<EntityKey>,
     /// What is left of this pass's filter budget.
     filter_pass_left: u64,
+    /// The worker's write stamp when readers were last asked which have data.
+    scan_stamp: u64,
 }
 
 impl Readers {
@@ -197,24 +199,36 @@ impl Readers {
             pump_again: Turns::new(),
             over_budget: Turns::new(),
             filter_pass_left: crate::filter::PASS_BUDGET,
+            scan_stamp: 0,
         }
     }
 
     /// For each topic some active read of a data reader is on: the write stamp up to which
-    /// all those readers were drained ([`crate::acks`]). Readers without a read do not
-    /// count: their samples wait in DDS for a read that may never come, and nothing could
-    /// keep them across a worker restart but holding the writers' acknowledgements for
-    /// ever. Nor do the readers of front-ends whose process is gone (`orphaned`): nothing
-    /// they take reaches a client before a successor replays their reads.
+    /// all those readers were drained ([`crate::acks`]). A reader that was emptied and not
+    /// named ready since holds nothing written before the last readiness scan (the worker's
+    /// writes reach its own readers inside the write call, and name them ready then: true
+    /// of Cyclone DDS and of the RustDDS backend's in-process delivery, not of Zenoh's).
+    ///
+    /// Readers without a read do not count: their samples wait in DDS for a read that may
+    /// never come, and nothing could keep them across a worker restart but holding the
+    /// writers' acknowledgements for ever. Nor do paced reads (DataDeliveryControl: their
+    /// client chose to take less than may come), nor the readers of front-ends whose process
+    /// is gone (`orphaned`): nothing they take reaches a client before a successor replays
+    /// their reads.
     fn drained_through(&self, orphaned: &HashMap<u32, Instant>) -> HashMap<&DomainTopic, u64> {
         let mut drained: HashMap<&DomainTopic, u64> = HashMap::new();
         for (key, r) in &self.reads {
-            if orphaned.contains_key(&key.0) {
+            if orphaned.contains_key(&key.0) || r.pacing.limited() {
                 continue;
             }
             if let Some(topic) = &r.topic {
-                let d = drained.entry(topic).or_insert(r.drained_through);
-                *d = (*d).min(r.drained_through);
+                let through = if r.holds {
+                    r.drained_through
+                } else {
+                    r.drained_through.max(self.scan_stamp)
+                };
+                let d = drained.entry(topic).or_insert(through);
+                *d = (*d).min(through);
             }
         }
         drained
@@ -565,8 +579,13 @@ impl<L: WorkerLink> Worker<L> {
         }
         // Readers served a full batch last pass queue behind the others; readers that got no
         // turn for the filter budget go first.
+        // Every write so far that reached a reader named it ready by now.
+        self.readers.scan_stamp = self.writers.stamp;
         for t in self.readers.ready.drain(..) {
             if let Some(k) = self.readers.by_token.get(&t) {
+                if let Some(r) = self.readers.reads.get_mut(k) {
+                    r.holds = true;
+                }
                 if !self.readers.pump_again.contains(k) {
                     self.readers.to_pump.push(*k);
                 }

@@ -26,6 +26,10 @@ pub(super) struct ActiveRead {
     /// The worker's write stamp up to which the reader was last seen drained: every sample
     /// written before taken and handed to the front-end ([`crate::acks`]); 0 until then.
     pub(super) drained_through: u64,
+    /// The reader may hold samples this read has not handed over: it was named ready since
+    /// its last pump that emptied it (or the read is new). One that does not was drained
+    /// through the last readiness scan too ([`Readers::drained_through`]).
+    pub(super) holds: bool,
 }
 
 /// DataDeliveryControl's `min_pace_period` and `max_bytes_per_second`.
@@ -154,6 +158,7 @@ impl<L: WorkerLink> Worker<L> {
                 data_format: spec.data_format,
                 topic,
                 drained_through: 0,
+                holds: true,
             },
             None => ActiveRead {
                 request_id,
@@ -166,6 +171,7 @@ impl<L: WorkerLink> Worker<L> {
                 data_format: spec.data_format,
                 topic,
                 drained_through: 0,
+                holds: true,
             },
         };
         self.readers.reads.insert(key, read);
@@ -453,6 +459,7 @@ impl<L: WorkerLink> Worker<L> {
                 }
                 if emptied && handed_over {
                     r.drained_through = stamp;
+                    r.holds = false;
                 }
                 r.remaining == Some(0) || (r.one_shot && sent > 0)
             }

@@ -105,9 +105,13 @@ pub(super) struct Rematch {
     pub(super) schedule: Option<(Instant, u64)>,
     /// The worker stops: what is held goes out as fast as the readers acknowledge.
     pub(super) rush: bool,
-    /// Since when the next batch waits for this worker's own readers of the topic to take
-    /// what the writer wrote before ([`RELEASE_GATE_MAX`]).
+    /// The worker's write stamp after the writer's last batch of held samples: the next
+    /// waits until this worker's own readers of the topic were drained past it.
+    pub(super) released_through: Option<u64>,
+    /// Since when the next batch waits for those readers ([`RELEASE_GATE_MAX`]).
     pub(super) gated_since: Option<Instant>,
+    /// It waited [`RELEASE_GATE_MAX`] for them once in this drain: it waits no more.
+    pub(super) ungated: bool,
 }
 
 /// Held samples written per batch while a writer drains: a whole backlog at once would
@@ -157,8 +161,9 @@ pub(super) const RELEASE_FIRST_ACK_WAIT: Duration = Duration::from_millis(100);
 /// it wrote before its next batch. Such a reader whose client cannot keep up is paused, and
 /// keeps the last so many samples of its topic: written faster than its client takes them,
 /// a hundred writers' backlogs overwrote each other there (they stay held, safe with their
-/// front-end, until the reader took the previous batch). A client that takes nothing for
-/// this long does not keep the writers holding: they go on at their schedule (counted).
+/// front-end, until the reader took the previous batch). A writer that waited this long in
+/// all (the reader's client takes nothing) goes on at its schedule for the rest of the
+/// drain, without waiting again (counted).
 pub(super) const RELEASE_GATE_MAX: Duration = Duration::from_secs(1);
 
 /// Longest hold of a replayed writer's samples when no reader matches.
@@ -583,32 +588,32 @@ impl<L: WorkerLink> Worker<L> {
             // (A writer that holds nothing any more is done at once; a stopping worker's
             // writers are not held to the pass budget.)
             let room = budget > 0 || rematch.rush;
-            // This worker's readers of the topic took what the writer wrote so far (or it
-            // waited for them long enough).
-            let taken = w.outstanding.newest_stamp().is_none_or(|newest| {
+            // This worker's readers of the topic took the writer's last batch (or it waited
+            // for them long enough). Asked last: the answer costs a look at every read.
+            let ready = rematch.draining && !paced && room && (due > 0 || rematch.held.is_empty());
+            let gate_open = if !ready || rematch.rush || rematch.ungated || rematch.held.is_empty()
+            {
+                true
+            } else if rematch.released_through.is_none_or(|last| {
                 drained
                     .get_or_insert_with(|| self.readers.drained_through(&self.frontends.orphaned))
                     .get(&w.topic)
-                    .is_none_or(|d| *d >= newest)
-            });
-            let gate_open = if taken || rematch.rush || !rematch.draining {
+                    .is_none_or(|d| *d >= last)
+            }) {
                 rematch.gated_since = None;
                 true
             } else {
                 let since = *rematch.gated_since.get_or_insert(now);
-                let expired = now.saturating_duration_since(since) >= RELEASE_GATE_MAX;
-                if expired {
+                if now.saturating_duration_since(since) >= RELEASE_GATE_MAX {
                     rematch.gated_since = None;
+                    rematch.ungated = true;
                     gate_expired += 1;
+                    true
+                } else {
+                    false
                 }
-                expired
             };
-            if rematch.draining
-                && !paced
-                && room
-                && gate_open
-                && (due > 0 || rematch.held.is_empty())
-            {
+            if ready && gate_open {
                 let batch = if rematch.last_batch.is_none() {
                     1
                 } else if rematch.rush {
@@ -647,10 +652,13 @@ impl<L: WorkerLink> Worker<L> {
                         self.writers.record(w, key.0, seq, now);
                     }
                 }
+                rematch.released_through = Some(self.writers.stamp);
                 if rematch.held.is_empty() {
                     rematch.until = None;
                     rematch.draining = false;
                     rematch.schedule = None;
+                    rematch.released_through = None;
+                    rematch.ungated = false;
                     tracing::debug!("holding writer drained");
                     done.push(*key);
                 }

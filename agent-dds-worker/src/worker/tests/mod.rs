@@ -181,11 +181,17 @@ impl Harness {
 
     /// Starts an unlimited read on a reader.
     fn read(&mut self, client: ClientKey, id: ObjectId) {
+        self.read_paced(client, id, 0);
+    }
+
+    /// Starts an unlimited read on a reader, at most one sample per `pace_ms` (0: no pace).
+    fn read_paced(&mut self, client: ClientKey, id: ObjectId, pace_ms: u16) {
         let mut body = Vec::new();
         ReadSpecification {
             data_format: xrce_common::wire::data_format::DATA,
             delivery_control: Some(DataDeliveryControl {
                 max_samples: u16::MAX,
+                min_pace_period: pace_ms,
                 ..Default::default()
             }),
             ..Default::default()
@@ -676,12 +682,19 @@ fn a_draining_writer_waits_for_the_workers_reader_to_take_its_last_batch() {
 /// A reader whose client takes nothing does not keep a writer's samples held for ever.
 #[test]
 fn a_paused_reader_holds_a_draining_writer_back_only_so_long() {
-    let mut t = released_to_a_paused_reader(3);
+    let mut t = released_to_a_paused_reader(40);
     t.advance(RELEASE_GATE_MAX - Duration::from_millis(1));
     t.worker.release_rematched();
     assert_eq!(t.bus.samples_on(TOPIC).len(), 1);
     t.advance(Duration::from_millis(1));
     t.worker.release_rematched();
-    assert_eq!(t.bus.samples_on(TOPIC).len(), 3);
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 1 + RELEASE_BATCH);
+    assert_eq!(t.worker.dropped.get("release_gate_expired"), Some(&1));
+    // Once waited that long, the rest of the drain does not wait for that reader again.
+    for _ in 0..2 {
+        t.advance(Duration::from_millis(5));
+        t.worker.release_rematched();
+    }
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 40);
     assert_eq!(t.worker.dropped.get("release_gate_expired"), Some(&1));
 }

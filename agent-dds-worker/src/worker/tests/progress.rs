@@ -126,12 +126,9 @@ impl Harness {
     }
 }
 
-/// DDS counts a reader inside this worker as acknowledging at once, but its samples die
-/// with the worker until they were taken for the client's read: a write is reported
-/// acknowledged only once the worker's own readers of its topic were drained past it, so
-/// the front-end keeps it for a new worker meanwhile.
-#[test]
-fn a_write_is_acknowledged_only_once_the_workers_own_readers_took_it() {
+/// A client's reader with a read and a writer of one topic; its first write was taken for
+/// the read and acknowledged.
+fn first_write_taken() -> Harness {
     let mut t = reader_and_new_writer();
     t.read(CLIENT, READER);
     t.request(write(&keyed(1, 1)), 1, false);
@@ -141,6 +138,16 @@ fn a_write_is_acknowledged_only_once_the_workers_own_readers_took_it() {
         (Some(1), 1),
         "taken at once"
     );
+    t
+}
+
+/// DDS counts a reader inside this worker as acknowledging at once, but its samples die
+/// with the worker until they were taken for the client's read: a write is reported
+/// acknowledged only once the worker's own readers of its topic were drained past it, so
+/// the front-end keeps it for a new worker meanwhile.
+#[test]
+fn a_write_is_acknowledged_only_once_the_workers_own_readers_took_it() {
+    let mut t = first_write_taken();
     t.pause_read(true);
     t.request(write(&keyed(2, 1)), 2, false);
     t.request(write(&keyed(3, 1)), 3, false);
@@ -163,4 +170,27 @@ fn a_reader_without_a_read_holds_no_acknowledgement_back() {
     t.matched_long_ago(CLIENT, WRITER);
     t.request(write(&keyed(2, 1)), 2, false);
     assert_eq!(t.acknowledged_after(ACK_POLL_PERIOD).0, Some(2));
+}
+
+/// A reader the writes do not reach (another partition, incompatible QoS) is never named
+/// ready: it holds no acknowledgement back once it was emptied.
+#[test]
+fn a_reader_the_writes_do_not_reach_holds_no_acknowledgement_back() {
+    let mut t = first_write_taken();
+    t.bus.unheard.set(true);
+    t.request(write(&keyed(2, 1)), 2, false);
+    assert_eq!(t.acknowledged_after(ACK_POLL_PERIOD), (Some(2), 0));
+}
+
+/// A paced read (its client asked for at most one sample so often) holds no acknowledgement
+/// back: what waits in its reader is its client's choice.
+#[test]
+fn a_paced_read_holds_no_acknowledgement_back() {
+    let mut t = reader_and_new_writer();
+    t.read_paced(CLIENT, READER, 1000);
+    t.request(write(&keyed(1, 1)), 1, false);
+    t.matched_long_ago(CLIENT, WRITER);
+    t.request(write(&keyed(2, 1)), 2, false);
+    t.request(write(&keyed(3, 1)), 3, false);
+    assert_eq!(t.acknowledged_after(ACK_POLL_PERIOD), (Some(3), 1));
 }
