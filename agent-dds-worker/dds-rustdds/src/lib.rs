@@ -119,9 +119,21 @@ impl RustDds {
             b = b.with_only_networks(self.config.interfaces.clone());
         }
         let guard = plan.guard(false);
+        let skip = discovery_ports_to_skip(domain, |p| {
+            std::net::UdpSocket::bind((std::net::Ipv4Addr::UNSPECIFIED, p)).is_ok()
+        });
+        if !skip.is_empty() {
+            tracing::debug!(
+                domain,
+                skipped = skip.len(),
+                "participant indices whose user-data port is taken are skipped"
+            );
+        }
+        let steering = ports::PortGuard::hold(&skip, false);
         let p = b.build();
-        // Released before the sockets are confined (it is one of the process's wildcard
+        // Released before the sockets are confined (they are among the process's wildcard
         // sockets).
+        drop(steering);
         drop(guard);
         let p = p.map_err(|e| {
             BackendError::Dds(format!(
@@ -135,6 +147,40 @@ impl RustDds {
         self.participants.insert((domain, role), p.clone());
         Ok(p)
     }
+}
+
+/// Participant indices RustDDS tries (RTPS's default port mapping has room for 120).
+const PARTICIPANT_INDICES: u32 = 120;
+
+/// The discovery ports that must look taken while RustDDS makes a participant of `domain`:
+/// those `free` says are free but whose participant index has its user-data port taken.
+///
+/// RustDDS takes the first index whose discovery port it can bind; when that index's
+/// user-data port is taken, it listens for user data on a port the kernel picks, which may
+/// be another domain's discovery port (domains above 101 reach into Linux's default
+/// ephemeral range). It sends and checks no domain id, so that participant would discover,
+/// and match, the other domain's participants. Held while the participant is made, these
+/// steer it to an index whose two ports are free.
+fn discovery_ports_to_skip(domain: u16, free: impl Fn(u16) -> bool) -> Vec<u16> {
+    let mut skip = Vec::new();
+    for index in 0..PARTICIPANT_INDICES {
+        let (Some(discovery), Some(user)) = (
+            ports::port_at(domain, ports::D1 + 2 * index),
+            ports::port_at(domain, ports::D3 + 2 * index),
+        ) else {
+            break;
+        };
+        if !free(discovery) {
+            // RustDDS passes it by itself.
+            continue;
+        }
+        if free(user) {
+            // RustDDS takes this one.
+            break;
+        }
+        skip.push(discovery);
+    }
+    skip
 }
 
 /// A RustDDS topic on `dp` (RustDDS makes topics per participant).
@@ -432,6 +478,55 @@ impl DdsBackend for RustDds {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn indices_whose_user_data_port_is_taken_are_skipped() {
+        let at = |offset| ports::port_at(40, offset).expect("port");
+        let (d0, u0) = (at(ports::D1), at(ports::D3));
+        let (d1, u1) = (at(ports::D1 + 2), at(ports::D3 + 2));
+        let (d2, u2) = (at(ports::D1 + 4), at(ports::D3 + 4));
+        // Index 0 taken whole (another participant), index 1's user-data port taken: 1 is
+        // held, 2 is RustDDS's.
+        let taken = [d0, u0, u1];
+        let skip = discovery_ports_to_skip(40, |p| !taken.contains(&p));
+        assert_eq!(skip, vec![d1]);
+        // Nothing taken: nothing held.
+        assert!(discovery_ports_to_skip(40, |_| true).is_empty());
+        // Two in a row.
+        let taken = [u0, u1];
+        assert_eq!(
+            discovery_ports_to_skip(40, |p| !taken.contains(&p)),
+            vec![d0, d1]
+        );
+        assert!(![d2, u2].iter().any(|p| taken.contains(p)));
+    }
+
+    #[test]
+    fn a_participant_skips_an_index_whose_user_data_port_is_taken() {
+        // Without the skip, RustDDS would take index 0 and listen for user data on a port
+        // the kernel picks.
+        let domain = 42 + (std::process::id() % 40) as u16;
+        let user0 = ports::port_at(domain, ports::D3).expect("port");
+        let discovery0 = ports::port_at(domain, ports::D1).expect("port");
+        let Ok(_occupant) = std::net::UdpSocket::bind(("0.0.0.0", user0)) else {
+            return; // Someone else holds it: nothing to show.
+        };
+        if std::net::UdpSocket::bind(("0.0.0.0", discovery0)).is_err() {
+            return; // Index 0 is taken anyway.
+        }
+        let mut dds = RustDds::new(DdsConfig {
+            interfaces: vec!["127.0.0.1".parse().expect("address")],
+            ..Default::default()
+        })
+        .expect("backend");
+        let _publisher = Endpoints::new_publisher(&mut dds, domain, &[]).expect("publisher");
+        let p = dds.participants.values().next().expect("a participant");
+        assert_ne!(p.participant_id(), 0, "index 0 has no user-data port");
+        assert!(
+            std::net::UdpSocket::bind(("0.0.0.0", discovery0)).is_ok(),
+            "index 0's discovery port is free again"
+        );
+    }
 
     #[test]
     fn a_front_ends_free_ports_are_not_taken_by_the_participants() {
