@@ -14,8 +14,8 @@
 //! writes, and is done only once the worker's own readers of its topic were drained past
 //! that stamp (what the caller of [`AckTracker::poll`] says of each writer). That holds for
 //! backends that deliver to the worker's own readers inside the write call (Cyclone DDS, the
-//! RustDDS backend's in-process delivery); with Zenoh a reader may be drained before a
-//! sample reaches it, and the write counts as taken.
+//! RustDDS backend's in-process delivery); with Zenoh, or RustDDS without that delivery, a
+//! reader may be drained before a sample reaches it, and the write counts as taken.
 
 use std::cell::RefCell;
 use std::collections::{HashMap, HashSet, VecDeque};

@@ -484,7 +484,6 @@ mod tests {
         let at = |offset| ports::port_at(40, offset).expect("port");
         let (d0, u0) = (at(ports::D1), at(ports::D3));
         let (d1, u1) = (at(ports::D1 + 2), at(ports::D3 + 2));
-        let (d2, u2) = (at(ports::D1 + 4), at(ports::D3 + 4));
         // Index 0 taken whole (another participant), index 1's user-data port taken: 1 is
         // held, 2 is RustDDS's.
         let taken = [d0, u0, u1];
@@ -498,7 +497,6 @@ mod tests {
             discovery_ports_to_skip(40, |p| !taken.contains(&p)),
             vec![d0, d1]
         );
-        assert!(![d2, u2].iter().any(|p| taken.contains(p)));
     }
 
     #[test]

@@ -577,10 +577,10 @@ impl<L: WorkerLink> Worker<L> {
         if let Some(s) = &mut self.services_dds {
             s.ready_readers(&mut self.readers.ready)?;
         }
-        // Readers served a full batch last pass queue behind the others; readers that got no
-        // turn for the filter budget go first.
         // Every write so far that reached a reader named it ready by now.
         self.readers.scan_stamp = self.writers.stamp;
+        // Readers served a full batch last pass queue behind the others; readers that got no
+        // turn for the filter budget go first.
         for t in self.readers.ready.drain(..) {
             if let Some(k) = self.readers.by_token.get(&t) {
                 if let Some(r) = self.readers.reads.get_mut(k) {

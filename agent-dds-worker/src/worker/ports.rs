@@ -190,10 +190,10 @@ impl<L: WorkerLink> Worker<L> {
         let now = self.now;
         // The worker's own readers of each topic drained up to (counted once per poll).
         let mut drained = None;
-        let (reads, orphaned) = (&self.readers, &self.frontends.orphaned);
+        let (readers, orphaned) = (&self.readers, &self.frontends.orphaned);
         let (moved, all) = self.writers.acks.poll(now, |w| {
             drained
-                .get_or_insert_with(|| reads.drained_through(orphaned))
+                .get_or_insert_with(|| readers.drained_through(orphaned))
                 .get(&w.topic)
                 .copied()
                 .unwrap_or(u64::MAX)

@@ -27,8 +27,9 @@ pub(super) struct ActiveRead {
     /// written before taken and handed to the front-end ([`crate::acks`]); 0 until then.
     pub(super) drained_through: u64,
     /// The reader may hold samples this read has not handed over: it was named ready since
-    /// its last pump that emptied it (or the read is new). One that does not was drained
-    /// through the last readiness scan too ([`Readers::drained_through`]).
+    /// a pump last emptied it with what it took in its front-end's queue (or the read is
+    /// new). One that does not was drained through the last readiness scan too
+    /// ([`Readers::drained_through`]).
     pub(super) holds: bool,
 }
 

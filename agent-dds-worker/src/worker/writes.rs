@@ -110,8 +110,31 @@ pub(super) struct Rematch {
     pub(super) released_through: Option<u64>,
     /// Since when the next batch waits for those readers ([`RELEASE_GATE_MAX`]).
     pub(super) gated_since: Option<Instant>,
-    /// It waited [`RELEASE_GATE_MAX`] for them once in this drain: it waits no more.
+    /// How long the batches of this drain waited for them before (the current wait aside).
+    pub(super) gate_waited: Duration,
+    /// It waited [`RELEASE_GATE_MAX`] for them in all in this drain: it waits no more.
     pub(super) ungated: bool,
+}
+
+impl Rematch {
+    /// The writer stops holding: what it held went out, and a drain's state is forgotten.
+    pub(super) fn end_drain(&mut self) {
+        self.until = None;
+        self.draining = false;
+        self.schedule = None;
+        self.released_through = None;
+        self.gated_since = None;
+        self.gate_waited = Duration::ZERO;
+        self.ungated = false;
+    }
+
+    /// How long the current drain has waited for this worker's readers by `now`.
+    fn gate_wait(&self, now: Instant) -> Duration {
+        self.gate_waited
+            + self
+                .gated_since
+                .map_or(Duration::ZERO, |t| now.saturating_duration_since(t))
+    }
 }
 
 /// Held samples written per batch while a writer drains: a whole backlog at once would
@@ -161,9 +184,9 @@ pub(super) const RELEASE_FIRST_ACK_WAIT: Duration = Duration::from_millis(100);
 /// it wrote before its next batch. Such a reader whose client cannot keep up is paused, and
 /// keeps the last so many samples of its topic: written faster than its client takes them,
 /// a hundred writers' backlogs overwrote each other there (they stay held, safe with their
-/// front-end, until the reader took the previous batch). A writer that waited this long in
-/// all (the reader's client takes nothing) goes on at its schedule for the rest of the
-/// drain, without waiting again (counted).
+/// front-end, until the reader took the previous batch). A writer whose batches waited this
+/// long in all (the reader's client takes too little) goes on at its schedule for the rest
+/// of the drain, without waiting again (counted).
 pub(super) const RELEASE_GATE_MAX: Duration = Duration::from_secs(1);
 
 /// Longest hold of a replayed writer's samples when no reader matches.
@@ -341,8 +364,7 @@ impl<L: WorkerLink> Worker<L> {
                 held = rematch.held.len(),
                 "writer stops waiting for readers: too many samples held"
             );
-            rematch.until = None;
-            rematch.draining = false;
+            rematch.end_drain();
             rematch.held_bytes = 0;
             let held = std::mem::take(&mut rematch.held);
             let w = w.clone();
@@ -458,7 +480,7 @@ impl<L: WorkerLink> Worker<L> {
                 }) if r.draining => Some(match (r.schedule, r.held.front()) {
                     // Its readers' next pass opens the gate, at the latest its time.
                     _ if r.gated_since.is_some() && !r.rush => {
-                        r.gated_since.map_or(self.now, |t| t + RELEASE_GATE_MAX)
+                        self.now + RELEASE_GATE_MAX.saturating_sub(r.gate_wait(self.now))
                     }
                     (Some((start, first)), Some(h)) if !r.rush => {
                         start + release_delay(first, h.received_us)
@@ -590,30 +612,34 @@ impl<L: WorkerLink> Worker<L> {
             let room = budget > 0 || rematch.rush;
             // This worker's readers of the topic took the writer's last batch (or it waited
             // for them long enough). Asked last: the answer costs a look at every read.
-            let ready = rematch.draining && !paced && room && (due > 0 || rematch.held.is_empty());
-            let gate_open = if !ready || rematch.rush || rematch.ungated || rematch.held.is_empty()
-            {
-                true
-            } else if rematch.released_through.is_none_or(|last| {
-                drained
-                    .get_or_insert_with(|| self.readers.drained_through(&self.frontends.orphaned))
-                    .get(&w.topic)
-                    .is_none_or(|d| *d >= last)
-            }) {
-                rematch.gated_since = None;
-                true
-            } else {
-                let since = *rematch.gated_since.get_or_insert(now);
-                if now.saturating_duration_since(since) >= RELEASE_GATE_MAX {
+            let may_release =
+                rematch.draining && !paced && room && (due > 0 || rematch.held.is_empty());
+            let gate_open =
+                if !may_release || rematch.rush || rematch.ungated || rematch.held.is_empty() {
+                    true
+                } else if rematch.released_through.is_none_or(|last| {
+                    drained
+                        .get_or_insert_with(|| {
+                            self.readers.drained_through(&self.frontends.orphaned)
+                        })
+                        .get(&w.topic)
+                        .is_none_or(|d| *d >= last)
+                }) {
+                    rematch.gate_waited = rematch.gate_wait(now);
                     rematch.gated_since = None;
-                    rematch.ungated = true;
-                    gate_expired += 1;
                     true
                 } else {
-                    false
-                }
-            };
-            if ready && gate_open {
+                    rematch.gated_since.get_or_insert(now);
+                    if rematch.gate_wait(now) >= RELEASE_GATE_MAX {
+                        rematch.gated_since = None;
+                        rematch.ungated = true;
+                        gate_expired += 1;
+                        true
+                    } else {
+                        false
+                    }
+                };
+            if may_release && gate_open {
                 let batch = if rematch.last_batch.is_none() {
                     1
                 } else if rematch.rush {
@@ -654,11 +680,7 @@ impl<L: WorkerLink> Worker<L> {
                 }
                 rematch.released_through = Some(self.writers.stamp);
                 if rematch.held.is_empty() {
-                    rematch.until = None;
-                    rematch.draining = false;
-                    rematch.schedule = None;
-                    rematch.released_through = None;
-                    rematch.ungated = false;
+                    rematch.end_drain();
                     tracing::debug!("holding writer drained");
                     done.push(*key);
                 }

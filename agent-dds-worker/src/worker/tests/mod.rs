@@ -207,6 +207,22 @@ impl Harness {
             .expect("read");
     }
 
+    /// A pass `by` after the last; how many samples of the topic were written so far.
+    fn pass_after(&mut self, by: Duration) -> usize {
+        self.advance(by);
+        let now = self.worker.now;
+        self.worker.pass(now).expect("pass");
+        self.bus.samples_on(TOPIC).len()
+    }
+
+    /// A release of held samples `by` after the last look; how many samples of the topic
+    /// were written so far.
+    fn release_after(&mut self, by: Duration) -> usize {
+        self.advance(by);
+        self.worker.release_rematched();
+        self.bus.samples_on(TOPIC).len()
+    }
+
     /// Hands the worker a pause or resume of the client's read.
     fn pause_read(&mut self, pause: bool) {
         let route = Route::object(FE, CLIENT, Default::default(), READER);
@@ -653,29 +669,17 @@ fn released_to_a_paused_reader(n: u64) -> Harness {
 #[test]
 fn a_draining_writer_waits_for_the_workers_reader_to_take_its_last_batch() {
     let mut t = released_to_a_paused_reader(40);
-    assert_eq!(t.bus.samples_on(TOPIC).len(), 1, "the first sample, alone");
-    for _ in 0..5 {
-        t.advance(Duration::from_millis(100));
-        t.worker.release_rematched();
-    }
+    let ms = Duration::from_millis;
+    let waiting: Vec<usize> = (0..5).map(|_| t.release_after(ms(100))).collect();
     assert_eq!(
-        t.bus.samples_on(TOPIC).len(),
-        1,
-        "the paused reader has not taken it"
+        waiting,
+        vec![1; 5],
+        "the paused reader has not taken the first"
     );
     // Resumed: each pass takes what the last released, and releases a batch more.
     t.pause_read(false);
-    let mut written = vec![1];
-    for _ in 0..3 {
-        t.advance(Duration::from_millis(5));
-        let now = t.worker.now;
-        t.worker.pass(now).expect("pass");
-        written.push(t.bus.samples_on(TOPIC).len());
-    }
-    assert_eq!(
-        written,
-        vec![1, 1 + RELEASE_BATCH, 1 + 2 * RELEASE_BATCH, 40]
-    );
+    let written: Vec<usize> = (0..3).map(|_| t.pass_after(ms(5))).collect();
+    assert_eq!(written, vec![1 + RELEASE_BATCH, 1 + 2 * RELEASE_BATCH, 40]);
     assert_eq!(t.worker.dropped.get("release_gate_expired"), None);
 }
 
@@ -683,18 +687,30 @@ fn a_draining_writer_waits_for_the_workers_reader_to_take_its_last_batch() {
 #[test]
 fn a_paused_reader_holds_a_draining_writer_back_only_so_long() {
     let mut t = released_to_a_paused_reader(40);
-    t.advance(RELEASE_GATE_MAX - Duration::from_millis(1));
-    t.worker.release_rematched();
-    assert_eq!(t.bus.samples_on(TOPIC).len(), 1);
-    t.advance(Duration::from_millis(1));
-    t.worker.release_rematched();
-    assert_eq!(t.bus.samples_on(TOPIC).len(), 1 + RELEASE_BATCH);
+    let ms = Duration::from_millis;
+    assert_eq!(t.release_after(RELEASE_GATE_MAX - ms(1)), 1);
+    assert_eq!(t.release_after(ms(1)), 1 + RELEASE_BATCH);
     assert_eq!(t.worker.dropped.get("release_gate_expired"), Some(&1));
     // Once waited that long, the rest of the drain does not wait for that reader again.
-    for _ in 0..2 {
-        t.advance(Duration::from_millis(5));
-        t.worker.release_rematched();
-    }
-    assert_eq!(t.bus.samples_on(TOPIC).len(), 40);
+    assert_eq!(t.release_after(ms(5)), 1 + 2 * RELEASE_BATCH);
+    assert_eq!(t.release_after(ms(5)), 40);
+    assert_eq!(t.worker.dropped.get("release_gate_expired"), Some(&1));
+}
+
+/// The gate's bound is for the whole drain: a reader that takes a batch now and then, its
+/// read paused in between, does not hold the writer to one batch per resume.
+#[test]
+fn the_gate_waits_one_second_in_all_per_drain() {
+    let mut t = released_to_a_paused_reader(40);
+    let ms = Duration::from_millis;
+    assert_eq!(t.release_after(ms(600)), 1, "waiting for the paused reader");
+    // The reader takes the first sample: the next batch goes, and the read pauses again.
+    t.pause_read(false);
+    assert_eq!(t.pass_after(ms(5)), 1 + RELEASE_BATCH);
+    t.pause_read(true);
+    assert_eq!(t.release_after(ms(0)), 1 + RELEASE_BATCH, "waiting again");
+    assert_eq!(t.release_after(ms(300)), 1 + RELEASE_BATCH);
+    // 605 + 300 + 100 ms: the drain waited its second.
+    assert_eq!(t.release_after(ms(100)), 1 + 2 * RELEASE_BATCH);
     assert_eq!(t.worker.dropped.get("release_gate_expired"), Some(&1));
 }
