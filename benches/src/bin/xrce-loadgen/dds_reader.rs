@@ -25,6 +25,8 @@ pub struct DdsCounts {
     pub last_rx: Option<Instant>,
     /// Latency from the client's send to the DDS reader, ns.
     pub latencies: hdrhistogram::Histogram<u64>,
+    /// Which measured samples it got, by sequence number.
+    pub seen: Vec<bool>,
 }
 
 /// A running DDS reader thread.
@@ -55,8 +57,17 @@ impl Tally {
                 last_rx: None,
                 latencies: hdrhistogram::Histogram::new_with_bounds(1, 60_000_000_000, 3)
                     .map_err(|e| e.to_string())?,
+                seen: Vec::new(),
             },
         })
+    }
+
+    /// The counts, with which samples were seen.
+    fn into_counts(self) -> DdsCounts {
+        DdsCounts {
+            seen: self.seen,
+            ..self.counts
+        }
     }
 
     /// Counts one sample body (sequence number, send time relative to `base`, padding).
@@ -146,7 +157,7 @@ impl DdsReader {
                     tally.count(&s.value().body, base);
                 }
             }
-            let c = tally.counts;
+            let c = tally.into_counts();
             if let Ok(mut g) = counts2.lock() {
                 *g = Some(c);
             }
@@ -214,7 +225,7 @@ impl DdsReader {
                     .lock()
                     .map_err(|_| "Zenoh reader counts poisoned".to_string())?;
                 let empty = Tally::new(0, 0, Arc::new(AtomicUsize::new(0)))?;
-                std::mem::replace(&mut *t, empty).counts
+                std::mem::replace(&mut *t, empty).into_counts()
             };
             if let Ok(mut g) = counts2.lock() {
                 *g = Some(counts);

@@ -133,6 +133,12 @@ pub struct Args {
     /// Seconds between kills.
     #[arg(long, default_value_t = 3.0)]
     pub kill_every: f64,
+    /// Kill soak: write every sample some subscriber did not get to this file, a line each:
+    /// its sequence number, its publisher, when it was sent (ms from the start of the
+    /// measured phase), and whether the independent DDS reader got it (`dds`, `-`, or `?`
+    /// without one). Lost in both points before DDS; at the subscriber only, after it.
+    #[arg(long)]
+    pub lost_list: Option<std::path::PathBuf>,
     /// Command starting the agent under test, `{port}` replaced (run with `sh -c`); with
     /// `--transport serial`, `{devices}` (space-separated) and `{device_file}` (one a line)
     /// name the pty slaves the agent is to serve.

@@ -460,10 +460,12 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
     if killer.as_ref().is_some_and(Killer::pending) {
         eprintln!("soak: the run ended before every kill was done (more --samples or a lower --kill-every)");
     }
+    let mut dds_seen = None;
     let dds = match dds {
         Some(d) => {
             std::thread::sleep(Duration::from_millis(300));
-            let c = d.finish()?;
+            let mut c = d.finish()?;
+            dds_seen = Some(std::mem::take(&mut c.seen));
             let secs = c
                 .last_rx
                 .map_or(Duration::from_millis(1), |l| {
@@ -487,6 +489,10 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
         }
         None => None,
     };
+    if let (Some(path), Some(t)) = (a.lost_list.as_deref(), track.as_ref()) {
+        soak::write_lost_list(path, t, &receipts, subscribers as u32, dds_seen.as_deref())
+            .map_err(|e| format!("--lost-list {}: {e}", path.display()))?;
+    }
     let report = Report {
         transport: format!("{:?}", a.transport).to_lowercase(),
         line_bytes_per_second: (a.transport == TransportArg::Serial)

@@ -185,6 +185,52 @@ pub struct SoakReport {
     pub fds: (u64, u64),
 }
 
+/// For each sample, by sequence number, the subscribers (a bit each, up to 64) that did not
+/// receive it.
+fn missed_by(track: &Track, receipts: &[Receipt], subscribers: u32) -> Vec<u64> {
+    let all = if subscribers >= 64 {
+        u64::MAX
+    } else {
+        (1u64 << subscribers) - 1
+    };
+    let mut missed = vec![all; track.sent_at.len()];
+    for r in receipts {
+        if let Some(m) = missed.get_mut(r.seq as usize) {
+            *m &= !(1 << r.subscriber.min(63));
+        }
+    }
+    missed
+}
+
+/// Writes every sample some subscriber did not get, a line each: its sequence number, its
+/// publisher, when it was sent (ms from the start), and whether the independent DDS reader
+/// got it (`dds`, `-`, or `?` without that reader): `--lost-list`.
+pub fn write_lost_list(
+    path: &std::path::Path,
+    track: &Track,
+    receipts: &[Receipt],
+    subscribers: u32,
+    dds_seen: Option<&[bool]>,
+) -> std::io::Result<()> {
+    use std::io::Write as _;
+    let mut out = std::io::BufWriter::new(std::fs::File::create(path)?);
+    writeln!(out, "# seq publisher sent_ms dds")?;
+    for (seq, missed) in missed_by(track, receipts, subscribers).iter().enumerate() {
+        let sent = track.sent_at[seq].load(Ordering::Relaxed);
+        if sent == 0 || *missed == 0 {
+            continue;
+        }
+        let publisher = track.publisher[seq].load(Ordering::Relaxed);
+        let dds = match dds_seen.map(|s| s.get(seq).copied().unwrap_or(false)) {
+            Some(true) => "dds",
+            Some(false) => "-",
+            None => "?",
+        };
+        writeln!(out, "{seq} {publisher} {} {dds}", sent / 1_000_000)?;
+    }
+    out.flush()
+}
+
 /// Accounts each kill from what was sent and received.
 pub fn analyse(
     kills: &[Kill],
@@ -223,23 +269,12 @@ pub fn analyse(
             .map_or(0, |t| t.load(Ordering::Relaxed))
     };
     // Lost: sent, and not received by a subscriber.
-    let mut got = vec![0u64; track.sent_at.len()];
-    for r in receipts {
-        if let Some(g) = got.get_mut(r.seq as usize) {
-            *g |= 1 << (r.subscriber.min(63));
-        }
-    }
-    let all = if subscribers >= 64 {
-        u64::MAX
-    } else {
-        (1u64 << subscribers) - 1
-    };
-    for (seq, g) in got.iter().enumerate() {
+    for (seq, missed) in missed_by(track, receipts, subscribers).iter().enumerate() {
         let s = sent_at(seq as u32);
         if s == 0 {
             continue;
         }
-        let missing = (all & !g).count_ones();
+        let missing = missed.count_ones();
         if missing > 0 {
             if let Some(span) = window_of(s).and_then(|w| lost_span.get_mut(w)) {
                 let (a, b) = span.get_or_insert((s, s));
