@@ -503,15 +503,21 @@ mod tests {
     fn a_participant_skips_an_index_whose_user_data_port_is_taken() {
         // Without the skip, RustDDS would take index 0 and listen for user data on a port
         // the kernel picks.
-        let domain = 42 + (std::process::id() % 40) as u16;
-        let user0 = ports::port_at(domain, ports::D3).expect("port");
-        let discovery0 = ports::port_at(domain, ports::D1).expect("port");
-        let Ok(_occupant) = std::net::UdpSocket::bind(("0.0.0.0", user0)) else {
-            return; // Someone else holds it: nothing to show.
-        };
-        if std::net::UdpSocket::bind(("0.0.0.0", discovery0)).is_err() {
-            return; // Index 0 is taken anyway.
-        }
+        // A domain whose index 0 is free (other processes may hold some), with its user-data
+        // port then taken here.
+        let free = |p: u16| std::net::UdpSocket::bind(("0.0.0.0", p)).is_ok();
+        let start = 42 + (std::process::id() % 40) as u16;
+        let (domain, discovery0, _occupant) = (start..start + 40)
+            .find_map(|domain| {
+                let discovery0 = ports::port_at(domain, ports::D1)?;
+                let user0 = ports::port_at(domain, ports::D3)?;
+                if !free(discovery0) {
+                    return None;
+                }
+                let occupant = std::net::UdpSocket::bind(("0.0.0.0", user0)).ok()?;
+                Some((domain, discovery0, occupant))
+            })
+            .expect("a domain whose participant index 0 is free");
         let mut dds = RustDds::new(DdsConfig {
             interfaces: vec!["127.0.0.1".parse().expect("address")],
             ..Default::default()

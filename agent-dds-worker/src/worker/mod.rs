@@ -630,12 +630,7 @@ impl<L: WorkerLink> Worker<L> {
             .acks
             .due()
             .map(|d| d.saturating_duration_since(now).as_millis() as i32 + 1);
-        let t = self.timeout_without_acks(now);
-        match (acks, t) {
-            (Some(a), t) if t < 0 => a,
-            (Some(a), t) => a.min(t),
-            (None, t) => t,
-        }
+        sooner(acks, self.timeout_without_acks(now))
     }
 
     fn timeout_without_acks(&self, now: Instant) -> i32 {
@@ -645,12 +640,7 @@ impl<L: WorkerLink> Worker<L> {
             Some(due) => (due.saturating_duration_since(now).as_millis() as i32).clamp(1, 20),
             None => 20,
         });
-        let rest = self.timeout_for_ports_and_reads(now);
-        match (holding, rest) {
-            (Some(h), r) if r < 0 => h,
-            (Some(h), r) => h.min(r),
-            (None, r) => r,
-        }
+        sooner(holding, self.timeout_for_ports_and_reads(now))
     }
 
     /// The timeout the front-ends' queues, the reads' deadlines and pacing, the ROS graph
@@ -730,5 +720,14 @@ impl<L: WorkerLink> Worker<L> {
             }),
             ..Default::default()
         }
+    }
+}
+
+/// The sooner of an optional timeout and one where -1 means none (milliseconds).
+fn sooner(timeout: Option<i32>, or: i32) -> i32 {
+    match timeout {
+        Some(t) if or < 0 => t,
+        Some(t) => t.min(or),
+        None => or,
     }
 }
