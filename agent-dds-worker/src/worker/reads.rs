@@ -31,6 +31,12 @@ pub(super) struct ActiveRead {
     /// new). One that does not was drained through the last readiness scan too
     /// ([`Readers::drained_through`]).
     pub(super) holds: bool,
+    /// The write stamp at which a pump last emptied the reader while what it took still
+    /// waited in the worker for room in the front-end's queue: drained through it once
+    /// that backlog is sent. A reader of a congested path is rarely seen empty with its
+    /// front-end's queue empty at once; without this its writes would stay unacknowledged
+    /// until [`crate::acks::ACK_GIVE_UP`], and be resent (repeated) if the worker died.
+    pub(super) emptied_at: Option<u64>,
 }
 
 /// DataDeliveryControl's `min_pace_period` and `max_bytes_per_second`.
@@ -160,6 +166,7 @@ impl<L: WorkerLink> Worker<L> {
                 topic,
                 drained_through: 0,
                 holds: true,
+                emptied_at: None,
             },
             None => ActiveRead {
                 request_id,
@@ -173,6 +180,7 @@ impl<L: WorkerLink> Worker<L> {
                 topic,
                 drained_through: 0,
                 holds: true,
+                emptied_at: None,
             },
         };
         self.readers.reads.insert(key, read);
@@ -256,6 +264,10 @@ impl<L: WorkerLink> Worker<L> {
             // The front-end is congested: leave the samples in the DDS reader for now.
             p.deferred.push(key);
             return;
+        }
+        // What an earlier pump took, when it emptied the reader, is in the queue now.
+        if let Some(stamp) = read.emptied_at.take() {
+            read.drained_through = read.drained_through.max(stamp);
         }
         let filtering = read.filter.is_some()
             || matches!(
@@ -461,6 +473,8 @@ impl<L: WorkerLink> Worker<L> {
                 if emptied && handed_over {
                     r.drained_through = stamp;
                     r.holds = false;
+                } else if emptied {
+                    r.emptied_at = Some(stamp);
                 }
                 r.remaining == Some(0) || (r.one_shot && sent > 0)
             }
