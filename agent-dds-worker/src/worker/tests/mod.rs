@@ -271,7 +271,11 @@ impl Harness {
 
 /// A client's participant with a reader and a new volatile writer of one topic.
 fn reader_and_new_writer() -> Harness {
-    let mut t = Harness::new(false);
+    reader_and_new_writer_over(Harness::new(false))
+}
+
+/// [`reader_and_new_writer`] in `t`.
+fn reader_and_new_writer_over(mut t: Harness) -> Harness {
     t.participant(CLIENT);
     t.reader(CLIENT, READER, &reader_xml(TOPIC, "NO_KEY"))
         .expect("reader");

@@ -203,12 +203,7 @@ fn a_paced_read_holds_no_acknowledgement_back() {
 fn a_congested_readers_writes_are_acknowledged_as_its_backlog_is_sent() {
     // Three writes a round against a queue of four that also carries progress: each pass
     // leaves samples waiting in the worker.
-    let mut t = Harness::over(config(), MemoryWorkerLink::bounded(4));
-    t.participant(CLIENT);
-    t.reader(CLIENT, READER, &reader_xml(TOPIC, "NO_KEY"))
-        .expect("reader");
-    t.writer(CLIENT, WRITER, &writer_xml(TOPIC, "NO_KEY", "VOLATILE"))
-        .expect("writer");
+    let mut t = reader_and_new_writer_over(Harness::over(config(), MemoryWorkerLink::bounded(4)));
     t.read(CLIENT, READER);
     t.request(write(&keyed(1, 1)), 1, false);
     t.matched_long_ago(CLIENT, WRITER);
