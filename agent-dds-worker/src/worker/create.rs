@@ -13,6 +13,8 @@ pub(super) struct ReaderInfo {
     pub(super) ty: Option<Arc<StructDef>>,
     /// The reader's own filter (XML `<content_filter>` or the binary `contentbased_filter`).
     pub(super) filter: Option<Filter>,
+    /// The fewest samples of an instance it keeps (its history's depth, as bounded).
+    pub(super) depth: u32,
 }
 
 /// Every endpoint's topic: as the backend makes it (with its key), its description, and
@@ -258,6 +260,12 @@ impl<L: WorkerLink> Worker<L> {
                             topic: tdesc.name.clone(),
                             ty,
                             filter,
+                            depth: match qos.history {
+                                crate::backend::policies::History::KeepLast(d) => {
+                                    u32::try_from(d).unwrap_or(0).max(1)
+                                }
+                                crate::backend::policies::History::KeepAll => samples.max(1),
+                            },
                         },
                     },
                 )

@@ -63,6 +63,7 @@ mod in_process_link;
 mod link;
 mod ports;
 mod reads;
+mod release_gate;
 mod replay_guard;
 mod requests;
 mod services;
@@ -215,8 +216,11 @@ impl Readers {
     /// client chose to take less than may come), nor the readers of front-ends whose process
     /// is gone (`orphaned`): nothing they take reaches a client before a successor replays
     /// their reads.
-    fn drained_through(&self, orphaned: &HashMap<u32, Instant>) -> HashMap<&DomainTopic, u64> {
-        let mut drained: HashMap<&DomainTopic, u64> = HashMap::new();
+    fn drained_through(
+        &self,
+        orphaned: &HashMap<u32, Instant>,
+    ) -> HashMap<&DomainTopic, release_gate::Drained> {
+        let mut drained: HashMap<&DomainTopic, release_gate::Drained> = HashMap::new();
         for (key, r) in &self.reads {
             if orphaned.contains_key(&key.0) || r.pacing.limited() {
                 continue;
@@ -227,8 +231,12 @@ impl Readers {
                 } else {
                     r.drained_through.max(self.scan_stamp)
                 };
-                let d = drained.entry(topic).or_insert(through);
-                *d = (*d).min(through);
+                let d = drained.entry(topic).or_insert(release_gate::Drained {
+                    through,
+                    depth: r.depth,
+                });
+                d.through = d.through.min(through);
+                d.depth = d.depth.min(r.depth);
             }
         }
         drained
@@ -279,6 +287,8 @@ struct Writers {
     /// Writes recorded for acknowledgement so far, over every writer: the stamp of the
     /// newest, which the worker's own readers are drained past ([`crate::acks`]).
     stamp: u64,
+    /// How much draining writers may release into each topic ([`release_gate`]).
+    gates: release_gate::ReleaseGates,
 }
 
 /// Most DDS writers kept retiring at once (each is a DDS entity a client made the worker
@@ -296,6 +306,7 @@ impl Writers {
             retiring: std::collections::VecDeque::new(),
             retired_early: 0,
             stamp: 0,
+            gates: release_gate::ReleaseGates::default(),
         }
     }
 

@@ -195,8 +195,7 @@ impl<L: WorkerLink> Worker<L> {
             drained
                 .get_or_insert_with(|| readers.drained_through(orphaned))
                 .get(&w.topic)
-                .copied()
-                .unwrap_or(u64::MAX)
+                .map_or(u64::MAX, |d| d.through)
         });
         if !self.writers.retiring.is_empty() {
             self.writers.prune_retiring(now);

@@ -23,6 +23,8 @@ pub(super) struct ActiveRead {
     pub(super) data_format: u8,
     /// The data reader's topic (None for a requester or replier).
     pub(super) topic: Option<DomainTopic>,
+    /// The data reader's history depth ([`ReaderInfo::depth`]; 0 for the others).
+    pub(super) depth: u32,
     /// The worker's write stamp up to which the reader was last seen drained: every sample
     /// written before taken and handed to the front-end ([`crate::acks`]); 0 until then.
     pub(super) drained_through: u64,
@@ -106,18 +108,19 @@ impl<L: WorkerLink> Worker<L> {
         replay: bool,
         body: &[u8],
     ) -> Result<(), OpError> {
-        let (reader_type, topic) = match self.entities.value(&key) {
+        let (reader_type, topic, depth) = match self.entities.value(&key) {
             Some(Entity {
                 kind: EntityKind::Reader { info, .. },
                 ..
             }) => (
                 Some(info.ty.clone()),
                 Some((info.domain, info.topic.clone())),
+                info.depth,
             ),
             Some(Entity {
                 kind: EntityKind::Service(..),
                 ..
-            }) => (None, None),
+            }) => (None, None, 0),
             _ => {
                 return Err(OpError::UnknownReference(
                     "read from an unknown data reader, requester or replier".into(),
@@ -164,6 +167,7 @@ impl<L: WorkerLink> Worker<L> {
                 filter,
                 data_format: spec.data_format,
                 topic,
+                depth,
                 drained_through: 0,
                 holds: true,
                 emptied_at: None,
@@ -178,6 +182,7 @@ impl<L: WorkerLink> Worker<L> {
                 filter,
                 data_format: spec.data_format,
                 topic,
+                depth,
                 drained_through: 0,
                 holds: true,
                 emptied_at: None,

@@ -1,6 +1,7 @@
 //! Writes: the DDS writers of XRCE data writers (shared ones included), the samples a new
 //! or replayed writer holds until its readers match, and what is reported about matches.
 
+use super::release_gate::{Admission, RELEASE_GATE_MAX};
 use super::*;
 
 /// The DDS writer behind one XRCE data writer, or behind several with `share_writers`.
@@ -105,15 +106,9 @@ pub(super) struct Rematch {
     pub(super) schedule: Option<(Instant, u64)>,
     /// The worker stops: what is held goes out as fast as the readers acknowledge.
     pub(super) rush: bool,
-    /// The worker's write stamp after the writer's last batch of held samples: the next
-    /// waits until this worker's own readers of the topic were drained past it.
-    pub(super) released_through: Option<u64>,
-    /// Since when the next batch waits for those readers ([`RELEASE_GATE_MAX`]).
-    pub(super) gated_since: Option<Instant>,
-    /// How long the batches of this drain waited for them before (the current wait aside).
-    pub(super) gate_waited: Duration,
-    /// It waited [`RELEASE_GATE_MAX`] for them in all in this drain: it waits no more.
-    pub(super) ungated: bool,
+    /// Its last batch waits for this worker's own readers of its topic to take what was
+    /// released before ([`super::release_gate`]).
+    pub(super) gated: bool,
 }
 
 impl Rematch {
@@ -122,18 +117,7 @@ impl Rematch {
         self.until = None;
         self.draining = false;
         self.schedule = None;
-        self.released_through = None;
-        self.gated_since = None;
-        self.gate_waited = Duration::ZERO;
-        self.ungated = false;
-    }
-
-    /// How long the current drain has waited for this worker's readers by `now`.
-    fn gate_wait(&self, now: Instant) -> Duration {
-        self.gate_waited
-            + self
-                .gated_since
-                .map_or(Duration::ZERO, |t| now.saturating_duration_since(t))
+        self.gated = false;
     }
 }
 
@@ -179,15 +163,6 @@ pub(super) const RELEASE_ACK_WAIT: Duration = Duration::from_millis(2);
 /// 12-15 of 16, in about one run in three of the front-end takeover tests). Once every
 /// reader acknowledged one sample, each has seen a heartbeat, and later gaps are repaired.
 pub(super) const RELEASE_FIRST_ACK_WAIT: Duration = Duration::from_millis(100);
-
-/// Longest a draining writer waits for this worker's own readers of its topic to take what
-/// it wrote before its next batch. Such a reader whose client cannot keep up is paused, and
-/// keeps the last so many samples of its topic: written faster than its client takes them,
-/// a hundred writers' backlogs overwrote each other there (they stay held, safe with their
-/// front-end, until the reader took the previous batch). A writer whose batches waited this
-/// long in all (the reader's client takes too little) goes on at its schedule for the rest
-/// of the drain, without waiting again (counted).
-pub(super) const RELEASE_GATE_MAX: Duration = Duration::from_secs(1);
 
 /// Longest hold of a replayed writer's samples when no reader matches.
 pub(super) const REMATCH_MAX: Duration = Duration::from_secs(3);
@@ -475,13 +450,20 @@ impl<L: WorkerLink> Worker<L> {
             .iter()
             .filter_map(|k| match self.entities.value(k) {
                 Some(Entity {
-                    kind: EntityKind::Writer { rematch: r, .. },
+                    kind:
+                        EntityKind::Writer {
+                            rematch: r,
+                            writer: w,
+                            ..
+                        },
                     ..
                 }) if r.draining => Some(match (r.schedule, r.held.front()) {
                     // Its readers' next pass opens the gate, at the latest its time.
-                    _ if r.gated_since.is_some() && !r.rush => {
-                        self.now + RELEASE_GATE_MAX.saturating_sub(r.gate_wait(self.now))
-                    }
+                    _ if r.gated && !r.rush => self
+                        .writers
+                        .gates
+                        .next_expiry(&w.topic)
+                        .unwrap_or(self.now + RELEASE_GATE_MAX),
                     (Some((start, first)), Some(h)) if !r.rush => {
                         start + release_delay(first, h.received_us)
                     }
@@ -526,10 +508,10 @@ impl<L: WorkerLink> Worker<L> {
         });
         let mut budget = RELEASE_PASS_MAX * elapsed_ms;
         let mut spent = false;
-        // This worker's readers drained up to, per topic (counted once, when needed), and
-        // the writers that stopped waiting for them.
+        // This worker's readers drained up to, per topic (counted once, when needed).
         let mut drained = None;
-        let mut gate_expired = 0u64;
+        // The topics writers still drain into: their gates are kept.
+        let mut draining_topics = HashSet::new();
         // In turns: the first writer of this pass is the second of the last one.
         let mut order: Vec<EntityKey> = self.writers.holding.iter().copied().collect();
         if !order.is_empty() {
@@ -610,45 +592,40 @@ impl<L: WorkerLink> Worker<L> {
             // (A writer that holds nothing any more is done at once; a stopping worker's
             // writers are not held to the pass budget.)
             let room = budget > 0 || rematch.rush;
-            // This worker's readers of the topic took the writer's last batch (or it waited
-            // for them long enough). Asked last: the answer costs a look at every read.
             let may_release =
                 rematch.draining && !paced && room && (due > 0 || rematch.held.is_empty());
-            let gate_open =
-                if !may_release || rematch.rush || rematch.ungated || rematch.held.is_empty() {
-                    true
-                } else if rematch.released_through.is_none_or(|last| {
-                    drained
-                        .get_or_insert_with(|| {
-                            self.readers.drained_through(&self.frontends.orphaned)
-                        })
-                        .get(&w.topic)
-                        .is_none_or(|d| *d >= last)
-                }) {
-                    rematch.gate_waited = rematch.gate_wait(now);
-                    rematch.gated_since = None;
-                    true
-                } else {
-                    rematch.gated_since.get_or_insert(now);
-                    if rematch.gate_wait(now) >= RELEASE_GATE_MAX {
-                        rematch.gated_since = None;
-                        rematch.ungated = true;
-                        gate_expired += 1;
-                        true
-                    } else {
-                        false
-                    }
-                };
-            if may_release && gate_open {
-                let batch = if rematch.last_batch.is_none() {
-                    1
-                } else if rematch.rush {
+            if rematch.draining && !rematch.held.is_empty() && !draining_topics.contains(&w.topic) {
+                draining_topics.insert(w.topic.clone());
+            }
+            let batch = if !may_release {
+                0
+            } else if rematch.last_batch.is_none() {
+                1
+            } else if rematch.rush {
+                RELEASE_BATCH.min(due)
+            } else {
+                RELEASE_BATCH.min(budget).min(due)
+            };
+            // This worker's readers of the topic take what was released into it before
+            // (asked last: the answer costs a look at every read). A stopping worker's
+            // writers do not wait for them.
+            let batch = if batch == 0 || rematch.rush {
+                batch
+            } else {
+                let d = drained
+                    .get_or_insert_with(|| self.readers.drained_through(&self.frontends.orphaned))
+                    .get(&w.topic)
+                    .copied();
+                match self.writers.gates.admit(&w.topic, d, batch, now) {
+                    Admission::Release(n) => n,
+                    Admission::Wait => 0,
+                }
+            };
+            rematch.gated = may_release && batch == 0 && !rematch.held.is_empty();
+            if may_release && !rematch.gated {
+                if rematch.last_batch.is_some() {
                     rematch.probed = true;
-                    RELEASE_BATCH.min(due)
-                } else {
-                    rematch.probed = true;
-                    RELEASE_BATCH.min(budget).min(due)
-                };
+                }
                 budget = budget.saturating_sub(batch.min(rematch.held.len()));
                 spent = true;
                 rematch.last_batch = Some(now);
@@ -676,9 +653,9 @@ impl<L: WorkerLink> Worker<L> {
                         failures += 1;
                     } else {
                         self.writers.record(w, key.0, seq, now);
+                        self.writers.gates.released(&w.topic, self.writers.stamp);
                     }
                 }
-                rematch.released_through = Some(self.writers.stamp);
                 if rematch.held.is_empty() {
                     rematch.end_drain();
                     tracing::debug!("holding writer drained");
@@ -701,6 +678,8 @@ impl<L: WorkerLink> Worker<L> {
         for _ in 0..failures {
             self.count("dds_write_failed");
         }
+        self.writers.gates.keep_only(&draining_topics);
+        let gate_expired = self.writers.gates.take_expired();
         if gate_expired > 0 {
             let why = format!(
                 "held samples released although this worker's reader of their topic has not \

@@ -2,6 +2,7 @@
 //! deletes in DDS for the XRCE objects of a client, and what reaches the front-end. Time is
 //! the harness's: it moves only when a test advances it.
 
+use super::release_gate::RELEASE_GATE_MAX;
 use super::*;
 use crate::backend::fake::{Fake, FakeBus};
 use xrce_common::wire::cdr::CdrWriter;
@@ -22,6 +23,7 @@ const PUBLISHER: ObjectId = ObjectId::new(1, object_kind::PUBLISHER);
 const SUBSCRIBER: ObjectId = ObjectId::new(1, object_kind::SUBSCRIBER);
 const WRITER: ObjectId = ObjectId::new(1, object_kind::DATAWRITER);
 const READER: ObjectId = ObjectId::new(1, object_kind::DATAREADER);
+const OTHER_WRITER: ObjectId = ObjectId::new(2, object_kind::DATAWRITER);
 const TYPES: ObjectId = ObjectId::new(1, object_kind::TYPE);
 
 const TOPIC: &str = "HelloWorldTopic";
@@ -477,11 +479,7 @@ fn a_writer_holds_until_matched_then_its_samples_reach_a_reader_in_order() {
     assert!(t.bus.written.borrow().is_empty());
     assert!(t.worker.writers.holding.contains(&(FE, CLIENT, WRITER)));
     t.matched_long_ago(CLIENT, WRITER);
-    // The first alone; the rest once the worker's reader took it, in the next pass.
-    assert_eq!(t.bus.samples_on(TOPIC), vec![keyed(0, 0)]);
-    t.advance(Duration::from_millis(5));
-    let now = t.worker.now;
-    t.worker.pass(now).expect("pass");
+    // The first alone, then (acknowledged) the rest: room in the worker's reader.
     assert!(t.worker.writers.holding.is_empty());
     assert_eq!(
         t.bus.samples_on(TOPIC),
@@ -653,9 +651,19 @@ fn shared_writers_share_one_backend_writer_per_qos_and_byte_order() {
 }
 
 /// A new writer that held `n` samples, released (its first sample alone) while the read of
-/// the worker's own reader of the topic is paused.
-fn released_to_a_paused_reader(n: u64) -> Harness {
-    let mut t = reader_and_new_writer();
+/// the worker's own reader of the topic, which keeps the last `depth` samples, is paused.
+fn released_to_a_paused_reader(n: u64, depth: u32) -> Harness {
+    let mut t = Harness::new(false);
+    t.participant(CLIENT);
+    let xml = format!(
+        "<dds><data_reader><topic><kind>NO_KEY</kind><name>{TOPIC}</name>\
+         <dataType>HelloWorld</dataType></topic><qos><reliability><kind>RELIABLE</kind>\
+         </reliability><history><kind>KEEP_LAST</kind><depth>{depth}</depth></history>\
+         </qos></data_reader></dds>"
+    );
+    t.reader(CLIENT, READER, &xml).expect("reader");
+    t.writer(CLIENT, WRITER, &writer_xml(TOPIC, "NO_KEY", "VOLATILE"))
+        .expect("writer");
     t.read(CLIENT, READER);
     for i in 0..n {
         t.worker
@@ -667,54 +675,90 @@ fn released_to_a_paused_reader(n: u64) -> Harness {
     t
 }
 
-/// A draining writer's next batch waits until this worker's own reader of the topic took
-/// the last one: a paused read (its client is slow) keeps the rest held, not overwritten in
-/// the reader's history; the wait is bounded.
+/// Draining writers put at most half the history of this worker's own reader of their
+/// topic into it before it took some: a paused read (its client is slow) keeps the rest
+/// held, not overwritten in the reader's history.
 #[test]
-fn a_draining_writer_waits_for_the_workers_reader_to_take_its_last_batch() {
-    let mut t = released_to_a_paused_reader(40);
+fn a_draining_writer_fills_at_most_half_a_paused_readers_history() {
+    let mut t = released_to_a_paused_reader(100, 64);
+    assert_eq!(t.bus.samples_on(TOPIC).len(), 1 + RELEASE_BATCH);
     let ms = Duration::from_millis;
     let waiting: Vec<usize> = (0..5).map(|_| t.release_after(ms(100))).collect();
-    assert_eq!(
-        waiting,
-        vec![1; 5],
-        "the paused reader has not taken the first"
-    );
-    // Resumed: each pass takes what the last released, and releases a batch more.
+    assert_eq!(waiting, vec![32; 5], "a batch at a time, up to 32");
+    // Resumed: each pass takes what waits, and releases a batch more.
     t.pause_read(false);
-    let written: Vec<usize> = (0..3).map(|_| t.pass_after(ms(5))).collect();
-    assert_eq!(written, vec![1 + RELEASE_BATCH, 1 + 2 * RELEASE_BATCH, 40]);
+    let written: Vec<usize> = (0..5).map(|_| t.pass_after(ms(5))).collect();
+    assert_eq!(written, vec![48, 64, 80, 96, 100]);
     assert_eq!(t.worker.dropped.get("release_gate_expired"), None);
 }
 
-/// A reader whose client takes nothing does not keep a writer's samples held for ever.
+/// Another writer of the topic does not add its own batches to what the paused reader
+/// has not taken: the bound is the topic's.
 #[test]
-fn a_paused_reader_holds_a_draining_writer_back_only_so_long() {
-    let mut t = released_to_a_paused_reader(40);
+fn writers_of_one_topic_share_the_readers_room() {
+    let mut t = released_to_a_paused_reader(40, 64);
+    t.writer(
+        CLIENT,
+        OTHER_WRITER,
+        &writer_xml(TOPIC, "NO_KEY", "VOLATILE"),
+    )
+    .expect("writer");
+    for i in 0..40 {
+        t.worker
+            .write_one(
+                (FE, CLIENT, OTHER_WRITER),
+                i,
+                0,
+                true,
+                &keyed(i as i32, 0),
+                false,
+            )
+            .expect("write");
+    }
+    t.matched_long_ago(CLIENT, OTHER_WRITER);
+    let ms = Duration::from_millis;
+    let waiting: Vec<usize> = (0..5).map(|_| t.release_after(ms(100))).collect();
+    assert_eq!(waiting.last(), Some(&32), "{waiting:?}");
+}
+
+/// A reader whose client takes nothing does not keep the writers' samples held for ever;
+/// once it takes again, the bound holds again.
+#[test]
+fn a_reader_that_takes_nothing_holds_the_release_back_only_so_long() {
+    let mut t = released_to_a_paused_reader(40, 2);
     let ms = Duration::from_millis;
     assert_eq!(t.release_after(RELEASE_GATE_MAX - ms(1)), 1);
     assert_eq!(t.release_after(ms(1)), 1 + RELEASE_BATCH);
     assert_eq!(t.worker.dropped.get("release_gate_expired"), Some(&1));
-    // Once waited that long, the rest of the drain does not wait for that reader again.
+    // Open until that reader takes again.
     assert_eq!(t.release_after(ms(5)), 1 + 2 * RELEASE_BATCH);
-    assert_eq!(t.release_after(ms(5)), 40);
+    t.pause_read(false);
+    assert_eq!(
+        t.pass_after(ms(5)),
+        1 + 2 * RELEASE_BATCH + 1,
+        "one at a time again"
+    );
     assert_eq!(t.worker.dropped.get("release_gate_expired"), Some(&1));
 }
 
-/// The gate's bound is for the whole drain: a reader that takes a batch now and then, its
-/// read paused in between, does not hold the writer to one batch per resume.
+/// A reader that takes, however slowly, keeps the bound: each take starts the wait again,
+/// so the release follows its pace rather than overrunning it.
 #[test]
-fn the_gate_waits_one_second_in_all_per_drain() {
-    let mut t = released_to_a_paused_reader(40);
+fn a_slow_reader_keeps_the_bound() {
+    let mut t = released_to_a_paused_reader(40, 2);
     let ms = Duration::from_millis;
     assert_eq!(t.release_after(ms(600)), 1, "waiting for the paused reader");
-    // The reader takes the first sample: the next batch goes, and the read pauses again.
+    // The reader takes the first sample: the next goes, and the read pauses again.
     t.pause_read(false);
-    assert_eq!(t.pass_after(ms(5)), 1 + RELEASE_BATCH);
+    assert_eq!(t.pass_after(ms(5)), 2);
     t.pause_read(true);
-    assert_eq!(t.release_after(ms(0)), 1 + RELEASE_BATCH, "waiting again");
-    assert_eq!(t.release_after(ms(300)), 1 + RELEASE_BATCH);
-    // 605 + 300 + 100 ms: the drain waited its second.
-    assert_eq!(t.release_after(ms(100)), 1 + 2 * RELEASE_BATCH);
+    assert_eq!(t.release_after(ms(0)), 2, "waiting again");
+    assert_eq!(t.release_after(ms(600)), 2);
+    assert_eq!(
+        t.release_after(ms(399)),
+        2,
+        "a second since its last take, not in all"
+    );
+    assert_eq!(t.release_after(ms(1)), 2 + RELEASE_BATCH);
     assert_eq!(t.worker.dropped.get("release_gate_expired"), Some(&1));
 }
