@@ -65,6 +65,11 @@ impl<K: Copy + Eq + Hash> Turns<K> {
         }
     }
 
+    /// The keys in the line, first come first.
+    pub fn iter(&self) -> impl Iterator<Item = &K> {
+        self.order.iter()
+    }
+
     /// Whether `key` is in the line.
     pub fn contains(&self, key: &K) -> bool {
         self.waiting.contains(key)

@@ -234,9 +234,11 @@ impl Readers {
                 let d = drained.entry(topic).or_insert(release_gate::Drained {
                     through,
                     depth: r.depth,
+                    taken: 0,
                 });
                 d.through = d.through.min(through);
                 d.depth = d.depth.min(r.depth);
+                d.taken = d.taken.wrapping_add(r.taken);
             }
         }
         drained

@@ -231,6 +231,15 @@ impl<L: WorkerLink> Worker<L> {
                 wake = true;
             }
             if p.backlog.is_empty() {
+                // What the reads waiting for it took when they emptied their readers is in
+                // the front-end's queue now: drained that far, paused meanwhile or not.
+                for key in p.deferred.iter() {
+                    if let Some(r) = self.readers.reads.get_mut(key) {
+                        if let Some(stamp) = r.emptied_at.take() {
+                            r.drained_through = r.drained_through.max(stamp);
+                        }
+                    }
+                }
                 self.readers.to_pump.append(&mut p.deferred);
             }
             // Held writes left the queue but are not executed yet: execution stops just

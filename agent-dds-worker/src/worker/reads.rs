@@ -39,6 +39,9 @@ pub(super) struct ActiveRead {
     /// front-end's queue empty at once; without this its writes would stay unacknowledged
     /// until [`crate::acks::ACK_GIVE_UP`], and be resent (repeated) if the worker died.
     pub(super) emptied_at: Option<u64>,
+    /// Samples taken for it so far: the release gate sees a reader that takes without being
+    /// emptied as taking ([`super::release_gate`]).
+    pub(super) taken: u64,
 }
 
 /// DataDeliveryControl's `min_pace_period` and `max_bytes_per_second`.
@@ -171,6 +174,7 @@ impl<L: WorkerLink> Worker<L> {
                 drained_through: 0,
                 holds: true,
                 emptied_at: None,
+                taken: 0,
             },
             None => ActiveRead {
                 request_id,
@@ -186,6 +190,7 @@ impl<L: WorkerLink> Worker<L> {
                 drained_through: 0,
                 holds: true,
                 emptied_at: None,
+                taken: 0,
             },
         };
         self.readers.reads.insert(key, read);
@@ -475,6 +480,7 @@ impl<L: WorkerLink> Worker<L> {
                 if let Some(rem) = r.remaining.as_mut() {
                     *rem = rem.saturating_sub(sent);
                 }
+                r.taken += u64::from(sent);
                 if emptied && handed_over {
                     r.drained_through = stamp;
                     r.holds = false;

@@ -5,15 +5,18 @@
 //! whose client cannot keep up, has its read paused and keeps the last so many samples of
 //! the topic: written faster than its client takes them, the writers' backlogs overwrote
 //! each other there. So the samples released into a topic and not yet taken by its readers
-//! are at most half the smallest history those readers keep; the rest stays held, safe
-//! with its front-end. The gate is the topic's, not a writer's: writers that each waited
+//! are at most half the smallest history those readers keep (and at most a pump); the rest
+//! stays held, safe with its front-end. Readers without a read, paced reads and the readers
+//! of a front-end whose process is gone do not count (as for acknowledgements): a topic
+//! with none is not gated. The gate is the topic's, not a writer's: writers that each waited
 //! only for their own last batch still put a batch each into a paused reader, a hundred of
 //! them more than its history.
 //!
 //! A reader that takes nothing for [`RELEASE_GATE_MAX`] while samples wait for it (its
 //! client stopped reading) does not hold the topic's writers for ever: the gate opens until
 //! that reader takes again (counted as `release_gate_expired`). A reader that takes, however
-//! slowly, keeps the gate: the release follows its pace.
+//! slowly, keeps the gate: the release follows its pace, each drain for at most
+//! [`super::writes::RELEASE_GATE_DRAIN_MAX`] in all.
 
 use std::collections::{HashMap, VecDeque};
 use std::time::{Duration, Instant};
@@ -40,6 +43,9 @@ pub(super) struct Drained {
     pub(super) through: u64,
     /// The fewest samples of an instance one of them keeps (its history depth).
     pub(super) depth: u32,
+    /// Samples they took so far, in all: a reader that takes without being emptied (more
+    /// came meanwhile) is taking, though not yet drained further.
+    pub(super) taken: u64,
 }
 
 /// What the gate lets a draining writer do now.
@@ -59,6 +65,10 @@ struct TopicGate {
     released: VecDeque<u64>,
     /// Where the readers stood when last looked at.
     drained: u64,
+    /// What they had taken then.
+    taken: u64,
+    /// When a writer last asked (a gate no writer asks for a while is forgotten).
+    asked: Option<Instant>,
     /// Since when they have taken nothing while samples waited for them.
     stalled_since: Option<Instant>,
     /// They took nothing for [`RELEASE_GATE_MAX`]: open until they take again.
@@ -84,19 +94,20 @@ impl ReleaseGates {
         now: Instant,
     ) -> Admission {
         let Some(d) = drained else {
-            self.gates.remove(topic);
             return Admission::Release(want);
         };
         let gate = match self.gates.get_mut(topic) {
             Some(g) => g,
             None => self.gates.entry(topic.clone()).or_default(),
         };
+        gate.asked = Some(now);
         while gate.released.front().is_some_and(|s| *s <= d.through) {
             gate.released.pop_front();
         }
-        if d.through > gate.drained {
+        if d.through > gate.drained || d.taken != gate.taken {
             // They took some: the wait starts again, and an opened gate closes.
-            gate.drained = d.through;
+            gate.drained = gate.drained.max(d.through);
+            gate.taken = d.taken;
             gate.stalled_since = None;
             gate.open = false;
         }
@@ -121,7 +132,7 @@ impl ReleaseGates {
 
     /// A held sample of `topic` was written with write stamp `stamp`.
     pub(super) fn released(&mut self, topic: &DomainTopic, stamp: u64) {
-        if let Some(g) = self.gates.get_mut(topic).filter(|g| !g.open) {
+        if let Some(g) = self.gates.get_mut(topic) {
             g.released.push_back(stamp);
         }
     }
@@ -134,9 +145,19 @@ impl ReleaseGates {
             .map(|t| t + RELEASE_GATE_MAX)
     }
 
-    /// Forgets the gates of topics no writer drains into any more.
-    pub(super) fn keep_only(&mut self, draining: &std::collections::HashSet<DomainTopic>) {
-        self.gates.retain(|t, _| draining.contains(t));
+    /// Forgets the gates of topics no writer drains into any more, once no writer asked
+    /// for [`RELEASE_GATE_MAX`] (what was released into them may still wait for their
+    /// readers when a drain of that topic starts again).
+    pub(super) fn keep_only(
+        &mut self,
+        draining: &std::collections::HashSet<DomainTopic>,
+        now: Instant,
+    ) {
+        self.gates.retain(|t, g| {
+            draining.contains(t)
+                || g.asked
+                    .is_some_and(|a| now.saturating_duration_since(a) < RELEASE_GATE_MAX)
+        });
     }
 
     /// Times a gate opened for readers that took nothing since the last call.
@@ -154,7 +175,11 @@ mod tests {
     }
 
     fn at(through: u64, depth: u32) -> Option<Drained> {
-        Some(Drained { through, depth })
+        Some(Drained {
+            through,
+            depth,
+            taken: through,
+        })
     }
 
     /// Released samples the readers have not taken are at most half their history, over
@@ -209,12 +234,35 @@ mod tests {
             g.admit(&topic(), at(0, 2), 16, later),
             Admission::Release(16)
         );
-        // They took again: one at a time once more (nothing released while open is waited
-        // for).
+        (18..=33).for_each(|s| g.released(&topic(), s));
+        // They took one: closed again, and what was released while open waits for them.
+        assert_eq!(g.admit(&topic(), at(1, 2), 16, later), Admission::Wait);
         assert_eq!(
-            g.admit(&topic(), at(1, 2), 16, later),
+            g.admit(&topic(), at(33, 2), 16, later),
             Admission::Release(1)
         );
+        assert_eq!(g.take_expired(), 0);
+    }
+
+    /// Readers that take without being emptied (more came meanwhile) are taking: the gate
+    /// does not open for them.
+    #[test]
+    fn readers_that_take_without_emptying_keep_the_gate() {
+        let mut g = ReleaseGates::default();
+        let mut now = Instant::now();
+        let busy = |taken| {
+            Some(Drained {
+                through: 0,
+                depth: 2,
+                taken,
+            })
+        };
+        assert_eq!(g.admit(&topic(), busy(0), 16, now), Admission::Release(1));
+        g.released(&topic(), 1);
+        for taken in 1..5 {
+            now += RELEASE_GATE_MAX;
+            assert_eq!(g.admit(&topic(), busy(taken), 16, now), Admission::Wait);
+        }
         assert_eq!(g.take_expired(), 0);
     }
 

@@ -109,6 +109,13 @@ pub(super) struct Rematch {
     /// Its last batch waits for this worker's own readers of its topic to take what was
     /// released before ([`super::release_gate`]).
     pub(super) gated: bool,
+    /// Since when it waits so.
+    pub(super) gated_since: Option<Instant>,
+    /// How long this drain waited so before (the current wait aside).
+    pub(super) gate_waited: Duration,
+    /// It waited [`RELEASE_GATE_DRAIN_MAX`] in all: it follows its schedule for the rest of
+    /// this drain.
+    pub(super) outwaited: bool,
 }
 
 impl Rematch {
@@ -118,8 +125,19 @@ impl Rematch {
         self.draining = false;
         self.schedule = None;
         self.gated = false;
+        self.gated_since = None;
+        self.gate_waited = Duration::ZERO;
+        self.outwaited = false;
     }
 }
+
+/// Longest one drain waits at its topic's release gate in all, however its readers take:
+/// a local reader whose client takes slowly must not hold the writer's other readers (and
+/// its clients, whose new writes queue behind the held ones) to its pace for ever, nor let
+/// the held samples grow to [`REMATCH_HELD_MAX`]. Beyond it, the writer goes on at its
+/// schedule (counted, `release_gate_outwaited`); what it releases still counts against
+/// the gate for the other writers.
+pub(super) const RELEASE_GATE_DRAIN_MAX: Duration = Duration::from_secs(3);
 
 /// Held samples written per batch while a writer drains: a whole backlog at once would
 /// overrun the writer's keep-last history before its reader acknowledged (RustDDS then drops
@@ -512,6 +530,8 @@ impl<L: WorkerLink> Worker<L> {
         let mut drained = None;
         // The topics writers still drain into: their gates are kept.
         let mut draining_topics = HashSet::new();
+        // Writers that waited for their readers as long as a drain may.
+        let mut outwaited = 0u64;
         // In turns: the first writer of this pass is the second of the last one.
         let mut order: Vec<EntityKey> = self.writers.holding.iter().copied().collect();
         if !order.is_empty() {
@@ -609,7 +629,8 @@ impl<L: WorkerLink> Worker<L> {
             // This worker's readers of the topic take what was released into it before
             // (asked last: the answer costs a look at every read). A stopping worker's
             // writers do not wait for them.
-            let batch = if batch == 0 || rematch.rush {
+            let wanted = batch;
+            let batch = if batch == 0 || rematch.rush || rematch.outwaited {
                 batch
             } else {
                 let d = drained
@@ -622,6 +643,24 @@ impl<L: WorkerLink> Worker<L> {
                 }
             };
             rematch.gated = may_release && batch == 0 && !rematch.held.is_empty();
+            let batch = if rematch.gated {
+                let since = *rematch.gated_since.get_or_insert(now);
+                if rematch.gate_waited + now.saturating_duration_since(since)
+                    >= RELEASE_GATE_DRAIN_MAX
+                {
+                    rematch.outwaited = true;
+                    rematch.gated = false;
+                    outwaited += 1;
+                    wanted
+                } else {
+                    0
+                }
+            } else {
+                if let Some(since) = rematch.gated_since.take() {
+                    rematch.gate_waited += now.saturating_duration_since(since);
+                }
+                batch
+            };
             if may_release && !rematch.gated {
                 if rematch.last_batch.is_some() {
                     rematch.probed = true;
@@ -678,7 +717,18 @@ impl<L: WorkerLink> Worker<L> {
         for _ in 0..failures {
             self.count("dds_write_failed");
         }
-        self.writers.gates.keep_only(&draining_topics);
+        self.writers.gates.keep_only(&draining_topics, now);
+        if outwaited > 0 {
+            let why = format!(
+                "a draining writer waited {} s in all for this worker's readers of its topic \
+                 to take what was released (their client takes slowly): it follows its \
+                 schedule for the rest of the drain, and may overwrite their history",
+                RELEASE_GATE_DRAIN_MAX.as_secs()
+            );
+            for _ in 0..outwaited {
+                self.refused("release_gate_outwaited", &why);
+            }
+        }
         let gate_expired = self.writers.gates.take_expired();
         if gate_expired > 0 {
             let why = format!(

@@ -762,3 +762,27 @@ fn a_slow_reader_keeps_the_bound() {
     assert_eq!(t.release_after(ms(1)), 2 + RELEASE_BATCH);
     assert_eq!(t.worker.dropped.get("release_gate_expired"), Some(&1));
 }
+
+/// A drain waits for a reader that takes slowly only so long in all: then it follows its
+/// schedule, so that the writer's other readers and its clients are not held to that
+/// reader's pace.
+#[test]
+fn a_drain_waits_for_a_slow_reader_only_so_long_in_all() {
+    let mut t = released_to_a_paused_reader(40, 2);
+    let ms = Duration::from_millis;
+    let mut written = 1;
+    for _ in 0..3 {
+        assert_eq!(t.release_after(ms(0)), written);
+        assert_eq!(t.release_after(ms(900)), written, "waiting for the reader");
+        // It takes one: the next goes.
+        t.pause_read(false);
+        written += 1;
+        assert_eq!(t.pass_after(ms(5)), written);
+        t.pause_read(true);
+    }
+    assert_eq!(t.release_after(ms(0)), written);
+    assert_eq!(t.release_after(ms(200)), written, "2.9 s waited");
+    assert_eq!(t.release_after(ms(100)), written + RELEASE_BATCH);
+    assert_eq!(t.worker.dropped.get("release_gate_outwaited"), Some(&1));
+    assert_eq!(t.worker.dropped.get("release_gate_expired"), None);
+}
