@@ -15,6 +15,9 @@ pub(super) struct ReaderInfo {
     pub(super) filter: Option<Filter>,
     /// The fewest samples of an instance it keeps (its history's depth, as bounded).
     pub(super) depth: u32,
+    /// Its topic has a key (its samples are taken instance by instance, not in the order
+    /// they came).
+    pub(super) keyed: bool,
 }
 
 /// Every endpoint's topic: as the backend makes it (with its key), its description, and
@@ -260,6 +263,7 @@ impl<L: WorkerLink> Worker<L> {
                             topic: tdesc.name.clone(),
                             ty,
                             filter,
+                            keyed: topic.key.is_some(),
                             depth: match qos.history {
                                 crate::backend::policies::History::KeepLast(d) => {
                                     u32::try_from(d).unwrap_or(0).max(1)

@@ -67,6 +67,7 @@ mod release_gate;
 mod replay_guard;
 mod requests;
 mod services;
+mod take_log;
 #[cfg(test)]
 mod tests;
 mod writes;
@@ -244,6 +245,15 @@ impl Readers {
         drained
     }
 
+    /// The oldest position a read of `topic` has in its take log ([`take_log`]).
+    fn oldest_position(&self, topic: &DomainTopic) -> Option<u64> {
+        self.reads
+            .values()
+            .filter(|r| r.topic.as_ref() == Some(topic))
+            .filter_map(|r| r.position)
+            .min()
+    }
+
     /// Forgets `key`'s reads and turns, and the wake-up token of its reader (dropped by the
     /// caller: the backend's reader is deleted and wakes nobody any more).
     fn forget(&mut self, key: EntityKey, token: Option<ReaderToken>) {
@@ -291,6 +301,8 @@ struct Writers {
     stamp: u64,
     /// How much draining writers may release into each topic ([`release_gate`]).
     gates: release_gate::ReleaseGates,
+    /// Which of these writes reads in write order took ([`take_log`]).
+    take_logs: take_log::TakeLogs,
 }
 
 /// Most DDS writers kept retiring at once (each is a DDS entity a client made the worker
@@ -309,13 +321,25 @@ impl Writers {
             retired_early: 0,
             stamp: 0,
             gates: release_gate::ReleaseGates::default(),
+            take_logs: take_log::TakeLogs::default(),
         }
     }
 
     /// Records front-end `frontend`'s operation `seq`, just written through `writer`, as
     /// outstanding until its readers acknowledged it.
-    fn record(&mut self, writer: &Rc<DdsWriter>, frontend: u32, seq: u64, now: Instant) {
+    /// `positioned` tells the oldest position a read of its topic has in the topic's take log
+    /// ([`take_log::TakeLogs::record`]).
+    fn record(
+        &mut self,
+        writer: &Rc<DdsWriter>,
+        frontend: u32,
+        seq: u64,
+        now: Instant,
+        positioned: impl FnOnce() -> Option<u64>,
+    ) {
         self.stamp += 1;
+        self.take_logs
+            .record(&writer.topic, writer.raw.guid(), self.stamp, positioned);
         if writer
             .outstanding
             .record(frontend, seq, now, writer.raw.writes(), self.stamp)

@@ -235,7 +235,7 @@ impl<L: WorkerLink> Worker<L> {
                 // the front-end's queue now: drained that far, paused meanwhile or not.
                 for key in p.deferred.iter() {
                     if let Some(r) = self.readers.reads.get_mut(key) {
-                        if let Some(stamp) = r.emptied_at.take() {
+                        if let Some(stamp) = r.pending_drained.take() {
                             r.drained_through = r.drained_through.max(stamp);
                         }
                     }

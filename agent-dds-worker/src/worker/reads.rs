@@ -33,12 +33,19 @@ pub(super) struct ActiveRead {
     /// new). One that does not was drained through the last readiness scan too
     /// ([`Readers::drained_through`]).
     pub(super) holds: bool,
-    /// The write stamp at which a pump last emptied the reader while what it took still
-    /// waited in the worker for room in the front-end's queue: drained through it once
-    /// that backlog is sent. A reader of a congested path is rarely seen empty with its
-    /// front-end's queue empty at once; without this its writes would stay unacknowledged
-    /// until [`crate::acks::ACK_GIVE_UP`], and be resent (repeated) if the worker died.
-    pub(super) emptied_at: Option<u64>,
+    /// The write stamp a pump drained the reader through (it emptied it then, or took up to
+    /// there in write order) while what it took still waited in the worker for room in the
+    /// front-end's queue: drained through it once that backlog is sent. A reader of a
+    /// congested path is rarely seen empty with its front-end's queue empty at once;
+    /// without this its writes would stay unacknowledged until
+    /// [`crate::acks::ACK_GIVE_UP`], and be resent (repeated) if the worker died.
+    pub(super) pending_drained: Option<u64>,
+    /// Its reader takes in write order (a data reader of a topic without a key,
+    /// [`super::take_log`]).
+    pub(super) in_write_order: bool,
+    /// How many of this worker's writes to the topic, logged since the log began, it took
+    /// (None until its reader is first seen empty, and after it fell behind the log).
+    pub(super) position: Option<u64>,
     /// Samples taken for it so far: the release gate sees a reader that takes without being
     /// emptied as taking ([`super::release_gate`]).
     pub(super) taken: u64,
@@ -111,7 +118,7 @@ impl<L: WorkerLink> Worker<L> {
         replay: bool,
         body: &[u8],
     ) -> Result<(), OpError> {
-        let (reader_type, topic, depth) = match self.entities.value(&key) {
+        let (reader_type, topic, depth, in_write_order) = match self.entities.value(&key) {
             Some(Entity {
                 kind: EntityKind::Reader { info, .. },
                 ..
@@ -119,11 +126,12 @@ impl<L: WorkerLink> Worker<L> {
                 Some(info.ty.clone()),
                 Some((info.domain, info.topic.clone())),
                 info.depth,
+                !info.keyed,
             ),
             Some(Entity {
                 kind: EntityKind::Service(..),
                 ..
-            }) => (None, None, 0),
+            }) => (None, None, 0, false),
             _ => {
                 return Err(OpError::UnknownReference(
                     "read from an unknown data reader, requester or replier".into(),
@@ -173,8 +181,10 @@ impl<L: WorkerLink> Worker<L> {
                 depth,
                 drained_through: 0,
                 holds: true,
-                emptied_at: None,
+                pending_drained: None,
                 taken: 0,
+                in_write_order,
+                position: None,
             },
             None => ActiveRead {
                 request_id,
@@ -189,8 +199,10 @@ impl<L: WorkerLink> Worker<L> {
                 depth,
                 drained_through: 0,
                 holds: true,
-                emptied_at: None,
+                pending_drained: None,
                 taken: 0,
+                in_write_order,
+                position: None,
             },
         };
         self.readers.reads.insert(key, read);
@@ -276,7 +288,7 @@ impl<L: WorkerLink> Worker<L> {
             return;
         }
         // What an earlier pump took, when it emptied the reader, is in the queue now.
-        if let Some(stamp) = read.emptied_at.take() {
+        if let Some(stamp) = read.pending_drained.take() {
             read.drained_through = read.drained_through.max(stamp);
         }
         let filtering = read.filter.is_some()
@@ -324,6 +336,13 @@ impl<L: WorkerLink> Worker<L> {
             _ => return,
         };
         let mut out = Vec::new();
+        // This worker's writes taken, in write order ([`super::take_log`]).
+        let mut logged_taken = 0u64;
+        let logs = &self.writers.take_logs;
+        let log_topic = read
+            .topic
+            .as_ref()
+            .filter(|_| read.in_write_order && read.position.is_some());
         let mut more = false;
         // The reader gave everything it had.
         let mut emptied = false;
@@ -346,6 +365,14 @@ impl<L: WorkerLink> Worker<L> {
             }
             match reader.take_next() {
                 Ok(Some(taken)) => {
+                    if let Some(topic) = log_topic {
+                        if !taken.disposed
+                            && !taken.unregistered
+                            && logs.is_logged_writer(topic, &taken.identity.writer)
+                        {
+                            logged_taken += 1;
+                        }
+                    }
                     let mut s = taken.sample.clone();
                     if let Some((requester, writer, pending)) = service.as_mut() {
                         match service_sample(*requester, *writer, pending, &taken, key.2, s) {
@@ -475,23 +502,47 @@ impl<L: WorkerLink> Worker<L> {
             .get(&key.0)
             .is_none_or(|p| p.backlog.is_empty());
         let stamp = self.writers.stamp;
+        let logs = &mut self.writers.take_logs;
+        let mut drained_some = false;
         let ended = match self.readers.reads.get_mut(&key) {
             Some(r) => {
                 if let Some(rem) = r.remaining.as_mut() {
                     *rem = rem.saturating_sub(sent);
                 }
                 r.taken += u64::from(sent);
-                if emptied && handed_over {
-                    r.drained_through = stamp;
-                    r.holds = false;
-                } else if emptied {
-                    r.emptied_at = Some(stamp);
+                // Taken from DDS through: everything so far (emptied), or, in write order,
+                // this worker's writes up to its new position.
+                let through = if emptied {
+                    if let (true, Some(topic)) = (r.in_write_order, &r.topic) {
+                        r.position = Some(logs.sync(topic));
+                    }
+                    Some(stamp)
+                } else {
+                    match (&r.topic, r.position) {
+                        (Some(topic), Some(p)) if logged_taken > 0 => {
+                            let advanced = logs.advance(topic, p, logged_taken);
+                            r.position = advanced.map(|(to, _)| to);
+                            advanced.map(|(_, s)| s).filter(|s| *s > 0)
+                        }
+                        _ => None,
+                    }
+                };
+                if let Some(through) = through {
+                    drained_some = true;
+                    if handed_over {
+                        r.drained_through = r.drained_through.max(through);
+                        if emptied {
+                            r.holds = false;
+                        }
+                    } else {
+                        r.pending_drained = r.pending_drained.max(Some(through));
+                    }
                 }
                 r.remaining == Some(0) || (r.one_shot && sent > 0)
             }
             None => false,
         };
-        if emptied && !handed_over && !ended {
+        if drained_some && !handed_over && !ended {
             // Pumped again once the backlog is sent, to be seen drained then.
             if let Some(p) = self.frontends.ports.get_mut(&key.0) {
                 p.deferred.push(key);

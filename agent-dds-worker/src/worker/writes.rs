@@ -385,7 +385,9 @@ impl<L: WorkerLink> Worker<L> {
             publish(&*w.raw, sample).map_err(|e| OpError::from(e.context("DDS write")))
         };
         if done.is_ok() {
-            self.writers.record(w, key.0, seq, self.now);
+            self.writers.record(w, key.0, seq, self.now, || {
+                self.readers.oldest_position(&w.topic)
+            });
         }
         done
     }
@@ -413,7 +415,9 @@ impl<L: WorkerLink> Worker<L> {
                 publish(&*w.raw, s)
             };
             match done {
-                Ok(()) => self.writers.record(w, key.0, seq, now),
+                Ok(()) => self.writers.record(w, key.0, seq, now, || {
+                    self.readers.oldest_position(&w.topic)
+                }),
                 Err(_) => failures += 1,
             }
         }
@@ -691,7 +695,9 @@ impl<L: WorkerLink> Worker<L> {
                     if done.is_err() {
                         failures += 1;
                     } else {
-                        self.writers.record(w, key.0, seq, now);
+                        self.writers.record(w, key.0, seq, now, || {
+                            self.readers.oldest_position(&w.topic)
+                        });
                         self.writers.gates.released(&w.topic, self.writers.stamp);
                     }
                 }

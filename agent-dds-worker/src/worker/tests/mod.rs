@@ -277,11 +277,16 @@ fn reader_and_new_writer() -> Harness {
 }
 
 /// [`reader_and_new_writer`] in `t`.
-fn reader_and_new_writer_over(mut t: Harness) -> Harness {
+fn reader_and_new_writer_over(t: Harness) -> Harness {
+    reader_and_new_writer_of(t, "NO_KEY")
+}
+
+/// [`reader_and_new_writer`] in `t`, of a topic of `kind` (`NO_KEY`, `WITH_KEY`).
+fn reader_and_new_writer_of(mut t: Harness, kind: &str) -> Harness {
     t.participant(CLIENT);
-    t.reader(CLIENT, READER, &reader_xml(TOPIC, "NO_KEY"))
+    t.reader(CLIENT, READER, &reader_xml(TOPIC, kind))
         .expect("reader");
-    t.writer(CLIENT, WRITER, &writer_xml(TOPIC, "NO_KEY", "VOLATILE"))
+    t.writer(CLIENT, WRITER, &writer_xml(TOPIC, kind, "VOLATILE"))
         .expect("writer");
     t
 }

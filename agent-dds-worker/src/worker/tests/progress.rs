@@ -231,3 +231,57 @@ fn a_congested_readers_writes_are_acknowledged_as_its_backlog_is_sent() {
         "acknowledged through {acknowledged} of {seq} written, {samples} delivered"
     );
 }
+
+/// A reader that more comes to than a pump takes is never seen empty: taking in write order
+/// (its topic has no key), what it took of the worker's writes is known all the same, and
+/// those writes are acknowledged, not only after [`crate::acks::ACK_GIVE_UP`].
+#[test]
+fn writes_a_never_empty_reader_took_in_write_order_are_acknowledged() {
+    let mut t = first_write_taken();
+    let mut seq = 1;
+    let mut acknowledged = 1;
+    let mut samples = 1;
+    let batch = crate::worker::reads::PUMP_BATCH as u64 + 44;
+    for _ in 0..10 {
+        for _ in 0..batch {
+            seq += 1;
+            t.request(write(&keyed(seq as i32, 1)), seq, true);
+        }
+        let (a, n) = t.acknowledged_after(ACK_POLL_PERIOD);
+        acknowledged = a.unwrap_or(acknowledged);
+        samples += n;
+    }
+    assert_eq!(
+        samples as u64,
+        1 + 10 * crate::worker::reads::PUMP_BATCH as u64,
+        "a pump's worth each pass: never emptied"
+    );
+    assert_eq!(
+        acknowledged, samples as u64,
+        "acknowledged through what was taken"
+    );
+}
+
+/// A keyed topic's reader takes instance by instance, not in write order: what it took
+/// tells nothing of the writes before, and they wait until it is seen empty.
+#[test]
+fn a_never_empty_keyed_reader_holds_its_writes_back() {
+    let mut t = reader_and_new_writer_of(Harness::new(false), "WITH_KEY");
+    t.read(CLIENT, READER);
+    t.request(write(&keyed(1, 1)), 1, false);
+    t.matched_long_ago(CLIENT, WRITER);
+    assert_eq!(t.acknowledged_after(ACK_POLL_PERIOD), (Some(1), 1));
+    let mut seq = 1;
+    let mut acknowledged = 1;
+    for _ in 0..3 {
+        for _ in 0..crate::worker::reads::PUMP_BATCH + 44 {
+            seq += 1;
+            t.request(write(&keyed(seq as i32 % 7, 1)), seq, true);
+        }
+        acknowledged = t
+            .acknowledged_after(ACK_POLL_PERIOD)
+            .0
+            .unwrap_or(acknowledged);
+    }
+    assert_eq!(acknowledged, 1, "never seen empty");
+}
