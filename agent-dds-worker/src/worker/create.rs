@@ -185,7 +185,7 @@ impl<L: WorkerLink> Worker<L> {
                             matched_at: Cell::new(None),
                             matched: Cell::new(0),
                             outstanding: Outstanding::default(),
-                            topic: (domain, tdesc.name.clone()),
+                            topic: TopicKey::of(&self.topic_keys, domain, &tdesc.name),
                         });
                         if let Some(k) = shared_key {
                             self.writers

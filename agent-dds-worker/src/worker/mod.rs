@@ -121,10 +121,27 @@ type EntityKey = (u32, ClientKey, ObjectId);
 
 use crate::representation::OpError;
 
+/// A topic by domain and name, as a key: a hash of both under this worker's own random keys
+/// (its readers and writers of one topic share it). Two topics whose keys collide would only
+/// wait for each other's readers (acknowledgements, the release gate and the take log all
+/// err on the late side), and the random keys give a client no way to aim at that.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub(super) struct TopicKey(u64);
+
+impl TopicKey {
+    /// The key of `name` in `domain` under `keys`.
+    fn of(keys: &std::hash::RandomState, domain: u16, name: &str) -> Self {
+        use std::hash::BuildHasher;
+        TopicKey(keys.hash_one((domain, name)))
+    }
+}
+
 /// The DDS worker: executes the front-ends' operations on DDS entities, sends what they
 /// are owed through its link `L`.
 pub struct Worker<L: WorkerLink> {
     config: WorkerConfig,
+    /// The random keys of [`TopicKey`]s.
+    topic_keys: std::hash::RandomState,
     /// Where replies, wake-ups, announcements and replay marks go.
     link: L,
     /// The time of the event being handled, as the caller gave it (the worker reads no
@@ -220,8 +237,8 @@ impl Readers {
     fn drained_through(
         &self,
         orphaned: &HashMap<u32, Instant>,
-    ) -> HashMap<&DomainTopic, release_gate::Drained> {
-        let mut drained: HashMap<&DomainTopic, release_gate::Drained> = HashMap::new();
+    ) -> HashMap<TopicKey, release_gate::Drained> {
+        let mut drained: HashMap<TopicKey, release_gate::Drained> = HashMap::new();
         for (key, r) in &self.reads {
             if orphaned.contains_key(&key.0) || r.pacing.limited() {
                 continue;
@@ -232,7 +249,7 @@ impl Readers {
                 } else {
                     r.drained_through.max(self.scan_stamp)
                 };
-                let d = drained.entry(topic).or_insert(release_gate::Drained {
+                let d = drained.entry(*topic).or_insert(release_gate::Drained {
                     through,
                     depth: r.depth,
                     taken: 0,
@@ -246,7 +263,7 @@ impl Readers {
     }
 
     /// The oldest position a read of `topic` has in its take log ([`take_log`]).
-    fn oldest_position(&self, topic: &DomainTopic) -> Option<u64> {
+    fn oldest_position(&self, topic: &TopicKey) -> Option<u64> {
         self.reads
             .values()
             .filter(|r| r.topic.as_ref() == Some(topic))
@@ -455,6 +472,7 @@ impl<L: WorkerLink> Worker<L> {
         let graph = RosGraph::new(config.ros_graph);
         let mut w = Worker {
             config,
+            topic_keys: std::hash::RandomState::new(),
             link,
             now,
             generation,

@@ -22,7 +22,7 @@ pub(super) struct ActiveRead {
     /// dispose cannot be told from a sample, so those reads get no instance ends.
     pub(super) data_format: u8,
     /// The data reader's topic (None for a requester or replier).
-    pub(super) topic: Option<DomainTopic>,
+    pub(super) topic: Option<TopicKey>,
     /// The data reader's history depth ([`ReaderInfo::depth`]; 0 for the others).
     pub(super) depth: u32,
     /// The worker's write stamp up to which the reader was last seen drained: every sample
@@ -124,7 +124,7 @@ impl<L: WorkerLink> Worker<L> {
                 ..
             }) => (
                 Some(info.ty.clone()),
-                Some((info.domain, info.topic.clone())),
+                Some(TopicKey::of(&self.topic_keys, info.domain, &info.topic)),
                 info.depth,
                 !info.keyed,
             ),

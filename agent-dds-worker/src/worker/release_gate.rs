@@ -22,7 +22,7 @@ use std::collections::{HashMap, VecDeque};
 use std::time::{Duration, Instant};
 
 use super::reads::PUMP_BATCH;
-use super::DomainTopic;
+use super::TopicKey;
 
 /// Longest this worker's readers of a topic may take nothing while released samples wait
 /// for them before the gate opens.
@@ -78,7 +78,7 @@ struct TopicGate {
 /// The gates of the topics draining writers write to.
 #[derive(Debug, Default)]
 pub(super) struct ReleaseGates {
-    gates: HashMap<DomainTopic, TopicGate>,
+    gates: HashMap<TopicKey, TopicGate>,
     /// Times a gate opened for readers that took nothing, not yet reported.
     expired: u64,
 }
@@ -88,7 +88,7 @@ impl ReleaseGates {
     /// readers standing at `drained` (None: the topic has no reader that counts).
     pub(super) fn admit(
         &mut self,
-        topic: &DomainTopic,
+        topic: &TopicKey,
         drained: Option<Drained>,
         want: usize,
         now: Instant,
@@ -98,7 +98,7 @@ impl ReleaseGates {
         };
         let gate = match self.gates.get_mut(topic) {
             Some(g) => g,
-            None => self.gates.entry(topic.clone()).or_default(),
+            None => self.gates.entry(*topic).or_default(),
         };
         gate.asked = Some(now);
         while gate.released.front().is_some_and(|s| *s <= d.through) {
@@ -131,14 +131,14 @@ impl ReleaseGates {
     }
 
     /// A held sample of `topic` was written with write stamp `stamp`.
-    pub(super) fn released(&mut self, topic: &DomainTopic, stamp: u64) {
+    pub(super) fn released(&mut self, topic: &TopicKey, stamp: u64) {
         if let Some(g) = self.gates.get_mut(topic) {
             g.released.push_back(stamp);
         }
     }
 
     /// When a gate that waits opens at the latest (None: none waits).
-    pub(super) fn next_expiry(&self, topic: &DomainTopic) -> Option<Instant> {
+    pub(super) fn next_expiry(&self, topic: &TopicKey) -> Option<Instant> {
         self.gates
             .get(topic)
             .and_then(|g| g.stalled_since)
@@ -150,7 +150,7 @@ impl ReleaseGates {
     /// readers when a drain of that topic starts again).
     pub(super) fn keep_only(
         &mut self,
-        draining: &std::collections::HashSet<DomainTopic>,
+        draining: &std::collections::HashSet<TopicKey>,
         now: Instant,
     ) {
         self.gates.retain(|t, g| {
@@ -170,8 +170,8 @@ impl ReleaseGates {
 mod tests {
     use super::*;
 
-    fn topic() -> DomainTopic {
-        (0, "T".into())
+    fn topic() -> TopicKey {
+        TopicKey(1)
     }
 
     fn at(through: u64, depth: u32) -> Option<Drained> {
@@ -204,7 +204,7 @@ mod tests {
         );
         // A topic without readers that count is not gated.
         assert_eq!(g.admit(&topic(), None, 16, now), Admission::Release(16));
-        let deep = (1, "Deep".to_string());
+        let deep = TopicKey(2);
         assert_eq!(
             g.admit(&deep, at(0, 5000), 1000, now),
             Admission::Release(256)

@@ -18,7 +18,7 @@
 
 use std::collections::{HashMap, HashSet, VecDeque};
 
-use super::DomainTopic;
+use super::TopicKey;
 use crate::backend::Guid;
 
 /// Most write stamps a topic's log keeps. A read whose position falls behind its start (its
@@ -47,18 +47,18 @@ impl TopicLog {
 /// The logs of the topics some read has a position in.
 #[derive(Debug, Default)]
 pub(super) struct TakeLogs {
-    logs: HashMap<DomainTopic, TopicLog>,
+    logs: HashMap<TopicKey, TopicLog>,
 }
 
 impl TakeLogs {
     /// A read of `topic` was seen empty: its position, from which it counts what it takes
     /// (the log begins if it had not).
-    pub(super) fn sync(&mut self, topic: &DomainTopic) -> u64 {
+    pub(super) fn sync(&mut self, topic: &TopicKey) -> u64 {
         match self.logs.get(topic) {
             Some(log) => log.end(),
             None => {
                 self.logs.insert(
-                    topic.clone(),
+                    *topic,
                     TopicLog {
                         first: 1,
                         ..TopicLog::default()
@@ -74,7 +74,7 @@ impl TakeLogs {
     /// still has (None: no read has one), so that the log keeps what is still needed.
     pub(super) fn record(
         &mut self,
-        topic: &DomainTopic,
+        topic: &TopicKey,
         writer: Guid,
         stamp: u64,
         positioned: impl FnOnce() -> Option<u64>,
@@ -100,7 +100,7 @@ impl TakeLogs {
 
     /// Whether `writer` is one of this worker's writers that wrote to `topic` since its log
     /// began.
-    pub(super) fn is_logged_writer(&self, topic: &DomainTopic, writer: &Guid) -> bool {
+    pub(super) fn is_logged_writer(&self, topic: &TopicKey, writer: &Guid) -> bool {
         self.logs
             .get(topic)
             .is_some_and(|l| l.writers.contains(writer))
@@ -111,7 +111,7 @@ impl TakeLogs {
     /// log is gone; the read has no position then).
     pub(super) fn advance(
         &self,
-        topic: &DomainTopic,
+        topic: &TopicKey,
         position: u64,
         taken: u64,
     ) -> Option<(u64, u64)> {
@@ -134,8 +134,8 @@ impl TakeLogs {
 mod tests {
     use super::*;
 
-    fn topic() -> DomainTopic {
-        (0, "T".into())
+    fn topic() -> TopicKey {
+        TopicKey(1)
     }
 
     const W: Guid = [1; 16];

@@ -18,11 +18,8 @@ pub(super) struct DdsWriter {
     pub(super) outstanding: Outstanding,
     /// Its domain and topic: which of the worker's own readers must take what it wrote
     /// before a write counts as acknowledged ([`crate::acks`]).
-    pub(super) topic: DomainTopic,
+    pub(super) topic: TopicKey,
 }
-
-/// A topic by domain and name (the worker's readers and writers of one topic share it).
-pub(super) type DomainTopic = (u16, String);
 
 impl Acknowledging for DdsWriter {
     fn acknowledged_writes(&self) -> u64 {
@@ -619,7 +616,7 @@ impl<L: WorkerLink> Worker<L> {
             let may_release =
                 rematch.draining && !paced && room && (due > 0 || rematch.held.is_empty());
             if rematch.draining && !rematch.held.is_empty() && !draining_topics.contains(&w.topic) {
-                draining_topics.insert(w.topic.clone());
+                draining_topics.insert(w.topic);
             }
             let batch = if !may_release {
                 0
