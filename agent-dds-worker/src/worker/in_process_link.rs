@@ -6,10 +6,10 @@
 
 use std::collections::{HashSet, VecDeque};
 
-use xrce_common::wire::ClientKey;
 use xrce_ipc::{Encode, ReplyMessage, CHANNEL_DEPTH};
 
 use super::link::{LinkError, ReplayMarks, WorkerLink};
+use super::replay_guard::{CrashedReplays, ReplayMark};
 
 /// The worker's end of an in-process front-end.
 #[derive(Debug)]
@@ -103,14 +103,14 @@ impl WorkerLink for InProcessLink {
 
     fn forget(&mut self, _frontend: u32) {}
 
-    fn mark_replay(&mut self, frontend: u32, client: Option<ClientKey>) {
-        match client {
-            Some(client) => self.marks.write(frontend, client),
+    fn mark_replay(&mut self, frontend: u32, mark: Option<ReplayMark>) {
+        match mark {
+            Some(mark) => self.marks.write(frontend, mark),
             None => self.marks.remove(frontend),
         }
     }
 
-    fn take_crashed_replays(&mut self) -> HashSet<(u32, ClientKey)> {
+    fn take_crashed_replays(&mut self) -> CrashedReplays {
         self.marks.take()
     }
 }

@@ -11,6 +11,8 @@ use std::collections::{HashMap, HashSet, VecDeque};
 use std::path::PathBuf;
 
 use xrce_common::wire::ClientKey;
+
+use super::replay_guard::{CrashedReplays, ReplayMark};
 use xrce_ipc::shm::{IpcNode, Receiver, Sender, ServiceKind, ShmError};
 use xrce_ipc::{self as ipc, Encode, ReplyMessage};
 
@@ -51,10 +53,10 @@ pub trait WorkerLink {
     fn forget(&mut self, frontend: u32);
     /// Writes down that front-end `frontend` is replaying `client`'s objects now (`None`:
     /// its replay is over), for the next worker if this one dies meanwhile.
-    fn mark_replay(&mut self, frontend: u32, client: Option<ClientKey>);
+    fn mark_replay(&mut self, frontend: u32, mark: Option<ReplayMark>);
     /// The (front-end, client) pairs whose replay was under way when the last worker died
     /// (read once, at the start; the marks are gone afterwards).
-    fn take_crashed_replays(&mut self) -> HashSet<(u32, ClientKey)>;
+    fn take_crashed_replays(&mut self) -> CrashedReplays;
 }
 
 /// The process's link: iceoryx2 services of the agent instance, and its private directory.
@@ -147,20 +149,21 @@ impl WorkerLink for ShmWorkerLink {
         self.replies.remove(&frontend);
     }
 
-    fn mark_replay(&mut self, frontend: u32, client: Option<ClientKey>) {
-        match client {
-            Some(client) => self.marks.write(frontend, client),
+    fn mark_replay(&mut self, frontend: u32, mark: Option<ReplayMark>) {
+        match mark {
+            Some(mark) => self.marks.write(frontend, mark),
             None => self.marks.remove(frontend),
         }
     }
 
-    fn take_crashed_replays(&mut self) -> HashSet<(u32, ClientKey)> {
+    fn take_crashed_replays(&mut self) -> CrashedReplays {
         self.marks.take()
     }
 }
 
 /// Prefix of the replay marks in the instance directory (`replaying-<front-end>`, holding
-/// the 4 octets of the client key).
+/// the 4 octets of the client key and one of the workers in a row dead replaying it; a mark
+/// of 4 octets, from an agent before, counts one).
 const MARK: &str = "replaying-";
 
 /// The replay marks of an instance ([`super::replay_guard`]): one file per front-end
@@ -179,8 +182,8 @@ impl ReplayMarks {
     }
 
     /// Reads and removes the marks a worker that died left.
-    pub(super) fn take(&self) -> HashSet<(u32, ClientKey)> {
-        let mut found = HashSet::new();
+    pub(super) fn take(&self) -> CrashedReplays {
+        let mut found = CrashedReplays::new();
         let Ok(entries) = std::fs::read_dir(&self.dir) else {
             return found;
         };
@@ -189,10 +192,14 @@ impl ReplayMarks {
             let Some(fe) = name.strip_prefix(MARK).and_then(|f| f.parse::<u32>().ok()) else {
                 continue;
             };
-            // Read only if it is the agent user's own regular file, and 4 octets.
-            if let Ok(bytes) = xrce_ipc::runtime_dir::read_owned(&e.path(), 4) {
-                if let Ok(key) = <[u8; 4]>::try_from(bytes.as_slice()) {
-                    found.insert((fe, ClientKey(key)));
+            // Read only if it is the agent user's own regular file, and 4 or 5 octets.
+            if let Ok(bytes) = xrce_ipc::runtime_dir::read_owned(&e.path(), 5) {
+                let deaths = match bytes.get(4) {
+                    Some(d) => (*d).max(1),
+                    None => 1,
+                };
+                if let Some(key) = bytes.get(..4).and_then(|k| <[u8; 4]>::try_from(k).ok()) {
+                    found.insert((fe, ClientKey(key)), deaths);
                 }
             }
             let _ = std::fs::remove_file(e.path());
@@ -200,12 +207,14 @@ impl ReplayMarks {
         found
     }
 
-    pub(super) fn write(&self, frontend: u32, client: ClientKey) {
+    pub(super) fn write(&self, frontend: u32, mark: ReplayMark) {
         let path = self.dir.join(format!("{MARK}{frontend}"));
         let tmp = self
             .dir
             .join(format!(".{MARK}{frontend}.{}", std::process::id()));
-        if let Err(e) = xrce_ipc::runtime_dir::write_atomically(&path, &tmp, &client.0) {
+        let [a, b, c, d] = mark.client.0;
+        let bytes = [a, b, c, d, mark.deaths];
+        if let Err(e) = xrce_ipc::runtime_dir::write_atomically(&path, &tmp, &bytes) {
             tracing::debug!(error = %e, "replay mark not written");
         }
     }
@@ -228,8 +237,8 @@ pub struct MemoryWorkerLink {
     announced: Vec<Vec<u8>>,
     gone: HashSet<u32>,
     forgotten: HashSet<u32>,
-    marks: HashMap<u32, ClientKey>,
-    crashed_replays: HashSet<(u32, ClientKey)>,
+    marks: HashMap<u32, ReplayMark>,
+    crashed_replays: CrashedReplays,
     unreachable: HashSet<u32>,
 }
 
@@ -250,7 +259,11 @@ impl MemoryWorkerLink {
             capacity: self.capacity,
             gone: self.gone.clone(),
             unreachable: self.unreachable.clone(),
-            crashed_replays: self.marks.iter().map(|(fe, c)| (*fe, *c)).collect(),
+            crashed_replays: self
+                .marks
+                .iter()
+                .map(|(fe, m)| ((*fe, m.client), m.deaths))
+                .collect(),
             ..Default::default()
         }
     }
@@ -288,8 +301,8 @@ impl MemoryWorkerLink {
     }
 
     /// The replay marks standing now.
-    pub fn marks(&self) -> &HashMap<u32, ClientKey> {
-        &self.marks
+    pub fn marks(&self) -> HashMap<u32, ClientKey> {
+        self.marks.iter().map(|(fe, m)| (*fe, m.client)).collect()
     }
 
     /// Front-end `frontend`'s channel cannot be opened (`true`: what is sent to it fails
@@ -354,14 +367,14 @@ impl WorkerLink for MemoryWorkerLink {
         self.forgotten.insert(frontend);
     }
 
-    fn mark_replay(&mut self, frontend: u32, client: Option<ClientKey>) {
-        match client {
-            Some(c) => self.marks.insert(frontend, c),
+    fn mark_replay(&mut self, frontend: u32, mark: Option<ReplayMark>) {
+        match mark {
+            Some(m) => self.marks.insert(frontend, m),
             None => self.marks.remove(&frontend),
         };
     }
 
-    fn take_crashed_replays(&mut self) -> HashSet<(u32, ClientKey)> {
+    fn take_crashed_replays(&mut self) -> CrashedReplays {
         std::mem::take(&mut self.crashed_replays)
     }
 }
@@ -376,14 +389,23 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).expect("dir");
         let marks = ReplayMarks { dir: dir.clone() };
-        marks.write(3, ClientKey(*b"AAAA"));
-        marks.write(3, ClientKey(*b"BBBB"));
-        marks.write(4, ClientKey(*b"CCCC"));
+        let mark = |key: &[u8; 4], deaths| ReplayMark {
+            client: ClientKey(*key),
+            deaths,
+        };
+        marks.write(3, mark(b"AAAA", 1));
+        marks.write(3, mark(b"BBBB", 2));
+        marks.write(4, mark(b"CCCC", 1));
         marks.remove(4);
         std::fs::write(dir.join("replaying-x"), b"DDDD").expect("a stray file");
         std::fs::write(dir.join("replaying-5"), b"too long").expect("a bad mark");
+        // An agent before wrote the key alone: one death.
+        std::fs::write(dir.join("replaying-6"), b"EEEE").expect("an old mark");
         let taken = marks.take();
-        assert_eq!(taken, HashSet::from([(3, ClientKey(*b"BBBB"))]));
+        assert_eq!(
+            taken,
+            CrashedReplays::from([((3, ClientKey(*b"BBBB")), 2), ((6, ClientKey(*b"EEEE")), 1)])
+        );
         assert!(marks.take().is_empty(), "read once");
         let _ = std::fs::remove_dir_all(&dir);
     }

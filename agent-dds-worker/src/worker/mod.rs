@@ -79,6 +79,7 @@ pub use in_process_link::InProcessLink;
 pub use link::{LinkError, MemoryWorkerLink, ShmWorkerLink, WorkerLink};
 use ports::*;
 use reads::*;
+pub use replay_guard::{CrashedReplays, ReplayMark};
 use replay_guard::{ReplayGuard, Screened};
 use services::*;
 use writes::*;

@@ -1,4 +1,4 @@
-//! A replay that crashed the worker is not replayed again.
+//! A replay that crashed two workers in a row is not replayed again.
 //!
 //! A new worker gets every front-end's objects again (the replay between the front-end's
 //! hello and its `ReplayDone`). If one client's objects make the worker crash (a backend
@@ -6,22 +6,44 @@
 //! worker crashing long after that client is gone. So while a front-end replays, the client
 //! whose objects are being created is written down in the private instance directory
 //! (by the link: a file `replaying-<front-end>`, rewritten when the client changes, removed at
-//! `ReplayDone`);
-//! a worker that finds such a file at its start refuses that client's replayed objects
-//! (STATUS_ERR_RESOURCES with [`xrce_ipc::REPLAY_REFUSED`], counted as `replay_crash`,
-//! logged), and the front-end ends the client's session: the client finds it gone and
-//! creates it again. Everyone else is replayed as usual.
+//! `ReplayDone`), with how many workers in a row died replaying it, this one included.
+//! A worker that finds such a mark at its start replays that client once more if one worker
+//! died on it: a worker killed from outside (an operator, the memory limit, a crash loop)
+//! dies wherever its replay stands, and ending that client's session lost the writes its
+//! client had sent meanwhile (50 in a crash-loop soak). Objects that crash the worker crash
+//! the next one too: then it refuses that client's replayed objects (STATUS_ERR_RESOURCES
+//! with [`xrce_ipc::REPLAY_REFUSED`], counted as `replay_crash`, logged), and the front-end
+//! ends the client's session: the client finds it gone and creates it again. Everyone else
+//! is replayed as usual.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 
 use xrce_common::wire::ClientKey;
+
+/// Workers in a row that died replaying a client before its objects are refused.
+pub(crate) const REPLAY_DEATHS_REFUSED: u8 = 2;
+
+/// A replay mark: the client whose objects a front-end is replaying, and how many workers
+/// in a row will have died replaying them if this one dies now.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ReplayMark {
+    /// The client.
+    pub client: ClientKey,
+    /// Workers in a row dead while replaying it, this one included.
+    pub deaths: u8,
+}
+
+/// The marks a worker finds at its start: for each (front-end, client) whose replay was
+/// under way when the last worker died, how many workers in a row died replaying it.
+pub type CrashedReplays = HashMap<(u32, ClientKey), u8>;
 
 /// What the worker knows about replays that crashed it, and the replays under way. It
 /// decides; the link ([`super::WorkerLink::mark_replay`]) keeps the marks.
 #[derive(Debug, Default)]
 pub(crate) struct ReplayGuard {
-    /// Clients whose replay was under way when the last worker died: (front-end, client).
-    suspects: HashSet<(u32, ClientKey)>,
+    /// Clients whose replay was under way when the last worker died: (front-end, client),
+    /// with the workers in a row that died replaying them.
+    suspects: CrashedReplays,
     /// Front-ends replaying now, and the client last written down for each.
     replaying: HashMap<u32, Option<ClientKey>>,
 }
@@ -35,16 +57,20 @@ pub(crate) enum Screened {
     /// first.
     Admitted {
         /// The client to write down.
-        mark: Option<ClientKey>,
+        mark: Option<ReplayMark>,
     },
 }
 
 impl ReplayGuard {
     /// A guard refusing the replays of `suspects` (those under way when the last worker
-    /// died).
-    pub(crate) fn new(suspects: HashSet<(u32, ClientKey)>) -> Self {
-        for (fe, client) in &suspects {
-            tracing::warn!(frontend = fe, client = %client, "the last worker died while replaying this client's objects: they are not replayed to this one");
+    /// died) that [`REPLAY_DEATHS_REFUSED`] workers in a row died on.
+    pub(crate) fn new(suspects: CrashedReplays) -> Self {
+        for ((fe, client), deaths) in &suspects {
+            if *deaths >= REPLAY_DEATHS_REFUSED {
+                tracing::warn!(frontend = fe, client = %client, deaths, "workers in a row died while replaying this client's objects: they are not replayed to this one");
+            } else {
+                tracing::info!(frontend = fe, client = %client, "the last worker died while replaying this client's objects: they are replayed once more");
+            }
         }
         ReplayGuard {
             suspects,
@@ -61,7 +87,7 @@ impl ReplayGuard {
     /// once, which ended their sessions; what they create from now on is theirs again.
     /// Whether a mark of `fe`'s stands (to be removed).
     pub(crate) fn end(&mut self, fe: u32) -> bool {
-        self.suspects.retain(|(f, _)| *f != fe);
+        self.suspects.retain(|(f, _), _| *f != fe);
         matches!(self.replaying.remove(&fe), Some(Some(_)))
     }
 
@@ -79,14 +105,20 @@ impl ReplayGuard {
         let Some(current) = self.replaying.get_mut(&fe) else {
             return Screened::Admitted { mark: None };
         };
-        if self.suspects.contains(&(fe, client)) {
+        let died = self.suspects.get(&(fe, client)).copied().unwrap_or(0);
+        if died >= REPLAY_DEATHS_REFUSED {
             return Screened::Refused;
         }
         if *current == Some(client) {
             return Screened::Admitted { mark: None };
         }
         *current = Some(client);
-        Screened::Admitted { mark: Some(client) }
+        Screened::Admitted {
+            mark: Some(ReplayMark {
+                client,
+                deaths: died + 1,
+            }),
+        }
     }
 }
 
@@ -94,8 +126,14 @@ impl ReplayGuard {
 mod tests {
     use super::*;
 
+    fn mark(client: ClientKey, deaths: u8) -> Screened {
+        Screened::Admitted {
+            mark: Some(ReplayMark { client, deaths }),
+        }
+    }
+
     #[test]
-    fn the_client_whose_replay_was_under_way_is_refused_by_the_next_worker_only_in_replays() {
+    fn a_client_two_workers_died_replaying_is_refused_by_the_next_only_in_replays() {
         let (a, b) = (ClientKey(*b"AAAA"), ClientKey(*b"BBBB"));
         let mut first = ReplayGuard::default();
         assert_eq!(
@@ -104,37 +142,39 @@ mod tests {
             "not in a replay"
         );
         first.begin(3);
-        assert_eq!(first.screen(3, a), Screened::Admitted { mark: Some(a) });
+        assert_eq!(first.screen(3, a), mark(a, 1));
         assert_eq!(
             first.screen(3, a),
             Screened::Admitted { mark: None },
             "written once"
         );
-        assert_eq!(first.screen(3, b), Screened::Admitted { mark: Some(b) });
-        // The worker dies here, while b's objects are being replayed: the next one finds b.
-        let mut second = ReplayGuard::new(HashSet::from([(3, b)]));
+        assert_eq!(first.screen(3, b), mark(b, 1));
+        // The worker dies here, while b's objects are being replayed: the next one replays
+        // b once more, marked as the second death if it dies too.
+        let mut second = ReplayGuard::new(HashMap::from([((3, b), 1)]));
         second.begin(3);
+        assert_eq!(second.screen(3, a), mark(a, 1), "a is replayed");
+        assert_eq!(second.screen(3, b), mark(b, 2), "b is replayed once more");
+        // It dies on b too: b's objects are refused.
+        let mut third = ReplayGuard::new(HashMap::from([((3, b), 2)]));
+        third.begin(3);
+        assert_eq!(third.screen(3, a), mark(a, 1));
         assert_eq!(
-            second.screen(3, a),
-            Screened::Admitted { mark: Some(a) },
-            "a is replayed"
-        );
-        assert_eq!(
-            second.screen(3, b),
+            third.screen(3, b),
             Screened::Refused,
-            "b's replay crashed the last worker"
+            "b's replay crashed two workers"
         );
         assert!(
-            matches!(second.screen(4, b), Screened::Admitted { .. }),
+            matches!(third.screen(4, b), Screened::Admitted { .. }),
             "another front-end's b is another client"
         );
-        assert!(second.end(3), "a's mark is removed");
+        assert!(third.end(3), "a's mark is removed");
         assert_eq!(
-            second.screen(3, b),
+            third.screen(3, b),
             Screened::Admitted { mark: None },
             "outside a replay, b creates as usual"
         );
         // A replay that ended leaves nothing to remove at the stop.
-        assert!(second.stopping().is_empty());
+        assert!(third.stopping().is_empty());
     }
 }

@@ -117,8 +117,8 @@ impl<L: WorkerLink> Worker<L> {
                 readers_matched,
             } => {
                 let screened = self.replay_guard.screen(r.frontend_id, r.client_key);
-                if let Screened::Admitted { mark: Some(client) } = screened {
-                    self.link.mark_replay(r.frontend_id, Some(client));
+                if let Screened::Admitted { mark: Some(mark) } = screened {
+                    self.link.mark_replay(r.frontend_id, Some(mark));
                 }
                 if screened == Screened::Refused {
                     let why = format!(

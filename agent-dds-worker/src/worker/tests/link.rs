@@ -210,21 +210,33 @@ fn a_worker_that_stops_leaves_no_replay_mark() {
     assert_eq!(next.statuses(), vec![(CLIENT, status::OK, 0)]);
 }
 
-/// The client whose replay was under way when the worker died is refused by the next one
-/// (its session ends, the client creates it again); the others are replayed.
+/// The client whose replay was under way when two workers in a row died is refused by the
+/// next one (its session ends, the client creates it again); the others are replayed. One
+/// death is not enough: a worker killed from outside dies wherever its replay stands.
 #[test]
-fn a_replay_that_crashed_the_worker_is_refused_by_the_next_one() {
+fn a_replay_that_crashed_two_workers_is_refused_by_the_next_one() {
     let mut first = Harness::new(false);
     first.send(Route::frontend(FE), Request::FrontendHello);
     first.replayed_participant(CLIENT);
     first.replayed_participant(OTHER);
     assert_eq!(first.worker.link.marks().get(&FE), Some(&OTHER));
-    // The worker dies while OTHER's objects are being replayed.
-    let mut next = Harness::over(config(), first.worker.link.after_crash());
-    next.send(Route::frontend(FE), Request::FrontendHello);
-    next.replayed_participant(CLIENT);
-    next.replayed_participant(OTHER);
-    next.worker.flush();
+    // The worker dies while OTHER's objects are being replayed: the next one replays them.
+    let replayed_by_the_next = |last: &Harness| {
+        let mut next = Harness::over(config(), last.worker.link.after_crash());
+        next.send(Route::frontend(FE), Request::FrontendHello);
+        next.replayed_participant(CLIENT);
+        next.replayed_participant(OTHER);
+        next.worker.flush();
+        next
+    };
+    let mut second = replayed_by_the_next(&first);
+    assert_eq!(
+        second.statuses(),
+        vec![(CLIENT, status::OK, 0), (OTHER, status::OK, 0)]
+    );
+    assert_eq!(second.worker.dropped.get("replay_crash"), None);
+    // It dies on OTHER too.
+    let mut next = replayed_by_the_next(&second);
     assert_eq!(
         next.statuses(),
         vec![
