@@ -15,9 +15,9 @@ pub(super) struct ReaderInfo {
     pub(super) filter: Option<Filter>,
     /// The fewest samples of an instance it keeps (its history's depth, as bounded).
     pub(super) depth: u32,
-    /// Its topic has a key (its samples are taken instance by instance, not in the order
-    /// they came).
-    pub(super) keyed: bool,
+    /// It takes in write order: volatile, of a topic without a key (a keyed reader takes
+    /// instance by instance; a durable one may get older samples late) ([`super::take_log`]).
+    pub(super) in_write_order: bool,
 }
 
 /// Every endpoint's topic: as the backend makes it (with its key), its description, and
@@ -253,6 +253,14 @@ impl<L: WorkerLink> Worker<L> {
                     .create_reader(&subscriber, &topic, &qos, token)
                     .map_err(dds_err)?;
                 self.readers.by_token.insert(token, key);
+                if topic.key.is_none()
+                    && qos.durability == crate::backend::policies::Durability::Volatile
+                {
+                    // New, it holds nothing: its place in the topic's take log is the end.
+                    let t = TopicKey::of(&self.topic_keys, subscriber.domain(), &tdesc.name);
+                    let at = self.writers.take_logs.sync(&t);
+                    self.readers.positions.insert(key, at);
+                }
                 (
                     Some(p),
                     EntityKind::Reader {
@@ -263,7 +271,8 @@ impl<L: WorkerLink> Worker<L> {
                             topic: tdesc.name.clone(),
                             ty,
                             filter,
-                            keyed: topic.key.is_some(),
+                            in_write_order: topic.key.is_none()
+                                && qos.durability == crate::backend::policies::Durability::Volatile,
                             depth: match qos.history {
                                 crate::backend::policies::History::KeepLast(d) => {
                                     u32::try_from(d).unwrap_or(0).max(1)

@@ -206,6 +206,9 @@ struct Readers {
     filter_pass_left: u64,
     /// The worker's write stamp when readers were last asked which have data.
     scan_stamp: u64,
+    /// Where each reader that takes in write order stands in its topic's take log, between
+    /// reads too ([`take_log`]).
+    positions: HashMap<EntityKey, take_log::LogPosition>,
 }
 
 impl Readers {
@@ -220,6 +223,7 @@ impl Readers {
             over_budget: Turns::new(),
             filter_pass_left: crate::filter::PASS_BUDGET,
             scan_stamp: 0,
+            positions: HashMap::new(),
         }
     }
 
@@ -264,11 +268,13 @@ impl Readers {
     }
 
     /// The oldest position a read of `topic` has in its take log ([`take_log`]).
-    fn oldest_position(&self, topic: &TopicKey) -> Option<u64> {
+    fn oldest_position(&self, topic: &TopicKey, epoch: u64) -> Option<u64> {
         self.reads
             .values()
             .filter(|r| r.topic.as_ref() == Some(topic))
             .filter_map(|r| r.position)
+            .filter(|p| p.epoch == epoch)
+            .map(|p| p.at)
             .min()
     }
 
@@ -279,6 +285,7 @@ impl Readers {
             self.by_token.remove(&token);
         }
         self.reads.remove(&key);
+        self.positions.remove(&key);
         self.to_pump.remove(&key);
         self.pump_again.remove(&key);
         self.over_budget.remove(&key);
@@ -353,7 +360,7 @@ impl Writers {
         frontend: u32,
         seq: u64,
         now: Instant,
-        positioned: impl FnOnce() -> Option<u64>,
+        positioned: impl FnOnce(u64) -> Option<u64>,
     ) {
         self.stamp += 1;
         self.take_logs

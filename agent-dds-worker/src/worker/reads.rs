@@ -1,6 +1,7 @@
 //! Reads: the active reads of the front-ends' clients, their delivery limits and pacing,
 //! and the samples taken from DDS readers for them.
 
+use super::take_log::LogPosition;
 use super::*;
 use crate::filter::{EVAL_BUDGET, READER_PASS_BUDGET};
 
@@ -40,12 +41,13 @@ pub(super) struct ActiveRead {
     /// without this its writes would stay unacknowledged until
     /// [`crate::acks::ACK_GIVE_UP`], and be resent (repeated) if the worker died.
     pub(super) pending_drained: Option<u64>,
-    /// Its reader takes in write order (a data reader of a topic without a key,
+    /// Its reader takes in write order (a volatile data reader of a topic without a key,
     /// [`super::take_log`]).
     pub(super) in_write_order: bool,
-    /// How many of this worker's writes to the topic, logged since the log began, it took
-    /// (None until its reader is first seen empty, and after it fell behind the log).
-    pub(super) position: Option<u64>,
+    /// How many of this worker's writes to the topic, logged since the log began, its
+    /// reader took ([`Readers::positions`]; None after it fell behind the log, until it is
+    /// seen empty again).
+    pub(super) position: Option<LogPosition>,
     /// Samples taken for it so far: the release gate sees a reader that takes without being
     /// emptied as taking ([`super::release_gate`]).
     pub(super) taken: u64,
@@ -126,7 +128,7 @@ impl<L: WorkerLink> Worker<L> {
                 Some(info.ty.clone()),
                 Some(TopicKey::of(&self.topic_keys, info.domain, &info.topic)),
                 info.depth,
-                !info.keyed,
+                info.in_write_order,
             ),
             Some(Entity {
                 kind: EntityKind::Service(..),
@@ -162,6 +164,8 @@ impl<L: WorkerLink> Worker<L> {
         };
         // A new read starts unpaused (the front-end forgets its pause too).
         let paused = false;
+        // Where its reader stands in the topic's take log (from its creation on).
+        let position = self.readers.positions.get(&key).copied();
         let read = match spec.delivery_control {
             Some(d) if d.max_samples == 0 => {
                 self.readers.reads.remove(&key);
@@ -184,7 +188,7 @@ impl<L: WorkerLink> Worker<L> {
                 pending_drained: None,
                 taken: 0,
                 in_write_order,
-                position: None,
+                position,
             },
             None => ActiveRead {
                 request_id,
@@ -202,7 +206,7 @@ impl<L: WorkerLink> Worker<L> {
                 pending_drained: None,
                 taken: 0,
                 in_write_order,
-                position: None,
+                position,
             },
         };
         self.readers.reads.insert(key, read);
@@ -537,6 +541,16 @@ impl<L: WorkerLink> Worker<L> {
                     } else {
                         r.pending_drained = r.pending_drained.max(Some(through));
                     }
+                }
+                // Kept with the reader, for its next read.
+                match (r.in_write_order, r.position) {
+                    (true, Some(p)) => {
+                        self.readers.positions.insert(key, p);
+                    }
+                    (true, None) => {
+                        self.readers.positions.remove(&key);
+                    }
+                    _ => {}
                 }
                 r.remaining == Some(0) || (r.one_shot && sent > 0)
             }

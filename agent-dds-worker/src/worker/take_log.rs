@@ -6,10 +6,13 @@
 //! writes already delivered then stayed unacknowledged for seconds, and a crash had the
 //! front-end resend them, repeated at their subscribers (thousands in a crash-loop soak).
 //!
-//! A reader of a topic without a key keeps its samples in the order they came, and this
-//! worker's writes reach it inside the write call, in the order written. So once such a
-//! read was seen empty (its sync point), the n-th sample it takes from one of the worker's
-//! writers of the topic is the n-th of their writes since. The log keeps, per topic, the
+//! A volatile reader of a topic without a key keeps its samples in the order they came, and
+//! this worker's writes reach it inside the write call, in the order written. So from a
+//! point where it held none (its creation, or a read that emptied it), the n-th sample it
+//! takes from one of the worker's writers of the topic is the n-th of their writes since.
+//! (After a worker restart the replayed reader is new: from its creation it has a position,
+//! where a lagging subscriber's reader would never be seen empty. A durable reader may get
+//! older samples after that point: it has none.) The log keeps, per topic, the
 //! write stamps of those writes in order, and which writers made them; a read keeps its
 //! position in it. Samples it does not get (another partition, overwritten in its history)
 //! or cannot tell (no identity) make the position lag, never lead: a write is at worst
@@ -26,9 +29,21 @@ use crate::backend::Guid;
 /// of a topic with no read positioned in it is dropped as it reaches this.
 pub(super) const TAKE_LOG_MAX: usize = 4096;
 
+/// A place in a topic's log: the log (logs of one topic that end and begin again are told
+/// apart) and how many of its writes were taken.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct LogPosition {
+    /// Which log of the topic.
+    pub(super) epoch: u64,
+    /// Its writes taken.
+    pub(super) at: u64,
+}
+
 /// One topic's log.
 #[derive(Debug, Default)]
 struct TopicLog {
+    /// Which log of the topic this is.
+    epoch: u64,
     /// Stamps of the writes since the log began, oldest first, from `first`.
     stamps: VecDeque<u64>,
     /// The position of `stamps[0]` (1 for the first write logged).
@@ -48,42 +63,45 @@ impl TopicLog {
 #[derive(Debug, Default)]
 pub(super) struct TakeLogs {
     logs: HashMap<TopicKey, TopicLog>,
+    /// Logs begun so far.
+    epochs: u64,
 }
 
 impl TakeLogs {
     /// A read of `topic` was seen empty: its position, from which it counts what it takes
     /// (the log begins if it had not).
-    pub(super) fn sync(&mut self, topic: &TopicKey) -> u64 {
-        match self.logs.get(topic) {
-            Some(log) => log.end(),
-            None => {
-                self.logs.insert(
-                    *topic,
-                    TopicLog {
-                        first: 1,
-                        ..TopicLog::default()
-                    },
-                );
-                0
+    pub(super) fn sync(&mut self, topic: &TopicKey) -> LogPosition {
+        let epochs = &mut self.epochs;
+        let log = self.logs.entry(*topic).or_insert_with(|| {
+            *epochs += 1;
+            TopicLog {
+                epoch: *epochs,
+                first: 1,
+                ..TopicLog::default()
             }
+        });
+        LogPosition {
+            epoch: log.epoch,
+            at: log.end(),
         }
     }
 
     /// This worker's writer `writer` wrote to `topic`, as the worker's `stamp`-th write.
-    /// `positioned` tells, when the log is full, the oldest position a read of the topic
-    /// still has (None: no read has one), so that the log keeps what is still needed.
+    /// `positioned` tells, when the log is full, the oldest place a read of the topic still
+    /// has in the log of the epoch it is given (None: no read has one), so that the log
+    /// keeps what is still needed.
     pub(super) fn record(
         &mut self,
         topic: &TopicKey,
         writer: Guid,
         stamp: u64,
-        positioned: impl FnOnce() -> Option<u64>,
+        positioned: impl FnOnce(u64) -> Option<u64>,
     ) {
         let Some(log) = self.logs.get_mut(topic) else {
             return;
         };
         if log.stamps.len() >= TAKE_LOG_MAX {
-            let Some(oldest) = positioned() else {
+            let Some(oldest) = positioned(log.epoch) else {
                 self.logs.remove(topic);
                 return;
             };
@@ -112,20 +130,21 @@ impl TakeLogs {
     pub(super) fn advance(
         &self,
         topic: &TopicKey,
-        position: u64,
+        position: LogPosition,
         taken: u64,
-    ) -> Option<(u64, u64)> {
-        let log = self.logs.get(topic)?;
-        if position + 1 < log.first {
+    ) -> Option<(LogPosition, u64)> {
+        let log = self.logs.get(topic).filter(|l| l.epoch == position.epoch)?;
+        if position.at + 1 < log.first {
             return None;
         }
         // Never past the newest write (a sample the log could not tell came from before).
-        let to = (position + taken).min(log.end());
-        if to < log.first {
+        let at = (position.at + taken).min(log.end());
+        let to = LogPosition { at, ..position };
+        if at < log.first {
             // Nothing taken since the log's start: the position stands.
             return Some((to, 0));
         }
-        let stamp = log.stamps.get((to - log.first) as usize).copied()?;
+        let stamp = log.stamps.get((at - log.first) as usize).copied()?;
         Some((to, stamp))
     }
 }
@@ -141,53 +160,65 @@ mod tests {
     const W: Guid = [1; 16];
     const OTHER: Guid = [2; 16];
 
+    fn at(p: LogPosition) -> u64 {
+        p.at
+    }
+
     /// A read's position follows what it takes of the logged writes, in order.
     #[test]
     fn a_reads_position_gives_the_stamp_of_the_last_write_it_took() {
         let mut logs = TakeLogs::default();
         // Nothing is logged before a read syncs.
-        logs.record(&topic(), W, 1, || None);
+        logs.record(&topic(), W, 1, |_| None);
         assert!(!logs.is_logged_writer(&topic(), &W));
-        assert_eq!(logs.sync(&topic()), 0);
+        let start = logs.sync(&topic());
+        assert_eq!(at(start), 0);
         for stamp in [5, 7, 9] {
-            logs.record(&topic(), W, stamp, || Some(0));
+            logs.record(&topic(), W, stamp, |_| Some(at(start)));
         }
         assert!(logs.is_logged_writer(&topic(), &W));
         assert!(!logs.is_logged_writer(&topic(), &OTHER));
-        assert_eq!(logs.advance(&topic(), 0, 2), Some((2, 7)));
-        assert_eq!(
-            logs.advance(&topic(), 2, 5),
-            Some((3, 9)),
-            "never past the end"
-        );
+        let (two, stamp) = logs.advance(&topic(), start, 2).expect("in the log");
+        assert_eq!((at(two), stamp), (2, 7));
+        let (three, stamp) = logs.advance(&topic(), two, 5).expect("in the log");
+        assert_eq!((at(three), stamp), (3, 9), "never past the end");
         // A read that syncs later starts at the end.
-        assert_eq!(logs.sync(&topic()), 3);
-        assert_eq!(logs.advance(&topic(), 3, 0), Some((3, 9)));
+        assert_eq!(logs.sync(&topic()), three);
     }
 
     /// A full log keeps what the furthest-behind read needs; a read left behind its start
-    /// loses its position; a log no read is positioned in goes.
+    /// loses its position; a log no read is positioned in goes, and a position in it means
+    /// nothing in the topic's next log.
     #[test]
     fn a_full_log_keeps_what_reads_still_need() {
         let mut logs = TakeLogs::default();
-        logs.sync(&topic());
+        let start = logs.sync(&topic());
+        let place = |at| LogPosition { at, ..start };
         for s in 1..=TAKE_LOG_MAX as u64 {
-            logs.record(&topic(), W, s, || Some(0));
+            logs.record(&topic(), W, s, |_| Some(0));
         }
         // The oldest read is at 10: the log drops a quarter, that read loses its place.
-        logs.record(&topic(), W, 5000, || Some(10));
-        assert_eq!(logs.advance(&topic(), 10, 1), None);
+        logs.record(&topic(), W, 5000, |_| Some(10));
+        assert_eq!(logs.advance(&topic(), place(10), 1), None);
         let quarter = (TAKE_LOG_MAX / 4) as u64;
         assert_eq!(
-            logs.advance(&topic(), quarter, 1),
-            Some((quarter + 1, quarter + 1))
+            logs.advance(&topic(), place(quarter), 1),
+            Some((place(quarter + 1), quarter + 1))
         );
         // Full again, with no read positioned: the log goes.
         for s in 0..quarter - 1 {
-            logs.record(&topic(), W, 6000 + s, || Some(quarter));
+            logs.record(&topic(), W, 6000 + s, |_| Some(quarter));
         }
-        logs.record(&topic(), W, 9000, || None);
+        logs.record(&topic(), W, 9000, |_| None);
         assert!(!logs.is_logged_writer(&topic(), &W));
-        assert_eq!(logs.advance(&topic(), quarter, 1), None);
+        assert_eq!(logs.advance(&topic(), place(quarter), 1), None);
+        // The next log of the topic does not take the old position for one of its own.
+        let next = logs.sync(&topic());
+        logs.record(&topic(), W, 9001, |_| Some(at(next)));
+        assert_eq!(logs.advance(&topic(), place(0), 1), None);
+        assert_eq!(
+            logs.advance(&topic(), next, 1).map(|(p, s)| (at(p), s)),
+            Some((1, 9001))
+        );
     }
 }

@@ -382,8 +382,8 @@ impl<L: WorkerLink> Worker<L> {
             publish(&*w.raw, sample).map_err(|e| OpError::from(e.context("DDS write")))
         };
         if done.is_ok() {
-            self.writers.record(w, key.0, seq, self.now, || {
-                self.readers.oldest_position(&w.topic)
+            self.writers.record(w, key.0, seq, self.now, |epoch| {
+                self.readers.oldest_position(&w.topic, epoch)
             });
         }
         done
@@ -412,8 +412,8 @@ impl<L: WorkerLink> Worker<L> {
                 publish(&*w.raw, s)
             };
             match done {
-                Ok(()) => self.writers.record(w, key.0, seq, now, || {
-                    self.readers.oldest_position(&w.topic)
+                Ok(()) => self.writers.record(w, key.0, seq, now, |epoch| {
+                    self.readers.oldest_position(&w.topic, epoch)
                 }),
                 Err(_) => failures += 1,
             }
@@ -692,8 +692,8 @@ impl<L: WorkerLink> Worker<L> {
                     if done.is_err() {
                         failures += 1;
                     } else {
-                        self.writers.record(w, key.0, seq, now, || {
-                            self.readers.oldest_position(&w.topic)
+                        self.writers.record(w, key.0, seq, now, |epoch| {
+                            self.readers.oldest_position(&w.topic, epoch)
                         });
                         self.writers.gates.released(&w.topic, self.writers.stamp);
                     }

@@ -126,6 +126,27 @@ impl Harness {
     }
 }
 
+impl Harness {
+    /// `passes` passes, each after more writes than a pump takes (numbered on from
+    /// `written`, progress allowed to wait); the newest write acknowledged and the samples
+    /// the front-end got.
+    fn more_than_a_pump_each_pass(&mut self, written: u64, passes: usize) -> (u64, u64) {
+        let mut seq = written;
+        let mut acknowledged = written;
+        let mut samples = 0;
+        for _ in 0..passes {
+            for _ in 0..crate::worker::reads::PUMP_BATCH + 44 {
+                seq += 1;
+                self.request(write(&keyed(seq as i32, 1)), seq, true);
+            }
+            let (a, n) = self.acknowledged_after(ACK_POLL_PERIOD);
+            acknowledged = a.unwrap_or(acknowledged);
+            samples += n as u64;
+        }
+        (acknowledged, samples)
+    }
+}
+
 /// A client's reader with a read and a writer of one topic; its first write was taken for
 /// the read and acknowledged.
 fn first_write_taken() -> Harness {
@@ -238,26 +259,15 @@ fn a_congested_readers_writes_are_acknowledged_as_its_backlog_is_sent() {
 #[test]
 fn writes_a_never_empty_reader_took_in_write_order_are_acknowledged() {
     let mut t = first_write_taken();
-    let mut seq = 1;
-    let mut acknowledged = 1;
-    let mut samples = 1;
-    let batch = crate::worker::reads::PUMP_BATCH as u64 + 44;
-    for _ in 0..10 {
-        for _ in 0..batch {
-            seq += 1;
-            t.request(write(&keyed(seq as i32, 1)), seq, true);
-        }
-        let (a, n) = t.acknowledged_after(ACK_POLL_PERIOD);
-        acknowledged = a.unwrap_or(acknowledged);
-        samples += n;
-    }
+    let (acknowledged, samples) = t.more_than_a_pump_each_pass(1, 10);
     assert_eq!(
-        samples as u64,
-        1 + 10 * crate::worker::reads::PUMP_BATCH as u64,
+        samples,
+        10 * crate::worker::reads::PUMP_BATCH as u64,
         "a pump's worth each pass: never emptied"
     );
     assert_eq!(
-        acknowledged, samples as u64,
+        acknowledged,
+        1 + samples,
         "acknowledged through what was taken"
     );
 }
@@ -284,4 +294,21 @@ fn a_never_empty_keyed_reader_holds_its_writes_back() {
             .unwrap_or(acknowledged);
     }
     assert_eq!(acknowledged, 1, "never seen empty");
+}
+
+/// A new reader holds nothing: it is placed in the topic's take log from its creation, so a
+/// replayed subscriber whose path lags (never seen empty after a worker restart) still has
+/// what it took acknowledged.
+#[test]
+fn a_new_readers_takes_count_before_it_was_ever_seen_empty() {
+    let mut t = reader_and_new_writer();
+    t.read(CLIENT, READER);
+    t.matched_long_ago(CLIENT, WRITER);
+    let (acknowledged, samples) = t.more_than_a_pump_each_pass(0, 5);
+    assert_eq!(
+        samples,
+        5 * crate::worker::reads::PUMP_BATCH as u64,
+        "never emptied"
+    );
+    assert_eq!(acknowledged, samples);
 }
