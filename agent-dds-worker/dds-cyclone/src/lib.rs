@@ -725,6 +725,12 @@ impl DdsBackend for Cyclone {
         true
     }
 
+    fn delivers_locally_in_write_order(&self) -> bool {
+        // A local reader gets the sample inside `dds_writecdr`, in the reader's history in
+        // arrival order for a topic without a key.
+        true
+    }
+
     fn supports_services(&self) -> bool {
         false
     }

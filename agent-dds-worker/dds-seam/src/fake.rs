@@ -394,6 +394,11 @@ impl DdsBackend for Fake {
         "fake"
     }
 
+    fn delivers_locally_in_write_order(&self) -> bool {
+        // Published samples reach the bus's readers inside the write, in order.
+        true
+    }
+
     fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError> {
         let mut g = [0xfb; 16];
         g[8..12].copy_from_slice(&self.bus.number.to_be_bytes());

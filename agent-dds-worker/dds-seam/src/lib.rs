@@ -283,6 +283,16 @@ pub trait DdsBackend: DynEndpoints {
     fn supports_services(&self) -> bool {
         true
     }
+    /// Whether every sample of its own writers reaches its own matched readers inside the
+    /// write call, each reader's volatile samples of a topic without a key then taken in
+    /// the order written, whatever the QoS of the pair. The worker then counts what such a
+    /// reader took of its writes to acknowledge them sooner; a backend that sends some
+    /// pairs through the network (RustDDS's in-process delivery pairs only some QoS) or
+    /// delivers later (Zenoh) must say no, or writes would be acknowledged before they were
+    /// taken.
+    fn delivers_locally_in_write_order(&self) -> bool {
+        false
+    }
     /// The GUID of the participant the domain's writers live on (the ROS graph names it).
     fn participant_guid(&mut self, domain: u16) -> Result<Guid, BackendError>;
     /// A descriptor that polls readable when some reader may have data.

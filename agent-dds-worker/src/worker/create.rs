@@ -253,9 +253,10 @@ impl<L: WorkerLink> Worker<L> {
                     .create_reader(&subscriber, &topic, &qos, token)
                     .map_err(dds_err)?;
                 self.readers.by_token.insert(token, key);
-                if topic.key.is_none()
+                let in_write_order = topic.key.is_none()
                     && qos.durability == crate::backend::policies::Durability::Volatile
-                {
+                    && self.dds.delivers_locally_in_write_order();
+                if in_write_order {
                     // New, it holds nothing: its place in the topic's take log is the end.
                     let t = TopicKey::of(&self.topic_keys, subscriber.domain(), &tdesc.name);
                     let at = self.writers.take_logs.sync(&t);
@@ -271,8 +272,7 @@ impl<L: WorkerLink> Worker<L> {
                             topic: tdesc.name.clone(),
                             ty,
                             filter,
-                            in_write_order: topic.key.is_none()
-                                && qos.durability == crate::backend::policies::Durability::Volatile,
+                            in_write_order,
                             depth: match qos.history {
                                 crate::backend::policies::History::KeepLast(d) => {
                                     u32::try_from(d).unwrap_or(0).max(1)

@@ -116,6 +116,13 @@ impl TakeLogs {
         log.stamps.push_back(stamp);
     }
 
+    /// A write to `topic` failed: it may have reached some readers all the same (a backend
+    /// delivers to them one by one), unlogged, and a reader that took it would be counted a
+    /// place ahead. The log ends; positions in it mean nothing in the topic's next one.
+    pub(super) fn write_failed(&mut self, topic: &TopicKey) {
+        self.logs.remove(topic);
+    }
+
     /// Whether `writer` is one of this worker's writers that wrote to `topic` since its log
     /// began.
     pub(super) fn is_logged_writer(&self, topic: &TopicKey, writer: &Guid) -> bool {
@@ -184,6 +191,10 @@ mod tests {
         assert_eq!((at(three), stamp), (3, 9), "never past the end");
         // A read that syncs later starts at the end.
         assert_eq!(logs.sync(&topic()), three);
+        // A failed write may have reached the reader unlogged: the log ends.
+        logs.write_failed(&topic());
+        assert_eq!(logs.advance(&topic(), three, 1), None);
+        assert_ne!(logs.sync(&topic()), three, "another epoch");
     }
 
     /// A full log keeps what the furthest-behind read needs; a read left behind its start

@@ -385,6 +385,8 @@ impl<L: WorkerLink> Worker<L> {
             self.writers.record(w, key.0, seq, self.now, |epoch| {
                 self.readers.oldest_position(&w.topic, epoch)
             });
+        } else {
+            self.writers.take_logs.write_failed(&w.topic);
         }
         done
     }
@@ -415,7 +417,10 @@ impl<L: WorkerLink> Worker<L> {
                 Ok(()) => self.writers.record(w, key.0, seq, now, |epoch| {
                     self.readers.oldest_position(&w.topic, epoch)
                 }),
-                Err(_) => failures += 1,
+                Err(_) => {
+                    failures += 1;
+                    self.writers.take_logs.write_failed(&w.topic);
+                }
             }
         }
         for _ in 0..failures {
@@ -691,6 +696,7 @@ impl<L: WorkerLink> Worker<L> {
                     }
                     if done.is_err() {
                         failures += 1;
+                        self.writers.take_logs.write_failed(&w.topic);
                     } else {
                         self.writers.record(w, key.0, seq, now, |epoch| {
                             self.readers.oldest_position(&w.topic, epoch)
