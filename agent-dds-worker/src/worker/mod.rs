@@ -593,6 +593,15 @@ impl<L: WorkerLink> Worker<L> {
         self.publish_graph();
         self.flush();
         self.watch_frontends();
+        let ended = self.writers.take_logs.take_ended();
+        if ended > 0 {
+            *self.dropped.entry("take_logs_ended").or_default() += ended;
+            tracing::info!(
+                ended,
+                "take logs ended at their bounds (topics, or writers of one topic): their \
+                 reads count as drained only once emptied again"
+            );
+        }
         Ok(pumped)
     }
 

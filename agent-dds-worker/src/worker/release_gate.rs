@@ -36,6 +36,9 @@ pub(super) const RELEASE_GATE_MAX: Duration = Duration::from_secs(1);
 /// repeated in a crash-loop soak, against 8.
 pub(super) const RELEASE_IN_FLIGHT_MAX: u32 = PUMP_BATCH as u32;
 
+/// Most stamps of released samples a gate keeps (far above the allowance).
+const RELEASED_KEPT_MAX: usize = 4096;
+
 /// What this worker's readers of a topic (those with an unpaced read) stand at.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) struct Drained {
@@ -133,6 +136,11 @@ impl ReleaseGates {
     /// A held sample of `topic` was written with write stamp `stamp`.
     pub(super) fn released(&mut self, topic: &TopicKey, stamp: u64) {
         if let Some(g) = self.gates.get_mut(topic) {
+            // Only an open gate lets more than the allowance (at most 256) wait; it forgets
+            // the oldest rather than grow with what its stalled readers never take.
+            if g.released.len() >= RELEASED_KEPT_MAX {
+                g.released.pop_front();
+            }
             g.released.push_back(stamp);
         }
     }

@@ -29,6 +29,12 @@ use crate::backend::Guid;
 /// of a topic with no read positioned in it is dropped as it reaches this.
 pub(super) const TAKE_LOG_MAX: usize = 4096;
 
+/// Most topics with a log, and most writers one log names. Logs go only when full, so a
+/// client that makes readers (or writers) under ever new names or ever new writers would
+/// grow them without end: past these, the logs (or that log) end, counted
+/// (`take_logs_ended`): reads are then seen drained only when emptied, until they are again.
+pub(super) const TAKE_LOGS_MAX: usize = 4096;
+
 /// A place in a topic's log: the log (logs of one topic that end and begin again are told
 /// apart) and how many of its writes were taken.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -65,12 +71,18 @@ pub(super) struct TakeLogs {
     logs: HashMap<TopicKey, TopicLog>,
     /// Logs begun so far.
     epochs: u64,
+    /// Logs ended at a bound ([`TAKE_LOGS_MAX`]) since last told.
+    ended: u64,
 }
 
 impl TakeLogs {
     /// A read of `topic` was seen empty: its position, from which it counts what it takes
     /// (the log begins if it had not).
     pub(super) fn sync(&mut self, topic: &TopicKey) -> LogPosition {
+        if self.logs.len() >= TAKE_LOGS_MAX && !self.logs.contains_key(topic) {
+            self.ended += self.logs.len() as u64;
+            self.logs.clear();
+        }
         let epochs = &mut self.epochs;
         let log = self.logs.entry(*topic).or_insert_with(|| {
             *epochs += 1;
@@ -112,6 +124,11 @@ impl TakeLogs {
             log.stamps.drain(..drop);
             log.first += drop as u64;
         }
+        if log.writers.len() >= TAKE_LOGS_MAX && !log.writers.contains(&writer) {
+            self.logs.remove(topic);
+            self.ended += 1;
+            return;
+        }
         log.writers.insert(writer);
         log.stamps.push_back(stamp);
     }
@@ -121,6 +138,11 @@ impl TakeLogs {
     /// place ahead. The log ends; positions in it mean nothing in the topic's next one.
     pub(super) fn write_failed(&mut self, topic: &TopicKey) {
         self.logs.remove(topic);
+    }
+
+    /// Logs ended at a bound since the last call.
+    pub(super) fn take_ended(&mut self) -> u64 {
+        std::mem::take(&mut self.ended)
     }
 
     /// Whether `writer` is one of this worker's writers that wrote to `topic` since its log
@@ -195,6 +217,30 @@ mod tests {
         logs.write_failed(&topic());
         assert_eq!(logs.advance(&topic(), three, 1), None);
         assert_ne!(logs.sync(&topic()), three, "another epoch");
+    }
+
+    /// Logs of ever new topics, or one log of ever new writers, end at their bounds
+    /// (counted), not grow.
+    #[test]
+    fn logs_and_their_writers_are_bounded() {
+        let mut logs = TakeLogs::default();
+        for t in 0..TAKE_LOGS_MAX as u64 {
+            logs.sync(&TopicKey(t));
+        }
+        assert_eq!(logs.take_ended(), 0);
+        logs.sync(&TopicKey(u64::MAX));
+        assert_eq!(logs.take_ended(), TAKE_LOGS_MAX as u64);
+        assert_eq!(logs.logs.len(), 1);
+        let start = logs.sync(&topic());
+        for w in 0..TAKE_LOGS_MAX as u32 {
+            let mut guid = [0; 16];
+            guid[..4].copy_from_slice(&w.to_le_bytes());
+            logs.record(&topic(), guid, u64::from(w) + 1, |_| Some(0));
+        }
+        assert_eq!(logs.take_ended(), 0);
+        logs.record(&topic(), [0xff; 16], 1 << 20, |_| Some(0));
+        assert_eq!(logs.take_ended(), 1);
+        assert_eq!(logs.advance(&topic(), start, 1), None, "the log ended");
     }
 
     /// A full log keeps what the furthest-behind read needs; a read left behind its start
