@@ -68,6 +68,12 @@ pub struct FrontendArgs {
     /// The slave path of the pty at `--pty-fd` (for logs).
     #[arg(long)]
     pub pty_path: Option<PathBuf>,
+    /// udp4/udp6: serve the socket the parent bound and left open at this descriptor, on
+    /// `--listen`'s port (one of the sockets of a port several front-ends share, which the
+    /// supervisor keeps: a restarted front-end gets the same one and its clients' datagrams
+    /// wait in it meanwhile), instead of binding `--listen`.
+    #[arg(long)]
+    pub socket_fd: Option<i32>,
     /// Answer multicast discovery (239.255.0.2) on this port.
     #[arg(long)]
     pub discovery: Option<u16>,
@@ -342,6 +348,7 @@ impl FrontendArgs {
             flow_control,
             pty_fd,
             pty_path,
+            socket_fd,
             discovery,
             max_connections,
             tcp_send_buffer,
@@ -377,6 +384,9 @@ impl FrontendArgs {
         }
         if let Some(p) = pty_path {
             arg("--pty-path", p.display().to_string());
+        }
+        if let Some(fd) = socket_fd {
+            arg("--socket-fd", fd.to_string());
         }
         if let Some(port) = discovery {
             arg("--discovery", port.to_string());
@@ -483,6 +493,7 @@ mod tests {
         s.flow_control = true;
         s.pty_fd = Some(3);
         s.pty_path = Some("/dev/pts/9".into());
+        s.socket_fd = Some(4);
         s.discovery = Some(7400);
         s.max_connections = 12;
         s.tcp_send_buffer = 4096;

@@ -106,7 +106,13 @@ fn open_and_serve<W: WorkerSide>(
 ) -> anyhow::Result<()> {
     let w = open_worker;
     match args.transport.medium() {
-        Medium::Datagrams => serve(udp::open(args.listen_addr()?)?, args, config, on_serving, w),
+        Medium::Datagrams => {
+            let t = match args.socket_fd {
+                Some(fd) => udp::inherited(fd, args.listen_addr()?)?,
+                None => udp::open(args.listen_addr()?)?,
+            };
+            serve(t, args, config, on_serving, w)
+        }
         Medium::Streams => {
             let tcp = TcpConfig {
                 max_connections: args.max_connections.max(1),

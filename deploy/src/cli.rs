@@ -46,9 +46,9 @@ pub struct Cli {
 #[derive(Debug, Subcommand)]
 pub enum Command {
     /// Serve clients over UDP/IPv4.
-    Udp4(IpArgs),
+    Udp4(UdpArgs),
     /// Serve clients over UDP/IPv6.
-    Udp6(IpArgs),
+    Udp6(UdpArgs),
     /// Serve clients over TCP/IPv4.
     Tcp4(TcpArgs),
     /// Serve clients over TCP/IPv6.
@@ -264,6 +264,19 @@ pub use crate::settings::MAX_MEMORY_LIMIT_MIB;
 
 /// Options of the UDP transports.
 #[derive(Debug, Clone, Args)]
+pub struct UdpArgs {
+    /// The address and port.
+    #[command(flatten)]
+    pub ip: IpArgs,
+    /// Front-end processes that serve the port, 1-64, or `auto` (one per four cores, at most
+    /// 8). Each client is served by one of them, chosen by its source address (a client
+    /// whose port changes stays where its session is; clients of one address share one).
+    #[arg(long = "processes", value_name = "N", default_value = "1", value_parser = crate::settings::parse_processes)]
+    pub processes: u16,
+}
+
+/// The address and port of the UDP and TCP transports.
+#[derive(Debug, Clone, Args)]
 pub struct IpArgs {
     /// Port to listen on.
     #[arg(short = 'p', long = "port")]
@@ -373,6 +386,8 @@ pub enum FrontendPlan {
         listen: SocketAddr,
         /// TCP connections served at once.
         max_connections: usize,
+        /// UDP: front-end processes that share the port (1 for TCP).
+        processes: u16,
     },
     /// Serial devices (one for `serial`).
     Serial {
@@ -405,6 +420,12 @@ impl FrontendPlan {
     /// baud`).
     pub fn describe(&self) -> String {
         match self {
+            FrontendPlan::Ip {
+                kind,
+                listen,
+                processes,
+                ..
+            } if *processes > 1 => format!("{} on {listen} ({processes} processes)", kind.name()),
             FrontendPlan::Ip { kind, listen, .. } => format!("{} on {listen}", kind.name()),
             FrontendPlan::Serial {
                 kind,
@@ -517,6 +538,7 @@ fn ip_plan(
     a: &IpArgs,
     v6: bool,
     max_connections: usize,
+    processes: u16,
 ) -> FrontendPlan {
     let bind = a.bind.unwrap_or(if v6 {
         IpAddr::V6(Ipv6Addr::UNSPECIFIED)
@@ -527,6 +549,7 @@ fn ip_plan(
         kind,
         listen: SocketAddr::new(bind, a.port),
         max_connections,
+        processes,
     }
 }
 
@@ -554,14 +577,20 @@ fn devices_from_file(file: &Path, first_only: bool) -> anyhow::Result<Vec<PathBu
 pub fn plan(command: &Command) -> anyhow::Result<Option<(FrontendPlan, Common)>> {
     use xrce_frontend::cli::TransportKind as K;
     Ok(Some(match command {
-        Command::Udp4(a) => (ip_plan(K::Udp4, a, false, 0), a.common.clone()),
-        Command::Udp6(a) => (ip_plan(K::Udp6, a, true, 0), a.common.clone()),
+        Command::Udp4(a) => (
+            ip_plan(K::Udp4, &a.ip, false, 0, a.processes),
+            a.ip.common.clone(),
+        ),
+        Command::Udp6(a) => (
+            ip_plan(K::Udp6, &a.ip, true, 0, a.processes),
+            a.ip.common.clone(),
+        ),
         Command::Tcp4(a) => (
-            ip_plan(K::Tcp4, &a.ip, false, a.max_connections),
+            ip_plan(K::Tcp4, &a.ip, false, a.max_connections, 1),
             a.ip.common.clone(),
         ),
         Command::Tcp6(a) => (
-            ip_plan(K::Tcp6, &a.ip, true, a.max_connections),
+            ip_plan(K::Tcp6, &a.ip, true, a.max_connections, 1),
             a.ip.common.clone(),
         ),
         Command::Serial(a) => {
@@ -681,16 +710,29 @@ mod tests {
             FrontendPlan::Ip {
                 kind: K::Udp4,
                 listen: "0.0.0.0:8888".parse().expect("addr"),
-                max_connections: 0
+                max_connections: 0,
+                processes: 1
             }
         );
+        assert_eq!(
+            planned(&["udp4", "-p", "8888", "--processes", "3"]),
+            FrontendPlan::Ip {
+                kind: K::Udp4,
+                listen: "0.0.0.0:8888".parse().expect("addr"),
+                max_connections: 0,
+                processes: 3
+            }
+        );
+        assert!(parse(&["udp4", "-p", "8888", "--processes", "0"]).is_err());
+        assert!(parse(&["tcp4", "-p", "8888", "--processes", "2"]).is_err());
         // Values glued to their flag, and verbosity.
         assert_eq!(
             planned(&["tcp6", "-p8888", "-v6"]),
             FrontendPlan::Ip {
                 kind: K::Tcp6,
                 listen: "[::]:8888".parse().expect("addr"),
-                max_connections: 2_000
+                max_connections: 2_000,
+                processes: 1
             }
         );
         // The reference's misspelling in its usage line.

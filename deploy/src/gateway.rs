@@ -168,6 +168,14 @@ impl WorkerSection {
     }
 }
 
+/// `processes` as written: a count or a word (`auto`).
+#[derive(Debug, Clone, Deserialize)]
+#[serde(untagged)]
+enum ProcessCount {
+    Count(i64),
+    Word(String),
+}
+
 /// One `[[frontend]]` as written.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -179,6 +187,7 @@ struct FrontendSection {
     bind: Option<Spanned<IpAddr>>,
     discovery: Option<Spanned<u16>>,
     max_connections: Option<Spanned<usize>>,
+    processes: Option<Spanned<ProcessCount>>,
     device: Option<Spanned<PathBuf>>,
     devices: Option<Spanned<Vec<PathBuf>>>,
     baudrate: Option<Spanned<u32>>,

@@ -27,8 +27,21 @@ pub struct FrontendLaunch {
     pub id: u32,
     /// What it serves.
     pub plan: FrontendPlan,
-    /// Its settings (the pty descriptor aside, set when the pty is opened).
+    /// Its settings (the pty's or the shared socket's descriptor aside, set when the
+    /// supervisor opens them).
     pub settings: FrontendArgs,
+    /// Which of the processes serving its UDP port it is, of how many, if several do
+    /// ([`crate::shared_port`]).
+    pub share: Option<PortShare>,
+}
+
+/// One process of several that serve a UDP port: its place among them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PortShare {
+    /// Its number, from 0: the socket it serves is the one bound in this place.
+    pub member: u16,
+    /// How many serve the port.
+    pub members: u16,
 }
 
 /// Whether `name` is an instance name of the kind agents before derived names used: `stem`
@@ -38,6 +51,10 @@ fn is_legacy_instance(name: &str, stem: &str) -> bool {
     name.strip_prefix(stem)
         .is_some_and(|pid| (1..=7).contains(&pid.len()) && pid.bytes().all(|b| b.is_ascii_digit()))
 }
+
+/// Longest the supervisor waits for a shared UDP port to be free before binding its
+/// sockets (after [`PREDECESSOR_WAIT`] for the previous agent's processes).
+const SHARED_PORT_WAIT: Duration = Duration::from_secs(2);
 
 /// Longest a new supervisor waits for the processes of the previous agent of its instance.
 pub const PREDECESSOR_WAIT: Duration = Duration::from_secs(10);
@@ -200,28 +217,40 @@ impl Group {
         )?;
         worker.instance = instance.clone();
         worker.log = filter.clone();
-        let frontends = plan
-            .frontends
-            .iter()
-            .map(|f| {
-                let mut settings = f.settings();
-                settings.instance = instance.clone();
-                settings.log = filter.clone();
-                if settings.discovery.is_some() && !f.plan.kind().is_ip() {
-                    tracing::warn!(
-                        transport = f.plan.kind().name(),
-                        "-d/--discovery is not supported on this transport (UDP and TCP only); ignored"
-                    );
+        let mut frontends = Vec::new();
+        for f in &plan.frontends {
+            let mut settings = f.settings();
+            settings.instance = instance.clone();
+            settings.log = filter.clone();
+            if settings.discovery.is_some() && !f.plan.kind().is_ip() {
+                tracing::warn!(
+                    transport = f.plan.kind().name(),
+                    "-d/--discovery is not supported on this transport (UDP and TCP only); ignored"
+                );
+                settings.discovery = None;
+            }
+            let members = f.processes();
+            for member in 0..members {
+                // Checked by `plan.check()` above.
+                let Some((id, name)) = f.process(member) else {
+                    anyhow::bail!("front-end {}: process {member} has no id", f.name);
+                };
+                let mut settings = settings.clone();
+                settings.frontend_id = id;
+                settings.name = Some(name.clone());
+                if member > 0 {
+                    // One multicast discovery answer per port is enough.
                     settings.discovery = None;
                 }
-                FrontendLaunch {
-                    name: f.name.clone(),
-                    id: f.id,
+                frontends.push(FrontendLaunch {
+                    name,
+                    id,
                     plan: f.plan.clone(),
                     settings,
-                }
-            })
-            .collect();
+                    share: (members > 1).then_some(PortShare { member, members }),
+                });
+            }
+        }
         Ok(Group {
             instance,
             explicit_instance: plan.instance.is_some(),
@@ -238,7 +267,7 @@ impl Group {
 
     /// Fails early and clearly if a port is taken, instead of a crash loop in a child.
     fn preflight(&self) -> anyhow::Result<()> {
-        for f in &self.frontends {
+        for f in self.frontends.iter().filter(|f| f.share.is_none()) {
             if let FrontendPlan::Ip { kind, listen, .. } = &f.plan {
                 match kind.medium() {
                     Medium::Datagrams => drop(std::net::UdpSocket::bind(listen).map_err(|e| {
@@ -307,12 +336,26 @@ impl Group {
                 report: Some("worker".into()),
             })
         });
+        // Kept open for the group's life, as the ptys below: the members of a shared UDP
+        // port and their order stay as they were bound, so each client stays with its
+        // front-end, and a restarted front-end gets its socket back.
+        let shared = match self.bind_shared_ports() {
+            Ok(shared) => shared,
+            Err(e) => {
+                runtime_dir::remove_instance_dir(&self.instance, lock);
+                return Err(e);
+            }
+        };
         let mut ready = Vec::new();
         // Kept open for the group's life: a restarted front-end gets the same pty.
         let mut ptys = Vec::new();
         for f in &self.frontends {
             let mut settings = f.settings.clone();
             let mut fds = Vec::new();
+            if let Some(socket) = shared.get(&f.id) {
+                fds.push((socket.clone(), 3));
+                settings.socket_fd = Some(3);
+            }
             if let FrontendPlan::Pty { baudrate } = f.plan {
                 let pty = xrce_frontend::transport::pty::open(baudrate)
                     .map_err(|e| anyhow::anyhow!("opening a pseudoterminal: {e}"))?;
@@ -486,8 +529,38 @@ impl Group {
             );
         }
         supervise(specs, cleanup, report_ready, Some(monitoring))?;
-        drop(ptys);
+        drop((ptys, shared));
         Ok(())
+    }
+
+    /// The sockets of each UDP port several front-end processes serve
+    /// ([`crate::shared_port::bind`]), by the id of the process each is for.
+    fn bind_shared_ports(
+        &self,
+    ) -> anyhow::Result<std::collections::HashMap<u32, Arc<std::os::fd::OwnedFd>>> {
+        let mut by_id = std::collections::HashMap::new();
+        for f in &self.frontends {
+            let (Some(share), FrontendPlan::Ip { listen, .. }) = (f.share, &f.plan) else {
+                continue;
+            };
+            if share.member != 0 {
+                continue;
+            }
+            let sockets = crate::shared_port::bind(*listen, share.members, SHARED_PORT_WAIT)?;
+            let members = self
+                .frontends
+                .iter()
+                .filter(|m| matches!(&m.plan, FrontendPlan::Ip { listen: l, .. } if l == listen))
+                .filter_map(|m| m.share.map(|s| (s.member, m.id)));
+            for (member, id) in members {
+                let socket = sockets
+                    .get(usize::from(member))
+                    .ok_or_else(|| anyhow::anyhow!("{listen}: no socket for process {member}"))?;
+                by_id.insert(id, Arc::new(crate::high_fd(socket)?));
+            }
+            tracing::info!(frontend = %f.name, %listen, processes = share.members, "UDP port served by several front-end processes, each client by the one its source address hashes to");
+        }
+        Ok(by_id)
     }
 
     /// Waits (at most [`PREDECESSOR_WAIT`]) until no process of a previous agent of this
@@ -564,6 +637,13 @@ impl Group {
                         "no process {name:?}: the file has `worker` and the front-ends {names:?}"
                     )
                 })?;
+            if f.share.is_some() {
+                anyhow::bail!(
+                    "{name} is one of the processes sharing a UDP port (`processes`): they run \
+                     under the supervisor, which keeps their sockets; with a unit per process, \
+                     give each front-end a port of its own"
+                );
+            }
             if self.single_process {
                 cmd.args(crate::in_process::command_line(
                     &self.worker.to_args(),
@@ -639,11 +719,13 @@ mod tests {
             kind: xrce_frontend::cli::TransportKind::Udp4,
             listen: "127.0.0.1:7401".parse().expect("address"),
             max_connections: 0,
+            processes: 1,
         };
         let tcp = FrontendPlan::Ip {
             kind: xrce_frontend::cli::TransportKind::Tcp4,
             listen: "127.0.0.1:8888".parse().expect("address"),
             max_connections: 10,
+            processes: 1,
         };
         let spec = |plan: FrontendPlan| FrontendSpec {
             name: "f".into(),

@@ -20,6 +20,7 @@ pub mod metrics;
 pub mod plan;
 pub mod readiness;
 pub mod settings;
+pub mod shared_port;
 pub mod status_view;
 pub mod sweep;
 #[allow(unsafe_code)]

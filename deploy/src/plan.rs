@@ -22,7 +22,7 @@ use crate::cli::{Common, FrontendPlan};
 use crate::gateway::Gateway;
 use crate::settings::{
     check_client_dead_time, check_frontend_grace, check_instance, check_max_domains,
-    check_memory_limit_mib, check_verbose, parse_domains,
+    check_memory_limit_mib, check_processes, check_verbose, parse_domains,
 };
 
 /// Why a plan is refused: the setting (as the command line names it) and what is wrong.
@@ -113,7 +113,34 @@ pub struct FrontendSpec {
     pub admission: AdmissionArgs,
 }
 
+/// Id step between the processes of one front-end (`processes`): the first keeps the
+/// front-end's id, the `k`th (counted from 0) has that id plus `k` times this.
+pub const PROCESS_ID_STEP: u32 = 1 << 20;
+
 impl FrontendSpec {
+    /// How many processes serve it (a UDP front-end's `processes`; 1 otherwise).
+    pub fn processes(&self) -> u16 {
+        match self.plan {
+            FrontendPlan::Ip { processes, .. } => processes.max(1),
+            _ => 1,
+        }
+    }
+
+    /// The id and name of its `k`th process (from 0): the first has the front-end's own,
+    /// the others the id [`PROCESS_ID_STEP`] apart and the name with `-2`, `-3`...; `None`
+    /// where the id would pass `u32::MAX`.
+    pub fn process(&self, k: u16) -> Option<(u32, String)> {
+        let id = self
+            .id
+            .checked_add(u32::from(k).checked_mul(PROCESS_ID_STEP)?)?;
+        let name = if k == 0 {
+            self.name.clone()
+        } else {
+            format!("{}-{}", self.name, k + 1)
+        };
+        Some((id, name))
+    }
+
     /// The front-end process's settings: the environment's front-end settings with this
     /// front-end's own on top (its instance and log filter are the supervisor's to set).
     pub fn settings(&self) -> FrontendArgs {
@@ -294,24 +321,47 @@ impl AgentPlan {
                 problem: "names no front-end".into(),
             });
         }
-        if self.single_process && self.frontends.len() > 1 {
+        let processes: usize = self
+            .frontends
+            .iter()
+            .map(|f| usize::from(f.processes()))
+            .sum();
+        if self.single_process && processes > 1 {
             return Err(PlanError {
                 setting: "--single-process (or single_process)",
                 problem: format!(
-                    "runs one front-end with its worker; this agent has {}",
-                    self.frontends.len()
+                    "runs one front-end process with its worker; this agent has {processes}"
                 ),
             });
         }
         let mut ids = std::collections::HashSet::new();
+        let mut names = std::collections::HashSet::new();
         for f in &self.frontends {
             check_client_dead_time(f.client_dead_time)
                 .map_err(refused("--client-dead-time (or XRCE_CLIENT_DEAD_TIME)"))?;
-            if !ids.insert(f.id) {
-                return Err(PlanError {
-                    setting: "--config",
-                    problem: format!("front-end id {} is used twice", f.id),
-                });
+            check_processes(f.processes()).map_err(refused("--processes (or processes)"))?;
+            for k in 0..f.processes() {
+                let (id, name) = f.process(k).ok_or_else(|| PlanError {
+                    setting: "--processes (or processes)",
+                    problem: format!(
+                        "gives front-end {} {} processes: their ids would pass {}",
+                        f.name,
+                        f.processes(),
+                        u32::MAX
+                    ),
+                })?;
+                if !ids.insert(id) {
+                    return Err(PlanError {
+                        setting: "--config",
+                        problem: format!("front-end id {id} is used twice"),
+                    });
+                }
+                if !names.insert(name.clone()) {
+                    return Err(PlanError {
+                        setting: "--config",
+                        problem: format!("front-end name {name} is used twice"),
+                    });
+                }
             }
         }
         Ok(())
@@ -351,7 +401,7 @@ mod tests {
             g.worker.to_args(),
             g.frontends
                 .iter()
-                .map(|f| (f.name.clone(), f.id, f.settings.to_args()))
+                .map(|f| (f.name.clone(), f.id, f.share, f.settings.to_args()))
                 .collect::<Vec<_>>(),
             g.memory_limit,
             g.discard_sessions,
@@ -432,6 +482,7 @@ mod tests {
                 "max_client_bytes_per_second = 100000",
             ),
             ("--memory-budget 32", "", "", "memory_budget_mib = 32"),
+            ("--processes 3", "", "", "processes = 3"),
             ("--max-sessions 100", "", "", "max_sessions = 100"),
             (
                 "--max-sessions-per-address 10",
@@ -459,6 +510,51 @@ mod tests {
                 assert_ne!(cli, plain, "{option} changes nothing");
             }
         }
+    }
+
+    /// A UDP port of several processes: one launch each, ids a step apart, the first with
+    /// the front-end's own id and name and the only one answering discovery; `auto` is
+    /// the count from the cores through either door; refused with one process alone.
+    #[test]
+    fn a_port_of_several_processes_is_one_launch_per_process() {
+        let g = from_file("", "", "processes = 3\ndiscovery = 7400\nid = 5").expect("file");
+        let launched: Vec<_> = g
+            .frontends
+            .iter()
+            .map(|f| {
+                (
+                    f.name.as_str(),
+                    f.id,
+                    f.share.map(|s| (s.member, s.members)),
+                )
+            })
+            .collect();
+        assert_eq!(
+            launched,
+            vec![
+                ("udp4-8888", 5, Some((0, 3))),
+                ("udp4-8888-2", 5 + PROCESS_ID_STEP, Some((1, 3))),
+                ("udp4-8888-3", 5 + 2 * PROCESS_ID_STEP, Some((2, 3))),
+            ]
+        );
+        let discovery: Vec<_> = g.frontends.iter().map(|f| f.settings.discovery).collect();
+        assert_eq!(discovery, vec![Some(7400), None, None]);
+        for f in &g.frontends {
+            assert_eq!(f.settings.frontend_id, f.id);
+            assert_eq!(f.settings.name.as_deref(), Some(f.name.as_str()));
+        }
+        let auto = crate::settings::auto_processes();
+        for g in [
+            from_command_line("--processes auto").expect("auto"),
+            from_file("", "", "processes = \"auto\"").expect("auto"),
+        ] {
+            assert_eq!(g.frontends.len(), usize::from(auto));
+        }
+        let e = from_command_line("--processes 2 --single-process").expect_err("single");
+        assert!(format!("{e:#}").contains("one front-end process"), "{e:#}");
+        // Ids a step apart that pass u32::MAX.
+        let e = from_file("", "", "processes = 2\nid = 4294967295").expect_err("overflow");
+        assert!(format!("{e:#}").contains("would pass"), "{e:#}");
     }
 
     /// A value out of bounds is refused the same way through either door.
@@ -496,6 +592,14 @@ mod tests {
                 "1 to 1048576",
             ),
             ("-v 7", "verbose = 7", "", "", "0 to 6"),
+            (
+                "--processes 65",
+                "",
+                "",
+                "processes = 65",
+                "must be 1 to 64",
+            ),
+            ("--processes 0", "", "", "processes = 0", "must be 1 to 64"),
             ("--max-entities 0", "", "max_entities = 0", "", "at least 1"),
         ];
         for (option, agent, worker, frontend, words) in cases {
@@ -526,7 +630,8 @@ mod tests {
             .expect("parsed");
         let e = Group::new(AgentPlan::from_gateway(&g).expect("a plan")).expect_err("refused");
         assert!(
-            format!("{e:#}").contains("runs one front-end with its worker; this agent has 2"),
+            format!("{e:#}")
+                .contains("runs one front-end process with its worker; this agent has 2"),
             "{e:#}"
         );
         let one = from_file("single_process = true", "", "").expect("one front-end");

@@ -58,6 +58,32 @@ pub fn check_max_domains(n: u16) -> Result<u16, String> {
         .ok_or_else(|| format!("must be 1 to {DOMAIN_COUNT}, got {n}"))
 }
 
+/// `--processes`' parser: a count ([`check_processes`]) or `auto` ([`auto_processes`]).
+pub fn parse_processes(text: &str) -> Result<u16, String> {
+    if text == "auto" {
+        return Ok(auto_processes());
+    }
+    text.parse::<u16>()
+        .map_err(|e| format!("{e} (a count, or `auto`)"))
+        .and_then(check_processes)
+}
+
+/// `--processes`, `frontend.processes`: how many front-end processes serve one UDP port.
+pub fn check_processes(n: u16) -> Result<u16, String> {
+    let most = crate::shared_port::MAX_PROCESSES;
+    (1..=most)
+        .contains(&n)
+        .then_some(n)
+        .ok_or_else(|| format!("must be 1 to {most}, got {n}"))
+}
+
+/// Processes for a UDP port chosen from the cores: one per four (one worker thread serves
+/// them all, and each front-end's thread needs a core beside it), from 1 to 8.
+pub fn auto_processes() -> u16 {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    (cores / 4).clamp(1, 8) as u16
+}
+
 /// `--instance`, `agent.instance`.
 pub fn check_instance(name: &str) -> Result<(), String> {
     xrce_ipc::shm::valid_instance(name)

@@ -303,6 +303,28 @@ pub fn open(addr: SocketAddr) -> std::io::Result<UdpTransport> {
     UdpTransport::new(socket)
 }
 
+/// Serves the UDP socket the parent process bound and left open at descriptor `fd` (a port
+/// several front-ends share), after checking that it is one: a datagram socket bound to
+/// `listen`'s port (and address, unless that is the wildcard).
+pub fn inherited(fd: std::os::fd::RawFd, listen: SocketAddr) -> std::io::Result<UdpTransport> {
+    let file = crate::sys::owned_fd::inherited(fd)?;
+    let socket = std::net::UdpSocket::from(std::os::fd::OwnedFd::from(file));
+    let kind = socket2::SockRef::from(&socket).r#type()?;
+    if kind != socket2::Type::DGRAM {
+        return Err(std::io::Error::other(format!(
+            "descriptor {fd} is not a datagram socket"
+        )));
+    }
+    let local = socket.local_addr()?;
+    let address_matches = listen.ip().is_unspecified() || local.ip() == listen.ip();
+    if local.port() != listen.port() || !address_matches {
+        return Err(std::io::Error::other(format!(
+            "descriptor {fd} is a socket bound to {local}, not {listen}"
+        )));
+    }
+    UdpTransport::new(socket)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -322,6 +344,25 @@ mod tests {
             got.push((from, bytes.to_vec()))
         });
         (got, left)
+    }
+
+    /// An inherited descriptor is served only if it is a datagram socket on the port (and
+    /// address) the settings name.
+    #[test]
+    fn an_inherited_socket_must_be_the_one_the_settings_name() {
+        use std::os::fd::IntoRawFd;
+        let good = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+        let listen = good.local_addr().expect("addr");
+        // All open at once: a descriptor number is taken once per process.
+        let other = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+        let tcp = std::net::TcpListener::bind(listen).expect("listen");
+        let e = inherited(other.into_raw_fd(), listen).expect_err("another port");
+        assert!(e.to_string().contains("not 127.0.0.1"), "{e}");
+        let e = inherited(tcp.into_raw_fd(), listen).expect_err("a stream socket");
+        assert!(e.to_string().contains("not a datagram socket"), "{e}");
+        let wildcard = SocketAddr::new("0.0.0.0".parse().expect("ip"), listen.port());
+        let t = inherited(good.into_raw_fd(), wildcard).expect("the socket named");
+        assert_eq!(t.local, listen);
     }
 
     #[test]

@@ -15,7 +15,7 @@ use xrce_frontend::transport::registry::{Medium, TRANSPORTS};
 
 use super::{
     AgentSection, ConfigError, File, FrontendSection, Gateway, GatewayFrontend, MetricsSection,
-    WorkerSection,
+    ProcessCount, WorkerSection,
 };
 use crate::cli::FrontendPlan;
 use crate::settings;
@@ -300,10 +300,28 @@ impl Taken {
             ));
         }
         self.ports.insert((is_tcp, p, bind), at.n);
+        let processes = match &f.processes {
+            None => 1,
+            Some(v) => {
+                let parsed: Result<u16, String> = match v.get_ref() {
+                    ProcessCount::Word(w) => settings::parse_processes(w),
+                    ProcessCount::Count(n) => u16::try_from(*n)
+                        .map_err(|_| {
+                            format!(
+                                "must be 1 to {}, got {n}",
+                                crate::shared_port::MAX_PROCESSES
+                            )
+                        })
+                        .and_then(settings::check_processes),
+                };
+                parsed.map_err(|e| at.err("processes", v.span(), &e))?
+            }
+        };
         Ok(FrontendPlan::Ip {
             kind,
             listen: SocketAddr::new(bind, p),
             max_connections: if is_tcp { max_connections } else { 0 },
+            processes,
         })
     }
 
@@ -426,6 +444,13 @@ fn refuse_keys_of_other_transports(
     }
     if let (false, Some(m)) = (at.kind.medium() == Medium::Streams, &f.max_connections) {
         return Err(at.err("max_connections", m.span(), "applies to tcp only"));
+    }
+    if let (false, Some(p)) = (at.kind.medium() == Medium::Datagrams, &f.processes) {
+        return Err(at.err(
+            "processes",
+            p.span(),
+            "applies to udp only (a TCP, serial or pseudoterminal front-end is one process)",
+        ));
     }
     Ok(())
 }

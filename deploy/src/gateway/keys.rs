@@ -243,6 +243,13 @@ pub const KEYS: &[KeyDoc] = &[
     },
     KeyDoc {
         table: "frontend",
+        key: "processes",
+        value: "1-64, or \"auto\" (one per four cores, at most 8)",
+        default: || "1".into(),
+        meaning: "Front-end processes that serve the port (udp only), each with its own socket on it: a client is served by the one its source address hashes to, so a client whose port changes stays where its session is and one address's clients share one process. Their ids are the front-end's id plus 1,048,576 times their number (the first keeps the id), their names the front-end's name with `-2`, `-3`... from the second on. `--processes`.",
+    },
+    KeyDoc {
+        table: "frontend",
         key: "device",
         value: "path",
         default: || "required for serial".into(),

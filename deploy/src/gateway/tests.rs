@@ -151,6 +151,22 @@ fn wrong_values_name_the_key_and_what_it_expects() {
 
 #[test]
 fn mistakes_are_refused_naming_the_key_and_line() {
+    for (value, words) in [
+        ("0", "`processes` must be 1 to 64, got 0"),
+        ("65", "`processes` must be 1 to 64, got 65"),
+        ("-1", "`processes` must be 1 to 64, got -1"),
+        ("\"many\"", "(a count, or `auto`)"),
+    ] {
+        let e = refused(&format!(
+            "[[frontend]]\ntransport = \"udp4\"\nport = 1\nprocesses = {value}\n"
+        ));
+        assert!(e.message.contains(words), "{value}: {e}");
+        assert_eq!(e.line, 4, "{e}");
+    }
+    let e = refused("[[frontend]]\ntransport = \"tcp4\"\nport = 1\nprocesses = 2\n");
+    assert!(e.message.contains("`processes` applies to udp only"), "{e}");
+    let e = refused("[[frontend]]\ntransport = \"udp4\"\nport = 1\nprocesses = true\n");
+    assert_eq!(e.line, 4, "{e}");
     let e = refused("[[frontend]]\ntransport = \"udp4\"\nport = 1\nprot = 2\n");
     assert_eq!(e.line, 4, "{e}");
     assert!(e.to_string().contains("prot"), "{e}");

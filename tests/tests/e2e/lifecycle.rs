@@ -23,6 +23,8 @@
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
+use xrce_agent::plan::PROCESS_ID_STEP;
+use xrce_agent::shared_port::member_for;
 use xrce_common::session::client::{ClientConfig, ClientEvent};
 use xrce_common::wire::{
     object_kind, status, stream_id, BaseObjectRequest, ClientKey, CreatePayload, Message, ObjectId,
@@ -217,8 +219,23 @@ enum Reset {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Wire {
     Udp,
+    /// A UDP port served by [`SHARED_PROCESSES`] front-end processes (`--processes`), the
+    /// board at an address steered to the last of them.
+    UdpShared,
     Tcp,
     Serial,
+}
+
+/// Front-end processes of [`Wire::UdpShared`]'s port.
+const SHARED_PROCESSES: u16 = 3;
+
+/// The board's address on [`Wire::UdpShared`]: one of 127.0.0.0/8 that the port's steering
+/// gives to its last process (not the first, which has the front-end's own id and name).
+fn shared_board_address() -> std::net::IpAddr {
+    (2..=254u8)
+        .map(|last| std::net::IpAddr::from([127, 0, 0, last]))
+        .find(|a| member_for(*a, SHARED_PROCESSES) == SHARED_PROCESSES - 1)
+        .expect("an address of the last process")
 }
 
 /// The agent under test and how a client reaches it.
@@ -242,11 +259,22 @@ impl Drop for Rig {
 }
 
 impl Rig {
+    /// The agent at `addr` as this wire has it.
+    fn agent_at(wire: Wire, addr: SocketAddr) -> AgentProcess {
+        let processes = SHARED_PROCESSES.to_string();
+        match wire {
+            Wire::UdpShared => AgentProcess::at(addr)
+                .extra(&["--processes", &processes])
+                .start(),
+            _ => AgentProcess::at(addr).start(),
+        }
+    }
+
     fn start(wire: Wire) -> Self {
         match wire {
-            Wire::Udp => {
+            Wire::Udp | Wire::UdpShared => {
                 let addr: SocketAddr = ([127, 0, 0, 1], free_udp_port()).into();
-                let agent = AgentProcess::at(addr).start();
+                let agent = Self::agent_at(wire, addr);
                 Rig {
                     wire,
                     addr,
@@ -295,6 +323,10 @@ impl Rig {
                 Some(local) => Link::udp_at(self.addr, local).expect("the board's old port"),
                 None => Link::udp(self.addr),
             },
+            Wire::UdpShared => match before.filter(|_| same) {
+                Some(local) => Link::udp_at(self.addr, local).expect("the board's old port"),
+                None => Link::udp_from(self.addr, shared_board_address()),
+            },
             Wire::Tcp => Link::tcp(self.addr).expect("TCP connection"),
             Wire::Serial => {
                 let line = self.line.as_ref().expect("pty");
@@ -306,16 +338,21 @@ impl Rig {
     /// What happens to the agent before the board resets.
     fn before_reset(&mut self, reset: Reset) {
         let transport = match self.wire {
-            Wire::Udp => "udp4",
-            Wire::Tcp => "tcp4",
-            Wire::Serial => "serial",
+            Wire::Udp => "udp4".to_string(),
+            // The board's process (its id, as its command line gives it).
+            Wire::UdpShared => format!(
+                "--frontend-id={} ",
+                u32::from(SHARED_PROCESSES - 1) * PROCESS_ID_STEP
+            ),
+            Wire::Tcp => "tcp4".to_string(),
+            Wire::Serial => "serial".to_string(),
         };
         match reset {
             Reset::NewPort | Reset::SamePort => {}
             Reset::FrontEndKilled => {
                 let pid = self
                     .agent()
-                    .child_pid_with("frontend", transport)
+                    .child_pid_with("frontend", &transport)
                     .expect("the front-end");
                 let from = self.agent().output().len();
                 sigkill(pid);
@@ -338,12 +375,15 @@ impl Rig {
                 sigkill(pid);
             }
             Reset::AgentRestarted => {
-                assert_eq!(self.wire, Wire::Udp, "restarted here on UDP only");
+                assert!(
+                    matches!(self.wire, Wire::Udp | Wire::UdpShared),
+                    "restarted here on UDP only"
+                );
                 let old = self.agent.take().expect("agent");
                 sigkill(old.pid() as i32);
                 drop(old);
                 // The same command line: it finds its predecessor's stored sessions.
-                self.agent = Some(AgentProcess::at(self.addr).start());
+                self.agent = Some(Self::agent_at(self.wire, self.addr));
             }
         }
     }
@@ -446,6 +486,28 @@ fn talker_resets(wire: Wire, domain: i16, resets: &[Reset], per_round: u32) {
     }
     got.assert_exactly_once(0..total, &format!("{wire:?}: the talker's strings"));
     got.assert_in_order(&format!("{wire:?}: the talker's strings"));
+}
+
+/// A UDP port served by three front-end processes: the board is served by the one its
+/// address is steered to, so a reset from a new port finds its session and objects there
+/// (every CREATE answered STATUS_OK_MATCHED; another process would create them anew), as
+/// do its restarted successor and, after a restart of the whole agent, the process that
+/// took its place (the sockets bound again in the same order).
+#[test]
+fn a_board_on_a_port_of_several_processes_keeps_its_process_through_resets() {
+    talker_resets(
+        Wire::UdpShared,
+        140,
+        &[
+            Reset::NewPort,
+            Reset::SamePort,
+            Reset::FrontEndKilled,
+            Reset::WorkerKilled,
+            Reset::AgentRestarted,
+            Reset::NewPort,
+        ],
+        10,
+    );
 }
 
 /// The scenario: 15 strings, a reset from a new port, 15 more (the reference

@@ -70,6 +70,11 @@ pub struct Args {
     /// How the clients reach the agent.
     #[arg(long, value_enum, default_value_t = TransportArg::Udp)]
     pub transport: TransportArg,
+    /// UDP: the clients' source addresses, 127.0.0.1 up to 127.0.0.N, client `i` on the
+    /// `i mod N`th: as clients on N hosts, for an agent whose port several front-end
+    /// processes serve (`--processes`), which each address's clients share.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=254))]
+    pub source_addresses: u8,
     /// Serial transport: the line rate in bits per second (8N1, 10 bits a byte) at which each
     /// client's output is paced, as a UART would send it.
     #[arg(long, default_value_t = 921_600)]

@@ -29,9 +29,15 @@ pub struct Peer {
 }
 
 impl Peer {
-    /// A client with its own socket, connected to the agent's port on 127.0.0.1.
-    pub fn new(port: u16, key: [u8; 4], mtu: u16) -> std::io::Result<Self> {
-        let socket = UdpSocket::bind("127.0.0.1:0")?;
+    /// A client with its own socket on `source`, connected to the agent's port on
+    /// 127.0.0.1.
+    pub fn new(
+        source: std::net::Ipv4Addr,
+        port: u16,
+        key: [u8; 4],
+        mtu: u16,
+    ) -> std::io::Result<Self> {
+        let socket = UdpSocket::bind((source, 0))?;
         socket.connect(("127.0.0.1", port))?;
         socket.set_nonblocking(true)?;
         Ok(Self::on_link(PeerLink::Udp(socket), key, mtu))

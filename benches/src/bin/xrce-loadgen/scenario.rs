@@ -159,7 +159,9 @@ pub fn run(a: &Args, agent_cmd: Option<&str>) -> Result<Report, String> {
         };
         let peer = match a.transport {
             TransportArg::Udp => {
-                Peer::new(port, key, mtu).map_err(|e| format!("client socket: {e}"))?
+                let host = 1 + (i % usize::from(a.source_addresses)) as u8;
+                let source = std::net::Ipv4Addr::new(127, 0, 0, host);
+                Peer::new(source, port, key, mtu).map_err(|e| format!("client socket: {e}"))?
             }
             TransportArg::Tcp => {
                 Peer::tcp(port, key, mtu).map_err(|e| format!("client connection: {e}"))?
