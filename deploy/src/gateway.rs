@@ -170,7 +170,7 @@ impl WorkerSection {
 
 /// `processes` as written: a count or a word (`auto`).
 #[derive(Debug, Clone, Deserialize)]
-#[serde(untagged)]
+#[serde(untagged, expecting = "a count 1-64 or \"auto\"")]
 enum ProcessCount {
     Count(i64),
     Word(String),

@@ -121,7 +121,7 @@ impl FrontendSpec {
     /// How many processes serve it (a UDP front-end's `processes`; 1 otherwise).
     pub fn processes(&self) -> u16 {
         match self.plan {
-            FrontendPlan::Ip { processes, .. } => processes.max(1),
+            FrontendPlan::Ip { processes, .. } => processes,
             _ => 1,
         }
     }
@@ -340,6 +340,16 @@ impl AgentPlan {
             check_client_dead_time(f.client_dead_time)
                 .map_err(refused("--client-dead-time (or XRCE_CLIENT_DEAD_TIME)"))?;
             check_processes(f.processes()).map_err(refused("--processes (or processes)"))?;
+            if let FrontendPlan::Ip { listen, .. } = &f.plan {
+                if f.processes() > 1 && listen.port() == 0 {
+                    return Err(PlanError {
+                        setting: "--processes (or processes)",
+                        problem: "needs a port (not 0: each process's socket would get \
+                                  a port of its own)"
+                            .into(),
+                    });
+                }
+            }
             for k in 0..f.processes() {
                 let (id, name) = f.process(k).ok_or_else(|| PlanError {
                     setting: "--processes (or processes)",
@@ -552,6 +562,16 @@ mod tests {
         }
         let e = from_command_line("--processes 2 --single-process").expect_err("single");
         assert!(format!("{e:#}").contains("one front-end process"), "{e:#}");
+        // Port 0: each socket would get a port of its own.
+        let cli =
+            crate::cli::Cli::try_parse_from(["xrce-agent", "udp4", "-p", "0", "--processes", "2"])
+                .expect("parses");
+        let (frontend, common) = crate::cli::plan(&cli.command.expect("a transport"))
+            .expect("plan")
+            .expect("a front-end");
+        let e = Group::new(AgentPlan::from_command_line(frontend, &common).expect("plan"))
+            .expect_err("port 0");
+        assert!(format!("{e:#}").contains("needs a port"), "{e:#}");
         // Ids a step apart that pass u32::MAX.
         let e = from_file("", "", "processes = 2\nid = 4294967295").expect_err("overflow");
         assert!(format!("{e:#}").contains("would pass"), "{e:#}");

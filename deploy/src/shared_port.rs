@@ -175,10 +175,6 @@ pub fn bind(
         let domain = socket2::Domain::for_address(listen);
         let s = socket2::Socket::new(domain, socket2::Type::DGRAM, Some(socket2::Protocol::UDP))
             .map_err(failed(member, "creating it"))?;
-        if listen.is_ipv6() {
-            // As std binds an IPv6 address: dual-stack where the system's default says so.
-            s.set_only_v6(false).ok();
-        }
         s.set_reuse_port(true)
             .map_err(failed(member, "setting SO_REUSEPORT"))?;
         s.bind(&listen.into())
@@ -194,6 +190,16 @@ pub fn bind(
         // The kernel copies the program during the call; `program` outlives it.
         setsockopt(first, sockopt::AttachReusePortCbpf, &fprog)
             .map_err(|e| failed(0, "attaching the steering program")(e.into()))?;
+    }
+    // Until the program was attached the kernel spread datagrams by its own hash: those
+    // may wait in a socket whose front-end does not have their client's session. Dropped
+    // (the clients send again); from here on each lands where it belongs.
+    let mut buf = [0u8; 1];
+    for (member, s) in sockets.iter().enumerate() {
+        let member = member as u16;
+        s.set_nonblocking(true)
+            .map_err(failed(member, "making it non-blocking"))?;
+        while s.recv(&mut buf).is_ok() {}
     }
     Ok(sockets)
 }
@@ -243,6 +249,33 @@ mod tests {
             }
         }
         assert!(seen.len() > 1, "sixteen addresses spread over the members");
+    }
+
+    /// IPv4 clients of a dual-stack IPv6 group are steered by their IPv4 address.
+    #[test]
+    fn ipv4_clients_of_a_dual_stack_port_are_steered_as_ipv4() {
+        let Ok(probe) = UdpSocket::bind("[::]:0") else {
+            return; // no IPv6 on this machine
+        };
+        let port = probe.local_addr().expect("addr").port();
+        drop(probe);
+        let listen = SocketAddr::new(IpAddr::V6(Ipv6Addr::UNSPECIFIED), port);
+        let members = 4;
+        let sockets = bind(listen, members, Duration::from_secs(1)).expect("bind");
+        if socket2::SockRef::from(&sockets[0])
+            .only_v6()
+            .unwrap_or(true)
+        {
+            return; // IPv6-only sockets here (net.ipv6.bindv6only)
+        }
+        let target = SocketAddr::new(IpAddr::V4(Ipv4Addr::LOCALHOST), port);
+        for last in 1..=8u8 {
+            let source = Ipv4Addr::new(127, 0, 0, last);
+            let client = UdpSocket::bind((source, 0)).expect("client");
+            client.send_to(b"x", target).expect("send");
+            let expected = member_for(IpAddr::V4(source), members);
+            assert_eq!(receivers(&sockets), vec![expected], "from {source}");
+        }
     }
 
     #[test]

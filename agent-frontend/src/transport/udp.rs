@@ -305,7 +305,7 @@ pub fn open(addr: SocketAddr) -> std::io::Result<UdpTransport> {
 
 /// Serves the UDP socket the parent process bound and left open at descriptor `fd` (a port
 /// several front-ends share), after checking that it is one: a datagram socket bound to
-/// `listen`'s port (and address, unless that is the wildcard).
+/// exactly `listen` (address, wildcard or not, and port).
 pub fn inherited(fd: std::os::fd::RawFd, listen: SocketAddr) -> std::io::Result<UdpTransport> {
     let file = crate::sys::owned_fd::inherited(fd)?;
     let socket = std::net::UdpSocket::from(std::os::fd::OwnedFd::from(file));
@@ -316,8 +316,7 @@ pub fn inherited(fd: std::os::fd::RawFd, listen: SocketAddr) -> std::io::Result<
         )));
     }
     let local = socket.local_addr()?;
-    let address_matches = listen.ip().is_unspecified() || local.ip() == listen.ip();
-    if local.port() != listen.port() || !address_matches {
+    if local != listen {
         return Err(std::io::Error::other(format!(
             "descriptor {fd} is a socket bound to {local}, not {listen}"
         )));
@@ -356,12 +355,17 @@ mod tests {
         // All open at once: a descriptor number is taken once per process.
         let other = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
         let tcp = std::net::TcpListener::bind(listen).expect("listen");
+        let wildcard = std::net::UdpSocket::bind("0.0.0.0:0").expect("bind");
+        let wildcard_listen =
+            SocketAddr::new(listen.ip(), wildcard.local_addr().expect("a").port());
         let e = inherited(other.into_raw_fd(), listen).expect_err("another port");
         assert!(e.to_string().contains("not 127.0.0.1"), "{e}");
         let e = inherited(tcp.into_raw_fd(), listen).expect_err("a stream socket");
         assert!(e.to_string().contains("not a datagram socket"), "{e}");
-        let wildcard = SocketAddr::new("0.0.0.0".parse().expect("ip"), listen.port());
-        let t = inherited(good.into_raw_fd(), wildcard).expect("the socket named");
+        // The port named, but on every address rather than the one named.
+        let e = inherited(wildcard.into_raw_fd(), wildcard_listen).expect_err("wildcard");
+        assert!(e.to_string().contains("bound to 0.0.0.0"), "{e}");
+        let t = inherited(good.into_raw_fd(), listen).expect("the socket named");
         assert_eq!(t.local, listen);
     }
 

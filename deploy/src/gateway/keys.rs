@@ -246,7 +246,7 @@ pub const KEYS: &[KeyDoc] = &[
         key: "processes",
         value: "1-64, or \"auto\" (one per four cores, at most 8)",
         default: || "1".into(),
-        meaning: "Front-end processes that serve the port (udp only), each with its own socket on it: a client is served by the one its source address hashes to, so a client whose port changes stays where its session is and one address's clients share one process. Their ids are the front-end's id plus 1,048,576 times their number (the first keeps the id), their names the front-end's name with `-2`, `-3`... from the second on. `--processes`.",
+        meaning: "Front-end processes that serve the port (udp only), each with its own socket on it: a client is served by the one its source address hashes to, so a client whose port changes stays where its session is and one address's clients share one process. The first keeps the front-end's id and name; the one named `<name>-n` (n from 2) has the id plus (n - 1) × 1,048,576. `auto` is counted again at each start (from the cores this process may use): a change moves clients. `--processes`.",
     },
     KeyDoc {
         table: "frontend",

@@ -167,6 +167,7 @@ fn mistakes_are_refused_naming_the_key_and_line() {
     assert!(e.message.contains("`processes` applies to udp only"), "{e}");
     let e = refused("[[frontend]]\ntransport = \"udp4\"\nport = 1\nprocesses = true\n");
     assert_eq!(e.line, 4, "{e}");
+    assert!(e.message.contains("a count 1-64 or \"auto\""), "{e}");
     let e = refused("[[frontend]]\ntransport = \"udp4\"\nport = 1\nprot = 2\n");
     assert_eq!(e.line, 4, "{e}");
     assert!(e.to_string().contains("prot"), "{e}");
