@@ -224,29 +224,34 @@ mod tests {
         got
     }
 
+    /// A group of `members` on a free port of `ip` (`None`: that family is not here).
+    fn group_on(ip: IpAddr, members: u16) -> Option<(u16, Vec<UdpSocket>)> {
+        let port = UdpSocket::bind((ip, 0)).ok()?.local_addr().ok()?.port();
+        let sockets = bind(SocketAddr::new(ip, port), members, Duration::from_secs(1));
+        Some((port, sockets.expect("bind")))
+    }
+
+    /// Datagrams from `source` (new sockets each) to `target` all reach the member
+    /// [`member_for`] names.
+    fn steered(sockets: &[UdpSocket], source: IpAddr, target: SocketAddr, members: u16) -> u16 {
+        let expected = member_for(source, members);
+        for _ in 0..3 {
+            let client = UdpSocket::bind((source, 0)).expect("client");
+            client.send_to(b"x", target).expect("send");
+            assert_eq!(receivers(sockets), vec![expected], "from {source}");
+        }
+        expected
+    }
+
     #[test]
     fn a_client_stays_on_its_member_whatever_its_port() {
         let members = 4;
-        let sockets =
-            bind("127.0.0.1:0".parse().expect("addr"), 1, Duration::ZERO).expect("probe port");
-        let port = sockets[0].local_addr().expect("addr").port();
-        drop(sockets);
-        let listen = SocketAddr::new(IpAddr::V4(Ipv4Addr::LOCALHOST), port);
-        let sockets = bind(listen, members, Duration::from_secs(1)).expect("bind");
-        for s in &sockets {
-            s.set_nonblocking(true).expect("nonblocking");
-        }
+        let localhost = IpAddr::V4(Ipv4Addr::LOCALHOST);
+        let (port, sockets) = group_on(localhost, members).expect("IPv4");
         let mut seen = std::collections::HashSet::new();
         for last in 1..=16u8 {
-            let source = Ipv4Addr::new(127, 0, 0, last);
-            let expected = member_for(IpAddr::V4(source), members);
-            seen.insert(expected);
-            // Three ports from one address: one member for all.
-            for _ in 0..3 {
-                let client = UdpSocket::bind((source, 0)).expect("client");
-                client.send_to(b"x", listen).expect("send");
-                assert_eq!(receivers(&sockets), vec![expected], "from {source}");
-            }
+            let source = IpAddr::V4(Ipv4Addr::new(127, 0, 0, last));
+            seen.insert(steered(&sockets, source, (localhost, port).into(), members));
         }
         assert!(seen.len() > 1, "sixteen addresses spread over the members");
     }
@@ -254,14 +259,9 @@ mod tests {
     /// IPv4 clients of a dual-stack IPv6 group are steered by their IPv4 address.
     #[test]
     fn ipv4_clients_of_a_dual_stack_port_are_steered_as_ipv4() {
-        let Ok(probe) = UdpSocket::bind("[::]:0") else {
+        let Some((port, sockets)) = group_on(IpAddr::V6(Ipv6Addr::UNSPECIFIED), 4) else {
             return; // no IPv6 on this machine
         };
-        let port = probe.local_addr().expect("addr").port();
-        drop(probe);
-        let listen = SocketAddr::new(IpAddr::V6(Ipv6Addr::UNSPECIFIED), port);
-        let members = 4;
-        let sockets = bind(listen, members, Duration::from_secs(1)).expect("bind");
         if socket2::SockRef::from(&sockets[0])
             .only_v6()
             .unwrap_or(true)
@@ -270,33 +270,22 @@ mod tests {
         }
         let target = SocketAddr::new(IpAddr::V4(Ipv4Addr::LOCALHOST), port);
         for last in 1..=8u8 {
-            let source = Ipv4Addr::new(127, 0, 0, last);
-            let client = UdpSocket::bind((source, 0)).expect("client");
-            client.send_to(b"x", target).expect("send");
-            let expected = member_for(IpAddr::V4(source), members);
-            assert_eq!(receivers(&sockets), vec![expected], "from {source}");
+            steered(
+                &sockets,
+                IpAddr::V4(Ipv4Addr::new(127, 0, 0, last)),
+                target,
+                4,
+            );
         }
     }
 
     #[test]
     fn ipv6_clients_are_steered_by_their_address_too() {
-        let Ok(probe) = UdpSocket::bind("[::1]:0") else {
+        let localhost = IpAddr::V6(Ipv6Addr::LOCALHOST);
+        let Some((port, sockets)) = group_on(localhost, 3) else {
             return; // no IPv6 on this machine
         };
-        let port = probe.local_addr().expect("addr").port();
-        drop(probe);
-        let listen = SocketAddr::new(IpAddr::V6(Ipv6Addr::LOCALHOST), port);
-        let members = 3;
-        let sockets = bind(listen, members, Duration::from_secs(1)).expect("bind");
-        for s in &sockets {
-            s.set_nonblocking(true).expect("nonblocking");
-        }
-        let expected = member_for(IpAddr::V6(Ipv6Addr::LOCALHOST), members);
-        for _ in 0..3 {
-            let client = UdpSocket::bind("[::1]:0").expect("client");
-            client.send_to(b"x", listen).expect("send");
-            assert_eq!(receivers(&sockets), vec![expected]);
-        }
+        steered(&sockets, localhost, (localhost, port).into(), 3);
     }
 
     #[test]
