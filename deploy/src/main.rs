@@ -32,7 +32,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         let gateway = xrce_agent::gateway::load(path)?;
         if cli.check {
             // What the file leaves to the environment is checked too, as a start would.
-            Group::new(AgentPlan::from_gateway(&gateway)?)?;
+            let group = Group::new(AgentPlan::from_gateway(&gateway)?)?;
             println!("{}: valid", path.display());
             for f in &gateway.frontends {
                 println!(
@@ -41,6 +41,14 @@ fn run(cli: Cli) -> anyhow::Result<()> {
                     f.id,
                     f.plan.describe()
                 );
+                // The processes of a shared port, as logs, status and --process name them.
+                for p in group
+                    .frontends
+                    .iter()
+                    .filter(|p| p.share.is_some_and(|s| s.member > 0) && p.plan == f.plan)
+                {
+                    println!("    process {} (id {})", p.name, p.id);
+                }
             }
             return Ok(());
         }
