@@ -148,6 +148,89 @@ baudrate = 921600
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A UDP port of two processes (`processes = 2`): a client steered to the first publishes,
+/// one steered to the second subscribes, and every sample crosses from one process to the
+/// other through the worker once; each session is where its client's address says.
+#[test]
+fn a_udp_port_of_two_processes_carries_samples_between_them() {
+    use xrce_agent::shared_port::member_for;
+    let dir = scratch("processes");
+    let udp = free_udp_port();
+    let instance = unique_instance("gwp");
+    let path = write(
+        &dir,
+        &format!(
+            r#"
+[agent]
+instance = "{instance}"
+[worker]
+dds_interfaces = ["127.0.0.1"]
+[[frontend]]
+name = "lan"
+transport = "udp4"
+port = {udp}
+bind = "127.0.0.1"
+processes = 2
+"#
+        ),
+    );
+    let agent = gateway(&path, &instance);
+    // The first address of 127.0.0.0/8 each process is given.
+    let of = |member: u16| {
+        (1..=254u8)
+            .map(|last| std::net::IpAddr::from([127, 0, 0, last]))
+            .find(|a| member_for(*a, 2) == member)
+            .expect("an address")
+    };
+    let port: SocketAddr = ([127, 0, 0, 1], udp).into();
+    let client = |member: u16, key: [u8; 4]| {
+        let link = xrce_tests::link::Link::udp_from(port, of(member));
+        let config =
+            xrce_common::session::client::ClientConfig::new(xrce_common::wire::ClientKey(key));
+        TestClient::on_link(link, config)
+    };
+    let mut publisher = client(0, [0x6B, 0, 0, 1]);
+    let mut subscriber = client(1, [0x6B, 0, 0, 2]);
+    for c in [&mut publisher, &mut subscriber] {
+        c.connect(10 * SECOND);
+    }
+    subscriber.setup_subscriber(61);
+    let w = publisher.setup_publisher(61);
+    for i in 0..30 {
+        publisher.write_reliable(w, &hello_world(i, "gateway"));
+        subscriber.step();
+    }
+    let got = collect_all(
+        &mut [&mut publisher],
+        &mut [&mut subscriber],
+        30,
+        60 * SECOND,
+    );
+    got[0].assert_exactly_once(0..30, "the subscriber on the other process");
+    // Which process created each session (the front-end's name is in its log lines).
+    let out = agent.output();
+    let served_by = |key: &str| {
+        let mut from = 0;
+        while let Some((i, line)) = out.wait_for(from, "session created", Duration::ZERO) {
+            if line.contains(key) {
+                return line.contains("lan-2");
+            }
+            from = i + 1;
+        }
+        panic!("no session created for {key}");
+    };
+    assert!(
+        !served_by("6B000001"),
+        "the publisher is the first process's"
+    );
+    assert!(
+        served_by("6B000002"),
+        "the subscriber is the second process's"
+    );
+    assert!(agent.stop(), "gateway did not stop cleanly");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// One front-end killed: the supervisor restarts it on its own while the other keeps
 /// serving its clients, and the restarted one serves new ones.
 #[test]
