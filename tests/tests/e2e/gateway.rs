@@ -26,6 +26,26 @@ fn write(dir: &Path, text: &str) -> PathBuf {
     p
 }
 
+/// A gateway file of one UDP front-end, `lan`, on 127.0.0.1:`udp`, DDS on loopback, with
+/// `worker` and `frontend` lines added to those tables.
+fn lan_gateway(instance: &str, udp: u16, worker: &str, frontend: &str) -> String {
+    format!(
+        r#"
+[agent]
+instance = "{instance}"
+[worker]
+dds_interfaces = ["127.0.0.1"]
+{worker}
+[[frontend]]
+name = "lan"
+transport = "udp4"
+port = {udp}
+bind = "127.0.0.1"
+{frontend}
+"#
+    )
+}
+
 fn gateway(path: &Path, instance: &str) -> AgentProcess {
     let p = path.to_str().expect("utf-8 path");
     AgentProcess::exactly(
@@ -157,23 +177,7 @@ fn a_udp_port_of_two_processes_carries_samples_between_them() {
     let dir = scratch("processes");
     let udp = free_udp_port();
     let instance = unique_instance("gwp");
-    let path = write(
-        &dir,
-        &format!(
-            r#"
-[agent]
-instance = "{instance}"
-[worker]
-dds_interfaces = ["127.0.0.1"]
-[[frontend]]
-name = "lan"
-transport = "udp4"
-port = {udp}
-bind = "127.0.0.1"
-processes = 2
-"#
-        ),
-    );
+    let path = write(&dir, &lan_gateway(&instance, udp, "", "processes = 2"));
     let agent = gateway(&path, &instance);
     // The first address of 127.0.0.0/8 each process is given.
     let of = |member: u16| {
@@ -434,23 +438,7 @@ fn processes_run_on_their_own_and_a_gone_frontend_is_cleaned_up() {
     let dir = scratch("process");
     let udp = free_udp_port();
     let instance = unique_instance("gwproc");
-    let path = write(
-        &dir,
-        &format!(
-            r#"
-[agent]
-instance = "{instance}"
-[worker]
-dds_interfaces = ["127.0.0.1"]
-frontend_grace = 2
-[[frontend]]
-name = "lan"
-transport = "udp4"
-port = {udp}
-bind = "127.0.0.1"
-"#
-        ),
-    );
+    let path = write(&dir, &lan_gateway(&instance, udp, "frontend_grace = 2", ""));
     let p = path.to_str().expect("utf-8");
     let localhost = [127, 0, 0, 1].into();
     let worker = AgentProcess::exactly(
