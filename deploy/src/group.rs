@@ -230,6 +230,15 @@ impl Group {
                 settings.discovery = None;
             }
             let members = f.processes();
+            if members > 1 && settings.admission.allow_roaming {
+                tracing::warn!(
+                    frontend = %f.name,
+                    "--allow-roaming with several processes on a port: a session follows its \
+                     client to a new port of its address, not to another address (served by \
+                     whichever process that address is steered to, where the client creates \
+                     its session again)"
+                );
+            }
             for member in 0..members {
                 // Checked by `plan.check()` above.
                 let Some((id, name)) = f.process(member) else {
