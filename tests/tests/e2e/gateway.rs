@@ -198,8 +198,8 @@ fn a_udp_port_of_two_processes_carries_samples_between_them() {
     for c in [&mut publisher, &mut subscriber] {
         c.connect(10 * SECOND);
     }
-    subscriber.setup_subscriber(61);
-    let w = publisher.setup_publisher(61);
+    subscriber.setup_subscriber(83);
+    let w = publisher.setup_publisher(83);
     for i in 0..30 {
         publisher.write_reliable(w, &hello_world(i, "gateway"));
         subscriber.step();
