@@ -19,6 +19,7 @@
 
 pub mod discovery;
 pub mod icmp;
+mod kernel_drops;
 pub mod multiserial;
 pub mod pty;
 pub mod registry;

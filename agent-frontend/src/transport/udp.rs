@@ -5,6 +5,8 @@
 //! system call for many clients' messages, and a batch that comes back short says the socket
 //! is empty, so the loop does not make the extra read that would only find it so (mio's
 //! readiness is edge-triggered, and every datagram that arrives later raises a new edge).
+//! What the kernel dropped because the socket's buffer was full is read each second
+//! (from `/proc/net/udp`) and counted as `socket_overflow`.
 
 use std::io::IoSliceMut;
 use std::net::SocketAddr;
@@ -28,6 +30,9 @@ const RECV_BATCH: usize = 32;
 /// Socket buffer size requested for each direction: bursts (hundreds of clients starting at
 /// once) overflow the default, and a lost datagram costs a retransmission round.
 const SOCKET_BUFFER: usize = 4 << 20;
+/// How often the kernel's count of datagrams it dropped at the socket is read
+/// ([`super::kernel_drops`]).
+const KERNEL_DROPS_PERIOD: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// The UDP transport.
 #[derive(Debug)]
@@ -45,9 +50,41 @@ pub struct UdpTransport {
     errors_pending: bool,
     unreachable: super::icmp::Unreachable,
     stats: TransportStats,
+    /// When the kernel's drops are read next (from the first datagram on).
+    next_drops_check: Option<Instant>,
+    /// The kernel's count of drops at the last reading (`None`: not read yet).
+    kernel_drops: Option<u64>,
 }
 
 impl UdpTransport {
+    /// Counts the datagrams the kernel dropped at the socket since the last reading
+    /// (`socket_overflow`), with a log line when there are new ones. The first reading is
+    /// the baseline: what a shared port's socket dropped before this process served it is
+    /// logged, not counted (its predecessor may have counted part of it).
+    fn read_kernel_drops(&mut self) {
+        let Some(now) = super::kernel_drops::dropped_by_kernel(std::os::fd::AsFd::as_fd(&self.socket)) else {
+            return;
+        };
+        match self.kernel_drops.replace(now) {
+            None if now > 0 => tracing::info!(
+                dropped = now,
+                "the kernel had dropped datagrams at this socket before this process served it \
+                 (its receive buffer was full)"
+            ),
+            Some(before) if now > before => {
+                let new = now - before;
+                *self.stats.dropped.entry("socket_overflow").or_default() += new;
+                tracing::warn!(
+                    dropped = new,
+                    total = self.stats.dropped("socket_overflow"),
+                    "the kernel dropped datagrams at this socket: its receive buffer was full \
+                     (a flood, or this process fell behind); reliable clients send them again"
+                );
+            }
+            _ => {}
+        }
+    }
+
     /// Serves clients on a bound socket.
     pub fn new(socket: std::net::UdpSocket) -> std::io::Result<Self> {
         socket.set_nonblocking(true)?;
@@ -74,6 +111,8 @@ impl UdpTransport {
             errors_pending: false,
             unreachable: Default::default(),
             stats: TransportStats::default(),
+            next_drops_check: None,
+            kernel_drops: None,
         })
     }
 
@@ -155,10 +194,14 @@ impl Transport for UdpTransport {
 
     fn receive(
         &mut self,
-        _now: Instant,
+        now: Instant,
         budget: usize,
         deliver: &mut dyn FnMut(SocketAddr, &[u8]),
     ) -> bool {
+        if self.next_drops_check.is_none() {
+            // The baseline at once, then a reading a period.
+            self.next_drops_check = Some(now);
+        }
         if std::mem::take(&mut self.errors_pending) {
             self.unreachable
                 .read(std::os::fd::AsFd::as_fd(&self.socket));
@@ -254,10 +297,15 @@ impl Transport for UdpTransport {
     }
 
     fn poll_timeout(&self) -> Option<Instant> {
-        None
+        self.next_drops_check
     }
 
-    fn handle_timeout(&mut self, _now: Instant) {}
+    fn handle_timeout(&mut self, now: Instant) {
+        if self.next_drops_check.is_some_and(|t| t <= now) {
+            self.next_drops_check = Some(now + KERNEL_DROPS_PERIOD);
+            self.read_kernel_drops();
+        }
+    }
 
     fn stats(&self) -> &TransportStats {
         &self.stats
@@ -343,6 +391,28 @@ mod tests {
             got.push((from, bytes.to_vec()))
         });
         (got, left)
+    }
+
+    /// Datagrams the kernel dropped at a full socket are counted (`socket_overflow`) from
+    /// the first reading on, each period.
+    #[test]
+    fn what_the_kernel_drops_at_a_full_socket_is_counted() {
+        let (mut t, client) = pair();
+        socket2::SockRef::from(&t.socket)
+            .set_recv_buffer_size(4096)
+            .expect("a small buffer");
+        assert_eq!(t.poll_timeout(), None, "not armed before the first reading");
+        receive_all(&mut t, 10);
+        assert!(t.poll_timeout().is_some(), "armed by the first reading");
+        t.handle_timeout(Instant::now());
+        assert_eq!(t.stats.dropped("socket_overflow"), 0, "the baseline");
+        for _ in 0..200 {
+            client.send(&[0u8; 512]).expect("send");
+        }
+        let later = Instant::now() + KERNEL_DROPS_PERIOD;
+        assert!(t.poll_timeout().is_some_and(|d| d <= later));
+        t.handle_timeout(later);
+        assert!(t.stats.dropped("socket_overflow") > 0, "{:?}", t.stats.dropped);
     }
 
     /// An inherited descriptor is served only if it is a datagram socket on the port (and
