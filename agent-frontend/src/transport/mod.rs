@@ -19,7 +19,6 @@
 
 pub mod discovery;
 pub mod icmp;
-mod kernel_drops;
 pub mod multiserial;
 pub mod pty;
 pub mod registry;

@@ -6,7 +6,7 @@
 //! is empty, so the loop does not make the extra read that would only find it so (mio's
 //! readiness is edge-triggered, and every datagram that arrives later raises a new edge).
 //! What the kernel dropped because the socket's buffer was full is read each second
-//! (from `/proc/net/udp`) and counted as `socket_overflow`.
+//! (`SO_MEMINFO`) and counted as `socket_overflow`.
 
 use std::io::IoSliceMut;
 use std::net::SocketAddr;
@@ -30,8 +30,7 @@ const RECV_BATCH: usize = 32;
 /// Socket buffer size requested for each direction: bursts (hundreds of clients starting at
 /// once) overflow the default, and a lost datagram costs a retransmission round.
 const SOCKET_BUFFER: usize = 4 << 20;
-/// How often the kernel's count of datagrams it dropped at the socket is read
-/// ([`super::kernel_drops`]).
+/// How often the kernel's count of what it dropped at the socket is read.
 const KERNEL_DROPS_PERIOD: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// The UDP transport.
@@ -50,36 +49,41 @@ pub struct UdpTransport {
     errors_pending: bool,
     unreachable: super::icmp::Unreachable,
     stats: TransportStats,
-    /// When the kernel's drops are read next (from the first datagram on).
+    /// The kernel's count of the socket's drops as last seen (`None`: unknown yet, for a
+    /// socket inherited from a predecessor, which may have counted some of them).
+    kernel_drops: Option<u32>,
+    /// When that count is read next ([`KERNEL_DROPS_PERIOD`], from the first loop pass on;
+    /// never again where the kernel did not answer).
     next_drops_check: Option<Instant>,
-    /// The kernel's count of drops at the last reading (`None`: not read yet).
-    kernel_drops: Option<u64>,
+    /// The kernel did not answer for this socket's drops.
+    drops_unreported: bool,
 }
 
 impl UdpTransport {
-    /// Counts the datagrams the kernel dropped at the socket since the last reading
-    /// (`socket_overflow`), with a log line when there are new ones. The first reading is
-    /// the baseline: what a shared port's socket dropped before this process served it is
-    /// logged, not counted (its predecessor may have counted part of it).
-    fn read_kernel_drops(&mut self) {
-        let Some(now) = super::kernel_drops::dropped_by_kernel(std::os::fd::AsFd::as_fd(&self.socket)) else {
-            return;
-        };
-        match self.kernel_drops.replace(now) {
-            None if now > 0 => tracing::info!(
-                dropped = now,
-                "the kernel had dropped datagrams at this socket before this process served it \
-                 (its receive buffer was full)"
+    /// Counts what the kernel dropped at the socket since its count was last seen
+    /// (`socket_overflow`; the count is 32 bits and wraps), logged at powers of two. The
+    /// first count seen on an inherited socket is the baseline: it is logged as dropped
+    /// since the socket was made, not counted (a predecessor counted part of it).
+    fn kernel_dropped(&mut self, count: u32) {
+        match self.kernel_drops.replace(count) {
+            None if count > 0 => tracing::info!(
+                dropped = count,
+                "the kernel dropped datagrams at this socket since it was made, before this \
+                 process served it or while it did (its receive buffer was full)"
             ),
-            Some(before) if now > before => {
-                let new = now - before;
-                *self.stats.dropped.entry("socket_overflow").or_default() += new;
-                tracing::warn!(
-                    dropped = new,
-                    total = self.stats.dropped("socket_overflow"),
-                    "the kernel dropped datagrams at this socket: its receive buffer was full \
-                     (a flood, or this process fell behind); reliable clients send them again"
-                );
+            Some(before) if count != before => {
+                let new = u64::from(count.wrapping_sub(before));
+                let total = self.stats.dropped("socket_overflow") + new;
+                self.stats.dropped.insert("socket_overflow", total);
+                if (total - new).leading_zeros() != total.leading_zeros() || total == new {
+                    tracing::warn!(
+                        dropped = new,
+                        total,
+                        "the kernel dropped datagrams at this socket: its receive buffer was \
+                         full (a flood, or this process fell behind); reliable clients send \
+                         them again"
+                    );
+                }
             }
             _ => {}
         }
@@ -111,8 +115,10 @@ impl UdpTransport {
             errors_pending: false,
             unreachable: Default::default(),
             stats: TransportStats::default(),
+            // A socket of its own: nothing dropped before it was served.
+            kernel_drops: Some(0),
             next_drops_check: None,
-            kernel_drops: None,
+            drops_unreported: false,
         })
     }
 
@@ -198,8 +204,8 @@ impl Transport for UdpTransport {
         budget: usize,
         deliver: &mut dyn FnMut(SocketAddr, &[u8]),
     ) -> bool {
-        if self.next_drops_check.is_none() {
-            // The baseline at once, then a reading a period.
+        if self.next_drops_check.is_none() && !self.drops_unreported {
+            // The first reading at once, then one a period.
             self.next_drops_check = Some(now);
         }
         if std::mem::take(&mut self.errors_pending) {
@@ -303,7 +309,15 @@ impl Transport for UdpTransport {
     fn handle_timeout(&mut self, now: Instant) {
         if self.next_drops_check.is_some_and(|t| t <= now) {
             self.next_drops_check = Some(now + KERNEL_DROPS_PERIOD);
-            self.read_kernel_drops();
+            let socket = std::os::fd::AsFd::as_fd(&self.socket);
+            match crate::sys::socket_drops::dropped_at(socket) {
+                Some(count) => self.kernel_dropped(count),
+                None => {
+                    self.next_drops_check = None;
+                    self.drops_unreported = true;
+                    tracing::debug!("the kernel does not report this socket's drops");
+                }
+            }
         }
     }
 
@@ -369,7 +383,10 @@ pub fn inherited(fd: std::os::fd::RawFd, listen: SocketAddr) -> std::io::Result<
             "descriptor {fd} is a socket bound to {local}, not {listen}"
         )));
     }
-    UdpTransport::new(socket)
+    let mut t = UdpTransport::new(socket)?;
+    // What its predecessor's drops were, this process cannot tell.
+    t.kernel_drops = None;
+    Ok(t)
 }
 
 #[cfg(test)]
@@ -393,26 +410,44 @@ mod tests {
         (got, left)
     }
 
-    /// Datagrams the kernel dropped at a full socket are counted (`socket_overflow`) from
-    /// the first reading on, each period.
+    /// Datagrams the kernel dropped at a full socket are counted (`socket_overflow`) at
+    /// the next reading of its count, once each.
     #[test]
     fn what_the_kernel_drops_at_a_full_socket_is_counted() {
         let (mut t, client) = pair();
         socket2::SockRef::from(&t.socket)
             .set_recv_buffer_size(4096)
             .expect("a small buffer");
-        assert_eq!(t.poll_timeout(), None, "not armed before the first reading");
-        receive_all(&mut t, 10);
-        assert!(t.poll_timeout().is_some(), "armed by the first reading");
-        t.handle_timeout(Instant::now());
-        assert_eq!(t.stats.dropped("socket_overflow"), 0, "the baseline");
+        assert_eq!(
+            t.poll_timeout(),
+            None,
+            "not armed before the first loop pass"
+        );
+        receive_all(&mut t, 1_000);
+        let first = t.poll_timeout().expect("armed by the first loop pass");
+        t.handle_timeout(first);
         for _ in 0..200 {
             client.send(&[0u8; 512]).expect("send");
         }
-        let later = Instant::now() + KERNEL_DROPS_PERIOD;
-        assert!(t.poll_timeout().is_some_and(|d| d <= later));
-        t.handle_timeout(later);
-        assert!(t.stats.dropped("socket_overflow") > 0, "{:?}", t.stats.dropped);
+        t.readable = true; // as its readiness event would say
+        let (got, _) = receive_all(&mut t, 1_000);
+        assert!(got.len() < 200, "some were dropped");
+        let next = t.poll_timeout().expect("the next reading");
+        assert_eq!(next, first + KERNEL_DROPS_PERIOD);
+        t.handle_timeout(next);
+        let counted = t.stats.dropped("socket_overflow");
+        assert_eq!(counted, 200 - got.len() as u64, "every drop");
+        // The count is the kernel's total: read again, nothing more is counted.
+        t.handle_timeout(next + KERNEL_DROPS_PERIOD);
+        assert_eq!(
+            t.stats.dropped("socket_overflow"),
+            counted,
+            "each drop once"
+        );
+        // It is 32 bits and wraps.
+        t.kernel_drops = Some(u32::MAX);
+        t.kernel_dropped(2);
+        assert_eq!(t.stats.dropped("socket_overflow"), counted + 3);
     }
 
     /// An inherited descriptor is served only if it is a datagram socket on the port (and
