@@ -22,6 +22,8 @@ use std::collections::{HashMap, HashSet, VecDeque};
 use std::rc::{Rc, Weak};
 use std::time::{Duration, Instant};
 
+use xrce_ipc::SampleOrigin;
+
 /// How often watched writers are asked whether their readers acknowledged everything.
 pub const ACK_POLL_PERIOD: Duration = Duration::from_millis(2);
 
@@ -40,18 +42,24 @@ pub trait Acknowledging {
     fn outstanding(&self) -> &Outstanding;
 }
 
-/// One front-end operation written through a DDS writer.
+/// One sample of a front-end operation written through a DDS writer.
 #[derive(Debug, Clone, Copy)]
-struct Written {
-    frontend: u32,
+pub struct Written {
+    /// The front-end that handed it over.
+    pub frontend: u32,
     /// The front-end's operation number.
-    seq: u64,
+    pub seq: u64,
     /// When it was written.
-    at: Instant,
+    pub at: Instant,
     /// The writer's write count after it.
-    ordinal: u64,
+    pub ordinal: u64,
     /// The worker's count of recorded writes after it (over every writer).
-    stamp: u64,
+    pub stamp: u64,
+    /// The sequence number the DDS writer gave it (0: the backend cannot tell): the
+    /// worker's readers that take it tell it by that number ([`AckTracker::origin_of`]).
+    pub sequence_number: i64,
+    /// The client write it came from.
+    pub origin: Option<SampleOrigin>,
 }
 
 /// Operations written through one DDS writer and not known to be acknowledged, in the order
@@ -66,25 +74,29 @@ pub struct Outstanding {
 }
 
 impl Outstanding {
-    /// Records that front-end `frontend`'s operation `seq` was written as the writer's
-    /// `ordinal`-th write and the worker's `stamp`-th recorded one; true if nothing was
-    /// outstanding before (the writer must be watched from now on).
-    pub fn record(&self, frontend: u32, seq: u64, now: Instant, ordinal: u64, stamp: u64) -> bool {
+    /// Records a write (the writer's `ordinal`-th, the worker's `stamp`-th recorded one);
+    /// true if nothing was outstanding before (the writer must be watched from now on).
+    pub fn record(&self, written: Written) -> bool {
         let mut w = self.writes.borrow_mut();
         let first = w.is_empty();
         if w.back()
-            .is_some_and(|b| b.frontend != frontend || b.seq > seq)
+            .is_some_and(|b| b.frontend != written.frontend || b.seq > written.seq)
         {
             self.mixed.set(true);
         }
-        w.push_back(Written {
-            frontend,
-            seq,
-            at: now,
-            ordinal,
-            stamp,
-        });
+        w.push_back(written);
         first
+    }
+
+    /// The origin of the outstanding write the writer numbered `sequence_number`, if it had
+    /// one. The writer numbers its writes in the order they are recorded (a backend that
+    /// cannot tell numbers none), so the search halves the queue.
+    pub fn origin_of(&self, sequence_number: i64) -> Option<SampleOrigin> {
+        let w = self.writes.borrow();
+        let at = w.partition_point(|x| x.sequence_number < sequence_number);
+        w.get(at)
+            .filter(|x| x.sequence_number == sequence_number)
+            .and_then(|x| x.origin)
     }
 
     /// Forgets the writes among the writer's first `acknowledged` that are stamped up to
@@ -160,6 +172,8 @@ impl Outstanding {
 #[derive(Debug)]
 pub struct AckTracker<W> {
     watched: Vec<Weak<W>>,
+    /// The same writers by GUID, for the origins of what the worker's readers take.
+    by_guid: HashMap<[u8; 16], Weak<W>>,
     next_poll: Instant,
 }
 
@@ -168,13 +182,26 @@ impl<W: Acknowledging> AckTracker<W> {
     pub fn new(now: Instant) -> Self {
         AckTracker {
             watched: Vec::new(),
+            by_guid: HashMap::new(),
             next_poll: now,
         }
     }
 
-    /// Watches `writer` (call when [`Outstanding::record`] returned true).
-    pub fn watch(&mut self, writer: &Rc<W>) {
+    /// Watches `writer`, whose GUID is `guid` (call when [`Outstanding::record`] returned
+    /// true).
+    pub fn watch(&mut self, guid: [u8; 16], writer: &Rc<W>) {
         self.watched.push(Rc::downgrade(writer));
+        self.by_guid.insert(guid, Rc::downgrade(writer));
+    }
+
+    /// The client write that sample `sequence_number` of the DDS writer `guid` came from,
+    /// if that writer is one of the worker's, the write is outstanding and had an origin.
+    pub fn origin_of(&self, guid: &[u8; 16], sequence_number: i64) -> Option<SampleOrigin> {
+        self.by_guid
+            .get(guid)?
+            .upgrade()?
+            .outstanding()
+            .origin_of(sequence_number)
     }
 
     /// When the tracker wants to poll again (None: nothing watched).
@@ -210,6 +237,12 @@ impl<W: Acknowledging> AckTracker<W> {
             }
             !out.expire(limit, &mut moved)
         });
+        // A writer no longer watched has nothing outstanding (or is gone); one watched twice
+        // (its writes forgotten, then new ones) stays.
+        if self.by_guid.len() > self.watched.len() {
+            self.by_guid
+                .retain(|_, w| w.upgrade().is_some_and(|w| !w.outstanding().is_empty()));
+        }
         (moved, all)
     }
 
@@ -275,12 +308,35 @@ mod tests {
     }
 
     fn write(t: &mut AckTracker<FakeWriter>, w: &Rc<FakeWriter>, fe: u32, seq: u64, now: Instant) {
+        write_from(t, w, fe, seq, now, None);
+    }
+
+    /// The writer's GUID in these tests: its address.
+    fn guid(w: &Rc<FakeWriter>) -> [u8; 16] {
+        (Rc::as_ptr(w) as usize as u128).to_le_bytes()
+    }
+
+    fn write_from(
+        t: &mut AckTracker<FakeWriter>,
+        w: &Rc<FakeWriter>,
+        fe: u32,
+        seq: u64,
+        now: Instant,
+        origin: Option<SampleOrigin>,
+    ) {
         w.written.set(w.written.get() + 1);
         STAMP.with(|s| s.set(s.get() + 1));
-        if w.out
-            .record(fe, seq, now, w.written.get(), STAMP.with(Cell::get))
-        {
-            t.watch(w);
+        let written = Written {
+            frontend: fe,
+            seq,
+            at: now,
+            ordinal: w.written.get(),
+            stamp: STAMP.with(Cell::get),
+            sequence_number: w.written.get() as i64,
+            origin,
+        };
+        if w.out.record(written) {
+            t.watch(guid(w), w);
         }
     }
 
@@ -425,5 +481,48 @@ mod tests {
         w.ack_all();
         let _ = t.poll(t0 + ACK_GIVE_UP + ACK_POLL_PERIOD, |_| 0);
         assert!(t.oldest_outstanding().is_empty());
+    }
+
+    #[test]
+    fn a_sample_taken_here_is_told_its_origin_while_its_write_is_outstanding() {
+        let t0 = Instant::now();
+        let mut t = AckTracker::new(t0);
+        let w = Rc::new(FakeWriter::default());
+        let origin = |write: u64| SampleOrigin {
+            write: xrce_ipc::WriteOrigin {
+                frontend: 1,
+                incarnation: 1,
+                write,
+                index: 0,
+            },
+            resent: write == 3,
+        };
+        // Sequence numbers 1 to 4; the second write (a best-effort one) has no origin.
+        write_from(&mut t, &w, 1, 1, t0, Some(origin(1)));
+        write_from(&mut t, &w, 1, 2, t0, None);
+        write_from(&mut t, &w, 1, 3, t0, Some(origin(3)));
+        write_from(&mut t, &w, 1, 4, t0, Some(origin(4)));
+        let g = guid(&w);
+        assert_eq!(t.origin_of(&g, 1), Some(origin(1)));
+        assert_eq!(t.origin_of(&g, 2), None);
+        assert_eq!(t.origin_of(&g, 3), Some(origin(3)));
+        assert_eq!(t.origin_of(&g, 4), Some(origin(4)));
+        assert_eq!(t.origin_of(&g, 5), None, "not written");
+        assert_eq!(
+            t.origin_of(&[7; 16], 1),
+            None,
+            "not one of the worker's writers"
+        );
+        // Acknowledged and drained past the first two: they are no longer told.
+        w.acked.set(2);
+        let first = STAMP.with(Cell::get) - 3;
+        let _ = t.poll(t0, |_| first + 1);
+        assert_eq!(t.origin_of(&g, 1), None);
+        assert_eq!(t.origin_of(&g, 3), Some(origin(3)));
+        // Everything acknowledged: the writer is forgotten.
+        w.ack_all();
+        let _ = t.poll(t0 + ACK_POLL_PERIOD, |_| u64::MAX);
+        assert_eq!(t.origin_of(&g, 4), None);
+        assert!(t.by_guid.is_empty());
     }
 }

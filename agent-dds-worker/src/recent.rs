@@ -139,6 +139,7 @@ mod tests {
                 writer: [1; 16],
                 sequence_number: seq,
             },
+            origin: None,
             data: Cow::Borrowed(data),
             little_endian: seq % 2 == 0,
             disposed: seq == 3,

@@ -89,6 +89,7 @@ impl StatsReport {
             reads_paused = b.reads_paused,
             instance_ends_skipped = b.instance_ends_skipped,
             samples_already_delivered = b.samples_already_delivered,
+            resent_samples_already_delivered = b.resent_samples_already_delivered,
             "front-end counters"
         );
         self.last = now;

@@ -49,6 +49,10 @@ pub fn report<T: Transport>(
             b.writes_settled_unacknowledged,
         ),
         ("samples_already_delivered", b.samples_already_delivered),
+        (
+            "resent_samples_already_delivered",
+            b.resent_samples_already_delivered,
+        ),
         ("link_refusals", b.link_refusals),
         ("transport_opened", t.opened),
         ("transport_closed", t.closed),

@@ -19,6 +19,7 @@ use xrce_frontend::relay::link::MemoryLink;
 use xrce_frontend::relay::Relay;
 use xrce_ipc::{
     Encode, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
+    SampleOrigin, WriteOrigin,
 };
 
 #[path = "relay/flow.rs"]
@@ -54,6 +55,18 @@ fn replayed(m: &Served) -> bool {
         m.request,
         Request::Create { replay: true, .. } | Request::Read { replay: true, .. }
     )
+}
+
+/// A read of every sample, on the built-in reliable stream.
+fn unlimited_read() -> ReadSpecification {
+    ReadSpecification {
+        preferred_stream_id: stream_id::BUILTIN_RELIABLE,
+        delivery_control: Some(DataDeliveryControl {
+            max_samples: u16::MAX,
+            ..Default::default()
+        }),
+        ..Default::default()
+    }
 }
 
 /// The sample a write carries (empty for other kinds).
@@ -170,9 +183,23 @@ impl FakeWorker {
         identity: SampleIdentity,
         data: &[u8],
     ) {
+        self.sample_from(client, reader, read, identity, None, data);
+    }
+
+    /// A sample for `client`'s read of `reader`, of a client write's `origin`.
+    fn sample_from(
+        &self,
+        client: ClientKey,
+        reader: ObjectId,
+        read: Route,
+        identity: SampleIdentity,
+        origin: Option<SampleOrigin>,
+        data: &[u8],
+    ) {
         let route = Route::object(0, client, read.request_id, reader);
         let sample = Sample {
             identity,
+            origin,
             data: data.into(),
             little_endian: true,
             disposed: false,
@@ -191,6 +218,44 @@ struct Rig {
 }
 
 impl Rig {
+    /// A client with a participant, a subscriber and a reader, reading it without limits on
+    /// a worker of `generation`: the worker, the rig, the reader and the read's route.
+    fn reading(generation: u32) -> (FakeWorker, Self, ObjectId, Route) {
+        let worker = FakeWorker::start(generation);
+        let mut rig = Rig::connected(&worker, generation);
+        let p = ObjectId::new(1, k::PARTICIPANT);
+        let sb = ObjectId::new(1, k::SUBSCRIBER);
+        let rd = ObjectId::new(1, k::DATAREADER);
+        rig.create(p, k::PARTICIPANT, "<dds/>", VariantExtra::DomainId(0));
+        rig.create(sb, k::SUBSCRIBER, "", VariantExtra::Parent(p));
+        rig.create(rd, k::DATAREADER, "<dds/>", VariantExtra::Parent(sb));
+        let spec = unlimited_read();
+        rig.client.read(Instant::now(), rd, spec).expect("read");
+        let read = rig.read_replayed_on(&worker);
+        (worker, rig, rd, read)
+    }
+
+    /// Runs until `worker` got the client's read (replayed, or the first); its route.
+    fn read_replayed_on(&mut self, worker: &FakeWorker) -> Route {
+        let served = self.run(&[worker], |_, s| s.iter().any(|m| is(m, "Read")));
+        served
+            .iter()
+            .find(|m| is(m, "Read"))
+            .map(|m| m.route)
+            .expect("a read")
+    }
+
+    /// The first byte of each sample the client got, in order.
+    fn first_bytes_delivered(&self) -> Vec<u8> {
+        self.events
+            .iter()
+            .filter_map(|e| match e {
+                ClientEvent::Data { data, .. } => data.first().copied(),
+                _ => None,
+            })
+            .collect()
+    }
+
     fn new() -> Self {
         Rig {
             client: Client::new(ClientConfig::new(ClientKey([0xB2, 0, 0, 1]))),
@@ -322,21 +387,28 @@ fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_write
         s.iter().filter(|m| is(m, "Create")).count() == 6
     });
     assert!(!served.iter().any(replayed));
-    let spec = ReadSpecification {
-        preferred_stream_id: stream_id::BUILTIN_RELIABLE,
-        delivery_control: Some(DataDeliveryControl {
-            max_samples: u16::MAX,
-            ..Default::default()
-        }),
-        ..Default::default()
-    };
+    let spec = unlimited_read();
     rig.client.read(Instant::now(), rd, spec).expect("read");
     rig.client
         .write(Instant::now(), stream_id::BUILTIN_RELIABLE, w, b"kept")
         .expect("write");
-    rig.run(&[&first], |_, s| {
+    let first_sent = rig.run(&[&first], |_, s| {
         s.iter().any(|m| is(m, "Read")) && s.iter().any(|m| is(m, "Write"))
     });
+    let first_write = first_sent
+        .iter()
+        .find(|m| is(m, "Write"))
+        .expect("the write sent");
+    assert!(
+        matches!(
+            first_write.request,
+            Request::Write {
+                resend_of: None,
+                ..
+            }
+        ),
+        "a first send is no resend"
+    );
     // The worker dies; a new generation announces itself.
     drop(first);
     let second = FakeWorker::start(12);
@@ -364,6 +436,13 @@ fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_write
         .find(|m| is(m, "Write"))
         .expect("the retained write resent");
     assert!(written(write).ends_with(b"kept"));
+    // Resent under a new operation number, it names its first one: its origin.
+    assert!(
+        matches!(write.request, Request::Write { resend_of: Some(n), .. } if n == first_write.route.op_seq),
+        "{:?}",
+        write.request
+    );
+    assert!(write.route.op_seq > first_write.route.op_seq);
     assert!(pos("Write") > pos("Read"), "{kinds:?}");
     assert_eq!(rig.relay.stats().replays, 2);
     assert!(rig.relay.stats().writes_resent >= 1);
@@ -372,57 +451,21 @@ fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_write
 
 #[test]
 fn a_replayed_read_does_not_deliver_a_sample_twice() {
-    let first = FakeWorker::start(21);
-    let mut rig = Rig::connected(&first, 21);
-    let p = ObjectId::new(1, k::PARTICIPANT);
-    let sb = ObjectId::new(1, k::SUBSCRIBER);
-    let rd = ObjectId::new(1, k::DATAREADER);
-    rig.create(p, k::PARTICIPANT, "<dds/>", VariantExtra::DomainId(0));
-    rig.create(sb, k::SUBSCRIBER, "", VariantExtra::Parent(p));
-    rig.create(rd, k::DATAREADER, "<dds/>", VariantExtra::Parent(sb));
-    let spec = ReadSpecification {
-        preferred_stream_id: stream_id::BUILTIN_RELIABLE,
-        delivery_control: Some(DataDeliveryControl {
-            max_samples: u16::MAX,
-            ..Default::default()
-        }),
-        ..Default::default()
-    };
-    rig.client.read(Instant::now(), rd, spec).expect("read");
-    let served = rig.run(&[&first], |_, s| s.iter().any(|m| is(m, "Read")));
-    let read = served
-        .iter()
-        .find(|m| is(m, "Read"))
-        .map(|m| m.route)
-        .expect("read");
+    let (first, mut rig, rd, read) = Rig::reading(21);
     let writer = [0x42u8; 16];
     let at = |n: i64| SampleIdentity {
         writer,
         sequence_number: n,
     };
-    let data = |rig: &Rig| {
-        rig.events
-            .iter()
-            .filter_map(|e| match e {
-                ClientEvent::Data { data, .. } => Some(data.clone()),
-                _ => None,
-            })
-            .collect::<Vec<_>>()
-    };
     for n in 1..=3 {
         first.sample(rig.client.config().key, rd, read, at(n), &[n as u8]);
     }
-    rig.run(&[&first], |r, _| data(r).len() == 3);
+    rig.run(&[&first], |r, _| r.first_bytes_delivered().len() == 3);
     // A new worker; the writer outlived the old one and offers its history again, then a
     // new sample.
     drop(first);
     let second = FakeWorker::start(22);
-    let replay = rig.run(&[&second], |_, s| s.iter().any(|m| is(m, "Read")));
-    let read = replay
-        .iter()
-        .find(|m| is(m, "Read"))
-        .map(|m| m.route)
-        .expect("read replayed");
+    let read = rig.read_replayed_on(&second);
     for n in 1..=4 {
         second.sample(rig.client.config().key, rd, read, at(n), &[n as u8]);
     }
@@ -444,10 +487,63 @@ fn a_replayed_read_does_not_deliver_a_sample_twice() {
         SampleIdentity::default(),
         &[80],
     );
-    rig.run(&[&second], |r, _| data(r).len() >= 6);
-    let got: Vec<u8> = data(&rig).iter().map(|d| d[0]).collect();
-    assert_eq!(got, [1, 2, 3, 4, 70, 80], "delivered twice or lost");
+    rig.run(&[&second], |r, _| r.first_bytes_delivered().len() >= 6);
+    assert_eq!(
+        rig.first_bytes_delivered(),
+        [1, 2, 3, 4, 70, 80],
+        "delivered twice or lost"
+    );
     assert_eq!(rig.relay.stats().samples_already_delivered, 3);
+    drop((rig, second));
+}
+
+/// A worker that died after it handed a read the samples of two writes, before their
+/// publisher heard that they were taken: the publisher resends them to the new worker, whose
+/// new DDS writer publishes them again under another identity. Their origin (the client
+/// write) is the same, so the read delivers neither twice; a resent write the read had not
+/// delivered, and samples without an origin, are delivered.
+#[test]
+fn a_resent_write_the_read_delivered_before_the_worker_died_is_not_delivered_again() {
+    let (first, mut rig, rd, read) = Rig::reading(31);
+    let key = rig.client.config().key;
+    let origin = |write: u64, index: u32, resent: bool| {
+        Some(SampleOrigin {
+            write: WriteOrigin {
+                frontend: 9,
+                incarnation: 1,
+                write,
+                index,
+            },
+            resent,
+        })
+    };
+    let identity = |writer: u8, n: i64| SampleIdentity {
+        writer: [writer; 16],
+        sequence_number: n,
+    };
+    // Write 5, then write 6 of two samples.
+    first.sample_from(key, rd, read, identity(1, 1), origin(5, 0, false), &[50]);
+    first.sample_from(key, rd, read, identity(1, 2), origin(6, 0, false), &[60]);
+    first.sample_from(key, rd, read, identity(1, 3), origin(6, 1, false), &[61]);
+    rig.run(&[&first], |r, _| r.first_bytes_delivered().len() == 3);
+    drop(first);
+    let second = FakeWorker::start(32);
+    let read = rig.read_replayed_on(&second);
+    // Writes 6 and 7 resent (7 never reached the read), then a new write 8.
+    second.sample_from(key, rd, read, identity(2, 1), origin(6, 0, true), &[60]);
+    second.sample_from(key, rd, read, identity(2, 2), origin(6, 1, true), &[61]);
+    second.sample_from(key, rd, read, identity(2, 3), origin(7, 0, true), &[70]);
+    second.sample_from(key, rd, read, identity(2, 4), origin(8, 0, false), &[80]);
+    second.sample(key, rd, read, SampleIdentity::default(), &[90]);
+    rig.run(&[&second], |r, _| r.first_bytes_delivered().len() >= 6);
+    assert_eq!(
+        rig.first_bytes_delivered(),
+        [50, 60, 61, 70, 80, 90],
+        "delivered twice or lost"
+    );
+    let stats = rig.relay.stats();
+    assert_eq!(stats.resent_samples_already_delivered, 2);
+    assert_eq!(stats.samples_already_delivered, 2);
     drop((rig, second));
 }
 

@@ -67,6 +67,7 @@ fn answer(req_rx: &Receiver, rep_tx: &Sender) -> usize {
             {
                 let sample = Sample {
                     identity: Default::default(),
+                    origin: None,
                     data,
                     little_endian: true,
                     disposed: false,
@@ -94,6 +95,7 @@ fn write() -> RequestMessage<'static> {
             status_requested: false,
             position: None,
             received_us: 0,
+            resend_of: None,
         },
     )
 }

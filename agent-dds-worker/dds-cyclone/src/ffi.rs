@@ -488,6 +488,12 @@ impl Writer {
         self.entity.guid()
     }
 
+    /// The sequence number of its last write attempt (the one the samples it delivers
+    /// inside the process carry).
+    pub(super) fn sequence(&self) -> i64 {
+        self.sequence.get()
+    }
+
     /// Writes a sample with representation identifier `encoding` and body `body`; with
     /// `dispose`, disposes the instance whose key payload `body` is instead.
     pub(super) fn write(

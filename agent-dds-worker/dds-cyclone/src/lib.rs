@@ -477,6 +477,9 @@ impl DdsWriter for Writer {
     fn writes(&self) -> u64 {
         self.acks.written.load(Ordering::SeqCst)
     }
+    fn last_sequence_number(&self) -> Option<i64> {
+        Some(self.raw.sequence())
+    }
     fn acknowledged_writes(&self) -> u64 {
         self.acks.acked.load(Ordering::SeqCst)
     }

@@ -120,6 +120,8 @@ fn local_writers_reach_local_readers_with_keys_disposes_and_wake_ups() {
             }
         ]
     );
+    // What the worker records of its last write, to tell its readers' samples' origins.
+    assert_eq!(writer.last_sequence_number(), Some(4));
     assert!(writer.all_acknowledged());
     assert_eq!(writer.writes(), 4);
     wait_until(|| writer.acknowledged_writes() >= 4);

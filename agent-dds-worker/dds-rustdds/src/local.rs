@@ -566,6 +566,9 @@ impl DdsWriter for LocalWriter {
     fn writes(&self) -> u64 {
         self.inner.writes()
     }
+    fn last_sequence_number(&self) -> Option<i64> {
+        Some(self.last_seq.get())
+    }
     fn acknowledged_writes(&self) -> u64 {
         self.inner.acknowledged_writes()
     }

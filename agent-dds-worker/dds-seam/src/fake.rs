@@ -261,6 +261,9 @@ impl DdsWriter for Writer {
     fn writes(&self) -> u64 {
         self.seq.get() as u64
     }
+    fn last_sequence_number(&self) -> Option<i64> {
+        Some(self.seq.get())
+    }
     fn acknowledged_writes(&self) -> u64 {
         if self.bus.acknowledged.get() {
             self.acked.set(self.seq.get() as u64);

@@ -250,6 +250,11 @@ pub trait DdsWriter {
     fn all_acknowledged(&self) -> bool;
     /// How many writes (samples and disposes that succeeded) it made since its creation.
     fn writes(&self) -> u64;
+    /// The sequence number its last successful write or dispose got, as its readers in this
+    /// process see it in [`Taken::identity`]; `None` where the backend cannot tell.
+    fn last_sequence_number(&self) -> Option<i64> {
+        None
+    }
     /// How many of its first [`writes`](DdsWriter::writes) every matched reliable reader
     /// acknowledged (all of them without any, and for a best-effort writer). Never waits;
     /// may lag behind the readers, never run ahead of them.

@@ -35,7 +35,7 @@ use xrce_common::wire::{
 use xrce_ipc::status::{ProcessReport, WorkerStatus};
 use xrce_ipc::{self as ipc, Encode, Reply, ReplyMessage, Request, RequestMessage, Route};
 
-use crate::acks::{AckTracker, Acknowledging, Outstanding};
+use crate::acks::{AckTracker, Acknowledging, Outstanding, Written};
 use crate::adoption::{Adoption, Origin};
 use crate::backend::{
     self, effective_domain, BackendError, DdsBackend, DdsConfig, DdsReader, EndpointQos,
@@ -354,22 +354,34 @@ impl Writers {
     /// outstanding until its readers acknowledged it.
     /// `positioned` tells the oldest position a read of its topic has in the topic's take log
     /// ([`take_log::TakeLogs::record`]).
+    /// `origin` is the client write the sample came from, which the writer's readers here
+    /// learn when they take it ([`AckTracker::origin_of`]).
     fn record(
         &mut self,
         writer: &Rc<DdsWriter>,
         frontend: u32,
         seq: u64,
+        origin: Option<ipc::SampleOrigin>,
         now: Instant,
         positioned: impl FnOnce(u64) -> Option<u64>,
     ) {
         self.stamp += 1;
+        let guid = writer.raw.guid();
         self.take_logs
-            .record(&writer.topic, writer.raw.guid(), self.stamp, positioned);
-        if writer
-            .outstanding
-            .record(frontend, seq, now, writer.raw.writes(), self.stamp)
-        {
-            self.acks.watch(writer);
+            .record(&writer.topic, guid, self.stamp, positioned);
+        let written = Written {
+            frontend,
+            seq,
+            at: now,
+            ordinal: writer.raw.writes(),
+            stamp: self.stamp,
+            // Without the sequence number the backend gave the sample, its readers here
+            // cannot tell it by its identity (and learn no origin).
+            sequence_number: writer.raw.last_sequence_number().unwrap_or(0),
+            origin,
+        };
+        if writer.outstanding.record(written) {
+            self.acks.watch(guid, writer);
         }
     }
 

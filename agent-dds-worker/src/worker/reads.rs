@@ -477,8 +477,19 @@ impl<L: WorkerLink> Worker<L> {
         let sent = out.len() as u32;
         self.samples_taken += u64::from(sent);
         for (s, disposed, unregistered, identity) in out {
+            // A sample one of this worker's writers wrote for a client tells its write, so
+            // that a read does not deliver it twice if the write is resent.
+            let origin = identity
+                .is_known()
+                .then(|| {
+                    self.writers
+                        .acks
+                        .origin_of(&identity.writer, identity.sequence_number)
+                })
+                .flatten();
             let sample = ipc::Sample {
                 identity,
+                origin,
                 data: std::borrow::Cow::Borrowed(&s.body),
                 little_endian: s.little_endian(),
                 disposed,

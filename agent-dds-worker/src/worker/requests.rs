@@ -165,13 +165,28 @@ impl<L: WorkerLink> Worker<L> {
                 status_requested,
                 position,
                 received_us,
+                resend_of,
             } => {
+                // A write its front-end keeps for a resend (reliable) is tagged with its
+                // origin, which a resend keeps ([`xrce_common::session::origin`]).
+                let kept = resend_of.is_some()
+                    || position.is_some_and(|p| stream_id::is_reliable(p.stream_id));
+                let origin = kept.then(|| ipc::SampleOrigin {
+                    write: ipc::WriteOrigin {
+                        frontend: r.frontend_id,
+                        incarnation: r.incarnation,
+                        write: resend_of.unwrap_or(r.op_seq),
+                        index: 0,
+                    },
+                    resent: resend_of.is_some(),
+                });
                 let data = WriteData {
                     data_format,
                     little_endian,
                     dialect,
                     body: &data,
                     received_us,
+                    origin,
                 };
                 let result = self.write(key, &r, data);
                 if let Some(p) = position.filter(|p| stream_id::is_reliable(p.stream_id)) {

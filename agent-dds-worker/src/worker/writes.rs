@@ -70,6 +70,23 @@ pub(super) struct HeldSample {
     /// When its front-end took it from the client ([`ipc::Request::Write`]'s
     /// `received_us`): the release keeps the spacing.
     pub(super) received_us: u64,
+    /// The client write it came from, if its front-end keeps that write for a resend.
+    pub(super) origin: Option<ipc::SampleOrigin>,
+}
+
+/// One sample of a client's write, on its way to a DDS writer.
+pub(super) struct OutgoingSample<'a> {
+    /// The front-end operation that wrote it.
+    pub(super) seq: u64,
+    /// When its front-end took it from the client.
+    pub(super) received_us: u64,
+    pub(super) little_endian: bool,
+    /// The serialized sample (or key fields, for a dispose).
+    pub(super) body: &'a [u8],
+    /// It disposes (or unregisters) its instance.
+    pub(super) dispose: bool,
+    /// The client write it came from, if its front-end keeps that write for a resend.
+    pub(super) origin: Option<ipc::SampleOrigin>,
 }
 
 /// A new writer holds its writes until it has matched readers: volatile readers only get
@@ -208,6 +225,8 @@ pub(super) struct WriteData<'a> {
     pub(super) body: &'a [u8],
     /// When its front-end received it (`ipc::Request::Write`'s `received_us`).
     pub(super) received_us: u64,
+    /// Its origin (index 0), for a write its front-end keeps for a resend.
+    pub(super) origin: Option<ipc::SampleOrigin>,
 }
 
 impl<L: WorkerLink> Worker<L> {
@@ -224,6 +243,7 @@ impl<L: WorkerLink> Worker<L> {
             dialect,
             body,
             received_us,
+            origin,
         } = data;
         // Without a type description the end of a sample is the end of the submessage, so
         // a sequence can be split only when it holds one sample; with it, the type says
@@ -265,7 +285,7 @@ impl<L: WorkerLink> Worker<L> {
             return Ok(());
         }
         let several = samples.len() > 1;
-        for s in samples {
+        for (index, s) in samples.into_iter().enumerate() {
             let dispose = ends_instance(&s);
             // A sample split out of a sequence aligns from the WRITE_DATA's payload; DDS
             // wants it aligned from its own start.
@@ -278,12 +298,27 @@ impl<L: WorkerLink> Worker<L> {
                 _ => None,
             };
             let data = rebased.as_deref().unwrap_or(s.data);
-            self.write_one(key, route.op_seq, received_us, little_endian, data, dispose)?;
+            let origin = origin.map(|mut o| {
+                // A body of at most MAX_BODY bytes holds fewer samples than u32 counts.
+                o.write.index = u32::try_from(index).unwrap_or(u32::MAX);
+                o
+            });
+            let sample = OutgoingSample {
+                seq: route.op_seq,
+                received_us,
+                little_endian,
+                body: data,
+                dispose,
+                origin,
+            };
+            self.write_sample(key, sample)?;
             self.samples_written += 1;
         }
         Ok(())
     }
 
+    /// Writes one sample of no client write kept for a resend (the tests' way in).
+    #[cfg(test)]
     pub(super) fn write_one(
         &mut self,
         key: EntityKey,
@@ -293,6 +328,32 @@ impl<L: WorkerLink> Worker<L> {
         body: &[u8],
         dispose: bool,
     ) -> Result<(), OpError> {
+        let sample = OutgoingSample {
+            seq,
+            received_us,
+            little_endian,
+            body,
+            dispose,
+            origin: None,
+        };
+        self.write_sample(key, sample)
+    }
+
+    /// Writes one sample of a client's write, or holds it while its writer waits for its
+    /// readers.
+    pub(super) fn write_sample(
+        &mut self,
+        key: EntityKey,
+        sample: OutgoingSample<'_>,
+    ) -> Result<(), OpError> {
+        let OutgoingSample {
+            seq,
+            received_us,
+            little_endian,
+            body,
+            dispose,
+            origin,
+        } = sample;
         let Some(Entity {
             kind: EntityKind::Writer {
                 writer: w, rematch, ..
@@ -344,6 +405,7 @@ impl<L: WorkerLink> Worker<L> {
                     sample,
                     dispose,
                     received_us,
+                    origin,
                 });
                 return Ok(());
             }
@@ -359,10 +421,10 @@ impl<L: WorkerLink> Worker<L> {
             let held = std::mem::take(&mut rematch.held);
             let w = w.clone();
             self.publish_held(key, &w, held, self.now);
-            return self.publish_one(key, &w, seq, sample, dispose);
+            return self.publish_one(key, &w, seq, sample, dispose, origin);
         }
         let w = w.clone();
-        self.publish_one(key, &w, seq, sample, dispose)
+        self.publish_one(key, &w, seq, sample, dispose, origin)
     }
 
     /// Writes one sample (or dispose) through `w` and records it for acknowledgement.
@@ -373,6 +435,7 @@ impl<L: WorkerLink> Worker<L> {
         seq: u64,
         sample: Sample,
         dispose: bool,
+        origin: Option<ipc::SampleOrigin>,
     ) -> Result<(), OpError> {
         let done = if dispose {
             w.raw
@@ -382,9 +445,10 @@ impl<L: WorkerLink> Worker<L> {
             publish(&*w.raw, sample).map_err(|e| OpError::from(e.context("DDS write")))
         };
         if done.is_ok() {
-            self.writers.record(w, key.0, seq, self.now, |epoch| {
-                self.readers.oldest_position(&w.topic, epoch)
-            });
+            self.writers
+                .record(w, key.0, seq, origin, self.now, |epoch| {
+                    self.readers.oldest_position(&w.topic, epoch)
+                });
         } else {
             self.writers.take_logs.write_failed(&w.topic);
         }
@@ -405,6 +469,7 @@ impl<L: WorkerLink> Worker<L> {
             seq,
             sample: s,
             dispose,
+            origin,
             ..
         } in held
         {
@@ -414,7 +479,7 @@ impl<L: WorkerLink> Worker<L> {
                 publish(&*w.raw, s)
             };
             match done {
-                Ok(()) => self.writers.record(w, key.0, seq, now, |epoch| {
+                Ok(()) => self.writers.record(w, key.0, seq, origin, now, |epoch| {
                     self.readers.oldest_position(&w.topic, epoch)
                 }),
                 Err(_) => {
@@ -680,6 +745,7 @@ impl<L: WorkerLink> Worker<L> {
                         seq,
                         sample,
                         dispose,
+                        origin,
                         ..
                     }) = rematch.held.pop_front()
                     else {
@@ -698,7 +764,7 @@ impl<L: WorkerLink> Worker<L> {
                         failures += 1;
                         self.writers.take_logs.write_failed(&w.topic);
                     } else {
-                        self.writers.record(w, key.0, seq, now, |epoch| {
+                        self.writers.record(w, key.0, seq, origin, now, |epoch| {
                             self.readers.oldest_position(&w.topic, epoch)
                         });
                         self.writers.gates.released(&w.topic, self.writers.stamp);

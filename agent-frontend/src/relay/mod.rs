@@ -21,6 +21,7 @@
 
 use std::collections::{HashMap, HashSet};
 use std::time::{Duration, Instant};
+use xrce_common::session::origin::DeliveredOrigins;
 
 use xrce_common::session::agent::{Agent, Endpoint, Operation, OperationSink};
 use xrce_common::session::budget::{BudgetSplit, Episodes, DEFAULT_MEMORY_BUDGET};
@@ -152,6 +153,9 @@ pub struct RelayStats {
     pub instance_ends_skipped: u64,
     /// Samples not delivered again to a read replayed on a new worker (the client had them).
     pub samples_already_delivered: u64,
+    /// Of those, samples of writes resent to the new worker that the read had delivered
+    /// (told by their origin: [`xrce_common::session::origin`]).
+    pub resent_samples_already_delivered: u64,
     /// Retained writes released because DDS readers acknowledged them.
     pub writes_acknowledged: u64,
     /// Retained writes released after [`SETTLE_TIME`] without an acknowledgement.
@@ -198,6 +202,9 @@ pub struct Relay<L> {
     /// Sent operations whose STATUS a client waits for: seq -> (client, request, kind).
     pending: HashMap<u64, (ClientKey, BaseObjectRequest, PendingKind)>,
     graphs: HashMap<ClientKey, ObjectGraph>,
+    /// The client writes of the samples the reads delivered last, so that a write resent to
+    /// a new worker is not delivered twice ([`xrce_common::session::origin`]).
+    delivered_origins: DeliveredOrigins,
     /// Clients whose objects changed, and clients whose reads changed outside of their own
     /// messages, since they were last taken (for the session store).
     objects_changed: HashSet<ClientKey>,
@@ -272,6 +279,7 @@ impl<L: Link> Relay<L> {
             retention: Retention::new(RETAIN_MAX_BYTES),
             pending: HashMap::new(),
             graphs: HashMap::new(),
+            delivered_origins: DeliveredOrigins::default(),
             objects_changed: HashSet::new(),
             reads_changed: HashSet::new(),
             replies_out: Vec::new(),

@@ -33,11 +33,13 @@ impl<L: Link> Relay<L> {
         match op {
             Operation::ClientCreated { client, origin } => {
                 self.graphs.insert(client, ObjectGraph::default());
+                self.delivered_origins.forget_client(client);
                 self.object_budget.client_created(client, origin);
                 self.objects_changed.insert(client);
             }
             Operation::ClientDeleted { client } => {
                 self.graphs.remove(&client);
+                self.delivered_origins.forget_client(client);
                 self.object_budget.client_deleted(client);
                 self.drop_waiting_writes(client, None);
                 let delete = message(
@@ -182,6 +184,7 @@ impl<L: Link> Relay<L> {
                     status_requested,
                     position,
                     received_us: self.received_us(now),
+                    resend_of: None,
                 };
                 let mut m = message(fe, client, data.base, write);
                 let reliable = stream_id::is_reliable(stream);

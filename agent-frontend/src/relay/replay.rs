@@ -130,8 +130,14 @@ impl<L: Link> Relay<L> {
         for r in self.retention.take() {
             self.stats.writes_resent += 1;
             let waited = awaited_writes.remove(&r.seq).is_some();
+            let mut message = r.message;
+            if let Request::Write { resend_of, .. } = &mut message.request {
+                // Its origin stays that of its first send (a write resent twice keeps it), so
+                // that subscribers tell it from a write they did not deliver.
+                resend_of.get_or_insert(r.seq);
+            }
             self.outbox.push_back(OwnedOp {
-                message: r.message,
+                message,
                 retain: true,
                 awaited: if waited { Awaited::Yes } else { Awaited::No },
             });

@@ -134,7 +134,21 @@ impl<L: Link> Relay<L> {
                         self.stats.samples_already_delivered += 1;
                         return;
                     }
+                    // A write resent to a new worker, whose predecessor had delivered it (it
+                    // died before the write's publisher heard that it was taken).
+                    if sample.origin.is_some_and(|o| {
+                        o.resent
+                            && self
+                                .delivered_origins
+                                .contains(h.client_key, h.object_id, &o.write)
+                    }) {
+                        self.stats.samples_already_delivered += 1;
+                        self.stats.resent_samples_already_delivered += 1;
+                        return;
+                    }
                 }
+                // A read's deliveries are remembered by their writes' origins.
+                let of_a_read = read.is_some();
                 // The read's stream and format; a sample that overtook the end of its read
                 // goes out plain on the built-in reliable stream.
                 let (stream, format, sequence_number) =
@@ -145,6 +159,10 @@ impl<L: Link> Relay<L> {
                         }
                         (a.spec.preferred_stream_id, a.spec.data_format, a.delivered)
                     });
+                if let (true, Some(o)) = (of_a_read, sample.origin) {
+                    self.delivered_origins
+                        .record(h.client_key, h.object_id, o.write);
+                }
                 let mut state = 0;
                 if sample.disposed {
                     state |= sample_state::INSTANCE_DISPOSED;

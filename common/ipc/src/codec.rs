@@ -12,7 +12,7 @@ use xrce_common::wire::{ClientKey, Dialect, ObjectId, RequestId, ResultStatus};
 
 use crate::message::{
     Encode, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
-    HEADER_LEN, SAMPLE_IDENTITY_LEN,
+    SampleOrigin, HEADER_LEN, SAMPLE_IDENTITY_LEN, SAMPLE_ORIGIN_LEN,
 };
 use crate::{IPC_MAGIC, IPC_VERSION};
 
@@ -41,11 +41,18 @@ mod flag {
     /// Create: the client's message was little endian. Write, Sample: the sample is.
     pub(super) const LITTLE_ENDIAN: u8 = 0x01;
     /// Create, Read, and the Status answering them: part of a replay to a new worker.
+    /// Write: a resend to a new worker; the body holds the operation number of its first
+    /// send after the position (if any).
     pub(super) const REPLAY: u8 = 0x02;
     /// Write: the client expects a STATUS for it, success included.
     pub(super) const STATUS_REQUESTED: u8 = 0x04;
     /// Write: SampleInfos in the data are in the spec dialect (else eProsima's).
     pub(super) const DIALECT_SPEC: u8 = 0x08;
+    /// Sample (the bit of STATUS_REQUESTED, which Samples do not carry): the body holds the
+    /// sample's origin after its identity.
+    pub(super) const ORIGIN: u8 = 0x04;
+    /// Sample (the bit of DIALECT_SPEC): its write was resent to this worker.
+    pub(super) const RESENT: u8 = 0x08;
     /// Sample: it disposes its instance.
     pub(super) const DISPOSED: u8 = 0x10;
     /// Sample: it unregisters its instance.
@@ -58,6 +65,9 @@ mod flag {
 
 /// Bytes of a Write's reception time, at the start of its body (little endian).
 const RECEIVED_LEN: usize = 8;
+
+/// Bytes of a resent Write's first operation number (little endian).
+const RESEND_OF_LEN: usize = 8;
 
 /// Bytes of an [`InputPosition`] in a body: the stream, then the message's sequence number,
 /// the write's index in it and the epoch of the streams, little endian.
@@ -166,6 +176,17 @@ impl<'a> RequestMessage<'a> {
                 } else {
                     (None, body)
                 };
+                let (resend_of, data) = if has(flag::REPLAY) {
+                    let (first, data) =
+                        data.split_first_chunk::<RESEND_OF_LEN>()
+                            .ok_or(IpcError::Body {
+                                kind: h.kind,
+                                len: body.len(),
+                            })?;
+                    (Some(u64::from_le_bytes(*first)), data)
+                } else {
+                    (None, data)
+                };
                 Request::Write {
                     data: Cow::Borrowed(data),
                     data_format: h.data_format,
@@ -178,6 +199,7 @@ impl<'a> RequestMessage<'a> {
                     status_requested: has(flag::STATUS_REQUESTED),
                     position,
                     received_us: u64::from_le_bytes(*received),
+                    resend_of,
                 }
             }
             kind::READ => Request::Read {
@@ -234,12 +256,14 @@ impl<'a> RequestMessage<'a> {
                 dialect,
                 status_requested,
                 position,
+                resend_of,
                 ..
             } => {
                 set(&mut h, flag::LITTLE_ENDIAN, *little_endian);
                 set(&mut h, flag::DIALECT_SPEC, *dialect == Dialect::Spec);
                 set(&mut h, flag::STATUS_REQUESTED, *status_requested);
                 set(&mut h, flag::POSITION, position.is_some());
+                set(&mut h, flag::REPLAY, resend_of.is_some());
                 h.data_format = *data_format;
                 kind::WRITE
             }
@@ -258,22 +282,24 @@ impl<'a> RequestMessage<'a> {
 }
 
 impl RequestMessage<'_> {
-    /// What a Write's body carries in front of its data: when it was received, and its
-    /// position if it has one.
-    fn write_prefix(&self) -> Option<(u64, Option<&InputPosition>)> {
+    /// What a Write's body carries in front of its data: when it was received, its
+    /// position if it has one, and the first operation number of a resend.
+    fn write_prefix(&self) -> Option<(u64, Option<&InputPosition>, Option<u64>)> {
         match &self.request {
             Request::Write {
                 position,
                 received_us,
+                resend_of,
                 ..
-            } => Some((*received_us, position.as_ref())),
+            } => Some((*received_us, position.as_ref(), *resend_of)),
             _ => None,
         }
     }
 
     fn prefix_len(&self) -> usize {
-        self.write_prefix()
-            .map_or(0, |(_, p)| RECEIVED_LEN + p.map_or(0, |_| POSITION_LEN))
+        self.write_prefix().map_or(0, |(_, p, r)| {
+            RECEIVED_LEN + p.map_or(0, |_| POSITION_LEN) + r.map_or(0, |_| RESEND_OF_LEN)
+        })
     }
 }
 
@@ -286,11 +312,15 @@ impl Encode for RequestMessage<'_> {
         let body = self.request.body();
         let prefix = self.prefix_len();
         self.header().write(out, prefix + body.len());
-        if let Some((received, position)) = self.write_prefix() {
-            let at = HEADER_LEN + RECEIVED_LEN;
+        if let Some((received, position, resend_of)) = self.write_prefix() {
+            let mut at = HEADER_LEN + RECEIVED_LEN;
             out[HEADER_LEN..at].copy_from_slice(&received.to_le_bytes());
             if let Some(p) = position {
                 write_position(p, &mut out[at..at + POSITION_LEN]);
+                at += POSITION_LEN;
+            }
+            if let Some(first) = resend_of {
+                out[at..at + RESEND_OF_LEN].copy_from_slice(&first.to_le_bytes());
             }
         }
         out[HEADER_LEN + prefix..].copy_from_slice(body);
@@ -336,8 +366,20 @@ impl<'a> ReplyMessage<'a> {
                 let (id, data) = body
                     .split_first_chunk::<SAMPLE_IDENTITY_LEN>()
                     .ok_or_else(wrong_body)?;
+                if has(flag::RESENT) && !has(flag::ORIGIN) {
+                    return Err(wrong_body());
+                }
+                let (origin, data) = if has(flag::ORIGIN) {
+                    let (o, data) = data
+                        .split_first_chunk::<SAMPLE_ORIGIN_LEN>()
+                        .ok_or_else(wrong_body)?;
+                    (Some(SampleOrigin::read(o, has(flag::RESENT))), data)
+                } else {
+                    (None, data)
+                };
                 Reply::Sample(Sample {
                     identity: SampleIdentity::read(id),
+                    origin,
                     data: Cow::Borrowed(data),
                     little_endian: has(flag::LITTLE_ENDIAN),
                     disposed: has(flag::DISPOSED),
@@ -396,6 +438,8 @@ impl<'a> ReplyMessage<'a> {
                     (s.little_endian, flag::LITTLE_ENDIAN),
                     (s.disposed, flag::DISPOSED),
                     (s.unregistered, flag::UNREGISTERED),
+                    (s.origin.is_some(), flag::ORIGIN),
+                    (s.origin.is_some_and(|o| o.resent), flag::RESENT),
                 ] {
                     if on {
                         h.flags |= f;
@@ -417,7 +461,7 @@ impl<'a> ReplyMessage<'a> {
     fn body_len(&self) -> usize {
         match &self.reply {
             Reply::Status { .. } => 2,
-            Reply::Sample(s) => SAMPLE_IDENTITY_LEN + s.data.len(),
+            Reply::Sample(s) => s.body_len(),
             Reply::Progress { .. } => 16,
             Reply::Executed(_) => POSITION_LEN,
             _ => 0,
@@ -440,7 +484,12 @@ impl Encode for ReplyMessage<'_> {
             }
             Reply::Sample(s) => {
                 s.identity.write(body);
-                body[SAMPLE_IDENTITY_LEN..].copy_from_slice(&s.data);
+                let mut at = SAMPLE_IDENTITY_LEN;
+                if let Some(o) = &s.origin {
+                    o.write_to(&mut body[at..at + SAMPLE_ORIGIN_LEN]);
+                    at += SAMPLE_ORIGIN_LEN;
+                }
+                body[at..].copy_from_slice(&s.data);
             }
             Reply::Progress {
                 executed,

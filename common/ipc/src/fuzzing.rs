@@ -65,6 +65,7 @@ pub fn ipc_seeds() -> Vec<(String, Vec<u8>)> {
                 epoch: 0x0001_0002_0003_0004,
             }),
             received_us: 0x0102_0304_0506,
+            resend_of: Some(40),
         },
         Request::Read {
             spec: Cow::Borrowed(&[0x80, 0x00, 0x00, 0x00][..]),
@@ -86,6 +87,15 @@ pub fn ipc_seeds() -> Vec<(String, Vec<u8>)> {
                 writer: [9; 16],
                 sequence_number: 77,
             },
+            origin: Some(crate::SampleOrigin {
+                write: crate::WriteOrigin {
+                    frontend: 3,
+                    incarnation: 2,
+                    write: 40,
+                    index: 1,
+                },
+                resent: true,
+            }),
             data: Cow::Borrowed(&[0, 1, 0, 0, 5, 0, 0, 0][..]),
             little_endian: true,
             disposed: true,

@@ -38,11 +38,11 @@ mod sys;
 pub use codec::IpcError;
 pub use message::{
     Encode, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
-    HEADER_LEN, REPLAY_REFUSED,
+    SampleOrigin, WriteOrigin, HEADER_LEN, REPLAY_REFUSED,
 };
 
 /// Version of this contract; both sides drop (and log) messages of another version.
-pub const IPC_VERSION: u16 = 9;
+pub const IPC_VERSION: u16 = 10;
 /// Magic at the start of every message.
 pub const IPC_MAGIC: [u8; 4] = *b"XRIP";
 

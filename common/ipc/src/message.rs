@@ -9,11 +9,15 @@
 
 use std::borrow::Cow;
 
+pub use xrce_common::session::origin::WriteOrigin;
 use xrce_common::session::stream::InputPosition;
 use xrce_common::wire::{ClientKey, Dialect, ObjectId, RequestId, ResultStatus};
 
 /// Bytes in front of every Sample's data: the DDS identity of the sample ([`SampleIdentity`]).
 pub(crate) const SAMPLE_IDENTITY_LEN: usize = 24;
+
+/// Bytes of a Sample's [`WriteOrigin`], after its identity when it has one.
+pub(crate) const SAMPLE_ORIGIN_LEN: usize = 18;
 
 /// Bytes of the header in front of every body.
 pub const HEADER_LEN: usize = 40;
@@ -109,6 +113,10 @@ pub enum Request<'a> {
         /// process's clock: a writer that held samples for its readers (after a worker
         /// restart) writes them with the spacing they came with, not as one burst.
         received_us: u64,
+        /// A resend to a new worker: the operation number this front-end process gave the
+        /// write when it first sent it (the number of its [`WriteOrigin`]). `None` on the
+        /// first send, where the route's `op_seq` is that number.
+        resend_of: Option<u64>,
     },
     /// Start or replace a read.
     Read {
@@ -156,6 +164,7 @@ impl Request<'_> {
                 status_requested,
                 position,
                 received_us,
+                resend_of,
             } => Request::Write {
                 data: own(data),
                 data_format,
@@ -164,6 +173,7 @@ impl Request<'_> {
                 status_requested,
                 position,
                 received_us,
+                resend_of,
             },
             Request::Read { spec, replay } => Request::Read {
                 spec: own(spec),
@@ -202,6 +212,7 @@ impl Request<'_> {
                 status_requested,
                 position,
                 received_us,
+                resend_of,
             } => Request::Write {
                 data: view(data),
                 data_format: *data_format,
@@ -210,6 +221,7 @@ impl Request<'_> {
                 status_requested: *status_requested,
                 position: *position,
                 received_us: *received_us,
+                resend_of: *resend_of,
             },
             Request::Read { spec, replay } => Request::Read {
                 spec: view(spec),
@@ -260,6 +272,8 @@ impl Request<'_> {
 pub struct Sample<'a> {
     /// Which DDS writer wrote it, and its sequence number there.
     pub identity: SampleIdentity,
+    /// The client write it came from, for a sample one of this worker's writers wrote.
+    pub origin: Option<SampleOrigin>,
     /// The serialized sample.
     pub data: Cow<'a, [u8]>,
     /// Its byte order.
@@ -273,7 +287,12 @@ pub struct Sample<'a> {
 impl Sample<'_> {
     /// Whether it fits in a message ([`crate::MAX_BODY`]); a larger one is not sent.
     pub fn fits(&self) -> bool {
-        SAMPLE_IDENTITY_LEN + self.data.len() <= crate::MAX_BODY
+        self.body_len() <= crate::MAX_BODY
+    }
+
+    /// Bytes of its message's body.
+    pub(crate) fn body_len(&self) -> usize {
+        SAMPLE_IDENTITY_LEN + self.origin.map_or(0, |_| SAMPLE_ORIGIN_LEN) + self.data.len()
     }
 
     /// A copy that borrows nothing.
@@ -281,6 +300,40 @@ impl Sample<'_> {
         Sample {
             data: Cow::Owned(self.data.into_owned()),
             ..self
+        }
+    }
+}
+
+/// The client write a sample came from ([`xrce_common::session::origin`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub struct SampleOrigin {
+    /// The write, and which of its samples this is.
+    pub write: WriteOrigin,
+    /// The write was resent to this worker after its predecessor died: the reads of the
+    /// subscribers may have delivered it already.
+    pub resent: bool,
+}
+
+impl SampleOrigin {
+    pub(crate) fn write_to(&self, out: &mut [u8]) {
+        let w = &self.write;
+        out[..4].copy_from_slice(&w.frontend.to_le_bytes());
+        out[4..6].copy_from_slice(&w.incarnation.to_le_bytes());
+        out[6..14].copy_from_slice(&w.write.to_le_bytes());
+        out[14..SAMPLE_ORIGIN_LEN].copy_from_slice(&w.index.to_le_bytes());
+    }
+
+    pub(crate) fn read(b: &[u8; SAMPLE_ORIGIN_LEN], resent: bool) -> Self {
+        let mut write = [0u8; 8];
+        write.copy_from_slice(&b[6..14]);
+        SampleOrigin {
+            write: WriteOrigin {
+                frontend: u32::from_le_bytes([b[0], b[1], b[2], b[3]]),
+                incarnation: u16::from_le_bytes([b[4], b[5]]),
+                write: u64::from_le_bytes(write),
+                index: u32::from_le_bytes([b[14], b[15], b[16], b[17]]),
+            },
+            resent,
         }
     }
 }

@@ -555,6 +555,7 @@ mod tests {
                 Route::frontend(1),
                 crate::Reply::Sample(Sample {
                     identity: SampleIdentity::default(),
+                    origin: None,
                     data: Cow::Owned(data),
                     little_endian: true,
                     disposed: false,

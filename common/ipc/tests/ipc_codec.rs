@@ -8,7 +8,7 @@ use xrce_common::session::stream::InputPosition;
 use xrce_common::wire::{ClientKey, Dialect, ObjectId, RequestId, ResultStatus};
 use xrce_ipc::{
     Encode, IpcError, Reply, ReplyMessage, Request, RequestMessage, Route, Sample, SampleIdentity,
-    HEADER_LEN,
+    SampleOrigin, WriteOrigin, HEADER_LEN,
 };
 
 use proptest::prelude::*;
@@ -58,8 +58,9 @@ fn request() -> impl Strategy<Value = Request<'static>> {
             any::<bool>(),
             proptest::option::of(position()),
             any::<u64>(),
+            proptest::option::of(any::<u64>()),
         )
-            .prop_map(|(d, f, le, spec, st, p, r)| Request::Write {
+            .prop_map(|(d, f, le, spec, st, p, r, first)| Request::Write {
                 data: d,
                 data_format: f,
                 little_endian: le,
@@ -71,6 +72,7 @@ fn request() -> impl Strategy<Value = Request<'static>> {
                 status_requested: st,
                 position: p,
                 received_us: r,
+                resend_of: first,
             }),
         (bytes(), any::<bool>()).prop_map(|(s, r)| Request::Read { spec: s, replay: r }),
         Just(Request::DeleteClient),
@@ -96,13 +98,31 @@ fn reply() -> impl Strategy<Value = Reply<'static>> {
             bytes(),
             any::<bool>(),
             any::<bool>(),
-            any::<bool>()
+            any::<bool>(),
+            proptest::option::of((
+                any::<u32>(),
+                any::<u16>(),
+                any::<u64>(),
+                any::<u32>(),
+                any::<bool>()
+            )),
         )
-            .prop_map(|(w, n, d, le, dis, unr)| Reply::Sample(Sample {
+            .prop_map(|(w, n, d, le, dis, unr, o)| Reply::Sample(Sample {
                 identity: SampleIdentity {
                     writer: w,
                     sequence_number: n,
                 },
+                origin: o.map(
+                    |(frontend, incarnation, write, index, resent)| SampleOrigin {
+                        write: WriteOrigin {
+                            frontend,
+                            incarnation,
+                            write,
+                            index,
+                        },
+                        resent,
+                    }
+                ),
                 data: d,
                 little_endian: le,
                 disposed: dis,
@@ -188,10 +208,11 @@ fn the_layout_is_the_contract() {
                 write_index: 2,
             }),
             received_us: 0x1122_3344_5566,
+            resend_of: None,
         },
     };
     let mut expected = b"XRIP".to_vec();
-    expected.extend_from_slice(&[9, 0, 4, 0x01 | 0x04 | 0x08 | 0x40 | 0x80]);
+    expected.extend_from_slice(&[10, 0, 4, 0x01 | 0x04 | 0x08 | 0x40 | 0x80]);
     expected.extend_from_slice(&7u32.to_le_bytes());
     expected.extend_from_slice(&3u32.to_le_bytes());
     expected.extend_from_slice(&(1u64 << 40).to_le_bytes());
@@ -214,6 +235,57 @@ fn the_layout_is_the_contract() {
             "{len}: {refused:?}"
         );
     }
+    // Resent, it carries the number of its first send after the position.
+    let mut resent = m.clone();
+    if let Request::Write { resend_of, .. } = &mut resent.request {
+        *resend_of = Some(0x0A0B);
+    }
+    let mut expected_resent = expected.clone();
+    expected_resent[7] |= 0x02;
+    expected_resent[32..36].copy_from_slice(&33u32.to_le_bytes());
+    let at = HEADER_LEN + 8 + 13;
+    expected_resent.splice(at..at, 0x0A0Bu64.to_le_bytes());
+    assert_eq!(resent.encode(), expected_resent);
+    assert_eq!(RequestMessage::decode(&expected_resent), Ok(resent));
+    // A Sample with its origin: identity, origin, data; resent only with an origin.
+    let sample = ReplyMessage::new(
+        Route::frontend(7),
+        Reply::Sample(Sample {
+            identity: SampleIdentity {
+                writer: [5; 16],
+                sequence_number: 9,
+            },
+            origin: Some(SampleOrigin {
+                write: WriteOrigin {
+                    frontend: 7,
+                    incarnation: 0xBEEF,
+                    write: 0x0A0B,
+                    index: 1,
+                },
+                resent: true,
+            }),
+            data: Cow::Borrowed(b"xy"),
+            little_endian: true,
+            disposed: false,
+            unregistered: false,
+        }),
+    );
+    let bytes = sample.encode();
+    assert_eq!(bytes[7], 0x01 | 0x04 | 0x08);
+    let body = &bytes[HEADER_LEN..];
+    assert_eq!(body.len(), 24 + 18 + 2);
+    assert_eq!(&body[24..28], &7u32.to_le_bytes());
+    assert_eq!(&body[28..30], &0xBEEFu16.to_le_bytes());
+    assert_eq!(&body[30..38], &0x0A0Bu64.to_le_bytes());
+    assert_eq!(&body[38..42], &1u32.to_le_bytes());
+    assert_eq!(&body[42..], b"xy");
+    assert_eq!(ReplyMessage::decode(&bytes), Ok(sample));
+    let mut resent_without_origin = bytes.clone();
+    resent_without_origin[7] &= !0x04;
+    assert!(matches!(
+        ReplyMessage::decode(&resent_without_origin),
+        Err(IpcError::Body { kind: 18, .. })
+    ));
 }
 
 #[test]

@@ -16,6 +16,7 @@ pub mod client;
 pub mod discovery;
 pub mod fragment;
 pub mod graph;
+pub mod origin;
 pub mod seq;
 pub mod snapshot;
 pub mod stream;

@@ -273,6 +273,8 @@ fn keep_last_evicts_each_instance_s_oldest_from_the_middle_of_the_queue_in_order
         w.write(keyed(id, v)).expect("write");
     }
     assert_eq!(seqs(&drain(&mut *r)), vec![5, 6, 7]);
+    // What the worker records of its last write, to tell its readers' samples' origins.
+    assert_eq!(w.last_sequence_number(), Some(7));
     // Emptied: every instance starts again.
     for id in 1..=3 {
         w.write(keyed(id, 0)).expect("write");

@@ -282,6 +282,7 @@ fn positioned_write(stream: u8, sequence: u16, index: u16) -> Request<'static> {
             write_index: index,
         }),
         received_us: 0,
+        resend_of: None,
     }
 }
 

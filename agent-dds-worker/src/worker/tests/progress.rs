@@ -13,6 +13,7 @@ fn write(sample: &[u8]) -> Request<'_> {
         status_requested: false,
         position: None,
         received_us: 0,
+        resend_of: None,
     }
 }
 

@@ -52,6 +52,7 @@ impl Harness {
                     dialect: Dialect::Eprosima,
                     body,
                     received_us: 0,
+                    origin: None,
                 },
             )
             .expect("write");
