@@ -92,6 +92,10 @@ impl Outstanding {
     /// one. The writer numbers its writes in the order they are recorded (a backend that
     /// cannot tell numbers none), so the search halves the queue.
     pub fn origin_of(&self, sequence_number: i64) -> Option<SampleOrigin> {
+        if sequence_number <= 0 {
+            // Not a number a writer gives (0 stands for "cannot tell").
+            return None;
+        }
         let w = self.writes.borrow();
         let at = w.partition_point(|x| x.sequence_number < sequence_number);
         w.get(at)
@@ -488,6 +492,9 @@ mod tests {
         let t0 = Instant::now();
         let mut t = AckTracker::new(t0);
         let w = Rc::new(FakeWriter::default());
+        // A failed write numbered by the backend and not recorded (Cyclone numbers
+        // attempts): sequence number 3 is missing.
+        let skip = || w.written.set(w.written.get() + 1);
         let origin = |write: u64| SampleOrigin {
             write: xrce_ipc::WriteOrigin {
                 frontend: 1,
@@ -497,17 +504,21 @@ mod tests {
             },
             resent: write == 3,
         };
-        // Sequence numbers 1 to 4; the second write (a best-effort one) has no origin.
+        // Sequence numbers 1, 2, 4, 5; the second write (a best-effort one) has no origin.
         write_from(&mut t, &w, 1, 1, t0, Some(origin(1)));
         write_from(&mut t, &w, 1, 2, t0, None);
+        skip();
         write_from(&mut t, &w, 1, 3, t0, Some(origin(3)));
         write_from(&mut t, &w, 1, 4, t0, Some(origin(4)));
         let g = guid(&w);
         assert_eq!(t.origin_of(&g, 1), Some(origin(1)));
         assert_eq!(t.origin_of(&g, 2), None);
-        assert_eq!(t.origin_of(&g, 3), Some(origin(3)));
-        assert_eq!(t.origin_of(&g, 4), Some(origin(4)));
-        assert_eq!(t.origin_of(&g, 5), None, "not written");
+        assert_eq!(t.origin_of(&g, 3), None, "the failed write");
+        assert_eq!(t.origin_of(&g, 4), Some(origin(3)));
+        assert_eq!(t.origin_of(&g, 5), Some(origin(4)));
+        assert_eq!(t.origin_of(&g, 6), None, "not written");
+        assert_eq!(t.origin_of(&g, 0), None, "no number");
+        assert_eq!(t.origin_of(&g, -1), None);
         assert_eq!(
             t.origin_of(&[7; 16], 1),
             None,
@@ -518,11 +529,11 @@ mod tests {
         let first = STAMP.with(Cell::get) - 3;
         let _ = t.poll(t0, |_| first + 1);
         assert_eq!(t.origin_of(&g, 1), None);
-        assert_eq!(t.origin_of(&g, 3), Some(origin(3)));
+        assert_eq!(t.origin_of(&g, 4), Some(origin(3)));
         // Everything acknowledged: the writer is forgotten.
         w.ack_all();
         let _ = t.poll(t0 + ACK_POLL_PERIOD, |_| u64::MAX);
-        assert_eq!(t.origin_of(&g, 4), None);
+        assert_eq!(t.origin_of(&g, 5), None);
         assert!(t.by_guid.is_empty());
     }
 }

@@ -547,6 +547,51 @@ fn a_resent_write_the_read_delivered_before_the_worker_died_is_not_delivered_aga
     drop((rig, second));
 }
 
+/// A reader deleted and created again under the same id is another reader (it may get the
+/// samples again from DDS history): what the first one delivered does not hold back a
+/// resent write's sample from the second.
+#[test]
+fn a_reader_created_again_gets_a_resent_write_its_predecessor_delivered() {
+    let (first, mut rig, rd, read) = Rig::reading(41);
+    let key = rig.client.config().key;
+    let origin = |resent: bool| {
+        Some(SampleOrigin {
+            write: WriteOrigin {
+                frontend: 9,
+                incarnation: 1,
+                write: 6,
+                index: 0,
+            },
+            resent,
+        })
+    };
+    let identity = |writer: u8| SampleIdentity {
+        writer: [writer; 16],
+        sequence_number: 1,
+    };
+    first.sample_from(key, rd, read, identity(1), origin(false), &[60]);
+    rig.run(&[&first], |r, _| r.first_bytes_delivered().len() == 1);
+    rig.client.delete(Instant::now(), rd).expect("delete");
+    let sb = ObjectId::new(1, k::SUBSCRIBER);
+    rig.create(rd, k::DATAREADER, "<dds/>", VariantExtra::Parent(sb));
+    rig.client
+        .read(Instant::now(), rd, unlimited_read())
+        .expect("read again");
+    rig.run(&[&first], |_, s| s.iter().any(|m| is(m, "Read")));
+    drop(first);
+    let second = FakeWorker::start(42);
+    let read = rig.read_replayed_on(&second);
+    second.sample_from(key, rd, read, identity(2), origin(true), &[60]);
+    rig.run(&[&second], |r, _| r.first_bytes_delivered().len() >= 2);
+    assert_eq!(
+        rig.first_bytes_delivered(),
+        [60, 60],
+        "the new reader's lost"
+    );
+    assert_eq!(rig.relay.stats().resent_samples_already_delivered, 0);
+    drop((rig, second));
+}
+
 #[test]
 fn a_write_its_readers_acknowledged_is_not_resent_to_a_new_worker() {
     let first = FakeWorker::start(21);

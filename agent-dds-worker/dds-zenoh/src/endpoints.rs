@@ -233,6 +233,10 @@ impl DdsWriter for Writer {
     fn writes(&self) -> u64 {
         u64::try_from(self.seq.get()).unwrap_or(0)
     }
+    fn last_sequence_number(&self) -> Option<i64> {
+        // The number in the attachment, which the agent's own subscribers see.
+        Some(self.seq.get())
+    }
     fn acknowledged_writes(&self) -> u64 {
         self.writes()
     }

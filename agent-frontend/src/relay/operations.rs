@@ -104,6 +104,8 @@ impl<L: Link> Relay<L> {
                         let children: Vec<ObjectId> =
                             replaced.iter().copied().filter(|r| *r != id).collect();
                         self.object_budget.removed(client, &children);
+                        // A reader created again is another read's.
+                        self.delivered_origins.forget_objects(client, &replaced);
                         // Writes a client sent to the id before it existed must not go to
                         // the new object either.
                         replaced.push(id);
@@ -135,6 +137,7 @@ impl<L: Link> Relay<L> {
                     .map(|g| g.remove(request.object_id))
                     .unwrap_or_default();
                 self.object_budget.removed(client, &removed);
+                self.delivered_origins.forget_objects(client, &removed);
                 self.objects_changed.insert(client);
                 if !removed.is_empty() {
                     self.drop_waiting_writes(client, Some(&removed));

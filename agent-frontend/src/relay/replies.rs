@@ -102,6 +102,8 @@ impl<L: Link> Relay<L> {
                         if waited.is_some_and(|w| w.2 == PendingKind::Create) {
                             let removed = g.remove(h.object_id);
                             self.object_budget.removed(h.client_key, &removed);
+                            self.delivered_origins
+                                .forget_objects(h.client_key, &removed);
                         } else if g
                             .read_mut(h.object_id)
                             .is_some_and(|r| r.request_id == h.request_id)
@@ -159,10 +161,6 @@ impl<L: Link> Relay<L> {
                         }
                         (a.spec.preferred_stream_id, a.spec.data_format, a.delivered)
                     });
-                if let (true, Some(o)) = (of_a_read, sample.origin) {
-                    self.delivered_origins
-                        .record(h.client_key, h.object_id, o.write);
-                }
                 let mut state = 0;
                 if sample.disposed {
                     state |= sample_state::INSTANCE_DISPOSED;
@@ -184,14 +182,24 @@ impl<L: Link> Relay<L> {
                     state,
                     sequence_number,
                 };
+                let mut sent = false;
                 for _ in 0..fault_copies(h.object_id) {
-                    if let Err(e) = agent.send_data(now, h.client_key, stream, reply) {
-                        // A full output queue is counted by the core (output_queue_full).
-                        if e != xrce_common::session::agent::SendError::QueueFull {
-                            self.stats.samples_dropped += 1;
+                    match agent.send_data(now, h.client_key, stream, reply) {
+                        Ok(_) => sent = true,
+                        Err(e) => {
+                            // A full output queue is counted by the core (output_queue_full).
+                            if e != xrce_common::session::agent::SendError::QueueFull {
+                                self.stats.samples_dropped += 1;
+                            }
+                            tracing::debug!(client = %h.client_key, error = %e, "sample not delivered");
                         }
-                        tracing::debug!(client = %h.client_key, error = %e, "sample not delivered");
                     }
+                }
+                // Remembered once the client's session holds it: a resend of a sample it
+                // could not take is delivered.
+                if let (true, true, Some(o)) = (sent, of_a_read, sample.origin) {
+                    self.delivered_origins
+                        .record(h.client_key, h.object_id, o.write);
                 }
                 let congested = agent
                     .output_backlog(h.client_key, stream)

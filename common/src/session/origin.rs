@@ -40,7 +40,8 @@ pub const MAX_REMEMBERED_DELIVERIES: usize = 16_384;
 type Delivery = (ClientKey, ObjectId, WriteOrigin);
 
 /// The origins of the samples a front-end's reads delivered last, at most
-/// [`MAX_REMEMBERED_DELIVERIES`] over all of them (about 1 MiB), so that a client that makes
+/// [`MAX_REMEMBERED_DELIVERIES`] over all of them (32 bytes each, about 1.5 MiB with the
+/// index), so that a client that makes
 /// many reads makes the front-end hold no more. Kept in memory only: a subscriber's
 /// front-end that dies with the worker may deliver a resent sample again.
 #[derive(Debug, Clone, Default)]
@@ -71,11 +72,21 @@ impl DeliveredOrigins {
         self.known.contains(&(client, reader, *origin))
     }
 
-    /// Forgets `client`'s deliveries (its session ended).
+    /// Forgets `client`'s deliveries (its session ended, or began again).
     pub fn forget_client(&mut self, client: ClientKey) {
-        if self.order.iter().any(|d| d.0 == client) {
-            self.order.retain(|d| d.0 != client);
-            self.known.retain(|d| d.0 != client);
+        self.forget(|d| d.0 == client);
+    }
+
+    /// Forgets the deliveries to `client`'s `objects` (deleted, or replaced: a reader made
+    /// again under the same id is another reader, which may get those samples from DDS).
+    pub fn forget_objects(&mut self, client: ClientKey, objects: &[ObjectId]) {
+        self.forget(|d| d.0 == client && objects.contains(&d.1));
+    }
+
+    fn forget(&mut self, doomed: impl Fn(&Delivery) -> bool) {
+        if self.order.iter().any(&doomed) {
+            self.order.retain(|d| !doomed(d));
+            self.known.retain(|d| !doomed(d));
         }
     }
 
@@ -135,8 +146,15 @@ mod tests {
             "the oldest forgotten"
         );
         assert!(d.contains(CLIENT, READER, &origin(7, 1)));
+        d.record(CLIENT, other_reader, origin(7, 0));
+        d.forget_objects(CLIENT, &[READER]);
+        assert!(
+            !d.contains(CLIENT, READER, &origin(7, 1)),
+            "its reader deleted"
+        );
+        assert!(d.contains(CLIENT, other_reader, &origin(7, 0)));
         d.forget_client(CLIENT);
-        assert!(!d.contains(CLIENT, READER, &origin(7, 1)));
+        assert!(!d.contains(CLIENT, other_reader, &origin(7, 0)));
         assert_eq!(d.len(), MAX_REMEMBERED_DELIVERIES - 1);
     }
 }
