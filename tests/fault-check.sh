@@ -30,6 +30,7 @@ checks=(
   "client-drop      simulation::a_lossy_link_and_a_worker_crash_delay_samples_but_lose_and_repeat_none"
   "replay-skip      simulation::a_lossy_link_and_a_worker_crash_delay_samples_but_lose_and_repeat_none"
   "executed-ignored simulation::a_frontend_that_dies_between_handing_over_and_storing_repeats_no_write"
+  "origin-ignored   simulation::a_worker_that_dies_between_delivering_a_sample_and_acknowledging_its_write_repeats_none"
 )
 
 only=${1:-}

@@ -30,11 +30,14 @@ pub enum Fault {
     ReplaySkip,
     /// A front-end that took over ignores what the worker executed for its predecessor.
     ExecutedIgnored,
+    /// A front-end delivers a resent write's sample that its read had delivered (ignores
+    /// the write's origin).
+    OriginIgnored,
 }
 
 impl Fault {
     /// Every fault, in the order `tests/fault-check.sh` runs them.
-    pub const ALL: [Fault; 8] = [
+    pub const ALL: [Fault; 9] = [
         Fault::DdsDuplicate,
         Fault::DdsDrop,
         Fault::ClientDuplicate,
@@ -43,6 +46,7 @@ impl Fault {
         Fault::HeartbeatFixed,
         Fault::ReplaySkip,
         Fault::ExecutedIgnored,
+        Fault::OriginIgnored,
     ];
 
     /// The name `XRCE_FAULT` takes.
@@ -56,6 +60,7 @@ impl Fault {
             Fault::HeartbeatFixed => "heartbeat-fixed",
             Fault::ReplaySkip => "replay-skip",
             Fault::ExecutedIgnored => "executed-ignored",
+            Fault::OriginIgnored => "origin-ignored",
         }
     }
 
@@ -75,7 +80,7 @@ impl fmt::Display for Fault {
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
 pub enum FaultError {
     /// The name is not one of [`Fault::ALL`].
-    #[error("XRCE_FAULT={0}: no such fault (known: dds-duplicate, dds-drop, client-duplicate, client-drop, reply-duplicate, heartbeat-fixed, replay-skip, executed-ignored)")]
+    #[error("XRCE_FAULT={0}: no such fault (known: dds-duplicate, dds-drop, client-duplicate, client-drop, reply-duplicate, heartbeat-fixed, replay-skip, executed-ignored, origin-ignored)")]
     Unknown(String),
     /// The binary was built without the feature `fault-injection`.
     #[error(

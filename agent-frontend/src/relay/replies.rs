@@ -140,6 +140,7 @@ impl<L: Link> Relay<L> {
                     // died before the write's publisher heard that it was taken).
                     if sample.origin.is_some_and(|o| {
                         o.resent
+                            && !fault::hit(Fault::OriginIgnored, 1)
                             && self
                                 .delivered_origins
                                 .contains(h.client_key, h.object_id, &o.write)
