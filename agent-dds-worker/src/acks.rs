@@ -16,6 +16,11 @@
 //! backends that deliver to the worker's own readers inside the write call (Cyclone DDS, the
 //! RustDDS backend's in-process delivery); with Zenoh, or RustDDS without that delivery, a
 //! reader may be drained before a sample reaches it, and the write counts as taken.
+//!
+//! An outstanding write also knows the client write it came from (its origin) and the
+//! sequence number its DDS writer gave it: a sample one of the worker's readers takes from
+//! one of its writers is looked up by writer GUID and number ([`AckTracker::origin_of`]), so
+//! that the subscriber's front-end can tell a write resent after a crash from a new one.
 
 use std::cell::RefCell;
 use std::collections::{HashMap, HashSet, VecDeque};

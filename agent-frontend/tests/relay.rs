@@ -446,7 +446,21 @@ fn a_new_worker_gets_the_objects_in_order_then_the_reads_then_the_retained_write
     assert!(pos("Write") > pos("Read"), "{kinds:?}");
     assert_eq!(rig.relay.stats().replays, 2);
     assert!(rig.relay.stats().writes_resent >= 1);
-    drop((rig, second));
+    // Not acknowledged by the second worker either: resent to a third, it still names its
+    // first send.
+    drop(second);
+    let third = FakeWorker::start(13);
+    let again = rig.run(&[&third], |_, s| s.iter().any(|m| is(m, "Write")));
+    let write = again
+        .iter()
+        .find(|m| is(m, "Write"))
+        .expect("the retained write resent again");
+    assert!(
+        matches!(write.request, Request::Write { resend_of: Some(n), .. } if n == first_write.route.op_seq),
+        "{:?}",
+        write.request
+    );
+    drop((rig, third));
 }
 
 #[test]

@@ -250,8 +250,10 @@ pub trait DdsWriter {
     fn all_acknowledged(&self) -> bool;
     /// How many writes (samples and disposes that succeeded) it made since its creation.
     fn writes(&self) -> u64;
-    /// The sequence number its last successful write or dispose got, as its readers in this
-    /// process see it in [`Taken::identity`]; `None` where the backend cannot tell.
+    /// The sequence number of the write or dispose it made last, as its readers in this
+    /// process see it in [`Taken::identity`] (the worker asks right after one that
+    /// succeeded: a backend may count failed attempts too); `None` where the backend cannot
+    /// tell. The worker tells by it which client write a sample it takes came from.
     fn last_sequence_number(&self) -> Option<i64> {
         None
     }

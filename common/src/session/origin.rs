@@ -164,24 +164,29 @@ mod tests {
         assert!(!d.contains(CLIENT, READER, &other_process));
         let other_reader = ObjectId::new(2, crate::wire::object_kind::DATAREADER);
         assert!(!d.contains(CLIENT, other_reader, &origin(7, 0)));
-        for w in 100..100 + MAX_REMEMBERED_DELIVERIES as u64 - 1 {
+        d.record(CLIENT, other_reader, origin(7, 0));
+        // Full, nothing forgotten yet; one more and the oldest goes.
+        for w in 100..100 + MAX_REMEMBERED_DELIVERIES as u64 - 3 {
             d.record(ClientKey([9; 4]), READER, origin(w, 0));
         }
+        assert_eq!(d.len(), MAX_REMEMBERED_DELIVERIES);
+        assert!(d.contains(CLIENT, READER, &origin(7, 0)));
+        d.record(ClientKey([9; 4]), READER, origin(99, 0));
         assert_eq!(d.len(), MAX_REMEMBERED_DELIVERIES);
         assert!(
             !d.contains(CLIENT, READER, &origin(7, 0)),
             "the oldest forgotten"
         );
         assert!(d.contains(CLIENT, READER, &origin(7, 1)));
-        d.record(CLIENT, other_reader, origin(7, 0));
+        // The reader deleted: its deliveries go, the other reader's stay.
         d.forget_objects(CLIENT, &[READER]);
-        assert!(
-            !d.contains(CLIENT, READER, &origin(7, 1)),
-            "its reader deleted"
-        );
-        assert!(d.contains(CLIENT, other_reader, &origin(7, 0)));
-        d.forget_client(CLIENT);
-        assert!(!d.contains(CLIENT, other_reader, &origin(7, 0)));
         assert_eq!(d.len(), MAX_REMEMBERED_DELIVERIES - 1);
+        assert!(!d.contains(CLIENT, READER, &origin(7, 1)));
+        assert!(d.contains(CLIENT, other_reader, &origin(7, 0)));
+        // The session ended: the rest of the client's go.
+        d.forget_client(CLIENT);
+        assert_eq!(d.len(), MAX_REMEMBERED_DELIVERIES - 2);
+        assert!(!d.contains(CLIENT, other_reader, &origin(7, 0)));
+        assert!(d.contains(ClientKey([9; 4]), READER, &origin(99, 0)));
     }
 }

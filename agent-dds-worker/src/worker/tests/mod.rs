@@ -11,6 +11,7 @@ use xrce_common::wire::{DataDeliveryControl, Representation};
 mod domains;
 mod filters;
 mod link;
+mod origins;
 mod progress;
 mod services;
 
