@@ -2,7 +2,11 @@
 //! published it, so the relay keeps every write that came on a reliable stream until the
 //! worker executed it and every matched reliable DDS reader of its writer acknowledged it,
 //! or [`SETTLE_TIME`] passed since its execution (a reader that never acknowledges does not
-//! keep it for ever). Only writes still kept at a worker crash are sent to the new worker.
+//! keep it for ever) and the worker was heard from after that (a worker that died within the
+//! settle time, before its readers took the write, must not take it with it: the front-end
+//! learns of the death only when the next worker announces itself, seconds later under a
+//! supervisor's back-off). Only writes still kept at a worker crash are sent to the new
+//! worker.
 
 use std::collections::VecDeque;
 use std::time::Instant;
@@ -37,6 +41,8 @@ pub(super) struct Retention {
     /// Every write up to this operation was acknowledged by the readers of its DDS writer
     /// (reported by the worker; only rises).
     acknowledged: u64,
+    /// When the worker last reported progress: it was alive then.
+    heard_at: Option<Instant>,
 }
 
 impl Retention {
@@ -45,6 +51,7 @@ impl Retention {
             queue: ByteQueue::default(),
             max_bytes,
             acknowledged: 0,
+            heard_at: None,
         }
     }
 
@@ -73,6 +80,7 @@ impl Retention {
     /// The worker executed every operation up to `executed`, and the DDS readers
     /// acknowledged every write up to `acknowledged`.
     pub(super) fn progress(&mut self, now: Instant, executed: u64, acknowledged: u64) {
+        self.heard_at = Some(now);
         self.acknowledged = self.acknowledged.max(acknowledged.min(executed));
         for r in self.queue.iter_mut() {
             if r.seq > executed {
@@ -82,7 +90,8 @@ impl Retention {
         }
     }
 
-    /// Releases the writes that were acknowledged, or executed [`SETTLE_TIME`] ago.
+    /// Releases the writes that were acknowledged, or executed [`SETTLE_TIME`] ago by a
+    /// worker heard from since.
     pub(super) fn settle(&mut self, now: Instant, stats: &mut RelayStats) {
         while let Some(r) = self.queue.front() {
             let acknowledged = r.seq <= self.acknowledged && r.executed_at.is_some();
@@ -91,7 +100,10 @@ impl Retention {
                     self.queue.pop_front();
                     stats.writes_acknowledged += 1;
                 }
-                Some(t) if now.saturating_duration_since(t) >= SETTLE_TIME => {
+                Some(t)
+                    if now.saturating_duration_since(t) >= SETTLE_TIME
+                        && self.heard_at.is_some_and(|h| h >= t + SETTLE_TIME) =>
+                {
                     self.queue.pop_front();
                     stats.writes_settled_unacknowledged += 1;
                 }
@@ -100,16 +112,22 @@ impl Retention {
         }
     }
 
-    /// When the oldest executed write is released at the latest.
+    /// When the oldest executed write is released at the latest, if the worker is heard
+    /// from by then (otherwise the next progress releases it: no timer waits for that).
     pub(super) fn deadline(&self) -> Option<Instant> {
-        self.queue
+        let settled = self
+            .queue
             .front()
             .and_then(|r| r.executed_at)
-            .map(|t| t + SETTLE_TIME)
+            .map(|t| t + SETTLE_TIME)?;
+        self.heard_at
+            .is_some_and(|h| h >= settled)
+            .then_some(settled)
     }
 
     /// Every write kept, oldest first, for a new worker (which executed none of them).
     pub(super) fn take(&mut self) -> VecDeque<Retained> {
+        self.heard_at = None;
         self.queue.take()
     }
 }

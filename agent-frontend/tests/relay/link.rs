@@ -138,10 +138,12 @@ fn creations_a_dead_worker_did_not_answer_are_answered_once_by_its_successor() {
     }
 }
 
-/// Time is the caller's: an executed write no DDS reader acknowledges is released exactly
-/// [`SETTLE_TIME`] after the worker reported it executed, whatever the wall clock says.
+/// Time is the caller's: an executed write no DDS reader acknowledges is released
+/// [`SETTLE_TIME`] after the worker reported it executed, whatever the wall clock says, once
+/// the worker was heard from after that; a worker silent since (it may have died before its
+/// readers took the write) leaves it kept for a resend.
 #[test]
-fn an_unacknowledged_write_is_released_after_the_settle_time_on_the_callers_clock() {
+fn an_unacknowledged_write_is_released_after_the_settle_time_once_the_worker_is_heard_from() {
     use xrce_frontend::relay::SETTLE_TIME;
     let worker = FakeWorker::start(45);
     let mut rig = Rig::connected(&worker, 45);
@@ -149,17 +151,45 @@ fn an_unacknowledged_write_is_released_after_the_settle_time_on_the_callers_cloc
     rig.run(&[&worker], |_, s| {
         s.iter().filter(|m| is(m, "Create")).count() == 4
     });
+    let before = Instant::now();
     reliable_write(&mut rig, w, b"kept");
-    rig.run(&[&worker], |r, s| {
-        s.iter().any(|m| is(m, "Write")) && r.relay.poll_timeout(Instant::now()).is_some()
-    });
-    let now = Instant::now();
-    let release = rig.relay.poll_timeout(now).expect("a settle deadline");
-    assert!(release > now && release <= now + SETTLE_TIME, "{release:?}");
-    rig.relay
-        .after_replies(release - Duration::from_millis(1), &mut rig.agent);
+    let served = rig.run(&[&worker], |_, s| s.iter().any(|m| is(m, "Write")));
+    let write = served
+        .iter()
+        .find(|m| is(m, "Write"))
+        .expect("the write")
+        .route;
+    let executed = Instant::now();
+    // No word from the worker since: kept, however late, and no timer waits for it.
+    let late = executed + 10 * SETTLE_TIME;
+    rig.relay.after_replies(late, &mut rig.agent);
     assert_eq!(rig.relay.stats().writes_settled_unacknowledged, 0);
-    rig.relay.after_replies(release, &mut rig.agent);
+    assert_eq!(rig.relay.poll_timeout(executed), None);
+    // The worker reports progress (nothing acknowledged) before the settle time: kept.
+    let progress = |last: u64| {
+        let route = Route {
+            op_seq: last,
+            generation: 45,
+            ..Route::default()
+        };
+        ReplyMessage::new(
+            route,
+            Reply::Progress {
+                executed: last,
+                acknowledged: 0,
+            },
+        )
+        .encode()
+    };
+    let early = before + SETTLE_TIME - Duration::from_millis(1);
+    rig.relay
+        .handle_reply(early, &progress(write.op_seq), &mut rig.agent);
+    rig.relay.after_replies(early, &mut rig.agent);
+    assert_eq!(rig.relay.stats().writes_settled_unacknowledged, 0);
+    // Heard from once the settle time passed: released.
+    rig.relay
+        .handle_reply(late, &progress(write.op_seq), &mut rig.agent);
+    rig.relay.after_replies(late, &mut rig.agent);
     assert_eq!(rig.relay.stats().writes_settled_unacknowledged, 1);
-    assert_eq!(rig.relay.poll_timeout(release), None);
+    assert_eq!(rig.relay.poll_timeout(late), None);
 }
