@@ -159,30 +159,24 @@ impl<'a> RequestMessage<'a> {
             },
             kind::DELETE => empty(Request::Delete)?,
             kind::WRITE => {
+                // A body too short for what its flags say it holds.
+                let whole = body.len();
+                let short = || IpcError::Body {
+                    kind: h.kind,
+                    len: whole,
+                };
                 let (received, body) =
-                    body.split_first_chunk::<RECEIVED_LEN>()
-                        .ok_or(IpcError::Body {
-                            kind: h.kind,
-                            len: body.len(),
-                        })?;
+                    body.split_first_chunk::<RECEIVED_LEN>().ok_or_else(short)?;
                 let (position, data) = if has(flag::POSITION) {
-                    let (p, data) =
-                        body.split_first_chunk::<POSITION_LEN>()
-                            .ok_or(IpcError::Body {
-                                kind: h.kind,
-                                len: body.len(),
-                            })?;
+                    let (p, data) = body.split_first_chunk::<POSITION_LEN>().ok_or_else(short)?;
                     (Some(read_position(p)), data)
                 } else {
                     (None, body)
                 };
                 let (resend_of, data) = if has(flag::REPLAY) {
-                    let (first, data) =
-                        data.split_first_chunk::<RESEND_OF_LEN>()
-                            .ok_or(IpcError::Body {
-                                kind: h.kind,
-                                len: body.len(),
-                            })?;
+                    let (first, data) = data
+                        .split_first_chunk::<RESEND_OF_LEN>()
+                        .ok_or_else(short)?;
                     (Some(u64::from_le_bytes(*first)), data)
                 } else {
                     (None, data)
